@@ -1,0 +1,41 @@
+// Shared helpers of the bindings: numpy array conventions, GIL release with Ctrl-C polling,
+// and SolveInfo conversion. Zero-copy: arrays are accepted as C-contiguous float64/int64
+// (the Python layer converts once, with np.ascontiguousarray), never copied again here.
+#pragma once
+
+#include <pybind11/numpy.h>
+#include <pybind11/pybind11.h>
+#include <pybind11/stl.h>
+
+#include <string>
+#include <vector>
+
+#include "core/interrupt.h"
+#include "core/types.h"
+#include "linalg/solve_info.h"
+
+namespace kinema::bind {
+
+namespace py = pybind11;
+
+using ScalarArray = py::array_t<Scalar, py::array::c_style>;
+using IndexArray = py::array_t<Index, py::array::c_style>;
+
+// An Interrupt whose poll briefly takes the GIL and runs Python's signal handlers, so that
+// Ctrl-C stops a GIL-released computation within about 0.1 s.
+inline Interrupt python_interrupt() {
+  return Interrupt([] {
+    py::gil_scoped_acquire gil;
+    return PyErr_CheckSignals() != 0;
+  });
+}
+
+// The Python-side SolveInfo class lives in kinema/_info.py; build one from the C++ record.
+inline py::object to_python(const SolveInfo& info) {
+  return py::module_::import("kinema._info").attr("SolveInfo")(
+      info.iterations, info.residual, info.converged, info.history, info.seconds);
+}
+
+std::vector<Index> shape_of(const py::array& a);
+
+}  // namespace kinema::bind

@@ -1,0 +1,78 @@
+// The single extension module kinema._core, one submodule per method. Users never import it
+// directly: python/kinema/ wraps it with argument checking and documentation.
+#include <pybind11/pybind11.h>
+
+#include "bindings/common.h"
+#include "core/build_info.h"
+#include "core/errors.h"
+#include "core/parallel.h"
+
+namespace py = pybind11;
+
+namespace kinema::bind {
+
+void bind_sparse(py::module_& m);
+void bind_poisson(py::module_& m);
+void bind_diffusion(py::module_& m);
+
+std::vector<Index> shape_of(const py::array& a) {
+  return std::vector<Index>(a.shape(), a.shape() + a.ndim());
+}
+
+namespace {
+
+// Raises the Python class kinema.errors.<name> with the given message. The classes are defined
+// in Python so they can inherit from both KinemaError and ValueError.
+void raise(const char* name, const char* message, py::object column = py::none()) {
+  py::object cls = py::module_::import("kinema.errors").attr(name);
+  py::object exc = cls(message);
+  if (!column.is_none()) exc.attr("column") = column;
+  PyErr_SetObject(cls.ptr(), exc.ptr());
+}
+
+void translate_exceptions() {
+  py::register_exception_translator([](std::exception_ptr p) {
+    try {
+      if (p) std::rethrow_exception(p);
+    } catch (const Interrupted&) {
+      // Python's own handler already set KeyboardInterrupt when PyErr_CheckSignals failed.
+      if (!PyErr_Occurred()) PyErr_SetNone(PyExc_KeyboardInterrupt);
+    } catch (const NotPositiveDefinite& e) {
+      raise("NotPositiveDefiniteError", e.what(), py::int_(e.column));
+    } catch (const StabilityError& e) {
+      raise("StabilityError", e.what());
+    } catch (const ConvergenceError& e) {
+      raise("ConvergenceError", e.what());
+    } catch (const DivergenceError& e) {
+      raise("DivergenceError", e.what());
+    } catch (const KinemaError& e) {
+      raise("KinemaError", e.what());
+    } catch (const InvalidArgument& e) {
+      PyErr_SetString(PyExc_ValueError, e.what());
+    }
+  });
+}
+
+}  // namespace
+
+}  // namespace kinema::bind
+
+PYBIND11_MODULE(_core, m) {
+  using namespace kinema;
+  m.doc() = "kinema's compiled core; use the kinema package, not this module.";
+  bind::translate_exceptions();
+
+  m.def("set_num_threads", [](int n) {
+    if (n < 1) throw InvalidArgument("n: expected a thread count >= 1, got " + std::to_string(n));
+    set_num_threads(n);
+  });
+  m.def("get_num_threads", &num_threads);
+  m.def("build_info", &build_info);
+
+  auto sparse = m.def_submodule("sparse");
+  bind::bind_sparse(sparse);
+  auto poisson = m.def_submodule("poisson");
+  bind::bind_poisson(poisson);
+  auto diffusion = m.def_submodule("diffusion");
+  bind::bind_diffusion(diffusion);
+}

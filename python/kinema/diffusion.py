@@ -1,0 +1,1 @@
+"""km.diffusion (in progress)."""

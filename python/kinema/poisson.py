@@ -1,0 +1,1 @@
+"""km.poisson (in progress)."""

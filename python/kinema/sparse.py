@@ -1,0 +1,1 @@
+"""km.sparse (in progress)."""

@@ -1,0 +1,23 @@
+#!/usr/bin/env bash
+# Runs kinema's whole test suite: pytest, then the C++ GoogleTest suite through CTest.
+# Installs what it needs first (scripts/setup.sh). Options:
+#   --slow   also run the tests marked slow (refinement sweeps, big grids)
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bash scripts/setup.sh
+
+marker=(-m "not slow")
+[ "${1:-}" = "--slow" ] && marker=()
+
+status=0
+echo "== pytest"
+# Run from tests/ against the installed package, not the source tree.
+.venv/bin/python -m pytest "${marker[@]}" tests || status=$?
+
+echo "== C++ tests (GoogleTest via CTest)"
+cmake -S . -B build/ctest -DCMAKE_BUILD_TYPE=Release -DKINEMA_BUILD_PYTHON=OFF \
+  -DKINEMA_BUILD_TESTS=ON >/dev/null
+cmake --build build/ctest -j 2
+(cd build/ctest && ctest --output-on-failure -j 2) || status=$?
+
+exit $status
