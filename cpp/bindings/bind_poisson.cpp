@@ -1,7 +1,133 @@
+// kinema._core.poisson: the grid Poisson solver object behind km.poisson.
+#include <cstdint>
+#include <optional>
+
 #include "bindings/common.h"
+#include "grid/poisson_solver.h"
 
 namespace kinema::bind {
 
-void bind_poisson(py::module_& m) { (void)m; }
+namespace {
+
+Boundary parse_bc(const std::string& bc) {
+  if (bc == "dirichlet") return Boundary::Dirichlet;
+  if (bc == "neumann") return Boundary::Neumann;
+  throw InvalidArgument("bc: expected 'dirichlet' or 'neumann', got '" + bc + "'");
+}
+
+// Owns the solver and a copy-free reference to nothing else: the solid mask is read once.
+struct PySolver {
+  PySolver(const std::vector<Index>& shape, Scalar h, const std::string& bc,
+           std::optional<py::array_t<std::uint8_t, py::array::c_style>> solid, Scalar shift,
+           const std::string& method, int pre_smooth, int post_smooth)
+      : shape_(shape), user_shape_(shape) {
+    PoissonConfig config;
+    config.method = parse_poisson_method(method);
+    config.multigrid.pre_smooth = pre_smooth;
+    config.multigrid.post_smooth = post_smooth;
+    if (pre_smooth < 0 || post_smooth < 0 || pre_smooth + post_smooth < 1)
+      throw InvalidArgument("pre_smooth, post_smooth: expected counts >= 0 with a positive sum");
+    const std::uint8_t* mask = nullptr;
+    if (solid) {
+      if (solid->size() != shape_.size())
+        throw InvalidArgument("solid: expected one flag per cell");
+      mask = solid->data();
+    }
+    py::gil_scoped_release release;
+    solver_ = std::make_unique<PoissonSolver>(shape_, h, parse_bc(bc), mask, shift, config);
+  }
+
+  py::object solve(py::array b, py::array x, Scalar tol, Index max_iter) {
+    const Index n = shape_.size();
+    const Scalar* bp = checked_data(b, "f", n, false);
+    Scalar* xp = checked_data(x, "x0", n, true);
+    IterativeOptions options{tol, max_iter};
+    SolveInfo info;
+    {
+      Interrupt interrupt = python_interrupt();
+      py::gil_scoped_release release;
+      info = solver_->solve(bp, xp, options, interrupt);
+    }
+    return to_python(info);
+  }
+
+  py::array_t<Scalar> apply(py::array x, std::optional<py::array> b) {
+    const Index n = shape_.size();
+    const Scalar* xp = checked_data(x, "u", n, false);
+    const Scalar* bp = b ? checked_data(*b, "b", n, false) : nullptr;
+    std::vector<Scalar> y(n);
+    {
+      py::gil_scoped_release release;
+      if (bp) solver_->op().residual(bp, xp, y.data());
+      else solver_->op().apply(xp, y.data());
+    }
+    return to_numpy(std::move(y), user_shape_);
+  }
+
+  py::array_t<Scalar> vcycle(py::array b) {
+    Multigrid* mg = solver_->multigrid();
+    if (!mg) throw InvalidArgument("method: vcycle needs method 'multigrid' or 'mgpcg'");
+    const Index n = shape_.size();
+    const Scalar* bp = checked_data(b, "b", n, false);
+    std::vector<Scalar> x(n);
+    {
+      py::gil_scoped_release release;
+      mg->vcycle(bp, x.data());
+    }
+    return to_numpy(std::move(x), user_shape_);
+  }
+
+  void project(py::array x) {
+    Scalar* xp = checked_data(x, "x", shape_.size(), true);
+    py::gil_scoped_release release;
+    solver_->op().project(xp);
+  }
+
+  Scalar incompatibility(py::array b) {
+    const Scalar* bp = checked_data(b, "f", shape_.size(), false);
+    py::gil_scoped_release release;
+    return solver_->incompatibility(bp);
+  }
+
+  py::tuple assemble() {
+    CsrArrays A;
+    {
+      py::gil_scoped_release release;
+      A = solver_->op().assemble();
+    }
+    const Index nnz = static_cast<Index>(A.values.size());
+    return py::make_tuple(to_numpy(std::move(A.row_ptr), {A.rows + 1}),
+                          to_numpy(std::move(A.col_index), {nnz}),
+                          to_numpy(std::move(A.values), {nnz}));
+  }
+
+  GridShape shape_;
+  std::vector<Index> user_shape_;
+  std::unique_ptr<PoissonSolver> solver_;
+};
+
+}  // namespace
+
+void bind_poisson(py::module_& m) {
+  py::class_<PySolver>(m, "Solver")
+      .def(py::init<const std::vector<Index>&, Scalar, const std::string&,
+                    std::optional<py::array_t<std::uint8_t, py::array::c_style>>, Scalar,
+                    const std::string&, int, int>(),
+           py::arg("shape"), py::arg("h"), py::arg("bc"), py::arg("solid"), py::arg("shift"),
+           py::arg("method"), py::arg("pre_smooth"), py::arg("post_smooth"))
+      .def("solve", &PySolver::solve, py::arg("b"), py::arg("x"), py::arg("tol"), py::arg("max_iter"))
+      .def("apply", &PySolver::apply, py::arg("x"), py::arg("b") = py::none())
+      .def("vcycle", &PySolver::vcycle, py::arg("b"))
+      .def("project", &PySolver::project, py::arg("x"))
+      .def("incompatibility", &PySolver::incompatibility, py::arg("b"))
+      .def("assemble", &PySolver::assemble)
+      .def_property_readonly("levels", [](const PySolver& s) {
+        auto* mg = s.solver_->multigrid();
+        return mg ? mg->levels() : 1;
+      })
+      .def_property_readonly("singular", [](const PySolver& s) { return s.solver_->op().singular(); })
+      .def_property_readonly("fluid_count", [](const PySolver& s) { return s.solver_->op().fluid_count(); })
+      .def_property_readonly("default_max_iter", [](const PySolver& s) { return s.solver_->default_max_iter(); });
+}
 
 }  // namespace kinema::bind

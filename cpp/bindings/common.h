@@ -38,4 +38,17 @@ inline py::object to_python(const SolveInfo& info) {
 
 std::vector<Index> shape_of(const py::array& a);
 
+// The data of a C-contiguous float64 array of `size` elements (writable when `writable`), or a
+// ValueError naming `name`. Never converts: an in/out array must be the caller's own memory.
+Scalar* checked_data(py::array& a, const char* name, Index size, bool writable);
+
+// Hands a vector's buffer to numpy without copying; the array owns it through a capsule.
+template <class T>
+py::array_t<T> to_numpy(std::vector<T>&& v, const std::vector<Index>& shape) {
+  auto* owner = new std::vector<T>(std::move(v));
+  py::capsule capsule(owner, [](void* p) { delete static_cast<std::vector<T>*>(p); });
+  std::vector<py::ssize_t> dims(shape.begin(), shape.end());
+  return py::array_t<T>(dims, owner->data(), capsule);
+}
+
 }  // namespace kinema::bind

@@ -2,6 +2,8 @@
 // directly: python/kinema/ wraps it with argument checking and documentation.
 #include <pybind11/pybind11.h>
 
+#include <string>
+
 #include "bindings/common.h"
 #include "core/build_info.h"
 #include "core/errors.h"
@@ -17,6 +19,18 @@ void bind_diffusion(py::module_& m);
 
 std::vector<Index> shape_of(const py::array& a) {
   return std::vector<Index>(a.shape(), a.shape() + a.ndim());
+}
+
+Scalar* checked_data(py::array& a, const char* name, Index size, bool writable) {
+  if (!a.dtype().is(py::dtype::of<Scalar>()))
+    throw InvalidArgument(std::string(name) + ": expected a float64 array");
+  if (!(a.flags() & py::array::c_style))
+    throw InvalidArgument(std::string(name) + ": expected a C-contiguous array");
+  if (writable && !a.writeable()) throw InvalidArgument(std::string(name) + ": array is read-only");
+  if (a.size() != size)
+    throw InvalidArgument(std::string(name) + ": expected " + std::to_string(size) +
+                          " elements, got " + std::to_string(a.size()));
+  return static_cast<Scalar*>(a.mutable_data());
 }
 
 namespace {

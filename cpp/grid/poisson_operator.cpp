@@ -1,0 +1,344 @@
+#include "grid/poisson_operator.h"
+
+#include <algorithm>
+#include <string>
+
+#include "core/parallel.h"
+
+namespace kinema {
+
+PoissonOperator::PoissonOperator(const GridShape& shape, Scalar h, Boundary bc,
+                                 const std::uint8_t* solid, Scalar shift)
+    : shape_(shape), h_(h), inv_h2_(1 / (h * h)), shift_(shift), bc_(bc) {
+  if (!(h > 0)) throw InvalidArgument("h: expected a grid spacing > 0");
+  if (!(shift >= 0)) throw InvalidArgument("shift: expected a diagonal shift >= 0");
+  const Index n = shape_.size();
+  const auto& s = shape_.n;
+  mask_.assign(n, 0);
+  diag_.assign(n, 0);
+  parallel_for(n, [&](Index c) {
+    if (!solid || !solid[c]) mask_[c] = kFluidBit;
+  });
+  fluid_count_ = static_cast<Index>(parallel_sum(n, [&](Index c) { return fluid(c) ? 1.0 : 0.0; }));
+
+  // Couplings and diagonal counts, from each fluid cell's six faces (written to a copy, since
+  // neighbours read the fluid bits concurrently).
+  std::vector<std::uint8_t> mask = mask_;
+  parallel_for(shape_.rows(), [&](Index row) {
+    const Index i = row / s[1], j = row % s[1];
+    for (Index k = 0; k < s[2]; ++k) {
+      const Index c = shape_.index(i, j, k);
+      if (!fluid(c)) continue;
+      const Index idx[3] = {i, j, k};
+      std::uint8_t bits = kFluidBit, count = 0;
+      for (int axis = 0; axis < 3; ++axis) {
+        if (!shape_.active(axis)) continue;
+        const Index stride = shape_.stride(axis);
+        for (int side = 0; side < 2; ++side) {
+          const bool inside = side == 0 ? idx[axis] > 0 : idx[axis] + 1 < s[axis];
+          if (inside) {
+            const Index nb = side == 0 ? c - stride : c + stride;
+            if (mask_[nb] & kFluidBit) {
+              bits |= static_cast<std::uint8_t>(1u << (2 * axis + side));
+              ++count;
+            }
+          } else if (bc_ == Boundary::Dirichlet) {
+            count += 2;  // ghost value -u_c: (u_c - (-u_c)) / h^2
+          }
+        }
+      }
+      mask[c] = bits;
+      diag_[c] = count;
+    }
+  });
+  mask_.swap(mask);
+
+  // A row takes the plain stencil on its inner cells when it and its four (2D: two)
+  // neighbouring rows are all fluid and inside the domain.
+  const bool three_d = shape_.dim == 3;
+  row_fast_.assign(shape_.rows(), 0);
+  auto row_all_fluid = [&](Index i, Index j) {
+    const Index base = shape_.index(i, j, 0);
+    for (Index k = 0; k < s[2]; ++k)
+      if (!(mask_[base + k] & kFluidBit)) return false;
+    return true;
+  };
+  if (s[2] >= 3) {
+    parallel_for(shape_.rows(), [&](Index row) {
+      const Index i = row / s[1], j = row % s[1];
+      if (j == 0 || j + 1 == s[1]) return;
+      if (three_d && (i == 0 || i + 1 == s[0])) return;
+      bool ok = row_all_fluid(i, j) && row_all_fluid(i, j - 1) && row_all_fluid(i, j + 1);
+      if (ok && three_d) ok = row_all_fluid(i - 1, j) && row_all_fluid(i + 1, j);
+      row_fast_[row] = ok;
+    });
+  }
+
+  // Interior flags (the 3^d neighbourhood is fluid and inside): multigrid transfer fast path.
+  interior_.assign(n, 0);
+  parallel_for(shape_.rows(), [&](Index row) {
+    const Index i = row / s[1], j = row % s[1];
+    for (Index k = 0; k < s[2]; ++k) {
+      const Index idx[3] = {i, j, k};
+      bool ok = true;
+      for (int axis = 0; axis < 3 && ok; ++axis)
+        if (shape_.active(axis) && (idx[axis] == 0 || idx[axis] + 1 == s[axis])) ok = false;
+      const Index lo0 = three_d ? -1 : 0, hi0 = three_d ? 1 : 0;
+      for (Index a = lo0; a <= hi0 && ok; ++a)
+        for (Index b = -1; b <= 1 && ok; ++b)
+          for (Index d = -1; d <= 1 && ok; ++d)
+            ok = mask_[shape_.index(i + a, j + b, k + d)] & kFluidBit;
+      interior_[shape_.index(i, j, k)] = ok;
+    }
+  });
+
+  label_components();
+}
+
+// Connected components of the fluid cells through coupled faces; a component is singular when
+// none of its cells has a Dirichlet face and there is no shift.
+void PoissonOperator::label_components() {
+  singular_components_.clear();
+  component_.clear();
+  component_size_.clear();
+  if (shift_ > 0) return;
+  const Index n = size();
+  component_.assign(n, -1);
+  std::vector<Index> stack;
+  std::int32_t next = 0;
+  for (Index seed = 0; seed < n; ++seed) {
+    if (!fluid(seed) || component_[seed] >= 0) continue;
+    const std::int32_t id = next++;
+    bool has_dirichlet = false;
+    Index count = 0;
+    component_[seed] = id;
+    stack.push_back(seed);
+    while (!stack.empty()) {
+      const Index c = stack.back();
+      stack.pop_back();
+      ++count;
+      const std::uint8_t m = mask_[c];
+      int couplings = 0;
+      for (int dir = 0; dir < kDirections; ++dir) {
+        if (!(m & (1u << dir))) continue;
+        ++couplings;
+        const Index stride = shape_.stride(dir / 2);
+        const Index nb = (dir % 2) ? c + stride : c - stride;
+        if (component_[nb] < 0) {
+          component_[nb] = id;
+          stack.push_back(nb);
+        }
+      }
+      if (diag_[c] != couplings) has_dirichlet = true;
+    }
+    component_size_.push_back(count);
+    if (!has_dirichlet) singular_components_.push_back(id);
+  }
+  if (singular_components_.empty()) component_.clear();
+}
+
+std::vector<Index> PoissonOperator::singular_anchor_cells() const {
+  std::vector<Index> anchors;
+  if (!singular()) return anchors;
+  std::vector<char> seen(component_size_.size(), 0);
+  std::vector<char> is_singular(component_size_.size(), 0);
+  for (auto id : singular_components_) is_singular[id] = 1;
+  for (Index c = 0; c < size(); ++c) {
+    const auto id = component_[c];
+    if (id >= 0 && is_singular[id] && !seen[id]) {
+      seen[id] = 1;
+      anchors.push_back(c);
+    }
+  }
+  return anchors;
+}
+
+void PoissonOperator::project(Scalar* x) const {
+  const Index n = size();
+  if (!singular()) {
+    if (fluid_count_ < n) parallel_for(n, [&](Index c) { if (!fluid(c)) x[c] = 0; });
+    return;
+  }
+  if (singular_components_.size() == 1 && component_size_.size() == 1) {
+    // One component holding every fluid cell (pure Neumann): a parallel reproducible mean.
+    const Scalar mean = parallel_sum(n, [&](Index c) { return fluid(c) ? x[c] : 0.0; }) /
+                        static_cast<Scalar>(fluid_count_);
+    parallel_for(n, [&](Index c) { x[c] = fluid(c) ? x[c] - mean : 0; });
+    return;
+  }
+  std::vector<Scalar> sum(component_size_.size(), 0);
+  for (Index c = 0; c < n; ++c)
+    if (component_[c] >= 0) sum[component_[c]] += x[c];
+  std::vector<Scalar> mean(component_size_.size(), 0);
+  for (auto id : singular_components_) mean[id] = sum[id] / static_cast<Scalar>(component_size_[id]);
+  parallel_for(n, [&](Index c) { x[c] = component_[c] >= 0 ? x[c] - mean[component_[c]] : 0; });
+}
+
+inline Scalar PoissonOperator::neighbour_sum(const Scalar* x, Index c) const {
+  const std::uint8_t m = mask_[c];
+  const Index s0 = shape_.stride(0), s1 = shape_.stride(1);
+  Scalar sum = 0;
+  if (m & 0x01) sum += x[c - s0];
+  if (m & 0x02) sum += x[c + s0];
+  if (m & 0x04) sum += x[c - s1];
+  if (m & 0x08) sum += x[c + s1];
+  if (m & 0x10) sum += x[c - 1];
+  if (m & 0x20) sum += x[c + 1];
+  return sum;
+}
+
+// y = A x, or y = b - A x when b is given. Rows flagged fast run the plain (2d+1)-point
+// stencil on their inner cells, which the compiler vectorises; every other cell reads its mask.
+template <bool ThreeD>
+void PoissonOperator::apply_impl(const Scalar* x, Scalar* y, const Scalar* b) const {
+  const Index n2 = shape_.n[2], s0 = shape_.stride(0), s1 = shape_.stride(1);
+  const Scalar ih2 = inv_h2_;
+  const Scalar d_plain = shift_ + ih2 * (ThreeD ? 6 : 4);
+  auto masked = [&](Index c) -> Scalar {
+    if (!fluid(c)) return 0;
+    return diagonal(c) * x[c] - ih2 * neighbour_sum(x, c);
+  };
+#pragma omp parallel for schedule(static)
+  for (Index row = 0; row < shape_.rows(); ++row) {
+    const Index base = row * n2;
+    if (row_fast_[row]) {
+      y[base] = b ? b[base] - masked(base) : masked(base);
+      const Index last = base + n2 - 1;
+      if (b) {
+#pragma omp simd
+        for (Index c = base + 1; c < last; ++c) {
+          Scalar nb = x[c - s1] + x[c + s1] + x[c - 1] + x[c + 1];
+          if (ThreeD) nb += x[c - s0] + x[c + s0];
+          y[c] = b[c] - (d_plain * x[c] - ih2 * nb);
+        }
+      } else {
+#pragma omp simd
+        for (Index c = base + 1; c < last; ++c) {
+          Scalar nb = x[c - s1] + x[c + s1] + x[c - 1] + x[c + 1];
+          if (ThreeD) nb += x[c - s0] + x[c + s0];
+          y[c] = d_plain * x[c] - ih2 * nb;
+        }
+      }
+      y[last] = b ? b[last] - masked(last) : masked(last);
+    } else {
+      for (Index c = base; c < base + n2; ++c) {
+        const Scalar ax = masked(c);
+        y[c] = b ? (fluid(c) ? b[c] - ax : 0) : ax;
+      }
+    }
+  }
+}
+
+void PoissonOperator::apply(const Scalar* x, Scalar* y) const {
+  if (shape_.dim == 3) apply_impl<true>(x, y, nullptr);
+  else apply_impl<false>(x, y, nullptr);
+}
+
+void PoissonOperator::residual(const Scalar* b, const Scalar* x, Scalar* r) const {
+  if (shape_.dim == 3) apply_impl<true>(x, r, b);
+  else apply_impl<false>(x, r, b);
+}
+
+// Gauss-Seidel on one colour: x_c = (b_c + sum_nb x_nb / h^2) / diag_c. Cells of one colour only
+// couple to the other colour, so the update is parallel and independent of the thread count.
+template <bool ThreeD>
+void PoissonOperator::smooth_impl(const Scalar* b, Scalar* x, int color) const {
+  const Index n1 = shape_.n[1], n2 = shape_.n[2], s0 = shape_.stride(0), s1 = shape_.stride(1);
+  const Scalar ih2 = inv_h2_;
+  const Scalar inv_plain = 1 / (shift_ + ih2 * (ThreeD ? 6 : 4));
+  auto masked = [&](Index c) {
+    if (!fluid(c)) return;
+    const Scalar d = diagonal(c);
+    x[c] = d > 0 ? (b[c] + ih2 * neighbour_sum(x, c)) / d : 0;
+  };
+#pragma omp parallel for schedule(static)
+  for (Index row = 0; row < shape_.rows(); ++row) {
+    const Index i = row / n1, j = row % n1;
+    const Index base = row * n2;
+    const Index k0 = (i + j + color) & 1;  // first k of this colour in the row
+    if (row_fast_[row]) {
+      if (k0 == 0) masked(base);
+      const Index first = k0 == 0 ? 2 : 1;
+#pragma omp simd
+      for (Index k = first; k < n2 - 1; k += 2) {
+        const Index c = base + k;
+        Scalar nb = x[c - s1] + x[c + s1] + x[c - 1] + x[c + 1];
+        if (ThreeD) nb += x[c - s0] + x[c + s0];
+        x[c] = (b[c] + ih2 * nb) * inv_plain;
+      }
+      if (((n2 - 1) & 1) == k0) masked(base + n2 - 1);
+    } else {
+      for (Index k = k0; k < n2; k += 2) masked(base + k);
+    }
+  }
+}
+
+void PoissonOperator::smooth_color(const Scalar* b, Scalar* x, int color) const {
+  if (shape_.dim == 3) smooth_impl<true>(b, x, color);
+  else smooth_impl<false>(b, x, color);
+}
+
+void PoissonOperator::jacobi(const Scalar* b, const Scalar* x, Scalar* x_new, Scalar omega) const {
+  residual(b, x, x_new);
+  parallel_for(size(), [&](Index c) {
+    const Scalar d = fluid(c) ? diagonal(c) : 0;
+    x_new[c] = d > 0 ? x[c] + omega * x_new[c] / d : 0;
+  });
+}
+
+CsrArrays PoissonOperator::assemble() const {
+  const Index n = size();
+  CsrArrays A;
+  A.rows = n;
+  A.row_ptr.assign(n + 1, 0);
+  for (Index c = 0; c < n; ++c) {
+    Index count = 0;
+    if (fluid(c)) {
+      count = 1;
+      for (int dir = 0; dir < kDirections; ++dir) count += (mask_[c] >> dir) & 1;
+    }
+    A.row_ptr[c + 1] = A.row_ptr[c] + count;
+  }
+  A.col_index.resize(A.row_ptr[n]);
+  A.values.resize(A.row_ptr[n]);
+  // Column order within a row: -axis0, -axis1, -axis2, diagonal, +axis2, +axis1, +axis0.
+  static constexpr int kLower[3] = {0, 2, 4}, kUpper[3] = {5, 3, 1};
+  parallel_for(n, [&](Index c) {
+    if (!fluid(c)) return;
+    Index p = A.row_ptr[c];
+    const std::uint8_t m = mask_[c];
+    for (int dir : kLower)
+      if (m & (1u << dir)) {
+        A.col_index[p] = c - shape_.stride(dir / 2);
+        A.values[p++] = -inv_h2_;
+      }
+    A.col_index[p] = c;
+    A.values[p++] = diagonal(c);
+    for (int dir : kUpper)
+      if (m & (1u << dir)) {
+        A.col_index[p] = c + shape_.stride(dir / 2);
+        A.values[p++] = -inv_h2_;
+      }
+  });
+  return A;
+}
+
+PoissonOperator PoissonOperator::coarsened() const {
+  GridShape coarse = shape_;
+  for (int axis = 0; axis < 3; ++axis)
+    if (shape_.active(axis)) coarse.n[axis] = (shape_.n[axis] + 1) / 2;
+  const Index nc = coarse.size();
+  std::vector<std::uint8_t> solid(nc, 1);
+  const auto& s = shape_.n;
+  // A coarse cell is fluid when any child is (children 2I and 2I+1 per active axis).
+  for (Index i = 0; i < s[0]; ++i)
+    for (Index j = 0; j < s[1]; ++j)
+      for (Index k = 0; k < s[2]; ++k)
+        if (fluid(shape_.index(i, j, k))) {
+          const Index ci = shape_.active(0) ? i / 2 : i;
+          solid[coarse.index(ci, j / 2, k / 2)] = 0;
+        }
+  return PoissonOperator(coarse, 2 * h_, bc_, solid.data(), shift_);
+}
+
+}  // namespace kinema

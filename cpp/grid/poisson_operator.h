@@ -1,0 +1,86 @@
+// The cell-centred finite-volume operator A = shift*I - lap_h of kinema's Poisson and diffusion
+// solvers, on a 2D or 3D grid with spacing h:
+//   (A u)_c = shift*u_c + sum over the faces f of c of (u_c - u_nb(f)) / h^2,
+// where a face to a fluid neighbour couples the two cells, a Dirichlet boundary face uses the
+// ghost value u_nb = -u_c (u = 0 on the face), and a Neumann boundary face or a face to a solid
+// cell carries no flux. Solid cells are excluded: (A u)_c = 0 there. The operator is symmetric
+// and positive semi-definite; it is singular (constants per component) only for a fluid
+// component that touches no Dirichlet face while shift == 0. McAdams, Sifakis & Teran,
+// "A parallel multigrid Poisson solver for fluids simulation on large grids", SCA 2010, Sec. 3.
+#pragma once
+
+#include <cstdint>
+#include <vector>
+
+#include "grid/grid.h"
+
+namespace kinema {
+
+// CSR arrays of an assembled operator (rows of solid cells are empty).
+struct CsrArrays {
+  Index rows = 0;
+  std::vector<Index> row_ptr, col_index;
+  std::vector<Scalar> values;
+};
+
+class PoissonOperator {
+ public:
+  // `solid` (nullable) has one byte per cell, nonzero = solid.
+  PoissonOperator(const GridShape& shape, Scalar h, Boundary bc, const std::uint8_t* solid,
+                  Scalar shift = 0);
+
+  // The operator of the grid coarsened by two per active axis (ceil), spacing 2h; a coarse
+  // cell is fluid when any of its children is.
+  PoissonOperator coarsened() const;
+
+  void apply(const Scalar* x, Scalar* y) const;                         // y = A x
+  void residual(const Scalar* b, const Scalar* x, Scalar* r) const;     // r = b - A x
+  // One Gauss-Seidel half-sweep over the cells of one colour ((i+j+k) % 2 == color).
+  void smooth_color(const Scalar* b, Scalar* x, int color) const;
+  // Weighted Jacobi: x_new = x + omega D^-1 (b - A x).
+  void jacobi(const Scalar* b, const Scalar* x, Scalar* x_new, Scalar omega) const;
+
+  // Removes from x, per singular component, its mean over that component (the A-null space);
+  // a no-op for a nonsingular operator. Solid entries are set to zero.
+  void project(Scalar* x) const;
+  bool singular() const { return !singular_components_.empty(); }
+  // One representative cell per singular component (the first in index order).
+  std::vector<Index> singular_anchor_cells() const;
+
+  CsrArrays assemble() const;
+
+  const GridShape& shape() const { return shape_; }
+  Index size() const { return shape_.size(); }
+  Scalar h() const { return h_; }
+  Scalar shift() const { return shift_; }
+  Boundary bc() const { return bc_; }
+  bool fluid(Index c) const { return mask_[c] & kFluidBit; }
+  // True when the cell and its whole 3^d neighbourhood are fluid cells inside the domain.
+  bool interior(Index c) const { return interior_[c] != 0; }
+  Index fluid_count() const { return fluid_count_; }
+  // A_cc for a fluid cell.
+  Scalar diagonal(Index c) const { return shift_ + inv_h2_ * diag_[c]; }
+
+ private:
+  template <bool ThreeD>
+  void apply_impl(const Scalar* x, Scalar* y, const Scalar* b) const;
+  template <bool ThreeD>
+  void smooth_impl(const Scalar* b, Scalar* x, int color) const;
+  void label_components();
+
+  Scalar neighbour_sum(const Scalar* x, Index c) const;
+
+  GridShape shape_;
+  Scalar h_ = 1, inv_h2_ = 1, shift_ = 0;
+  Boundary bc_ = Boundary::Dirichlet;
+  std::vector<std::uint8_t> mask_;      // neighbour-coupling bits 0-5 and kFluidBit
+  std::vector<std::uint8_t> diag_;      // couplings + 2 per Dirichlet face (fluid cells)
+  std::vector<std::uint8_t> row_fast_;  // row whose inner cells see the plain stencil
+  std::vector<std::uint8_t> interior_;
+  Index fluid_count_ = 0;
+  std::vector<std::int32_t> component_;          // per cell; -1 for solid
+  std::vector<std::int32_t> singular_components_;
+  std::vector<Index> component_size_;
+};
+
+}  // namespace kinema

@@ -1,0 +1,56 @@
+// Iterative solvers for the cell-centred Poisson operator A u = b (poisson_operator.h):
+// weighted Jacobi, red-black Gauss-Seidel, Jacobi-preconditioned CG, multigrid V-cycles and
+// multigrid-preconditioned CG (McAdams, Sifakis & Teran 2010). Built once per grid, boundary
+// and solid mask; owns the multigrid hierarchy and scratch vectors, so repeated solves (one per
+// time step) allocate nothing.
+#pragma once
+
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "core/interrupt.h"
+#include "grid/multigrid.h"
+#include "grid/poisson_operator.h"
+#include "linalg/solve_info.h"
+
+namespace kinema {
+
+enum class PoissonMethod { Jacobi, GaussSeidel, CG, Multigrid, MGPCG };
+
+PoissonMethod parse_poisson_method(const std::string& name);
+
+struct PoissonConfig {
+  PoissonMethod method = PoissonMethod::MGPCG;
+  Scalar jacobi_omega = 0.8;  // damping of the Jacobi iteration
+  MultigridOptions multigrid;
+};
+
+class PoissonSolver {
+ public:
+  PoissonSolver(const GridShape& shape, Scalar h, Boundary bc, const std::uint8_t* solid,
+                Scalar shift, const PoissonConfig& config);
+
+  // Solves A x = b from the initial guess in x. For a singular operator the component of b in
+  // the null space is ignored and x is returned with zero mean per singular component.
+  SolveInfo solve(const Scalar* b, Scalar* x, const IterativeOptions& options, Interrupt& interrupt);
+
+  // Largest |mean(b)| / mean(|b|) over the singular components (0 when A is nonsingular): how
+  // far b is from the range of A.
+  Scalar incompatibility(const Scalar* b) const;
+
+  const PoissonOperator& op() const { return *op_; }
+  Multigrid* multigrid() { return mg_.get(); }
+  Index default_max_iter() const;
+
+ private:
+  SolveInfo stationary(const Scalar* b, Scalar* x, const IterativeOptions& options,
+                       Interrupt& interrupt);
+
+  std::unique_ptr<PoissonOperator> op_;  // heap-held so the hierarchy's pointer stays valid
+  std::unique_ptr<Multigrid> mg_;
+  PoissonConfig config_;
+  std::vector<Scalar> r_, z_;
+};
+
+}  // namespace kinema
