@@ -3,6 +3,7 @@
 #include <optional>
 
 #include "bindings/common.h"
+#include "core/parallel.h"
 #include "grid/poisson_solver.h"
 
 namespace kinema::bind {
@@ -77,6 +78,20 @@ struct PySolver {
     return to_numpy(std::move(x), user_shape_);
   }
 
+  // steps of T <- T - c A T (forward Euler for dT/dt = -kappa A T, c = kappa dt), in place.
+  void explicit_steps(py::array T, Scalar c, Index steps) {
+    const Index n = shape_.size();
+    Scalar* t = checked_data(T, "T", n, true);
+    std::vector<Scalar> at(n);
+    Interrupt interrupt = python_interrupt();
+    py::gil_scoped_release release;
+    for (Index s = 0; s < steps; ++s) {
+      interrupt.check();
+      solver_->op().apply(t, at.data());
+      parallel_for(n, [&](Index i) { t[i] -= c * at[i]; });
+    }
+  }
+
   void project(py::array x) {
     Scalar* xp = checked_data(x, "x", shape_.size(), true);
     py::gil_scoped_release release;
@@ -118,9 +133,15 @@ void bind_poisson(py::module_& m) {
       .def("solve", &PySolver::solve, py::arg("b"), py::arg("x"), py::arg("tol"), py::arg("max_iter"))
       .def("apply", &PySolver::apply, py::arg("x"), py::arg("b") = py::none())
       .def("vcycle", &PySolver::vcycle, py::arg("b"))
+      .def("explicit_steps", &PySolver::explicit_steps, py::arg("T"), py::arg("c"), py::arg("steps"))
       .def("project", &PySolver::project, py::arg("x"))
       .def("incompatibility", &PySolver::incompatibility, py::arg("b"))
       .def("assemble", &PySolver::assemble)
+      .def("anchor_cells", [](const PySolver& s) {
+        auto anchors = s.solver_->op().singular_anchor_cells();
+        const Index count = static_cast<Index>(anchors.size());
+        return to_numpy(std::move(anchors), {count});
+      })
       .def_property_readonly("levels", [](const PySolver& s) {
         auto* mg = s.solver_->multigrid();
         return mg ? mg->levels() : 1;

@@ -2,6 +2,7 @@
 
 #include <Eigen/SparseCholesky>
 #include <algorithm>
+#include <array>
 
 #include "core/parallel.h"
 
@@ -154,38 +155,82 @@ void Multigrid::coarse_solve(const Scalar* b, Scalar* x) {
   A.project(x);
 }
 
+namespace {
+
+// The 1D prolongation weights of the fine cells 2I-1, 2I, 2I+1, 2I+2 onto coarse cell I along
+// an axis with nf fine and nc coarse cells: (1/4, 3/4, 3/4, 1/4), where a fine cell whose other
+// coarse neighbour lies across the domain boundary adds that neighbour's ghost value sigma*x_I
+// (sigma = -1 Dirichlet, +1 Neumann), and cells outside the fine grid weigh nothing.
+std::array<Scalar, 4> window_weights(Index nf, Index nc, Index I, Scalar sigma) {
+  std::array<Scalar, 4> w{0.25, 0.75, 0.75, 0.25};
+  if (I == 0) w[1] += 0.25 * sigma;         // fine 2I reaches coarse -1: reflected
+  if (I + 1 == nc) w[2] += 0.25 * sigma;    // fine 2I+1 reaches coarse nc: reflected
+  for (int c = 0; c < 4; ++c) {
+    const Index f = 2 * I - 1 + c;
+    if (f < 0 || f >= nf) w[c] = 0;
+  }
+  return w;
+}
+
+// For fine index f along an axis: (parent weight, partner weight, partner index), the partner
+// reflected onto the parent across the domain boundary.
+struct AxisTerm {
+  Scalar parent_weight, partner_weight;
+  Index parent, partner;
+};
+
+AxisTerm axis_term(Index f, Index nc, Scalar sigma) {
+  const Index parent = f / 2;
+  const Index partner = (f & 1) ? parent + 1 : parent - 1;
+  if (partner < 0 || partner >= nc) return {0.75 + 0.25 * sigma, 0, parent, parent};
+  return {0.75, 0.25, parent, partner};
+}
+
+}  // namespace
+
 void Multigrid::prolong_add(int l, const Scalar* coarse, Scalar* fine) const {
   const PoissonOperator& F = level(l);
   const PoissonOperator& C = level(l + 1);
   const GridShape& fs = F.shape();
   const GridShape& cs = C.shape();
   const bool three_d = fs.dim == 3;
-  const Index cs0 = cs.stride(0), cs1 = cs.stride(1);
-#pragma omp parallel for schedule(static)
-  for (Index row = 0; row < fs.rows(); ++row) {
-    const Index i = row / fs.n[1], j = row % fs.n[1];
-    const Index I = three_d ? i / 2 : 0, J = j / 2;
-    const Index di = three_d ? ((i & 1) ? cs0 : -cs0) : 0;
-    const Index dj = (j & 1) ? cs1 : -cs1;
-    for (Index k = 0; k < fs.n[2]; ++k) {
-      const Index f = row * fs.n[2] + k;
-      if (!F.fluid(f)) continue;
-      const Index p = cs.index(I, J, k / 2);
-      if (C.interior(p)) {
-        const Index dk = (k & 1) ? 1 : -1;
-        if (three_d) {
-          fine[f] += (27.0 / 64) * coarse[p] +
-                     (9.0 / 64) * (coarse[p + di] + coarse[p + dj] + coarse[p + dk]) +
-                     (3.0 / 64) * (coarse[p + di + dj] + coarse[p + di + dk] + coarse[p + dj + dk]) +
-                     (1.0 / 64) * coarse[p + di + dj + dk];
-        } else {
-          fine[f] += (9.0 / 16) * coarse[p] + (3.0 / 16) * (coarse[p + dj] + coarse[p + dk]) +
-                     (1.0 / 16) * coarse[p + dj + dk];
+  const Index nf2 = fs.n[2], nc2 = cs.n[2];
+  const Scalar sigma = C.bc() == Boundary::Dirichlet ? -1 : 1;
+#pragma omp parallel if (F.parallel())
+  {
+    std::vector<Scalar> m(nc2);  // the coarse lines combined with their plane weights
+#pragma omp for schedule(static)
+    for (Index row = 0; row < fs.rows(); ++row) {
+      const Index i = row / fs.n[1], j = row % fs.n[1];
+      Scalar* out = fine + row * nf2;
+      const AxisTerm ti = three_d ? axis_term(i, cs.n[0], sigma) : AxisTerm{1, 0, 0, 0};
+      const AxisTerm tj = axis_term(j, cs.n[1], sigma);
+      const Index prow = ti.parent * cs.n[1] + tj.parent;
+      if (!(C.row_clear(prow) && F.row_fluid(row))) {
+        for (Index k = 0; k < nf2; ++k) {
+          if (!F.fluid(row * nf2 + k)) continue;
+          Scalar sum = 0;
+          prolongation_stencil(F, C, i, j, k, [&](Index ci, Scalar w) { sum += w * coarse[ci]; });
+          out[k] += sum;
         }
-      } else {
-        Scalar sum = 0;
-        prolongation_stencil(F, C, i, j, k, [&](Index ci, Scalar w) { sum += w * coarse[ci]; });
-        fine[f] += sum;
+        continue;
+      }
+      // Separable: combine the coarse lines of the (i, j) plane, then interpolate along k.
+      const Scalar* l00 = coarse + (ti.parent * cs.n[1] + tj.parent) * nc2;
+      const Scalar* l01 = coarse + (ti.parent * cs.n[1] + tj.partner) * nc2;
+      const Scalar* l10 = coarse + (ti.partner * cs.n[1] + tj.parent) * nc2;
+      const Scalar* l11 = coarse + (ti.partner * cs.n[1] + tj.partner) * nc2;
+      const Scalar w00 = ti.parent_weight * tj.parent_weight, w01 = ti.parent_weight * tj.partner_weight;
+      const Scalar w10 = ti.partner_weight * tj.parent_weight, w11 = ti.partner_weight * tj.partner_weight;
+#pragma omp simd
+      for (Index K = 0; K < nc2; ++K) m[K] = w00 * l00[K] + w01 * l01[K] + w10 * l10[K] + w11 * l11[K];
+      for (Index k : {Index(0), nf2 - 1}) {
+        const AxisTerm tk = axis_term(k, nc2, sigma);
+        out[k] += tk.parent_weight * m[tk.parent] + tk.partner_weight * m[tk.partner];
+      }
+      for (Index k = 1; k + 1 < nf2; ++k) {
+        const Index K = k >> 1;
+        out[k] += 0.75 * m[K] + 0.25 * m[(k & 1) ? K + 1 : K - 1];
       }
     }
   }
@@ -198,51 +243,88 @@ void Multigrid::restrict_residual(int l, const Scalar* fine, Scalar* coarse) con
   const GridShape& cs = C.shape();
   const bool three_d = fs.dim == 3;
   const Scalar scale = three_d ? 1.0 / 8 : 1.0 / 4;  // R = P^T / 2^d
-  static constexpr Scalar kW[4] = {0.25, 0.75, 0.75, 0.25};
-  const Index fs0 = fs.stride(0), fs1 = fs.stride(1);
-#pragma omp parallel for schedule(static)
-  for (Index row = 0; row < cs.rows(); ++row) {
-    const Index I = row / cs.n[1], J = row % cs.n[1];
-    for (Index K = 0; K < cs.n[2]; ++K) {
-      const Index c = row * cs.n[2] + K;
-      if (!C.fluid(c)) {
-        coarse[c] = 0;
+  const Scalar sigma = C.bc() == Boundary::Dirichlet ? -1 : 1;
+  const Index nf2 = fs.n[2], nc2 = cs.n[2];
+#pragma omp parallel if (F.parallel())
+  {
+    std::vector<Scalar> t(nf2);  // the fine lines of the window, plane-weighted
+#pragma omp for schedule(static)
+    for (Index row = 0; row < cs.rows(); ++row) {
+      const Index I = row / cs.n[1], J = row % cs.n[1];
+      Scalar* out = coarse + row * nc2;
+      if (!C.row_clear(row)) {
+        for (Index K = 0; K < nc2; ++K) out[K] = scale * restrict_general(l, fine, I, J, K);
         continue;
       }
-      Scalar sum = 0;
-      if (C.interior(c)) {
-        // The 4^d fine window 2I-1 .. 2I+2 per axis with the tensor weights (1,3,3,1)/4.
-        const Index i0 = three_d ? 2 * I - 1 : 0, j0 = 2 * J - 1, k0 = 2 * K - 1;
-        const int ni = three_d ? 4 : 1;
-        for (int a = 0; a < ni; ++a) {
-          const Scalar wa = three_d ? kW[a] : 1.0;
-          for (int b = 0; b < 4; ++b) {
-            const Scalar* line = fine + (i0 + a) * fs0 + (j0 + b) * fs1 + k0;
-            sum += wa * kW[b] *
-                   (0.25 * (line[0] + line[3]) + 0.75 * (line[1] + line[2]));
-          }
+      // Separable: the transpose of prolong_add's clear-row path.
+      const auto wi = three_d ? window_weights(fs.n[0], cs.n[0], I, sigma)
+                              : std::array<Scalar, 4>{0, 1, 0, 0};
+      const auto wj = window_weights(fs.n[1], cs.n[1], J, sigma);
+      std::fill(t.begin(), t.end(), 0.0);
+      for (int a = 0; a < 4; ++a) {
+        if (wi[a] == 0) continue;
+        const Index fi = three_d ? 2 * I - 1 + a : 0;
+        for (int b = 0; b < 4; ++b) {
+          if (wj[b] == 0) continue;
+          const Scalar w = wi[a] * wj[b];
+          const Scalar* line = fine + fs.index(fi, 2 * J - 1 + b, 0);
+#pragma omp simd
+          for (Index k = 0; k < nf2; ++k) t[k] += w * line[k];
         }
-      } else {
-        // Gather the transpose of the general prolongation stencil over the fine window.
-        const Index lo[3] = {three_d ? std::max<Index>(2 * I - 1, 0) : 0, std::max<Index>(2 * J - 1, 0),
-                             std::max<Index>(2 * K - 1, 0)};
-        const Index hi[3] = {three_d ? std::min<Index>(2 * I + 2, fs.n[0] - 1) : 0,
-                             std::min<Index>(2 * J + 2, fs.n[1] - 1),
-                             std::min<Index>(2 * K + 2, fs.n[2] - 1)};
-        for (Index i = lo[0]; i <= hi[0]; ++i)
-          for (Index j = lo[1]; j <= hi[1]; ++j)
-            for (Index k = lo[2]; k <= hi[2]; ++k) {
-              const Index f = fs.index(i, j, k);
-              if (!F.fluid(f)) continue;
-              const Scalar rf = fine[f];
-              prolongation_stencil(F, C, i, j, k, [&](Index ci, Scalar w) {
-                if (ci == c) sum += w * rf;
-              });
-            }
       }
-      coarse[c] = scale * sum;
+      for (Index K : {Index(0), nc2 - 1}) {
+        const auto wk = window_weights(nf2, nc2, K, sigma);
+        Scalar sum = 0;
+        for (int c = 0; c < 4; ++c)
+          if (wk[c] != 0) sum += wk[c] * t[2 * K - 1 + c];
+        out[K] = scale * sum;
+      }
+      for (Index K = 1; K + 1 < nc2; ++K)
+        out[K] = scale * (0.25 * (t[2 * K - 1] + t[2 * K + 2]) + 0.75 * (t[2 * K] + t[2 * K + 1]));
     }
   }
+}
+
+// (R^T-free) gather of row I of P^T near solids: every fine cell of the 4^d window reaches
+// coarse cell I through its plain weight unless it is one of I's children, whose ghost and
+// solid substitutions the general stencil resolves.
+Scalar Multigrid::restrict_general(int l, const Scalar* fine, Index I, Index J, Index K) const {
+  const PoissonOperator& F = level(l);
+  const PoissonOperator& C = level(l + 1);
+  const GridShape& fs = F.shape();
+  const bool three_d = fs.dim == 3;
+  const Index c = C.shape().index(I, J, K);
+  if (!C.fluid(c)) return 0;
+  const Index lo[3] = {three_d ? std::max<Index>(2 * I - 1, 0) : 0, std::max<Index>(2 * J - 1, 0),
+                       std::max<Index>(2 * K - 1, 0)};
+  const Index hi[3] = {three_d ? std::min<Index>(2 * I + 2, fs.n[0] - 1) : 0,
+                       std::min<Index>(2 * J + 2, fs.n[1] - 1), std::min<Index>(2 * K + 2, fs.n[2] - 1)};
+  const Index centre[3] = {three_d ? I : 0, J, K};
+  Scalar sum = 0;
+  for (Index i = lo[0]; i <= hi[0]; ++i)
+    for (Index j = lo[1]; j <= hi[1]; ++j)
+      for (Index k = lo[2]; k <= hi[2]; ++k) {
+        const Index f = fs.index(i, j, k);
+        const Scalar rf = fine[f];
+        if (rf == 0 || !F.fluid(f)) continue;
+        const Index idx[3] = {i, j, k};
+        bool child = true;
+        Scalar w = 1;
+        for (int a = 0; a < 3; ++a) {
+          if (!fs.active(a)) continue;
+          const bool own = idx[a] / 2 == centre[a];
+          child = child && own;
+          w *= own ? 0.75 : 0.25;
+        }
+        if (!child) {
+          sum += w * rf;
+          continue;
+        }
+        prolongation_stencil(F, C, i, j, k, [&](Index ci, Scalar wc) {
+          if (ci == c) sum += wc * rf;
+        });
+      }
+  return sum;
 }
 
 }  // namespace kinema

@@ -74,22 +74,21 @@ PoissonOperator::PoissonOperator(const GridShape& shape, Scalar h, Boundary bc,
     });
   }
 
-  // Interior flags (the 3^d neighbourhood is fluid and inside): multigrid transfer fast path.
-  interior_.assign(n, 0);
+  // Row flags: all fluid; clear of solids in the 3^d neighbourhood of every cell.
+  row_clear_.assign(shape_.rows(), 0);
+  row_fluid_.assign(shape_.rows(), 0);
   parallel_for(shape_.rows(), [&](Index row) {
     const Index i = row / s[1], j = row % s[1];
-    for (Index k = 0; k < s[2]; ++k) {
-      const Index idx[3] = {i, j, k};
-      bool ok = true;
-      for (int axis = 0; axis < 3 && ok; ++axis)
-        if (shape_.active(axis) && (idx[axis] == 0 || idx[axis] + 1 == s[axis])) ok = false;
-      const Index lo0 = three_d ? -1 : 0, hi0 = three_d ? 1 : 0;
-      for (Index a = lo0; a <= hi0 && ok; ++a)
-        for (Index b = -1; b <= 1 && ok; ++b)
-          for (Index d = -1; d <= 1 && ok; ++d)
-            ok = mask_[shape_.index(i + a, j + b, k + d)] & kFluidBit;
-      interior_[shape_.index(i, j, k)] = ok;
-    }
+    bool all_fluid = true, clear = true;
+    for (Index k = 0; k < s[2]; ++k) all_fluid = all_fluid && (mask_[row * s[2] + k] & kFluidBit);
+    for (Index a = (three_d ? i - 1 : i); a <= (three_d ? i + 1 : i) && clear; ++a)
+      for (Index b = j - 1; b <= j + 1 && clear; ++b) {
+        if (a < 0 || a >= s[0] || b < 0 || b >= s[1]) continue;
+        const Index base = shape_.index(a, b, 0);
+        for (Index k = 0; k < s[2] && clear; ++k) clear = mask_[base + k] & kFluidBit;
+      }
+    row_fluid_[row] = all_fluid;
+    row_clear_[row] = clear;
   });
 
   label_components();
@@ -198,7 +197,7 @@ void PoissonOperator::apply_impl(const Scalar* x, Scalar* y, const Scalar* b) co
     if (!fluid(c)) return 0;
     return diagonal(c) * x[c] - ih2 * neighbour_sum(x, c);
   };
-#pragma omp parallel for schedule(static)
+#pragma omp parallel for schedule(static) if (parallel())
   for (Index row = 0; row < shape_.rows(); ++row) {
     const Index base = row * n2;
     if (row_fast_[row]) {
@@ -251,7 +250,7 @@ void PoissonOperator::smooth_impl(const Scalar* b, Scalar* x, int color) const {
     const Scalar d = diagonal(c);
     x[c] = d > 0 ? (b[c] + ih2 * neighbour_sum(x, c)) / d : 0;
   };
-#pragma omp parallel for schedule(static)
+#pragma omp parallel for schedule(static) if (parallel())
   for (Index row = 0; row < shape_.rows(); ++row) {
     const Index i = row / n1, j = row % n1;
     const Index base = row * n2;

@@ -12,6 +12,7 @@
 #include <cstdint>
 #include <vector>
 
+#include "core/parallel.h"
 #include "grid/grid.h"
 
 namespace kinema {
@@ -55,8 +56,13 @@ class PoissonOperator {
   Scalar shift() const { return shift_; }
   Boundary bc() const { return bc_; }
   bool fluid(Index c) const { return mask_[c] & kFluidBit; }
-  // True when the cell and its whole 3^d neighbourhood are fluid cells inside the domain.
-  bool interior(Index c) const { return interior_[c] != 0; }
+  // True when no cell of the row (i, j) has a solid cell in its 3^d neighbourhood, so that the
+  // multigrid transfers there only meet domain boundaries and stay separable.
+  bool row_clear(Index row) const { return row_clear_[row] != 0; }
+  // True when every cell of the row (i, j) is fluid.
+  bool row_fluid(Index row) const { return row_fluid_[row] != 0; }
+  // Whether a pass over this grid is worth an OpenMP team.
+  bool parallel() const { return shape_.size() > 8 * kParallelGrain; }
   Index fluid_count() const { return fluid_count_; }
   // A_cc for a fluid cell.
   Scalar diagonal(Index c) const { return shift_ + inv_h2_ * diag_[c]; }
@@ -76,7 +82,7 @@ class PoissonOperator {
   std::vector<std::uint8_t> mask_;      // neighbour-coupling bits 0-5 and kFluidBit
   std::vector<std::uint8_t> diag_;      // couplings + 2 per Dirichlet face (fluid cells)
   std::vector<std::uint8_t> row_fast_;  // row whose inner cells see the plain stencil
-  std::vector<std::uint8_t> interior_;
+  std::vector<std::uint8_t> row_clear_, row_fluid_;
   Index fluid_count_ = 0;
   std::vector<std::int32_t> component_;          // per cell; -1 for solid
   std::vector<std::int32_t> singular_components_;

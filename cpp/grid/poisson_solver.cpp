@@ -60,6 +60,13 @@ SolveInfo PoissonSolver::solve(const Scalar* b, Scalar* x, const IterativeOption
   if (opts.max_iter <= 0) opts.max_iter = default_max_iter();
   const Index n = op_->size();
   op_->project(x);  // zero solid entries; remove the null-space part of the guess
+  if (op_->singular() || op_->fluid_count() < n) {
+    // Solid entries of b are ignored and its null-space component is not solvable: solve for
+    // the projected right-hand side.
+    bp_.assign(b, b + n);
+    op_->project(bp_.data());
+    b = bp_.data();
+  }
   switch (config_.method) {
     case PoissonMethod::CG: {
       // Jacobi preconditioner: the operator's diagonal, zero on solid cells.
@@ -73,7 +80,7 @@ SolveInfo PoissonSolver::solve(const Scalar* b, Scalar* x, const IterativeOption
         parallel_for(n, [&](Index c) { out[c] = inv_diag[c] * in[c]; });
       };
       std::function<void(Scalar*)> project;
-      if (op_->singular()) project = [&](Scalar* v) { op_->project(v); };
+      if (op_->singular() || op_->fluid_count() < n) project = [&](Scalar* v) { op_->project(v); };
       return pcg(n, A, M, b, x, opts, interrupt, project);
     }
     case PoissonMethod::MGPCG: {
@@ -94,8 +101,7 @@ SolveInfo PoissonSolver::stationary(const Scalar* b, Scalar* x, const IterativeO
   Stopwatch clock;
   SolveInfo info;
   const Index n = op_->size();
-  std::vector<Scalar> bp(b, b + n);
-  op_->project(bp.data());
+  const Scalar* bp = b;
   const Scalar b_norm = std::sqrt(parallel_sum(n, [&](Index c) { return bp[c] * bp[c]; }));
   if (b_norm == 0) {
     parallel_for(n, [&](Index c) { x[c] = 0; });
@@ -105,7 +111,7 @@ SolveInfo PoissonSolver::stationary(const Scalar* b, Scalar* x, const IterativeO
     return info;
   }
   auto residual_norm = [&] {
-    op_->residual(bp.data(), x, r_.data());
+    op_->residual(bp, x, r_.data());
     if (op_->singular()) op_->project(r_.data());
     return std::sqrt(parallel_sum(n, [&](Index c) { return r_[c] * r_[c]; })) / b_norm;
   };
@@ -115,12 +121,12 @@ SolveInfo PoissonSolver::stationary(const Scalar* b, Scalar* x, const IterativeO
     interrupt.check();
     switch (config_.method) {
       case PoissonMethod::Jacobi:
-        op_->jacobi(bp.data(), x, z_.data(), config_.jacobi_omega);
+        op_->jacobi(bp, x, z_.data(), config_.jacobi_omega);
         std::swap_ranges(z_.begin(), z_.end(), x);
         break;
       case PoissonMethod::GaussSeidel:
-        op_->smooth_color(bp.data(), x, 0);
-        op_->smooth_color(bp.data(), x, 1);
+        op_->smooth_color(bp, x, 0);
+        op_->smooth_color(bp, x, 1);
         break;
       default:  // multigrid: x += V(b - A x), with r_ holding the residual just measured
         mg_->vcycle(r_.data(), z_.data());
