@@ -92,6 +92,20 @@ struct PySolver {
     }
   }
 
+  // Grid transfers between multigrid levels l and l + 1 (for tests).
+  py::array_t<Scalar> transfer(int l, py::array in, bool restrict) {
+    Multigrid* mg = solver_->multigrid();
+    if (!mg) throw InvalidArgument("method: transfers need method 'multigrid' or 'mgpcg'");
+    if (l < 0 || l + 1 >= mg->levels()) throw InvalidArgument("l: no such level pair");
+    const PoissonOperator& from = mg->level(restrict ? l : l + 1);
+    const PoissonOperator& to = mg->level(restrict ? l + 1 : l);
+    const Scalar* src = checked_data(in, "in", from.size(), false);
+    std::vector<Scalar> out(to.size(), 0);
+    if (restrict) mg->restrict_residual(l, src, out.data());
+    else mg->prolong_add(l, src, out.data());
+    return to_numpy(std::move(out), to.shape().user_shape());
+  }
+
   void project(py::array x) {
     Scalar* xp = checked_data(x, "x", shape_.size(), true);
     py::gil_scoped_release release;
@@ -134,6 +148,7 @@ void bind_poisson(py::module_& m) {
       .def("apply", &PySolver::apply, py::arg("x"), py::arg("b") = py::none())
       .def("vcycle", &PySolver::vcycle, py::arg("b"))
       .def("explicit_steps", &PySolver::explicit_steps, py::arg("T"), py::arg("c"), py::arg("steps"))
+      .def("transfer", &PySolver::transfer, py::arg("l"), py::arg("x"), py::arg("restrict"))
       .def("project", &PySolver::project, py::arg("x"))
       .def("incompatibility", &PySolver::incompatibility, py::arg("b"))
       .def("assemble", &PySolver::assemble)

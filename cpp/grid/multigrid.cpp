@@ -285,9 +285,9 @@ void Multigrid::restrict_residual(int l, const Scalar* fine, Scalar* coarse) con
   }
 }
 
-// (R^T-free) gather of row I of P^T near solids: every fine cell of the 4^d window reaches
-// coarse cell I through its plain weight unless it is one of I's children, whose ghost and
-// solid substitutions the general stencil resolves.
+// Row I of P^T near solids. A fine cell of the 4^d window that is not a child of I reaches I
+// only through the separable weights (I is fluid and in range; ghost reflections included); a
+// child of I may also reach it through solid substitutions, so it takes the general stencil.
 Scalar Multigrid::restrict_general(int l, const Scalar* fine, Index I, Index J, Index K) const {
   const PoissonOperator& F = level(l);
   const PoissonOperator& C = level(l + 1);
@@ -300,6 +300,10 @@ Scalar Multigrid::restrict_general(int l, const Scalar* fine, Index I, Index J, 
   const Index hi[3] = {three_d ? std::min<Index>(2 * I + 2, fs.n[0] - 1) : 0,
                        std::min<Index>(2 * J + 2, fs.n[1] - 1), std::min<Index>(2 * K + 2, fs.n[2] - 1)};
   const Index centre[3] = {three_d ? I : 0, J, K};
+  const Scalar sigma = C.bc() == Boundary::Dirichlet ? -1 : 1;
+  std::array<std::array<Scalar, 4>, 3> window;
+  for (int a = 0; a < 3; ++a)
+    if (fs.active(a)) window[a] = window_weights(fs.n[a], C.shape().n[a], centre[a], sigma);
   Scalar sum = 0;
   for (Index i = lo[0]; i <= hi[0]; ++i)
     for (Index j = lo[1]; j <= hi[1]; ++j)
@@ -312,9 +316,8 @@ Scalar Multigrid::restrict_general(int l, const Scalar* fine, Index I, Index J, 
         Scalar w = 1;
         for (int a = 0; a < 3; ++a) {
           if (!fs.active(a)) continue;
-          const bool own = idx[a] / 2 == centre[a];
-          child = child && own;
-          w *= own ? 0.75 : 0.25;
+          child = child && idx[a] / 2 == centre[a];
+          w *= window[a][idx[a] - (2 * centre[a] - 1)];
         }
         if (!child) {
           sum += w * rf;

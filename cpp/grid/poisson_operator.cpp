@@ -102,6 +102,15 @@ void PoissonOperator::label_components() {
   component_size_.clear();
   if (shift_ > 0) return;
   const Index n = size();
+  if (fluid_count_ == n) {
+    // Without solids the fluid is one component, singular exactly for Neumann boundaries.
+    if (bc_ == Boundary::Neumann && n > 0) {
+      component_.assign(n, 0);
+      component_size_.push_back(n);
+      singular_components_.push_back(0);
+    }
+    return;
+  }
   component_.assign(n, -1);
   std::vector<Index> stack;
   std::int32_t next = 0;
@@ -326,17 +335,22 @@ PoissonOperator PoissonOperator::coarsened() const {
   GridShape coarse = shape_;
   for (int axis = 0; axis < 3; ++axis)
     if (shape_.active(axis)) coarse.n[axis] = (shape_.n[axis] + 1) / 2;
-  const Index nc = coarse.size();
-  std::vector<std::uint8_t> solid(nc, 1);
+  std::vector<std::uint8_t> solid(coarse.size(), 1);
   const auto& s = shape_.n;
   // A coarse cell is fluid when any child is (children 2I and 2I+1 per active axis).
-  for (Index i = 0; i < s[0]; ++i)
-    for (Index j = 0; j < s[1]; ++j)
-      for (Index k = 0; k < s[2]; ++k)
-        if (fluid(shape_.index(i, j, k))) {
-          const Index ci = shape_.active(0) ? i / 2 : i;
-          solid[coarse.index(ci, j / 2, k / 2)] = 0;
-        }
+  parallel_for(coarse.rows(), [&](Index row) {
+    const Index I = row / coarse.n[1], J = row % coarse.n[1];
+    const Index i0 = shape_.active(0) ? 2 * I : I;
+    const Index i1 = shape_.active(0) ? std::min(2 * I + 1, s[0] - 1) : I;
+    for (Index K = 0; K < coarse.n[2]; ++K) {
+      bool any = false;
+      for (Index i = i0; i <= i1; ++i)
+        for (Index j = 2 * J; j <= std::min(2 * J + 1, s[1] - 1); ++j)
+          for (Index k = 2 * K; k <= std::min(2 * K + 1, s[2] - 1); ++k)
+            any = any || fluid(shape_.index(i, j, k));
+      solid[coarse.index(I, J, K)] = !any;
+    }
+  });
   return PoissonOperator(coarse, 2 * h_, bc_, solid.data(), shift_);
 }
 
