@@ -71,6 +71,6 @@ def step(T, kappa, dt, h, scheme="implicit", bc="neumann", steps=1, check=True, 
         if scheme == "implicit":
             rhs = shift * out
         else:
-            rhs = shift * out - solver.apply(out)
+            rhs = 2 * shift * out - solver.apply(out)  # apply() includes the shift: (s I - A) T
         out, _info = solver.solve(rhs, tol=tol, x0=out)
     return out
