@@ -131,16 +131,14 @@ void Multigrid::cycle(int l, const Scalar* b, Scalar* x) {
   }
   parallel_for(A.size(), [&](Index c) { x[c] = 0; });
   for (int s = 0; s < options_.pre_smooth; ++s) {
-    A.smooth_color(b, x, 0);
-    A.smooth_color(b, x, 1);
+    A.sweep(b, x, 0);
   }
   A.residual(b, x, r_[l].data());
   restrict_residual(l, r_[l].data(), b_[l + 1].data());
   cycle(l + 1, b_[l + 1].data(), x_[l + 1].data());
   prolong_add(l, x_[l + 1].data(), x);
   for (int s = 0; s < options_.post_smooth; ++s) {
-    A.smooth_color(b, x, 1);
-    A.smooth_color(b, x, 0);
+    A.sweep(b, x, 1);
   }
 }
 

@@ -247,43 +247,67 @@ void PoissonOperator::residual(const Scalar* b, const Scalar* x, Scalar* r) cons
   else apply_impl<false>(x, r, b);
 }
 
-// Gauss-Seidel on one colour: x_c = (b_c + sum_nb x_nb / h^2) / diag_c. Cells of one colour only
-// couple to the other colour, so the update is parallel and independent of the thread count.
+// Gauss-Seidel on the cells of one colour in one row: x_c = (b_c + sum_nb x_nb / h^2) / diag_c.
+// Cells of one colour only couple to the other colour, so every update of a colour reads the
+// same values whatever the order: the sweeps below are parallel and thread-count independent.
 template <bool ThreeD>
-void PoissonOperator::smooth_impl(const Scalar* b, Scalar* x, int color) const {
+void PoissonOperator::smooth_row(const Scalar* b, Scalar* x, Index row, int color) const {
   const Index n1 = shape_.n[1], n2 = shape_.n[2], s0 = shape_.stride(0), s1 = shape_.stride(1);
   const Scalar ih2 = inv_h2_;
-  const Scalar inv_plain = 1 / (shift_ + ih2 * (ThreeD ? 6 : 4));
+  const Index i = row / n1, j = row % n1;
+  const Index base = row * n2;
+  const Index k0 = (i + j + color) & 1;  // first k of this colour in the row
   auto masked = [&](Index c) {
     if (!fluid(c)) return;
     const Scalar d = diagonal(c);
     x[c] = d > 0 ? (b[c] + ih2 * neighbour_sum(x, c)) / d : 0;
   };
-#pragma omp parallel for schedule(static) if (parallel())
-  for (Index row = 0; row < shape_.rows(); ++row) {
-    const Index i = row / n1, j = row % n1;
-    const Index base = row * n2;
-    const Index k0 = (i + j + color) & 1;  // first k of this colour in the row
-    if (row_fast_[row]) {
-      if (k0 == 0) masked(base);
-      const Index first = k0 == 0 ? 2 : 1;
+  if (!row_fast_[row]) {
+    for (Index k = k0; k < n2; k += 2) masked(base + k);
+    return;
+  }
+  const Scalar inv_plain = 1 / (shift_ + ih2 * (ThreeD ? 6 : 4));
+  if (k0 == 0) masked(base);
+  const Index first = k0 == 0 ? 2 : 1;
 #pragma omp simd
-      for (Index k = first; k < n2 - 1; k += 2) {
-        const Index c = base + k;
-        Scalar nb = x[c - s1] + x[c + s1] + x[c - 1] + x[c + 1];
-        if (ThreeD) nb += x[c - s0] + x[c + s0];
-        x[c] = (b[c] + ih2 * nb) * inv_plain;
-      }
-      if (((n2 - 1) & 1) == k0) masked(base + n2 - 1);
-    } else {
-      for (Index k = k0; k < n2; k += 2) masked(base + k);
+  for (Index k = first; k < n2 - 1; k += 2) {
+    const Index c = base + k;
+    Scalar nb = x[c - s1] + x[c + s1] + x[c - 1] + x[c + 1];
+    if (ThreeD) nb += x[c - s0] + x[c + s0];
+    x[c] = (b[c] + ih2 * nb) * inv_plain;
+  }
+  if (((n2 - 1) & 1) == k0) masked(base + n2 - 1);
+}
+
+// Both colours in one pass over memory: slabs (planes i in 3D, rows j in 2D) are swept in
+// order, the second colour trailing one slab behind the first, whose neighbours are then final.
+// Each thread takes a contiguous block of slabs; the second colour on a block's first and last
+// slab waits for the neighbouring blocks behind a barrier.
+template <bool ThreeD>
+void PoissonOperator::sweep_impl(const Scalar* b, Scalar* x, int first_color) const {
+  const int second_color = 1 - first_color;
+  const Index slabs = ThreeD ? shape_.n[0] : shape_.n[1];
+  const Index rows_per_slab = ThreeD ? shape_.n[1] : 1;
+  auto slab = [&](Index p, int color) {
+    for (Index r = p * rows_per_slab; r < (p + 1) * rows_per_slab; ++r) smooth_row<ThreeD>(b, x, r, color);
+  };
+#pragma omp parallel if (parallel())
+  {
+    const Index team = omp_get_num_threads(), t = omp_get_thread_num();
+    const Index lo = slabs * t / team, hi = slabs * (t + 1) / team;
+    for (Index p = lo; p < hi; ++p) {
+      slab(p, first_color);
+      if (p - 1 > lo) slab(p - 1, second_color);
     }
+#pragma omp barrier
+    if (hi > lo) slab(lo, second_color);
+    if (hi - 1 > lo) slab(hi - 1, second_color);
   }
 }
 
-void PoissonOperator::smooth_color(const Scalar* b, Scalar* x, int color) const {
-  if (shape_.dim == 3) smooth_impl<true>(b, x, color);
-  else smooth_impl<false>(b, x, color);
+void PoissonOperator::sweep(const Scalar* b, Scalar* x, int first_color) const {
+  if (shape_.dim == 3) sweep_impl<true>(b, x, first_color);
+  else sweep_impl<false>(b, x, first_color);
 }
 
 void PoissonOperator::jacobi(const Scalar* b, const Scalar* x, Scalar* x_new, Scalar omega) const {

@@ -36,8 +36,10 @@ class PoissonOperator {
 
   void apply(const Scalar* x, Scalar* y) const;                         // y = A x
   void residual(const Scalar* b, const Scalar* x, Scalar* r) const;     // r = b - A x
-  // One Gauss-Seidel half-sweep over the cells of one colour ((i+j+k) % 2 == color).
-  void smooth_color(const Scalar* b, Scalar* x, int color) const;
+  // One red-black Gauss-Seidel sweep: all cells of colour first_color ((i+j+k) % 2), then
+  // all of the other colour, fused into one pass over memory. Reversing first_color gives the
+  // adjoint sweep, so pre- and post-smoothing in opposite orders keep a V-cycle symmetric.
+  void sweep(const Scalar* b, Scalar* x, int first_color) const;
   // Weighted Jacobi: x_new = x + omega D^-1 (b - A x).
   void jacobi(const Scalar* b, const Scalar* x, Scalar* x_new, Scalar omega) const;
 
@@ -71,7 +73,9 @@ class PoissonOperator {
   template <bool ThreeD>
   void apply_impl(const Scalar* x, Scalar* y, const Scalar* b) const;
   template <bool ThreeD>
-  void smooth_impl(const Scalar* b, Scalar* x, int color) const;
+  void smooth_row(const Scalar* b, Scalar* x, Index row, int color) const;
+  template <bool ThreeD>
+  void sweep_impl(const Scalar* b, Scalar* x, int first_color) const;
   void label_components();
 
   Scalar neighbour_sum(const Scalar* x, Index c) const;

@@ -125,8 +125,7 @@ SolveInfo PoissonSolver::stationary(const Scalar* b, Scalar* x, const IterativeO
         std::swap_ranges(z_.begin(), z_.end(), x);
         break;
       case PoissonMethod::GaussSeidel:
-        op_->smooth_color(bp, x, 0);
-        op_->smooth_color(bp, x, 1);
+        op_->sweep(bp, x, 0);
         break;
       default:  // multigrid: x += V(b - A x), with r_ holding the residual just measured
         mg_->vcycle(r_.data(), z_.data());
