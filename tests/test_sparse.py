@@ -401,9 +401,9 @@ def _nan_matrix():
     return A
 
 
-def _nonsymmetric():
+def _nonsymmetric(i, j, value):
     A = GOOD.tolil()
-    A[0, 1] = -0.5
+    A[i, j] = value
     return A.tocsr()
 
 
@@ -417,7 +417,9 @@ def _nonsymmetric():
         (sp.csr_array((0, 0)), "A: expected a non-empty matrix"),
         (sp.eye_array(3, dtype=complex), "A: expected real values"),
         (_nan_matrix(), "A: non-finite value nan"),
-        (_nonsymmetric(), r"A: not symmetric: \|A\[0, 1\] - A\[1, 0\]\|"),
+        (sp.coo_array(np.ones(3)), r"A: expected a square matrix, got shape \(3,\)"),
+        (_nonsymmetric(0, 1, -0.5), r"A: not symmetric: \|A\[0, 1\] - A\[1, 0\]\| = 5.000e-01"),
+        (_nonsymmetric(0, 5, 1.0), r"A: not symmetric: \|A\[0, 5\] - A\[5, 0\]\| = 1.000e\+00"),
     ],
 )
 def test_bad_matrix(A, match):
@@ -425,6 +427,23 @@ def test_bad_matrix(A, match):
         km.sparse.cholesky(A)
     with pytest.raises(ValueError, match=match):
         km.sparse.cg(A, np.ones(16))
+
+
+def test_rounding_asymmetry_is_accepted():
+    A = GOOD.copy()
+    A.data = A.data.copy()
+    A.data[1] *= 1 + 1e-14  # a_01 = -1 (1 + 1e-14), a_10 = -1
+    km.sparse.cholesky(A)
+    with pytest.raises(ValueError, match="not symmetric"):
+        km.sparse.cholesky(_nonsymmetric(0, 1, -1 - 1e-8))
+
+
+def test_upper_triangle_alone_without_symmetry_check():
+    A = random_spd(100, 18)
+    b = np.ones(100)
+    ref = km.sparse.cholesky(A).solve(b)
+    x = km.sparse.cholesky(sp.triu(A, format="csr"), check_symmetry=False).solve(b)
+    assert np.array_equal(x, ref)
 
 
 def test_bad_solve_arguments():
@@ -451,13 +470,15 @@ def test_bad_cg_arguments():
         (dict(max_iter=0), "max_iter: expected an integer >= 1"),
         (dict(max_iter=2.5), "max_iter:"),
         (dict(precond="ilu"), "precond: expected None or 'jacobi'"),
+        (dict(precond=np.ones(2)), "precond: expected None or 'jacobi'"),
     ]
     for kwargs, match in cases:
         args = dict(b=b) | kwargs
         with pytest.raises(ValueError, match=match):
             km.sparse.cg(GOOD, **args)
-    with pytest.raises(ValueError, match="ordering: expected one of"):
-        km.sparse.cholesky(GOOD, ordering="metis")
+    for ordering in ("metis", None, ["amd"]):
+        with pytest.raises(ValueError, match="ordering: expected one of"):
+            km.sparse.cholesky(GOOD, ordering=ordering)
 
 
 @pytest.mark.parametrize("diagonal", [0.0, -1.0])

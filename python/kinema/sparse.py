@@ -59,24 +59,29 @@ def _csr_arrays(A, name, check_symmetry):
         raise ValueError(f"{name}: non-finite value {data[p]} at ({i}, {indices[p]}) "
                          f"({np.count_nonzero(~np.isfinite(data))} in all)")
     if check_symmetry:
-        _check_symmetric(sp.csr_array((data, indices, indptr), shape=(n, n)), name)
+        _check_symmetric(A if A.dtype == np.float64 else A.astype(np.float64), name)
     return n, indptr, indices, data
 
 
 def _check_symmetric(A, name):
-    diff = (A - A.T.tocsr()).tocoo()
-    if diff.nnz == 0:
-        return
-    scale = float(np.abs(A.data).max())
-    k = int(np.argmax(np.abs(diff.data)))
-    worst = abs(float(diff.data[k]))
-    bound = SYMMETRY_RTOL * scale
-    if worst > bound:
-        i, j = int(diff.row[k]), int(diff.col[k])
+    """Raises unless |a_ij - a_ji| <= SYMMETRY_RTOL * max |a_ij| (A: canonical CSR float64)."""
+    bound = SYMMETRY_RTOL * float(np.abs(A.data).max(initial=0.0))
+    At = A.T.tocsr()  # canonical: sorted, no duplicates
+    if np.array_equal(A.indptr, At.indptr) and np.array_equal(A.indices, At.indices):
+        # Symmetric pattern (the usual case): compare the value arrays entry by entry.
+        diff = A.data - At.data
+        if np.abs(diff).max(initial=0.0) <= bound:
+            return
+        D = sp.csr_array((diff, A.indices, A.indptr), shape=A.shape).tocoo()
+    else:
+        D = (A - At).tocoo()
+    k = int(np.argmax(np.abs(D.data))) if D.nnz else None
+    if k is not None and abs(D.data[k]) > bound:
+        i, j = int(D.row[k]), int(D.col[k])
         raise ValueError(
-            f"{name}: not symmetric: |A[{i}, {j}] - A[{j}, {i}]| = {worst:.3e} exceeds "
+            f"{name}: not symmetric: |A[{i}, {j}] - A[{j}, {i}]| = {abs(D.data[k]):.3e} exceeds "
             f"{bound:.3e} (SYMMETRY_RTOL * max |a_ij|); symmetrise with (A + A.T) / 2 if the "
-            "difference is rounding, or pass check_symmetry=False to use the lower triangle")
+            "difference is rounding (check_symmetry=False skips this check)")
 
 
 def _vector(x, name, n):
@@ -109,11 +114,15 @@ class Factor:
     A factor may be shared between threads; its calls run one at a time.
     """
 
-    __slots__ = ("_core", "ordering")
+    __slots__ = ("_core", "_ordering")
 
     def __init__(self, core, ordering):
         self._core = core
-        self.ordering = ordering
+        self._ordering = ordering
+
+    @property
+    def ordering(self) -> str:
+        return self._ordering
 
     @property
     def n(self) -> int:
@@ -135,7 +144,7 @@ class Factor:
         """x = A^-1 b.
 
         b: (n,) or (n, k) for k right-hand sides, in the units of A x.
-        Returns x of b's shape (for (n, k), a Fortran-ordered array).
+        Returns x of b's shape, in the units of b / A (for (n, k), a Fortran-ordered array).
         """
         n = self.n
         b = as_float_array(b, "b", ndim=(1, 2))
@@ -174,8 +183,9 @@ class Factor:
 def cholesky(A, *, ordering: str = "default", check_symmetry: bool = True) -> Factor:
     """Factorises a sparse symmetric positive definite matrix with CHOLMOD (supernodal).
 
-    A: scipy.sparse (n, n), symmetric positive definite, any format. Only one triangle is
-        used; the other is checked for symmetry unless ``check_symmetry=False``.
+    A: scipy.sparse (n, n), symmetric positive definite, any format. Only the upper triangle
+        (j >= i) is read; the lower one is checked for symmetry. With ``check_symmetry=False``
+        the check is skipped, and ``scipy.sparse.triu(A)`` alone may be passed.
     ordering: fill-reducing ordering, "default" (CHOLMOD's choice: AMD, or METIS when AMD
         fills in poorly), "amd", or "natural" (none; the failing column of a non-SPD matrix is
         then the first non-positive leading minor).
@@ -183,7 +193,7 @@ def cholesky(A, *, ordering: str = "default", check_symmetry: bool = True) -> Fa
     Raises km.NotPositiveDefiniteError (``.column``: the zero-based column of A whose pivot
     failed) when A is not positive definite, ValueError for any malformed input.
     """
-    if ordering not in _ORDERINGS:
+    if not isinstance(ordering, str) or ordering not in _ORDERINGS:
         raise ValueError(f"ordering: expected one of {_ORDERINGS}, got {ordering!r}")
     n, indptr, indices, data = _csr_arrays(A, "A", check_symmetry)
     return Factor(_core.sparse.Factor(n, indptr, indices, data, ordering), ordering)
@@ -193,15 +203,17 @@ def cg(A, b, x0=None, tol=1e-8, max_iter=None, precond="jacobi", *,
        raise_on_failure: bool = True, check_symmetry: bool = True):
     """Solves A x = b by (preconditioned) conjugate gradients.
 
-    A: scipy.sparse (n, n) symmetric positive definite, any format.
-    b: (n,) right-hand side. x0: (n,) initial guess (default zeros; not modified).
+    A: scipy.sparse (n, n) symmetric positive definite, any format, checked for symmetry
+        unless ``check_symmetry=False`` (CG needs a symmetric A).
+    b: (n,) right-hand side, in the units of A x.
+    x0: (n,) initial guess (default zeros; not modified), in the units of x.
     tol: stop when the relative residual ||b - A x|| / ||b|| <= tol.
     max_iter: iteration limit (default max(2 n, 100)).
     precond: None or "jacobi" (M = diag(A); needs a positive diagonal).
     raise_on_failure: when max_iter is reached before tol, raise km.ConvergenceError (its
         ``.info`` holds the SolveInfo) if True, else return with ``info.converged = False``.
 
-    Returns (x, info): x (n,), info a km.SolveInfo whose ``residual`` is the true relative
+    Returns (x, info): x (n,) in the units of b / A, info a km.SolveInfo whose ``residual`` is the true relative
     residual of x. Interruptible with Ctrl-C (KeyboardInterrupt).
     """
     n, indptr, indices, data = _csr_arrays(A, "A", check_symmetry)
@@ -209,15 +221,16 @@ def cg(A, b, x0=None, tol=1e-8, max_iter=None, precond="jacobi", *,
     x = np.zeros(n) if x0 is None else np.array(_vector(x0, "x0", n), copy=True)
     tol = positive(tol, "tol")
     max_iter = positive_int(max_iter, "max_iter", allow_none=True) or 0
-    if precond is not None and precond != "jacobi":
+    if precond is not None and not (isinstance(precond, str) and precond == "jacobi"):
         raise ValueError(f"precond: expected None or 'jacobi', got {precond!r}")
     info: SolveInfo = _core.sparse.cg(n, indptr, indices, data, b, x, precond == "jacobi", tol,
                                       max_iter)
     if not info.converged and raise_on_failure:
         err = ConvergenceError(
             f"cg: no convergence in {info.iterations} iterations: relative residual "
-            f"{info.residual:.3e} > tol = {tol:.1e}; raise max_iter, precondition "
-            "(precond='jacobi') or use km.sparse.cholesky")
+            f"{info.residual:.3e} > tol = {tol:.1e}; raise max_iter"
+            + (", precondition (precond='jacobi')" if precond is None else "")
+            + " or solve directly with km.sparse.cholesky")
         err.info = info
         raise err
     return x, info
