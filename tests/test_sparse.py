@@ -360,6 +360,9 @@ def test_cg_is_interruptible():
         fired.append(time.perf_counter())
         os.kill(os.getpid(), signal.SIGINT)
 
+    # A shell without job control starts background jobs with SIGINT ignored, and Python then
+    # keeps it ignored: install Python's own handler, as an interactive session has it.
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     timer = threading.Timer(0.3, interrupt)
     timer.start()
     try:
@@ -368,6 +371,7 @@ def test_cg_is_interruptible():
         caught = time.perf_counter()
     finally:
         timer.cancel()
+        signal.signal(signal.SIGINT, previous)
     assert fired, "cg returned before the interrupt was sent"
     delay = caught - fired[0]
     assert delay < 1.0, f"KeyboardInterrupt {delay:.2f} s after SIGINT (bound 1 s)"
