@@ -1,7 +1,137 @@
+// kinema._core.sparse: CHOLMOD factor and CG on scipy's CSR arrays (zero-copy). The Python
+// layer (kinema/sparse.py) converts and checks the matrix; here only the array lengths are
+// checked, the C++ core checks the pattern itself.
+#include <memory>
+#include <string>
+
 #include "bindings/common.h"
+#include "core/errors.h"
+#include "linalg/cg.h"
+#include "linalg/cholmod_factor.h"
 
 namespace kinema::bind {
 
-void bind_sparse(py::module_& m) { (void)m; }
+namespace {
+
+std::string str(Index i) { return std::to_string(i); }
+
+// indptr, indices, data of an n x n CSR matrix, checked only for lengths, so that the core may
+// read indptr[0..n] and indptr[n] entries of the others.
+void check_lengths(Index n, const IndexArray& indptr, const IndexArray& indices,
+                   const ScalarArray& data) {
+  if (n < 0) throw InvalidArgument("n: expected >= 0, got " + str(n));
+  if (indptr.ndim() != 1 || indptr.size() != n + 1)
+    throw InvalidArgument("A.indptr: expected " + str(n + 1) + " entries, got " +
+                          str(indptr.size()));
+  if (indices.ndim() != 1 || data.ndim() != 1 || indices.size() != data.size())
+    throw InvalidArgument("A: indices and data must be 1-D of equal length, got " +
+                          str(indices.size()) + " and " + str(data.size()));
+  const Index nnz = indptr.data()[n];
+  if (nnz < 0 || nnz > indices.size())
+    throw InvalidArgument("A.indptr: last entry " + str(nnz) + " is outside [0, " +
+                          str(indices.size()) + "], the number of stored entries");
+}
+
+std::string shape_str(const py::array& a) {
+  std::string s = "(";
+  for (py::ssize_t d = 0; d < a.ndim(); ++d) s += (d ? ", " : "") + str(a.shape(d));
+  return s + (a.ndim() == 1 ? ",)" : ")");
+}
+
+// A symmetric matrix's CSR arrays are its CSC arrays.
+CscView csc_view(Index n, const IndexArray& indptr, const IndexArray& indices,
+                 const ScalarArray& data) {
+  check_lengths(n, indptr, indices, data);
+  return CscView{n, n, indptr.data(), indices.data(), data.data()};
+}
+
+CholmodOrdering parse_ordering(const std::string& name) {
+  if (name == "default") return CholmodOrdering::Default;
+  if (name == "amd") return CholmodOrdering::Amd;
+  if (name == "natural") return CholmodOrdering::Natural;
+  throw InvalidArgument("ordering: expected 'default', 'amd' or 'natural', got '" + name + "'");
+}
+
+}  // namespace
+
+void bind_sparse(py::module_& m) {
+  py::class_<CholmodFactor>(m, "Factor")
+      .def(py::init([](Index n, const IndexArray& indptr, const IndexArray& indices,
+                       const ScalarArray& data, const std::string& ordering) {
+             const CscView A = csc_view(n, indptr, indices, data);
+             const CholmodOrdering order = parse_ordering(ordering);
+             py::gil_scoped_release release;
+             return std::make_unique<CholmodFactor>(A, order);
+           }),
+           py::arg("n"), py::arg("indptr"), py::arg("indices"), py::arg("data"),
+           py::arg("ordering") = "default")
+      .def(
+          "refactor",
+          [](CholmodFactor& f, Index n, const IndexArray& indptr, const IndexArray& indices,
+             const ScalarArray& data) {
+            const CscView A = csc_view(n, indptr, indices, data);
+            py::gil_scoped_release release;
+            f.refactor(A);
+          },
+          py::arg("n"), py::arg("indptr"), py::arg("indices"), py::arg("data"))
+      // b: (n,) or (k, n) C-contiguous, i.e. k right-hand sides stored column-major n x k.
+      .def(
+          "solve",
+          [](const CholmodFactor& f, const ScalarArray& b) {
+            const Index n = f.size();
+            const bool one = b.ndim() == 1 && b.shape(0) == n;
+            const bool many = b.ndim() == 2 && b.shape(1) == n;
+            if (!one && !many)
+              throw InvalidArgument("b: expected shape (" + str(n) + ",) or (k, " + str(n) +
+                                    "), got " + shape_str(b));
+            const Index nrhs = one ? 1 : b.shape(0);
+            ScalarArray x(shape_of(b));
+            const Scalar* bp = b.data();
+            Scalar* xp = x.mutable_data();
+            {
+              py::gil_scoped_release release;
+              f.solve(bp, xp, nrhs);
+            }
+            return x;
+          },
+          py::arg("b"))
+      .def_property_readonly("n", &CholmodFactor::size)
+      .def_property_readonly("nnz_factor", &CholmodFactor::factor_nonzeros)
+      .def_property_readonly("is_supernodal", &CholmodFactor::is_supernodal)
+      .def_property_readonly("permutation",
+                             [](const CholmodFactor& f) {
+                               const Index* p = f.permutation();
+                               return IndexArray(f.size(), p);  // a copy
+                             })
+      .def("logdet", &CholmodFactor::log_determinant);
+
+  // x holds the initial guess and receives the solution in place (no conversion allowed, so
+  // the caller's array is the one written).
+  m.def(
+      "cg",
+      [](Index n, const IndexArray& indptr, const IndexArray& indices, const ScalarArray& data,
+         const ScalarArray& b, ScalarArray x, bool jacobi, Scalar tol, Index max_iter) {
+        check_lengths(n, indptr, indices, data);
+        if (b.ndim() != 1 || b.size() != n)
+          throw InvalidArgument("b: expected shape (" + str(n) + ",), got " + str(b.size()) +
+                                " entries");
+        if (x.ndim() != 1 || x.size() != n)
+          throw InvalidArgument("x: expected shape (" + str(n) + ",), got " + str(x.size()) +
+                                " entries");
+        const CsrView A{n, n, indptr.data(), indices.data(), data.data()};
+        const IterativeOptions options{tol, max_iter};
+        const Scalar* bp = b.data();
+        Scalar* xp = x.mutable_data();
+        Interrupt interrupt = python_interrupt();
+        SolveInfo info;
+        {
+          py::gil_scoped_release release;
+          info = cg_csr(A, bp, xp, jacobi, options, interrupt);
+        }
+        return to_python(info);
+      },
+      py::arg("n"), py::arg("indptr"), py::arg("indices"), py::arg("data"), py::arg("b"),
+      py::arg("x").noconvert(), py::arg("jacobi"), py::arg("tol"), py::arg("max_iter"));
+}
 
 }  // namespace kinema::bind

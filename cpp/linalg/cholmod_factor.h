@@ -1,7 +1,12 @@
-// RAII wrapper around CHOLMOD's supernodal Cholesky factorisation A = L L^T (long-index
-// interface, cholmod_l_*). Analysis (fill-reducing ordering, supernode detection) is done once;
+// RAII wrapper around CHOLMOD's supernodal Cholesky factorisation P A P^T = L L^T (long-index
+// interface, cholmod_l_*). Analysis (fill-reducing ordering P, supernode detection) is done once;
 // refactor() reuses it for a matrix of the same pattern, as Newton iterations need.
-// Davis & Hager, "Dynamic supernodes in sparse Cholesky update/downdate", ACM TOMS 35 (2009).
+// Chen, Davis, Hager & Rajamanickam, "CHOLMOD, supernodal sparse Cholesky factorization and
+// update/downdate", ACM TOMS 35 (2008).
+//
+// Thread safety: one factor may be used from several threads; its calls are serialised (CHOLMOD
+// keeps its workspace in the factor's cholmod_common). Different factors run independently.
+// CHOLMOD's dense kernels run in the BLAS (OpenBLAS), with the BLAS's own threads.
 #pragma once
 
 #include <memory>
@@ -20,11 +25,19 @@ struct CscView {
   const Scalar* values = nullptr;
 };
 
+// Fill-reducing ordering chosen by the analysis.
+enum class CholmodOrdering {
+  Default,  // CHOLMOD's choice: AMD, and METIS/NESDIS when AMD's fill is poor
+  Amd,      // approximate minimum degree only
+  Natural,  // no permutation: a failing column is then the first non-positive leading minor
+};
+
 class CholmodFactor {
  public:
   // Analyses and factorises A. Throws NotPositiveDefinite (with the failing column) or
-  // InvalidArgument for a non-square or malformed matrix.
-  explicit CholmodFactor(const CscView& A);
+  // InvalidArgument for a non-square or malformed matrix (unsorted or duplicate row indices
+  // included) or non-finite values. The view is only read during the call (no reference kept).
+  explicit CholmodFactor(const CscView& A, CholmodOrdering ordering = CholmodOrdering::Default);
   ~CholmodFactor();
   CholmodFactor(const CholmodFactor&) = delete;
   CholmodFactor& operator=(const CholmodFactor&) = delete;
@@ -32,14 +45,21 @@ class CholmodFactor {
   CholmodFactor& operator=(CholmodFactor&&) noexcept;
 
   // Re-factorises a matrix with the same sparsity pattern, reusing the symbolic analysis.
+  // Throws InvalidArgument when the pattern differs, NotPositiveDefinite when a pivot fails
+  // (the factor is then unusable until a successful refactor).
   void refactor(const CscView& A);
 
   // Solves A X = B for nrhs right-hand sides stored column by column (column-major, n x nrhs).
+  // b and x may not overlap.
   void solve(const Scalar* b, Scalar* x, Index nrhs = 1) const;
 
   Index size() const;
   Index factor_nonzeros() const;  // nonzeros in L
   bool is_supernodal() const;
+  // log det A = 2 sum_j log L_jj.
+  Scalar log_determinant() const;
+  // The fill-reducing permutation: row/column perm[k] of A is row/column k of P A P^T.
+  const Index* permutation() const;
 
  private:
   struct Impl;
