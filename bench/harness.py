@@ -228,6 +228,29 @@ def _better(run: Run, best: Run) -> bool:
     return run.figure < best.figure
 
 
+def run_google_benchmark(binary: Union[str, Path], benchmark_filter: str = ".", *,
+                         repetitions: int = 3, max_load: float = DEFAULT_MAX_LOAD,
+                         max_tries: int = DEFAULT_MAX_TRIES) -> Measurement:
+    """Runs a Google Benchmark program under `measure` and returns its parsed JSON report.
+
+    The whole program run is one timed window, repeated when other processes loaded the
+    machine. measurement.value is the list of per-repetition entries of the report (aggregate
+    rows dropped), each a dict with 'name', 'real_time', 'time_unit' and the counters, e.g.
+    'bytes_per_second', 'GB' (a rate) for the STREAM triad of bench/cpp/bench_stream.cpp.
+    measurement.seconds is the wall time of the kept program run, not of one benchmark.
+    """
+    import json
+
+    command = [str(binary), f"--benchmark_filter={benchmark_filter}", "--benchmark_format=json",
+               f"--benchmark_repetitions={int(repetitions)}"]
+
+    def run():
+        done = subprocess.run(command, capture_output=True, text=True, check=True)
+        return [b for b in json.loads(done.stdout)["benchmarks"] if b.get("run_type") != "aggregate"]
+
+    return measure(run, max_load=max_load, max_tries=max_tries)
+
+
 # ------------------------------------------------------------------ provenance
 
 

@@ -11,10 +11,10 @@ Peers (all called through their installed packages, none of their code is copied
 - scipy_spsolve: SciPy's sparse direct solver (SuperLU, COLAMD ordering by default).
 - sksparse_cholmod: CHOLMOD (Chen, Davis, Hager and Rajamanickam 2008) through scikit-sparse;
   analyse, factor and solve timed separately.
-- taichi_mgpcg: the MGPCG class bundled with the taichi wheel
+- taichi_mgpcg / TaichiMGPCG: the MGPCG class bundled with the taichi wheel
   (taichi/examples/algorithm/mgpcg_advanced.py), on Taichi's CPU backend in float64; the first
   solve (which JIT-compiles every kernel) and a second, steady-state solve timed separately.
-  What it solves is stated in its docstring and in TAICHI_OPERATOR below.
+  What it solves is stated in TaichiMGPCG's docstring and in TAICHI_OPERATOR below.
 
 The matrix peers take the cell-centred Laplacian of laplacian_matrix(), the operator of
 km.poisson (API.md) with the same C-order unknown numbering as ``f.ravel()``.
@@ -79,17 +79,21 @@ def laplacian_matrix(shape: Sequence[int], h: float, bc: str = "dirichlet") -> s
     - a boundary face with bc="dirichlet": u = 0 on the face via the ghost value -u, so
       (u - (-u)) / h^2 = +2 on the diagonal;
     - a boundary face with bc="neumann": nothing (zero flux); the matrix is then singular
-      with the constants as null space.
+      with the constants as null space;
+    - a boundary face with bc="dirichlet_vertex": +1 on the diagonal, u = 0 one full spacing
+      out (vertex-centred Dirichlet); with h = 1 this is the operator of Taichi's MGPCG.
     So a Dirichlet corner cell in 2D has diagonal (1 + 1 + 2 + 2) / h^2 = 6 / h^2.
-    This is km.poisson.matrix(shape, h, bc) without solids, built independently of kinema.
+    With bc in {"dirichlet", "neumann"} this is km.poisson.matrix(shape, h, bc) without
+    solids, built independently of kinema.
     """
     shape = tuple(int(n) for n in shape)
     if len(shape) not in (2, 3) or min(shape) < 1:
         raise ValueError(f"shape: expected 2 or 3 positive sizes, got {shape}")
     if not h > 0:
         raise ValueError(f"h: expected a positive spacing, got {h}")
-    if bc not in ("dirichlet", "neumann"):
-        raise ValueError(f"bc: expected 'dirichlet' or 'neumann', got {bc!r}")
+    boundary_face = {"dirichlet": 2.0, "neumann": 0.0, "dirichlet_vertex": 1.0}
+    if bc not in boundary_face:
+        raise ValueError(f"bc: expected one of {sorted(boundary_face)}, got {bc!r}")
     inv_h2 = 1.0 / (h * h)
     count = int(np.prod(shape))
     index = np.arange(count, dtype=np.int64).reshape(shape)
@@ -104,9 +108,8 @@ def laplacian_matrix(shape: Sequence[int], h: float, bc: str = "dirichlet") -> s
         faces = np.full(n, 2.0)  # interior faces per cell along this axis
         faces[0] -= 1.0
         faces[-1] -= 1.0
-        if bc == "dirichlet":
-            faces[0] += 2.0
-            faces[-1] += 2.0
+        faces[0] += boundary_face[bc]
+        faces[-1] += boundary_face[bc]
         diagonal += faces.reshape([n if a == axis else 1 for a in range(len(shape))])
     rows = np.concatenate(rows + [np.arange(count)])
     cols = np.concatenate(cols + [np.arange(count)])
@@ -293,19 +296,18 @@ def _taichi_mgpcg_module():
     return module
 
 
-def taichi_mgpcg(b: np.ndarray, tol: float = 1e-6, *, threads: Optional[int] = None,
-                 n_mg_levels: Optional[int] = None, max_iter: int = 1000,
-                 offline_cache: bool = False) -> PeerResult:
-    """Taichi's bundled MGPCG on its CPU backend in float64: solves A x = b for an N^d array b.
+class TaichiMGPCG:
+    """Taichi's bundled MGPCG on its CPU backend in float64, for N^d right-hand sides.
 
     What is solved (read from the installed mgpcg_advanced.py, Taichi 1.7):
     - A is TAICHI_OPERATOR: (A x)_I = 2d x_I - sum_k (x_{I+e_k} + x_{I-e_k}) on the N^d block,
       which sits at offset N/2 inside a sparse (pointer) grid of extent 2N; cells outside the
       block are inactive and read as 0. That is -h^2 lap with u = 0 at the first cell centres
-      outside, a vertex-centred Dirichlet problem, unscaled. kinema's cell-centred operator
-      (ghost = -u) differs only in the boundary rows (diagonal 2d + 1 per boundary face):
-      same unknown count, same stencil, same O(h^-2) conditioning. To pose -lap u = f at
-      spacing h, pass b = h^2 f; the relative residual does not change with that scaling.
+      outside, a vertex-centred Dirichlet problem, unscaled: laplacian_matrix(shape, 1.0,
+      bc="dirichlet_vertex"). kinema's cell-centred operator (ghost = -u) differs only in the
+      boundary rows (diagonal 2d + 1 per boundary face instead of 2d): same unknown count, same
+      stencil, same O(h^-2) conditioning. To pose -lap u = f at spacing h, pass b = h^2 f; the
+      relative residual does not change with that scaling.
     - Preconditioner: one V-cycle, red-black Gauss-Seidel with 2 << l sweeps before and after
       on level l, 50 sweeps on the coarsest, restriction 0.5 x (sum of the 2^d children),
       piecewise-constant prolongation, the same unscaled stencil on every level.
@@ -314,58 +316,79 @@ def taichi_mgpcg(b: np.ndarray, tol: float = 1e-6, *, threads: Optional[int] = N
       rel_tol = tol^2 with abs_tol = 0. (The class's default rel_tol = 1e-12 is tol = 1e-6.)
       Its default eps = 1e-12, added to both CG denominators, is not scale-invariant and would
       distort beta near convergence for b = h^2 f, so eps = 0 is passed (b = 0 is answered
-      with x = 0 before Taichi is called).
+      with x = 0 without calling Taichi).
     - Precision: ti.init(arch=ti.cpu, default_fp=ti.f64) and MGPCG(real=ti.f64).
 
+    shape: (N, N) or (N, N, N), N a power of two >= 8.
     threads: Taichi's CPU thread pool size (cpu_max_num_threads; default: all CPUs).
     n_mg_levels: default taichi_default_levels(N) (16 cells on the coarsest level, as the
-    example's 4 levels at N = 128); N must be a power of two.
-    offline_cache: Taichi's on-disk kernel cache; off so that 'first_solve' includes the JIT.
-    Phases: 'setup' (ti.init, field allocation), 'first_solve' (incl. JIT compilation),
-    'solve' (the same solve again, steady state), each from numpy b to numpy x.
-    iterations: CG iterations (one V-cycle each) of the steady-state solve, counted from the
-    solver's verbose per-iteration lines. ti.init resets Taichi's runtime: no Taichi fields
-    made before a call survive it.
+    example's 4 levels at N = 128).
+    offline_cache: Taichi's on-disk kernel cache; off so that a first solve includes the JIT.
+    Construction calls ti.init, which resets Taichi's runtime: a previously made TaichiMGPCG
+    (or any Taichi field) is unusable afterwards, so keep one alive at a time.
+    setup_seconds: time of ti.init and field allocation [s].
     """
-    b = np.ascontiguousarray(b, dtype=np.float64)
-    n = b.shape[0]
-    if b.ndim not in (2, 3) or any(s != n for s in b.shape):
-        raise ValueError(f"b: expected a square or cubic 2D/3D array, got shape {b.shape}")
-    if n < 8 or n & (n - 1):
-        raise ValueError(f"b: Taichi's MGPCG needs N a power of two >= 8, got N = {n}")
-    levels = taichi_default_levels(n) if n_mg_levels is None else int(n_mg_levels)
-    if not np.any(b):
-        return PeerResult(np.zeros_like(b), {"setup": 0.0, "first_solve": 0.0, "solve": 0.0}, 0, 0.0)
 
-    import taichi as ti
+    def __init__(self, shape: Sequence[int], *, threads: Optional[int] = None,
+                 n_mg_levels: Optional[int] = None, offline_cache: bool = False):
+        shape = tuple(int(s) for s in shape)
+        n = shape[0]
+        if len(shape) not in (2, 3) or any(s != n for s in shape):
+            raise ValueError(f"shape: expected a square or cubic 2D/3D grid, got {shape}")
+        if n < 8 or n & (n - 1):
+            raise ValueError(f"shape: Taichi's MGPCG needs N a power of two >= 8, got N = {n}")
+        import taichi as ti
 
-    module = _taichi_mgpcg_module()
-    start = time.perf_counter()
-    ti.init(arch=ti.cpu, default_fp=ti.f64, cpu_max_num_threads=int(threads or os.cpu_count() or 1),
-            offline_cache=offline_cache, log_level=ti.WARN)
-    solver = module.MGPCG(dim=b.ndim, N=n, n_mg_levels=levels, real=ti.f64)
-    rhs = ti.field(dtype=ti.f64, shape=b.shape)
-    out = ti.field(dtype=ti.f64, shape=b.shape)
-    setup = time.perf_counter() - start
+        module = _taichi_mgpcg_module()
+        start = time.perf_counter()
+        ti.init(arch=ti.cpu, default_fp=ti.f64, cpu_max_num_threads=int(threads or os.cpu_count() or 1),
+                offline_cache=offline_cache, log_level=ti.WARN)
+        self.shape = shape
+        self.levels = taichi_default_levels(n) if n_mg_levels is None else int(n_mg_levels)
+        self._solver = module.MGPCG(dim=len(shape), N=n, n_mg_levels=self.levels, real=ti.f64)
+        self._rhs = ti.field(dtype=ti.f64, shape=shape)
+        self._out = ti.field(dtype=ti.f64, shape=shape)
+        self.setup_seconds = time.perf_counter() - start
 
-    def solve_once():
-        rhs.from_numpy(b)
-        solver.init(rhs, 1.0)
+    def solve(self, b: np.ndarray, tol: float = 1e-6, max_iter: int = 1000):
+        """Solves A x = b from x0 = 0 to ||b - A x|| <= tol ||b||; returns (x, iterations, seconds).
+
+        seconds covers numpy b in to numpy x out. iterations are CG iterations (one V-cycle
+        each), counted from the solver's verbose per-iteration lines. Not verified here.
+        """
+        b = np.ascontiguousarray(b, dtype=np.float64)
+        if b.shape != self.shape:
+            raise ValueError(f"b: expected shape {self.shape}, got {b.shape}")
+        if not np.any(b):
+            return np.zeros_like(b), 0, 0.0
+        start = time.perf_counter()
+        self._rhs.from_numpy(b)
+        self._solver.init(self._rhs, 1.0)
         log = io.StringIO()
         with contextlib.redirect_stdout(log):
-            solver.solve(max_iters=max_iter, eps=0.0, abs_tol=0.0, rel_tol=tol * tol, verbose=True)
-        solver.get_result(out)
-        x = out.to_numpy()
-        return x, sum(line.startswith("iter ") for line in log.getvalue().splitlines())
+            self._solver.solve(max_iters=max_iter, eps=0.0, abs_tol=0.0, rel_tol=tol * tol, verbose=True)
+        self._solver.get_result(self._out)
+        x = self._out.to_numpy()
+        seconds = time.perf_counter() - start
+        return x, sum(line.startswith("iter ") for line in log.getvalue().splitlines()), seconds
 
-    start = time.perf_counter()
-    solve_once()
-    first = time.perf_counter() - start
-    start = time.perf_counter()
-    x, iterations = solve_once()
-    steady = time.perf_counter() - start
 
-    residual = float(np.linalg.norm(b - taichi_operator(x)) / np.linalg.norm(b))
+def taichi_mgpcg(b: np.ndarray, tol: float = 1e-6, *, threads: Optional[int] = None,
+                 n_mg_levels: Optional[int] = None, max_iter: int = 1000,
+                 offline_cache: bool = False) -> PeerResult:
+    """Solves A x = b with a fresh TaichiMGPCG twice: the first solve JIT-compiles, the second is timed.
+
+    A is TAICHI_OPERATOR (see TaichiMGPCG for exactly what Taichi solves and how tol maps to
+    its stopping test). Phases: 'setup' (ti.init, fields), 'first_solve' (including JIT
+    compilation of every kernel), 'solve' (the same solve again: steady state, the figure to
+    compare). iterations and the verified residual are those of the steady-state solve.
+    """
+    solver = TaichiMGPCG(np.shape(b), threads=threads, n_mg_levels=n_mg_levels, offline_cache=offline_cache)
+    _, _, first = solver.solve(b, tol, max_iter)
+    x, iterations, steady = solver.solve(b, tol, max_iter)
+    b = np.asarray(b, dtype=np.float64)
+    norm_b = np.linalg.norm(b)
+    residual = float(np.linalg.norm(b - taichi_operator(x)) / (norm_b if norm_b > 0 else 1.0))
     _check("taichi_mgpcg", residual, ITERATIVE_SLACK * tol)
-    seconds = {"setup": setup, "first_solve": first, "solve": steady}
+    seconds = {"setup": solver.setup_seconds, "first_solve": first, "solve": steady}
     return PeerResult(x, seconds, iterations, residual)
