@@ -40,7 +40,7 @@ DIRECT_RESIDUAL_BOUND = 1e-10
 #: recursively updated residual a solver stops on drifts from the true one by rounding only.
 ITERATIVE_SLACK = 2.0
 
-#: What Taichi's bundled MGPCG solves, for reports (see taichi_mgpcg).
+#: What Taichi's bundled MGPCG solves, for reports (see TaichiMGPCG).
 TAICHI_OPERATOR = (
     "(A x)_I = 2d x_I - sum of the 2d neighbours x_{I+-e_k}, on N^d unknowns, x = 0 outside the "
     "block: -h^2 lap with homogeneous Dirichlet values at the first cell centres outside "
