@@ -1,0 +1,85 @@
+// STREAM triad a[i] = b[i] + s * c[i]: this machine's sustainable memory bandwidth, the
+// ceiling against which kinema's bandwidth-bound kernels (stencil apply, smoother, SpMV) are
+// judged. Method after McCalpin, "Memory bandwidth and machine balance in current high
+// performance computers", IEEE TCCA Newsletter 1995 (the STREAM benchmark): arrays far larger
+// than the last-level cache, first-touch initialisation by the same static OpenMP schedule as
+// the timed loop, and bytes counted as 3 arrays x 8 bytes per element. Written from that
+// description; no STREAM source is used.
+//
+// Counters (rates, per second of wall time):
+//   bytes_per_second   STREAM convention, 24 bytes per element (read b, read c, write a);
+//   GB                 the same in 1e9 bytes (shown as GB=x/s);
+//   GB_write_alloc     32 bytes per element: a cached store first reads the line of a it
+//                      writes (write-allocate), so the bus really moves 4 arrays.
+// Run: build/bench/kinema_bench --benchmark_filter=StreamTriad
+#include <benchmark/benchmark.h>
+#include <omp.h>
+
+#include <cstddef>
+#include <cstdint>
+#include <cstdlib>
+#include <new>
+
+namespace {
+
+// 10 Mi doubles = 80 MiB per array, 240 MiB in all: far beyond any L3 cache on a 2-core machine.
+constexpr std::int64_t kTriadLength = std::int64_t{10} << 20;
+constexpr double kTriadScalar = 3.0;
+
+// Cache-line aligned storage for one array, deliberately left uninitialised so that the first
+// touch (and with it page placement) happens in the parallel loop below.
+struct AlignedArray {
+  explicit AlignedArray(std::int64_t n)
+      : data(static_cast<double*>(std::aligned_alloc(64, static_cast<std::size_t>(n) * sizeof(double)))) {
+    if (data == nullptr) throw std::bad_alloc();
+  }
+  ~AlignedArray() { std::free(data); }
+  AlignedArray(const AlignedArray&) = delete;
+  AlignedArray& operator=(const AlignedArray&) = delete;
+  double* data;
+};
+
+void BM_StreamTriad(benchmark::State& state) {
+  const int threads = static_cast<int>(state.range(0));
+  if (threads > omp_get_num_procs()) {
+    state.SkipWithError("more threads than processors");
+    return;
+  }
+  const std::int64_t n = kTriadLength;
+  AlignedArray a(n), b(n), c(n);
+  double* __restrict pa = a.data;
+  double* __restrict pb = b.data;
+  double* __restrict pc = c.data;
+
+#pragma omp parallel for schedule(static) num_threads(threads)
+  for (std::int64_t i = 0; i < n; ++i) {
+    pa[i] = 0.0;
+    pb[i] = 1.0;
+    pc[i] = 2.0;
+  }
+
+  for (auto _ : state) {
+#pragma omp parallel for schedule(static) num_threads(threads)
+    for (std::int64_t i = 0; i < n; ++i) pa[i] = pb[i] + kTriadScalar * pc[i];
+    benchmark::DoNotOptimize(pa);
+    benchmark::ClobberMemory();
+  }
+
+  // A triad that did not run (or ran on the wrong data) must not report a bandwidth.
+  if (pa[0] != 1.0 + kTriadScalar * 2.0 || pa[n - 1] != pa[0]) {
+    state.SkipWithError("triad result is wrong");
+    return;
+  }
+
+  const double elements = static_cast<double>(state.iterations()) * static_cast<double>(n);
+  state.SetBytesProcessed(static_cast<std::int64_t>(elements * 3 * sizeof(double)));
+  state.counters["GB"] = benchmark::Counter(elements * 3 * sizeof(double) * 1e-9, benchmark::Counter::kIsRate);
+  state.counters["GB_write_alloc"] =
+      benchmark::Counter(elements * 4 * sizeof(double) * 1e-9, benchmark::Counter::kIsRate);
+  state.counters["threads"] = threads;
+}
+
+// Wall time, not the main thread's CPU time: the work is spread over the OpenMP team.
+BENCHMARK(BM_StreamTriad)->ArgName("threads")->Arg(1)->Arg(2)->UseRealTime()->Unit(benchmark::kMillisecond);
+
+}  // namespace
