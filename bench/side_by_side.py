@@ -279,21 +279,37 @@ def run_sweeps(args) -> int:
 
 
 def run_stream(args) -> None:
-    """Runs the STREAM triad of bench/cpp/bench_stream.cpp and records GB/s per thread count."""
+    """STREAM triad (bench/cpp/bench_stream.cpp) and, in the same program run, kinema's stencil
+    apply and red-black sweep (bench/cpp/bench_grid.cpp): their bandwidth as a share of the triad's."""
     if not BENCH_BINARY.exists():
         print(f"stream: {BENCH_BINARY} missing; build it with cmake -S . -B build/bench "
               "-DKINEMA_BUILD_BENCH=ON -DKINEMA_BUILD_PYTHON=OFF && cmake --build build/bench -j2")
         return
     recorder = harness.Recorder(OUT / "stream.csv", benchmark="stream_triad", threads=args.threads)
-    m = harness.run_google_benchmark(BENCH_BINARY, "StreamTriad", repetitions=5, max_tries=args.max_tries)
-    for threads in sorted({int(b["threads"]) for b in m.value}):
-        rows = [b for b in m.value if int(b["threads"]) == threads]
+    m = harness.run_google_benchmark(BENCH_BINARY, "StreamTriad|PoissonApply|RedBlackSweep",
+                                     repetitions=5, max_tries=args.max_tries)
+    triad = {}
+    for threads in sorted({int(b["threads"]) for b in m.value if "StreamTriad" in b["name"]}):
+        rows = [b for b in m.value if "StreamTriad" in b["name"] and int(b["threads"]) == threads]
         best = max(rows, key=lambda b: b["GB"])
+        triad[threads] = best["bytes_per_second"]
         recorder.record("triad", "3x80MiB", best["real_time"] * 1e-3, threads=threads, measurement=m,
                         notes={"GB/s": best["GB"], "GB/s_write_alloc": best["GB_write_alloc"],
                                "repetitions": len(rows)})
         print(f"STREAM triad, {threads} thread(s): {best['GB']:.1f} GB/s "
               f"({best['GB_write_alloc']:.1f} GB/s counting write-allocate), other_load {m.other_load:.2f}")
+    for kernel in ("PoissonApply", "RedBlackSweep"):
+        for size in ("2/1024", "3/128", "3/256"):
+            rows = [b for b in m.value if b["name"].startswith(f"BM_{kernel}/{size}/")]
+            if not rows:
+                continue
+            best = max(rows, key=lambda b: b["bytes_per_second"])
+            threads = int(best["threads"])
+            share = best["bytes_per_second"] / triad.get(threads, float("nan"))
+            recorder.record(kernel, size.replace("/", "D "), best["real_time"] * 1e-3, threads=threads,
+                            measurement=m, notes={"GB/s": best["bytes_per_second"] / 1e9, "share_of_triad": share})
+            print(f"{kernel:14s} {size.replace('/', 'D '):>8}: {best['real_time']:.3f} ms, "
+                  f"{best['bytes_per_second'] / 1e9:.1f} GB/s = {100 * share:.0f}% of the triad ({threads} threads)")
 
 
 def main(argv=None) -> int:
