@@ -105,6 +105,20 @@ void bind_sparse(py::module_& m) {
                              })
       .def("logdet", &CholmodFactor::log_determinant);
 
+  m.def(
+      "asymmetry",
+      [](Index n, const IndexArray& indptr, const IndexArray& indices, const ScalarArray& data) {
+        check_lengths(n, indptr, indices, data);
+        const CsrView A{n, n, indptr.data(), indices.data(), data.data()};
+        Asymmetry a;
+        {
+          py::gil_scoped_release release;
+          a = asymmetry(A);
+        }
+        return py::make_tuple(a.value, a.row, a.col);
+      },
+      py::arg("n"), py::arg("indptr"), py::arg("indices"), py::arg("data"));
+
   // x holds the initial guess and receives the solution in place (no conversion allowed, so
   // the caller's array is the one written).
   m.def(

@@ -206,8 +206,7 @@ void PoissonOperator::apply_impl(const Scalar* x, Scalar* y, const Scalar* b) co
     if (!fluid(c)) return 0;
     return diagonal(c) * x[c] - ih2 * neighbour_sum(x, c);
   };
-#pragma omp parallel for schedule(static) if (parallel())
-  for (Index row = 0; row < shape_.rows(); ++row) {
+  auto row_kernel = [&](Index row) {
     const Index base = row * n2;
     if (row_fast_[row]) {
       y[base] = b ? b[base] - masked(base) : masked(base);
@@ -234,7 +233,8 @@ void PoissonOperator::apply_impl(const Scalar* x, Scalar* y, const Scalar* b) co
         y[c] = b ? (fluid(c) ? b[c] - ax : 0) : ax;
       }
     }
-  }
+  };
+  for_each_row_tiled(row_kernel);
 }
 
 void PoissonOperator::apply(const Scalar* x, Scalar* y) const {

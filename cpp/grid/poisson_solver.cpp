@@ -70,25 +70,27 @@ SolveInfo PoissonSolver::solve(const Scalar* b, Scalar* x, const IterativeOption
   switch (config_.method) {
     case PoissonMethod::CG: {
       // Jacobi preconditioner: the operator's diagonal, zero on solid cells.
-      std::vector<Scalar> inv_diag(n, 0);
-      parallel_for(n, [&](Index c) {
-        const Scalar d = op_->fluid(c) ? op_->diagonal(c) : 0;
-        inv_diag[c] = d > 0 ? 1 / d : 0;
-      });
+      if (inv_diag_.empty()) {
+        inv_diag_.assign(n, 0);
+        parallel_for(n, [&](Index c) {
+          const Scalar d = op_->fluid(c) ? op_->diagonal(c) : 0;
+          inv_diag_[c] = d > 0 ? 1 / d : 0;
+        });
+      }
       auto A = [&](const Scalar* in, Scalar* out) { op_->apply(in, out); };
       auto M = [&](const Scalar* in, Scalar* out) {
-        parallel_for(n, [&](Index c) { out[c] = inv_diag[c] * in[c]; });
+        parallel_for(n, [&](Index c) { out[c] = inv_diag_[c] * in[c]; });
       };
       std::function<void(Scalar*)> project;
       if (op_->singular() || op_->fluid_count() < n) project = [&](Scalar* v) { op_->project(v); };
-      return pcg(n, A, M, b, x, opts, interrupt, project);
+      return pcg(n, A, M, b, x, opts, interrupt, project, &cg_);
     }
     case PoissonMethod::MGPCG: {
       auto A = [&](const Scalar* in, Scalar* out) { op_->apply(in, out); };
       auto M = [&](const Scalar* in, Scalar* out) { mg_->vcycle(in, out); };
       std::function<void(Scalar*)> project;
       if (op_->singular() || op_->fluid_count() < n) project = [&](Scalar* v) { op_->project(v); };
-      return pcg(n, A, M, b, x, opts, interrupt, project);
+      return pcg(n, A, M, b, x, opts, interrupt, project, &cg_);
     }
     default:
       return stationary(b, x, opts, interrupt);

@@ -12,6 +12,7 @@
 #include "core/interrupt.h"
 #include "grid/multigrid.h"
 #include "grid/poisson_operator.h"
+#include "linalg/cg.h"
 #include "linalg/solve_info.h"
 
 namespace kinema {
@@ -50,7 +51,8 @@ class PoissonSolver {
   std::unique_ptr<PoissonOperator> op_;  // heap-held so the hierarchy's pointer stays valid
   std::unique_ptr<Multigrid> mg_;
   PoissonConfig config_;
-  std::vector<Scalar> r_, z_, bp_;
+  std::vector<Scalar> r_, z_, bp_, inv_diag_;
+  CgWorkspace cg_;
 };
 
 }  // namespace kinema

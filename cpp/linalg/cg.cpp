@@ -20,11 +20,14 @@ Scalar dot(Index n, const Scalar* a, const Scalar* b) {
 
 SolveInfo pcg(Index n, const LinearOperator& A, const LinearOperator& precond, const Scalar* b,
               Scalar* x, const IterativeOptions& options, Interrupt& interrupt,
-              const std::function<void(Scalar*)>& project) {
+              const std::function<void(Scalar*)>& project, CgWorkspace* workspace) {
   Stopwatch clock;
   SolveInfo info;
   const Index max_iter = options.max_iter > 0 ? options.max_iter : std::max<Index>(2 * n, 100);
-  std::vector<Scalar> r(n), z(n), p(n), q(n);
+  CgWorkspace local;
+  CgWorkspace& w = workspace ? *workspace : local;
+  for (auto* v : {&w.r, &w.z, &w.p, &w.q}) v->resize(n);
+  std::vector<Scalar>&r = w.r, &z = w.z, &p = w.p, &q = w.q;
 
   const Scalar b_norm = std::sqrt(dot(n, b, b));
   if (b_norm == 0) {  // the solution of A x = 0 is x = 0

@@ -4,6 +4,7 @@
 #pragma once
 
 #include <functional>
+#include <vector>
 
 #include "core/interrupt.h"
 #include "core/types.h"
@@ -15,12 +16,17 @@ namespace kinema {
 // y = op(x) for vectors of length n.
 using LinearOperator = std::function<void(const Scalar* x, Scalar* y)>;
 
+// The four work vectors of PCG; a solver that solves repeatedly keeps one to allocate nothing.
+struct CgWorkspace {
+  std::vector<Scalar> r, z, p, q;
+};
+
 // Solves A x = b by PCG. x holds the initial guess on entry. `precond` applies z = M^-1 r and
 // may be empty (no preconditioning). `project` (optional) removes a null-space component from
 // a vector in place, for singular consistent systems such as the pure-Neumann Laplacian.
 SolveInfo pcg(Index n, const LinearOperator& A, const LinearOperator& precond, const Scalar* b,
               Scalar* x, const IterativeOptions& options, Interrupt& interrupt,
-              const std::function<void(Scalar*)>& project = {});
+              const std::function<void(Scalar*)>& project = {}, CgWorkspace* workspace = nullptr);
 
 // CG on a CSR matrix with optional Jacobi (diagonal) preconditioning.
 SolveInfo cg_csr(const CsrView& A, const Scalar* b, Scalar* x, bool jacobi,

@@ -17,4 +17,13 @@ struct CsrView {
 // y = A x
 void spmv(const CsrView& A, const Scalar* x, Scalar* y);
 
+// The largest |a_ij - a_ji| of a square CSR matrix with sorted column indices, and where it
+// occurs (a missing transposed entry counts as zero). Binary search of each transposed entry,
+// in parallel over rows: O(nnz log(row length)), no transpose built.
+struct Asymmetry {
+  Scalar value = 0;
+  Index row = -1, col = -1;
+};
+Asymmetry asymmetry(const CsrView& A);
+
 }  // namespace kinema

@@ -94,12 +94,13 @@ def heat_movie(out, n, frames):
     T[solid] = 0
     heat0 = T.sum()
     dt = 0.12  # 96 frames of 4 steps: a diffusion length sqrt(2 kappa t) of ~0.3
+    stepper = km.diffusion.Stepper(shape, kappa, dt, h, "crank_nicolson", "neumann", solid=solid)
     frame_dir = out / "heat"
     frame_dir.mkdir(exist_ok=True)
     t_start = time.perf_counter()
     for frame in range(frames):
         save_image(frame_dir / f"frame_{frame:04d}.png", T, "inferno", 0.0, 0.6, mask=solid)
-        T = km.diffusion.step(T, kappa, dt, h, scheme="crank_nicolson", bc="neumann", steps=4, solid=solid)
+        T = stepper.step(T, steps=4)
         if frame % 10 == 0 or frame == frames - 1:
             rate = (frame + 1) / (time.perf_counter() - t_start)
             log(f"heat frame {frame + 1}/{frames}  t = {(frame + 1) * 4 * dt:.0f} s  "

@@ -22,7 +22,7 @@ from kinema._checks import as_float_array, choice, positive, positive_int
 from kinema.errors import DivergenceError, StabilityError
 from kinema.poisson import Solver
 
-__all__ = ["step", "stable_dt", "SCHEMES"]
+__all__ = ["step", "Stepper", "stable_dt", "SCHEMES"]
 
 SCHEMES = ("ftcs", "implicit", "crank_nicolson")
 
@@ -30,6 +30,59 @@ SCHEMES = ("ftcs", "implicit", "crank_nicolson")
 def stable_dt(h, kappa, d) -> float:
     """Largest FTCS step: dt = h^2 / (2 d kappa) [s]."""
     return positive(h, "h") ** 2 / (2 * d * positive(kappa, "kappa"))
+
+
+class Stepper:
+    """Advances temperature fields of one grid by a fixed scheme and time step.
+
+    Builds the shifted Poisson solver (and its multigrid hierarchy) once, so that stepping
+    many frames costs only the solves. Arguments as in :func:`step`; ``shape`` is the grid.
+    """
+
+    def __init__(self, shape, kappa, dt, h, scheme="implicit", bc="neumann", *, check=True,
+                 tol=1e-10, solid=None):
+        self.kappa = positive(kappa, "kappa")
+        self.dt = positive(dt, "dt")
+        self.h = positive(h, "h")
+        self.scheme = choice(scheme, "scheme", SCHEMES)
+        self.tol = positive(tol, "tol")
+        d = len(shape)
+        self._c = self.kappa * self.dt
+        if scheme == "ftcs":
+            ratio = self._c / self.h**2
+            if check and ratio > 1 / (2 * d):
+                raise StabilityError(
+                    f"dt: FTCS is unstable for kappa*dt/h^2 = {ratio:.4g} > 1/(2d) = {1 / (2 * d):.4g}; "
+                    f"use dt <= {stable_dt(self.h, self.kappa, d):.4g} s or scheme='implicit'")
+            self._solver = Solver(shape, self.h, bc, method="cg", solid=solid)
+        else:
+            self._shift = 1 / self._c if scheme == "implicit" else 2 / self._c
+            self._solver = Solver(shape, self.h, bc, method="mgpcg", solid=solid, shift=self._shift)
+        self.shape = self._solver.shape
+
+    def step(self, T, steps=1):
+        """Returns T advanced by ``steps`` steps (a new array; T is not modified)."""
+        T = as_float_array(T, "T")
+        if T.shape != self.shape:
+            raise ValueError(f"T: expected shape {self.shape}, got {T.shape}")
+        steps = positive_int(steps, "steps")
+        out = T.copy()
+        if self.scheme == "ftcs":
+            self._solver._core.explicit_steps(out, self._c, steps)
+            if not np.isfinite(out).all():
+                d = len(self.shape)
+                raise DivergenceError(
+                    f"T: non-finite temperature after {steps} FTCS steps (kappa*dt/h^2 = "
+                    f"{self._c / self.h**2:.4g}); the stable limit is dt <= "
+                    f"{stable_dt(self.h, self.kappa, d):.4g} s")
+            return out
+        for _ in range(steps):
+            if self.scheme == "implicit":
+                rhs = self._shift * out
+            else:
+                rhs = 2 * self._shift * out - self._solver.apply(out)  # apply() includes the shift
+            out, _info = self._solver.solve(rhs, tol=self.tol, x0=out)
+        return out
 
 
 def step(T, kappa, dt, h, scheme="implicit", bc="neumann", steps=1, check=True, *, tol=1e-10,
@@ -40,37 +93,9 @@ def step(T, kappa, dt, h, scheme="implicit", bc="neumann", steps=1, check=True, 
     h: cell size [m]. scheme: "ftcs", "implicit" or "crank_nicolson". bc: "neumann" or
     "dirichlet". check: for "ftcs", raise StabilityError above the stability limit.
     tol: relative residual of each implicit solve. solid: optional bool mask of insulated
-    cells excluded from the domain (T is 0 there).
+    cells excluded from the domain (T is 0 there). For many calls on one grid, a
+    :class:`Stepper` keeps the solver between them.
     """
     T = as_float_array(T, "T", ndim=(2, 3))
-    kappa = positive(kappa, "kappa")
-    dt = positive(dt, "dt")
-    h = positive(h, "h")
-    choice(scheme, "scheme", SCHEMES)
-    steps = positive_int(steps, "steps")
-    d = T.ndim
-    c = kappa * dt
-    out = T.copy()
-    if scheme == "ftcs":
-        ratio = c / h**2
-        if check and ratio > 1 / (2 * d):
-            raise StabilityError(
-                f"dt: FTCS is unstable for kappa*dt/h^2 = {ratio:.4g} > 1/(2d) = {1 / (2 * d):.4g}; "
-                f"use dt <= {stable_dt(h, kappa, d):.4g} s or scheme='implicit'")
-        solver = Solver(T.shape, h, bc, method="cg", solid=solid)
-        solver._core.explicit_steps(out, c, steps)
-        if not np.isfinite(out).all():
-            raise DivergenceError(
-                f"T: non-finite temperature after {steps} FTCS steps (kappa*dt/h^2 = {ratio:.4g}); "
-                f"the stable limit is dt <= {stable_dt(h, kappa, d):.4g} s")
-        return out
-
-    shift = 1 / c if scheme == "implicit" else 2 / c
-    solver = Solver(T.shape, h, bc, method="mgpcg", solid=solid, shift=shift)
-    for _ in range(steps):
-        if scheme == "implicit":
-            rhs = shift * out
-        else:
-            rhs = 2 * shift * out - solver.apply(out)  # apply() includes the shift: (s I - A) T
-        out, _info = solver.solve(rhs, tol=tol, x0=out)
-    return out
+    stepper = Stepper(T.shape, kappa, dt, h, scheme, bc, check=check, tol=tol, solid=solid)
+    return stepper.step(T, steps)

@@ -59,27 +59,17 @@ def _csr_arrays(A, name, check_symmetry):
         raise ValueError(f"{name}: non-finite value {data[p]} at ({i}, {indices[p]}) "
                          f"({np.count_nonzero(~np.isfinite(data))} in all)")
     if check_symmetry:
-        _check_symmetric(A if A.dtype == np.float64 else A.astype(np.float64), name)
+        _check_symmetric(n, indptr, indices, data, name)
     return n, indptr, indices, data
 
 
-def _check_symmetric(A, name):
-    """Raises unless |a_ij - a_ji| <= SYMMETRY_RTOL * max |a_ij| (A: canonical CSR float64)."""
-    bound = SYMMETRY_RTOL * float(np.abs(A.data).max(initial=0.0))
-    At = A.T.tocsr()  # canonical: sorted, no duplicates
-    if np.array_equal(A.indptr, At.indptr) and np.array_equal(A.indices, At.indices):
-        # Symmetric pattern (the usual case): compare the value arrays entry by entry.
-        diff = A.data - At.data
-        if np.abs(diff).max(initial=0.0) <= bound:
-            return
-        D = sp.csr_array((diff, A.indices, A.indptr), shape=A.shape).tocoo()
-    else:
-        D = (A - At).tocoo()
-    k = int(np.argmax(np.abs(D.data))) if D.nnz else None
-    if k is not None and abs(D.data[k]) > bound:
-        i, j = int(D.row[k]), int(D.col[k])
+def _check_symmetric(n, indptr, indices, data, name):
+    """Raises unless |a_ij - a_ji| <= SYMMETRY_RTOL * max |a_ij| (canonical CSR arrays)."""
+    bound = SYMMETRY_RTOL * float(np.abs(data).max(initial=0.0))
+    diff, i, j = _core.sparse.asymmetry(n, indptr, indices, data)
+    if diff > bound:
         raise ValueError(
-            f"{name}: not symmetric: |A[{i}, {j}] - A[{j}, {i}]| = {abs(D.data[k]):.3e} exceeds "
+            f"{name}: not symmetric: |A[{i}, {j}] - A[{j}, {i}]| = {diff:.3e} exceeds "
             f"{bound:.3e} (SYMMETRY_RTOL * max |a_ij|); symmetrise with (A + A.T) / 2 if the "
             "difference is rounding (check_symmetry=False skips this check)")
 
