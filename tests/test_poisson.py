@@ -242,6 +242,22 @@ def test_mgpcg_iterations_flat_3d():
     assert max(its) - min(its) <= 2 and max(its) <= 12, f"MGPCG iterations {its}"
 
 
+@pytest.mark.parametrize("bc", ["dirichlet", "neumann"])
+def test_mgpcg_iterations_flat_with_obstacle(bc):
+    # Coarse levels keep a cell fluid when any child is; the solid disk/ball must not make the
+    # iteration count grow with the grid.
+    rng = np.random.default_rng(4)
+    its = []
+    for shape in [(64, 64), (256, 256), (32, 32, 32), (64, 64, 64)]:
+        h = 1.0 / shape[0]
+        X = centres(shape, h)
+        solid = sum((x - 0.4) ** 2 for x in X) < 0.2**2
+        f = rng.standard_normal(shape)
+        _, info = km.poisson.solve(f, h, bc, tol=1e-8, solid=solid, rhs_mean="remove")
+        its.append(info.iterations)
+    assert max(its) - min(its) <= 2 and max(its) <= 12, f"MGPCG iterations with an obstacle {its}"
+
+
 @pytest.mark.slow
 def test_mgpcg_iterations_flat_large():
     its2 = [mgpcg_iterations((n, n), 1e-8) for n in (64, 256, 1024, 2048)]
