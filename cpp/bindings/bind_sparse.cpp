@@ -49,7 +49,8 @@ CholmodOrdering parse_ordering(const std::string& name) {
   if (name == "default") return CholmodOrdering::Default;
   if (name == "amd") return CholmodOrdering::Amd;
   if (name == "natural") return CholmodOrdering::Natural;
-  throw InvalidArgument("ordering: expected 'default', 'amd' or 'natural', got '" + name + "'");
+  if (name == "metis") return CholmodOrdering::Metis;
+  throw InvalidArgument("ordering: expected 'default', 'amd', 'metis' or 'natural', got '" + name + "'");
 }
 
 }  // namespace

@@ -116,6 +116,10 @@ struct CholmodFactor::Impl {
         common.nmethods = 1;
         common.method[0].ordering = CHOLMOD_AMD;
         break;
+      case CholmodOrdering::Metis:
+        common.nmethods = 1;
+        common.method[0].ordering = CHOLMOD_METIS;
+        break;
       case CholmodOrdering::Natural:
         // Postordering would permute the natural order; leading minors keep their meaning.
         common.nmethods = 1;

@@ -30,6 +30,7 @@ enum class CholmodOrdering {
   Default,  // CHOLMOD's choice: AMD, and METIS/NESDIS when AMD's fill is poor
   Amd,      // approximate minimum degree only
   Natural,  // no permutation: a failing column is then the first non-positive leading minor
+  Metis,    // METIS nested dissection only (less fill on large 2D/3D grid problems)
 };
 
 class CholmodFactor {

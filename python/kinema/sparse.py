@@ -29,7 +29,7 @@ __all__ = ["Factor", "cholesky", "cg", "SYMMETRY_RTOL"]
 # any modelling asymmetry.
 SYMMETRY_RTOL = 1e-10
 
-_ORDERINGS = ("default", "amd", "natural")
+_ORDERINGS = ("default", "amd", "metis", "natural")
 
 
 def _csr_arrays(A, name, check_symmetry):
