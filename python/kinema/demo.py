@@ -99,7 +99,7 @@ def heat_movie(out, n, frames):
     frame_dir.mkdir(exist_ok=True)
     t_start = time.perf_counter()
     for frame in range(frames):
-        save_image(frame_dir / f"frame_{frame:04d}.png", T, "inferno", 0.0, 0.6, mask=solid)
+        save_image(frame_dir / f"frame_{frame:04d}.png", T, "inferno", 0.0, 0.35, mask=solid)
         T = stepper.step(T, steps=4)
         if frame % 10 == 0 or frame == frames - 1:
             rate = (frame + 1) / (time.perf_counter() - t_start)
