@@ -132,10 +132,9 @@ void evaluate(const Quadtree& tree, const std::vector<Scalar>& q, const Operator
           const Box& sb = tree.boxes[static_cast<size_t>(s)];
           m2p<Gradient>(p, mre(s), mre(s) + p + 1, sb.cx, sb.cy, sb.h, x, y, f, gx, gy);
         }
-        for (Index s : lists.p2p) {
-          const Box& sb = tree.boxes[static_cast<size_t>(s)];
-          p2p_range<Gradient>(x, y, sx + sb.src_begin, sy + sb.src_begin, sq + sb.src_begin,
-                              sb.source_count(), f, gx, gy);
+        for (size_t r = 0; r < lists.p2p_ranges.size(); r += 2) {
+          const Index begin = lists.p2p_ranges[r], end = lists.p2p_ranges[r + 1];
+          p2p_range<Gradient>(x, y, sx + begin, sy + begin, sq + begin, end - begin, f, gx, gy);
         }
         phi[static_cast<size_t>(t)] = f;
         if constexpr (Gradient) {

@@ -213,7 +213,14 @@ void Quadtree::build_lists(Index p2p_below, Interrupt& interrupt) {
           }
         }
       }
-      std::sort(out.p2p.begin(), out.p2p.end());
+      std::sort(out.p2p.begin(), out.p2p.end(), [&](Index a, Index b) {
+        return boxes[static_cast<size_t>(a)].src_begin < boxes[static_cast<size_t>(b)].src_begin;
+      });
+      for (Index e : out.p2p) {
+        const Box& eb = boxes[static_cast<size_t>(e)];
+        if (!out.p2p_ranges.empty() && out.p2p_ranges.back() == eb.src_begin) out.p2p_ranges.back() = eb.src_end;
+        else out.p2p_ranges.insert(out.p2p_ranges.end(), {eb.src_begin, eb.src_end});
+      }
     }
     // Parents' near lists are no longer needed once their children have theirs.
     if (level > 0)

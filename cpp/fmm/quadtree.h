@@ -34,6 +34,9 @@ struct Lists {
   std::vector<Index> m2l;  // V
   std::vector<Index> p2l;  // X
   std::vector<Index> p2p;  // U, and W boxes too small for a multipole to pay
+  // The sources of the p2p boxes as ranges in tree order, neighbours in memory merged
+  // (begin, end, begin, end, ...), so that direct sums run over long contiguous loops.
+  std::vector<Index> p2p_ranges;
   std::vector<Index> m2p;  // W
 };
 
