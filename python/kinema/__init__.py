@@ -15,7 +15,7 @@ from kinema.errors import (
     NotPositiveDefiniteError,
     StabilityError,
 )
-from kinema import diffusion, fmm, poisson, sparse
+from kinema import diffusion, fmm, poisson, sparse, vortex
 
 __version__ = "0.1.0"
 
@@ -34,6 +34,7 @@ __all__ = [
     "poisson",
     "diffusion",
     "fmm",
+    "vortex",
 ]
 
 
