@@ -15,7 +15,7 @@ from kinema.errors import (
     NotPositiveDefiniteError,
     StabilityError,
 )
-from kinema import diffusion, poisson, sparse
+from kinema import diffusion, fmm, poisson, sparse, vortex
 
 __version__ = "0.1.0"
 
@@ -33,6 +33,8 @@ __all__ = [
     "sparse",
     "poisson",
     "diffusion",
+    "fmm",
+    "vortex",
 ]
 
 
