@@ -15,7 +15,7 @@ from kinema.errors import (
     NotPositiveDefiniteError,
     StabilityError,
 )
-from kinema import diffusion, poisson, sparse
+from kinema import diffusion, grid, poisson, sparse
 
 __version__ = "0.1.0"
 
@@ -33,6 +33,7 @@ __all__ = [
     "sparse",
     "poisson",
     "diffusion",
+    "grid",
 ]
 
 
