@@ -346,3 +346,13 @@ def test_advance_reports_steps_and_time():
     assert n >= 1 and f.time == pytest.approx(0.3)
     assert f.last_step.cfl <= 1.0 + 1e-9
     assert set(f.last_step.seconds) == {"advect", "forces", "viscosity", "projection", "total"}
+
+
+def test_smoke_demo_runs(tmp_path):
+    from kinema import smoke_demo
+
+    f = smoke_demo.run(tmp_path, (24, 32), frames=2)
+    assert (tmp_path / "smoke" / "frame_0001.png").exists() and (tmp_path / "smoke_final.npz").exists()
+    assert f.density.max() > 0 and np.abs(f.divergence()).max() < 1e-4
+    g = smoke_demo.run(tmp_path / "3d", (12, 16, 12), frames=1)
+    assert g.density.max() > 0
