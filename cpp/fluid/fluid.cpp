@@ -34,6 +34,26 @@ Scalar max_abs(const std::vector<Scalar>& v) {
   return m;
 }
 
+// Runs the enclosing scope on one thread when the grid is small: the shared kernels (CG, vector
+// updates) open a parallel region per operation above kParallelGrain entries, which on a few
+// thousand cells costs more than it saves (and far more on a loaded machine). Results do not change:
+// the reductions are deterministic for any thread count (core/parallel.h).
+class SerialBelow {
+ public:
+  explicit SerialBelow(Index n) : saved_(omp_get_max_threads()), active_(n <= 8 * kParallelGrain) {
+    if (active_) omp_set_num_threads(1);
+  }
+  ~SerialBelow() {
+    if (active_) omp_set_num_threads(saved_);
+  }
+  SerialBelow(const SerialBelow&) = delete;
+  SerialBelow& operator=(const SerialBelow&) = delete;
+
+ private:
+  int saved_;
+  bool active_;
+};
+
 }  // namespace
 
 FluidSolver::FluidSolver(const GridShape& shape, Scalar h, const FluidConfig& config)
@@ -154,6 +174,7 @@ void FluidSolver::set_wall_velocity(int wall, const Vec3& velocity) {
 
 StepInfo FluidSolver::step(Scalar dt, Interrupt& interrupt) {
   if (!(dt > 0) || !std::isfinite(dt)) throw InvalidArgument("dt: expected a finite time step > 0");
+  SerialBelow serial(cells_.size());
   Stopwatch total, clock;
   StepInfo info;
   info.dt = dt;
