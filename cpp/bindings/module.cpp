@@ -17,6 +17,7 @@ void bind_sparse(py::module_& m);
 void bind_poisson(py::module_& m);
 void bind_diffusion(py::module_& m);
 void bind_fmm(py::module_& m);
+void bind_grid(py::module_& m);
 
 std::vector<Index> shape_of(const py::array& a) {
   return std::vector<Index>(a.shape(), a.shape() + a.ndim());
@@ -92,4 +93,6 @@ PYBIND11_MODULE(_core, m) {
   bind::bind_diffusion(diffusion);
   auto fmm = m.def_submodule("fmm");
   bind::bind_fmm(fmm);
+  auto grid = m.def_submodule("grid");
+  bind::bind_grid(grid);
 }

@@ -15,7 +15,7 @@ from kinema.errors import (
     NotPositiveDefiniteError,
     StabilityError,
 )
-from kinema import diffusion, fmm, poisson, sparse, vortex
+from kinema import diffusion, fmm, grid, poisson, sparse, vortex
 
 __version__ = "0.1.0"
 
@@ -35,6 +35,7 @@ __all__ = [
     "diffusion",
     "fmm",
     "vortex",
+    "grid",
 ]
 
 

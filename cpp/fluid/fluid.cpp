@@ -1,0 +1,617 @@
+#include "fluid/fluid.h"
+
+#include <algorithm>
+#include <cmath>
+#include <cstring>
+#include <limits>
+#include <string>
+
+#include "core/errors.h"
+#include "core/parallel.h"
+#include "core/timer.h"
+#include "linalg/cg.h"
+
+namespace kinema::fluid {
+
+namespace {
+
+constexpr const char* kComponentNames3[3] = {"u", "v", "w"};
+
+// The user's name of internal velocity component `axis`.
+std::string component_name(int dim, int axis) { return kComponentNames3[axis - (3 - dim)]; }
+
+Scalar max_abs(const std::vector<Scalar>& v) {
+  Scalar m = 0;
+  const Index n = static_cast<Index>(v.size());
+  const Scalar* p = v.data();
+#pragma omp parallel for schedule(static) reduction(max : m) if (n > 8 * kParallelGrain)
+  for (Index i = 0; i < n; ++i) {
+    const Scalar a = std::fabs(p[i]);
+    // a non-finite entry must win the reduction: NaN compares false everywhere
+    m = a <= std::numeric_limits<Scalar>::max() ? std::max(m, a)
+                                                 : std::numeric_limits<Scalar>::infinity();
+  }
+  return m;
+}
+
+// Runs the enclosing scope on one thread when the grid is small: the shared kernels (CG, vector
+// updates) open a parallel region per operation above kParallelGrain entries, which on a few
+// thousand cells costs more than it saves (and far more on a loaded machine). Results do not change:
+// the reductions are deterministic for any thread count (core/parallel.h).
+class SerialBelow {
+ public:
+  explicit SerialBelow(Index n) : saved_(omp_get_max_threads()), active_(n <= 8 * kParallelGrain) {
+    if (active_) omp_set_num_threads(1);
+  }
+  ~SerialBelow() {
+    if (active_) omp_set_num_threads(saved_);
+  }
+  SerialBelow(const SerialBelow&) = delete;
+  SerialBelow& operator=(const SerialBelow&) = delete;
+
+ private:
+  int saved_;
+  bool active_;
+};
+
+}  // namespace
+
+FluidSolver::FluidSolver(const GridShape& shape, Scalar h, const FluidConfig& config)
+    : config_(config) {
+  if (!(h > 0) || !std::isfinite(h)) throw InvalidArgument("h: expected a finite cell size > 0");
+  if (config.rk_order < 1 || config.rk_order > 3)
+    throw InvalidArgument("rk_order: expected 1, 2 or 3, got " + std::to_string(config.rk_order));
+  if (!(config.tol > 0)) throw InvalidArgument("tol: expected a tolerance > 0");
+  if (!(config.viscosity >= 0)) throw InvalidArgument("viscosity: expected a value >= 0");
+  model_.shape = shape;
+  model_.h = h;
+  model_.solid.assign(shape.size(), 0);
+  cells_ = cell_layout(shape, config.periodic);
+  for (int a = 0; a < 3; ++a) {
+    active_[a] = shape.active(a);
+    faces_[a] = face_layout(shape, a, config.periodic);
+    if (!active_[a]) continue;
+    state_.velocity[a].assign(faces_[a].size(), 0);
+    velocity_new_[a].assign(faces_[a].size(), 0);
+    fixed_[a].assign(faces_[a].size(), 0);
+  }
+  state_.pressure.assign(shape.size(), 0);
+  rhs_.assign(shape.size(), 0);
+  if (config.density) state_.density.assign(shape.size(), 0);
+  if (config.temperature) state_.temperature.assign(shape.size(), 0);
+  if (config.density || config.temperature) scalar_new_.assign(shape.size(), 0);
+  Index largest_face = 0;
+  for (int a = 0; a < 3; ++a)
+    if (active_[a]) largest_face = std::max(largest_face, faces_[a].size());
+  advection_scratch_.reserve(largest_face, config.advection);
+  if (config.viscosity > 0) {
+    rhs_face_.assign(largest_face, 0);
+    solution_face_.assign(largest_face, 0);
+  }
+  const bool buoyant = (config.density && config.alpha != 0) || (config.temperature && config.beta != 0);
+  if (config.vorticity_confinement > 0 || buoyant)
+    for (int a = 0; a < 3; ++a)
+      if (active_[a]) force_[a].assign(shape.size(), 0);
+  if (config.vorticity_confinement > 0) {
+    for (int a = 0; a < 3; ++a) {
+      if (active_[a]) cell_velocity_[a].assign(shape.size(), 0);
+      // 2D vorticity is a scalar along the inactive axis 0.
+      if (shape.dim == 3 || a == 0) vorticity_[a].assign(shape.size(), 0);
+    }
+    vorticity_norm_.assign(shape.size(), 0);
+  }
+  refresh_solids();
+}
+
+Index FluidSolver::neighbour(const FieldLayout& L, const std::array<Index, 3>& idx, int axis,
+                             int step) {
+  Index m = idx[axis] + step;
+  if (L.period[axis] > 0) {
+    const Index p = L.period[axis];
+    m = (m % p + p) % p;
+  } else if (m < 0 || m >= L.n[axis]) {
+    return -1;
+  }
+  std::array<Index, 3> j = idx;
+  j[axis] = m;
+  return L.index(j[0], j[1], j[2]);
+}
+
+void FluidSolver::refresh_solids() {
+  if (built_ && model_.solid == solid_used_) return;
+  built_ = true;
+  solid_used_ = model_.solid;
+  has_solid_ = std::any_of(solid_used_.begin(), solid_used_.end(), [](std::uint8_t s) { return s != 0; });
+  const GridShape& s = model_.shape;
+  for (int a = 0; a < 3; ++a) {
+    if (!active_[a]) continue;
+    const FieldLayout& L = faces_[a];
+    for_each_node(L, [&](Index i, Index j, Index k, Index f) {
+      const std::array<Index, 3> idx{i, j, k};
+      std::uint8_t flag = 0;
+      const bool first = idx[a] == 0, last = idx[a] == s.n[a];
+      if (config_.periodic) {
+        if (last) flag = 2;
+      } else if (first || last) {
+        flag = 1;
+      }
+      if (flag != 1 && has_solid_) {
+        // the cells on either side: c - e_a (wrapping) and c
+        std::array<Index, 3> lo = idx, hi = idx;
+        lo[a] = first ? s.n[a] - 1 : idx[a] - 1;
+        hi[a] = last ? 0 : idx[a];
+        if (solid_used_[s.index(lo[0], lo[1], lo[2])] || solid_used_[s.index(hi[0], hi[1], hi[2])])
+          flag = flag == 2 ? 2 : 1;
+      }
+      fixed_[a][f] = flag;
+    });
+  }
+  if (!config_.periodic) {
+    PoissonConfig pc;
+    pc.method = config_.projection;
+    pressure_solver_ = std::make_unique<PoissonSolver>(s, model_.h, Boundary::Neumann,
+                                                       has_solid_ ? solid_used_.data() : nullptr, 0, pc);
+  }
+  for (Index c = 0; c < s.size(); ++c)
+    if (!fluid_cell(c)) state_.pressure[c] = 0;
+  enforce_boundary();
+}
+
+void FluidSolver::set_wall_velocity(int wall, const Vec3& velocity) {
+  if (config_.periodic)
+    throw InvalidArgument("side: a periodic domain has no walls (boundary='periodic')");
+  const int axis = wall / 2;
+  if (!active_[axis]) throw InvalidArgument("side: no such wall in a 2D domain");
+  if (velocity[axis] != 0)
+    throw InvalidArgument("velocity: a wall can only move tangentially (its normal component must be 0)");
+  for (Scalar x : velocity)
+    if (!std::isfinite(x)) throw InvalidArgument("velocity: expected finite values");
+  model_.wall_velocity[wall] = velocity;
+  model_.wall_moving[wall] = velocity[0] != 0 || velocity[1] != 0 || velocity[2] != 0;
+}
+
+// ------------------------------------------------------------------------------------ step
+
+StepInfo FluidSolver::step(Scalar dt, Interrupt& interrupt) {
+  if (!(dt > 0) || !std::isfinite(dt)) throw InvalidArgument("dt: expected a finite time step > 0");
+  SerialBelow serial(cells_.size());
+  Stopwatch total, clock;
+  StepInfo info;
+  info.dt = dt;
+  info.cfl = max_speed() * dt / model_.h;
+  if (!std::isfinite(info.cfl)) check(dt, state_.steps + 1);  // the caller wrote a NaN or Inf
+  refresh_solids();
+  enforce_boundary();
+
+  // 1. Advection of velocity and scalars (kernels.h; Stam 1999, Selle et al. 2008).
+  advect(dt);
+  info.advect = clock.seconds();
+  clock.restart();
+  // 2. Body forces: gravity, buoyancy, vorticity confinement (Fedkiw et al. 2001, Sec. 3-4).
+  add_forces(dt);
+  info.forces = clock.seconds();
+  clock.restart();
+  interrupt.check();
+  // 3. Viscosity, backward Euler: (I - nu dt lap) u^{n+1} = u* (Stam 1999, Sec. 3).
+  info.viscosity_iterations = diffuse(dt, interrupt);
+  info.viscosity = clock.seconds();
+  clock.restart();
+  // 4. Projection: -lap p = -div(u*)/dt, u = u* - dt grad p (Chorin 1968; Bridson Ch. 5).
+  info.pressure = project(dt, interrupt);
+  info.projection = clock.seconds();
+  // 5. Blow-up detection.
+  state_.time += dt;
+  ++state_.steps;
+  check(dt, state_.steps);
+  info.total = total.seconds();
+  return info;
+}
+
+Index FluidSolver::advance(Scalar duration, Scalar cfl, Interrupt& interrupt, StepInfo* last) {
+  if (!(duration >= 0) || !std::isfinite(duration))
+    throw InvalidArgument("duration: expected a finite time >= 0");
+  if (!(cfl > 0) || !std::isfinite(cfl)) throw InvalidArgument("cfl: expected a finite number > 0");
+  Scalar g = std::sqrt(config_.gravity[0] * config_.gravity[0] + config_.gravity[1] * config_.gravity[1] +
+                       config_.gravity[2] * config_.gravity[2]);
+  Scalar remaining = duration;
+  Index steps = 0;
+  while (remaining > 1e-12 * duration) {
+    interrupt.check();
+    // moving walls and gravity accelerate a fluid at rest: count them in the speed
+    Scalar speed = max_speed();
+    if (!std::isfinite(speed)) check(0, state_.steps + 1);
+    for (const Vec3& w : model_.wall_velocity)
+      speed = std::max(speed, std::sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2]));
+    speed += std::sqrt(5 * model_.h * g);
+    Scalar dt = speed > 0 ? cfl * model_.h / speed : remaining;
+    // avoid a sliver of a last step: split what is left in two
+    if (dt >= remaining) dt = remaining;
+    else if (dt > 0.5 * remaining) dt = 0.5 * remaining;
+    StepInfo info = step(dt, interrupt);
+    if (last) *last = info;
+    remaining -= dt;
+    ++steps;
+  }
+  return steps;
+}
+
+// ------------------------------------------------------------------------------ advection
+
+void FluidSolver::advect(Scalar dt) {
+  MacVelocity u;
+  for (int a = 0; a < 3; ++a) {
+    u.layout[a] = faces_[a];
+    if (active_[a]) u.comp[a] = state_.velocity[a].data();
+  }
+  const Scalar dt_grid = dt / model_.h;
+  const int rk = config_.rk_order;
+  for (std::vector<Scalar>* q : {&state_.density, &state_.temperature}) {
+    if (q->empty()) continue;
+    fluid::advect(config_.advection, u, cells_, q->data(), scalar_new_.data(), dt_grid, rk,
+                  advection_scratch_);
+    const std::vector<std::uint8_t>& solid = model_.solid;
+    Scalar* out = q->data();
+    parallel_for(cells_.size(), [&](Index c) { out[c] = has_solid_ && solid[c] ? 0 : scalar_new_[c]; });
+  }
+  // Velocity last: every component is traced through the old field.
+  for (int a = 0; a < 3; ++a)
+    if (active_[a])
+      fluid::advect(config_.advection, u, faces_[a], state_.velocity[a].data(),
+                    velocity_new_[a].data(), dt_grid, rk, advection_scratch_);
+  for (int a = 0; a < 3; ++a)
+    if (active_[a])
+      std::memcpy(state_.velocity[a].data(), velocity_new_[a].data(),
+                  sizeof(Scalar) * velocity_new_[a].size());
+  enforce_boundary();
+}
+
+// --------------------------------------------------------------------------------- forces
+
+void FluidSolver::add_cell_force(int axis, const Scalar* f, Scalar dt) {
+  const FieldLayout& L = faces_[axis];
+  Scalar* u = state_.velocity[axis].data();
+  const std::vector<std::uint8_t>& fixed = fixed_[axis];
+  const Index n_axis = model_.shape.n[axis];
+  const Index stride = cells_.stride(axis);
+  for_each_node(L, [&](Index i, Index j, Index k, Index face) {
+    if (fixed[face]) return;
+    // free faces are interior (or a periodic face 0), so cell (i, j, k) is the upper neighbour
+    const Index hi = cells_.index(i, j, k);
+    const Index lo = (axis == 0 ? i : axis == 1 ? j : k) == 0 ? hi + (n_axis - 1) * stride : hi - stride;
+    u[face] += dt * 0.5 * (f[lo] + f[hi]);
+  });
+}
+
+void FluidSolver::add_forces(Scalar dt) {
+  // Gravity: uniform, so every free face gets the same increment.
+  for (int a = 0; a < 3; ++a) {
+    if (!active_[a] || config_.gravity[a] == 0) continue;
+    Scalar* u = state_.velocity[a].data();
+    const std::vector<std::uint8_t>& fixed = fixed_[a];
+    const Scalar du = dt * config_.gravity[a];
+    parallel_for(faces_[a].size(), [&](Index f) {
+      if (!fixed[f]) u[f] += du;
+    });
+  }
+  // Buoyancy (-alpha rho + beta T) up, cell-centred, averaged to the faces.
+  const bool rho = !state_.density.empty() && config_.alpha != 0;
+  const bool temp = !state_.temperature.empty() && config_.beta != 0;
+  if (rho || temp) {
+    const Index n = cells_.size();
+    Scalar* b = force_[2].data();  // reused as scalar scratch
+    parallel_for(n, [&](Index c) {
+      b[c] = (rho ? -config_.alpha * state_.density[c] : 0) + (temp ? config_.beta * state_.temperature[c] : 0);
+    });
+    for (int a = 0; a < 3; ++a) {
+      if (!active_[a] || config_.up[a] == 0) continue;
+      add_cell_force(a, b, dt * config_.up[a]);
+    }
+  }
+  if (config_.vorticity_confinement > 0) {
+    confinement_force();
+    for (int a = 0; a < 3; ++a)
+      if (active_[a]) add_cell_force(a, force_[a].data(), dt);
+  }
+  enforce_boundary();
+}
+
+void FluidSolver::confinement_force() {
+  const GridShape& s = model_.shape;
+  const FieldLayout& C = cells_;
+  const Scalar h = model_.h;
+  // Cell-centred velocity.
+  for (int a = 0; a < 3; ++a) {
+    if (!active_[a]) continue;
+    const Scalar* u = state_.velocity[a].data();
+    const Index fs = faces_[a].stride(a);
+    Scalar* cu = cell_velocity_[a].data();
+    const FieldLayout& F = faces_[a];
+    for_each_node(C, [&](Index i, Index j, Index k, Index c) {
+      const Index f = F.index(i, j, k);
+      cu[c] = 0.5 * (u[f] + u[f + fs]);
+    });
+  }
+  // Central difference of a cell field along an axis, one-sided at closed walls.
+  auto diff = [&](const Scalar* q, const std::array<Index, 3>& idx, int axis) -> Scalar {
+    if (!active_[axis] || !q) return 0;
+    Index up = neighbour(C, idx, axis, +1), dn = neighbour(C, idx, axis, -1);
+    const Index c = C.index(idx[0], idx[1], idx[2]);
+    Scalar span = 2;
+    if (up < 0) up = c, span = 1;
+    if (dn < 0) dn = c, span -= 1;
+    return span > 0 ? (q[up] - q[dn]) / (span * h) : 0;
+  };
+  auto comp = [&](int a) -> const Scalar* { return active_[a] ? cell_velocity_[a].data() : nullptr; };
+  const bool three_d = s.dim == 3;
+  // omega = curl u; in 2D only the component along the inactive axis 0 exists.
+  for_each_node(C, [&](Index i, Index j, Index k, Index c) {
+    const std::array<Index, 3> idx{i, j, k};
+    const Scalar w0 = diff(comp(2), idx, 1) - diff(comp(1), idx, 2);
+    vorticity_[0][c] = w0;
+    Scalar norm2 = w0 * w0;
+    if (three_d) {
+      const Scalar w1 = diff(comp(0), idx, 2) - diff(comp(2), idx, 0);
+      const Scalar w2 = diff(comp(1), idx, 0) - diff(comp(0), idx, 1);
+      vorticity_[1][c] = w1;
+      vorticity_[2][c] = w2;
+      norm2 += w1 * w1 + w2 * w2;
+    }
+    vorticity_norm_[c] = std::sqrt(norm2);
+  });
+  // f = eps h (N x omega), N = grad|omega| / |grad|omega||.
+  const Scalar eps = config_.vorticity_confinement;
+  const Scalar* wn = vorticity_norm_.data();
+  for_each_node(C, [&](Index i, Index j, Index k, Index c) {
+    const std::array<Index, 3> idx{i, j, k};
+    Vec3 N{diff(wn, idx, 0), diff(wn, idx, 1), diff(wn, idx, 2)};
+    const Scalar len = std::sqrt(N[0] * N[0] + N[1] * N[1] + N[2] * N[2]);
+    Vec3 w{vorticity_[0][c], three_d ? vorticity_[1][c] : 0, three_d ? vorticity_[2][c] : 0};
+    if (len <= 1e-12 * (wn[c] + 1e-300) / h || !fluid_cell(c)) {
+      for (int a = 0; a < 3; ++a)
+        if (active_[a]) force_[a][c] = 0;
+      return;
+    }
+    for (Scalar& x : N) x /= len;
+    const Vec3 f{N[1] * w[2] - N[2] * w[1], N[2] * w[0] - N[0] * w[2], N[0] * w[1] - N[1] * w[0]};
+    for (int a = 0; a < 3; ++a)
+      if (active_[a]) force_[a][c] = eps * h * f[a];
+  });
+}
+
+// ------------------------------------------------------------------------------ viscosity
+
+// y = (I + c L) x on the free faces of component `axis`, L = -h^2 lap with the wall ghosts of
+// Bridson Sec. 10.1 (no slip: ghost = 2 U_wall - u; free slip: ghost = u); prescribed faces
+// are identity rows. The operator is symmetric positive definite for any c >= 0.
+void FluidSolver::apply_viscosity_operator(int axis, Scalar c, const Scalar* x, Scalar* y) const {
+  const FieldLayout& L = faces_[axis];
+  const std::vector<std::uint8_t>& fixed = fixed_[axis];
+  for_each_node(L, [&](Index i, Index j, Index k, Index f) {
+    if (fixed[f]) {
+      y[f] = x[f];
+      return;
+    }
+    const std::array<Index, 3> idx{i, j, k};
+    Scalar diag = 1, off = 0;
+    for (int b = 0; b < 3; ++b) {
+      if (!active_[b]) continue;
+      for (int side = 0; side < 2; ++side) {
+        const Index g = neighbour(L, idx, b, side ? 1 : -1);
+        if (g >= 0) {
+          diag += c;
+          if (!fixed[g]) off += x[g];
+        } else if (config_.no_slip || model_.wall_moving[2 * b + side]) {
+          diag += 2 * c;
+        }
+      }
+    }
+    y[f] = diag * x[f] - c * off;
+  });
+}
+
+Index FluidSolver::diffuse(Scalar dt, Interrupt& interrupt) {
+  if (config_.viscosity == 0) return 0;
+  const Scalar c = config_.viscosity * dt / (model_.h * model_.h);
+  Index iterations = 0;
+  for (int a = 0; a < 3; ++a) {
+    if (!active_[a]) continue;
+    const FieldLayout& L = faces_[a];
+    const std::vector<std::uint8_t>& fixed = fixed_[a];
+    Scalar* u = state_.velocity[a].data();
+    Scalar* b = rhs_face_.data();
+    // Right-hand side: u* plus the known neighbours (prescribed faces, moving walls).
+    for_each_node(L, [&](Index i, Index j, Index k, Index f) {
+      b[f] = u[f];
+      if (fixed[f]) return;
+      const std::array<Index, 3> idx{i, j, k};
+      for (int bx = 0; bx < 3; ++bx) {
+        if (!active_[bx]) continue;
+        for (int side = 0; side < 2; ++side) {
+          const Index g = neighbour(L, idx, bx, side ? 1 : -1);
+          const int wall = 2 * bx + side;
+          if (g >= 0) {
+            if (fixed[g]) b[f] += c * u[g];
+          } else if (config_.no_slip || model_.wall_moving[wall]) {
+            b[f] += 2 * c * model_.wall_velocity[wall][a];
+          }
+        }
+      }
+    });
+    Scalar* x = solution_face_.data();
+    std::memcpy(x, u, sizeof(Scalar) * L.size());
+    IterativeOptions options{config_.tol * 1e-2, config_.max_iter};
+    const SolveInfo info = pcg(
+        L.size(), [&](const Scalar* in, Scalar* out) { apply_viscosity_operator(a, c, in, out); },
+        {}, b, x, options, interrupt);
+    if (!info.converged)
+      throw ConvergenceError("viscosity: CG did not reach tol for component " +
+                             component_name(model_.shape.dim, a) + " at step " +
+                             std::to_string(state_.steps + 1));
+    iterations += info.iterations;
+    std::memcpy(u, x, sizeof(Scalar) * L.size());
+  }
+  enforce_boundary();
+  return iterations;
+}
+
+// ----------------------------------------------------------------------------- projection
+
+void FluidSolver::divergence(Scalar* out) const {
+  const Scalar inv_h = 1 / model_.h;
+  for_each_node(cells_, [&](Index i, Index j, Index k, Index c) {
+    if (!fluid_cell(c)) {
+      out[c] = 0;
+      return;
+    }
+    Scalar d = 0;
+    for (int a = 0; a < 3; ++a) {
+      if (!active_[a]) continue;
+      const FieldLayout& F = faces_[a];
+      const Index f = F.index(i, j, k);
+      d += state_.velocity[a][f + F.stride(a)] - state_.velocity[a][f];
+    }
+    out[c] = d * inv_h;
+  });
+}
+
+// Periodic -lap_h with zero-flux faces to solid cells; its null space is the constant.
+void FluidSolver::apply_pressure_operator(const Scalar* x, Scalar* y) const {
+  const Scalar inv_h2 = 1 / (model_.h * model_.h);
+  for_each_node(cells_, [&](Index i, Index j, Index k, Index c) {
+    if (!fluid_cell(c)) {
+      y[c] = 0;
+      return;
+    }
+    const std::array<Index, 3> idx{i, j, k};
+    Scalar s = 0;
+    for (int a = 0; a < 3; ++a) {
+      if (!active_[a]) continue;
+      for (int step : {-1, 1}) {
+        const Index nb = neighbour(cells_, idx, a, step);
+        if (nb >= 0 && fluid_cell(nb)) s += x[c] - x[nb];
+      }
+    }
+    y[c] = s * inv_h2;
+  });
+}
+
+SolveInfo FluidSolver::project(Scalar dt, Interrupt& interrupt) {
+  const Index n = cells_.size();
+  Scalar* b = rhs_.data();
+  divergence(b);
+  parallel_for(n, [&](Index c) { b[c] *= -1 / dt; });
+  Scalar* p = state_.pressure.data();
+  IterativeOptions options{config_.tol, config_.max_iter};
+  SolveInfo info;
+  try {
+    if (pressure_solver_) {
+      info = pressure_solver_->solve(b, p, options, interrupt);
+    } else {
+    // Periodic: CG on the singular operator, the constant projected out of every iterate.
+    const Scalar fluid_count = parallel_sum(n, [&](Index c) { return fluid_cell(c) ? 1.0 : 0.0; });
+    auto remove_mean = [&](Scalar* x) {
+      const Scalar mean = parallel_sum(n, [&](Index c) { return fluid_cell(c) ? x[c] : 0.0; }) / fluid_count;
+      parallel_for(n, [&](Index c) { x[c] = fluid_cell(c) ? x[c] - mean : 0; });
+    };
+    remove_mean(b);
+      info = pcg(n, [&](const Scalar* in, Scalar* out) { apply_pressure_operator(in, out); }, {}, b, p,
+                 options, interrupt, remove_mean);
+    }
+  } catch (const DivergenceError& e) {
+    throw DivergenceError(std::string("pressure: ") + e.what() + " at step " + std::to_string(state_.steps + 1));
+  }
+  if (!info.converged)
+    throw ConvergenceError("pressure: the projection did not reach tol=" + std::to_string(config_.tol) +
+                           " (relative residual " + std::to_string(info.residual) + " after " +
+                           std::to_string(info.iterations) + " iterations) at step " +
+                           std::to_string(state_.steps + 1));
+  // u -= dt grad p on every free face.
+  const Scalar scale = dt / model_.h;
+  for (int a = 0; a < 3; ++a) {
+    if (!active_[a]) continue;
+    const FieldLayout& F = faces_[a];
+    Scalar* u = state_.velocity[a].data();
+    const std::vector<std::uint8_t>& fixed = fixed_[a];
+    const Index n_axis = model_.shape.n[a], stride = cells_.stride(a);
+    for_each_node(F, [&](Index i, Index j, Index k, Index f) {
+      if (fixed[f]) return;
+      const Index hi = cells_.index(i, j, k);
+      const Index lo = (a == 0 ? i : a == 1 ? j : k) == 0 ? hi + (n_axis - 1) * stride : hi - stride;
+      u[f] -= scale * (p[hi] - p[lo]);
+    });
+  }
+  enforce_boundary();
+  return info;
+}
+
+// ------------------------------------------------------------------------- bookkeeping
+
+void FluidSolver::enforce_boundary() {
+  for (int a = 0; a < 3; ++a) {
+    if (!active_[a]) continue;
+    const FieldLayout& F = faces_[a];
+    Scalar* u = state_.velocity[a].data();
+    const std::vector<std::uint8_t>& fixed = fixed_[a];
+    const Index back = model_.shape.n[a] * F.stride(a);  // from the duplicate to face 0
+    parallel_for(F.size(), [&](Index f) {
+      if (fixed[f] == 1) u[f] = 0;
+      else if (fixed[f] == 2) u[f] = u[f - back];
+    });
+  }
+}
+
+void FluidSolver::check(Scalar dt, Index step) const {
+  for (int a = 0; a < 3; ++a) {
+    if (!active_[a]) continue;
+    const Scalar m = max_abs(state_.velocity[a]);
+    if (!std::isfinite(m))
+      throw DivergenceError("velocity " + component_name(model_.shape.dim, a) +
+                            ": non-finite value at step " + std::to_string(step) +
+                            " (t = " + std::to_string(state_.time) + " s, dt = " + std::to_string(dt) +
+                            " s); hint: check the forces and inputs, or use a smaller dt");
+  }
+  const std::pair<const char*, const std::vector<Scalar>*> scalars[] = {
+      {"density", &state_.density}, {"temperature", &state_.temperature}, {"pressure", &state_.pressure}};
+  for (const auto& [name, q] : scalars)
+    if (!q->empty() && !std::isfinite(max_abs(*q)))
+      throw DivergenceError(std::string(name) + ": non-finite value at step " + std::to_string(step) +
+                            " (t = " + std::to_string(state_.time) + " s); hint: use a smaller dt");
+}
+
+Scalar FluidSolver::max_speed() const {
+  Scalar m = 0;
+  for (int a = 0; a < 3; ++a)
+    if (active_[a]) m = std::max(m, max_abs(state_.velocity[a]));
+  return m;
+}
+
+Vec3 FluidSolver::velocity_at(const Vec3& x) const {
+  MacVelocity u;
+  for (int a = 0; a < 3; ++a) {
+    u.layout[a] = faces_[a];
+    if (active_[a]) u.comp[a] = state_.velocity[a].data();
+  }
+  const Scalar inv_h = 1 / model_.h;
+  return u.at(Vec3{active_[0] ? x[0] * inv_h : 0.5, x[1] * inv_h, x[2] * inv_h});
+}
+
+Scalar FluidSolver::kinetic_energy() const {
+  // Trapezoid rule per component: closed-wall faces carry half weight, a periodic duplicate none.
+  Scalar e = 0;
+  for (int a = 0; a < 3; ++a) {
+    if (!active_[a]) continue;
+    const FieldLayout& F = faces_[a];
+    const Scalar* u = state_.velocity[a].data();
+    const Index n_axis = model_.shape.n[a], stride = F.stride(a);
+    e += parallel_sum(F.size(), [&](Index f) {
+      const Index ia = (f / stride) % (n_axis + 1);
+      Scalar w = 1;
+      if (ia == n_axis) w = config_.periodic ? 0 : 0.5;
+      else if (ia == 0 && !config_.periodic) w = 0.5;
+      return w * u[f] * u[f];
+    });
+  }
+  return 0.5 * e * std::pow(model_.h, model_.shape.dim);
+}
+
+}  // namespace kinema::fluid

@@ -1,0 +1,246 @@
+"""Incompressible flow on a MAC (staggered) grid, 2D and 3D: smoke and viscous flow.
+
+Each :meth:`Fluid.step` splits the Navier-Stokes equations (density 1, kinematic pressure) into
+five phases, in order: advection of velocity and scalars (semi-Lagrangian, Stam 1999; or
+MacCormack / BFECC clamped to the interpolation stencil, Selle et al. 2008), body forces
+(gravity, buoyancy, vorticity confinement, Fedkiw, Stam & Jensen 2001), implicit viscosity
+(backward Euler, stable for any dt), Chorin's projection (the pressure Poisson problem solved
+by kinema's MGPCG, :mod:`kinema.poisson`; CG in a periodic domain), and a blow-up check.
+See Bridson, "Fluid Simulation for Computer Graphics" (2nd ed., 2015) for the MAC grid.
+
+Layout (API.md): cells ``(nx, ny[, nz])`` of size ``h``; ``u`` has shape ``(nx+1, ny[, nz])`` at
+``(i*h, (j+0.5)h)``, ``v`` ``(nx, ny+1[, nz])``, ``w`` ``(nx, ny, nz+1)``. In a periodic domain the
+last face along each component's axis duplicates the first and is kept equal to it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from kinema import _core
+from kinema._checks import as_float_array, choice, grid_shape, non_negative, positive, positive_int
+from kinema._info import SolveInfo
+
+__all__ = ["Fluid", "StepInfo", "advect", "SCHEMES"]
+
+SCHEMES = ("semi_lagrangian", "maccormack", "bfecc")
+_PROJECTIONS = ("mgpcg", "multigrid", "cg")
+_SIDES = {"x-": (0, 0), "x+": (0, 1), "y-": (1, 0), "y+": (1, 1), "z-": (2, 0), "z+": (2, 1)}
+
+
+@dataclass
+class StepInfo:
+    """What one step did: the pressure solve, the step size and the CFL number
+    max|u| dt / h before it, CG iterations of the viscosity solves, and wall-clock seconds
+    per stage (keys "advect", "forces", "viscosity", "projection", "total")."""
+
+    pressure: SolveInfo
+    dt: float
+    cfl: float
+    viscosity_iterations: int
+    seconds: dict = field(default_factory=dict)
+
+
+def _step_info(d):
+    return StepInfo(d["pressure"], d["dt"], d["cfl"], d["viscosity_iterations"], dict(d["seconds"]))
+
+
+def _rk(rk_order):
+    if isinstance(rk_order, bool) or rk_order not in (1, 2, 3):
+        raise ValueError(f"rk_order: expected 1, 2 or 3, got {rk_order!r}")
+    return int(rk_order)
+
+
+def _finite(x, name):
+    try:
+        v = float(x)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: expected a real number, got {x!r}") from None
+    if not np.isfinite(v):
+        raise ValueError(f"{name}: expected a finite number, got {v}")
+    return v
+
+
+class Fluid:
+    """An incompressible fluid on a MAC grid of ``shape`` cells of size ``h`` [m].
+
+    advection: "semi_lagrangian", "maccormack" or "bfecc" (the last two clamped);
+    rk_order: 1, 2 or 3 (back-trace). projection: "mgpcg" (default), "multigrid" or "cg";
+    tol: relative residual of the pressure solve. viscosity: kinematic nu [m^2/s] (implicit).
+    boundary: "closed" or "periodic"; walls: "free_slip" or "no_slip" (closed boundaries).
+    gravity: None or a d-vector [m/s^2]. density, temperature: enable the passive scalars;
+    buoyancy = (alpha, beta): force (-alpha*density + beta*temperature) * up [m/s^2], up
+    opposite to gravity (or +y without gravity). vorticity_confinement: epsilon >= 0.
+
+    State (writable views of the solver's memory, never reallocated):
+      u, v[, w]: MAC velocities [m/s] (see the module docstring for shapes);
+      pressure: (nx, ny[, nz]) kinematic pressure p/rho [m^2/s^2] of the last projection;
+      solid: (nx, ny[, nz]) bool, obstacle cells (faces touching them have zero velocity;
+        changes take effect at the next step);
+      density, temperature: (nx, ny[, nz]) scalars, when enabled.
+    """
+
+    def __init__(self, shape, h, *, advection="maccormack", rk_order=2, projection="mgpcg", tol=1e-6,
+                 viscosity=0.0, boundary="closed", walls="free_slip", gravity=None, density=False,
+                 temperature=False, buoyancy=(0.0, 0.0), vorticity_confinement=0.0, max_iter=None):
+        self.shape = grid_shape(shape, "shape")
+        self.dim = len(self.shape)
+        self.h = positive(h, "h")
+        self.advection = choice(advection, "advection", SCHEMES)
+        self.rk_order = _rk(rk_order)
+        self.projection = choice(projection, "projection", _PROJECTIONS)
+        self.tol = positive(tol, "tol")
+        if self.tol >= 1:
+            raise ValueError(f"tol: expected a relative tolerance < 1, got {self.tol}")
+        self.viscosity = non_negative(viscosity, "viscosity")
+        self.boundary = choice(boundary, "boundary", ("closed", "periodic"))
+        self.walls = choice(walls, "walls", ("free_slip", "no_slip"))
+        if gravity is None:
+            g = []
+        else:
+            g = as_float_array(gravity, "gravity", ndim=1)
+            if g.shape != (self.dim,):
+                raise ValueError(f"gravity: expected {self.dim} components, got shape {g.shape}")
+            g = [float(x) for x in g]
+        self.gravity = tuple(g) if g else None
+        for flag, name in ((density, "density"), (temperature, "temperature")):
+            if not isinstance(flag, (bool, np.bool_)):
+                raise ValueError(f"{name}: expected True or False, got {flag!r}")
+        try:
+            alpha, beta = buoyancy
+        except (TypeError, ValueError):
+            raise ValueError(f"buoyancy: expected a pair (alpha, beta), got {buoyancy!r}") from None
+        alpha, beta = _finite(alpha, "buoyancy"), _finite(beta, "buoyancy")
+        self.buoyancy = (alpha, beta)
+        self.vorticity_confinement = non_negative(vorticity_confinement, "vorticity_confinement")
+        max_iter = positive_int(max_iter, "max_iter", allow_none=True) or 0
+        self._core = _core.grid.Fluid(
+            list(self.shape), self.h, self.advection, self.rk_order, self.projection, self.tol, max_iter,
+            self.viscosity, self.boundary, self.walls, g, bool(density), bool(temperature), alpha, beta,
+            self.vorticity_confinement)
+
+    # ------------------------------------------------------------------ state views
+    @property
+    def u(self):
+        """(nx+1, ny[, nz]) x-velocity on the faces normal to x [m/s]."""
+        return self._core.velocity(0)
+
+    @property
+    def v(self):
+        """(nx, ny+1[, nz]) y-velocity on the faces normal to y [m/s]."""
+        return self._core.velocity(1)
+
+    @property
+    def w(self):
+        """(nx, ny, nz+1) z-velocity [m/s] (3D only)."""
+        if self.dim != 3:
+            raise AttributeError("w: a 2D Fluid has no z-velocity (give a 3D shape)")
+        return self._core.velocity(2)
+
+    @property
+    def velocity(self):
+        """The MAC components (u, v[, w]) as a tuple of views."""
+        return tuple(self._core.velocity(c) for c in range(self.dim))
+
+    @property
+    def pressure(self):
+        return self._core.pressure
+
+    @property
+    def solid(self):
+        return self._core.solid
+
+    @solid.setter
+    def solid(self, mask):
+        m = np.asarray(mask)
+        if m.shape != self.shape:
+            raise ValueError(f"solid: expected a bool array of shape {self.shape}, got shape {m.shape}")
+        self._core.solid[...] = m.astype(bool)
+
+    @property
+    def density(self):
+        q = self._core.scalar("density")
+        if q is None:
+            raise AttributeError("density: disabled; create the Fluid with density=True")
+        return q
+
+    @property
+    def temperature(self):
+        q = self._core.scalar("temperature")
+        if q is None:
+            raise AttributeError("temperature: disabled; create the Fluid with temperature=True")
+        return q
+
+    @property
+    def time(self) -> float:
+        """Simulated time [s]."""
+        return self._core.time
+
+    @property
+    def steps(self) -> int:
+        return self._core.steps
+
+    # ------------------------------------------------------------------ stepping
+    def step(self, dt) -> StepInfo:
+        """Advances by dt [s] (any dt > 0; accuracy needs a CFL number of a few at most)."""
+        return _step_info(self._core.step(positive(dt, "dt")))
+
+    def advance(self, duration, cfl=1.0) -> int:
+        """Advances by ``duration`` [s] in steps of dt = cfl*h/u_max; returns the step count.
+        The last step's StepInfo is kept in ``self.last_step``."""
+        duration = non_negative(duration, "duration")
+        steps, info = self._core.advance(duration, positive(cfl, "cfl"))
+        self.last_step = _step_info(info) if info is not None else None
+        return steps
+
+    def set_wall_velocity(self, side, velocity):
+        """Makes wall ``side`` ("x-", "x+", "y-", "y+", "z-", "z+") a no-slip wall moving with the
+        tangential ``velocity`` (a d-vector [m/s] whose normal component must be 0). The wall
+        drags the fluid through the viscosity (no effect when viscosity is 0)."""
+        choice(side, "side", tuple(s for s in _SIDES if self.dim == 3 or not s.startswith("z")))
+        axis, s = _SIDES[side]
+        vel = as_float_array(velocity, "velocity", ndim=1)
+        if vel.shape != (self.dim,):
+            raise ValueError(f"velocity: expected {self.dim} components, got shape {vel.shape}")
+        self._core.set_wall_velocity(axis, s, [float(x) for x in vel])
+
+    # ------------------------------------------------------------------ diagnostics
+    def divergence(self):
+        """(nx, ny[, nz]) discrete divergence of the MAC velocity [1/s] (0 in solid cells)."""
+        return self._core.divergence()
+
+    def velocity_at(self, points):
+        """(M, d) velocity [m/s] at (M, d) points [m], interpolated (clamped to the domain)."""
+        p = as_float_array(points, "points", ndim=2)
+        if p.shape[1] != self.dim:
+            raise ValueError(f"points: expected shape (M, {self.dim}), got {p.shape}")
+        return self._core.velocity_at(p)
+
+    def kinetic_energy(self) -> float:
+        """0.5 * integral of |u|^2 over the domain (density 1) [m^(d+2)/s^2]."""
+        return self._core.kinetic_energy()
+
+    def max_speed(self) -> float:
+        return self._core.max_speed()
+
+
+def advect(q, velocity, dt, h, scheme="maccormack", rk_order=2, *, periodic=False):
+    """Advects the cell-centred scalar ``q`` through the MAC ``velocity = (u, v[, w])`` over dt
+    [s] on cells of size h [m], as :class:`Fluid` does (closed domain: back-traces are clamped
+    to it; ``periodic=True`` wraps them). Returns the new field."""
+    qa = as_float_array(q, "q", ndim=(2, 3))
+    d = qa.ndim
+    if len(velocity) != d:
+        raise ValueError(f"velocity: expected {d} MAC components for a {d}D q, got {len(velocity)}")
+    comps = []
+    for c, comp in enumerate(velocity):
+        a = as_float_array(comp, f"velocity[{c}]", ndim=d)
+        want = tuple(n + (1 if i == c else 0) for i, n in enumerate(qa.shape))
+        if a.shape != want:
+            raise ValueError(f"velocity[{c}]: expected shape {want}, got {a.shape}")
+        comps.append(a)
+    dt = _finite(dt, "dt")
+    return _core.grid.advect(qa, comps, dt, positive(h, "h"), choice(scheme, "scheme", SCHEMES),
+                             _rk(rk_order), bool(periodic))
