@@ -260,7 +260,9 @@ def test_lid_driven_cavity_smoke():
 @pytest.mark.slow
 def test_lid_driven_cavity_re100_ghia():
     eu, ev, _ = _cavity(64, 15.0)
-    assert eu < 0.03 and ev < 0.03, (eu, ev)
+    # measured 0.0026 (u) and 0.0057 (v), against centreline speeds up to 0.84 (Ghia's table
+    # itself is given to about 1e-3 on a 129^2 grid)
+    assert eu < 0.01 and ev < 0.015, (eu, ev)
 
 
 # ----------------------------------------------------------------------------- stability
