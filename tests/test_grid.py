@@ -260,7 +260,9 @@ def test_lid_driven_cavity_smoke():
 @pytest.mark.slow
 def test_lid_driven_cavity_re100_ghia():
     eu, ev, _ = _cavity(64, 15.0)
-    assert eu < 0.03 and ev < 0.03, (eu, ev)
+    # measured 0.0026 (u) and 0.0057 (v), against centreline speeds up to 0.84 (Ghia's table
+    # itself is given to about 1e-3 on a 129^2 grid)
+    assert eu < 0.01 and ev < 0.015, (eu, ev)
 
 
 # ----------------------------------------------------------------------------- stability
@@ -356,3 +358,54 @@ def test_smoke_demo_runs(tmp_path):
     assert f.density.max() > 0 and np.abs(f.divergence()).max() < 1e-4
     g = smoke_demo.run(tmp_path / "3d", (12, 16, 12), frames=1)
     assert g.density.max() > 0
+
+
+def test_ctrl_c_interrupts_advance():
+    import os
+    import signal
+    import threading
+    import time
+
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        _, _, f = taylor_green(32, nu=0.0, T=0.01, boundary="periodic")  # keeps moving
+        timer = threading.Timer(0.3, lambda: os.kill(os.getpid(), signal.SIGINT))
+        t0 = time.perf_counter()
+        timer.start()
+        with pytest.raises(KeyboardInterrupt):
+            f.advance(1e4, cfl=0.5)
+        elapsed = time.perf_counter() - t0
+        timer.join()
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    assert elapsed < 2.0, f"took {elapsed:.2f} s to honour Ctrl-C"
+
+
+def test_solids_changed_between_steps_take_effect():
+    f = km.grid.Fluid((20, 20), 0.05)
+    f.u[...] = 1.0
+    f.step(0.01)
+    f.solid[8:12, 8:12] = True
+    f.step(0.01)
+    assert np.abs(f.u[8:13, 8:12]).max() == 0.0 and np.abs(f.v[8:12, 8:13]).max() == 0.0
+    assert np.abs(f.divergence()).max() < 1e-4
+    f.solid[...] = False
+    f.step(0.01)
+    assert np.abs(f.divergence()).max() < 1e-4
+
+
+def test_results_identical_for_any_thread_count():
+    def run(threads):
+        saved = km.get_num_threads()
+        try:
+            km.set_num_threads(threads)
+            f = km.grid.Fluid((200, 200), 1 / 200, density=True, buoyancy=(0.0, 1.0),
+                              vorticity_confinement=0.1, viscosity=1e-4)
+            f.density[90:110, 5:15] = 1.0
+            for _ in range(2):
+                f.step(0.005)
+            return [c.copy() for c in f.velocity] + [f.density.copy()]
+        finally:
+            km.set_num_threads(saved)
+    for a, b in zip(run(1), run(2)):
+        assert np.array_equal(a, b)

@@ -77,6 +77,7 @@ FluidSolver::FluidSolver(const GridShape& shape, Scalar h, const FluidConfig& co
   }
   state_.pressure.assign(shape.size(), 0);
   rhs_.assign(shape.size(), 0);
+  residual_.assign(shape.size(), 0);
   if (config.density) state_.density.assign(shape.size(), 0);
   if (config.temperature) state_.temperature.assign(shape.size(), 0);
   if (config.density || config.temperature) scalar_new_.assign(shape.size(), 0);
@@ -503,6 +504,18 @@ SolveInfo FluidSolver::project(Scalar dt, Interrupt& interrupt) {
   Scalar* p = state_.pressure.data();
   IterativeOptions options{config_.tol, config_.max_iter};
   SolveInfo info;
+  // Warm start from the last pressure only when it beats zero: when the flow nearly stops,
+  // b shrinks by orders of magnitude and the rounding error of A p_old alone would exceed
+  // tol ||b||, which no iteration can reach.
+  Scalar* r = residual_.data();
+  if (pressure_solver_) pressure_solver_->op().residual(b, p, r);
+  else {
+    apply_pressure_operator(p, r);
+    parallel_for(n, [&](Index c) { r[c] = b[c] - r[c]; });
+  }
+  const Scalar r_norm2 = parallel_sum(n, [&](Index c) { return r[c] * r[c]; });
+  const Scalar b_norm2 = parallel_sum(n, [&](Index c) { return b[c] * b[c]; });
+  if (!(r_norm2 < b_norm2)) parallel_for(n, [&](Index c) { p[c] = 0; });
   try {
     if (pressure_solver_) {
       info = pressure_solver_->solve(b, p, options, interrupt);
@@ -519,6 +532,10 @@ SolveInfo FluidSolver::project(Scalar dt, Interrupt& interrupt) {
     }
   } catch (const DivergenceError& e) {
     throw DivergenceError(std::string("pressure: ") + e.what() + " at step " + std::to_string(state_.steps + 1));
+  } catch (const InvalidArgument& e) {
+    // CG broke down on rounding (p^T A p <= 0 on a semi-definite operator)
+    throw ConvergenceError(std::string("pressure: ") + e.what() + " at step " + std::to_string(state_.steps + 1) +
+                           "; hint: a larger tol");
   }
   if (!info.converged)
     throw ConvergenceError("pressure: the projection did not reach tol=" + std::to_string(config_.tol) +

@@ -127,7 +127,7 @@ class FluidSolver {
   std::unique_ptr<PoissonSolver> pressure_solver_;  // closed domains
   // Scratch, allocated once in the constructor (only what the configuration needs).
   std::array<std::vector<Scalar>, 3> velocity_new_;
-  std::vector<Scalar> scalar_new_, rhs_, rhs_face_, solution_face_;
+  std::vector<Scalar> scalar_new_, rhs_, residual_, rhs_face_, solution_face_;
   std::array<std::vector<Scalar>, 3> cell_velocity_, vorticity_, force_;
   std::vector<Scalar> vorticity_norm_;
   AdvectionScratch advection_scratch_;
