@@ -16,6 +16,8 @@ namespace kinema::bind {
 void bind_sparse(py::module_& m);
 void bind_poisson(py::module_& m);
 void bind_diffusion(py::module_& m);
+void bind_massspring(py::module_& m);
+void bind_fem(py::module_& m);
 
 std::vector<Index> shape_of(const py::array& a) {
   return std::vector<Index>(a.shape(), a.shape() + a.ndim());
@@ -89,4 +91,8 @@ PYBIND11_MODULE(_core, m) {
   bind::bind_poisson(poisson);
   auto diffusion = m.def_submodule("diffusion");
   bind::bind_diffusion(diffusion);
+  auto massspring = m.def_submodule("massspring");
+  bind::bind_massspring(massspring);
+  auto fem = m.def_submodule("fem");
+  bind::bind_fem(fem);
 }
