@@ -356,3 +356,12 @@ def test_static_without_fixed_vertices_is_refused():
     body = km.fem.Body(V, T, youngs_modulus=1e5, poisson_ratio=0.3, density=1.0)
     with pytest.raises(ValueError, match="fixed"):
         body.solve_static()
+
+
+def test_deform_demo_smoke(tmp_path):
+    from kinema import demo_deform
+    assert demo_deform.main(["--out", str(tmp_path), "--frames", "3", "--cloth", "6",
+                             "--cells", "5", "--no-video"]) == 0
+    assert len(list((tmp_path / "body").glob("*.vtk"))) == 3
+    text = (tmp_path / "cloth" / "frame_0002.vtk").read_text()
+    assert text.startswith("# vtk DataFile") and "CELL_TYPES" in text
