@@ -123,32 +123,44 @@ def taichi_fem_module(n, threads):
     return vars(module)
 
 
-def bench_cube(rec, n, steps, threads):
+def bench_cube(rec, n, steps, threads, solvers=("cholmod", "cholmod_pcg")):
+    for solver in solvers:
+        m, T = bench_cube_kinema(rec, n, steps, solver)
+    bench_cube_taichi(rec, n, steps, threads, m)
+
+
+def bench_cube_kinema(rec, n, steps, solver):
     V, T = km.fem.box_mesh([0, 1, 0], [1, 2, 1], n - 1, tets_per_cell=5)
     body = km.fem.Body(V, T, model="neohookean", youngs_modulus=5e4, poisson_ratio=0.0,
                        density=1000.0, gravity=(0, -9.8, 0))
     body.v[:, 0] = 1.0
     body.v[V[:, 1] > 1.5, 2] = 0.5  # a shear so that Newton has work beyond free fall
-    body.step(0.01)  # analysis
+    body.step(0.01, linear_solver=solver)  # analysis
     box = {}
 
     def k_step():
-        box["info"] = body.step(0.01, tol=1e-6)
+        box["info"] = body.step(0.01, tol=1e-6, linear_solver=solver, cg_tol=1e-3)
         return box["info"]
 
     m = harness.measure(k_step, min_of=steps)
     info = m.value
+    assert info.converged and info.residual <= 1e-6
     it = max(info.iterations, 1)
-    rec.record("kinema_neohookean_newton", f"{n}^3 verts, {len(T)} tets", m.seconds,
+    rec.record(f"kinema_neohookean_newton_{solver}", f"{n}^3 verts, {len(T)} tets", m.seconds,
                iterations=info.iterations, error=info.residual, measurement=m,
                notes={"assembly_per_it": f"{info.seconds_assembly/it:.4f}",
                       "factor_per_it": f"{info.seconds_factor/it:.4f}",
                       "solve_per_it": f"{info.seconds_solve/it:.4f}",
                       "line_search": f"{info.seconds_line_search:.4f}"})
-    print(f"cube {n}^3 ({len(T)} tets) kinema: {m.seconds:.3f} s/step, {info.iterations} Newton its, "
+    print(f"cube {n}^3 ({len(T)} tets) kinema {solver}: {m.seconds:.3f} s/step, {info.iterations} Newton its, "
+          f"{info.cg_iterations} PCG its, "
           f"per it: assembly {info.seconds_assembly/it*1e3:.1f} ms, factor {info.seconds_factor/it*1e3:.1f} ms, "
           f"solve {info.seconds_solve/it*1e3:.1f} ms, line search {info.seconds_line_search*1e3:.1f} ms total "
           f"(load {m.other_load:.2f})")
+    return m, T
+
+
+def bench_cube_taichi(rec, n, steps, threads, m):
     try:
         ns = taichi_fem_module(n, threads)
         ns["get_vertices"]()
@@ -219,16 +231,22 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="smaller sizes (smoke run)")
     parser.add_argument("--steps", type=int, default=3, help="undisturbed timed steps per figure")
+    parser.add_argument("--only", choices=["cloth", "cube", "scaling", "wp"], help="one part only")
     args = parser.parse_args()
     threads = harness.default_threads()
     km.set_num_threads(threads)
     rec = harness.Recorder(OUT / "deform.csv", "deform", threads=threads)
     N, n = (32, 8) if args.quick else (128, 20)
     print(f"threads {threads}, commit {rec.commit}")
-    bench_cloth(rec, N, args.steps, threads)
-    bench_cube(rec, n, args.steps, threads)
-    bench_scaling(rec, (6, 10) if args.quick else (8, 12, 16, 20))
-    bench_work_precision(rec)
+    run = lambda part: args.only in (None, part)  # noqa: E731
+    if run("cloth"):
+        bench_cloth(rec, N, args.steps, threads)
+    if run("cube"):
+        bench_cube(rec, n, args.steps, threads)
+    if run("scaling"):
+        bench_scaling(rec, (6, 10) if args.quick else (8, 12, 16, 20))
+    if run("wp"):
+        bench_work_precision(rec)
     try:
         harness.plot_work_precision(OUT / "deform.csv", OUT / "deform_wp.png", benchmark="deform")
     except Exception as exc:

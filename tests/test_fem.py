@@ -365,3 +365,13 @@ def test_deform_demo_smoke(tmp_path):
     assert len(list((tmp_path / "body").glob("*.vtk"))) == 3
     text = (tmp_path / "cloth" / "frame_0002.vtk").read_text()
     assert text.startswith("# vtk DataFile") and "CELL_TYPES" in text
+
+
+def test_lagged_factor_pcg_matches_cholmod():
+    a, _ = soft_box(n=6)
+    b, _ = soft_box(n=6)
+    for _ in range(4):
+        a.step(1 / 30, tol=1e-10)
+        info = b.step(1 / 30, tol=1e-10, linear_solver="cholmod_pcg", cg_tol=1e-6)
+        assert info.converged
+    assert np.abs(a.x - b.x).max() < 1e-7 * np.abs(a.x - a.rest).max() + 1e-12

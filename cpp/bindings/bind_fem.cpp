@@ -34,7 +34,9 @@ fem::Definiteness parse_definiteness(const std::string& name) {
 fem::LinearSolver parse_solver(const std::string& name) {
   if (name == "cholmod") return fem::LinearSolver::Cholmod;
   if (name == "cg") return fem::LinearSolver::CG;
-  throw InvalidArgument("linear_solver: expected 'cholmod' or 'cg', got '" + name + "'");
+  if (name == "cholmod_pcg") return fem::LinearSolver::CholmodPcg;
+  throw InvalidArgument("linear_solver: expected 'cholmod', 'cholmod_pcg' or 'cg', got '" + name +
+                        "'");
 }
 
 py::dict stats_dict(const fem::NewtonStats& s) {

@@ -563,6 +563,20 @@ bool Body::linear_solve(const NewtonOptions& options, const Scalar* rhs, Scalar*
     stats.seconds_solve += phase.seconds();
     return true;
   }
+  if (options.linear_solver == LinearSolver::CholmodPcg && factor_) {
+    // The last factorisation as preconditioner of the current matrix; accepted when PCG
+    // converges quickly to a descent direction (rhs = -grad g, so rhs . dx > 0).
+    std::fill(dx, dx + n, 0);
+    const CsrView A{n, n, row_ptr.data(), col.data(), values_.data()};
+    const LinearOperator op = [&](const Scalar* v, Scalar* y) { spmv(A, v, y); };
+    const LinearOperator pre = [&](const Scalar* r, Scalar* z) { factor_->solve(r, z, 1); };
+    Interrupt none;
+    const SolveInfo info = pcg(n, op, pre, rhs, dx, IterativeOptions{options.cg_tol, 25}, none);
+    stats.cg_iterations += info.iterations;
+    stats.seconds_solve += phase.seconds();
+    if (info.converged && dot(n, rhs, dx) > 0) return true;
+    phase.restart();
+  }
   // CHOLMOD: symbolic analysis once per body, numeric refactorisation per Newton iteration.
   const CscView A{n, n, row_ptr.data(), col.data(), values_.data()};
   try {

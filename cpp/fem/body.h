@@ -57,7 +57,11 @@ struct BodyState {
   Index step = 0;
 };
 
-enum class LinearSolver { Cholmod, CG };
+// Cholmod: refactorise every Newton iteration. CholmodPcg: PCG on the current matrix
+// preconditioned by the most recent factorisation (lagged across iterations and steps),
+// refactorising only when PCG needs more than 25 iterations or fails to give a descent
+// direction. CG: Jacobi-preconditioned CG on the projected matrix.
+enum class LinearSolver { Cholmod, CholmodPcg, CG };
 
 // Definiteness fix of the Newton matrix. Adaptive: the exact Hessian first, the per-element
 // projected one only when CHOLMOD finds the exact matrix indefinite, which keeps Newton's

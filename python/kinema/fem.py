@@ -36,7 +36,7 @@ __all__ = ["Body", "NewtonInfo", "MODELS", "lame", "psi", "piola", "piola_deriva
            "rectangle_mesh", "box_mesh"]
 
 MODELS = ("linear", "stvk", "corotated", "neohookean")
-_SOLVERS = ("cholmod", "cg")
+_SOLVERS = ("cholmod", "cholmod_pcg", "cg")
 _DEFINITENESS = ("adaptive", "project", "none")
 
 
@@ -175,6 +175,10 @@ class Body:
         else the per-element projection: quadratic convergence where possible), "project"
         (always project) or "none" (exact Newton; km.NotPositiveDefiniteError if indefinite).
         With linear_solver="cg" the matrix is always projected.
+        linear_solver: "cholmod" (refactorise every Newton iteration, analysis reused),
+        "cholmod_pcg" (PCG to cg_tol preconditioned by the last factorisation, which is kept
+        across iterations and steps and refreshed when PCG needs more than 25 iterations), or
+        "cg" (Jacobi-preconditioned CG to cg_tol).
         """
         dt = positive(dt, "dt")
         choice(integrator, "integrator", ("implicit", "symplectic"))
