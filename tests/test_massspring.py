@@ -150,3 +150,12 @@ def test_bad_step_arguments():
         sys.step(0.1, "rk4")
     with pytest.raises(ValueError, match="linear_solver"):
         sys.step(0.1, linear_solver="lu")
+
+
+def test_lagged_factor_pcg_matches_cholmod():
+    a, b = hanging_cloth(), hanging_cloth()
+    for _ in range(10):
+        a.step(1 / 30)
+        info = b.step(1 / 30, linear_solver="cholmod_pcg", cg_tol=1e-12)
+    assert not info.refactored and info.cg_iterations > 0
+    assert np.abs(a.x - b.x).max() < 1e-8

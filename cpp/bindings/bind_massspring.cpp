@@ -24,7 +24,9 @@ massspring::Integrator parse_integrator(const std::string& name) {
 massspring::LinearSolver parse_solver(const std::string& name) {
   if (name == "cholmod") return massspring::LinearSolver::Cholmod;
   if (name == "cg") return massspring::LinearSolver::CG;
-  throw InvalidArgument("linear_solver: expected 'cholmod' or 'cg', got '" + name + "'");
+  if (name == "cholmod_pcg") return massspring::LinearSolver::CholmodPcg;
+  throw InvalidArgument("linear_solver: expected 'cholmod', 'cholmod_pcg' or 'cg', got '" + name +
+                        "'");
 }
 
 py::array view(py::object self, std::vector<Scalar>& buffer, Index d) {
@@ -81,6 +83,7 @@ void bind_massspring(py::module_& m) {
                  interrupt.check();
                  last = s.step(dt, kind, beta, lin, cg_tol, interrupt);
                  stats.clamped = stats.clamped || last.clamped;
+                 stats.refactored = stats.refactored || last.refactored;
                  stats.cg_iterations += last.cg_iterations;
                  stats.seconds_assembly += last.seconds_assembly;
                  stats.seconds_factor += last.seconds_factor;
@@ -90,6 +93,7 @@ void bind_massspring(py::module_& m) {
              }
              py::dict d;
              d["clamped"] = stats.clamped;
+             d["refactored"] = stats.refactored;
              d["cg_iterations"] = stats.cg_iterations;
              d["seconds_assembly"] = stats.seconds_assembly;
              d["seconds_factor"] = stats.seconds_factor;

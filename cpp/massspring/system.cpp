@@ -269,7 +269,21 @@ StepStats System::step(Scalar dt, Integrator integrator, Scalar beta, LinearSolv
                                  "; use linear_solver='cholmod' or reduce dt");
         continue;
       }
+      if (solver == LinearSolver::CholmodPcg && factor_ && !clamp) {
+        // The lagged factorisation as preconditioner; fall back to refactorising.
+        std::fill(v.begin(), v.end(), 0);
+        const CsrView S{n, n, row_ptr.data(), col.data(), values_.data()};
+        const LinearOperator op = [&](const Scalar* p, Scalar* y) { spmv(S, p, y); };
+        const LinearOperator pre = [&](const Scalar* r, Scalar* z) { factor_->solve(r, z, 1); };
+        const SolveInfo info =
+            pcg(n, op, pre, rhs_.data(), v.data(), IterativeOptions{cg_tol, 25}, interrupt);
+        stats.cg_iterations += info.iterations;
+        stats.seconds_solve += phase.seconds();
+        if (info.converged) break;
+        phase.restart();
+      }
       const CscView A{n, n, row_ptr.data(), col.data(), values_.data()};
+      stats.refactored = true;
       try {
         if (!factor_) factor_ = std::make_unique<CholmodFactor>(A);
         else factor_->refactor(A);

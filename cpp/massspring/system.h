@@ -44,10 +44,13 @@ struct SystemState {
 };
 
 enum class Integrator { Explicit, Symplectic, Implicit };
-enum class LinearSolver { Cholmod, CG };
+// CholmodPcg: PCG preconditioned by the factorisation of an earlier step (lagged), which is
+// refreshed only when PCG needs more than 25 iterations.
+enum class LinearSolver { Cholmod, CholmodPcg, CG };
 
 struct StepStats {
   bool clamped = false;   // the exact Jacobian was not definite; the clamped one was used
+  bool refactored = false;  // a CHOLMOD factorisation was computed in this step
   Index cg_iterations = 0;
   double seconds_assembly = 0, seconds_factor = 0, seconds_solve = 0, seconds = 0;
 };

@@ -9,7 +9,9 @@ and gravity. Integrators (``System.step``):
   stability limit ``System.explicit_dt_limit``);
 - ``"implicit"``: [M - h C - beta h^2 K] v' = M v + h f, x' = x + h v' with the exact spring
   Jacobian K = df/dx and damping Jacobian C = df/dv (Baraff & Witkin, SIGGRAPH 1998), solved by
-  CHOLMOD (symbolic analysis reused every step) or Jacobi-preconditioned CG. beta = 1 is
+  CHOLMOD (symbolic analysis reused every step), PCG preconditioned by the factorisation of an
+  earlier step (``linear_solver="cholmod_pcg"``, refreshed when PCG needs more than 25
+  iterations) or Jacobi-preconditioned CG. beta = 1 is
   backward Euler, 0.5 trapezoid-like. When the exact matrix is not positive definite (springs
   compressed far below rest length) the transverse term of compressed springs is clamped
   (Choi & Ko 2002) and the step's info reports ``clamped=True``.
@@ -29,7 +31,7 @@ from kinema._checks import as_float_array, choice, non_negative, positive, posit
 __all__ = ["System", "StepInfo", "cloth", "INTEGRATORS"]
 
 INTEGRATORS = ("explicit", "symplectic", "implicit")
-_SOLVERS = ("cholmod", "cg")
+_SOLVERS = ("cholmod", "cholmod_pcg", "cg")
 
 
 @dataclass(frozen=True)
@@ -37,11 +39,13 @@ class StepInfo:
     """Statistics of ``System.step`` (summed over ``steps``).
 
     clamped: the exact spring Jacobian was not positive definite and was clamped.
+    refactored: a CHOLMOD factorisation was computed (always, except with "cholmod_pcg").
     cg_iterations: CG iterations (linear_solver="cg").
     seconds_assembly, seconds_factor, seconds_solve: implicit phases [s]; seconds: total [s].
     """
 
     clamped: bool
+    refactored: bool
     cg_iterations: int
     seconds_assembly: float
     seconds_factor: float
