@@ -18,6 +18,8 @@ void bind_poisson(py::module_& m);
 void bind_diffusion(py::module_& m);
 void bind_fmm(py::module_& m);
 void bind_grid(py::module_& m);
+void bind_massspring(py::module_& m);
+void bind_fem(py::module_& m);
 
 std::vector<Index> shape_of(const py::array& a) {
   return std::vector<Index>(a.shape(), a.shape() + a.ndim());
@@ -95,4 +97,8 @@ PYBIND11_MODULE(_core, m) {
   bind::bind_fmm(fmm);
   auto grid = m.def_submodule("grid");
   bind::bind_grid(grid);
+  auto massspring = m.def_submodule("massspring");
+  bind::bind_massspring(massspring);
+  auto fem = m.def_submodule("fem");
+  bind::bind_fem(fem);
 }

@@ -15,7 +15,7 @@ from kinema.errors import (
     NotPositiveDefiniteError,
     StabilityError,
 )
-from kinema import diffusion, fmm, grid, poisson, sparse, vortex
+from kinema import diffusion, fem, fmm, grid, massspring, poisson, sparse, vortex
 
 __version__ = "0.1.0"
 
@@ -36,6 +36,8 @@ __all__ = [
     "fmm",
     "vortex",
     "grid",
+    "massspring",
+    "fem",
 ]
 
 

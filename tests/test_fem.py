@@ -1,0 +1,377 @@
+"""km.fem: stresses and whole-mesh forces/Hessians against finite differences, structure of the
+Hessian (symmetry, definiteness after projection, rigid modes), the patch test, Newton's
+quadratic convergence, a cantilever against beam theory, stress tests and bad input."""
+
+import numpy as np
+import pytest
+
+import kinema as km
+
+MODELS = km.fem.MODELS
+NONLINEAR = ("stvk", "corotated", "neohookean")
+
+
+def random_F(rng, d, count, spread=0.3):
+    return np.eye(d) + spread * rng.standard_normal((count, d, d))
+
+
+def small_body(d, model, rng, perturb=0.1, **kw):
+    if d == 2:
+        V, T = km.fem.rectangle_mesh([0, 0], [1, 1], 2)
+    else:
+        V, T = km.fem.box_mesh([0, 0, 0], [1, 1, 1], 1)
+    body = km.fem.Body(V, T, model=model, youngs_modulus=1e3, poisson_ratio=0.3, density=1.0, **kw)
+    body.x[:] += perturb * rng.standard_normal(V.shape)
+    return body
+
+
+# ---------------------------------------------------------------- pointwise
+
+def test_lame():
+    mu, lam = km.fem.lame(1e6, 0.25)
+    assert mu == pytest.approx(4e5) and lam == pytest.approx(4e5)
+
+
+@pytest.mark.parametrize("model", MODELS)
+@pytest.mark.parametrize("d", [2, 3])
+def test_piola_is_derivative_of_psi(model, d):
+    rng = np.random.default_rng(1)
+    F = random_F(rng, d, 8)
+    P = km.fem.piola(F, model, 3.0, 7.0)
+    h = 1e-6
+    for r in range(d):
+        for c in range(d):
+            E = np.zeros((d, d))
+            E[r, c] = h
+            fd = (km.fem.psi(F + E, model, 3.0, 7.0) - km.fem.psi(F - E, model, 3.0, 7.0)) / (2 * h)
+            err = np.abs(P[:, r, c] - fd).max()
+            assert err < 1e-6 * (1 + np.abs(fd).max()), f"P[{r},{c}] vs FD: error {err:.2e}"
+
+
+@pytest.mark.parametrize("model", NONLINEAR)
+@pytest.mark.parametrize("d", [2, 3])
+def test_rigid_motion_costs_nothing(model, d):
+    rng = np.random.default_rng(2)
+    body = small_body(d, model, rng, perturb=0.0)
+    Q, _ = np.linalg.qr(rng.standard_normal((d, d)))
+    if np.linalg.det(Q) < 0:
+        Q[:, 0] *= -1
+    body.x[:] = body.rest @ Q.T + rng.standard_normal(d)
+    assert abs(body.elastic_energy()) < 1e-10
+    assert np.abs(body.forces()).max() < 1e-9
+
+
+# ---------------------------------------------------------------- whole mesh
+
+@pytest.mark.parametrize("model", MODELS)
+@pytest.mark.parametrize("d", [2, 3])
+def test_mesh_forces_and_hessian_match_finite_differences(model, d):
+    rng = np.random.default_rng(3)
+    body = small_body(d, model, rng)
+    x0 = body.x.copy()
+    H = body.hessian().toarray()
+    n = H.shape[0]
+    h = 1e-6
+    grad, Hfd = np.zeros(n), np.zeros((n, n))
+    for q in range(n):
+        body.x[:] = x0
+        body.x.reshape(-1)[q] += h
+        ep, fp = body.elastic_energy(), body.forces().ravel()
+        body.x[:] = x0
+        body.x.reshape(-1)[q] -= h
+        em, fm = body.elastic_energy(), body.forces().ravel()
+        grad[q] = (ep - em) / (2 * h)
+        Hfd[:, q] = -(fp - fm) / (2 * h)
+    body.x[:] = x0
+    f = body.forces().ravel()
+    assert np.abs(-f - grad).max() < 1e-6 * np.abs(grad).max()
+    assert np.abs(H - Hfd).max() < 1e-6 * np.abs(H).max()
+    assert np.abs(H - H.T).max() <= 1e-12 * np.abs(H).max()
+
+
+@pytest.mark.parametrize("model", NONLINEAR)
+def test_projected_hessian_is_positive_semidefinite(model):
+    rng = np.random.default_rng(4)
+    body = small_body(3, model, rng, perturb=0.3)  # strong, partly inverting deformation
+    H = body.hessian().toarray()
+    Hp = body.hessian(project=True).toarray()
+    assert np.abs(Hp - Hp.T).max() <= 1e-12 * np.abs(Hp).max()
+    lo = np.linalg.eigvalsh(Hp).min()
+    assert lo > -1e-9 * np.abs(Hp).max(), f"projected Hessian eigenvalue {lo:.3e}"
+    if np.linalg.eigvalsh(H).min() < -1e-9 * np.abs(H).max():
+        assert not np.allclose(H, Hp)
+    # Rigid translations stay in the null space.
+    for r in range(3):
+        t = np.zeros((H.shape[0] // 3, 3))
+        t[:, r] = 1
+        assert np.abs(Hp @ t.ravel()).max() < 1e-9 * np.abs(Hp).max()
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_patch_test(model):
+    # An affine boundary motion x = A X + b is reproduced exactly inside (constant F).
+    V, T = km.fem.rectangle_mesh([0, 0], [1, 1], 6)
+    boundary = np.flatnonzero((V.min(axis=1) < 1e-12) | (V.max(axis=1) > 1 - 1e-12))
+    body = km.fem.Body(V, T, model=model, youngs_modulus=1e4, poisson_ratio=0.3, density=1.0,
+                       fixed=boundary)
+    A = np.array([[1.05, 0.02], [-0.03, 0.97]]) if model == "linear" else np.array([[1.2, 0.3], [-0.1, 0.9]])
+    b = np.array([0.1, -0.2])
+    body.x[boundary] = V[boundary] @ A.T + b
+    body.solve_static(tol=1e-12)
+    err = np.abs(body.x - (V @ A.T + b)).max()
+    assert err < 1e-10, f"patch test: max error {err:.2e}"
+
+
+def cantilever(n, model="linear", E=1e7, **kw):
+    L, h = 1.0, 0.1
+    V, T = km.fem.rectangle_mesh([0, 0], [L, h], n)
+    return km.fem.Body(V, T, model=model, youngs_modulus=E, poisson_ratio=0.0, density=100.0,
+                       fixed=np.flatnonzero(V[:, 0] < 1e-12), gravity=(0, -9.81), **kw), V
+
+
+def beam_deflection(E=1e7):
+    # Timoshenko tip deflection of a clamped beam under its weight q = rho g h, unit thickness:
+    # q L^4 / (8 E I) + q L^2 / (2 kappa G A), kappa = 5/6, nu = 0 (plane strain = plane stress).
+    L, h, q = 1.0, 0.1, 100.0 * 9.81 * 0.1
+    return q * L**4 / (8 * E * h**3 / 12) + q * L**2 / (2 * 5 / 6 * E / 2 * h)
+
+
+def tip_deflection(body, V):
+    return -(body.x - V)[np.abs(V[:, 0] - 1.0) < 1e-12, 1].mean()
+
+
+def test_cantilever_converges_to_beam_theory():
+    exact = beam_deflection()
+    errors = []
+    for n in [(20, 2), (40, 4), (80, 8)]:
+        body, V = cantilever(n)
+        body.solve_static()
+        errors.append(abs(tip_deflection(body, V) - exact) / exact)
+    rates = np.log2(np.array(errors[:-1]) / np.array(errors[1:]))
+    # Constant-strain triangles lock in bending (pre-asymptotic on the coarsest mesh); the
+    # error then falls towards second order.
+    assert errors[-1] < 0.06 and (rates > 1.2).all() and rates[-1] > 1.6, \
+        f"errors {errors}, rates {rates}"
+
+
+@pytest.mark.slow
+def test_cantilever_fine_and_nonlinear():
+    exact = beam_deflection()
+    body, V = cantilever((160, 16))
+    body.solve_static()
+    assert abs(tip_deflection(body, V) - exact) / exact < 0.02
+    for model in NONLINEAR:  # small deflection: every model agrees with linear elasticity
+        nb, V = cantilever((80, 8), model=model, E=1e9)
+        nb.solve_static()
+        lin, V = cantilever((80, 8), E=1e9)
+        lin.solve_static()
+        assert abs(tip_deflection(nb, V) / tip_deflection(lin, V) - 1) < 1e-2
+
+
+def test_newton_converges_quadratically():
+    # An implicit step whose Newton matrix stays positive definite: the adaptive definiteness
+    # fix keeps the exact Hessian, and the relative gradient norm squares each iteration.
+    body, V = cantilever((40, 4), model="neohookean", E=1e6)
+    body.v[:, 1] = -2.0
+    info = body.step(0.05, tol=1e-13)
+    r = np.array(info.gradient_norm) / info.gradient_norm[0]
+    assert info.projected_elements == 0 and info.iterations >= 3
+    pairs = [(a, b) for a, b in zip(r[:-1], r[1:]) if 1e-6 < a < 1e-1]
+    assert pairs, f"no iterates in the asymptotic range: {r}"
+    for a, b in pairs:
+        assert b < 10 * a**2 + 1e-13, f"not quadratic: {a:.2e} -> {b:.2e} (history {r})"
+
+
+# ---------------------------------------------------------------- dynamics and stability
+
+def soft_box(model="neohookean", E=1e5, nu=0.3, n=3, **kw):
+    V, T = km.fem.box_mesh([0, 0, 0], [1, 0.3, 0.3], (n, 1, 1))
+    return km.fem.Body(V, T, model=model, youngs_modulus=E, poisson_ratio=nu, density=1000.0,
+                       fixed=np.flatnonzero(V[:, 0] < 1e-12), gravity=(0, 0, -9.81), **kw), V
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_implicit_step_at_large_dt(model):
+    body, _ = soft_box(model, E=1e7)
+    assert 1 / 30 > 5 * body.explicit_dt_limit
+    for _ in range(10):
+        info = body.step(1 / 30)
+        assert info.converged
+    assert np.isfinite(body.x).all()
+
+
+@pytest.mark.parametrize("E, nu", [(1e9, 0.3), (1e5, 0.499)])
+def test_stiff_and_nearly_incompressible(E, nu):
+    body, _ = soft_box(E=E, nu=nu)
+    for _ in range(5):
+        info = body.step(1 / 30, max_newton=100)
+        # converged: to tol, or (E = 1e9) to the rounding level of the gradient
+        assert info.converged and info.residual <= 1e-4
+
+
+def test_inverted_elements_recover():
+    body, V = soft_box(n=4)
+    free = np.flatnonzero(V[:, 0] > 0.5)
+    body.x[free, 2] = 0.3 - V[free, 2]  # mirror the free half through its mid-plane: inverted
+    for _ in range(40):
+        body.step(1 / 60)
+    Ds = np.stack([body.x[body.elements[:, a + 1]] - body.x[body.elements[:, 0]] for a in range(3)], -1)
+    assert (np.linalg.det(Ds) > 0).all(), "elements still inverted after 40 steps"
+
+
+def test_backward_euler_does_not_gain_energy():
+    body, _ = soft_box(E=1e5)
+    body.v[:, 2] = 1.0
+    body.v[body.fixed] = 0
+    e = [body.energy()]
+    for _ in range(30):
+        body.step(1 / 30)
+        e.append(body.energy())
+    assert (np.diff(e) <= 1e-9 * abs(e[0])).all(), np.diff(e).max()
+
+
+def test_symplectic_below_limit_and_divergence_above():
+    body, _ = soft_box(E=1e4)
+    dt = 0.3 * body.explicit_dt_limit
+    e0 = body.energy()
+    body.step(dt, "symplectic", steps=400)
+    assert np.isfinite(body.x).all() and body.energy() < e0 + 0.05 * abs(e0)
+    body, _ = soft_box(E=1e7)
+    with pytest.raises(km.DivergenceError, match="symplectic limit"):
+        body.step(1 / 30, "symplectic", steps=200)
+
+
+def test_implicit_and_symplectic_agree_at_small_dt():
+    a, _ = soft_box(E=1e4)
+    b, _ = soft_box(E=1e4)
+    dt = 0.2 * a.explicit_dt_limit
+    steps = int(0.05 / dt)
+    for _ in range(steps):
+        a.step(dt, tol=1e-10)
+    b.step(dt, "symplectic", steps=steps)
+    scale = np.abs(a.x - a.rest).max()
+    # Both first order in dt: backward Euler lags by its numerical damping, O(dt).
+    assert np.abs(a.x - b.x).max() < 0.1 * scale
+
+
+def test_cg_matches_cholmod_and_determinism():
+    a, _ = soft_box()
+    b, _ = soft_box()
+    c, _ = soft_box()
+    for _ in range(3):
+        a.step(1 / 30, tol=1e-10)
+        b.step(1 / 30, tol=1e-10, linear_solver="cg", cg_tol=1e-10)
+        c.step(1 / 30, tol=1e-10)
+    assert np.abs(a.x - b.x).max() < 1e-7
+    assert np.array_equal(a.x, c.x)
+
+
+def test_static_with_load_steps_matches_single_step():
+    a, _ = soft_box(E=1e6)
+    b, _ = soft_box(E=1e6)
+    a.solve_static(load_steps=1)
+    info = b.solve_static(load_steps=4)
+    assert info.converged
+    assert np.abs(a.x - b.x).max() < 1e-8
+
+
+# ---------------------------------------------------------------- meshes
+
+@pytest.mark.parametrize("tets", [5, 6])
+def test_box_mesh_is_conforming_and_oriented(tets):
+    n = 3
+    V, T = km.fem.box_mesh([0, 0, 0], [1, 2, 3], n, tets_per_cell=tets)
+    assert T.shape == (tets * n**3, 4)
+    Ds = np.stack([V[T[:, a + 1]] - V[T[:, 0]] for a in range(3)], -1)
+    vol = np.linalg.det(Ds) / 6
+    assert (vol > 0).all() and vol.sum() == pytest.approx(6.0)
+    faces = np.sort(np.concatenate([T[:, [0, 1, 2]], T[:, [0, 1, 3]], T[:, [0, 2, 3]], T[:, [1, 2, 3]]]), axis=1)
+    _, counts = np.unique(faces, axis=0, return_counts=True)
+    assert set(counts) <= {1, 2} and (counts == 1).sum() == 6 * n * n * 2
+
+
+def test_rectangle_mesh():
+    V, T = km.fem.rectangle_mesh([0, 0], [2, 1], (4, 2))
+    assert V.shape == (15, 2) and T.shape == (16, 3)
+    area = np.linalg.det(np.stack([V[T[:, 1]] - V[T[:, 0]], V[T[:, 2]] - V[T[:, 0]]], -1)) / 2
+    assert (area > 0).all() and area.sum() == pytest.approx(2.0)
+
+
+# ---------------------------------------------------------------- bad input and views
+
+def test_degenerate_element_named():
+    V, T = km.fem.box_mesh([0, 0, 0], [1, 1, 1], 1)
+    V = np.vstack([V, [[2, 0, 0], [3, 0, 0], [4, 0, 0], [5, 0, 0]]])  # collinear: zero volume
+    T = np.vstack([T, [[8, 9, 10, 11]]])
+    with pytest.raises(ValueError, match="element 6 is degenerate"):
+        km.fem.Body(V, T, youngs_modulus=1e5, poisson_ratio=0.3, density=1.0)
+    T2 = km.fem.box_mesh([0, 0, 0], [1, 1, 1], 1)[1].copy()
+    T2[2, [2, 3]] = T2[2, [3, 2]]
+    with pytest.raises(ValueError, match="element 2 is inverted"):
+        km.fem.Body(km.fem.box_mesh([0, 0, 0], [1, 1, 1], 1)[0], T2, youngs_modulus=1e5,
+                    poisson_ratio=0.3, density=1.0)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(vertices=np.zeros((4, 4))), "vertices: expected shape"),
+    (dict(elements=[[0, 1, 2]]), r"elements: expected shape \(m, 4\)"),
+    (dict(elements=[[0, 1, 2, 99]]), "elements: index 99"),
+    (dict(vertices=[[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, np.inf]]), "vertices: contains 1 non-finite"),
+    (dict(model="hooke"), "model"),
+    (dict(poisson_ratio=0.5), "poisson_ratio"),
+    (dict(youngs_modulus=-1), "youngs_modulus"),
+    (dict(density=0), "density"),
+    (dict(fixed=[4]), "fixed: index 4"),
+    (dict(gravity=(0, -9.81)), "gravity: expected 3 components"),
+])
+def test_bad_input(kwargs, match):
+    args = dict(vertices=[[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], elements=[[0, 1, 2, 3]],
+                youngs_modulus=1e5, poisson_ratio=0.3, density=1.0)
+    args.update(kwargs)
+    V, T = args.pop("vertices"), args.pop("elements")
+    with pytest.raises(ValueError, match=match):
+        km.fem.Body(V, T, **args)
+
+
+def test_nan_state_raises_divergence_error():
+    body, _ = soft_box()
+    body.x[5, 0] = np.nan
+    with pytest.raises(km.DivergenceError):
+        body.step(1 / 30)
+    with pytest.raises(ValueError, match="F: expected shape"):
+        km.fem.psi(np.eye(4), "neohookean", 1.0, 1.0)
+
+
+def test_state_views_are_zero_copy():
+    body, V = soft_box()
+    x = body.x
+    body.step(1 / 30)
+    assert np.shares_memory(x, body.x) and not np.array_equal(x, V)
+    del body
+    assert np.isfinite(x).all()
+
+
+def test_static_without_fixed_vertices_is_refused():
+    V, T = km.fem.box_mesh([0, 0, 0], [1, 1, 1], 1)
+    body = km.fem.Body(V, T, youngs_modulus=1e5, poisson_ratio=0.3, density=1.0)
+    with pytest.raises(ValueError, match="fixed"):
+        body.solve_static()
+
+
+def test_deform_demo_smoke(tmp_path):
+    from kinema import demo_deform
+    assert demo_deform.main(["--out", str(tmp_path), "--frames", "3", "--cloth", "6",
+                             "--cells", "5", "--no-video"]) == 0
+    assert len(list((tmp_path / "body").glob("*.vtk"))) == 3
+    text = (tmp_path / "cloth" / "frame_0002.vtk").read_text()
+    assert text.startswith("# vtk DataFile") and "CELL_TYPES" in text
+
+
+def test_lagged_factor_pcg_matches_cholmod():
+    a, _ = soft_box(n=6)
+    b, _ = soft_box(n=6)
+    for _ in range(4):
+        a.step(1 / 30, tol=1e-10)
+        info = b.step(1 / 30, tol=1e-10, linear_solver="cholmod_pcg", cg_tol=1e-6)
+        assert info.converged
+    assert np.abs(a.x - b.x).max() < 1e-7 * np.abs(a.x - a.rest).max() + 1e-12

@@ -1,0 +1,161 @@
+"""km.massspring: the harmonic oscillator's period, the energy behaviour of explicit,
+symplectic and implicit Euler, stability far beyond the explicit limit, cloth topology,
+zero-copy state views and bad input."""
+
+import math
+
+import numpy as np
+import pytest
+
+import kinema as km
+
+
+def oscillator(amplitude=0.1, k=4.0, m=0.25, L=1.0):
+    # Vertex 0 fixed, vertex 1 on a spring of rest length L: omega = sqrt(k/m) = 4 rad/s.
+    x = np.array([[0.0, 0.0], [L + amplitude, 0.0]])
+    return km.massspring.System(x, [[0, 1]], stiffness=k, mass=m, rest_length=L, fixed=[0])
+
+
+def test_oscillator_period():
+    sys = oscillator()
+    period = 2 * math.pi * math.sqrt(0.25 / 4.0)
+    dt = period / 2000
+    crossings, prev = [], sys.x[1, 0] - 1.0
+    for n in range(1, 6000):
+        sys.step(dt, "symplectic")
+        cur = sys.x[1, 0] - 1.0
+        if prev > 0 >= cur:  # downward zero crossings, linearly interpolated
+            crossings.append((n - 1 + prev / (prev - cur)) * dt)
+        prev = cur
+    measured = np.diff(crossings).mean()
+    assert abs(measured - period) < 1e-4 * period, f"period {measured}, expected {period}"
+
+
+def test_explicit_energy_grows_symplectic_stays_bounded():
+    period = 2 * math.pi * math.sqrt(0.25 / 4.0)
+    dt = period / 40
+    energies = {}
+    for integrator in ("explicit", "symplectic"):
+        sys = oscillator()
+        e0 = sys.energy()
+        e = [sys.energy()]
+        for _ in range(400):
+            sys.step(dt, integrator)
+            e.append(sys.energy())
+        energies[integrator] = np.array(e) / e0
+    # Explicit Euler multiplies the energy by (1 + (omega dt)^2) per step: ~ e^(400*0.0247) here.
+    assert energies["explicit"][-1] > 100, energies["explicit"][-1]
+    # Symplectic Euler conserves a modified energy: the true one oscillates by O(omega dt).
+    assert np.abs(energies["symplectic"] - 1).max() < 0.2, np.abs(energies["symplectic"] - 1).max()
+
+
+def hanging_cloth(n=12, stiffness=1e4, **kw):
+    x, springs = km.massspring.cloth(n, n, 1.0)
+    x = x[:, [0, 2, 1]].copy()  # hang in the x-z plane
+    x[:, 2] *= -1
+    fixed = [0, (n - 1) * n]  # the two top corners
+    return km.massspring.System(x, springs, stiffness=stiffness, mass=1.0 / n**2, fixed=fixed,
+                                gravity=(0, 0, -9.81), **kw)
+
+
+def test_implicit_stable_far_beyond_explicit_limit():
+    sys = hanging_cloth(stiffness=1e5)
+    dt = 1 / 30
+    assert dt > 50 * sys.explicit_dt_limit, sys.explicit_dt_limit
+    e0 = sys.energy()
+    for _ in range(60):
+        sys.step(dt, "implicit")
+        assert np.isfinite(sys.x).all()
+        assert sys.energy() <= e0 + 1e-9 * abs(e0), "backward Euler must not gain energy"
+    # The same step blows up explicitly, reported as a DivergenceError, not NaN.
+    exp = hanging_cloth(stiffness=1e5)
+    with pytest.raises(km.DivergenceError, match="dt"):
+        exp.step(dt, "explicit", steps=200)
+
+
+def test_implicit_cg_matches_cholmod_and_runs_are_deterministic():
+    a, b, c = hanging_cloth(), hanging_cloth(), hanging_cloth()
+    for _ in range(5):
+        a.step(1 / 60)
+        b.step(1 / 60, linear_solver="cg", cg_tol=1e-12)
+        c.step(1 / 60)
+    assert np.abs(a.x - b.x).max() < 1e-8
+    assert np.array_equal(a.x, c.x), "two identical runs differ"
+
+
+def test_trapezoid_beta_damps_less_than_backward_euler():
+    dissipated = {}
+    for beta in (1.0, 0.5):
+        sys = oscillator()
+        e0 = sys.energy()
+        sys.step(0.05, "implicit", beta=beta, steps=100)
+        dissipated[beta] = 1 - sys.energy() / e0
+    assert dissipated[0.5] < 0.9 * dissipated[1.0], dissipated
+
+
+def test_damping_and_stiff_springs_stay_finite():
+    sys = hanging_cloth(stiffness=1e8, damping=1.0)
+    sys.step(1 / 30, "implicit", steps=10)
+    assert np.isfinite(sys.x).all() and np.isfinite(sys.v).all()
+
+
+def test_cloth_topology():
+    nx, ny = 5, 4
+    x, springs, kinds = km.massspring.cloth(nx, ny, (2.0, 1.5), return_kinds=True)
+    assert x.shape == (nx * ny, 3)
+    assert np.allclose(x.max(axis=0), [2.0, 1.5, 0.0])
+    counts = np.bincount(kinds)
+    assert counts[0] == nx * (ny - 1) + ny * (nx - 1)
+    assert counts[1] == 2 * (nx - 1) * (ny - 1)
+    assert counts[2] == (nx - 2) * ny + nx * (ny - 2)
+    x2, _ = km.massspring.cloth(3, 3, 1.0, dim=2)
+    assert x2.shape == (9, 2)
+
+
+def test_state_views_are_zero_copy():
+    sys = oscillator()
+    x = sys.x
+    x[1, 0] = 1.0  # at rest length: no force
+    sys.step(0.01, "symplectic")
+    assert abs(sys.v[1, 0]) < 1e-15
+    del sys
+    assert x[1, 0] == 1.0  # the view keeps the system alive
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(x=np.zeros((3, 4))), "x: expected shape"),
+    (dict(springs=[[0, 1, 2]]), "springs: expected shape"),
+    (dict(springs=[[0, 5]]), "springs: index 5"),
+    (dict(springs=[[1, 1]]), "springs: spring 0 joins"),
+    (dict(x=[[0, 0], [np.nan, 0]]), "x: contains 1 non-finite"),
+    (dict(stiffness=-1.0), "stiffness"),
+    (dict(mass=[1.0]), "mass: expected a scalar or shape"),
+    (dict(mass=0.0), "mass: expected values > 0"),
+    (dict(fixed=[7]), "fixed: index 7"),
+    (dict(gravity=(0, 0, 1)), "gravity: expected 2 components"),
+])
+def test_bad_input(kwargs, match):
+    args = dict(x=[[0.0, 0.0], [1.0, 0.0]], springs=[[0, 1]], stiffness=1.0)
+    args.update(kwargs)
+    x, springs = args.pop("x"), args.pop("springs")
+    with pytest.raises(ValueError, match=match):
+        km.massspring.System(x, springs, **args)
+
+
+def test_bad_step_arguments():
+    sys = oscillator()
+    with pytest.raises(ValueError, match="dt"):
+        sys.step(-1.0)
+    with pytest.raises(ValueError, match="integrator"):
+        sys.step(0.1, "rk4")
+    with pytest.raises(ValueError, match="linear_solver"):
+        sys.step(0.1, linear_solver="lu")
+
+
+def test_lagged_factor_pcg_matches_cholmod():
+    a, b = hanging_cloth(), hanging_cloth()
+    for _ in range(10):
+        a.step(1 / 30)
+        info = b.step(1 / 30, linear_solver="cholmod_pcg", cg_tol=1e-12)
+    assert not info.refactored and info.cg_iterations > 0
+    assert np.abs(a.x - b.x).max() < 1e-8
