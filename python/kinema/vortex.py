@@ -101,8 +101,9 @@ class VortexParticles:
         return np.array([np.dot(self.circulation, self.x[:, 1]), -np.dot(self.circulation, self.x[:, 0])])
 
 
-def merging_patches(n_per_patch=2000, separation=1.0, radius=0.3, *, seed=0):
-    """Two co-rotating Gaussian vortex patches (unit circulation each), as particles.
+def merging_patches(n_per_patch=2000, separation=0.6, radius=0.3, *, seed=0):
+    """Two co-rotating Gaussian vortex patches (unit circulation each), as particles; close
+    enough (patch width over separation above ~0.3, Meunier et al. 2005) to merge.
 
     Returns (x, circulation, core): particles on a jittered lattice in each disc, carrying the
     vorticity of a Gaussian of width radius/2 times their area, and a core radius of about the
