@@ -16,6 +16,7 @@ namespace kinema::bind {
 void bind_sparse(py::module_& m);
 void bind_poisson(py::module_& m);
 void bind_diffusion(py::module_& m);
+void bind_sph(py::module_& m);
 
 std::vector<Index> shape_of(const py::array& a) {
   return std::vector<Index>(a.shape(), a.shape() + a.ndim());
@@ -89,4 +90,6 @@ PYBIND11_MODULE(_core, m) {
   bind::bind_poisson(poisson);
   auto diffusion = m.def_submodule("diffusion");
   bind::bind_diffusion(diffusion);
+  auto sph = m.def_submodule("sph");
+  bind::bind_sph(sph);
 }

@@ -16,6 +16,7 @@ from kinema.errors import (
     StabilityError,
 )
 from kinema import diffusion, poisson, sparse
+from kinema import sph
 
 __version__ = "0.1.0"
 
@@ -33,6 +34,7 @@ __all__ = [
     "sparse",
     "poisson",
     "diffusion",
+    "sph",
 ]
 
 
