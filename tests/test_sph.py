@@ -355,3 +355,21 @@ def test_nan_written_into_state_raises_divergence():
     fluid.v[3, 1] = np.nan
     with pytest.raises(km.DivergenceError, match="non-finite"):
         fluid.step(1e-3)
+
+
+# ---------------------------------------------------------------- example
+
+def test_dam_break_example_smoke(tmp_path):
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "examples" / "sph_dam_break_3d.py"
+    spec = importlib.util.spec_from_file_location("sph_dam_break_3d", path)
+    example = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(example)
+    assert example.main(["--out", str(tmp_path), "--spacing", "0.06", "--frames", "2", "--no-video"]) == 0
+    data = (tmp_path / "frame_0002.ply").read_bytes()
+    header, body = data.split(b"end_header\n")
+    n = int(header.split(b"element vertex ")[1].split(b"\n")[0])
+    xyz = np.frombuffer(body, "<f4").reshape(n, 4)
+    assert np.isfinite(xyz).all() and (xyz[:, 1] >= 0).all()
