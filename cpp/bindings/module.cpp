@@ -20,6 +20,7 @@ void bind_fmm(py::module_& m);
 void bind_grid(py::module_& m);
 void bind_massspring(py::module_& m);
 void bind_fem(py::module_& m);
+void bind_sph(py::module_& m);
 
 std::vector<Index> shape_of(const py::array& a) {
   return std::vector<Index>(a.shape(), a.shape() + a.ndim());
@@ -101,4 +102,6 @@ PYBIND11_MODULE(_core, m) {
   bind::bind_massspring(massspring);
   auto fem = m.def_submodule("fem");
   bind::bind_fem(fem);
+  auto sph = m.def_submodule("sph");
+  bind::bind_sph(sph);
 }

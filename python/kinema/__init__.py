@@ -15,7 +15,7 @@ from kinema.errors import (
     NotPositiveDefiniteError,
     StabilityError,
 )
-from kinema import diffusion, fem, fmm, grid, massspring, poisson, sparse, vortex
+from kinema import diffusion, fem, fmm, grid, massspring, poisson, sparse, sph, vortex
 
 __version__ = "0.1.0"
 
@@ -38,6 +38,7 @@ __all__ = [
     "grid",
     "massspring",
     "fem",
+    "sph",
 ]
 
 

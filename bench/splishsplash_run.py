@@ -1,0 +1,92 @@
+"""Times SPlisHSPlasH (pysplishsplash) on kinema's 3D dam break; run as a subprocess by
+bench/sph_bench.py, so that a crash of the peer cannot take the benchmark down.
+
+    python bench/splishsplash_run.py METHOD SPACING STEPS DT TOL STIFFNESS OUT.json
+
+The scene mirrors sph_bench.scene(): column [0, a] x [0, 2a] x [0, a] in the box
+[0, 4a] x [0, 3a] x [0, a] (a = 0.5 m), particle radius spacing/2, Akinci et al. 2012 boundary
+samples (boundaryHandlingMethod 0), no viscosity, fixed dt (CFL off). The import needs the
+system's libGLdispatch.so.0 loaded first with RTLD_GLOBAL; the run goes through runSimulation()
+with a per-step callback that records wall times and ends the process after STEPS steps
+(setting STOP_AT from the callback does not stop a headless run).
+"""
+
+import ctypes
+import json
+import os
+import sys
+import tempfile
+import time
+
+A = 0.5
+METHODS = {"wcsph": 0, "dfsph": 4}
+
+
+def scene(method, spacing, dt, tol, stiffness, models):
+    return {
+        "Configuration": {
+            "particleRadius": spacing / 2,
+            "simulationMethod": METHODS[method],
+            "gravitation": [0, -9.81, 0],
+            "timeStepSize": dt,
+            "cflMethod": 0,
+            "stopAt": 100.0,
+            "enableZSort": True,
+            "boundaryHandlingMethod": 0,
+            "DFSPH": {"minIterations": 2, "maxIterations": 100, "maxError": 100 * tol,
+                      "maxIterationsV": 100, "maxErrorV": 100 * tol, "enableDivergenceSolver": True},
+        },
+        "Materials": [{"id": "Fluid", "density0": 1000, "viscosityMethod": 0,
+                       "stiffness": stiffness, "exponent": 7}],
+        "RigidBodies": [{
+            "geometryFile": os.path.join(models, "UnitBox.obj"),
+            "translation": [2 * A, 1.5 * A, 0.5 * A], "scale": [4 * A, 3 * A, A],
+            "isDynamic": False, "isWall": True, "mapInvert": True,
+            "samplingMode": 0,
+        }],
+        # SPlisHSPlasH fills [start + r, end - r]; half a spacing more gives kinema's lattice count.
+        "FluidBlocks": [{"denseMode": 0, "start": [0, 0, 0],
+                         "end": [A + spacing / 2, 2 * A + spacing / 2, A + spacing / 2]}],
+    }
+
+
+def main():
+    method, spacing, steps, dt, tol, stiffness, out = sys.argv[1:8]
+    spacing, steps, dt, tol, stiffness = float(spacing), int(steps), float(dt), float(tol), float(stiffness)
+    ctypes.CDLL("libGLdispatch.so.0", mode=ctypes.RTLD_GLOBAL)
+    import pysplishsplash as sph
+
+    models = os.path.join(os.path.dirname(sys.executable), "data", "models")
+    work = tempfile.mkdtemp(prefix="splish_")
+    path = os.path.join(work, "scene.json")
+    with open(path, "w") as f:
+        json.dump(scene(method, spacing, dt, tol, stiffness, models), f)
+    base = sph.Exec.SimulatorBase()
+    base.init(useGui=False, outputDir=work, sceneFile=path)
+    stamps = []
+
+    def finish():
+        fluid = sph.Simulation.getCurrent().getFluidModel(0)
+        n = fluid.numActiveParticles()
+        rho = [fluid.getDensity(i) for i in range(0, n, max(1, n // 20000))]
+        err = sum(max(r / 1000 - 1, 0) for r in rho) / len(rho)
+        per_step = [t1 - t0 for t0, t1 in zip(stamps[:-1], stamps[1:])]
+        with open(out, "w") as f:
+            json.dump({"particles": n, "per_step": per_step, "density_error": err}, f)
+        # runSimulation() has no stop from a callback that works headless: leave the process.
+        sys.stdout.flush()
+        os._exit(0)
+
+    def on_step():
+        stamps.append(time.perf_counter())
+        if len(stamps) > steps:
+            finish()
+
+    base.setTimeStepCB(on_step)
+    base.initSimulation()
+    base.runSimulation()
+    finish()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,153 @@
+#include "particles/neighbor_grid.h"
+
+#include <algorithm>
+#include <cmath>
+#include <string>
+
+#include "core/errors.h"
+#include "core/parallel.h"
+
+namespace kinema {
+
+namespace {
+
+// A dense grid is kept below this many cells per point (plus a floor for tiny point sets):
+// scattered points then still cost O(n) memory, at the price of coarser cells.
+constexpr Index kCellsPerPoint = 8;
+constexpr Index kMinCellBudget = 1 << 12;
+
+}  // namespace
+
+template <int D>
+void NeighborGrid<D>::build(const Scalar* x, Index n, Scalar cell_size) {
+  if (!(cell_size > 0) || !std::isfinite(cell_size))
+    throw InvalidArgument("radius: expected a finite number > 0, got " + std::to_string(cell_size));
+  Vec lo = Vec::Constant(0), hi = Vec::Constant(0);
+  if (n > 0) {
+    lo = hi = Eigen::Map<const Vec>(x);
+    for (Index i = 1; i < n; ++i) {
+      const Eigen::Map<const Vec> p(x + i * D);
+      lo = lo.cwiseMin(p);
+      hi = hi.cwiseMax(p);
+    }
+    if (!lo.allFinite() || !hi.allFinite())
+      throw InvalidArgument("points: coordinates must be finite");
+  }
+  // Cell edge: the radius, enlarged until the bounding box needs at most `budget` cells.
+  const Scalar budget = static_cast<Scalar>(std::max(kCellsPerPoint * n, kMinCellBudget));
+  cell_ = cell_size;
+  for (;;) {
+    Scalar cells = 1;
+    for (int a = 0; a < D; ++a) cells *= std::floor((hi[a] - lo[a]) / cell_) + 1;
+    if (cells <= budget) break;
+    cell_ *= std::max<Scalar>(1.25, std::pow(cells / budget, 1.0 / D));
+  }
+  inv_cell_ = 1 / cell_;
+  origin_ = lo;
+  Index cells = 1;
+  for (int a = 0; a < D; ++a) {
+    dims_[a] = static_cast<Index>(std::floor((hi[a] - lo[a]) * inv_cell_)) + 1;
+    cells *= dims_[a];
+  }
+
+  // Counting sort: cell of each point, histogram, prefix sum, stable scatter.
+  point_cell_.resize(static_cast<size_t>(n));
+  parallel_for(n, [&](Index i) {
+    const Cell c = cell_of(Eigen::Map<const Vec>(x + i * D));
+    Index flat = 0;
+    for (int a = 0; a < D; ++a) flat = flat * dims_[a] + std::min(std::max<Index>(c[a], 0), dims_[a] - 1);
+    point_cell_[static_cast<size_t>(i)] = flat;
+  });
+  cell_start_.assign(static_cast<size_t>(cells + 1), 0);
+  for (Index i = 0; i < n; ++i) ++cell_start_[static_cast<size_t>(point_cell_[i] + 1)];
+  for (Index c = 0; c < cells; ++c) cell_start_[c + 1] += cell_start_[c];
+  sorted_.resize(static_cast<size_t>(n));
+  // Scatter through a moving cursor per cell; cell_start_ is restored afterwards.
+  for (Index i = 0; i < n; ++i) sorted_[static_cast<size_t>(cell_start_[point_cell_[i]]++)] = i;
+  for (Index c = cells; c > 0; --c) cell_start_[c] = cell_start_[c - 1];
+  cell_start_[0] = 0;
+}
+
+template <int D>
+std::vector<Index> neighbor_pairs(const Scalar* x, Index n, Scalar radius) {
+  using Vec = typename NeighborGrid<D>::Vec;
+  NeighborGrid<D> grid;
+  grid.build(x, n, radius);
+  const Scalar r2 = radius * radius;
+  // Two passes (count, then fill at known offsets) keep the output order independent of the
+  // thread count.
+  std::vector<Index> count(static_cast<size_t>(n) + 1, 0);
+  parallel_for(n, [&](Index i) {
+    const Vec xi = Eigen::Map<const Vec>(x + i * D);
+    Index c = 0;
+    grid.for_each_candidate(xi, [&](Index j) {
+      if (j > i && (Eigen::Map<const Vec>(x + j * D) - xi).squaredNorm() < r2) ++c;
+    });
+    count[static_cast<size_t>(i) + 1] = c;
+  });
+  for (Index i = 0; i < n; ++i) count[i + 1] += count[i];
+  std::vector<Index> pairs(static_cast<size_t>(2 * count[n]));
+  parallel_for(n, [&](Index i) {
+    const Vec xi = Eigen::Map<const Vec>(x + i * D);
+    Index* out = pairs.data() + 2 * count[i];
+    Index k = 0;
+    grid.for_each_candidate(xi, [&](Index j) {
+      if (j > i && (Eigen::Map<const Vec>(x + j * D) - xi).squaredNorm() < r2) out[2 * k++ + 1] = j;
+    });
+    // Candidates arrive in cell order; sort the partners of i.
+    std::vector<Index> js(static_cast<size_t>(k));
+    for (Index m = 0; m < k; ++m) js[m] = out[2 * m + 1];
+    std::sort(js.begin(), js.end());
+    for (Index m = 0; m < k; ++m) {
+      out[2 * m] = i;
+      out[2 * m + 1] = js[m];
+    }
+  });
+  return pairs;
+}
+
+namespace {
+
+// Spreads the low bits of v so that D - 1 zero bits separate consecutive bits.
+inline std::uint64_t spread_bits(std::uint64_t v, int D) {
+  std::uint64_t out = 0;
+  const int bits = 64 / D;
+  for (int b = 0; b < bits; ++b) out |= ((v >> b) & 1u) << (b * D);
+  return out;
+}
+
+}  // namespace
+
+template <int D>
+std::vector<Index> morton_order(const Scalar* x, Index n, Scalar cell_size) {
+  using Vec = typename NeighborGrid<D>::Vec;
+  std::vector<std::pair<std::uint64_t, Index>> keys(static_cast<size_t>(n));
+  Vec lo = Vec::Zero();
+  if (n > 0) {
+    lo = Eigen::Map<const Vec>(x);
+    for (Index i = 1; i < n; ++i) lo = lo.cwiseMin(Eigen::Map<const Vec>(x + i * D));
+  }
+  const std::uint64_t max_coord = (std::uint64_t{1} << (64 / D)) - 1;
+  parallel_for(n, [&](Index i) {
+    std::uint64_t key = 0;
+    for (int a = 0; a < D; ++a) {
+      const Scalar c = std::floor((x[i * D + a] - lo[a]) / cell_size);
+      const std::uint64_t ci = c > 0 ? std::min<std::uint64_t>(static_cast<std::uint64_t>(std::min<Scalar>(c, 1e18)), max_coord) : 0;
+      key |= spread_bits(ci, D) << a;
+    }
+    keys[static_cast<size_t>(i)] = {key, i};
+  });
+  std::sort(keys.begin(), keys.end());
+  std::vector<Index> order(static_cast<size_t>(n));
+  for (Index k = 0; k < n; ++k) order[k] = keys[k].second;
+  return order;
+}
+
+template class NeighborGrid<2>;
+template class NeighborGrid<3>;
+template std::vector<Index> neighbor_pairs<2>(const Scalar*, Index, Scalar);
+template std::vector<Index> neighbor_pairs<3>(const Scalar*, Index, Scalar);
+template std::vector<Index> morton_order<2>(const Scalar*, Index, Scalar);
+template std::vector<Index> morton_order<3>(const Scalar*, Index, Scalar);
+
+}  // namespace kinema
