@@ -234,7 +234,8 @@ void PoissonOperator::apply_impl(const Scalar* x, Scalar* y, const Scalar* b) co
       }
     }
   };
-  for_each_row_tiled(row_kernel);
+#pragma omp parallel for schedule(static) if (parallel())
+  for (Index row = 0; row < shape_.rows(); ++row) row_kernel(row);
 }
 
 void PoissonOperator::apply(const Scalar* x, Scalar* y) const {

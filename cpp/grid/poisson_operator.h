@@ -71,11 +71,6 @@ class PoissonOperator {
   Scalar diagonal(Index c) const { return shift_ + inv_h2_ * diag_[c]; }
 
  private:
-  // Calls body(row) for every row, in parallel. In 3D the rows are visited in tiles of
-  // consecutive j, each tile swept along i by every thread over its own range of i, so the
-  // three planes of a tile that a 7-point stencil reads stay in cache even for large planes.
-  template <class Body>
-  void for_each_row_tiled(Body&& body) const;
   template <bool ThreeD>
   void apply_impl(const Scalar* x, Scalar* y, const Scalar* b) const;
   template <bool ThreeD>
@@ -98,24 +93,5 @@ class PoissonOperator {
   std::vector<std::int32_t> singular_components_;
   std::vector<Index> component_size_;
 };
-
-template <class Body>
-void PoissonOperator::for_each_row_tiled(Body&& body) const {
-  const Index n0 = shape_.n[0], n1 = shape_.n[1];
-  constexpr Index kTileRows = 16;
-  if (shape_.dim == 2 || n0 < 8 * num_threads()) {
-#pragma omp parallel for schedule(static) if (parallel())
-    for (Index row = 0; row < shape_.rows(); ++row) body(row);
-    return;
-  }
-#pragma omp parallel if (parallel())
-  {
-    const Index team = omp_get_num_threads(), t = omp_get_thread_num();
-    const Index i_lo = n0 * t / team, i_hi = n0 * (t + 1) / team;
-    for (Index j0 = 0; j0 < n1; j0 += kTileRows)
-      for (Index i = i_lo; i < i_hi; ++i)
-        for (Index j = j0; j < std::min(j0 + kTileRows, n1); ++j) body(i * n1 + j);
-  }
-}
 
 }  // namespace kinema
