@@ -2,12 +2,21 @@
 // role (API.md, "Errors"); the core itself never prints, exits or returns failure codes.
 #pragma once
 
+#include <sstream>
 #include <stdexcept>
 #include <string>
 
 #include "core/types.h"
 
 namespace kinema {
+
+// A real number for an error message, to 3 significant digits.
+inline std::string format_real(Scalar v) {
+  std::ostringstream s;
+  s.precision(3);
+  s << v;
+  return s.str();
+}
 
 // Base of every kinema error (Python: km.KinemaError, a RuntimeError).
 struct KinemaError : std::runtime_error {

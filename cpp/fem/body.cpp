@@ -16,13 +16,6 @@ namespace kinema::fem {
 
 namespace {
 
-std::string str(Scalar v) {
-  std::ostringstream s;
-  s.precision(3);
-  s << v;
-  return s.str();
-}
-
 Scalar dot(Index n, const Scalar* a, const Scalar* b) {
   return parallel_sum(n, [&](Index i) { return a[i] * b[i]; });
 }
@@ -68,12 +61,12 @@ void build_rest_shape(BodyModel& m) {
       }
     if (!(std::abs(vol) > 1e-12 * std::pow(longest, D)) || !Dinv.allFinite())
       throw InvalidArgument("elements: element " + std::to_string(e) +
-                            " is degenerate (rest " + (D == 2 ? "area " : "volume ") + str(vol) +
+                            " is degenerate (rest " + (D == 2 ? "area " : "volume ") + format_real(vol) +
                             "); remove it or fix its vertices");
     if (vol < 0)
       throw InvalidArgument("elements: element " + std::to_string(e) +
                             " is inverted in the rest shape (signed " +
-                            (D == 2 ? "area " : "volume ") + str(vol) +
+                            (D == 2 ? "area " : "volume ") + format_real(vol) +
                             "); swap two of its vertices to orient it positively");
     m.volume[e] = vol;
     Eigen::Map<Mat<D>>(m.Dm_inv.data() + e * D * D) = Dinv;
@@ -90,13 +83,13 @@ BodyModel make_model(int dim, const Scalar* rest, Index vertex_count, const Inde
   if (element_count < 1) throw InvalidArgument("elements: expected at least one element");
   const Scalar E = config.youngs_modulus, nu = config.poisson_ratio, rho = config.density;
   if (!(E > 0) || !std::isfinite(E))
-    throw InvalidArgument("youngs_modulus: expected a finite number > 0, got " + str(E));
+    throw InvalidArgument("youngs_modulus: expected a finite number > 0, got " + format_real(E));
   if (!(nu > -1 && nu < 0.5))
-    throw InvalidArgument("poisson_ratio: expected a number in (-1, 0.5), got " + str(nu));
+    throw InvalidArgument("poisson_ratio: expected a number in (-1, 0.5), got " + format_real(nu));
   if (!(rho > 0) || !std::isfinite(rho))
-    throw InvalidArgument("density: expected a finite number > 0, got " + str(rho));
+    throw InvalidArgument("density: expected a finite number > 0, got " + format_real(rho));
   if (!(config.damping >= 0) || !std::isfinite(config.damping))
-    throw InvalidArgument("damping: expected a finite number >= 0, got " + str(config.damping));
+    throw InvalidArgument("damping: expected a finite number >= 0, got " + format_real(config.damping));
   if (!config.gravity.empty() && static_cast<int>(config.gravity.size()) != dim)
     throw InvalidArgument("gravity: expected " + std::to_string(dim) + " components");
 
@@ -267,7 +260,7 @@ void Body::check_finite(const std::vector<Scalar>& a, const char* quantity) cons
     throw DivergenceError(std::string(quantity) + ": " + std::to_string(bad) +
                           " non-finite value(s) at step " + std::to_string(state_.step) +
                           "; reduce dt (the symplectic limit is about " +
-                          str(explicit_dt_limit()) + " s) or use integrator='implicit'");
+                          format_real(explicit_dt_limit()) + " s) or use integrator='implicit'");
 }
 
 // ---------------------------------------------------------------- time stepping
@@ -502,7 +495,7 @@ NewtonStats Body::minimise(Scalar* x, const Scalar* y, Scalar a, const Scalar* z
     if (!accepted)
       throw ConvergenceError(std::string(what) + ": line search found no decrease at step " +
                              std::to_string(state_.step) + " after " + std::to_string(it) +
-                             " Newton iterations (relative gradient norm " + str(g_norm / g0) +
+                             " Newton iterations (relative gradient norm " + format_real(g_norm / g0) +
                              "); reduce dt or tol");
     phase.restart();
     g_norm = gradient(x, grad_.data());
@@ -520,7 +513,7 @@ NewtonStats Body::minimise(Scalar* x, const Scalar* y, Scalar a, const Scalar* z
     throw ConvergenceError(std::string(what) + ": Newton reached max_newton = " +
                            std::to_string(options.max_iter) + " iterations at step " +
                            std::to_string(state_.step) + " with relative gradient norm " +
-                           str(g_norm / g0) + " > tol = " + str(options.tol) +
+                           format_real(g_norm / g0) + " > tol = " + format_real(options.tol) +
                            "; reduce dt or raise max_newton");
   stats.seconds = clock.seconds();
   return stats;

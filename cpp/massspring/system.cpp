@@ -17,13 +17,6 @@ namespace kinema::massspring {
 
 namespace {
 
-std::string str(Scalar v) {
-  std::ostringstream s;
-  s.precision(3);
-  s << v;
-  return s.str();
-}
-
 template <int D>
 Vec<D> vertex(const std::vector<Scalar>& a, Index i) {
   return Eigen::Map<const Vec<D>>(a.data() + i * D);
@@ -44,19 +37,19 @@ SystemModel make_system(int dim, Index vertex_count, const Index* springs, Index
   for (Index s = 0; s < spring_count; ++s) {
     const std::string at = "spring " + std::to_string(s);
     if (!(stiffness[s] >= 0) || !std::isfinite(stiffness[s]))
-      throw InvalidArgument("stiffness: expected finite values >= 0, got " + str(stiffness[s]) +
+      throw InvalidArgument("stiffness: expected finite values >= 0, got " + format_real(stiffness[s]) +
                             " at " + at);
     if (!(rest_length[s] >= 0) || !std::isfinite(rest_length[s]))
       throw InvalidArgument("rest_length: expected finite values >= 0, got " +
-                            str(rest_length[s]) + " at " + at);
+                            format_real(rest_length[s]) + " at " + at);
     if (!(damping[s] >= 0) || !std::isfinite(damping[s]))
-      throw InvalidArgument("damping: expected finite values >= 0, got " + str(damping[s]) +
+      throw InvalidArgument("damping: expected finite values >= 0, got " + format_real(damping[s]) +
                             " at " + at);
     m.any_damping = m.any_damping || damping[s] > 0;
   }
   for (Index i = 0; i < vertex_count; ++i)
     if (!(mass[i] > 0) || !std::isfinite(mass[i]))
-      throw InvalidArgument("mass: expected finite values > 0, got " + str(mass[i]) +
+      throw InvalidArgument("mass: expected finite values > 0, got " + format_real(mass[i]) +
                             " at vertex " + std::to_string(i));
   m.stiffness.assign(stiffness, stiffness + spring_count);
   m.rest_length.assign(rest_length, rest_length + spring_count);
@@ -166,7 +159,7 @@ void System::check_finite(const std::vector<Scalar>& a, const char* quantity) co
     if (!std::isfinite(v))
       throw DivergenceError(std::string(quantity) + ": non-finite value at step " +
                             std::to_string(state_.step) + "; the explicit limit is about dt < " +
-                            str(explicit_dt_limit()) + " s: reduce dt or use integrator='implicit'");
+                            format_real(explicit_dt_limit()) + " s: reduce dt or use integrator='implicit'");
 }
 
 // ---------------------------------------------------------------- implicit matrix
@@ -264,7 +257,7 @@ StepStats System::step(Scalar dt, Integrator integrator, Scalar beta, LinearSolv
         if (info.converged) break;
         if (clamp)
           throw ConvergenceError("implicit step: CG reached " + std::to_string(info.iterations) +
-                                 " iterations with relative residual " + str(info.residual) +
+                                 " iterations with relative residual " + format_real(info.residual) +
                                  " at step " + std::to_string(state_.step) +
                                  "; use linear_solver='cholmod' or reduce dt");
         continue;
