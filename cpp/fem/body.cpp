@@ -9,6 +9,7 @@
 
 #include "core/errors.h"
 #include "core/parallel.h"
+#include "mesh/vertex_set.h"
 #include "core/timer.h"
 #include "linalg/cg.h"
 
@@ -120,13 +121,7 @@ BodyModel make_model(int dim, const Scalar* rest, Index vertex_count, const Inde
       throw InvalidArgument("vertices: vertex " + std::to_string(i) +
                             " belongs to no element (it would have no mass)");
 
-  m.fixed.assign(vertex_count, 0);
-  for (Index k = 0; k < fixed_count; ++k) {
-    if (fixed[k] < 0 || fixed[k] >= vertex_count)
-      throw InvalidArgument("fixed: vertex index " + std::to_string(fixed[k]) + " outside [0, " +
-                            std::to_string(vertex_count) + ")");
-    m.fixed[fixed[k]] = 1;
-  }
+  m.fixed = vertex_flags(fixed, fixed_count, vertex_count, "fixed");
   for (Index i = 0; i < vertex_count; ++i) m.fixed_count += m.fixed[i];
 
   bool any_gravity = false;

@@ -9,6 +9,7 @@
 
 #include "core/errors.h"
 #include "core/parallel.h"
+#include "mesh/vertex_set.h"
 #include "core/timer.h"
 #include "linalg/cg.h"
 #include "massspring/kernels.h"
@@ -55,13 +56,7 @@ SystemModel make_system(int dim, Index vertex_count, const Index* springs, Index
   m.rest_length.assign(rest_length, rest_length + spring_count);
   m.damping.assign(damping, damping + spring_count);
   m.mass.assign(mass, mass + vertex_count);
-  m.fixed.assign(vertex_count, 0);
-  for (Index k = 0; k < fixed_count; ++k) {
-    if (fixed[k] < 0 || fixed[k] >= vertex_count)
-      throw InvalidArgument("fixed: vertex index " + std::to_string(fixed[k]) + " outside [0, " +
-                            std::to_string(vertex_count) + ")");
-    m.fixed[fixed[k]] = 1;
-  }
+  m.fixed = vertex_flags(fixed, fixed_count, vertex_count, "fixed");
   bool any_gravity = false;
   if (!gravity.empty() && static_cast<int>(gravity.size()) != dim)
     throw InvalidArgument("gravity: expected " + std::to_string(dim) + " components");

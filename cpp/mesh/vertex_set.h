@@ -1,0 +1,26 @@
+// Vertex subsets given as index lists (fixed vertices, pinned handles), as per-vertex flags.
+#pragma once
+
+#include <string>
+#include <vector>
+
+#include "core/errors.h"
+#include "core/types.h"
+
+namespace kinema {
+
+// flags[i] = 1 for each i in indices[0, count); an index outside [0, vertex_count) is an
+// InvalidArgument naming `name`.
+inline std::vector<unsigned char> vertex_flags(const Index* indices, Index count,
+                                               Index vertex_count, const char* name) {
+  std::vector<unsigned char> flags(vertex_count, 0);
+  for (Index k = 0; k < count; ++k) {
+    if (indices[k] < 0 || indices[k] >= vertex_count)
+      throw InvalidArgument(std::string(name) + ": vertex index " + std::to_string(indices[k]) +
+                            " outside [0, " + std::to_string(vertex_count) + ")");
+    flags[indices[k]] = 1;
+  }
+  return flags;
+}
+
+}  // namespace kinema
