@@ -176,12 +176,7 @@ Scalar Body::elastic_energy(const Scalar* x) const {
 }
 
 Scalar Body::kinetic_energy() const {
-  const int d = model_.dim;
-  return parallel_sum(model_.vertex_count, [&](Index i) {
-    Scalar v2 = 0;
-    for (int r = 0; r < d; ++r) v2 += state_.v[i * d + r] * state_.v[i * d + r];
-    return model_.mass[i] * v2 / 2;
-  });
+  return lumped_kinetic_energy(model_.mass.data(), state_.v.data(), model_.vertex_count, model_.dim);
 }
 
 Scalar Body::gravity_energy(const Scalar* x) const {

@@ -5,6 +5,7 @@
 #include <vector>
 
 #include "core/errors.h"
+#include "core/parallel.h"
 #include "core/types.h"
 
 namespace kinema {
@@ -21,6 +22,15 @@ inline std::vector<unsigned char> vertex_flags(const Index* indices, Index count
     flags[indices[k]] = 1;
   }
   return flags;
+}
+
+// Kinetic energy sum_i m_i |v_i|^2 / 2 of lumped vertex masses; v is (count, dim) row-major.
+inline Scalar lumped_kinetic_energy(const Scalar* mass, const Scalar* v, Index count, int dim) {
+  return parallel_sum(count, [&](Index i) {
+    Scalar v2 = 0;
+    for (int r = 0; r < dim; ++r) v2 += v[i * dim + r] * v[i * dim + r];
+    return mass[i] * v2 / 2;
+  });
 }
 
 }  // namespace kinema
