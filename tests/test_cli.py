@@ -1,0 +1,90 @@
+"""The `kinema` console command, run as a real subprocess: help, info, list, run (with errors,
+overrides and Ctrl-C followed by --resume)."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from kinema.scenes import output
+
+KINEMA = Path(sys.executable).with_name("kinema")
+pytestmark = pytest.mark.skipif(not KINEMA.exists(), reason="the kinema console script is not installed")
+
+
+def kinema(*args, **kw):
+    return subprocess.run([str(KINEMA), *map(str, args)], capture_output=True, text=True, timeout=300, **kw)
+
+
+def test_help_lists_the_commands():
+    out = kinema("--help")
+    assert out.returncode == 0
+    for word in ("run", "sweep", "list", "info", "--resume"):
+        assert word in out.stdout, word
+    run = kinema("run", "--help")
+    assert "--frames" in run.stdout and "--set" in run.stdout and "--out" in run.stdout
+
+
+def test_info_and_list():
+    info = kinema("info")
+    assert info.returncode == 0
+    assert "threads" in info.stdout and "cholmod" in info.stdout.lower()
+    listed = kinema("list")
+    assert listed.returncode == 0
+    for name in ("smoke_plume", "dam_break", "hanging_cloth", "soft_body", "vortex_merge", "vortex_sheet"):
+        assert name in listed.stdout, name
+    keys = kinema("list", "--keys")
+    assert 'type = "sph"' in keys.stdout and "spacing" in keys.stdout
+
+
+def test_run_writes_files_and_reports_progress(tmp_path):
+    out = kinema("run", "vortex_sheet", "--quick", "--frames", 3, "--out", tmp_path, "--set", "output.vtu=true")
+    assert out.returncode == 0, out.stderr
+    assert "3/3 frames" in out.stderr and "steps/s" in out.stderr and "ETA" in out.stderr
+    assert sorted(p.name for p in (tmp_path / "frames").iterdir()) == [f"frame_{k:05d}.png" for k in range(3)]
+    assert (tmp_path / "video.mp4").stat().st_size > 0
+    assert len(list((tmp_path / "vortices").glob("*.vtu"))) == 3
+
+
+def test_run_reports_scene_errors(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[scene]\nname = "x"\nduration = 1\n[solver]\ntype = "vortex"\nsubsteps = 0\n'
+                   '[[objects]]\ntype = "sheet"\ncenter = [0, 0]\n')
+    out = kinema("run", bad, "--out", tmp_path / "o")
+    assert out.returncode == 2
+    assert f"{bad}: solver.substeps: expected an integer >= 1, got an integer 0" in out.stderr
+    out = kinema("run", "no_such_scene")
+    assert out.returncode == 2 and "examples:" in out.stderr
+
+
+def test_ctrl_c_keeps_frames_and_resume_continues(tmp_path):
+    args = ["run", "vortex_sheet", "--quick", "--out", tmp_path, "--set", "output.mp4=false"]
+    proc = subprocess.Popen([str(KINEMA), *map(str, args), "--frames", 400], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 120
+    while not (tmp_path / "frames" / "frame_00003.png").exists():
+        assert proc.poll() is None and time.time() < deadline, proc.stderr.read() if proc.poll() else "timeout"
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert "interrupted" in err
+    assert not list(tmp_path.rglob("*.tmp")), "a temporary file was left behind"
+    _, meta = output.load_checkpoint(tmp_path / "checkpoint.npz")
+    written = sorted((tmp_path / "frames").iterdir())
+    assert len(written) == meta["frame"] + 1 and meta["frame"] >= 3
+    total = meta["frame"] + 3
+    resumed = kinema(*args, "--frames", total, "--resume")
+    assert resumed.returncode == 0, resumed.stderr
+    assert len(list((tmp_path / "frames").iterdir())) == total
+    straight = kinema("run", "vortex_sheet", "--quick", "--out", tmp_path / "straight", "--frames", total,
+                      "--set", "output.mp4=false", "--no-progress")
+    assert straight.returncode == 0, straight.stderr
+    a, _ = output.load_checkpoint(tmp_path / "checkpoint.npz")
+    b, _ = output.load_checkpoint(tmp_path / "straight" / "checkpoint.npz")
+    assert all(np.array_equal(a[k], b[k]) for k in a)
