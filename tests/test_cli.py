@@ -11,7 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from kinema.scenes import output
+import kinema as km
+from kinema.scenes import output, resolve
 
 KINEMA = Path(sys.executable).with_name("kinema")
 pytestmark = pytest.mark.skipif(not KINEMA.exists(), reason="the kinema console script is not installed")
@@ -21,25 +22,19 @@ def kinema(*args, **kw):
     return subprocess.run([str(KINEMA), *map(str, args)], capture_output=True, text=True, timeout=300, **kw)
 
 
-def test_help_lists_the_commands():
+def test_help_info_and_list():
     out = kinema("--help")
     assert out.returncode == 0
-    for word in ("run", "sweep", "list", "info", "--resume"):
+    for word in ("run", "sweep", "list", "info", "--resume", "--set"):
         assert word in out.stdout, word
-    run = kinema("run", "--help")
-    assert "--frames" in run.stdout and "--set" in run.stdout and "--out" in run.stdout
-
-
-def test_info_and_list():
     info = kinema("info")
     assert info.returncode == 0
     assert "threads" in info.stdout and "cholmod" in info.stdout.lower()
-    listed = kinema("list")
+    listed = kinema("list", "--keys")
     assert listed.returncode == 0
     for name in ("smoke_plume", "dam_break", "hanging_cloth", "soft_body", "vortex_merge", "vortex_sheet"):
         assert name in listed.stdout, name
-    keys = kinema("list", "--keys")
-    assert 'type = "sph"' in keys.stdout and "spacing" in keys.stdout
+    assert 'type = "sph"' in listed.stdout and "spacing" in listed.stdout
 
 
 def test_run_writes_files_and_reports_progress(tmp_path):
@@ -82,9 +77,8 @@ def test_ctrl_c_keeps_frames_and_resume_continues(tmp_path):
     resumed = kinema(*args, "--frames", total, "--resume")
     assert resumed.returncode == 0, resumed.stderr
     assert len(list((tmp_path / "frames").iterdir())) == total
-    straight = kinema("run", "vortex_sheet", "--quick", "--out", tmp_path / "straight", "--frames", total,
-                      "--set", "output.mp4=false", "--no-progress")
-    assert straight.returncode == 0, straight.stderr
+    km.Scene.load(resolve("vortex_sheet"), quick=True, overrides=[("output.mp4", False)]).run(
+        tmp_path / "straight", total, progress=False)
     a, _ = output.load_checkpoint(tmp_path / "checkpoint.npz")
     b, _ = output.load_checkpoint(tmp_path / "straight" / "checkpoint.npz")
     assert all(np.array_equal(a[k], b[k]) for k in a)

@@ -129,11 +129,17 @@ def write_mesh(path, points, cells=(), point_data=None, file_format=None):
     cells = list(cells) or [("vertex", np.arange(len(p), dtype=np.int64)[:, None])]
     if file_format == "ply" or (file_format is None and str(path).endswith(".ply")):
         # PLY holds polygons only: a point cloud is written without cells.
-        cells = [(kind, c) for kind, c in cells if kind in ("triangle", "quad")]
+        cells = [(kind, np.asarray(c, np.int32)) for kind, c in cells if kind in ("triangle", "quad")]
         file_format = "ply"
     else:
         file_format = file_format or "vtu"
-    data = {k: np.ascontiguousarray(v, dtype=np.float64) for k, v in (point_data or {}).items()}
+    data = {}
+    for name, value in (point_data or {}).items():
+        value = np.asarray(value, dtype=np.float64)
+        if value.ndim == 2 and file_format == "ply":  # PLY properties are scalars: one per component
+            data.update({f"{name}_{'xyz'[c]}": np.ascontiguousarray(value[:, c]) for c in range(value.shape[1])})
+        else:
+            data[name] = np.ascontiguousarray(value)
     with atomic_path(path) as tmp:
         meshio.write_points_cells(str(tmp), p, cells, point_data=data, file_format=file_format,
                                   **({"binary": True} if file_format in ("vtu", "ply") else {}))
