@@ -68,6 +68,36 @@ class Simulation:
         return []
 
 
+class ArrayStateSimulation(Simulation):
+    """A simulation whose state is a set of writable views of the C++ solver's arrays plus its
+    time and step counter (restored through the bindings' setters)."""
+
+    STEP_ATTR = "steps"  # the step counter's name on the C++ object
+
+    def _arrays(self) -> dict:
+        """name -> writable view of every evolving array."""
+        raise NotImplementedError
+
+    def _core(self):
+        """The C++ object holding ``time`` and the step counter."""
+        raise NotImplementedError
+
+    def get_state(self):
+        core = self._core()
+        state = {k: v.copy() for k, v in self._arrays().items()}
+        state.update(time=np.float64(core.time), solver_steps=np.int64(getattr(core, self.STEP_ATTR)),
+                     steps=np.int64(self.steps))
+        return state
+
+    def set_state(self, state):
+        for name, view in self._arrays().items():
+            restore(view, state[name], name)
+        core = self._core()
+        core.time = float(state["time"])
+        setattr(core, self.STEP_ATTR, int(state["solver_steps"]))
+        self.steps = int(state["steps"])
+
+
 def restore(view, value, name):
     """Writes a saved array into a solver's state view, checking that the shapes agree."""
     value = np.asarray(value)

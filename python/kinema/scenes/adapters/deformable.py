@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from kinema.scenes import preview, regions
-from kinema.scenes.adapters.base import PointData, Simulation, restore, view_camera
+from kinema.scenes.adapters.base import ArrayStateSimulation, PointData, view_camera
 from kinema.scenes.schema import REGION, Field, ListOf, Real, Str, Vec
 
 MESH_FIELDS = {
@@ -46,14 +46,18 @@ def fixed_vertices(x, fixed):
     return np.flatnonzero(keep)
 
 
-class DeformableSimulation(Simulation):
-    """Subclasses set self.body (x, v views and a _core with time/step_count), self.substeps,
+class DeformableSimulation(ArrayStateSimulation):
+    """Subclasses set self.body (x, v views and a _core with time/step_count),
     self.surface (triangles for preview and PLY), self.cells (meshio cells), self.rest_box
     (bounding box of the initial vertices) and ``_step(dt)``."""
+
+    STEP_ATTR = "step_count"
 
     def __init__(self, scene):
         super().__init__(scene)
         self.dim = 3
+        self.options = scene.config["solver"]
+        self.substeps = self.options["substeps"]
 
     @property
     def time(self):
@@ -70,17 +74,11 @@ class DeformableSimulation(Simulation):
         self.steps += self.substeps
         return self.substeps
 
-    def get_state(self):
-        b = self.body
-        return {"x": b.x.copy(), "v": b.v.copy(), "time": np.float64(b.time),
-                "solver_steps": np.int64(b._core.step_count), "steps": np.int64(self.steps)}
+    def _arrays(self):
+        return {"x": self.body.x, "v": self.body.v}
 
-    def set_state(self, state):
-        restore(self.body.x, state["x"], "x")
-        restore(self.body.v, state["v"], "v")
-        self.body._core.time = float(state["time"])
-        self.body._core.step_count = int(state["solver_steps"])
-        self.steps = int(state["steps"])
+    def _core(self):
+        return self.body._core
 
     def image(self, output):
         # The view is fixed by the initial shape (built before a checkpoint is restored), with

@@ -50,9 +50,6 @@ class FEMSimulation(DeformableSimulation):
 
     def __init__(self, scene):
         super().__init__(scene)
-        o = scene.config["solver"]
-        self.options = o
-        self.substeps = o["substeps"]
         objects = scene.config["objects"]
         if len(objects) != 1:
             raise scene.error("objects", f"a fem scene holds exactly one body (box or mesh), got {len(objects)}")
@@ -65,7 +62,7 @@ class FEMSimulation(DeformableSimulation):
         try:
             self.body = km.fem.Body(V, T, model=obj["model"], youngs_modulus=obj["youngs_modulus"],
                                     poisson_ratio=obj["poisson_ratio"], density=obj["density"], fixed=fixed,
-                                    gravity=o["gravity"], damping=obj["damping"])
+                                    gravity=self.options["gravity"], damping=obj["damping"])
         except ValueError as exc:
             raise scene.error("objects[0]", str(exc)) from None
         self.surface = boundary_faces(T)

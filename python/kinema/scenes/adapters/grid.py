@@ -12,7 +12,7 @@ import numpy as np
 
 import kinema as km
 from kinema.scenes import preview, regions
-from kinema.scenes.adapters.base import GridData, Simulation, restore
+from kinema.scenes.adapters.base import ArrayStateSimulation, GridData
 from kinema.scenes.schema import REGION, Bool, Field, Int, Real, Str, Table, Vec
 
 SOLVER = Table({
@@ -56,7 +56,7 @@ def dimension(solver, objects):
     return len(solver["resolution"])
 
 
-class GridSimulation(Simulation):
+class GridSimulation(ArrayStateSimulation):
     DIAGNOSTICS = ("kinetic_energy", "max_divergence", "smoke_mass")
 
     def __init__(self, scene):
@@ -135,18 +135,8 @@ class GridSimulation(Simulation):
                 out[name] = getattr(f, name)
         return out
 
-    def get_state(self):
-        state = {k: v.copy() for k, v in self._arrays().items()}
-        state.update(time=np.float64(self.fluid.time), solver_steps=np.int64(self.fluid.steps),
-                     steps=np.int64(self.steps))
-        return state
-
-    def set_state(self, state):
-        for name, view in self._arrays().items():
-            restore(view, state[name], name)
-        self.fluid._core.time = float(state["time"])
-        self.fluid._core.steps = int(state["solver_steps"])
-        self.steps = int(state["steps"])
+    def _core(self):
+        return self.fluid._core
 
     def diagnostics(self):
         f = self.fluid

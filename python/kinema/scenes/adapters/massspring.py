@@ -68,9 +68,8 @@ class MassSpringSimulation(DeformableSimulation):
 
     def __init__(self, scene):
         super().__init__(scene)
-        o = scene.config["solver"]
+        o = self.options
         self.integrator, self.beta, self.solver = o["integrator"], o["beta"], o["linear_solver"]
-        self.substeps = o["substeps"]
         xs, springs, stiff, damp, mass, fixed, tris, cells = [], [], [], [], [], [], [], []
         offset = 0
         for k, obj in enumerate(scene.config["objects"]):

@@ -11,7 +11,7 @@ import numpy as np
 
 import kinema as km
 from kinema.scenes import preview, regions
-from kinema.scenes.adapters.base import PointData, Simulation, restore, view_camera
+from kinema.scenes.adapters.base import ArrayStateSimulation, PointData, view_camera
 from kinema.scenes.schema import REGION, Bool, Field, Int, Real, Str, Table, Vec
 
 SOLVER = Table({
@@ -69,7 +69,7 @@ def _shell(region, spacing, dim):
     return pts[depth < 2 * spacing]
 
 
-class SPHSimulation(Simulation):
+class SPHSimulation(ArrayStateSimulation):
     DIAGNOSTICS = ("density_error", "kinetic_energy", "max_speed")
 
     def __init__(self, scene):
@@ -120,18 +120,8 @@ class SPHSimulation(Simulation):
         f = self.fluid
         return {"x": f.x, "v": f.v, "density": f.density, "pressure": f.pressure, "ids": f.ids}
 
-    def get_state(self):
-        state = {k: v.copy() for k, v in self._arrays().items()}
-        state.update(time=np.float64(self.fluid.time), solver_steps=np.int64(self.fluid._core.steps),
-                     steps=np.int64(self.steps))
-        return state
-
-    def set_state(self, state):
-        for name, view in self._arrays().items():
-            restore(view, state[name], name)
-        self.fluid._core.time = float(state["time"])
-        self.fluid._core.steps = int(state["solver_steps"])
-        self.steps = int(state["steps"])
+    def _core(self):
+        return self.fluid._core
 
     def diagnostics(self):
         f = self.fluid
