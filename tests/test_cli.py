@@ -38,7 +38,7 @@ def test_help_info_and_list():
 
 
 def test_run_writes_files_and_reports_progress(tmp_path):
-    out = kinema("run", "vortex_sheet", "--quick", "--frames", 3, "--out", tmp_path, "--set", "output.vtu=true")
+    out = kinema("run", "vortex_sheet", "--quick", "--frames", 3, "--out", tmp_path, "--set", "output.vtu=true", "--set", "output.every=1")
     assert out.returncode == 0, out.stderr
     assert "3/3 frames" in out.stderr and "steps/s" in out.stderr and "ETA" in out.stderr
     assert sorted(p.name for p in (tmp_path / "frames").iterdir()) == [f"frame_{k:05d}.png" for k in range(3)]
@@ -59,7 +59,7 @@ def test_run_reports_scene_errors(tmp_path):
 
 def test_ctrl_c_keeps_frames_and_resume_continues(tmp_path):
     args = ["run", "vortex_sheet", "--quick", "--out", tmp_path, "--set", "output.mp4=false"]
-    proc = subprocess.Popen([str(KINEMA), *map(str, args), "--frames", 400], stdout=subprocess.PIPE,
+    proc = subprocess.Popen([str(KINEMA), *map(str, args), "--frames", "400"], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     deadline = time.time() + 120
     while not (tmp_path / "frames" / "frame_00003.png").exists():

@@ -11,10 +11,12 @@ Layout of the output folder::
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import io
-import os
+import signal
 import sys
+import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -100,6 +102,23 @@ def _write_frame(scene, sim, out, frame):
                     _write_data(out, item, frame, fmt)
 
 
+@contextlib.contextmanager
+def _frame_commit():
+    """Holds Ctrl-C back while a frame's files and the checkpoint are written, so that the
+    folder always holds whole frames up to the checkpoint's; the interrupt is raised after."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    caught = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if caught:
+        raise KeyboardInterrupt
+
+
 def _append_diagnostics(out, row):
     """Rewrites diagnostics.csv with one more row (atomically: read, append, replace)."""
     path = out / "diagnostics.csv"
@@ -155,15 +174,17 @@ def _run(scene, out, frames, resume, progress, on_frame):
         for frame in range(start, frames):
             steps = sim.advance_to(frame / scene.fps) if frame > 0 else 0
             result.steps += steps
-            _write_frame(scene, sim, out, frame)
-            result.diagnostics = sim.diagnostics()
-            _append_diagnostics(out, {"frame": frame, "time": sim.time, "steps": sim.steps, **result.diagnostics})
-            if frame % o["checkpoint_every"] == 0 or frame == frames - 1:
-                io_out.save_checkpoint(checkpoint, sim.get_state(),
-                                       {"frame": frame, "fingerprint": scene.fingerprint(), "scene": scene.name,
-                                        "solver": scene.solver, "kinema": km.__version__})
-            result.frames = frame + 1
-            result.new_frames += 1
+            with _frame_commit():
+                _write_frame(scene, sim, out, frame)
+                result.diagnostics = sim.diagnostics()
+                _append_diagnostics(out, {"frame": frame, "time": sim.time, "steps": sim.steps,
+                                          **result.diagnostics})
+                if frame % o["checkpoint_every"] == 0 or frame == frames - 1:
+                    io_out.save_checkpoint(checkpoint, sim.get_state(),
+                                           {"frame": frame, "fingerprint": scene.fingerprint(), "scene": scene.name,
+                                            "solver": scene.solver, "kinema": km.__version__})
+                result.frames = frame + 1
+                result.new_frames += 1
             if bar:
                 bar.update(frame, sim.time, result.steps)
             if on_frame is not None:
