@@ -1,5 +1,6 @@
-"""The `kinema` console command, run as a real subprocess: help, info, list, run (with errors,
-overrides and Ctrl-C followed by --resume)."""
+"""The `kinema` command: help, info, list and scene errors through kinema.cli.main in this
+process; runs (progress, overrides, Ctrl-C by a real SIGINT, then --resume) as real
+subprocesses of the installed console script."""
 
 import os
 import signal
@@ -12,31 +13,35 @@ import numpy as np
 import pytest
 
 import kinema as km
+from kinema.cli import main
 from kinema.scenes import output, resolve
 
 KINEMA = Path(sys.executable).with_name("kinema")
-pytestmark = pytest.mark.skipif(not KINEMA.exists(), reason="the kinema console script is not installed")
+needs_script = pytest.mark.skipif(not KINEMA.exists(), reason="the kinema console script is not installed")
 
 
 def kinema(*args, **kw):
     return subprocess.run([str(KINEMA), *map(str, args)], capture_output=True, text=True, timeout=300, **kw)
 
 
-def test_help_info_and_list():
-    out = kinema("--help")
-    assert out.returncode == 0
+def test_help_info_and_list(capsys):
+    with pytest.raises(SystemExit) as done:
+        main(["--help"])
+    assert done.value.code == 0
+    text = capsys.readouterr().out
     for word in ("run", "sweep", "list", "info", "--resume", "--set"):
-        assert word in out.stdout, word
-    info = kinema("info")
-    assert info.returncode == 0
-    assert "threads" in info.stdout and "cholmod" in info.stdout.lower()
-    listed = kinema("list", "--keys")
-    assert listed.returncode == 0
+        assert word in text, word
+    assert main(["info"]) == 0
+    text = capsys.readouterr().out
+    assert "threads" in text and "cholmod" in text.lower()
+    assert main(["list", "--keys"]) == 0
+    text = capsys.readouterr().out
     for name in ("smoke_plume", "dam_break", "hanging_cloth", "soft_body", "vortex_merge", "vortex_sheet"):
-        assert name in listed.stdout, name
-    assert 'type = "sph"' in listed.stdout and "spacing" in listed.stdout
+        assert name in text, name
+    assert 'type = "sph"' in text and "spacing" in text
 
 
+@needs_script
 def test_run_writes_files_and_reports_progress(tmp_path):
     out = kinema("run", "vortex_sheet", "--quick", "--frames", 3, "--out", tmp_path, "--set", "output.vtu=true", "--set", "output.every=1")
     assert out.returncode == 0, out.stderr
@@ -46,17 +51,19 @@ def test_run_writes_files_and_reports_progress(tmp_path):
     assert len(list((tmp_path / "vortices").glob("*.vtu"))) == 3
 
 
-def test_run_reports_scene_errors(tmp_path):
+def test_run_reports_scene_errors(tmp_path, capsys):
     bad = tmp_path / "bad.toml"
     bad.write_text('[scene]\nname = "x"\nduration = 1\n[solver]\ntype = "vortex"\nsubsteps = 0\n'
                    '[[objects]]\ntype = "sheet"\ncenter = [0, 0]\n')
-    out = kinema("run", bad, "--out", tmp_path / "o")
-    assert out.returncode == 2
-    assert f"{bad}: solver.substeps: expected an integer >= 1, got an integer 0" in out.stderr
-    out = kinema("run", "no_such_scene")
-    assert out.returncode == 2 and "examples:" in out.stderr
+    assert main(["run", str(bad), "--out", str(tmp_path / "o")]) == 2
+    assert f"{bad}: solver.substeps: expected an integer >= 1, got an integer 0" in capsys.readouterr().err
+    assert main(["run", "no_such_scene"]) == 2
+    assert "examples:" in capsys.readouterr().err
+    assert main(["run", "vortex_sheet", "--set", "objects[0].particles=few", "--out", str(tmp_path / "o")]) == 2
+    assert "objects[0].particles: expected an integer >= 4, got a string 'few'" in capsys.readouterr().err
 
 
+@needs_script
 def test_ctrl_c_keeps_frames_and_resume_continues(tmp_path):
     args = ["run", "vortex_sheet", "--quick", "--out", tmp_path, "--set", "output.mp4=false"]
     proc = subprocess.Popen([str(KINEMA), *map(str, args), "--frames", "400"], stdout=subprocess.PIPE,

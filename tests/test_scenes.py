@@ -23,6 +23,7 @@ GRID_SCENE = """
 [scene]
 name = "t"
 duration = 0.1
+threads = 1
 [solver]
 type = "grid"
 resolution = [16, 16]
@@ -261,3 +262,60 @@ def test_sweep_on_a_local_dask_cluster(tmp_path):
     assert all(float(r["wall_seconds"]) > 0 and r["metric"] == r["impulse_drift"] for r in table)
     assert (tmp_path / "sweep.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert (tmp_path / "run_001" / "video.mp4").exists() or shutil.which("ffmpeg") is None
+
+
+def test_meshes_from_files(tmp_path):
+    import meshio
+
+    V, T = km.fem.box_mesh([0, 0, 0], [1.0, 0.2, 0.2], (4, 1, 1))
+    meshio.write_points_cells(tmp_path / "beam.vtu", V, [("tetra", T)])
+    meshio.write_points_cells(tmp_path / "sheet.obj", V[:4], [("triangle", np.array([[0, 1, 2], [1, 3, 2]]))])
+    fem = write(tmp_path, """
+[scene]
+name = "beam from a file"
+duration = 0.1
+threads = 1
+[solver]
+type = "fem"
+gravity = [0.0, 0.0, -9.81]
+[[objects]]
+type = "mesh"
+file = "beam.vtu"
+scale = 2.0
+youngs_modulus = 1e5
+poisson_ratio = 0.3
+density = 1000.0
+fixed = [{ shape = "box", lower = [-0.1, -0.1, -0.1], upper = [0.01, 1.0, 1.0] }]
+""", "fem.toml")
+    sim = km.Scene.load(fem).build()
+    np.testing.assert_array_equal(sim.body.x, 2.0 * V)
+    np.testing.assert_array_equal(sim.body.elements, T)
+    assert set(sim.body.fixed) == set(np.flatnonzero(V[:, 0] == 0))
+    springs = write(tmp_path, """
+[scene]
+name = "springs from a file"
+duration = 0.1
+[solver]
+type = "massspring"
+[[objects]]
+type = "mesh"
+file = "sheet.obj"
+stiffness = 10.0
+""", "ms.toml")
+    sim = km.Scene.load(springs).build()
+    assert sorted(map(tuple, sim.body.springs)) == [(0, 1), (0, 2), (1, 2), (1, 3), (2, 3)]
+    bad = write(tmp_path, fem.read_text().replace("beam.vtu", "missing.vtu"), "bad.toml")
+    with pytest.raises(SceneError, match=r"objects\[0\]\.file: cannot read"):
+        km.Scene.load(bad).build()
+
+
+def test_3d_grid_scene(tmp_path):
+    text = GRID_SCENE.replace("[16, 16]", "[8, 8, 6]").replace("[0.5, 0.5]", "[0.5, 0.5, 0.3]") \
+        .replace("[0.1, 0.1]", "[0.1, 0.1, 0.1]").replace("[0.3, 0.3]", "[0.3, 0.3, 0.3]") \
+        .replace("[1.0, 0.0]", "[1.0, 0.0, 0.0]")
+    scene = km.Scene.load(write(tmp_path, text), overrides=[("output.vti", True), ("output.mp4", False)])
+    assert scene.dim == 3
+    scene.run(tmp_path / "out", 2, progress=False)
+    fields, _, _ = output.read_vti(tmp_path / "out" / "grid" / "grid_00001.vti")
+    assert fields["pressure"].shape == (8, 8, 6) and fields["velocity"].shape == (8, 8, 6, 3)
+    assert _png(tmp_path / "out" / "frames" / "frame_00001.png").shape[:2] == (8 * 80, 8 * 80)

@@ -38,6 +38,10 @@ def parse_param(text):
 
 def run_one(path, overrides, quick, frames, out):
     """One run of the sweep (executed on a Dask worker): a result row."""
+    # The adapters import these on first use; a worker's first run would be timed with them.
+    import matplotlib.colors  # noqa: F401
+    import scipy.spatial  # noqa: F401
+
     scene = Scene.load(path, overrides=overrides, quick=quick)
     t0 = time.perf_counter()
     result = scene.run(out, frames, progress=False)
@@ -88,7 +92,7 @@ def sweep(path, params, out, *, frames=None, quick=False, overrides=(), schedule
             if key not in keys:
                 row.pop(key, None)
     _write_csv(out / "sweep.csv", rows)
-    _plot(out / "sweep.png", rows, keys[0])
+    _plot(out / "sweep.png", rows, keys)
     log(f"sweep: wrote {out / 'sweep.csv'} and {out / 'sweep.png'}")
     return rows
 
@@ -103,12 +107,13 @@ def _write_csv(path, rows):
         writer.writerows(rows)
 
 
-def _plot(path, rows, key):
+def _plot(path, rows, keys):
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    key = keys[0]
     numeric = all(isinstance(r[key], (int, float)) and not isinstance(r[key], bool) for r in rows)
     xs = [r[key] if numeric else str(r[key]) for r in rows]
     has_metric = any(r["metric"] is not None for r in rows)
@@ -120,8 +125,9 @@ def _plot(path, rows, key):
     if has_metric:
         ax2 = axes[0, 1]
         ax2.plot([r["wall_seconds"] for r in rows], [r["metric"] for r in rows], "o")
-        for x, r in zip(xs, rows):
-            ax2.annotate(f"{key}={x}", (r["wall_seconds"], r["metric"]), fontsize=7)
+        for r in rows:
+            label = ", ".join(f"{k.rsplit('.', 1)[-1]}={r[k]}" for k in keys)
+            ax2.annotate(label, (r["wall_seconds"], r["metric"]), fontsize=7)
         ax2.set_xlabel("wall time [s]")
         ax2.set_ylabel("metric")
     if numeric and all(x > 0 for x in xs):

@@ -56,7 +56,7 @@ def _lattice(region, spacing, lower, upper):
     return pts[regions.contains(region, pts)]
 
 
-def _shell(region, spacing, dim):
+def _shell(region, spacing):
     """Boundary samples of a solid region: its lattice points within two spacings of its surface."""
     lo, hi = regions.bounds(region)
     pts = km.sph.block(lo, hi, spacing)
@@ -89,7 +89,7 @@ class SPHSimulation(ArrayStateSimulation):
                 fluid.append(pts)
                 vel.append(np.tile(obj["velocity"] or np.zeros(self.dim), (len(pts), 1)))
             else:
-                solid.append(_shell(obj["region"], self.spacing, self.dim))
+                solid.append(_shell(obj["region"], self.spacing))
         if not fluid:
             raise scene.error("objects", 'an sph scene needs at least one object of type "fluid"')
         x = np.concatenate(fluid)
