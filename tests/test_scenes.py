@@ -47,7 +47,7 @@ def write(tmp_path, text, name="scene.toml"):
 
 @pytest.mark.parametrize("edit, key, expected", [
     (("[[objects]]\ntype = \"obstacle\"", "[[objects]]\ntype = \"obstacle\"\nsize = 3"), "objects[0].size", "unknown key"),
-    (("resolution = [16, 16]", "resolution = \"big\""), "solver.resolution", "expected an array of 2 or 3 integer"),
+    (("resolution = [16, 16]", "resolution = \"big\""), "solver.resolution", "expected an array of 2 or 3 items, each an integer >= 1"),
     (("resolution = [16, 16]", "resolution = [16, 1.5]"), "solver.resolution[1]", "expected an integer >= 1"),
     (("duration = 0.1", ""), "scene.duration", "missing required key"),
     (("type = \"grid\"", "type = \"lbm\""), "solver.type", "expected one of \"grid\", \"sph\""),

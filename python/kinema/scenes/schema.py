@@ -117,7 +117,7 @@ class Vec(Spec):
     def __init__(self, length=None, item=None, *, spatial=False):
         self.length, self.item, self.spatial = length, item or Real(), spatial
         n = "2 or 3" if spatial else str(length) if length else "any number of"
-        self.expected = f"an array of {n} {self.item.expected.replace('a ', '', 1).replace('an ', '', 1)}s"
+        self.expected = f"an array of {n} items, each {self.item.expected}"
 
     def validate(self, value, ctx, path):
         if not isinstance(value, list):
@@ -133,7 +133,8 @@ class Vec(Spec):
 class ListOf(Spec):
     def __init__(self, item, *, min_length=0):
         self.item, self.min_length = item, min_length
-        self.expected = f"an array of {item.expected}" + (f" (at least {min_length})" if min_length else "")
+        least = f"at least {min_length} " if min_length else ""
+        self.expected = f"an array of {least}items, each {item.expected}"
 
     def validate(self, value, ctx, path):
         if not isinstance(value, list) or len(value) < self.min_length:

@@ -85,7 +85,10 @@ class DeformableSimulation(ArrayStateSimulation):
         # room below for the body to hang and swing by its own size.
         lo, hi = self.rest_box
         reach = (hi - lo).max()
-        cam = view_camera(output, 3, lo - 1.1 * reach, hi + 0.3 * reach, (0, 2))
+        lo, hi = lo - 0.6 * reach, hi + 0.6 * reach
+        up = (output["view"] or (0, 2))[1]
+        lo[up], hi[up] = self.rest_box[0][up] - 1.1 * reach, self.rest_box[1][up] + 0.3 * reach
+        cam = view_camera(output, 3, lo, hi, (0, 2))
         return preview.triangles(cam, self.body.x, self.surface)
 
     def data(self):
