@@ -6,7 +6,9 @@
 // restriction R = P^T / 2^d. Pre- and post-smoothing run in opposite colour orders, so the
 // V-cycle is a symmetric operator and a valid CG preconditioner. Boundaries enter P through
 // ghost values: across a Dirichlet face the coarse value is mirrored with a sign change, across
-// a Neumann face or into a solid cell it is copied. The coarsest grid is solved exactly (sparse
+// a Neumann face or into a solid cell it is copied; a periodic grid wraps around (and coarsens
+// only while every active axis has an even number of cells, so the red-black colouring and the
+// coarse cells stay consistent across the wrap). The coarsest grid is solved exactly (sparse
 // LDL^T), with the null space of singular components projected out.
 #pragma once
 
@@ -44,6 +46,7 @@ class Multigrid {
   void cycle(int l, const Scalar* b, Scalar* x);
   void coarse_solve(const Scalar* b, Scalar* x);
   Scalar restrict_general(int l, const Scalar* fine, Index I, Index J, Index K) const;
+  Scalar restrict_periodic(int l, const Scalar* fine, Index I, Index J, Index K) const;
 
   const PoissonOperator* fine_;       // owned by the caller, which outlives the hierarchy
   std::vector<PoissonOperator> ops_;  // coarse levels 1, 2, ...
