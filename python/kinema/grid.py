@@ -198,7 +198,9 @@ class Fluid:
     def set_wall_velocity(self, side, velocity):
         """Makes wall ``side`` ("x-", "x+", "y-", "y+", "z-", "z+") a no-slip wall moving with the
         tangential ``velocity`` (a d-vector [m/s] whose normal component must be 0). The wall
-        drags the fluid through the viscosity (no effect when viscosity is 0)."""
+        drags the fluid through the viscosity and through advection: interpolation between the
+        last velocity node and the wall runs linearly to the wall's velocity (as do all no-slip
+        walls, at rest or not; free-slip walls extend the nearest value)."""
         choice(side, "side", tuple(s for s in _SIDES if self.dim == 3 or not s.startswith("z")))
         axis, s = _SIDES[side]
         vel = as_float_array(velocity, "velocity", ndim=1)
