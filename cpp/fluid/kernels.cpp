@@ -33,11 +33,11 @@ struct Passes {
   int comp;  // velocity component of the fields (walls apply), or -1
   Index s0, s1;
 
-  Vec3 velocity(const Vec3& x) const { return u.template at_impl<ThreeD>(x, Walls ? u.walls : nullptr); }
+  [[gnu::always_inline]] inline Vec3 velocity(const Vec3& x) const { return u.template at_impl<ThreeD>(x, Walls ? u.walls : nullptr); }
 
   // The departure point of node (i, j, k) over dt. (Recomputing k1 = u(node) per pass measured
   // no slower than keeping it in three arrays between the passes.)
-  Vec3 departure(Index i, Index j, Index k, Scalar dt) const {
+  [[gnu::always_inline]] inline Vec3 departure(Index i, Index j, Index k, Scalar dt) const {
     const Vec3 x{static_cast<Scalar>(i) + L.offset[0], static_cast<Scalar>(j) + L.offset[1],
                  static_cast<Scalar>(k) + L.offset[2]};
     return back_trace_from([&](const Vec3& y) { return velocity(y); }, x, node_velocity(i, j, k, x), dt, rk);
@@ -46,7 +46,7 @@ struct Passes {
   // u at node (i, j, k) of L (position x): away from the domain's ends it is the node value or
   // a 2- or 4-point average of the other components (what interpolation gives there, cheaper);
   // nodes on the outer layer take the general path (clamping, walls, periodic wrap).
-  Vec3 node_velocity(Index i, Index j, Index k, const Vec3& x) const {
+  [[gnu::always_inline]] inline Vec3 node_velocity(Index i, Index j, Index k, const Vec3& x) const {
     const Index idx[3] = {i, j, k};
     const int face_axis = L.offset[0] == 0 ? 0 : L.offset[1] == 0 ? 1 : L.offset[2] == 0 ? 2 : -1;
     for (int b = ThreeD ? 0 : 1; b < 3; ++b)

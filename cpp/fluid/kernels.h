@@ -207,7 +207,7 @@ struct MacVelocity {
   // once for the face-offset and once for the cell-offset position and shared by the
   // components: component a uses the face brackets along axis a and cell ones elsewhere.
   template <bool ThreeD>
-  Vec3 at_impl(const Vec3& x, const WallVelocities* w) const {
+  [[gnu::always_inline]] inline Vec3 at_impl(const Vec3& x, const WallVelocities* w) const {
     if (!w) return at_lean<ThreeD>(x);
     detail::Axis face[3], cell[3];
     for (int b = ThreeD ? 0 : 1; b < 3; ++b) {
@@ -232,7 +232,7 @@ struct MacVelocity {
   // at_impl without walls: the same arithmetic on plain brackets, which the compiler keeps in
   // registers (about half the instructions of the general path).
   template <bool ThreeD>
-  Vec3 at_lean(const Vec3& x) const {
+  [[gnu::always_inline]] inline Vec3 at_lean(const Vec3& x) const {
     Index fi[3] = {0, 0, 0}, ci[3] = {0, 0, 0};
     Scalar fw[3] = {0, 0, 0}, cw[3] = {0, 0, 0};
     Index fj[3] = {0, 0, 0}, cj[3] = {0, 0, 0};
