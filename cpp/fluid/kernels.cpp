@@ -99,31 +99,16 @@ struct Passes {
     });
   }
 
-  // MacCormack's second pass fused with the correction: the forward field traced back over
-  // -dt estimates the round-trip error, out = clamp(fwd + (q - fwd~)/2, lo, hi).
-  void maccormack_correct(const Scalar* const* q, const Scalar* const* fwd, const Scalar* const* lo,
-                          const Scalar* const* hi, Scalar* const* out, Scalar dt) const {
+  // The second pass of both schemes: the forward field traced back over -dt gives fwd~, whose
+  // difference to q estimates the round-trip error; combine(f, c, fwd~) writes the result.
+  template <class Combine>
+  void round_trip(const Scalar* const* fwd, Scalar dt, Combine&& combine) const {
     for_each_node(L, [&](Index i, Index j, Index k, Index c) {
       detail::Axis a[3];
       locate(departure(i, j, k, -dt), a);
       for (int f = 0; f < count; ++f) {
         Scalar l, h;
-        const Scalar back = sample<false>(fwd[f], a, l, h);
-        out[f][c] = std::clamp(fwd[f][c] + 0.5 * (q[f][c] - back), lo[f][c], hi[f][c]);
-      }
-    });
-  }
-
-  // BFECC's second pass: corrected = q + (q - fwd~)/2.
-  void bfecc_correct(const Scalar* const* q, const Scalar* const* fwd, Scalar* const* corrected,
-                     Scalar dt) const {
-    for_each_node(L, [&](Index i, Index j, Index k, Index c) {
-      detail::Axis a[3];
-      locate(departure(i, j, k, -dt), a);
-      for (int f = 0; f < count; ++f) {
-        Scalar l, h;
-        const Scalar back = sample<false>(fwd[f], a, l, h);
-        corrected[f][c] = q[f][c] + 0.5 * (q[f][c] - back);
+        combine(f, c, sample<false>(fwd[f], a, l, h));
       }
     });
   }
@@ -144,12 +129,15 @@ struct Passes {
     // q^ = SL(q, dt) with the clamping bounds of Selle et al.
     semi_lagrangian(q, fwd, dt, lo, hi);
     if (scheme == AdvectionScheme::MacCormack) {
-      maccormack_correct(q, fwd, lo, hi, out, dt);
+      // MacCormack: out = clamp(q^ + (q - q~)/2, lo, hi), fused with the second pass.
+      round_trip(fwd, dt, [&](int f, Index c, Scalar back) {
+        out[f][c] = std::clamp(fwd[f][c] + 0.5 * (q[f][c] - back), lo[f][c], hi[f][c]);
+      });
       return;
     }
     // BFECC: advect the error-compensated field forward once more, through the first pass's
     // departure points, so its stencil bounds still apply.
-    bfecc_correct(q, fwd, bar, dt);
+    round_trip(fwd, dt, [&](int f, Index c, Scalar back) { bar[f][c] = q[f][c] + 0.5 * (q[f][c] - back); });
     semi_lagrangian(bar, out, dt, nullptr, nullptr);
     for (int f = 0; f < count; ++f) {
       Scalar *o = out[f], *l = lo[f], *h = hi[f];

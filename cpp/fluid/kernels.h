@@ -9,7 +9,9 @@
 // where the two error-correcting schemes are clamped to the extrema of the interpolation
 // stencil at the back-traced point, which removes their overshoots (Selle et al. 2008, Sec. 3).
 // Back-traces use explicit Runge-Kutta of order 1, 2 (midpoint) or 3 (Ralston), as in Bridson,
-// "Fluid Simulation for Computer Graphics", 2nd ed., Sec. 3.1.
+// "Fluid Simulation for Computer Graphics", 2nd ed., Sec. 3.1. Fields on one layout (the
+// cell-centred scalars) share their departure points, and each pass of a scheme traces every
+// node once.
 // Positions are in grid units (metres / h); a field's node (i, j, k) sits at (i, j, k) + offset.
 #pragma once
 
@@ -69,36 +71,6 @@ inline Bracket bracket(Scalar s, Index n, Index period) {
   b.w = s - static_cast<Scalar>(b.i0);
   b.i1 = b.i0 + 1;
   return b;
-}
-
-// Trilinear (bilinear in 2D) interpolation of f at x. When lo/hi are given they receive the
-// smallest and largest of the nodes that carry weight: the clamping bounds of Selle et al.
-inline Scalar sample(const Scalar* f, const FieldLayout& L, const Vec3& x, Scalar* lo = nullptr,
-                     Scalar* hi = nullptr) {
-  const Bracket by = bracket(x[1] - L.offset[1], L.n[1], L.period[1]);
-  const Bracket bz = bracket(x[2] - L.offset[2], L.n[2], L.period[2]);
-  auto plane = [&](Index i, Scalar& mn, Scalar& mx) {
-    const Scalar f00 = f[L.index(i, by.i0, bz.i0)], f01 = f[L.index(i, by.i0, bz.i1)];
-    const Scalar f10 = f[L.index(i, by.i1, bz.i0)], f11 = f[L.index(i, by.i1, bz.i1)];
-    mn = std::fmin(std::fmin(f00, f01), std::fmin(f10, f11));
-    mx = std::fmax(std::fmax(f00, f01), std::fmax(f10, f11));
-    const Scalar a = f00 + bz.w * (f01 - f00), b = f10 + bz.w * (f11 - f10);
-    return a + by.w * (b - a);
-  };
-  Scalar mn, mx, value;
-  if (L.n[0] == 1) {
-    value = plane(0, mn, mx);
-  } else {
-    const Bracket bx = bracket(x[0] - L.offset[0], L.n[0], L.period[0]);
-    Scalar mn1, mx1;
-    const Scalar a = plane(bx.i0, mn, mx), b = plane(bx.i1, mn1, mx1);
-    mn = std::fmin(mn, mn1);
-    mx = std::fmax(mx, mx1);
-    value = a + bx.w * (b - a);
-  }
-  if (lo) *lo = mn;
-  if (hi) *hi = mx;
-  return value;
 }
 
 // What interpolation of a velocity component sees beyond its last node next to a no-slip wall:
@@ -190,6 +162,22 @@ inline Scalar wall_blend(Scalar v, const WallVelocities& walls, int comp, const 
 }
 
 }  // namespace detail
+
+// Trilinear (bilinear in 2D) interpolation of f at x. When lo/hi are given they receive the
+// smallest and largest of the nodes that carry weight: the clamping bounds of Selle et al.
+inline Scalar sample(const Scalar* f, const FieldLayout& L, const Vec3& x, Scalar* lo = nullptr,
+                     Scalar* hi = nullptr) {
+  const bool three_d = L.n[0] > 1;
+  detail::Axis a[3];
+  for (int b = three_d ? 0 : 1; b < 3; ++b)
+    a[b] = detail::locate(x[b], L.offset[b], L.n[b], L.period[b], b, nullptr);
+  Scalar mn = 0, mx = 0;
+  const Scalar v = three_d ? detail::interpolate<true, true>(f, L.stride(0), L.stride(1), a[0], a[1], a[2], mn, mx)
+                           : detail::interpolate<false, true>(f, L.stride(0), L.stride(1), a[0], a[1], a[2], mn, mx);
+  if (lo) *lo = mn;
+  if (hi) *hi = mx;
+  return v;
+}
 
 // A read-only MAC velocity field: component a (internal axis) on face_layout(shape, a).
 struct MacVelocity {

@@ -263,7 +263,7 @@ void Multigrid::restrict_residual(int l, const Scalar* fine, Scalar* coarse) con
       const Index I = row / cs.n[1], J = row % cs.n[1];
       Scalar* out = coarse + row * nc2;
       if (periodic) {
-        for (Index K = 0; K < nc2; ++K) out[K] = scale * restrict_periodic(l, fine, I, J, K);
+        for (Index K = 0; K < nc2; ++K) out[K] = scale * restrict_general(l, fine, I, J, K);
         continue;
       }
       if (!C.row_clear(row)) {
@@ -299,9 +299,11 @@ void Multigrid::restrict_residual(int l, const Scalar* fine, Scalar* coarse) con
   }
 }
 
-// Row I of P^T near solids. A fine cell of the 4^d window that is not a child of I reaches I
-// only through the separable weights (I is fluid and in range; ghost reflections included); a
-// child of I may also reach it through solid substitutions, so it takes the general stencil.
+// Row I of P^T near solids (or anywhere on a periodic grid). A fine cell of the 4^d window
+// 2I-1 .. 2I+2 per axis that is not a child of I reaches I only through the separable weights
+// (I is fluid and in range; ghost reflections included); a child of I may also reach it through
+// solid substitutions, so it takes the general stencil. A periodic window wraps (the fine grid
+// has at least 4 cells per axis, so it never meets itself).
 Scalar Multigrid::restrict_general(int l, const Scalar* fine, Index I, Index J, Index K) const {
   const PoissonOperator& F = level(l);
   const PoissonOperator& C = level(l + 1);
@@ -309,67 +311,38 @@ Scalar Multigrid::restrict_general(int l, const Scalar* fine, Index I, Index J, 
   const bool three_d = fs.dim == 3;
   const Index c = C.shape().index(I, J, K);
   if (!C.fluid(c)) return 0;
-  const Index lo[3] = {three_d ? std::max<Index>(2 * I - 1, 0) : 0, std::max<Index>(2 * J - 1, 0),
-                       std::max<Index>(2 * K - 1, 0)};
-  const Index hi[3] = {three_d ? std::min<Index>(2 * I + 2, fs.n[0] - 1) : 0,
-                       std::min<Index>(2 * J + 2, fs.n[1] - 1), std::min<Index>(2 * K + 2, fs.n[2] - 1)};
+  const bool periodic = C.bc() == Boundary::Periodic;
   const Index centre[3] = {three_d ? I : 0, J, K};
   const Scalar sigma = C.bc() == Boundary::Dirichlet ? -1 : 1;
-  std::array<std::array<Scalar, 4>, 3> window;
+  std::array<std::array<Scalar, 4>, 3> window{};
+  window[0] = {0, 1, 0, 0};  // inactive axis 0 of a 2D grid: the one plane, a "child"
   for (int a = 0; a < 3; ++a)
-    if (fs.active(a)) window[a] = window_weights(fs.n[a], C.shape().n[a], centre[a], sigma);
+    if (fs.active(a))
+      window[a] = periodic ? std::array<Scalar, 4>{0.25, 0.75, 0.75, 0.25}
+                           : window_weights(fs.n[a], C.shape().n[a], centre[a], sigma);
+  // fine index of window offset o along axis a, or -1 outside a closed grid
+  auto fine_index = [&](int a, int o) -> Index {
+    if (!fs.active(a)) return 0;
+    Index f = 2 * centre[a] - 1 + o;
+    if (periodic) return f < 0 ? f + fs.n[a] : (f >= fs.n[a] ? f - fs.n[a] : f);
+    return f >= 0 && f < fs.n[a] ? f : -1;
+  };
   Scalar sum = 0;
-  for (Index i = lo[0]; i <= hi[0]; ++i)
-    for (Index j = lo[1]; j <= hi[1]; ++j)
-      for (Index k = lo[2]; k <= hi[2]; ++k) {
+  for (int oi = 0; oi < 4; ++oi) {
+    const Index i = fine_index(0, oi);
+    if (i < 0 || window[0][oi] == 0) continue;
+    for (int oj = 0; oj < 4; ++oj) {
+      const Index j = fine_index(1, oj);
+      if (j < 0) continue;
+      for (int ok = 0; ok < 4; ++ok) {
+        const Index k = fine_index(2, ok);
+        if (k < 0) continue;
         const Index f = fs.index(i, j, k);
         const Scalar rf = fine[f];
         if (rf == 0 || !F.fluid(f)) continue;
-        const Index idx[3] = {i, j, k};
-        bool child = true;
-        Scalar w = 1;
-        for (int a = 0; a < 3; ++a) {
-          if (!fs.active(a)) continue;
-          child = child && idx[a] / 2 == centre[a];
-          w *= window[a][idx[a] - (2 * centre[a] - 1)];
-        }
+        const bool child = (oi == 1 || oi == 2) && (oj == 1 || oj == 2) && (ok == 1 || ok == 2);
         if (!child) {
-          sum += w * rf;
-          continue;
-        }
-        prolongation_stencil(F, C, i, j, k, [&](Index ci, Scalar wc) {
-          if (ci == c) sum += wc * rf;
-        });
-      }
-  return sum;
-}
-
-// Row I of P^T on a periodic grid: the 4^d window of fine cells 2I-1 .. 2I+2 per axis, wrapped
-// (the fine grid has at least 4 cells per axis, so the window never meets itself). As in
-// restrict_general, a child of I takes the full stencil (solid substitutions), any other cell
-// the separable weight.
-Scalar Multigrid::restrict_periodic(int l, const Scalar* fine, Index I, Index J, Index K) const {
-  const PoissonOperator& F = level(l);
-  const PoissonOperator& C = level(l + 1);
-  const GridShape& fs = F.shape();
-  const bool three_d = fs.dim == 3;
-  const Index c = C.shape().index(I, J, K);
-  if (!C.fluid(c)) return 0;
-  static constexpr Scalar kWeight[4] = {0.25, 0.75, 0.75, 0.25};
-  auto wrap = [](Index f, Index n) { return f < 0 ? f + n : (f >= n ? f - n : f); };
-  Scalar sum = 0;
-  for (int a = three_d ? 0 : 1; a < (three_d ? 4 : 2); ++a) {
-    const Index i = three_d ? wrap(2 * I - 1 + a, fs.n[0]) : 0;
-    for (int b = 0; b < 4; ++b) {
-      const Index j = wrap(2 * J - 1 + b, fs.n[1]);
-      for (int d = 0; d < 4; ++d) {
-        const Index k = wrap(2 * K - 1 + d, fs.n[2]);
-        const Index f = fs.index(i, j, k);
-        const Scalar rf = fine[f];
-        if (rf == 0 || !F.fluid(f)) continue;
-        const bool child = (!three_d || a == 1 || a == 2) && (b == 1 || b == 2) && (d == 1 || d == 2);
-        if (!child) {
-          sum += (three_d ? kWeight[a] : 1) * kWeight[b] * kWeight[d] * rf;
+          sum += window[0][oi] * window[1][oj] * window[2][ok] * rf;
           continue;
         }
         prolongation_stencil(F, C, i, j, k, [&](Index ci, Scalar wc) {

@@ -46,7 +46,6 @@ class Multigrid {
   void cycle(int l, const Scalar* b, Scalar* x);
   void coarse_solve(const Scalar* b, Scalar* x);
   Scalar restrict_general(int l, const Scalar* fine, Index I, Index J, Index K) const;
-  Scalar restrict_periodic(int l, const Scalar* fine, Index I, Index J, Index K) const;
 
   const PoissonOperator* fine_;       // owned by the caller, which outlives the hierarchy
   std::vector<PoissonOperator> ops_;  // coarse levels 1, 2, ...
