@@ -5,7 +5,8 @@ five phases, in order: advection of velocity and scalars (semi-Lagrangian, Stam 
 MacCormack / BFECC clamped to the interpolation stencil, Selle et al. 2008), body forces
 (gravity, buoyancy, vorticity confinement, Fedkiw, Stam & Jensen 2001), implicit viscosity
 (backward Euler, stable for any dt), Chorin's projection (the pressure Poisson problem solved
-by kinema's MGPCG, :mod:`kinema.poisson`; CG in a periodic domain), and a blow-up check.
+by kinema's MGPCG, :mod:`kinema.poisson`, also on periodic domains; CG for odd periodic sizes),
+and a blow-up check.
 See Bridson, "Fluid Simulation for Computer Graphics" (2nd ed., 2015) for the MAC grid.
 
 Layout (API.md): cells ``(nx, ny[, nz])`` of size ``h``; ``u`` has shape ``(nx+1, ny[, nz])`` at
