@@ -13,7 +13,8 @@ namespace {
 Boundary parse_bc(const std::string& bc) {
   if (bc == "dirichlet") return Boundary::Dirichlet;
   if (bc == "neumann") return Boundary::Neumann;
-  throw InvalidArgument("bc: expected 'dirichlet' or 'neumann', got '" + bc + "'");
+  if (bc == "periodic") return Boundary::Periodic;
+  throw InvalidArgument("bc: expected 'dirichlet', 'neumann' or 'periodic', got '" + bc + "'");
 }
 
 // Owns the solver and a copy-free reference to nothing else: the solid mask is read once.

@@ -80,11 +80,12 @@ FluidSolver::FluidSolver(const GridShape& shape, Scalar h, const FluidConfig& co
   residual_.assign(shape.size(), 0);
   if (config.density) state_.density.assign(shape.size(), 0);
   if (config.temperature) state_.temperature.assign(shape.size(), 0);
-  if (config.density || config.temperature) scalar_new_.assign(shape.size(), 0);
+  const int scalars = int(config.density) + int(config.temperature);
+  for (int f = 0; f < scalars; ++f) scalar_new_[f].assign(shape.size(), 0);
   Index largest_face = 0;
   for (int a = 0; a < 3; ++a)
     if (active_[a]) largest_face = std::max(largest_face, faces_[a].size());
-  advection_scratch_.reserve(largest_face, config.advection);
+  advection_scratch_.reserve(largest_face, config.advection, std::max(scalars, 1));
   if (config.viscosity > 0) {
     rhs_face_.assign(largest_face, 0);
     solution_face_.assign(largest_face, 0);
@@ -101,6 +102,7 @@ FluidSolver::FluidSolver(const GridShape& shape, Scalar h, const FluidConfig& co
     }
     vorticity_norm_.assign(shape.size(), 0);
   }
+  if (config.no_slip && !config.periodic) walls_.no_slip.fill(true);
   refresh_solids();
 }
 
@@ -147,12 +149,15 @@ void FluidSolver::refresh_solids() {
       fixed_[a][f] = flag;
     });
   }
-  if (!config_.periodic) {
-    PoissonConfig pc;
-    pc.method = config_.projection;
-    pressure_solver_ = std::make_unique<PoissonSolver>(s, model_.h, Boundary::Neumann,
-                                                       has_solid_ ? solid_used_.data() : nullptr, 0, pc);
+  PoissonConfig pc;
+  pc.method = config_.projection;
+  if (config_.periodic) {
+    // red-black smoothing needs an even number of cells along every periodic axis
+    for (int a = 0; a < 3; ++a)
+      if (active_[a] && s.n[a] % 2 != 0) pc.method = PoissonMethod::CG;
   }
+  pressure_solver_ = std::make_unique<PoissonSolver>(s, model_.h, config_.periodic ? Boundary::Periodic : Boundary::Neumann,
+                                                     has_solid_ ? solid_used_.data() : nullptr, 0, pc);
   for (Index c = 0; c < s.size(); ++c)
     if (!fluid_cell(c)) state_.pressure[c] = 0;
   enforce_boundary();
@@ -169,6 +174,8 @@ void FluidSolver::set_wall_velocity(int wall, const Vec3& velocity) {
     if (!std::isfinite(x)) throw InvalidArgument("velocity: expected finite values");
   model_.wall_velocity[wall] = velocity;
   model_.wall_moving[wall] = velocity[0] != 0 || velocity[1] != 0 || velocity[2] != 0;
+  walls_.no_slip[wall] = config_.no_slip || model_.wall_moving[wall];
+  walls_.velocity[wall] = velocity;
 }
 
 // ------------------------------------------------------------------------------------ step
@@ -238,31 +245,51 @@ Index FluidSolver::advance(Scalar duration, Scalar cfl, Interrupt& interrupt, St
 
 // ------------------------------------------------------------------------------ advection
 
-void FluidSolver::advect(Scalar dt) {
+MacVelocity FluidSolver::mac_velocity() const {
   MacVelocity u;
   for (int a = 0; a < 3; ++a) {
     u.layout[a] = faces_[a];
     if (active_[a]) u.comp[a] = state_.velocity[a].data();
   }
+  if (walls_.no_slip != std::array<bool, 6>{}) u.walls = &walls_;
+  return u;
+}
+
+void FluidSolver::advect(Scalar dt) {
+  const MacVelocity u = mac_velocity();
   const Scalar dt_grid = dt / model_.h;
   const int rk = config_.rk_order;
-  for (std::vector<Scalar>* q : {&state_.density, &state_.temperature}) {
-    if (q->empty()) continue;
-    fluid::advect(config_.advection, u, cells_, q->data(), scalar_new_.data(), dt_grid, rk,
-                  advection_scratch_);
-    const std::vector<std::uint8_t>& solid = model_.solid;
-    Scalar* out = q->data();
-    parallel_for(cells_.size(), [&](Index c) { out[c] = has_solid_ && solid[c] ? 0 : scalar_new_[c]; });
+  // The scalars share their departure points: one call advects both.
+  Scalar* fields[2];
+  const Scalar* q[2];
+  Scalar* out[2];
+  int count = 0;
+  for (std::vector<Scalar>* s : {&state_.density, &state_.temperature}) {
+    if (s->empty()) continue;
+    q[count] = fields[count] = s->data();
+    out[count] = scalar_new_[count].data();
+    ++count;
+  }
+  fluid::advect_fields(config_.advection, u, cells_, count, q, out, dt_grid, rk, advection_scratch_);
+  const std::vector<std::uint8_t>& solid = model_.solid;
+  for (int f = 0; f < count; ++f) {
+    Scalar* dst = fields[f];
+    const Scalar* src = out[f];
+    parallel_for(cells_.size(), [&](Index c) { dst[c] = has_solid_ && solid[c] ? 0 : src[c]; });
   }
   // Velocity last: every component is traced through the old field.
-  for (int a = 0; a < 3; ++a)
-    if (active_[a])
-      fluid::advect(config_.advection, u, faces_[a], state_.velocity[a].data(),
-                    velocity_new_[a].data(), dt_grid, rk, advection_scratch_);
-  for (int a = 0; a < 3; ++a)
-    if (active_[a])
-      std::memcpy(state_.velocity[a].data(), velocity_new_[a].data(),
-                  sizeof(Scalar) * velocity_new_[a].size());
+  for (int a = 0; a < 3; ++a) {
+    if (!active_[a]) continue;
+    const Scalar* qa = state_.velocity[a].data();
+    Scalar* oa = velocity_new_[a].data();
+    fluid::advect_fields(config_.advection, u, faces_[a], 1, &qa, &oa, dt_grid, rk, advection_scratch_, a);
+  }
+  for (int a = 0; a < 3; ++a) {
+    if (!active_[a]) continue;
+    Scalar* dst = state_.velocity[a].data();
+    const Scalar* src = velocity_new_[a].data();
+    parallel_for(faces_[a].size(), [&](Index f) { dst[f] = src[f]; });
+  }
   enforce_boundary();
 }
 
@@ -333,26 +360,33 @@ void FluidSolver::confinement_force() {
     });
   }
   // Central difference of a cell field along an axis, one-sided at closed walls.
-  auto diff = [&](const Scalar* q, const std::array<Index, 3>& idx, int axis) -> Scalar {
+  const bool periodic = config_.periodic;
+  auto diff = [&](const Scalar* q, Index c, Index ib, int axis) -> Scalar {
     if (!active_[axis] || !q) return 0;
-    Index up = neighbour(C, idx, axis, +1), dn = neighbour(C, idx, axis, -1);
-    const Index c = C.index(idx[0], idx[1], idx[2]);
+    const Index n = s.n[axis], stride = C.stride(axis);
+    Index up = c + stride, dn = c - stride;
     Scalar span = 2;
-    if (up < 0) up = c, span = 1;
-    if (dn < 0) dn = c, span -= 1;
+    if (ib + 1 >= n) {
+      if (periodic) up = c - (n - 1) * stride;
+      else up = c, span -= 1;
+    }
+    if (ib == 0) {
+      if (periodic) dn = c + (n - 1) * stride;
+      else dn = c, span -= 1;
+    }
     return span > 0 ? (q[up] - q[dn]) / (span * h) : 0;
   };
   auto comp = [&](int a) -> const Scalar* { return active_[a] ? cell_velocity_[a].data() : nullptr; };
+  const Scalar *u0 = comp(0), *u1 = comp(1), *u2 = comp(2);
   const bool three_d = s.dim == 3;
   // omega = curl u; in 2D only the component along the inactive axis 0 exists.
   for_each_node(C, [&](Index i, Index j, Index k, Index c) {
-    const std::array<Index, 3> idx{i, j, k};
-    const Scalar w0 = diff(comp(2), idx, 1) - diff(comp(1), idx, 2);
+    const Scalar w0 = diff(u2, c, j, 1) - diff(u1, c, k, 2);
     vorticity_[0][c] = w0;
     Scalar norm2 = w0 * w0;
     if (three_d) {
-      const Scalar w1 = diff(comp(0), idx, 2) - diff(comp(2), idx, 0);
-      const Scalar w2 = diff(comp(1), idx, 0) - diff(comp(0), idx, 1);
+      const Scalar w1 = diff(u0, c, k, 2) - diff(u2, c, i, 0);
+      const Scalar w2 = diff(u1, c, i, 0) - diff(u0, c, j, 1);
       vorticity_[1][c] = w1;
       vorticity_[2][c] = w2;
       norm2 += w1 * w1 + w2 * w2;
@@ -363,8 +397,7 @@ void FluidSolver::confinement_force() {
   const Scalar eps = config_.vorticity_confinement;
   const Scalar* wn = vorticity_norm_.data();
   for_each_node(C, [&](Index i, Index j, Index k, Index c) {
-    const std::array<Index, 3> idx{i, j, k};
-    Vec3 N{diff(wn, idx, 0), diff(wn, idx, 1), diff(wn, idx, 2)};
+    Vec3 N{diff(wn, c, i, 0), diff(wn, c, j, 1), diff(wn, c, k, 2)};
     const Scalar len = std::sqrt(N[0] * N[0] + N[1] * N[1] + N[2] * N[2]);
     Vec3 w{vorticity_[0][c], three_d ? vorticity_[1][c] : 0, three_d ? vorticity_[2][c] : 0};
     if (len <= 1e-12 * (wn[c] + 1e-300) / h || !fluid_cell(c)) {
@@ -443,7 +476,7 @@ Index FluidSolver::diffuse(Scalar dt, Interrupt& interrupt) {
     IterativeOptions options{config_.tol * 1e-2, config_.max_iter};
     const SolveInfo info = pcg(
         L.size(), [&](const Scalar* in, Scalar* out) { apply_viscosity_operator(a, c, in, out); },
-        {}, b, x, options, interrupt);
+        {}, b, x, options, interrupt, {}, &viscosity_cg_);
     if (!info.converged)
       throw ConvergenceError("viscosity: CG did not reach tol for component " +
                              component_name(model_.shape.dim, a) + " at step " +
@@ -475,27 +508,6 @@ void FluidSolver::divergence(Scalar* out) const {
   });
 }
 
-// Periodic -lap_h with zero-flux faces to solid cells; its null space is the constant.
-void FluidSolver::apply_pressure_operator(const Scalar* x, Scalar* y) const {
-  const Scalar inv_h2 = 1 / (model_.h * model_.h);
-  for_each_node(cells_, [&](Index i, Index j, Index k, Index c) {
-    if (!fluid_cell(c)) {
-      y[c] = 0;
-      return;
-    }
-    const std::array<Index, 3> idx{i, j, k};
-    Scalar s = 0;
-    for (int a = 0; a < 3; ++a) {
-      if (!active_[a]) continue;
-      for (int step : {-1, 1}) {
-        const Index nb = neighbour(cells_, idx, a, step);
-        if (nb >= 0 && fluid_cell(nb)) s += x[c] - x[nb];
-      }
-    }
-    y[c] = s * inv_h2;
-  });
-}
-
 SolveInfo FluidSolver::project(Scalar dt, Interrupt& interrupt) {
   const Index n = cells_.size();
   Scalar* b = rhs_.data();
@@ -508,28 +520,12 @@ SolveInfo FluidSolver::project(Scalar dt, Interrupt& interrupt) {
   // b shrinks by orders of magnitude and the rounding error of A p_old alone would exceed
   // tol ||b||, which no iteration can reach.
   Scalar* r = residual_.data();
-  if (pressure_solver_) pressure_solver_->op().residual(b, p, r);
-  else {
-    apply_pressure_operator(p, r);
-    parallel_for(n, [&](Index c) { r[c] = b[c] - r[c]; });
-  }
+  pressure_solver_->op().residual(b, p, r);
   const Scalar r_norm2 = parallel_sum(n, [&](Index c) { return r[c] * r[c]; });
   const Scalar b_norm2 = parallel_sum(n, [&](Index c) { return b[c] * b[c]; });
   if (!(r_norm2 < b_norm2)) parallel_for(n, [&](Index c) { p[c] = 0; });
   try {
-    if (pressure_solver_) {
-      info = pressure_solver_->solve(b, p, options, interrupt);
-    } else {
-    // Periodic: CG on the singular operator, the constant projected out of every iterate.
-    const Scalar fluid_count = parallel_sum(n, [&](Index c) { return fluid_cell(c) ? 1.0 : 0.0; });
-    auto remove_mean = [&](Scalar* x) {
-      const Scalar mean = parallel_sum(n, [&](Index c) { return fluid_cell(c) ? x[c] : 0.0; }) / fluid_count;
-      parallel_for(n, [&](Index c) { x[c] = fluid_cell(c) ? x[c] - mean : 0; });
-    };
-    remove_mean(b);
-      info = pcg(n, [&](const Scalar* in, Scalar* out) { apply_pressure_operator(in, out); }, {}, b, p,
-                 options, interrupt, remove_mean);
-    }
+    info = pressure_solver_->solve(b, p, options, interrupt);
   } catch (const DivergenceError& e) {
     throw DivergenceError(std::string("pressure: ") + e.what() + " at step " + std::to_string(state_.steps + 1));
   } catch (const InvalidArgument& e) {
@@ -603,13 +599,8 @@ Scalar FluidSolver::max_speed() const {
 }
 
 Vec3 FluidSolver::velocity_at(const Vec3& x) const {
-  MacVelocity u;
-  for (int a = 0; a < 3; ++a) {
-    u.layout[a] = faces_[a];
-    if (active_[a]) u.comp[a] = state_.velocity[a].data();
-  }
   const Scalar inv_h = 1 / model_.h;
-  return u.at(Vec3{active_[0] ? x[0] * inv_h : 0.5, x[1] * inv_h, x[2] * inv_h});
+  return mac_velocity().at(Vec3{active_[0] ? x[0] * inv_h : 0.5, x[1] * inv_h, x[2] * inv_h});
 }
 
 Scalar FluidSolver::kinetic_energy() const {

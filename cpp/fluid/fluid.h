@@ -19,6 +19,7 @@
 #include "core/interrupt.h"
 #include "fluid/kernels.h"
 #include "grid/poisson_solver.h"
+#include "linalg/cg.h"
 #include "linalg/solve_info.h"
 
 namespace kinema::fluid {
@@ -104,8 +105,8 @@ class FluidSolver {
   void enforce_boundary();          // fixed faces to their values, periodic copies in sync
   void add_cell_force(int axis, const Scalar* f, Scalar dt);  // u_a += dt * face average of f
   void confinement_force();          // Fedkiw et al. 2001, Eq. (9)-(11), into force_
-  void apply_pressure_operator(const Scalar* x, Scalar* y) const;  // periodic domains
   void apply_viscosity_operator(int axis, Scalar c, const Scalar* x, Scalar* y) const;
+  MacVelocity mac_velocity() const;  // the state's velocity, with the walls
   bool is_fixed(int axis, Index f) const { return fixed_[axis][f] != 0; }
   bool fluid_cell(Index c) const { return model_.solid.empty() || !model_.solid[c]; }
   // Neighbour of node idx along `axis` by `step` (+-1) in layout L, or -1 outside a closed domain.
@@ -124,13 +125,16 @@ class FluidSolver {
   std::vector<std::uint8_t> solid_used_;  // the mask the flags and pressure solver were built for
   bool has_solid_ = false, built_ = false;
 
-  std::unique_ptr<PoissonSolver> pressure_solver_;  // closed domains
+  std::unique_ptr<PoissonSolver> pressure_solver_;  // Neumann walls or periodic
   // Scratch, allocated once in the constructor (only what the configuration needs).
   std::array<std::vector<Scalar>, 3> velocity_new_;
-  std::vector<Scalar> scalar_new_, rhs_, residual_, rhs_face_, solution_face_;
+  std::array<std::vector<Scalar>, 2> scalar_new_;  // density, temperature (those enabled)
+  std::vector<Scalar> rhs_, residual_, rhs_face_, solution_face_;
   std::array<std::vector<Scalar>, 3> cell_velocity_, vorticity_, force_;
   std::vector<Scalar> vorticity_norm_;
   AdvectionScratch advection_scratch_;
+  CgWorkspace viscosity_cg_;
+  WallVelocities walls_;  // no-slip and moving walls as interpolation sees them
 };
 
 }  // namespace kinema::fluid

@@ -38,7 +38,8 @@ struct GridShape {
   }
 };
 
-enum class Boundary { Dirichlet, Neumann };
+// Periodic: every active axis wraps around (cell n-1 neighbours cell 0).
+enum class Boundary { Dirichlet, Neumann, Periodic };
 
 // Neighbour directions: bit 2*axis for the lower neighbour, 2*axis + 1 for the upper one.
 constexpr int kDirections = 6;

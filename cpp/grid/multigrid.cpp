@@ -18,15 +18,20 @@ namespace {
 
 bool can_coarsen(const PoissonOperator& op, Index coarsest_cells) {
   if (op.size() <= coarsest_cells) return false;
-  for (int axis = 0; axis < 3; ++axis)
-    if (op.shape().active(axis) && op.shape().n[axis] < 4) return false;
+  for (int axis = 0; axis < 3; ++axis) {
+    if (!op.shape().active(axis)) continue;
+    if (op.shape().n[axis] < 4) return false;
+    // a periodic axis halves exactly, so that the coarse grid wraps where the fine one does
+    if (op.bc() == Boundary::Periodic && op.shape().n[axis] % 2 != 0) return false;
+  }
   return true;
 }
 
 // Calls emit(coarse_index, weight) for the terms of (P x_c) at fine cell (i, j, k): the 2^d
 // coarse cells nearest to the fine cell centre with the (3/4, 1/4) weights per axis; a coarse
 // cell across the domain boundary is replaced by the in-range one with the sign of the ghost
-// value (-1 Dirichlet, +1 Neumann), and a solid coarse cell by the parent.
+// value (-1 Dirichlet, +1 Neumann) or, on a periodic grid, wrapped around; a solid coarse cell
+// is replaced by the parent.
 template <class Emit>
 void prolongation_stencil(const PoissonOperator& fine, const PoissonOperator& coarse, Index i,
                           Index j, Index k, Emit&& emit) {
@@ -43,6 +48,7 @@ void prolongation_stencil(const PoissonOperator& fine, const PoissonOperator& co
   }
   const Index parent_index = cs.index(parent[0], parent[1], parent[2]);
   const Scalar ghost_sign = coarse.bc() == Boundary::Dirichlet ? -1 : 1;
+  const bool periodic = coarse.bc() == Boundary::Periodic;
   for (int subset = 0; subset < 8; ++subset) {
     Index c[3];
     Scalar w = 1, sign = 1;
@@ -57,8 +63,12 @@ void prolongation_stencil(const PoissonOperator& fine, const PoissonOperator& co
       c[a] = use_partner ? partner[a] : parent[a];
       w *= use_partner ? 0.25 : 0.75;
       if (c[a] < 0 || c[a] >= cs.n[a]) {
-        c[a] = parent[a];
-        sign *= ghost_sign;
+        if (periodic) {
+          c[a] = c[a] < 0 ? c[a] + cs.n[a] : c[a] - cs.n[a];
+        } else {
+          c[a] = parent[a];
+          sign *= ghost_sign;
+        }
       }
     }
     if (skip) continue;
@@ -194,6 +204,7 @@ void Multigrid::prolong_add(int l, const Scalar* coarse, Scalar* fine) const {
   const bool three_d = fs.dim == 3;
   const Index nf2 = fs.n[2], nc2 = cs.n[2];
   const Scalar sigma = C.bc() == Boundary::Dirichlet ? -1 : 1;
+  const bool periodic = C.bc() == Boundary::Periodic;  // wraps: the general stencil throughout
 #pragma omp parallel if (F.parallel())
   {
     std::vector<Scalar> m(nc2);  // the coarse lines combined with their plane weights
@@ -204,7 +215,7 @@ void Multigrid::prolong_add(int l, const Scalar* coarse, Scalar* fine) const {
       const AxisTerm ti = three_d ? axis_term(i, cs.n[0], sigma) : AxisTerm{1, 0, 0, 0};
       const AxisTerm tj = axis_term(j, cs.n[1], sigma);
       const Index prow = ti.parent * cs.n[1] + tj.parent;
-      if (!(C.row_clear(prow) && F.row_fluid(row))) {
+      if (periodic || !(C.row_clear(prow) && F.row_fluid(row))) {
         for (Index k = 0; k < nf2; ++k) {
           if (!F.fluid(row * nf2 + k)) continue;
           Scalar sum = 0;
@@ -243,6 +254,7 @@ void Multigrid::restrict_residual(int l, const Scalar* fine, Scalar* coarse) con
   const Scalar scale = three_d ? 1.0 / 8 : 1.0 / 4;  // R = P^T / 2^d
   const Scalar sigma = C.bc() == Boundary::Dirichlet ? -1 : 1;
   const Index nf2 = fs.n[2], nc2 = cs.n[2];
+  const bool periodic = C.bc() == Boundary::Periodic;
 #pragma omp parallel if (F.parallel())
   {
     std::vector<Scalar> t(nf2);  // the fine lines of the window, plane-weighted
@@ -250,6 +262,10 @@ void Multigrid::restrict_residual(int l, const Scalar* fine, Scalar* coarse) con
     for (Index row = 0; row < cs.rows(); ++row) {
       const Index I = row / cs.n[1], J = row % cs.n[1];
       Scalar* out = coarse + row * nc2;
+      if (periodic) {
+        for (Index K = 0; K < nc2; ++K) out[K] = scale * restrict_general(l, fine, I, J, K);
+        continue;
+      }
       if (!C.row_clear(row)) {
         for (Index K = 0; K < nc2; ++K) out[K] = scale * restrict_general(l, fine, I, J, K);
         continue;
@@ -283,9 +299,11 @@ void Multigrid::restrict_residual(int l, const Scalar* fine, Scalar* coarse) con
   }
 }
 
-// Row I of P^T near solids. A fine cell of the 4^d window that is not a child of I reaches I
-// only through the separable weights (I is fluid and in range; ghost reflections included); a
-// child of I may also reach it through solid substitutions, so it takes the general stencil.
+// Row I of P^T near solids (or anywhere on a periodic grid). A fine cell of the 4^d window
+// 2I-1 .. 2I+2 per axis that is not a child of I reaches I only through the separable weights
+// (I is fluid and in range; ghost reflections included); a child of I may also reach it through
+// solid substitutions, so it takes the general stencil. A periodic window wraps (the fine grid
+// has at least 4 cells per axis, so it never meets itself).
 Scalar Multigrid::restrict_general(int l, const Scalar* fine, Index I, Index J, Index K) const {
   const PoissonOperator& F = level(l);
   const PoissonOperator& C = level(l + 1);
@@ -293,38 +311,46 @@ Scalar Multigrid::restrict_general(int l, const Scalar* fine, Index I, Index J, 
   const bool three_d = fs.dim == 3;
   const Index c = C.shape().index(I, J, K);
   if (!C.fluid(c)) return 0;
-  const Index lo[3] = {three_d ? std::max<Index>(2 * I - 1, 0) : 0, std::max<Index>(2 * J - 1, 0),
-                       std::max<Index>(2 * K - 1, 0)};
-  const Index hi[3] = {three_d ? std::min<Index>(2 * I + 2, fs.n[0] - 1) : 0,
-                       std::min<Index>(2 * J + 2, fs.n[1] - 1), std::min<Index>(2 * K + 2, fs.n[2] - 1)};
+  const bool periodic = C.bc() == Boundary::Periodic;
   const Index centre[3] = {three_d ? I : 0, J, K};
   const Scalar sigma = C.bc() == Boundary::Dirichlet ? -1 : 1;
-  std::array<std::array<Scalar, 4>, 3> window;
+  std::array<std::array<Scalar, 4>, 3> window{};
+  window[0] = {0, 1, 0, 0};  // inactive axis 0 of a 2D grid: the one plane, a "child"
   for (int a = 0; a < 3; ++a)
-    if (fs.active(a)) window[a] = window_weights(fs.n[a], C.shape().n[a], centre[a], sigma);
+    if (fs.active(a))
+      window[a] = periodic ? std::array<Scalar, 4>{0.25, 0.75, 0.75, 0.25}
+                           : window_weights(fs.n[a], C.shape().n[a], centre[a], sigma);
+  // fine index of window offset o along axis a, or -1 outside a closed grid
+  auto fine_index = [&](int a, int o) -> Index {
+    if (!fs.active(a)) return 0;
+    Index f = 2 * centre[a] - 1 + o;
+    if (periodic) return f < 0 ? f + fs.n[a] : (f >= fs.n[a] ? f - fs.n[a] : f);
+    return f >= 0 && f < fs.n[a] ? f : -1;
+  };
   Scalar sum = 0;
-  for (Index i = lo[0]; i <= hi[0]; ++i)
-    for (Index j = lo[1]; j <= hi[1]; ++j)
-      for (Index k = lo[2]; k <= hi[2]; ++k) {
+  for (int oi = 0; oi < 4; ++oi) {
+    const Index i = fine_index(0, oi);
+    if (i < 0 || window[0][oi] == 0) continue;
+    for (int oj = 0; oj < 4; ++oj) {
+      const Index j = fine_index(1, oj);
+      if (j < 0) continue;
+      for (int ok = 0; ok < 4; ++ok) {
+        const Index k = fine_index(2, ok);
+        if (k < 0) continue;
         const Index f = fs.index(i, j, k);
         const Scalar rf = fine[f];
         if (rf == 0 || !F.fluid(f)) continue;
-        const Index idx[3] = {i, j, k};
-        bool child = true;
-        Scalar w = 1;
-        for (int a = 0; a < 3; ++a) {
-          if (!fs.active(a)) continue;
-          child = child && idx[a] / 2 == centre[a];
-          w *= window[a][idx[a] - (2 * centre[a] - 1)];
-        }
+        const bool child = (oi == 1 || oi == 2) && (oj == 1 || oj == 2) && (ok == 1 || ok == 2);
         if (!child) {
-          sum += w * rf;
+          sum += window[0][oi] * window[1][oj] * window[2][ok] * rf;
           continue;
         }
         prolongation_stencil(F, C, i, j, k, [&](Index ci, Scalar wc) {
           if (ci == c) sum += wc * rf;
         });
       }
+    }
+  }
   return sum;
 }
 

@@ -6,7 +6,9 @@
 // restriction R = P^T / 2^d. Pre- and post-smoothing run in opposite colour orders, so the
 // V-cycle is a symmetric operator and a valid CG preconditioner. Boundaries enter P through
 // ghost values: across a Dirichlet face the coarse value is mirrored with a sign change, across
-// a Neumann face or into a solid cell it is copied. The coarsest grid is solved exactly (sparse
+// a Neumann face or into a solid cell it is copied; a periodic grid wraps around (and coarsens
+// only while every active axis has an even number of cells, so the red-black colouring and the
+// coarse cells stay consistent across the wrap). The coarsest grid is solved exactly (sparse
 // LDL^T), with the null space of singular components projected out.
 #pragma once
 

@@ -1,6 +1,7 @@
 #include "grid/poisson_operator.h"
 
 #include <algorithm>
+#include <array>
 #include <string>
 
 #include "core/parallel.h"
@@ -24,6 +25,8 @@ PoissonOperator::PoissonOperator(const GridShape& shape, Scalar h, Boundary bc,
   // Couplings and diagonal counts, from each fluid cell's six faces (written to a copy, since
   // neighbours read the fluid bits concurrently).
   std::vector<std::uint8_t> mask = mask_;
+  const bool periodic = bc_ == Boundary::Periodic;
+  if (periodic) wrap_.assign(n, 0);
   parallel_for(shape_.rows(), [&](Index row) {
     const Index i = row / s[1], j = row % s[1];
     for (Index k = 0; k < s[2]; ++k) {
@@ -44,6 +47,13 @@ PoissonOperator::PoissonOperator(const GridShape& shape, Scalar h, Boundary bc,
             }
           } else if (bc_ == Boundary::Dirichlet) {
             count += 2;  // ghost value -u_c: (u_c - (-u_c)) / h^2
+          } else if (periodic && s[axis] > 1) {
+            const Index nb = side == 0 ? c + (s[axis] - 1) * stride : c - (s[axis] - 1) * stride;
+            if (mask_[nb] & kFluidBit) {
+              bits |= static_cast<std::uint8_t>(1u << (2 * axis + side));
+              wrap_[c] |= static_cast<std::uint8_t>(1u << (2 * axis + side));
+              ++count;
+            }
           }
         }
       }
@@ -103,8 +113,8 @@ void PoissonOperator::label_components() {
   if (shift_ > 0) return;
   const Index n = size();
   if (fluid_count_ == n) {
-    // Without solids the fluid is one component, singular exactly for Neumann boundaries.
-    if (bc_ == Boundary::Neumann && n > 0) {
+    // Without solids the fluid is one component, singular exactly without Dirichlet faces.
+    if (bc_ != Boundary::Dirichlet && n > 0) {
       component_.assign(n, 0);
       component_size_.push_back(n);
       singular_components_.push_back(0);
@@ -130,8 +140,7 @@ void PoissonOperator::label_components() {
       for (int dir = 0; dir < kDirections; ++dir) {
         if (!(m & (1u << dir))) continue;
         ++couplings;
-        const Index stride = shape_.stride(dir / 2);
-        const Index nb = (dir % 2) ? c + stride : c - stride;
+        const Index nb = neighbour(c, dir);
         if (component_[nb] < 0) {
           component_[nb] = id;
           stack.push_back(nb);
@@ -182,7 +191,15 @@ void PoissonOperator::project(Scalar* x) const {
   parallel_for(n, [&](Index c) { x[c] = component_[c] >= 0 ? x[c] - mean[component_[c]] : 0; });
 }
 
+Scalar PoissonOperator::wrapped_neighbour_sum(const Scalar* x, Index c) const {
+  Scalar sum = 0;
+  for (int dir = 0; dir < kDirections; ++dir)
+    if ((mask_[c] >> dir) & 1) sum += x[neighbour(c, dir)];
+  return sum;
+}
+
 inline Scalar PoissonOperator::neighbour_sum(const Scalar* x, Index c) const {
+  if (!wrap_.empty() && wrap_[c]) return wrapped_neighbour_sum(x, c);
   const std::uint8_t m = mask_[c];
   const Index s0 = shape_.stride(0), s1 = shape_.stride(1);
   Scalar sum = 0;
@@ -334,24 +351,22 @@ CsrArrays PoissonOperator::assemble() const {
   }
   A.col_index.resize(A.row_ptr[n]);
   A.values.resize(A.row_ptr[n]);
-  // Column order within a row: -axis0, -axis1, -axis2, diagonal, +axis2, +axis1, +axis0.
-  static constexpr int kLower[3] = {0, 2, 4}, kUpper[3] = {5, 3, 1};
+  // Columns in increasing order (a periodic wrap puts a neighbour at the other end of the row).
   parallel_for(n, [&](Index c) {
     if (!fluid(c)) return;
-    Index p = A.row_ptr[c];
+    std::array<std::pair<Index, Scalar>, kDirections + 1> entries;
+    int count = 0;
+    entries[count++] = {c, diagonal(c)};
     const std::uint8_t m = mask_[c];
-    for (int dir : kLower)
-      if (m & (1u << dir)) {
-        A.col_index[p] = c - shape_.stride(dir / 2);
-        A.values[p++] = -inv_h2_;
-      }
-    A.col_index[p] = c;
-    A.values[p++] = diagonal(c);
-    for (int dir : kUpper)
-      if (m & (1u << dir)) {
-        A.col_index[p] = c + shape_.stride(dir / 2);
-        A.values[p++] = -inv_h2_;
-      }
+    for (int dir = 0; dir < kDirections; ++dir)
+      if (m & (1u << dir)) entries[count++] = {neighbour(c, dir), -inv_h2_};
+    std::sort(entries.begin(), entries.begin() + count,
+              [](const auto& a, const auto& b) { return a.first < b.first; });
+    Index p = A.row_ptr[c];
+    for (int e = 0; e < count; ++e, ++p) {
+      A.col_index[p] = entries[e].first;
+      A.values[p] = entries[e].second;
+    }
   });
   return A;
 }

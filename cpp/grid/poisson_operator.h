@@ -2,8 +2,9 @@
 // solvers, on a 2D or 3D grid with spacing h:
 //   (A u)_c = shift*u_c + sum over the faces f of c of (u_c - u_nb(f)) / h^2,
 // where a face to a fluid neighbour couples the two cells, a Dirichlet boundary face uses the
-// ghost value u_nb = -u_c (u = 0 on the face), and a Neumann boundary face or a face to a solid
-// cell carries no flux. Solid cells are excluded: (A u)_c = 0 there. The operator is symmetric
+// ghost value u_nb = -u_c (u = 0 on the face), a Neumann boundary face or a face to a solid
+// cell carries no flux, and on a periodic grid a boundary face couples to the cell at the other
+// end of the axis. Solid cells are excluded: (A u)_c = 0 there. The operator is symmetric
 // and positive semi-definite; it is singular (constants per component) only for a fluid
 // component that touches no Dirichlet face while shift == 0. McAdams, Sifakis & Teran,
 // "A parallel multigrid Poisson solver for fluids simulation on large grids", SCA 2010, Sec. 3.
@@ -80,12 +81,27 @@ class PoissonOperator {
   void label_components();
 
   Scalar neighbour_sum(const Scalar* x, Index c) const;
+  Scalar wrapped_neighbour_sum(const Scalar* x, Index c) const;
+
+ public:
+  // Index of the neighbour of c in direction dir (bit of mask), across the periodic wrap if
+  // that is where it lies. Only meaningful for a coupled direction.
+  Index neighbour(Index c, int dir) const {
+    const int axis = dir / 2;
+    const Index stride = shape_.stride(axis);
+    if (!wrap_.empty() && (wrap_[c] >> dir) & 1)
+      return dir % 2 ? c - (shape_.n[axis] - 1) * stride : c + (shape_.n[axis] - 1) * stride;
+    return dir % 2 ? c + stride : c - stride;
+  }
+
+ private:
 
   GridShape shape_;
   Scalar h_ = 1, inv_h2_ = 1, shift_ = 0;
   Boundary bc_ = Boundary::Dirichlet;
   std::vector<std::uint8_t> mask_;      // neighbour-coupling bits 0-5 and kFluidBit
   std::vector<std::uint8_t> diag_;      // couplings + 2 per Dirichlet face (fluid cells)
+  std::vector<std::uint8_t> wrap_;      // periodic: directions whose neighbour wraps around
   std::vector<std::uint8_t> row_fast_;  // row whose inner cells see the plain stencil
   std::vector<std::uint8_t> row_clear_, row_fluid_;
   Index fluid_count_ = 0;

@@ -21,6 +21,11 @@ PoissonMethod parse_poisson_method(const std::string& name) {
 PoissonSolver::PoissonSolver(const GridShape& shape, Scalar h, Boundary bc,
                              const std::uint8_t* solid, Scalar shift, const PoissonConfig& config)
     : op_(std::make_unique<PoissonOperator>(shape, h, bc, solid, shift)), config_(config) {
+  if (bc == Boundary::Periodic && config_.method != PoissonMethod::Jacobi && config_.method != PoissonMethod::CG)
+    for (int a = 0; a < 3; ++a)
+      if (shape.active(a) && shape.n[a] % 2 != 0)
+        throw InvalidArgument("shape: red-black smoothing on a periodic grid needs an even number of cells "
+                              "per axis (use method='cg' or 'jacobi' otherwise)");
   if (config_.method == PoissonMethod::Multigrid || config_.method == PoissonMethod::MGPCG)
     mg_ = std::make_unique<Multigrid>(*op_, config_.multigrid);
   r_.assign(op_->size(), 0);

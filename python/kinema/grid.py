@@ -5,7 +5,8 @@ five phases, in order: advection of velocity and scalars (semi-Lagrangian, Stam 
 MacCormack / BFECC clamped to the interpolation stencil, Selle et al. 2008), body forces
 (gravity, buoyancy, vorticity confinement, Fedkiw, Stam & Jensen 2001), implicit viscosity
 (backward Euler, stable for any dt), Chorin's projection (the pressure Poisson problem solved
-by kinema's MGPCG, :mod:`kinema.poisson`; CG in a periodic domain), and a blow-up check.
+by kinema's MGPCG, :mod:`kinema.poisson`, also on periodic domains; CG for odd periodic sizes),
+and a blow-up check.
 See Bridson, "Fluid Simulation for Computer Graphics" (2nd ed., 2015) for the MAC grid.
 
 Layout (API.md): cells ``(nx, ny[, nz])`` of size ``h``; ``u`` has shape ``(nx+1, ny[, nz])`` at
@@ -198,7 +199,9 @@ class Fluid:
     def set_wall_velocity(self, side, velocity):
         """Makes wall ``side`` ("x-", "x+", "y-", "y+", "z-", "z+") a no-slip wall moving with the
         tangential ``velocity`` (a d-vector [m/s] whose normal component must be 0). The wall
-        drags the fluid through the viscosity (no effect when viscosity is 0)."""
+        drags the fluid through the viscosity and through advection: interpolation between the
+        last velocity node and the wall runs linearly to the wall's velocity (as do all no-slip
+        walls, at rest or not; free-slip walls extend the nearest value)."""
         choice(side, "side", tuple(s for s in _SIDES if self.dim == 3 or not s.startswith("z")))
         axis, s = _SIDES[side]
         vel = as_float_array(velocity, "velocity", ndim=1)

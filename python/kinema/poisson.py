@@ -6,6 +6,9 @@ of ``f.shape`` with spacing ``h`` (cell ``(i, j)`` centred at ``((i+0.5)h, (j+0.
 * ``bc="dirichlet"``: u = 0 on the domain's boundary faces (ghost cell = -u);
 * ``bc="neumann"``: zero normal derivative on every boundary face; f must integrate to zero
   (per connected fluid region) and the returned u has zero mean there;
+* ``bc="periodic"``: every axis wraps around (cell n-1 neighbours cell 0); singular like
+  Neumann (f must have zero mean, u is returned with zero mean). The red-black methods
+  (gauss_seidel, multigrid, mgpcg) need an even number of cells per axis;
 * ``solid``: a bool mask of cells excluded from the domain; their faces carry no flux and u is
   0 in them.
 
@@ -29,7 +32,7 @@ from kinema.errors import ConvergenceError
 __all__ = ["solve", "laplacian", "matrix", "Solver", "METHODS"]
 
 METHODS = ("jacobi", "gauss_seidel", "cg", "multigrid", "mgpcg", "cholmod")
-_BCS = ("dirichlet", "neumann")
+_BCS = ("dirichlet", "neumann", "periodic")
 
 # Relative size of f's null-space component above which Neumann data counts as incompatible;
 # rounding in a discrete divergence leaves ~1e-16, a sampled analytic f ~h^2.
@@ -54,7 +57,7 @@ class Solver:
     Building it assembles the multigrid hierarchy (for "multigrid" and "mgpcg") or the sparse
     Cholesky factor ("cholmod") once; each :meth:`solve` then allocates nothing but its result.
 
-    shape: (nx, ny[, nz]) cells. h: cell size [m]. bc: "dirichlet" or "neumann".
+    shape: (nx, ny[, nz]) cells. h: cell size [m]. bc: "dirichlet", "neumann" or "periodic".
     solid: optional bool mask of ``shape``. shift: diagonal shift >= 0 [1/m^2] (the implicit
     diffusion schemes use shift = 1/(kappa dt)). pre_smooth, post_smooth: red-black sweeps of
     the V-cycle.
@@ -190,7 +193,7 @@ def solve(f, h, bc="dirichlet", method="mgpcg", tol=1e-8, max_iter=None, x0=None
           **options):
     """Solves -lap(u) = f on the cell-centred grid of ``f.shape``. Returns ``(u, SolveInfo)``.
 
-    f: (nx, ny[, nz]) right-hand side. h: cell size [m]. bc: "dirichlet" or "neumann".
+    f: (nx, ny[, nz]) right-hand side. h: cell size [m]. bc: "dirichlet", "neumann" or "periodic".
     method: one of :data:`METHODS`. tol: relative residual. max_iter: iteration cap.
     x0: initial guess. solid: optional bool mask of cells excluded from the domain.
     Further keywords go to :class:`Solver` (pre_smooth, post_smooth) and
