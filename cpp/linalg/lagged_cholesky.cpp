@@ -1,9 +1,45 @@
 #include "linalg/lagged_cholesky.h"
 
+#include <dlfcn.h>
+
 #include "core/errors.h"
 #include "core/timer.h"
 
 namespace kinema {
+
+namespace {
+
+// OpenBLAS's threads help CHOLMOD's factorisation (dense BLAS-3 on supernodes) but slow its
+// triangular solves, a sequence of small BLAS-2 calls that each pay a thread hand-off, with
+// kinema's OpenMP threads still spinning beside them (34k-tet cube, 2 cores: one solve 12 ms
+// with one BLAS thread, 29-78 ms with two). Solves run with one BLAS thread for the scope of
+// this guard. The BLAS thread count is process-wide, so a factorisation running at the same
+// time in another thread may run single-threaded for a while: slower, never wrong. A no-op
+// for a BLAS other than OpenBLAS (looked up at run time, as core/build_info.cpp does).
+class OneBlasThread {
+ public:
+  OneBlasThread() {
+    if (!get_ || !set_) return;
+    saved_ = get_();
+    if (saved_ > 1) set_(1);
+  }
+  ~OneBlasThread() {
+    if (saved_ > 1) set_(saved_);
+  }
+  OneBlasThread(const OneBlasThread&) = delete;
+  OneBlasThread& operator=(const OneBlasThread&) = delete;
+
+ private:
+  using Get = int (*)();
+  using Set = void (*)(int);
+  inline static const Get get_ =
+      reinterpret_cast<Get>(dlsym(RTLD_DEFAULT, "openblas_get_num_threads"));
+  inline static const Set set_ =
+      reinterpret_cast<Set>(dlsym(RTLD_DEFAULT, "openblas_set_num_threads"));
+  int saved_ = 0;
+};
+
+}  // namespace
 
 bool LaggedCholesky::solve(const CsrView& A, const Scalar* b, Scalar* x, bool reuse, Scalar tol,
                            Index max_pcg, LaggedSolveStats& stats) {
@@ -12,6 +48,7 @@ bool LaggedCholesky::solve(const CsrView& A, const Scalar* b, Scalar* x, bool re
   if (reuse && has_factor() && !refactor_next_) {
     const LinearOperator op = [&](const Scalar* v, Scalar* y) { spmv(A, v, y); };
     const LinearOperator pre = [&](const Scalar* r, Scalar* z) { factor_->solve(r, z, 1); };
+    OneBlasThread single;
     Interrupt none;
     bool converged = false;
     try {
@@ -43,6 +80,7 @@ bool LaggedCholesky::solve(const CsrView& A, const Scalar* b, Scalar* x, bool re
   valid_ = true;
   stats.seconds_factor += phase.seconds();
   phase.restart();
+  OneBlasThread single;
   factor_->solve(b, x, 1);
   stats.seconds_solve += phase.seconds();
   return true;
