@@ -62,6 +62,19 @@ def with_cpu(fn):
     return run
 
 
+def isolated(fn, *args):
+    """Runs a peer's benchmark function in a fresh process, so that a crash of the peer (a
+    segmentation fault in its runtime) is reported instead of ending the whole run."""
+    import concurrent.futures
+    import multiprocessing
+    sys.stdout.flush()
+    try:
+        with concurrent.futures.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
+            return pool.submit(fn, *args).result()
+    except concurrent.futures.process.BrokenProcessPool as exc:
+        print(f"{fn.__name__}: the peer's process died ({exc}); no figure", flush=True)
+
+
 def measure(fn, opts, min_of=None):
     """harness.measure with the command line's repeat policy: disturbed calls are repeated."""
     return harness.measure(fn, min_of=min_of or opts.min_of, max_load=opts.max_load,
@@ -104,7 +117,7 @@ def bench_cloth(rec, N, opts):
     assert diff < 1e-8, f"cloth: default and direct paths differ by {diff:.2e}"
     m = bench_cloth_kinema(rec, N, opts, "cholmod")
     bench_cloth_kinema(rec, N, opts, "cholmod_direct")
-    bench_cloth_taichi(rec, N, opts, m)
+    isolated(bench_cloth_taichi, rec, N, opts, m)
 
 
 def bench_cloth_kinema(rec, N, opts, solver):
@@ -214,7 +227,7 @@ def bench_cube(rec, n, opts):
     print(f"assembly vs factorisation (direct path): {t['seconds_assembly']/t['iterations']*1e3:.1f} ms "
           f"per Newton iteration (gradient + Hessian) vs {t['seconds_factor']/t['factorizations']*1e3:.1f} ms "
           f"per CHOLMOD factorisation")
-    bench_cube_taichi(rec, n, opts, ma)
+    isolated(bench_cube_taichi, rec, n, opts, ma)
 
 
 def bench_cube_kinema(rec, n, opts, solver):

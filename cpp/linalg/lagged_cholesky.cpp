@@ -58,9 +58,11 @@ bool LaggedCholesky::solve(const CsrView& A, const Scalar* b, Scalar* x, bool re
       converged = info.converged;
       refactor_next_ = info.iterations > max_pcg / 2;
     } catch (const InvalidArgument&) {
-      // pcg's only InvalidArgument: p^T A p <= 0, A is not positive definite. The
-      // factorisation below tells for sure and names it.
-      stats.pcg_iterations += max_pcg;
+      // pcg's only InvalidArgument: a direction p with p^T A p <= 0, a certificate that A is
+      // not positive definite; no factorisation is needed to tell, and the lagged factor
+      // stays as the preconditioner of the definite matrix the caller will try next.
+      stats.seconds_solve += phase.seconds();
+      return false;
     }
     stats.seconds_solve += phase.seconds();
     if (converged) return true;

@@ -2,7 +2,7 @@
 // whose values drift slowly (Newton iterations, implicit time steps), reusing Cholesky factors:
 //   x = PCG(A_k, b_k, preconditioner (L_j L_j^T)^-1)  with L_j the factor of an earlier A_j,
 // refactorising A_k itself (and solving directly) only when PCG does not reach the tolerance
-// within `max_pcg` iterations, meets negative curvature, or needed more than max_pcg / 2
+// within `max_pcg` iterations, or needed more than max_pcg / 2
 // iterations on the previous solve (the matrix has drifted: refactorise before wasting a try).
 // A factorisation costs tens of PCG iterations on 2D/3D elasticity meshes, and a lagged factor
 // typically converges in a few, which is the whole saving (the preconditioner lagging of
@@ -31,8 +31,9 @@ class LaggedCholesky {
   // reuse = false: refactorise every call (a plain direct solve with the analysis reused).
   // x holds PCG's initial guess on entry (a direct solve ignores it).
   // tol: relative residual ||b - A x|| / ||b|| required of a PCG solution; max_pcg: its cap.
-  // Returns false when A is not positive definite (found by the factorisation); the lagged
-  // factor is then invalid until the next successful factorisation. A is the full symmetric
+  // Returns false when A is not positive definite: found by PCG (negative curvature; the
+  // lagged factor is kept) or by the factorisation (the factor is then invalid until the next
+  // successful one). A is the full symmetric
   // matrix in CSR form (its own CSC).
   bool solve(const CsrView& A, const Scalar* b, Scalar* x, bool reuse, Scalar tol, Index max_pcg,
              LaggedSolveStats& stats);

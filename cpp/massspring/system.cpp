@@ -252,11 +252,10 @@ StepStats System::step(Scalar dt, Integrator integrator, Scalar beta, LinearSolv
                                  "; use linear_solver='cholmod' or reduce dt");
         continue;
       }
-      // CHOLMOD, the factor lagged across steps unless told otherwise (PCG starts from v' = v);
-      // the clamped retry factorises its own matrix.
+      // CHOLMOD, the factor lagged across steps unless told otherwise (PCG starts from v' = v).
       LaggedSolveStats s;
       const CsrView A{n, n, row_ptr.data(), col.data(), values_.data()};
-      const bool lagged = solver != LinearSolver::CholmodDirect && !clamp;
+      const bool lagged = solver != LinearSolver::CholmodDirect;
       const bool ok = factor_.solve(A, rhs_.data(), v.data(), lagged, cg_tol, 25, s);
       stats.cg_iterations += s.pcg_iterations;
       stats.factorizations += s.factorizations;
