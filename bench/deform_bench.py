@@ -33,11 +33,7 @@ The harness records other processes' load with every figure and repeats disturbe
 from __future__ import annotations
 
 import argparse
-import contextlib
-import importlib.util
-import io
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -50,29 +46,21 @@ import kinema as km  # noqa: E402
 OUT = Path(__file__).resolve().parent / "out"
 
 
-def with_cpu(fn):
-    """fn plus the CPU seconds this process (all its threads: kinema's OpenMP and BLAS, Taichi's
-    pool) used during the call: a second figure, the work done, that other processes' load
-    disturbs far less than the wall time (exactly so with one thread, where it is the wall
-    time of a quiet machine; with several, spin-waiting threads inflate it)."""
-    def run():
-        start = time.process_time()
-        value = fn()
-        return value, time.process_time() - start
-    return run
-
-
-def isolated(fn, *args):
-    """Runs a peer's benchmark function in a fresh process, so that a crash of the peer (a
-    segmentation fault in its runtime) is reported instead of ending the whole run."""
-    import concurrent.futures
-    import multiprocessing
+def peer(part, size, opts, kinema):
+    """Runs the Taichi peer (bench/deform_taichi_peer.py) in its own process: Taichi must be
+    loaded before kinema (in the other order its sparse-matrix builder receives out-of-range
+    triplets and aborts), and a crash of the peer must not end the whole run. kinema: the
+    kinema default's Measurement, for the printed ratios."""
+    import subprocess
     sys.stdout.flush()
-    try:
-        with concurrent.futures.ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
-            return pool.submit(fn, *args).result()
-    except concurrent.futures.process.BrokenProcessPool as exc:
-        print(f"{fn.__name__}: the peer's process died ({exc}); no figure", flush=True)
+    args = [sys.executable, str(Path(__file__).with_name("deform_taichi_peer.py")), part, str(size),
+            "--threads", str(opts.threads), "--run-steps", str(opts.run_steps), "--min-of", str(opts.min_of),
+            "--max-load", str(opts.max_load), "--max-tries", str(opts.max_tries),
+            "--quiet-timeout", str(opts.quiet_timeout),
+            "--kinema", f"{kinema.seconds}", f"{kinema.value[1]}"]
+    done = subprocess.run(args)
+    if done.returncode != 0:
+        print(f"taichi {part} peer: process ended with status {done.returncode}; no figure", flush=True)
 
 
 def measure(fn, opts, min_of=None):
@@ -93,18 +81,6 @@ def kinema_cloth(N):
                                 gravity=(0.0, -2.0), fixed=[N, NV - 1])
 
 
-def taichi_cloth(N):
-    import taichi as ti
-    from taichi.examples.simulation import implicit_mass_spring as example  # noqa: F401
-
-    cloth = example.Cloth(N=N)
-    # The example's builders hold 10,000 triplets (N = 5); make room for N = 128.
-    triplets = 16 * cloth.NE + 2 * cloth.NV + 64
-    cloth.DBuilder = ti.linalg.SparseMatrixBuilder(2 * cloth.NV, 2 * cloth.NV, max_num_triplets=triplets)
-    cloth.KBuilder = ti.linalg.SparseMatrixBuilder(2 * cloth.NV, 2 * cloth.NV, max_num_triplets=triplets)
-    return cloth
-
-
 def bench_cloth(rec, N, opts):
     # The benchmark checks its answer first: the default (lagged factor, PCG to 1e-8) and the
     # direct solve every step give the same cloth after the same steps.
@@ -117,7 +93,7 @@ def bench_cloth(rec, N, opts):
     assert diff < 1e-8, f"cloth: default and direct paths differ by {diff:.2e}"
     m = bench_cloth_kinema(rec, N, opts, "cholmod")
     bench_cloth_kinema(rec, N, opts, "cholmod_direct")
-    isolated(bench_cloth_taichi, rec, N, opts, m)
+    peer("cloth", N, opts, m)
 
 
 def bench_cloth_kinema(rec, N, opts, solver):
@@ -131,7 +107,7 @@ def bench_cloth_kinema(rec, N, opts, solver):
         return {f: sum(getattr(i, f) for i in infos) for f in
                 ("seconds_assembly", "seconds_factor", "seconds_solve", "cg_iterations", "factorizations")}
 
-    m = measure(with_cpu(k_steps), opts)
+    m = measure(harness.with_cpu(k_steps), opts)
     t, cpu = m.value
     assert np.isfinite(sysk.x).all()
     rec.record(f"kinema_implicit_cloth_{solver}", f"{N+1}x{N+1}", m.seconds / k, measurement=m,
@@ -147,58 +123,7 @@ def bench_cloth_kinema(rec, N, opts, solver):
     return m
 
 
-def bench_cloth_taichi(rec, N, opts, m):
-    try:
-        import taichi as ti
-        with contextlib.redirect_stdout(io.StringIO()):
-            ti.init(arch=ti.cpu, cpu_max_num_threads=opts.threads)
-        cloth = taichi_cloth(N)
-        cloth.update(0.01)  # JIT compilation
-        k = opts.run_steps
-
-        def t_steps():
-            for _ in range(k):
-                cloth.update(0.01)
-
-        mt = measure(with_cpu(t_steps), opts)
-        cpu = mt.value[1]
-        assert np.isfinite(cloth.pos.to_numpy()).all()
-        rec.record("taichi_implicit_mass_spring", f"{N+1}x{N+1}", mt.seconds / k, measurement=mt,
-                   notes={"steps": k, "cpu_per_step": f"{cpu/k:.4f}"})
-        print(f"cloth {N+1}^2 taichi: {mt.seconds/k*1e3:.1f} ms/step, CPU {cpu/k*1e3:.1f} ms/step (mean of {k}; "
-              f"load {mt.other_load:.2f}, {mt.repeats} tries); ratio taichi / kinema default: wall "
-              f"{mt.seconds / m.seconds:.1f}x, CPU {cpu / m.value[1]:.1f}x (target >= 4x)")
-    except Exception as exc:  # the peer is optional: report, do not hide
-        print(f"taichi cloth peer failed: {type(exc).__name__}: {exc}")
-
-
 # ---------------------------------------------------------------- cube
-
-def taichi_fem_module(n, threads):
-    """Executes taichi/examples/simulation/implicit_fem.py from the wheel with n_cube = n, CPU."""
-    import taichi
-    path = Path(taichi.__file__).parent / "examples" / "simulation" / "implicit_fem.py"
-    src = path.read_text()
-    for old, new in [("ti.init(arch=ti.cuda)", f"ti.init(arch=ti.cpu, cpu_max_num_threads={threads})"),
-                     ("n_cube = np.array([5] * 3)", f"n_cube = np.array([{n}] * 3)")]:
-        if old not in src:
-            raise RuntimeError(f"{path} changed: cannot find {old!r}")
-        src = src.replace(old, new)
-    # Taichi reads kernel sources back with inspect, so the edited copy must be a real file
-    # (generated here from the installed wheel, never committed).
-    copy = OUT / f"taichi_implicit_fem_n{n}.py"
-    OUT.mkdir(parents=True, exist_ok=True)
-    copy.write_text(src)
-    argv, sys.argv = sys.argv, [str(path), "--exp", "implicit", "--gui", "cpu"]
-    try:
-        spec = importlib.util.spec_from_file_location(f"taichi_implicit_fem_n{n}", copy)
-        module = importlib.util.module_from_spec(spec)
-        with contextlib.redirect_stdout(io.StringIO()):
-            spec.loader.exec_module(module)
-    finally:
-        sys.argv = argv
-    return vars(module)
-
 
 def cube_body(n):
     V, T = km.fem.box_mesh([0, 1, 0], [1, 2, 1], n - 1, tets_per_cell=5)
@@ -227,7 +152,7 @@ def bench_cube(rec, n, opts):
     print(f"assembly vs factorisation (direct path): {t['seconds_assembly']/t['iterations']*1e3:.1f} ms "
           f"per Newton iteration (gradient + Hessian) vs {t['seconds_factor']/t['factorizations']*1e3:.1f} ms "
           f"per CHOLMOD factorisation")
-    isolated(bench_cube_taichi, rec, n, opts, ma)
+    peer("cube", n, opts, ma)
 
 
 def bench_cube_kinema(rec, n, opts, solver):
@@ -245,7 +170,7 @@ def bench_cube_kinema(rec, n, opts, solver):
         t["residual"] = max(i.residual for i in infos)
         return t
 
-    m = measure(with_cpu(k_steps), opts)
+    m = measure(harness.with_cpu(k_steps), opts)
     t, cpu = m.value
     it = max(t["iterations"], 1)
     rec.record(f"kinema_neohookean_newton_{solver}", f"{n}^3 verts, {len(T)} tets", m.seconds / k,
@@ -263,32 +188,6 @@ def bench_cube_kinema(rec, n, opts, solver):
           f"factor {t['seconds_factor']/it*1e3:.1f} ms, solve {t['seconds_solve']/it*1e3:.1f} ms, "
           f"line search {t['seconds_line_search']/it*1e3:.1f} ms (load {m.other_load:.2f}, {m.repeats} tries)")
     return m
-
-
-def bench_cube_taichi(rec, n, opts, m):
-    try:
-        ns = taichi_fem_module(n, opts.threads)
-        ns["get_vertices"]()
-        ns["init"]()
-        ns["substep"]()  # JIT
-        k = opts.run_steps
-
-        def t_steps():
-            for _ in range(k):
-                ns["substep"]()
-
-        mt = measure(with_cpu(t_steps), opts)
-        cpu = mt.value[1]
-        x = ns["F_x"].to_numpy()
-        assert np.isfinite(x).all()
-        rec.record("taichi_implicit_fem_cg", f"{n}^3 verts, {int(ns['n_cells'])} tets", mt.seconds / k,
-                   measurement=mt, notes={"steps": k, "cpu_per_step": f"{cpu/k:.4f}",
-                                          "solver": "one linearisation, <= 50 CG its, float32"})
-        print(f"cube {n}^3 taichi (CG, 1 linearisation): {mt.seconds/k:.3f} s/step, CPU {cpu/k:.3f} s/step "
-              f"(mean of {k}; load {mt.other_load:.2f}, {mt.repeats} tries); ratio taichi / kinema default: "
-              f"wall {mt.seconds / m.seconds:.2f}x, CPU {cpu / m.value[1]:.2f}x (target >= 2x)")
-    except Exception as exc:
-        print(f"taichi fem peer failed: {type(exc).__name__}: {exc}")
 
 
 def bench_scaling(rec, sizes, opts):
