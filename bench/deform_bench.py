@@ -8,7 +8,7 @@ in one run so that their ratios compare like with like:
   examples/simulation/implicit_mass_spring.py (its Cloth class, CPU backend, LDLT analysed and
   factorised every step as the example does), same layout, stiffness 1000, damping 0.5, unit
   masses, gravity (0, -2), h = 0.01. Taichi's example pins its two corners with penalty springs
-  (kf = 1e5) and ships sparse-matrix builders sized for N = 5; the builders are re-made larger
+  (kf = 1e5) and ships sparse-matrix builders sized for N = 5; the builders are made larger
   here (its code is otherwise untouched).
 - cube: implicit steps of the 20^3-vertex cube (19^3 cells x 5 tets = 34,295 tets), E = 5e4,
   nu = 0, rho = 1000, h = 0.01, gravity -9.8 y: kinema's neo-Hookean Newton converged to a
@@ -47,10 +47,9 @@ OUT = Path(__file__).resolve().parent / "out"
 
 
 def peer(part, size, opts, kinema):
-    """Runs the Taichi peer (bench/deform_taichi_peer.py) in its own process: Taichi must be
-    loaded before kinema (in the other order its sparse-matrix builder receives out-of-range
-    triplets and aborts), and a crash of the peer must not end the whole run. kinema: the
-    kinema default's Measurement, for the printed ratios."""
+    """Runs the Taichi peer (bench/deform_taichi_peer.py) in its own process, so that a crash
+    of the peer cannot end the whole run. kinema: the kinema default's Measurement, for the
+    printed ratios."""
     import subprocess
     sys.stdout.flush()
     args = [sys.executable, str(Path(__file__).with_name("deform_taichi_peer.py")), part, str(size),

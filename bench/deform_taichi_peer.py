@@ -1,11 +1,11 @@
 """Taichi's bundled implicit examples as the peers of bench/deform_bench.py (which runs this script
-in its own process: Taichi must be loaded before kinema, see deform_bench.peer).
+in its own process, so that a crash of the peer cannot end the whole run).
 
     .venv/bin/python bench/deform_taichi_peer.py {cloth,cube} SIZE [--threads T] [--kinema WALL CPU]
 
 cloth: examples/simulation/implicit_mass_spring.py's Cloth class with N = SIZE (LDLT analysed and
 factorised every step, as the example does); its sparse-matrix builders are sized for N = 5 and
-are re-made larger here, its code is otherwise untouched. cube: examples/simulation/implicit_fem.py
+are made larger here (taichi_cloth), its code is otherwise untouched. cube: examples/simulation/implicit_fem.py
 executed from the installed wheel with n_cube = SIZE and the CPU backend (matrix-free CG, one
 linearisation per step, <= 50 CG iterations, float32). Each figure is the mean time per step over
 --run-steps consecutive steps, recorded in bench/out/deform.csv with the harness's load.
@@ -20,7 +20,7 @@ import io
 import sys
 from pathlib import Path
 
-import taichi as ti  # before anything that loads kinema
+import taichi as ti
 
 import numpy as np
 
@@ -36,14 +36,24 @@ def measure(fn, opts):
 
 
 def taichi_cloth(N):
-    from taichi.examples.simulation import implicit_mass_spring as example  # noqa: F401
+    import taichi.linalg
+    from taichi.examples.simulation import implicit_mass_spring as example
 
-    cloth = example.Cloth(N=N)
-    # The example's builders hold 10,000 triplets (N = 5); make room for N = 128.
-    triplets = 16 * cloth.NE + 2 * cloth.NV + 64
-    cloth.DBuilder = ti.linalg.SparseMatrixBuilder(2 * cloth.NV, 2 * cloth.NV, max_num_triplets=triplets)
-    cloth.KBuilder = ti.linalg.SparseMatrixBuilder(2 * cloth.NV, 2 * cloth.NV, max_num_triplets=triplets)
-    return cloth
+    # The example sizes all three of its sparse-matrix builders (mass, damping, stiffness) for
+    # N = 5 (10,000 triplets) and fills the mass matrix in its constructor: at N = 128 that
+    # overflows the builder (2 NV = 33,282 mass triplets), which crashes or corrupts the run.
+    # The builders are made large enough while the Cloth is built; its code is untouched.
+    needed = 16 * (2 * N * (N + 1) + 2 * N * N) + 2 * (N + 1) ** 2 + 64
+    original = taichi.linalg.SparseMatrixBuilder
+
+    def sized(n, m, max_num_triplets=0, **kwargs):
+        return original(n, m, max_num_triplets=max(max_num_triplets, needed), **kwargs)
+
+    taichi.linalg.SparseMatrixBuilder = sized
+    try:
+        return example.Cloth(N=N)
+    finally:
+        taichi.linalg.SparseMatrixBuilder = original
 
 
 def cloth(rec, N, opts):
