@@ -1,6 +1,7 @@
 #include "linalg/lagged_cholesky.h"
 
 #include <dlfcn.h>
+#include <omp.h>
 
 #include "core/errors.h"
 #include "core/timer.h"
@@ -39,6 +40,24 @@ class OneBlasThread {
   int saved_ = 0;
 };
 
+// PCG with a Cholesky preconditioner spends its time in the (serial) triangular solves; its
+// vector operations and product on a few 10^4 unknowns take a fraction of a millisecond, less
+// than waking a thread team costs on a busy machine (each parallel region then waits for a
+// descheduled thread: 129^2 cloth, another process on one of 2 cores, 3.9 PCG iterations
+// took 266 ms per step). So PCG runs on the calling thread: omp_set_num_threads sets the
+// calling thread's own team size (an OpenMP per-task setting), restored on exit; kinema's
+// reductions give bitwise the same result for any thread count.
+class OneOmpThread {
+ public:
+  OneOmpThread() : saved_(omp_get_max_threads()) { omp_set_num_threads(1); }
+  ~OneOmpThread() { omp_set_num_threads(saved_); }
+  OneOmpThread(const OneOmpThread&) = delete;
+  OneOmpThread& operator=(const OneOmpThread&) = delete;
+
+ private:
+  int saved_;
+};
+
 }  // namespace
 
 bool LaggedCholesky::solve(const CsrView& A, const Scalar* b, Scalar* x, bool reuse, Scalar tol,
@@ -49,6 +68,7 @@ bool LaggedCholesky::solve(const CsrView& A, const Scalar* b, Scalar* x, bool re
     const LinearOperator op = [&](const Scalar* v, Scalar* y) { spmv(A, v, y); };
     const LinearOperator pre = [&](const Scalar* r, Scalar* z) { factor_->solve(r, z, 1); };
     OneBlasThread single;
+    OneOmpThread serial;
     Interrupt none;
     bool converged = false;
     try {
