@@ -234,7 +234,6 @@ def test_backward_euler_does_not_gain_energy():
     assert (np.diff(e) <= 1e-9 * abs(e[0])).all(), np.diff(e).max()
 
 
-@pytest.mark.slow
 def test_long_run_never_gains_energy():
     # 20 s of a soft, swinging beam at dt = 1/30 (600 steps): no step may raise the energy.
     body, _ = soft_box(E=1e5, n=4)

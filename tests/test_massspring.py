@@ -73,7 +73,6 @@ def test_implicit_stable_far_beyond_explicit_limit():
         exp.step(dt, "explicit", steps=200)
 
 
-@pytest.mark.slow
 def test_long_implicit_run_never_gains_energy():
     sys = hanging_cloth(n=16, stiffness=1e4)
     dt = 1 / 30
