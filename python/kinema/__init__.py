@@ -16,6 +16,7 @@ from kinema.errors import (
     StabilityError,
 )
 from kinema import diffusion, fem, fmm, grid, massspring, poisson, sparse, sph, vortex
+from kinema.scenes import Scene, SceneError
 
 __version__ = "0.1.0"
 
@@ -39,6 +40,8 @@ __all__ = [
     "massspring",
     "fem",
     "sph",
+    "Scene",
+    "SceneError",
 ]
 
 
