@@ -220,6 +220,18 @@ def measure(fn: Callable[[], Any], *, min_of: int = 1, max_load: float = DEFAULT
                        runs=tuple(runs), waited=waited)
 
 
+def with_cpu(fn: Callable[[], Any]) -> Callable[[], tuple]:
+    """fn wrapped to return (fn's value, CPU seconds this process used during the call): all its
+    threads (OpenMP, BLAS, a peer's thread pool) and waited-for children. A second figure, the
+    work done, which other processes' load disturbs far less than the wall time (with one thread
+    it is the wall time a quiet machine would give; with several, spin-waiting inflates it)."""
+    def run():
+        start = _own_cpu_seconds()
+        value = fn()
+        return value, _own_cpu_seconds() - start
+    return run
+
+
 def _better(run: Run, best: Run) -> bool:
     if run.disturbed != best.disturbed:
         return not run.disturbed

@@ -168,12 +168,16 @@ def test_cantilever_fine_and_nonlinear():
         assert abs(tip_deflection(nb, V) / tip_deflection(lin, V) - 1) < 1e-2
 
 
-def test_newton_converges_quadratically():
+@pytest.mark.parametrize("solver", ["cholmod", "cholmod_direct"])
+def test_newton_converges_quadratically(solver):
     # An implicit step whose Newton matrix stays positive definite: the adaptive definiteness
-    # fix keeps the exact Hessian, and the relative gradient norm squares each iteration.
+    # fix keeps the exact Hessian, and the relative gradient norm squares each iteration. The
+    # default's inexact solves (forcing term eta_k <= |g_k|/|g_0|) keep the order.
     body, V = cantilever((40, 4), model="neohookean", E=1e6)
+    body.step(0.05, linear_solver=solver)  # the default then starts with a lagged factor
+    body.x[:], body.v[:] = V, 0
     body.v[:, 1] = -2.0
-    info = body.step(0.05, tol=1e-13)
+    info = body.step(0.05, tol=1e-13, linear_solver=solver)
     r = np.array(info.gradient_norm) / info.gradient_norm[0]
     assert info.projected_elements == 0 and info.iterations >= 3
     pairs = [(a, b) for a, b in zip(r[:-1], r[1:]) if 1e-6 < a < 1e-1]
@@ -228,6 +232,19 @@ def test_backward_euler_does_not_gain_energy():
         body.step(1 / 30)
         e.append(body.energy())
     assert (np.diff(e) <= 1e-9 * abs(e[0])).all(), np.diff(e).max()
+
+
+def test_long_run_never_gains_energy():
+    # 20 s of a soft, swinging beam at dt = 1/30 (600 steps): no step may raise the energy.
+    body, _ = soft_box(E=1e5, n=4)
+    body.v[:, 2] = 2.0
+    body.v[body.fixed] = 0
+    e = [body.energy()]
+    for _ in range(600):
+        assert body.step(1 / 30).converged
+        e.append(body.energy())
+    rise = np.diff(e).max()
+    assert rise <= 1e-9 * abs(e[0]), f"energy rose by {rise:.2e} in one step"
 
 
 def test_symplectic_below_limit_and_divergence_above():
@@ -365,13 +382,55 @@ def test_deform_demo_smoke(tmp_path):
     assert len(list((tmp_path / "body").glob("*.vtk"))) == 3
     text = (tmp_path / "cloth" / "frame_0002.vtk").read_text()
     assert text.startswith("# vtk DataFile") and "CELL_TYPES" in text
+    obj = (tmp_path / "body" / "frame_0002.obj").read_text().splitlines()
+    assert sum(line.startswith("f ") for line in obj) > 0 and len(list((tmp_path / "cloth").glob("*.obj"))) == 3
+
+
+def test_demo_boundary_surface_is_closed_and_outward():
+    from kinema.demo_deform import boundary_faces
+    V, T = km.fem.box_mesh([0, 0, 0], [1.0, 0.5, 0.25], (4, 3, 2), tets_per_cell=5)
+    F = boundary_faces(T)
+    assert len(F) == 2 * 2 * (4 * 3 + 4 * 2 + 3 * 2)  # two triangles per boundary cell face
+    edges = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    assert (counts == 2).all()  # closed, manifold
+    # Divergence theorem: the enclosed volume sum (a . (b x c)) / 6 is +volume for outward faces.
+    a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
+    assert np.einsum("ij,ij->", a, np.cross(b, c)) / 6 == pytest.approx(0.125, rel=1e-12)
 
 
 def test_lagged_factor_pcg_matches_cholmod():
     a, _ = soft_box(n=6)
     b, _ = soft_box(n=6)
     for _ in range(4):
-        a.step(1 / 30, tol=1e-10)
+        a.step(1 / 30, tol=1e-10, linear_solver="cholmod_direct")
         info = b.step(1 / 30, tol=1e-10, linear_solver="cholmod_pcg", cg_tol=1e-6)
         assert info.converged
     assert np.abs(a.x - b.x).max() < 1e-7 * np.abs(a.x - a.rest).max() + 1e-12
+
+
+def test_default_reuses_factor_and_agrees_with_direct_to_newton_tol():
+    # The default solver (lagged CHOLMOD factor as PCG preconditioner, inexact Newton) and a
+    # factorisation every iteration stop at the same test |g| <= tol |g_0|. From the same state,
+    # both minimisers of g (strongly convex with modulus >= min mass near the solution) lie
+    # within |g| / m_min of the exact one, so they differ by at most 2 tol |g_0| / m_min.
+    tol = 1e-6
+    a, V = soft_box(n=6, E=1e6)
+    b, _ = soft_box(n=6, E=1e6)
+    a.v[:, 2] = 0.5
+    a.v[a.fixed] = 0
+    m_min = a.mass.min()
+    total_iterations = total_factorizations = 0
+    for k in range(8):
+        b.x[:], b.v[:] = a.x, a.v
+        ia = a.step(1 / 30, tol=tol)
+        ib = b.step(1 / 30, tol=tol, linear_solver="cholmod_direct")
+        assert ia.converged and ia.residual <= tol and ib.residual <= tol
+        bound = 2 * tol * ia.gradient_norm[0] / m_min
+        diff = np.abs(a.x - b.x).max()
+        assert diff <= bound, f"step {k}: default vs direct differ by {diff:.2e} > {bound:.2e}"
+        assert ib.factorizations == ib.iterations
+        total_iterations += ia.iterations
+        total_factorizations += ia.factorizations
+    # After the first step the lagged factor serves several iterations per factorisation.
+    assert total_factorizations < total_iterations / 2, (total_factorizations, total_iterations)

@@ -34,9 +34,10 @@ fem::Definiteness parse_definiteness(const std::string& name) {
 fem::LinearSolver parse_solver(const std::string& name) {
   if (name == "cholmod") return fem::LinearSolver::Cholmod;
   if (name == "cg") return fem::LinearSolver::CG;
+  if (name == "cholmod_direct") return fem::LinearSolver::CholmodDirect;
   if (name == "cholmod_pcg") return fem::LinearSolver::CholmodPcg;
-  throw InvalidArgument("linear_solver: expected 'cholmod', 'cholmod_pcg' or 'cg', got '" + name +
-                        "'");
+  throw InvalidArgument("linear_solver: expected 'cholmod', 'cholmod_direct', 'cholmod_pcg' or "
+                        "'cg', got '" + name + "'");
 }
 
 py::dict stats_dict(const fem::NewtonStats& s) {
@@ -47,6 +48,7 @@ py::dict stats_dict(const fem::NewtonStats& s) {
   d["step_length"] = s.step_length;
   d["projected_elements"] = s.projected_elements;
   d["cg_iterations"] = s.cg_iterations;
+  d["factorizations"] = s.factorizations;
   d["seconds_assembly"] = s.seconds_assembly;
   d["seconds_factor"] = s.seconds_factor;
   d["seconds_solve"] = s.seconds_solve;

@@ -24,9 +24,10 @@ massspring::Integrator parse_integrator(const std::string& name) {
 massspring::LinearSolver parse_solver(const std::string& name) {
   if (name == "cholmod") return massspring::LinearSolver::Cholmod;
   if (name == "cg") return massspring::LinearSolver::CG;
+  if (name == "cholmod_direct") return massspring::LinearSolver::CholmodDirect;
   if (name == "cholmod_pcg") return massspring::LinearSolver::CholmodPcg;
-  throw InvalidArgument("linear_solver: expected 'cholmod', 'cholmod_pcg' or 'cg', got '" + name +
-                        "'");
+  throw InvalidArgument("linear_solver: expected 'cholmod', 'cholmod_direct', 'cholmod_pcg' or "
+                        "'cg', got '" + name + "'");
 }
 
 py::array view(py::object self, std::vector<Scalar>& buffer, Index d) {
@@ -88,6 +89,7 @@ void bind_massspring(py::module_& m) {
                  stats.clamped = stats.clamped || last.clamped;
                  stats.refactored = stats.refactored || last.refactored;
                  stats.cg_iterations += last.cg_iterations;
+                 stats.factorizations += last.factorizations;
                  stats.seconds_assembly += last.seconds_assembly;
                  stats.seconds_factor += last.seconds_factor;
                  stats.seconds_solve += last.seconds_solve;
@@ -98,6 +100,7 @@ void bind_massspring(py::module_& m) {
              d["clamped"] = stats.clamped;
              d["refactored"] = stats.refactored;
              d["cg_iterations"] = stats.cg_iterations;
+             d["factorizations"] = stats.factorizations;
              d["seconds_assembly"] = stats.seconds_assembly;
              d["seconds_factor"] = stats.seconds_factor;
              d["seconds_solve"] = stats.seconds_solve;

@@ -326,6 +326,7 @@ NewtonStats Body::solve_static(const NewtonOptions& options, Index load_steps,
     total.step_length.insert(total.step_length.end(), s.step_length.begin(), s.step_length.end());
     total.projected_elements = s.projected_elements;
     total.cg_iterations += s.cg_iterations;
+    total.factorizations += s.factorizations;
     total.seconds_assembly += s.seconds_assembly;
     total.seconds_factor += s.seconds_factor;
     total.seconds_solve += s.seconds_solve;
@@ -439,9 +440,14 @@ NewtonStats Body::minimise(Scalar* x, const Scalar* y, Scalar a, const Scalar* z
     }));
     stats.seconds_assembly += phase.seconds();
 
-    // Newton direction: H dx = -grad g
+    // Newton direction: H dx = -grad g, to the forcing tolerance eta (body.h)
+    const Scalar needed = std::max(options.tol * g0, floor + position_noise);
+    const Scalar eta = options.linear_solver == LinearSolver::Cholmod
+                           ? std::max(std::min(options.cg_tol, g_norm / g0), 0.1 * needed / g_norm)
+                           : options.cg_tol;
     parallel_for(n, [&](Index q) { rhs_[q] = -grad_[q]; });
-    if (!linear_solve(options, rhs_.data(), dx_.data(), stats)) {
+    bool solved = linear_solve(options, rhs_.data(), dx_.data(), eta, true, stats);
+    if (!solved) {
       if (options.definiteness == Definiteness::None)
         throw NotPositiveDefinite(std::string(what) + ": the Newton matrix is indefinite at step " +
                                   std::to_string(state_.step) +
@@ -449,16 +455,27 @@ NewtonStats Body::minimise(Scalar* x, const Scalar* y, Scalar a, const Scalar* z
       phase.restart();
       stats.projected_elements = assemble_newton_matrix(x, a + b, s, true);
       stats.seconds_assembly += phase.seconds();
-      if (!linear_solve(options, rhs_.data(), dx_.data(), stats))
+      if (!linear_solve(options, rhs_.data(), dx_.data(), eta, true, stats))
         throw ConvergenceError(std::string(what) + ": the projected Newton matrix is singular at "
                                "step " + std::to_string(state_.step) +
                                " (are rigid motions left free in a static solve?)");
     }
-    const Scalar slope = dot(n, grad_.data(), dx_.data());
+    Scalar slope = dot(n, grad_.data(), dx_.data());
+    if (!(slope < 0) && options.linear_solver != LinearSolver::CG &&
+        options.linear_solver != LinearSolver::CholmodDirect) {
+      // A lagged preconditioner met an (exact, indefinite) matrix PCG cannot handle: factorise.
+      if (!linear_solve(options, rhs_.data(), dx_.data(), eta, false, stats)) {
+        phase.restart();
+        stats.projected_elements = assemble_newton_matrix(x, a + b, s, true);
+        stats.seconds_assembly += phase.seconds();
+        linear_solve(options, rhs_.data(), dx_.data(), eta, false, stats);
+      }
+      slope = dot(n, grad_.data(), dx_.data());
+    }
     if (!(slope < 0))
       throw ConvergenceError(std::string(what) + ": the Newton direction is not a descent "
                              "direction at step " + std::to_string(state_.step) +
-                             " (the linear solve failed); try linear_solver='cholmod'");
+                             " (the linear solve failed); try linear_solver='cholmod_direct'");
 
     // Backtracking line search on g (Armijo, c = 1e-4). Near the solution g changes by less
     // than its rounding error, so a step that lowers the gradient norm there is accepted too.
@@ -531,49 +548,29 @@ Index Body::assemble_newton_matrix(const Scalar* x, Scalar a_plus_b, Scalar s, b
   return projected;
 }
 
-bool Body::linear_solve(const NewtonOptions& options, const Scalar* rhs, Scalar* dx,
-                        NewtonStats& stats) {
+bool Body::linear_solve(const NewtonOptions& options, const Scalar* rhs, Scalar* dx, Scalar tol,
+                        bool reuse, NewtonStats& stats) {
   const Index n = assembly_.dof_count();
-  const auto& row_ptr = assembly_.row_ptr();
-  const auto& col = assembly_.col_index();
-  Stopwatch phase;
+  const CsrView A{n, n, assembly_.row_ptr().data(), assembly_.col_index().data(), values_.data()};
   if (options.linear_solver == LinearSolver::CG) {
+    Stopwatch phase;
     std::fill(dx, dx + n, 0);
-    const CsrView A{n, n, row_ptr.data(), col.data(), values_.data()};
     Interrupt none;
-    const SolveInfo info = cg_csr(A, rhs, dx, true, IterativeOptions{options.cg_tol, 0}, none);
+    const SolveInfo info = cg_csr(A, rhs, dx, true, IterativeOptions{tol, 0}, none);
     stats.cg_iterations += info.iterations;
     stats.seconds_solve += phase.seconds();
     return true;
   }
-  if (options.linear_solver == LinearSolver::CholmodPcg && factor_) {
-    // The last factorisation as preconditioner of the current matrix; accepted when PCG
-    // converges quickly to a descent direction (rhs = -grad g, so rhs . dx > 0).
-    std::fill(dx, dx + n, 0);
-    const CsrView A{n, n, row_ptr.data(), col.data(), values_.data()};
-    const LinearOperator op = [&](const Scalar* v, Scalar* y) { spmv(A, v, y); };
-    const LinearOperator pre = [&](const Scalar* r, Scalar* z) { factor_->solve(r, z, 1); };
-    Interrupt none;
-    const SolveInfo info = pcg(n, op, pre, rhs, dx, IterativeOptions{options.cg_tol, 25}, none);
-    stats.cg_iterations += info.iterations;
-    stats.seconds_solve += phase.seconds();
-    if (info.converged && dot(n, rhs, dx) > 0) return true;
-    phase.restart();
-  }
-  // CHOLMOD: symbolic analysis once per body, numeric refactorisation per Newton iteration.
-  const CscView A{n, n, row_ptr.data(), col.data(), values_.data()};
-  try {
-    if (!factor_) factor_ = std::make_unique<CholmodFactor>(A);
-    else factor_->refactor(A);
-  } catch (const NotPositiveDefinite&) {
-    stats.seconds_factor += phase.seconds();
-    return false;
-  }
-  stats.seconds_factor += phase.seconds();
-  phase.restart();
-  factor_->solve(rhs, dx, 1);
-  stats.seconds_solve += phase.seconds();
-  return true;
+  // CHOLMOD: symbolic analysis once per body; the numeric factor refreshed as the solver says.
+  LaggedSolveStats s;
+  const bool lagged = reuse && options.linear_solver != LinearSolver::CholmodDirect;
+  std::fill(dx, dx + n, 0);
+  const bool ok = factor_.solve(A, rhs, dx, lagged, tol, 25, s);
+  stats.cg_iterations += s.pcg_iterations;
+  stats.factorizations += s.factorizations;
+  stats.seconds_factor += s.seconds_factor;
+  stats.seconds_solve += s.seconds_solve;
+  return ok;
 }
 
 }  // namespace kinema::fem

@@ -14,7 +14,7 @@
 
 #include "core/interrupt.h"
 #include "fem/kernels.h"
-#include "linalg/cholmod_factor.h"
+#include "linalg/lagged_cholesky.h"
 #include "mesh/element_assembly.h"
 
 namespace kinema::fem {
@@ -57,11 +57,15 @@ struct BodyState {
   Index step = 0;
 };
 
-// Cholmod: refactorise every Newton iteration. CholmodPcg: PCG on the current matrix
-// preconditioned by the most recent factorisation (lagged across iterations and steps),
-// refactorising only when PCG needs more than 25 iterations or fails to give a descent
-// direction. CG: Jacobi-preconditioned CG on the projected matrix.
-enum class LinearSolver { Cholmod, CholmodPcg, CG };
+// Cholmod (default): PCG preconditioned by the most recent CHOLMOD factorisation, lagged across
+// iterations and steps (linalg/lagged_cholesky.h), to the inexact-Newton forcing tolerance
+// eta_k = max(min(cg_tol, |g_k|/|g_0|), 0.1 tol |g_0|/|g_k|): a residual relative to the
+// gradient's own progress keeps Newton quadratic (eta_k = O(|g_k|)), and the second term stops
+// solving more accurately than the stopping test needs. The matrix is refactorised when PCG
+// needs more than 25 iterations or gives no descent direction. CholmodDirect: refactorise
+// every Newton iteration (analysis reused). CholmodPcg: the lagged factor with the fixed
+// tolerance cg_tol. CG: Jacobi-preconditioned CG on the projected matrix.
+enum class LinearSolver { Cholmod, CholmodDirect, CholmodPcg, CG };
 
 // Definiteness fix of the Newton matrix. Adaptive: the exact Hessian first, the per-element
 // projected one only when CHOLMOD finds the exact matrix indefinite, which keeps Newton's
@@ -84,6 +88,7 @@ struct NewtonStats {
   std::vector<Scalar> step_length;    // accepted line-search step per iteration
   Index projected_elements = 0;       // elements whose dP/dF was clamped (last iteration)
   Index cg_iterations = 0;
+  Index factorizations = 0;           // CHOLMOD numeric factorisations
   double seconds_assembly = 0, seconds_factor = 0, seconds_solve = 0, seconds_line_search = 0;
   double seconds = 0;
 };
@@ -129,9 +134,10 @@ class Body {
                        const char* what);
   // Assembles (a + b) M + s K(x) (projected or not) with identity rows on fixed dofs.
   Index assemble_newton_matrix(const Scalar* x, Scalar a_plus_b, Scalar s, bool project);
-  // Solves H dx = rhs with the assembled matrix; false when CHOLMOD finds it indefinite.
-  bool linear_solve(const NewtonOptions& options, const Scalar* rhs, Scalar* dx,
-                    NewtonStats& stats);
+  // Solves H dx = rhs with the assembled matrix to the relative residual tol (iterative
+  // solvers); false when CHOLMOD finds it indefinite. reuse = false forces a factorisation.
+  bool linear_solve(const NewtonOptions& options, const Scalar* rhs, Scalar* dx, Scalar tol,
+                    bool reuse, NewtonStats& stats);
   void check_finite(const std::vector<Scalar>& a, const char* quantity) const;
 
   BodyModel model_;
@@ -140,7 +146,7 @@ class Body {
   // Scratch, allocated once.
   std::vector<Scalar> element_vectors_, element_matrices_, values_;
   std::vector<Scalar> grad_, dx_, trial_, rhs_;
-  std::unique_ptr<CholmodFactor> factor_;
+  LaggedCholesky factor_;
   Scalar explicit_dt_limit_ = 0;
 };
 

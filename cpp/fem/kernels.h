@@ -328,11 +328,34 @@ ElementVec<D> element_gradient(const Mat<D>& P, const Mat<D>& Dm_inv, Scalar vol
   return g;
 }
 
-// Element stiffness d^2 W / dx_e^2 = vol B^T (dP/dF) B.
+// Element stiffness d^2 W / dx_e^2 = vol B^T (dP/dF) B, using B's structure (D nonzeros per
+// column, B(c D + s, a D + s) = b_a(c)): K_(a s)(b t) = vol sum_{c, c'} b_a(c) H_(c s)(c' t) b_b(c'),
+// about 3x fewer operations than the dense triple product.
 template <int D>
 ElementMat<D> element_hessian(const HessF<D>& dPdF, const Mat<D>& Dm_inv, Scalar vol) {
-  const auto B = gradient_operator<D>(Dm_inv);
-  return vol * B.transpose() * dPdF * B;
+  constexpr int K = (D + 1) * D;
+  Eigen::Matrix<Scalar, D, D + 1> G;  // G(c, a) = b_a(c)
+  for (int c = 0; c < D; ++c) {
+    G(c, 0) = -Dm_inv.col(c).sum();
+    for (int a = 1; a <= D; ++a) G(c, a) = Dm_inv(a - 1, c);
+  }
+  Eigen::Matrix<Scalar, D * D, K> HB;  // H B
+  for (int i = 0; i < D * D; ++i)
+    for (int b = 0; b <= D; ++b)
+      for (int t = 0; t < D; ++t) {
+        Scalar sum = 0;
+        for (int c = 0; c < D; ++c) sum += dPdF(i, c * D + t) * G(c, b);
+        HB(i, b * D + t) = sum;
+      }
+  ElementMat<D> Ke;
+  for (int a = 0; a <= D; ++a)
+    for (int s = 0; s < D; ++s)
+      for (int j = 0; j < K; ++j) {
+        Scalar sum = 0;
+        for (int c = 0; c < D; ++c) sum += G(c, a) * HB(c * D + s, j);
+        Ke(a * D + s, j) = vol * sum;
+      }
+  return Ke;
 }
 
 }  // namespace kinema::fem

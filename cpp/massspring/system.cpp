@@ -252,33 +252,21 @@ StepStats System::step(Scalar dt, Integrator integrator, Scalar beta, LinearSolv
                                  "; use linear_solver='cholmod' or reduce dt");
         continue;
       }
-      if (solver == LinearSolver::CholmodPcg && factor_ && !clamp) {
-        // The lagged factorisation as preconditioner; fall back to refactorising.
-        std::fill(v.begin(), v.end(), 0);
-        const CsrView S{n, n, row_ptr.data(), col.data(), values_.data()};
-        const LinearOperator op = [&](const Scalar* p, Scalar* y) { spmv(S, p, y); };
-        const LinearOperator pre = [&](const Scalar* r, Scalar* z) { factor_->solve(r, z, 1); };
-        const SolveInfo info =
-            pcg(n, op, pre, rhs_.data(), v.data(), IterativeOptions{cg_tol, 25}, interrupt);
-        stats.cg_iterations += info.iterations;
-        stats.seconds_solve += phase.seconds();
-        if (info.converged) break;
-        phase.restart();
-      }
-      const CscView A{n, n, row_ptr.data(), col.data(), values_.data()};
-      stats.refactored = true;
-      try {
-        if (!factor_) factor_ = std::make_unique<CholmodFactor>(A);
-        else factor_->refactor(A);
-      } catch (const NotPositiveDefinite&) {
-        if (clamp) throw;
-        continue;
-      }
-      stats.seconds_factor += phase.seconds();
-      phase.restart();
-      factor_->solve(rhs_.data(), v.data(), 1);
-      stats.seconds_solve += phase.seconds();
-      break;
+      // CHOLMOD, the factor lagged across steps unless told otherwise (PCG starts from v' = v).
+      LaggedSolveStats s;
+      const CsrView A{n, n, row_ptr.data(), col.data(), values_.data()};
+      const bool lagged = solver != LinearSolver::CholmodDirect;
+      const bool ok = factor_.solve(A, rhs_.data(), v.data(), lagged, cg_tol, 25, s);
+      stats.cg_iterations += s.pcg_iterations;
+      stats.factorizations += s.factorizations;
+      stats.refactored = stats.factorizations > 0;
+      stats.seconds_factor += s.seconds_factor;
+      stats.seconds_solve += s.seconds_solve;
+      if (ok) break;
+      if (clamp)
+        throw NotPositiveDefinite("implicit step: the clamped implicit matrix is not positive "
+                                  "definite at step " + std::to_string(state_.step) +
+                                  "; check for negative stiffness or reduce dt", -1);
     }
     // x' = x + h v'
     parallel_for(n, [&](Index q) { x[q] += dt * v[q]; });

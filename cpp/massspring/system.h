@@ -9,11 +9,10 @@
 // pattern fixed at construction and factorised by CHOLMOD, whose analysis is reused every step.
 #pragma once
 
-#include <memory>
 #include <vector>
 
 #include "core/interrupt.h"
-#include "linalg/cholmod_factor.h"
+#include "linalg/lagged_cholesky.h"
 #include "mesh/element_assembly.h"
 
 namespace kinema::massspring {
@@ -44,13 +43,16 @@ struct SystemState {
 };
 
 enum class Integrator { Explicit, Symplectic, Implicit };
-// CholmodPcg: PCG preconditioned by the factorisation of an earlier step (lagged), which is
-// refreshed only when PCG needs more than 25 iterations.
-enum class LinearSolver { Cholmod, CholmodPcg, CG };
+// Cholmod (default) and its older name CholmodPcg: PCG to cg_tol preconditioned by the CHOLMOD
+// factorisation of an earlier step (lagged, linalg/lagged_cholesky.h), refreshed when PCG needs
+// more than 25 iterations. CholmodDirect: factorise every step (analysis reused).
+// CG: Jacobi-preconditioned CG.
+enum class LinearSolver { Cholmod, CholmodDirect, CholmodPcg, CG };
 
 struct StepStats {
   bool clamped = false;   // the exact Jacobian was not definite; the clamped one was used
   bool refactored = false;  // a CHOLMOD factorisation was computed in this step
+  Index factorizations = 0;
   Index cg_iterations = 0;
   double seconds_assembly = 0, seconds_factor = 0, seconds_solve = 0, seconds = 0;
 };
@@ -82,7 +84,7 @@ class System {
   SystemState state_;
   ElementAssembly assembly_;
   std::vector<Scalar> element_vectors_, element_matrices_, values_, f_, rhs_;
-  std::unique_ptr<CholmodFactor> factor_;
+  LaggedCholesky factor_;
 };
 
 }  // namespace kinema::massspring

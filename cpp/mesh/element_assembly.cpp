@@ -38,7 +38,9 @@ ElementAssembly::ElementAssembly(Index vertex_count, int d, int k, const Index* 
   }
 
   // Block pattern: for vertex row i, the sorted neighbour set (i included) and the element
-  // blocks (e, a, b) with elements[e][a] = i, elements[e][b] = neighbour.
+  // blocks (e, a, b) with elements[e][a] = i, elements[e][b] = neighbour, each stored as the
+  // offset of its (0, 0) entry in the row-major element matrices (no division when gathering).
+  const Index kd = Index(k) * d;
   block_ptr_.assign(vertex_count + 1, 0);
   std::vector<std::vector<std::pair<Index, Index>>> rows(vertex_count);  // (col, source)
   parallel_for(vertex_count, [&](Index i) {
@@ -46,7 +48,8 @@ ElementAssembly::ElementAssembly(Index vertex_count, int d, int k, const Index* 
     row.emplace_back(i, -1);  // the diagonal block exists even for an isolated vertex
     for (Index p = vertex_ptr_[i]; p < vertex_ptr_[i + 1]; ++p) {
       const Index e = vertex_slot_[p] / k, a = vertex_slot_[p] % k;
-      for (int b = 0; b < k; ++b) row.emplace_back(elements[e * k + b], (e * k + a) * k + b);
+      for (int b = 0; b < k; ++b)
+        row.emplace_back(elements[e * k + b], e * kd * kd + a * d * kd + b * d);
     }
     std::sort(row.begin(), row.end());
   });
@@ -100,21 +103,16 @@ void ElementAssembly::gather_vector(const Scalar* element_vectors, Scalar* out) 
 }
 
 void ElementAssembly::gather_matrix(const Scalar* element_matrices, Scalar* values) const {
-  const int d = d_, k = k_;
-  const Index kd = Index(k) * d;
+  const int d = d_;
+  const Index kd = Index(k_) * d;
   parallel_for(vertex_count_, [&](Index i) {
     for (Index b = block_ptr_[i]; b < block_ptr_[i + 1]; ++b) {
       const Index local = b - block_ptr_[i];
       for (int r = 0; r < d; ++r)
         for (int c = 0; c < d; ++c) {
           Scalar s = 0;
-          for (Index q = source_ptr_[b]; q < source_ptr_[b + 1]; ++q) {
-            // source (e*k + a)*k + b_local -> element e, rows a*d + r, cols b_local*d + c
-            const Index src = source_[q];
-            const Index e = src / (Index(k) * k), ab = src % (Index(k) * k);
-            const Index a = ab / k, bl = ab % k;
-            s += element_matrices[e * kd * kd + (a * d + r) * kd + bl * d + c];
-          }
+          for (Index q = source_ptr_[b]; q < source_ptr_[b + 1]; ++q)
+            s += element_matrices[source_[q] + r * kd + c];
           values[row_ptr_[i * d + r] + local * d + c] = s;
         }
     }

@@ -47,7 +47,7 @@ class ElementAssembly {
   // Vertex-level incidence: the (e * k + a) slots of every vertex, in element order.
   std::vector<Index> vertex_ptr_, vertex_slot_;
   // Vertex-level block pattern: block_ptr_ per vertex row, block_col_ the neighbour vertex,
-  // and for each block the (e * k * k + a * k + b) element blocks that add into it.
+  // and for each block the element blocks that add into it, as offsets of their first entry.
   std::vector<Index> block_ptr_, block_col_, source_ptr_, source_;
 };
 

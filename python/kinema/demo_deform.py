@@ -4,8 +4,11 @@
 
 Writes, into the output folder:
   cloth/frame_NNNN.vtk   the cloth (km.massspring, implicit, 1/30 s steps) as a VTK legacy
-                         triangle mesh per frame (ParaView, Blender's VTK importers)
+                         triangle mesh per frame (ParaView)
+  cloth/frame_NNNN.obj   the same as Wavefront OBJ (Blender imports OBJ natively; a sequence
+                         loads as an animation with a mesh-sequence add-on)
   body/frame_NNNN.vtk    the neo-Hookean beam (km.fem, implicit Newton) as a tetrahedral mesh
+  body/frame_NNNN.obj    its boundary surface, outward-oriented triangles
   preview/NNNN.png, deform.mp4   a side-by-side preview (the video when ffmpeg is installed)
   summary.txt            steps, Newton iterations and timings
 """
@@ -39,6 +42,27 @@ def write_vtk(path, points, cells, cell_type):
         np.savetxt(f, np.full(len(cells), cell_type), fmt="%d")
 
 
+def write_obj(path, points, faces):
+    """A Wavefront OBJ triangle mesh (1-based vertex indices)."""
+    points = np.asarray(points, dtype=float)
+    if points.shape[1] == 2:
+        points = np.hstack([points, np.zeros((len(points), 1))])
+    with open(path, "w") as f:
+        f.write("# kinema deformable body\n")
+        np.savetxt(f, points, fmt="v %.9g %.9g %.9g")
+        np.savetxt(f, faces + 1, fmt="f %d %d %d")
+
+
+def boundary_faces(tets):
+    """The faces of a positively oriented tetrahedral mesh that belong to one tetrahedron only,
+    ordered so that their normals point out of the body."""
+    a, b, c, d = tets.T
+    # Opposite a, b, c, d: (b, c, d), (a, d, c), (a, b, d), (a, c, b) are outward for det > 0.
+    faces = np.concatenate([np.stack(f, 1) for f in ((b, c, d), (a, d, c), (a, b, d), (a, c, b))])
+    _, first, counts = np.unique(np.sort(faces, axis=1), axis=0, return_index=True, return_counts=True)
+    return faces[np.sort(first[counts == 1])]
+
+
 def cloth_scene(n):
     x, springs, kinds = km.massspring.cloth(n, n, 1.0, return_kinds=True)
     x[:, 2] = 1.0  # horizontal at z = 1, pinned at two corners of the y = 0 edge: it falls and swings
@@ -59,7 +83,7 @@ def body_scene(cells):
     return body, T
 
 
-def render(path, cloth_x, tris, body_x, tets):
+def render(path, cloth_x, tris, body_x, surface):
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -67,7 +91,7 @@ def render(path, cloth_x, tris, body_x, tets):
 
     fig = plt.figure(figsize=(9, 4.5), dpi=80)
     for k, (x, faces, title) in enumerate([(cloth_x, tris, "cloth (km.massspring)"),
-                                           (body_x, tets[:, [0, 1, 2]], "soft beam (km.fem)")]):
+                                           (body_x, surface, "soft beam (km.fem)")]):
         ax = fig.add_subplot(1, 2, k + 1, projection="3d")
         ax.add_collection3d(Poly3DCollection(x[faces], facecolor="tab:orange" if k else "tab:blue",
                                              edgecolor="k", linewidth=0.1, alpha=0.8))
@@ -94,6 +118,7 @@ def main(argv=None):
         (out / sub).mkdir(parents=True, exist_ok=True)
     cloth, tris = cloth_scene(args.cloth)
     body, tets = body_scene(args.cells)
+    surface = boundary_faces(tets)
     dt = 1 / 30
     newton, t_cloth, t_body = [], 0.0, 0.0
     for frame in range(args.frames):
@@ -105,8 +130,10 @@ def main(argv=None):
         t_body += time.perf_counter() - t
         write_vtk(out / "cloth" / f"frame_{frame:04d}.vtk", cloth.x, tris, 5)
         write_vtk(out / "body" / f"frame_{frame:04d}.vtk", body.x, tets, 10)
+        write_obj(out / "cloth" / f"frame_{frame:04d}.obj", cloth.x, tris)
+        write_obj(out / "body" / f"frame_{frame:04d}.obj", body.x, surface)
         if not args.no_video:
-            render(out / "preview" / f"{frame:04d}.png", cloth.x, tris, body.x, tets)
+            render(out / "preview" / f"{frame:04d}.png", cloth.x, tris, body.x, surface)
     video = None
     if not args.no_video and shutil.which("ffmpeg"):
         video = out / "deform.mp4"

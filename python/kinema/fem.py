@@ -15,8 +15,9 @@ Implicit Euler (``Body.step``, default) minimises the incremental potential
 g(x) = 1/2 ||x - (x_n + h v_n)||_M^2 + h c/2 ||x - x_n||_M^2 + h^2 (E(x) - M g . x)
 by projected Newton: element Hessians vol B^T (dP/dF)+ B with dP/dF's negative eigenvalues
 clamped (only for elements whose dP/dF is not already positive definite), assembled in parallel
-into a sparsity pattern fixed at construction, solved by CHOLMOD (analysis reused across Newton
-iterations and steps) or CG, with a backtracking line search; converged when ||grad g|| <= tol
+into a sparsity pattern fixed at construction, solved with CHOLMOD (analysis reused across Newton
+iterations and steps, the numeric factor reused as a PCG preconditioner while it stays good) or
+CG, with a backtracking line search; converged when ||grad g|| <= tol
 times its value at the inertial guess x_n + h v_n. ``integrator="symplectic"`` is the explicit
 path (no Hessian is assembled). The damping c [1/s] is mass-proportional.
 """
@@ -36,7 +37,7 @@ __all__ = ["Body", "NewtonInfo", "MODELS", "lame", "psi", "piola", "piola_deriva
            "rectangle_mesh", "box_mesh"]
 
 MODELS = ("linear", "stvk", "corotated", "neohookean")
-_SOLVERS = ("cholmod", "cholmod_pcg", "cg")
+_SOLVERS = ("cholmod", "cholmod_direct", "cholmod_pcg", "cg")
 _DEFINITENESS = ("adaptive", "project", "none")
 
 
@@ -48,6 +49,7 @@ class NewtonInfo:
     gradient_norm: ||grad g|| at every iterate (absolute, [kg m] for a step, [N] static).
     step_length: accepted line-search step of each iteration (1 = full Newton step).
     projected_elements: elements whose dP/dF was clamped in the last iteration.
+    cg_iterations: (P)CG iterations; factorizations: CHOLMOD numeric factorisations.
     seconds_assembly (gradient + Hessian), seconds_factor, seconds_solve,
     seconds_line_search, seconds: wall times [s].
     """
@@ -58,6 +60,7 @@ class NewtonInfo:
     step_length: list = field(repr=False)
     projected_elements: int
     cg_iterations: int
+    factorizations: int
     seconds_assembly: float
     seconds_factor: float
     seconds_solve: float
@@ -175,10 +178,14 @@ class Body:
         else the per-element projection: quadratic convergence where possible), "project"
         (always project) or "none" (exact Newton; km.NotPositiveDefiniteError if indefinite).
         With linear_solver="cg" the matrix is always projected.
-        linear_solver: "cholmod" (refactorise every Newton iteration, analysis reused),
-        "cholmod_pcg" (PCG to cg_tol preconditioned by the last factorisation, which is kept
-        across iterations and steps and refreshed when PCG needs more than 25 iterations), or
-        "cg" (Jacobi-preconditioned CG to cg_tol).
+        linear_solver: "cholmod" (default: CHOLMOD's factorisation of an earlier Newton
+        iteration or step as the preconditioner of PCG, solved to the inexact-Newton forcing
+        tolerance min(cg_tol, |g_k|/|g_0|), bounded below by what ``tol`` still needs; the
+        matrix is refactorised when PCG needs more than 25 iterations or gives no descent
+        direction; Newton's stopping test on the gradient is the same for every solver),
+        "cholmod_direct" (factorise every Newton iteration, analysis reused), "cholmod_pcg"
+        (the lagged factor with the fixed PCG tolerance cg_tol) or "cg" (Jacobi-preconditioned
+        CG to cg_tol).
         """
         dt = positive(dt, "dt")
         choice(integrator, "integrator", ("implicit", "symplectic"))

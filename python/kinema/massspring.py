@@ -8,10 +8,11 @@ and gravity. Integrators (``System.step``):
 - ``"symplectic"``: symplectic Euler, v' = v + h M^-1 f, x' = x + h v' (bounded energy below the
   stability limit ``System.explicit_dt_limit``);
 - ``"implicit"``: [M - h C - beta h^2 K] v' = M v + h f, x' = x + h v' with the exact spring
-  Jacobian K = df/dx and damping Jacobian C = df/dv (Baraff & Witkin, SIGGRAPH 1998), solved by
-  CHOLMOD (symbolic analysis reused every step), PCG preconditioned by the factorisation of an
-  earlier step (``linear_solver="cholmod_pcg"``, refreshed when PCG needs more than 25
-  iterations) or Jacobi-preconditioned CG. beta = 1 is
+  Jacobian K = df/dx and damping Jacobian C = df/dv (Baraff & Witkin, SIGGRAPH 1998), solved
+  with CHOLMOD: by default (``linear_solver="cholmod"``, also accepted as "cholmod_pcg") PCG to
+  ``cg_tol`` from v' = v, preconditioned by the CHOLMOD factorisation of an earlier step and
+  refactorised when PCG needs more than 25 iterations; ``"cholmod_direct"`` factorises every
+  step (symbolic analysis reused); ``"cg"`` is Jacobi-preconditioned CG. beta = 1 is
   backward Euler, 0.5 trapezoid-like. When the exact matrix is not positive definite (springs
   compressed far below rest length) the transverse term of compressed springs is clamped
   (Choi & Ko 2002) and the step's info reports ``clamped=True``.
@@ -31,7 +32,7 @@ from kinema._checks import as_float_array, choice, non_negative, positive, posit
 __all__ = ["System", "StepInfo", "cloth", "INTEGRATORS"]
 
 INTEGRATORS = ("explicit", "symplectic", "implicit")
-_SOLVERS = ("cholmod", "cholmod_pcg", "cg")
+_SOLVERS = ("cholmod", "cholmod_direct", "cholmod_pcg", "cg")
 
 
 @dataclass(frozen=True)
@@ -39,13 +40,14 @@ class StepInfo:
     """Statistics of ``System.step`` (summed over ``steps``).
 
     clamped: the exact spring Jacobian was not positive definite and was clamped.
-    refactored: a CHOLMOD factorisation was computed (always, except with "cholmod_pcg").
-    cg_iterations: CG iterations (linear_solver="cg").
+    refactored: a CHOLMOD factorisation was computed; factorizations: how many.
+    cg_iterations: (P)CG iterations.
     seconds_assembly, seconds_factor, seconds_solve: implicit phases [s]; seconds: total [s].
     """
 
     clamped: bool
     refactored: bool
+    factorizations: int
     cg_iterations: int
     seconds_assembly: float
     seconds_factor: float

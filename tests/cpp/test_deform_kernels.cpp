@@ -158,6 +158,21 @@ TEST(FemKernels, ElementForcesAreEnergyGradient) {
   }
 }
 
+// The structured element stiffness equals the dense triple product vol B^T (dP/dF) B.
+template <int D>
+void check_structured_hessian() {
+  std::mt19937 rng(11);
+  const fem::Mat<D> Dinv = random_F<D>(rng, 0.5);
+  const auto H = fem::piola_derivative<D>(random_F<D>(rng, 0.3), Material::NeoHookean, kMu, kLam);
+  const auto B = fem::gradient_operator<D>(Dinv);
+  const Eigen::Matrix<Scalar, (D + 1) * D, (D + 1) * D> dense = 0.7 * B.transpose() * H * B;
+  const auto K = fem::element_hessian<D>(H, Dinv, 0.7);
+  EXPECT_LE((K - dense).cwiseAbs().maxCoeff(), 1e-13 * dense.cwiseAbs().maxCoeff());
+}
+
+TEST(FemKernels, StructuredHessianEqualsDenseProduct2D) { check_structured_hessian<2>(); }
+TEST(FemKernels, StructuredHessianEqualsDenseProduct3D) { check_structured_hessian<3>(); }
+
 TEST(MassSpringKernels, ForceAndJacobianMatchFiniteDifferences) {
   std::mt19937 rng(8);
   std::uniform_real_distribution<Scalar> u(-1, 1);
