@@ -15,7 +15,7 @@ from kinema.errors import (
     NotPositiveDefiniteError,
     StabilityError,
 )
-from kinema import diffusion, fem, fmm, grid, massspring, poisson, sparse, sph, vortex
+from kinema import diffusion, fem, fmm, grid, massspring, poisson, render, sparse, sph, vortex
 
 __version__ = "0.1.0"
 
@@ -39,6 +39,7 @@ __all__ = [
     "massspring",
     "fem",
     "sph",
+    "render",
 ]
 
 
