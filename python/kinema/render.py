@@ -54,8 +54,8 @@ DEFAULT_SKY = ((1.0, 1.0, 1.0), (0.5, 0.7, 1.0))
 
 def _rgb(x, name, *, upper=math.inf):
     a = as_float_array(x, name)
-    if a.ndim == 0:
-        a = np.full(3, float(a))
+    if np.ndim(x) == 0:  # as_float_array makes scalars 1-d
+        a = np.full(3, float(a[0]))
     if a.shape != (3,):
         raise ValueError(f"{name}: expected a scalar or an RGB triple, got shape {a.shape}")
     if a.min() < 0 or a.max() > upper:
@@ -154,8 +154,8 @@ class Camera:
 def _sky(sky):
     """(bottom, top) RGB radiances from a scalar, an RGB triple or a (2, 3) pair."""
     a = as_float_array(sky, "sky")
-    if a.ndim == 0 or a.shape == (3,):
-        rgb = _rgb(a, "sky")
+    if np.ndim(sky) == 0 or a.shape == (3,):
+        rgb = _rgb(sky, "sky")
         return rgb, rgb
     if a.shape != (2, 3):
         raise ValueError("sky: expected a radiance, an RGB triple or a (bottom, top) pair of "
@@ -209,8 +209,8 @@ class Scene:
         if c.shape[1] != 3:
             raise ValueError(f"centers: expected shape (n, 3), got {c.shape}")
         r = as_float_array(radii, "radii")
-        if r.ndim == 0:
-            r = np.full(c.shape[0], float(r))
+        if np.ndim(radii) == 0:
+            r = np.full(c.shape[0], float(r[0]))
         if r.shape != (c.shape[0],):
             raise ValueError(f"radii: expected a scalar or shape ({c.shape[0]},), got {r.shape}")
         if r.size and r.min() <= 0:
