@@ -55,7 +55,7 @@ Color trace_path(const Scene& scene, const Sky& sky, const RenderConfig& config,
     radiance += beta * m.emission;
     const Vec3& n = hit.normal;
     const Vec3& d = ray.direction;
-    Vec3 next;
+    Vec3 next = Vec3::Zero();
     switch (m.kind) {
       case MaterialKind::lambertian: {  // f cos / pdf = (a / pi) cos / (cos / pi) = a
         const Scalar u1 = rng.uniform(), u2 = rng.uniform();
