@@ -344,14 +344,14 @@ def test_deterministic_for_any_thread_count():
     scene, _ = random_scene(5, spheres=100, triangles=100)
     scene.add_spheres([[0, 0, 0]], 0.5, R.dielectric(1.5))
     scene.add_spheres([[0.6, 0.6, 0]], 0.3, R.metal(0.8, fuzz=0.2))
-    cam = R.Camera((0, 0.5, 3), (0, 0, 0), width=40, height=30)
+    cam = R.Camera((0, 0.5, 3), (0, 0, 0), width=24, height=18)
     old = km.get_num_threads()
     try:
         km.set_num_threads(1)
-        one = scene.render(cam, spp=4, seed=9)
+        one = scene.render(cam, spp=20, seed=9)  # two passes of samples
         km.set_num_threads(2)
-        two = scene.render(cam, spp=4, seed=9)
-        other = scene.render(cam, spp=4, seed=10)
+        two = scene.render(cam, spp=20, seed=9)
+        other = scene.render(cam, spp=20, seed=10)
     finally:
         km.set_num_threads(old)
     assert np.array_equal(one, two)
@@ -434,3 +434,12 @@ def test_example_smoke(tmp_path):
     subprocess.run([sys.executable, str(example), "--out", str(tmp_path / "cornell.png"),
                     "--width", "32", "--height", "24", "--spp", "2"], check=True, timeout=120)
     assert (tmp_path / "cornell.png").stat().st_size > 100
+
+
+def test_render_stops_on_ctrl_c(ctrl_c_delay):
+    """A render of minutes stops within a fraction of a second of SIGINT (KeyboardInterrupt)."""
+    scene = R.Scene()
+    scene.add_spheres([[0, 0, 0]], 1.0, R.lambertian(0.5))
+    cam = R.Camera((0, 0, 3), (0, 0, 0), width=200, height=150)
+    seconds = ctrl_c_delay(lambda: scene.render(cam, spp=100_000))
+    assert seconds < 2.0, f"render took {seconds:.2f} s to honour Ctrl-C"

@@ -32,21 +32,17 @@ class Projector {
     const Vec3 q = p - frame_.origin();
     return Vec3(q.dot(right_unit_), q.dot(up_unit_), q.dot(frame_.forward()));
   }
-  // Pixel box covering the camera-space points (x, y) / z over the given x, y and z ranges
-  // (z_lo > 0): x / z is monotone in x and in z there, so the corners bound it.
-  PixelBox box(Scalar x_lo, Scalar x_hi, Scalar y_lo, Scalar y_hi, Scalar z_lo, Scalar z_hi) const {
-    const Scalar sx[4] = {x_lo / z_lo, x_lo / z_hi, x_hi / z_lo, x_hi / z_hi};
-    const Scalar sy[4] = {y_lo / z_lo, y_lo / z_hi, y_hi / z_lo, y_hi / z_hi};
-    const Scalar u_lo = *std::min_element(sx, sx + 4) / right_len_, u_hi = *std::max_element(sx, sx + 4) / right_len_;
-    const Scalar v_lo = *std::min_element(sy, sy + 4) / up_len_, v_hi = *std::max_element(sy, sy + 4) / up_len_;
+  // The pixels whose centres lie in the image-plane rectangle x / z in [sx_lo, sx_hi],
+  // y / z in [sy_lo, sy_hi]: ndc u = (x / z) / |right| maps to col + 0.5 = (u + 1) w / 2, and
+  // v = (y / z) / |up| to row + 0.5 = (1 - v) h / 2. A millionth of a pixel absorbs rounding.
+  PixelBox box(Scalar sx_lo, Scalar sx_hi, Scalar sy_lo, Scalar sy_hi) const {
     const auto w = static_cast<Scalar>(frame_.width()), h = static_cast<Scalar>(frame_.height());
-    // ndc u in [-1, 1] maps to col + 0.5 = (u + 1) w / 2; v to row + 0.5 = (1 - v) h / 2. One
-    // pixel of margin absorbs the rounding of the projection.
+    constexpr Scalar slack = 1e-6;
     PixelBox b;
-    b.col0 = clamp_index(std::floor((u_lo + 1) * 0.5 * w - 0.5) - 1, frame_.width());
-    b.col1 = clamp_index(std::ceil((u_hi + 1) * 0.5 * w - 0.5) + 2, frame_.width());
-    b.row0 = clamp_index(std::floor((1 - v_hi) * 0.5 * h - 0.5) - 1, frame_.height());
-    b.row1 = clamp_index(std::ceil((1 - v_lo) * 0.5 * h - 0.5) + 2, frame_.height());
+    b.col0 = clamp_index(std::ceil((sx_lo / right_len_ + 1) * 0.5 * w - 0.5 - slack), frame_.width());
+    b.col1 = clamp_index(std::floor((sx_hi / right_len_ + 1) * 0.5 * w - 0.5 + slack) + 1, frame_.width());
+    b.row0 = clamp_index(std::ceil((1 - sy_hi / up_len_) * 0.5 * h - 0.5 - slack), frame_.height());
+    b.row1 = clamp_index(std::floor((1 - sy_lo / up_len_) * 0.5 * h - 0.5 + slack) + 1, frame_.height());
     return b;
   }
   PixelBox whole() const { return PixelBox{0, frame_.height(), 0, frame_.width()}; }
@@ -61,24 +57,48 @@ class Projector {
   Scalar right_len_, up_len_;
 };
 
-// Near limit of the projection: primitives reaching closer than this (or behind the camera)
-// get the whole image as their box instead.
-constexpr Scalar kNearFraction = 1e-9;
-
-PixelBox sphere_box(const Projector& p, const Scene::Sphere& s, Scalar scale) {
-  const Vec3 c = p.to_camera(s.center);
-  const Scalar r = s.radius;
-  if (c.z() + r <= 0) return PixelBox{};
-  if (c.z() - r <= kNearFraction * scale) return p.whole();
-  return p.box(c.x() - r, c.x() + r, c.y() - r, c.y() + r, c.z() - r, c.z() + r);
+// Range of a / z over a sphere of radius r centred at (a, z) in a plane through the eye: the
+// tangent lines from the eye make angles atan2(a, z) +- asin(r / |(a, z)|) with the view axis.
+// False when the sphere reaches within 1e-6 of the eye or beyond 90 degrees off the axis.
+bool tangent_range(Scalar a, Scalar z, Scalar r, Scalar& lo, Scalar& hi) {
+  const Scalar d = std::hypot(a, z);
+  if (d <= r * (1 + 1e-6)) return false;
+  const Scalar theta = std::atan2(a, z), half = std::asin(r / d);
+  constexpr Scalar kLimit = 0.5 * kPi * (1 - 1e-6);
+  if (theta - half <= -kLimit || theta + half >= kLimit) return false;
+  // A relative widening of 1e-12 covers the rounding of the trigonometric functions.
+  lo = std::tan(theta - half) - 1e-12 * (1 + std::abs(a / z));
+  hi = std::tan(theta + half) + 1e-12 * (1 + std::abs(a / z));
+  return true;
 }
 
+PixelBox sphere_box(const Projector& p, const Scene::Sphere& s) {
+  const Vec3 c = p.to_camera(s.center);
+  if (c.z() + s.radius <= 0) return PixelBox{};
+  Scalar x_lo, x_hi, y_lo, y_hi;
+  if (!tangent_range(c.x(), c.z(), s.radius, x_lo, x_hi) || !tangent_range(c.y(), c.z(), s.radius, y_lo, y_hi))
+    return p.whole();
+  return p.box(x_lo, x_hi, y_lo, y_hi);
+}
+
+// Primitives reaching closer than this to the eye plane (or behind it) get the whole image.
+constexpr Scalar kNearFraction = 1e-9;
+
 PixelBox triangle_box(const Projector& p, const Scene::Triangle& t, Scalar scale) {
-  const Vec3 a = p.to_camera(t.v0), b = p.to_camera(t.v0 + t.e1), c = p.to_camera(t.v0 + t.e2);
-  const Vec3 lo = a.cwiseMin(b).cwiseMin(c), hi = a.cwiseMax(b).cwiseMax(c);
-  if (hi.z() <= 0) return PixelBox{};
-  if (lo.z() <= kNearFraction * scale) return p.whole();
-  return p.box(lo.x(), hi.x(), lo.y(), hi.y(), lo.z(), hi.z());
+  const Vec3 v[3] = {p.to_camera(t.v0), p.to_camera(t.v0 + t.e1), p.to_camera(t.v0 + t.e2)};
+  const Scalar z_lo = std::min({v[0].z(), v[1].z(), v[2].z()});
+  if (std::max({v[0].z(), v[1].z(), v[2].z()}) <= 0) return PixelBox{};
+  if (z_lo <= kNearFraction * scale) return p.whole();
+  // The projection of a triangle in front of the eye is the triangle of its projected vertices.
+  Scalar x_lo = kInfinity, x_hi = -kInfinity, y_lo = kInfinity, y_hi = -kInfinity;
+  for (const Vec3& q : v) {
+    x_lo = std::min(x_lo, q.x() / q.z());
+    x_hi = std::max(x_hi, q.x() / q.z());
+    y_lo = std::min(y_lo, q.y() / q.z());
+    y_hi = std::max(y_hi, q.y() / q.z());
+  }
+  const Scalar pad = 1e-12 * (1 + std::max({std::abs(x_lo), std::abs(x_hi), std::abs(y_lo), std::abs(y_hi)}));
+  return p.box(x_lo - pad, x_hi + pad, y_lo - pad, y_hi + pad);
 }
 
 }  // namespace
@@ -101,7 +121,7 @@ PreviewResult preview(const Scene& scene, const Camera& camera, const Sky& sky,
 #pragma omp parallel for schedule(static)
   for (Index i = 0; i < bounded; ++i)
     boxes[static_cast<size_t>(i)] =
-        i < s_count ? sphere_box(projector, scene.spheres()[static_cast<size_t>(i)], scale)
+        i < s_count ? sphere_box(projector, scene.spheres()[static_cast<size_t>(i)])
                     : triangle_box(projector, scene.triangles()[static_cast<size_t>(i - s_count)], scale);
   const Index bands = (height + kBandRows - 1) / kBandRows;
   std::vector<Index> start(static_cast<size_t>(bands + 1), 0);

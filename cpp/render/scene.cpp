@@ -150,8 +150,26 @@ void Scene::finish_hit(const Ray& ray, Hit& hit) const {
   hit.normal = hit.front_face ? n : Vec3(-n);
 }
 
-Hit Scene::intersect(const Ray& ray, Scalar t_min, Scalar t_max) const {
+Hit Scene::closest(Index first, Index last, const Ray& ray, Scalar t_min, Scalar t_max,
+                   Index best) const {
+  for (Index id = first; id < last; ++id) {
+    const Scalar t = intersect_primitive(id, ray, t_min, t_max);
+    if (t < t_max) {
+      t_max = t;
+      best = id;
+    }
+  }
   Hit hit;
+  if (best >= 0) {
+    hit.t = t_max;
+    hit.primitive = best;
+    finish_hit(ray, hit);
+  }
+  return hit;
+}
+
+Hit Scene::intersect(const Ray& ray, Scalar t_min, Scalar t_max) const {
+  Index best = -1;
   const std::vector<Index>& order = bvh_->order();
   t_max = bvh_->traverse(ray.origin, ray.direction, t_min, t_max,
                          [&](std::int32_t first, std::int32_t count, Scalar t_far) {
@@ -160,40 +178,17 @@ Hit Scene::intersect(const Ray& ray, Scalar t_min, Scalar t_max) const {
                              const Scalar t = intersect_primitive(id, ray, t_min, t_far);
                              if (t < t_far) {
                                t_far = t;
-                               hit.primitive = id;
+                               best = id;
                              }
                            }
                            return t_far;
                          });
-  const Index first_plane = sphere_count() + triangle_count();
-  for (Index id = first_plane; id < primitive_count(); ++id) {
-    const Scalar t = intersect_primitive(id, ray, t_min, t_max);
-    if (t < t_max) {
-      t_max = t;
-      hit.primitive = id;
-    }
-  }
-  if (hit.primitive >= 0) {
-    hit.t = t_max;
-    finish_hit(ray, hit);
-  }
-  return hit;
+  // Planes have no bounds: tested after the BVH, against its closest hit.
+  return closest(sphere_count() + triangle_count(), primitive_count(), ray, t_min, t_max, best);
 }
 
 Hit Scene::intersect_brute_force(const Ray& ray, Scalar t_min, Scalar t_max) const {
-  Hit hit;
-  for (Index id = 0; id < primitive_count(); ++id) {
-    const Scalar t = intersect_primitive(id, ray, t_min, t_max);
-    if (t < t_max) {
-      t_max = t;
-      hit.primitive = id;
-    }
-  }
-  if (hit.primitive >= 0) {
-    hit.t = t_max;
-    finish_hit(ray, hit);
-  }
-  return hit;
+  return closest(0, primitive_count(), ray, t_min, t_max, -1);
 }
 
 }  // namespace kinema::render

@@ -97,6 +97,9 @@ class Scene {
   void finish_hit(const Ray& ray, Hit& hit) const;
 
  private:
+  // The closest hit among primitives [first, last) in (t_min, t_max), or `best` (hit at t_max)
+  // when none is closer.
+  Hit closest(Index first, Index last, const Ray& ray, Scalar t_min, Scalar t_max, Index best) const;
   void check_material(Index material, const char* name) const;
   void grow_scale(const Vec3& p);
 

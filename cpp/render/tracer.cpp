@@ -37,6 +37,8 @@ void validate(const RenderConfig& c) {
     throw InvalidArgument("roulette_depth: expected >= 1, got " + std::to_string(c.roulette_depth));
 }
 
+constexpr Index kSamplePass = 16;
+
 Index band_rows(Index height) { return std::min<Index>(height, std::max(8, 4 * num_threads())); }
 
 Color trace_path(const Scene& scene, const Sky& sky, const RenderConfig& config, Ray ray, Rng& rng,
@@ -106,37 +108,46 @@ RenderResult render(Scene& scene, const Camera& camera, const Sky& sky, const Re
   const CameraFrame frame(camera);
   const Index width = camera.width, height = camera.height, spp = config.samples_per_pixel;
   result.image.assign(static_cast<size_t>(3 * width * height), 0);
-  if (config.variance) result.variance.assign(result.image.size(), 0);
+  // Welford's running mean (kept in the image) and sum of squared deviations, per channel. The
+  // samples are taken in passes of kSamplePass so that Ctrl-C is honoured quickly even at high
+  // spp; each pixel still adds its samples in the order 0, 1, ..., spp - 1.
+  std::vector<Scalar> m2(result.image.size(), 0);
   std::vector<Index> row_rays(static_cast<size_t>(height), 0);
   const auto start = std::chrono::steady_clock::now();
   const Index band = band_rows(height);
-  for (Index row0 = 0; row0 < height; row0 += band) {
-    interrupt.check();
-    const Index row1 = std::min(height, row0 + band);
+  for (Index s0 = 0; s0 < spp; s0 += kSamplePass) {
+    const Index s1 = std::min(spp, s0 + kSamplePass);
+    for (Index row0 = 0; row0 < height; row0 += band) {
+      interrupt.check();
+      const Index row1 = std::min(height, row0 + band);
 #pragma omp parallel for schedule(dynamic, 1)
-    for (Index row = row0; row < row1; ++row) {
-      Index rays = 0;
-      for (Index col = 0; col < width; ++col) {
-        const Index pixel = row * width + col;
-        // Welford's running mean and sum of squared deviations, per channel.
-        Color mean = Color::Zero(), m2 = Color::Zero();
-        for (Index s = 0; s < spp; ++s) {
-          Rng rng(config.seed, static_cast<std::uint64_t>(pixel), static_cast<std::uint64_t>(s));
-          const Scalar sx = rng.uniform(), sy = rng.uniform();
-          const Color l = trace_path(scene, sky, config, frame.ray(row, col, sx, sy), rng, rays);
-          const Color delta = l - mean;
-          mean += delta / static_cast<Scalar>(s + 1);
-          m2 += delta * (l - mean);
+      for (Index row = row0; row < row1; ++row) {
+        Index rays = 0;
+        for (Index col = 0; col < width; ++col) {
+          const Index pixel = row * width + col;
+          Scalar* mean_px = &result.image[static_cast<size_t>(3 * pixel)];
+          Scalar* m2_px = &m2[static_cast<size_t>(3 * pixel)];
+          Color mean(mean_px[0], mean_px[1], mean_px[2]), dev2(m2_px[0], m2_px[1], m2_px[2]);
+          for (Index s = s0; s < s1; ++s) {
+            Rng rng(config.seed, static_cast<std::uint64_t>(pixel), static_cast<std::uint64_t>(s));
+            const Scalar sx = rng.uniform(), sy = rng.uniform();
+            const Color l = trace_path(scene, sky, config, frame.ray(row, col, sx, sy), rng, rays);
+            const Color delta = l - mean;
+            mean += delta / static_cast<Scalar>(s + 1);
+            dev2 += delta * (l - mean);
+          }
+          for (int c = 0; c < 3; ++c) {
+            mean_px[c] = mean[c];
+            m2_px[c] = dev2[c];
+          }
         }
-        for (int c = 0; c < 3; ++c) {
-          result.image[static_cast<size_t>(3 * pixel + c)] = mean[c];
-          if (config.variance)
-            result.variance[static_cast<size_t>(3 * pixel + c)] =
-                m2[c] / static_cast<Scalar>((spp - 1) * spp);
-        }
+        row_rays[static_cast<size_t>(row)] += rays;
       }
-      row_rays[static_cast<size_t>(row)] = rays;
     }
+  }
+  if (config.variance) {
+    result.variance = std::move(m2);
+    for (Scalar& v : result.variance) v /= static_cast<Scalar>((spp - 1) * spp);
   }
   interrupt.check();
   result.stats.seconds =
