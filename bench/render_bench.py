@@ -7,7 +7,8 @@ scene size, and the preview's frame time at simulation sizes.
 Scenes: n particles of radius 0.35 (1/n)^(1/3) uniform in the unit cube above a floor plane
 (Lambertian albedo 0.7, gradient sky), or a torus mesh (metal, fuzz 0.2) above the floor.
 Path tracing at 160x120, 4 spp, max_depth 8; rays/s counts closest-hit queries (camera rays and
-bounces). Preview at 640x480. Each figure is timed by bench/harness.py, which records the load
+bounces); per CPU-second (all threads' CPU time) it is less sensitive to the machine's load.
+Preview at 640x480. Each figure is timed by bench/harness.py, which records the load
 other processes put on the machine (other_load, cores) and retries disturbed runs. Checks before
 recording: BVH against brute force on 300 rays, a finite image with mean radiance inside the
 sky's range, and the preview's visible primitives equal to the tracer's primary hits.
@@ -82,36 +83,40 @@ def check_bvh(scene, name):
     check(name, np.array_equal(i1, i2) and np.array_equal(t1, t2), "BVH differs from brute force")
 
 
-def bench_trace(rec, name, size, scene, rows):
+def bench_trace(rec, name, size, make_scene, rows):
+    """make_scene() -> a new Scene; its BVH is built by the first query (timed on its own)."""
     cam = R.Camera(width=160, height=120, **CAM)
-    check_bvh(scene, name)
-    # The BVH is built by the first render and cached; build it here in a timed call of its own.
-    fresh = {"scene": scene}
+    tiny = R.Camera(width=1, height=1, **CAM)
 
     def build():
-        t0 = time.perf_counter()
-        fresh["scene"].render(R.Camera(width=1, height=1, **CAM), spp=1, max_depth=1)
-        return fresh["scene"].last_stats["bvh_seconds"], time.perf_counter() - t0
+        s = make_scene()
+        s.render(tiny, spp=1, max_depth=1)
+        return s
 
-    m_build = harness.measure(build, figure=lambda v, wall: v[0], max_tries=2)
-    bvh = scene.last_stats
+    m_build = harness.measure(build, figure=lambda s, wall: s.last_stats["bvh_seconds"], max_tries=2)
+    scene = m_build.value
+    bvh = dict(scene.last_stats)
+    check_bvh(scene, name)
 
     def trace():
+        cpu0 = time.process_time()
         img = scene.render(cam, spp=4, max_depth=8, sky=SKY, seed=1)
-        return img, dict(scene.last_stats)
+        return img, dict(scene.last_stats), time.process_time() - cpu0
 
     m = harness.measure(trace, figure=lambda v, wall: v[1]["seconds"], max_tries=3)
-    img, stats = m.value
+    img, stats, cpu = m.value
     check(name, np.isfinite(img).all() and 0 < img.mean() <= 1.0, f"image mean {img.mean()}")
-    rays_per_s = stats["rays"] / stats["seconds"]
+    rays_per_s, rays_per_cpu_s = stats["rays"] / stats["seconds"], stats["rays"] / cpu
     rec.record(f"{name}-trace", size, m.seconds, iterations=stats["rays"], measurement=m,
-               notes={"mrays_per_s": f"{rays_per_s / 1e6:.3f}", "bvh_nodes": bvh["bvh_nodes"],
-                      "bvh_depth": bvh["bvh_depth"]})
+               notes={"mrays_per_s": f"{rays_per_s / 1e6:.3f}",
+                      "mrays_per_cpu_s": f"{rays_per_cpu_s / 1e6:.3f}",
+                      "bvh_nodes": bvh["bvh_nodes"], "bvh_depth": bvh["bvh_depth"]})
     rec.record(f"{name}-bvh-build", size, m_build.seconds, measurement=m_build)
-    rows.append((name, size, rays_per_s / 1e6, m_build.seconds, bvh["bvh_depth"], m.other_load,
-                 m_build.other_load))
-    print(f"{name:10s} {size:>9d}  {rays_per_s / 1e6:7.3f} Mrays/s  BVH {m_build.seconds:7.3f} s "
-          f"(depth {bvh['bvh_depth']})  load {m.other_load:.2f}/{m_build.other_load:.2f}", flush=True)
+    rows.append((name, size, rays_per_s / 1e6, rays_per_cpu_s / 1e6, m_build.seconds, bvh["bvh_depth"],
+                 m.other_load, m_build.other_load))
+    print(f"{name:10s} {size:>9d}  {rays_per_s / 1e6:7.3f} Mrays/s ({rays_per_cpu_s / 1e6:.3f} per CPU s)"
+          f"  BVH {m_build.seconds:7.3f} s (depth {bvh['bvh_depth']})  load {m.other_load:.2f}/"
+          f"{m_build.other_load:.2f}", flush=True)
 
 
 def bench_preview(rec, n, rows):
@@ -149,15 +154,16 @@ def main(argv=None):
     print(f"threads {km.get_num_threads()}, commit {rec.commit}")
     trace_rows, preview_rows = [], []
     for n in sizes:
-        bench_trace(rec, "spheres", n, particle_scene(n), trace_rows)
-    scene, k = mesh_scene(*((128, 32) if args.quick else (512, 128)))
-    bench_trace(rec, "torus-mesh", k, scene, trace_rows)
+        bench_trace(rec, "spheres", n, lambda: particle_scene(n), trace_rows)
+    nu, nv = (128, 32) if args.quick else (512, 128)
+    bench_trace(rec, "torus-mesh", 2 * nu * nv, lambda: mesh_scene(nu, nv)[0], trace_rows)
     for n in sizes[-2:]:
         bench_preview(rec, n, preview_rows)
-    print("\n| scene | primitives | Mrays/s | BVH build [s] | BVH depth | other_load (trace/build) |")
-    print("| --- | ---: | ---: | ---: | ---: | --- |")
-    for name, n, mr, b, depth, l1, l2 in trace_rows:
-        print(f"| {name} | {n:,} | {mr:.2f} | {b:.3f} | {depth} | {l1:.2f} / {l2:.2f} |")
+    print("\n| scene | primitives | Mrays/s (wall) | Mrays per CPU-s | BVH build [s] | BVH depth | "
+          "other_load (trace/build) |")
+    print("| --- | ---: | ---: | ---: | ---: | ---: | --- |")
+    for name, n, mr, mc, b, depth, l1, l2 in trace_rows:
+        print(f"| {name} | {n:,} | {mr:.2f} | {mc:.2f} | {b:.3f} | {depth} | {l1:.2f} / {l2:.2f} |")
     print("\n| particles | preview [ms] | scene + preview [ms] | other_load |")
     print("| ---: | ---: | ---: | --- |")
     for n, s, f, l1, l2 in preview_rows:

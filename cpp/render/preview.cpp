@@ -58,17 +58,19 @@ class Projector {
 };
 
 // Range of a / z over a sphere of radius r centred at (a, z) in a plane through the eye: the
-// tangent lines from the eye make angles atan2(a, z) +- asin(r / |(a, z)|) with the view axis.
-// False when the sphere reaches within 1e-6 of the eye or beyond 90 degrees off the axis.
+// tangent lines from the eye make angles theta +- h with the view axis, tan(theta) = a / z,
+// tan(h) = r / sqrt(a^2 + z^2 - r^2), combined by the tangent addition formula. False when the
+// sphere reaches within 1e-6 of the eye or a tangent line is 90 degrees or more off the axis.
 bool tangent_range(Scalar a, Scalar z, Scalar r, Scalar& lo, Scalar& hi) {
-  const Scalar d = std::hypot(a, z);
-  if (d <= r * (1 + 1e-6)) return false;
-  const Scalar theta = std::atan2(a, z), half = std::asin(r / d);
-  constexpr Scalar kLimit = 0.5 * kPi * (1 - 1e-6);
-  if (theta - half <= -kLimit || theta + half >= kLimit) return false;
-  // A relative widening of 1e-12 covers the rounding of the trigonometric functions.
-  lo = std::tan(theta - half) - 1e-12 * (1 + std::abs(a / z));
-  hi = std::tan(theta + half) + 1e-12 * (1 + std::abs(a / z));
+  const Scalar d2 = a * a + z * z;
+  if (z <= 0 || d2 <= r * r * (1 + 2e-6)) return false;
+  const Scalar t = a / z, th = r / std::sqrt(d2 - r * r);
+  const Scalar den_hi = 1 - t * th, den_lo = 1 + t * th;
+  if (den_hi <= 1e-6 || den_lo <= 1e-6) return false;
+  // A relative widening of 1e-12 covers the rounding of these few operations.
+  const Scalar pad = 1e-12 * (1 + std::abs(t) + th) / std::min(den_hi, den_lo);
+  lo = (t - th) / den_lo - pad;
+  hi = (t + th) / den_hi + pad;
   return true;
 }
 
@@ -150,34 +152,34 @@ PreviewResult preview(const Scene& scene, const Camera& camera, const Sky& sky,
 #pragma omp parallel for schedule(dynamic, 1)
   for (Index k = 0; k < bands; ++k) {
     const Index row0 = k * kBandRows, row1 = std::min(height, row0 + kBandRows);
+    // The pixel-centre rays of the band, made once and shared by every primitive.
+    std::vector<Ray> rays(static_cast<size_t>((row1 - row0) * width));
+    for (Index row = row0; row < row1; ++row)
+      for (Index col = 0; col < width; ++col)
+        rays[static_cast<size_t>((row - row0) * width + col)] = frame.ray(row, col, 0.5, 0.5);
+    auto test = [&](Index id, Index row, Index col) {
+      const size_t px = static_cast<size_t>(row * width + col);
+      const Scalar t = scene.intersect_primitive(id, rays[static_cast<size_t>((row - row0) * width + col)],
+                                                 t_min, out.depth[px]);
+      if (t < out.depth[px]) {
+        out.depth[px] = t;
+        out.ids[px] = id;
+      }
+    };
     // Planes first: every pixel of the band.
     for (Index id = bounded; id < scene.primitive_count(); ++id)
       for (Index row = row0; row < row1; ++row)
-        for (Index col = 0; col < width; ++col) {
-          const size_t px = static_cast<size_t>(row * width + col);
-          const Scalar t = scene.intersect_primitive(id, frame.ray(row, col, 0.5, 0.5), t_min, out.depth[px]);
-          if (t < out.depth[px]) {
-            out.depth[px] = t;
-            out.ids[px] = id;
-          }
-        }
+        for (Index col = 0; col < width; ++col) test(id, row, col);
     for (Index m = start[static_cast<size_t>(k)]; m < start[static_cast<size_t>(k + 1)]; ++m) {
       const Index id = members[static_cast<size_t>(m)];
       const PixelBox& b = boxes[static_cast<size_t>(id)];
       for (Index row = std::max(row0, b.row0); row < std::min(row1, b.row1); ++row)
-        for (Index col = b.col0; col < b.col1; ++col) {
-          const size_t px = static_cast<size_t>(row * width + col);
-          const Scalar t = scene.intersect_primitive(id, frame.ray(row, col, 0.5, 0.5), t_min, out.depth[px]);
-          if (t < out.depth[px]) {
-            out.depth[px] = t;
-            out.ids[px] = id;
-          }
-        }
+        for (Index col = b.col0; col < b.col1; ++col) test(id, row, col);
     }
     for (Index row = row0; row < row1; ++row)
       for (Index col = 0; col < width; ++col) {
         const size_t px = static_cast<size_t>(row * width + col);
-        const Ray ray = frame.ray(row, col, 0.5, 0.5);
+        const Ray& ray = rays[static_cast<size_t>((row - row0) * width + col)];
         Color c;
         if (out.ids[px] < 0) {
           c = sky.radiance(ray.direction);
