@@ -119,12 +119,21 @@ PreviewResult preview(const Scene& scene, const Camera& camera, const Sky& sky,
   const Scalar scale = scene.scale(), t_min = kRayEpsilon * scale;
 
   // Pixel boxes of all bounded primitives, then a counting sort of the primitives into bands.
+  // near[i]: no hit of primitive i is closer than this (|c - eye| - r for a sphere, shrunk by far
+  // more than its rounding; 0 for triangles), so pixels already holding a nearer hit skip it.
   std::vector<PixelBox> boxes(static_cast<size_t>(bounded));
+  std::vector<Scalar> near(static_cast<size_t>(bounded), 0);
 #pragma omp parallel for schedule(static)
-  for (Index i = 0; i < bounded; ++i)
-    boxes[static_cast<size_t>(i)] =
-        i < s_count ? sphere_box(projector, scene.spheres()[static_cast<size_t>(i)])
-                    : triangle_box(projector, scene.triangles()[static_cast<size_t>(i - s_count)], scale);
+  for (Index i = 0; i < bounded; ++i) {
+    if (i < s_count) {
+      const Scene::Sphere& sp = scene.spheres()[static_cast<size_t>(i)];
+      boxes[static_cast<size_t>(i)] = sphere_box(projector, sp);
+      near[static_cast<size_t>(i)] = ((sp.center - frame.origin()).norm() - sp.radius) * (1 - 1e-9);
+    } else {
+      boxes[static_cast<size_t>(i)] =
+          triangle_box(projector, scene.triangles()[static_cast<size_t>(i - s_count)], scale);
+    }
+  }
   const Index bands = (height + kBandRows - 1) / kBandRows;
   std::vector<Index> start(static_cast<size_t>(bands + 1), 0);
   for (const PixelBox& b : boxes)
@@ -173,8 +182,10 @@ PreviewResult preview(const Scene& scene, const Camera& camera, const Sky& sky,
     for (Index m = start[static_cast<size_t>(k)]; m < start[static_cast<size_t>(k + 1)]; ++m) {
       const Index id = members[static_cast<size_t>(m)];
       const PixelBox& b = boxes[static_cast<size_t>(id)];
+      const Scalar near_id = near[static_cast<size_t>(id)];
       for (Index row = std::max(row0, b.row0); row < std::min(row1, b.row1); ++row)
-        for (Index col = b.col0; col < b.col1; ++col) test(id, row, col);
+        for (Index col = b.col0; col < b.col1; ++col)
+          if (out.depth[static_cast<size_t>(row * width + col)] > near_id) test(id, row, col);
     }
     for (Index row = row0; row < row1; ++row)
       for (Index col = 0; col < width; ++col) {
