@@ -118,8 +118,11 @@ void bind_fem(py::module_& m) {
       })
       .def_property_readonly("mu", [](const Body& b) { return b.model().mu; })
       .def_property_readonly("lam", [](const Body& b) { return b.model().lam; })
-      .def_property_readonly("time", [](const Body& b) { return b.state().time; })
-      .def_property_readonly("step_count", [](const Body& b) { return b.state().step; })
+      // Settable for checkpoints (km.Scene resumes a run bit for bit).
+      .def_property("time", [](const Body& b) { return b.state().time; },
+                    [](Body& b, Scalar t) { b.state().time = t; })
+      .def_property("step_count", [](const Body& b) { return b.state().step; },
+                    [](Body& b, Index n) { b.state().step = n; })
       .def_property_readonly("explicit_dt_limit", &Body::explicit_dt_limit)
       .def("step_implicit",
            [](Body& b, Scalar dt, Scalar tol, Index max_newton, const std::string& solver,

@@ -201,8 +201,11 @@ void bind_grid(py::module_& m) {
         }
         return py::array(py::dtype::of<bool>(), shape, strides, f.solver_->model().solid.data(), self);
       })
-      .def_property_readonly("time", [](const PyFluid& f) { return f.solver_->state().time; })
-      .def_property_readonly("steps", [](const PyFluid& f) { return f.solver_->state().steps; });
+      // Settable for checkpoints (km.Scene resumes a run bit for bit).
+      .def_property("time", [](const PyFluid& f) { return f.solver_->state().time; },
+                    [](PyFluid& f, Scalar t) { f.solver_->state().time = t; })
+      .def_property("steps", [](const PyFluid& f) { return f.solver_->state().steps; },
+                    [](PyFluid& f, Index n) { f.solver_->state().steps = n; });
 
   m.def("advect", [](py::array q, std::vector<py::array> velocity, Scalar dt, Scalar h, const std::string& scheme,
                      int rk_order, bool periodic) {

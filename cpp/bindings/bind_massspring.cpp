@@ -67,8 +67,11 @@ void bind_massspring(py::module_& m) {
         System& s = self.cast<System&>();
         return view(self, s.state().v, s.model().dim);
       })
-      .def_property_readonly("time", [](System& s) { return s.state().time; })
-      .def_property_readonly("step_count", [](System& s) { return s.state().step; })
+      // Settable for checkpoints (km.Scene resumes a run bit for bit).
+      .def_property("time", [](System& s) { return s.state().time; },
+                    [](System& s, Scalar t) { s.state().time = t; })
+      .def_property("step_count", [](System& s) { return s.state().step; },
+                    [](System& s, Index n) { s.state().step = n; })
       .def_property_readonly("explicit_dt_limit", &System::explicit_dt_limit)
       .def("step",
            [](System& s, Scalar dt, const std::string& integrator, Scalar beta,

@@ -99,6 +99,7 @@ void bind_sparse(py::module_& m) {
       .def_property_readonly("n", &CholmodFactor::size)
       .def_property_readonly("nnz_factor", &CholmodFactor::factor_nonzeros)
       .def_property_readonly("is_supernodal", &CholmodFactor::is_supernodal)
+      .def_property_readonly("index_bits", &CholmodFactor::index_bits)
       .def_property_readonly("permutation",
                              [](const CholmodFactor& f) {
                                const Index* p = f.permutation();

@@ -157,7 +157,9 @@ void bind_sph(py::module_& m) {
       })
       .def_property("time", [](const PyFluid& f) { return f.state.time; },
                     [](PyFluid& f, Scalar t) { f.state.time = t; })
-      .def_property_readonly("steps", [](const PyFluid& f) { return f.state.steps; })
+      // Settable for checkpoints: the Morton reordering is scheduled by the step count.
+      .def_property("steps", [](const PyFluid& f) { return f.state.steps; },
+                    [](PyFluid& f, Index n) { f.state.steps = n; })
       .def_property_readonly("mass", [](const PyFluid& f) { return f.solver->model().mass; })
       .def_property_readonly("support_radius", [](const PyFluid& f) { return f.solver->model().h; })
       .def_property_readonly("speed_of_sound", [](const PyFluid& f) { return f.solver->speed_of_sound(); })

@@ -1,5 +1,5 @@
-// RAII wrapper around CHOLMOD's supernodal Cholesky factorisation P A P^T = L L^T (long-index
-// interface, cholmod_l_*). Analysis (fill-reducing ordering P, supernode detection) is done once;
+// RAII wrapper around CHOLMOD's supernodal Cholesky factorisation P A P^T = L L^T (through
+// CHOLMOD's int interface when the matrix and its factor fit in int, else cholmod_l_*). Analysis (fill-reducing ordering P, supernode detection) is done once;
 // refactor() reuses it for a matrix of the same pattern, as Newton iterations need.
 // Chen, Davis, Hager & Rajamanickam, "CHOLMOD, supernodal sparse Cholesky factorization and
 // update/downdate", ACM TOMS 35 (2008).
@@ -33,12 +33,18 @@ enum class CholmodOrdering {
   Metis,    // METIS nested dissection only (less fill on large 2D/3D grid problems)
 };
 
+// Index width of the CHOLMOD interface. Auto: int whenever the matrix and its factor fit in it
+// (less memory traffic in the analysis and the supernodal assembly), else long.
+enum class CholmodIndexWidth { Auto, Int, Long };
+
 class CholmodFactor {
  public:
   // Analyses and factorises A. Throws NotPositiveDefinite (with the failing column) or
   // InvalidArgument for a non-square or malformed matrix (unsorted or duplicate row indices
   // included) or non-finite values. The view is only read during the call (no reference kept).
-  explicit CholmodFactor(const CscView& A, CholmodOrdering ordering = CholmodOrdering::Default);
+  // Index width Int throws InvalidArgument when the matrix or its factor does not fit in int.
+  explicit CholmodFactor(const CscView& A, CholmodOrdering ordering = CholmodOrdering::Default,
+                         CholmodIndexWidth width = CholmodIndexWidth::Auto);
   ~CholmodFactor();
   CholmodFactor(const CholmodFactor&) = delete;
   CholmodFactor& operator=(const CholmodFactor&) = delete;
@@ -57,13 +63,15 @@ class CholmodFactor {
   Index size() const;
   Index factor_nonzeros() const;  // nonzeros in L
   bool is_supernodal() const;
+  int index_bits() const;  // 32 (CHOLMOD's int interface) or 64 (cholmod_l_*)
   // log det A = 2 sum_j log L_jj.
   Scalar log_determinant() const;
   // The fill-reducing permutation: row/column perm[k] of A is row/column k of P A P^T.
   const Index* permutation() const;
 
+  struct Impl;  // the factorisation in CHOLMOD's int or long interface (see the .cpp)
+
  private:
-  struct Impl;
   std::unique_ptr<Impl> impl_;
 };
 

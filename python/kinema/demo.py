@@ -24,31 +24,11 @@ from pathlib import Path
 import numpy as np
 
 import kinema as km
+from kinema.scenes.output import write_vti
 
 
 def log(msg):
     print(f"[kinema demo] {msg}", flush=True)
-
-
-def write_vti(path, field, h, name):
-    """A cell-centred 2D/3D field as VTK XML image data (ASCII), readable by ParaView."""
-    shape = field.shape + (1,) * (3 - field.ndim)
-    extent = " ".join(f"0 {n}" for n in shape)
-    # VTK orders cells x fastest; our arrays are C-ordered [i, j, k] with k fastest.
-    values = np.asarray(field).reshape(shape).transpose(2, 1, 0).ravel()
-    body = " ".join(f"{v:.9g}" for v in values)
-    text = (
-        '<?xml version="1.0"?>\n'
-        '<VTKFile type="ImageData" version="0.1" byte_order="LittleEndian">\n'
-        f'  <ImageData WholeExtent="{extent}" Origin="0 0 0" Spacing="{h} {h} {h}">\n'
-        f'    <Piece Extent="{extent}">\n'
-        f'      <CellData Scalars="{name}">\n'
-        f'        <DataArray type="Float64" Name="{name}" format="ascii">{body}</DataArray>\n'
-        "      </CellData>\n    </Piece>\n  </ImageData>\n</VTKFile>\n"
-    )
-    tmp = Path(str(path) + ".tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
 
 
 def save_image(path, field, cmap, vmin=None, vmax=None, mask=None):
@@ -107,7 +87,7 @@ def heat_movie(out, n, frames):
                 f"{rate:.1f} frames/s  ETA {(frames - frame - 1) / rate:.0f} s")
     drift = abs(T.sum() - heat0) / heat0
     np.savez_compressed(out / "heat_final.npz", T=T, solid=solid, h=h, kappa=kappa)
-    write_vti(out / "heat_final.vti", T, h, "temperature")
+    write_vti(out / "heat_final.vti", {"temperature": T}, h)
     video = "not written (ffmpeg not found)"
     if shutil.which("ffmpeg"):
         cmd = ["ffmpeg", "-y", "-loglevel", "error", "-framerate", "24", "-i", str(frame_dir / "frame_%04d.png"),

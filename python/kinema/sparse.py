@@ -97,6 +97,8 @@ class Factor:
     n: size of A (A is n x n).
     nnz_factor: nonzeros in L, as counted by CHOLMOD's analysis.
     is_supernodal: True (the factorisation is always supernodal: dense BLAS-3 blocks).
+    index_bits: 32 when CHOLMOD's int interface is used (whenever A and L fit in it: less
+        index traffic), 64 for its long interface (cholmod_l_*) otherwise.
     ordering: the fill-reducing ordering requested ("default", "amd" or "natural").
     permutation: (n,) int64, P as an index array: row/column permutation[k] of A is row/column
         k of P A P^T (a copy).
@@ -125,6 +127,10 @@ class Factor:
     @property
     def is_supernodal(self) -> bool:
         return self._core.is_supernodal
+
+    @property
+    def index_bits(self) -> int:
+        return self._core.index_bits
 
     @property
     def permutation(self) -> np.ndarray:

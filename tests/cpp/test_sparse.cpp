@@ -4,6 +4,7 @@
 
 #include <Eigen/Cholesky>
 #include <Eigen/Eigenvalues>
+#include <algorithm>
 #include <cmath>
 #include <limits>
 #include <random>
@@ -233,6 +234,36 @@ TEST(CholmodFactor, MovedFactorStillSolves) {
   VectorX b = VectorX::Ones(a.n), x(a.n);
   g.solve(b.data(), x.data());
   EXPECT_LE((a.dense() * x - b).norm(), 1e3 * kEps * b.norm());
+}
+
+// The int and long CHOLMOD interfaces run the same algorithm on the same ordering: the same
+// permutation, the same failing column, and solutions equal to rounding.
+TEST(CholmodFactor, IntAndLongInterfacesAgree) {
+  const Matrix a = laplacian_2d(24);
+  CholmodFactor auto_width(a.csc());
+  CholmodFactor narrow(a.csc(), CholmodOrdering::Default, CholmodIndexWidth::Int);
+  CholmodFactor wide(a.csc(), CholmodOrdering::Default, CholmodIndexWidth::Long);
+  EXPECT_EQ(auto_width.index_bits(), 32);
+  EXPECT_EQ(narrow.index_bits(), 32);
+  EXPECT_EQ(wide.index_bits(), 64);
+  EXPECT_EQ(narrow.factor_nonzeros(), wide.factor_nonzeros());
+  EXPECT_TRUE(std::equal(narrow.permutation(), narrow.permutation() + a.n, wide.permutation()));
+  const VectorX b = random_vector(a.n, 41);
+  VectorX x32(a.n), x64(a.n);
+  narrow.solve(b.data(), x32.data());
+  wide.solve(b.data(), x64.data());
+  const Scalar bound = kFwd * condition(a.dense()) * kEps;
+  EXPECT_LE(rel_err(x32, x64), bound);
+  EXPECT_NEAR(narrow.log_determinant(), wide.log_determinant(),
+              1e-12 * std::abs(wide.log_determinant()));
+  for (auto width : {CholmodIndexWidth::Int, CholmodIndexWidth::Long}) {
+    try {
+      CholmodFactor f(leading_minor_fails_at(13).csc(), CholmodOrdering::Natural, width);
+      ADD_FAILURE() << "no exception";
+    } catch (const NotPositiveDefinite& e) {
+      EXPECT_EQ(e.column, 13);
+    }
+  }
 }
 
 TEST(CholmodFactor, SupernodalOnLargeLaplacian) {

@@ -1,0 +1,230 @@
+"""Scene files: load, validate, override and run.
+
+A scene file is TOML with the tables ``[scene]`` (name, duration, fps, metric), ``[solver]``
+(``type`` names the solver, the other keys are its options), ``[[objects]]`` (each with a
+``type`` the solver knows), ``[output]`` (which files to write) and ``[quick]`` (overrides for a
+short test run, in the shape of the file or as dotted key paths). See README.md, "Scenes".
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import re
+import sys
+from pathlib import Path
+
+from kinema.scenes import adapters
+from kinema.scenes.schema import Bool, Context, Field, Int, ListOf, Real, SceneError, Str, Table, Tagged, Vec
+
+if sys.version_info >= (3, 11):
+    import tomllib
+else:  # pragma: no cover
+    import tomli as tomllib
+
+SCENE = Table({
+    "name": Field(Str()),
+    "description": Field(Str(), ""),
+    "duration": Field(Real(gt=0), doc="simulated time [s]"),
+    "fps": Field(Real(gt=0), 30.0, "frames per simulated second"),
+    "metric": Field(Str(), None, "the diagnostic a sweep reports as its error metric"),
+    "threads": Field(Int(ge=1), None, "OpenMP threads (default: all)"),
+})
+
+OUTPUT = Table({
+    "png": Field(Bool(), True, "a preview image per frame"),
+    "mp4": Field(Bool(), True, "the frames as a video (ffmpeg)"),
+    "vtu": Field(Bool(), False, "particles and meshes as VTU (meshio)"),
+    "ply": Field(Bool(), False, "particles and surfaces as PLY (meshio)"),
+    "vti": Field(Bool(), False, "grids as VTK image data"),
+    "every": Field(Int(ge=1), 1, "frames between data files (VTU, PLY, VTI)"),
+    "checkpoint_every": Field(Int(ge=1), 1, "frames between checkpoints"),
+    "width": Field(Int(ge=16), 640, "preview width [pixels]"),
+    "view": Field(Vec(2, Int(ge=0)), None, "the two world axes the preview shows (right, up)"),
+    "field": Field(Str(), None, "what the preview colours (solver-specific)"),
+    "range": Field(Vec(2), None, "colour range [lo, hi]"),
+    "colormap": Field(Str(), "viridis", "a matplotlib colormap name"),
+})
+
+_TOP = ("scene", "solver", "objects", "output", "quick")
+_TOKEN = re.compile(r"([A-Za-z_][A-Za-z0-9_]*)|\[(\d+)\]")
+
+
+def _split(path):
+    """'objects[2].region.radius' -> ['objects', 2, 'region', 'radius']."""
+    keys = []
+    for part in path.split("."):
+        tokens = list(_TOKEN.finditer(part))
+        if not tokens or "".join(t.group(0) for t in tokens) != part:
+            raise ValueError(f"--set: cannot read the key path {path!r} (example: objects[0].region.radius)")
+        keys += [t.group(1) if t.group(1) else int(t.group(2)) for t in tokens]
+    return keys
+
+
+def parse_value(text):
+    """A TOML value (1e-3, [64, 64], true, "bfecc"); anything else is taken as a string."""
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def apply_override(raw, path, value):
+    """Sets the key path in the raw document (creating missing tables)."""
+    keys = _split(path)
+    node = raw
+    for i, key in enumerate(keys[:-1]):
+        nxt = keys[i + 1]
+        if isinstance(key, int):
+            if not isinstance(node, list) or key >= len(node):
+                raise ValueError(f"--set {path}: {'.'.join(map(str, keys[:i]))} has no item {key}")
+            node = node[key]
+        else:
+            if not isinstance(node, dict):
+                raise ValueError(f"--set {path}: {key} is not inside a table")
+            node = node.setdefault(key, [] if isinstance(nxt, int) else {})
+    last = keys[-1]
+    if isinstance(last, int):
+        if not isinstance(node, list) or last >= len(node):
+            raise ValueError(f"--set {path}: no item {last} there")
+        node[last] = value
+    else:
+        if not isinstance(node, dict):
+            raise ValueError(f"--set {path}: not inside a table")
+        node[last] = value
+
+
+def _flatten(table, prefix=""):
+    """A [quick] table as (key path, value) pairs: nested tables recurse, other values are set."""
+    for key, value in table.items():
+        path = f"{prefix}.{key}" if prefix else key
+        if isinstance(value, dict) and _TOKEN.fullmatch(key):
+            yield from _flatten(value, path)
+        else:
+            yield path, value
+
+
+class Scene:
+    """A validated scene: ``Scene.load(path)``, then :meth:`run` (or :meth:`build` for a loop
+    of one's own). ``config`` holds the validated tables with every default filled in."""
+
+    def __init__(self, raw, path="<scene>", overrides=(), quick=False):
+        self.path = str(path)
+        raw = copy.deepcopy(raw)
+        self.ctx = Context(self.path)
+        for key in raw:
+            if key not in _TOP:
+                raise self.error(key, f"unknown table (known: {', '.join(_TOP)})")
+        quick_table = raw.pop("quick", {})
+        if not isinstance(quick_table, dict):
+            raise self.error("quick", "expected a table of overrides")
+        pairs = list(_flatten(quick_table)) if quick else []
+        for path_, value in pairs + [(p, v) for p, v in overrides]:
+            apply_override(raw, path_, value)
+        self.overrides = [(p, v) for p, v in overrides]
+        self.quick = quick
+        self.config = self._validate(raw)
+        self.name = self.config["scene"]["name"]
+        self.solver = self.config["solver"]["type"]
+
+    @classmethod
+    def load(cls, path, *, overrides=(), quick=False):
+        """Reads and validates a scene file. overrides: (key path, value) pairs applied before
+        validation ("solver.resolution", [32, 32]); quick: apply the file's [quick] table."""
+        path = Path(path)
+        try:
+            with open(path, "rb") as fh:
+                raw = tomllib.load(fh)
+        except FileNotFoundError:
+            raise SceneError(path, "", "no such scene file") from None
+        except tomllib.TOMLDecodeError as exc:
+            raise SceneError(path, "", f"not valid TOML: {exc}") from None
+        return cls(raw, path, overrides, quick)
+
+    def error(self, path, message):
+        return self.ctx.error(path, message)
+
+    def _validate(self, raw):
+        ctx = self.ctx
+        solver_raw = raw.get("solver")
+        if not isinstance(solver_raw, dict):
+            raise self.error("solver", "missing required table (with type = " +
+                             " | ".join(f'"{n}"' for n in adapters.ADAPTERS) + ")")
+        kind = solver_raw.get("type")
+        if kind not in adapters.ADAPTERS:
+            expected = ", ".join(f'"{n}"' for n in adapters.ADAPTERS)
+            raise self.error("solver.type", f"expected one of {expected}, got {kind!r}")
+        self.adapter = adapters.load(kind)
+        spec = Table({
+            "scene": Field(SCENE),
+            "solver": Field(Tagged("type", {kind: self.adapter.SOLVER})),
+            "objects": Field(ListOf(Tagged("type", self.adapter.OBJECTS), min_length=1)),
+            "output": Field(OUTPUT, {}),
+        })
+        config = spec.validate(raw, ctx, "")
+        if "output" not in raw:
+            config["output"] = OUTPUT.validate({}, ctx, "output")
+        self.dim = self.adapter.dimension(config["solver"], config["objects"])
+        for path, n in ctx.spatial:
+            if n != self.dim:
+                raise self.error(path, f"expected {self.dim} components (this is a {self.dim}D scene), got {n}")
+        view = config["output"]["view"]
+        if view is not None and (max(view) >= self.dim or view[0] == view[1]):
+            raise self.error("output.view", f"expected two different axes in 0..{self.dim - 1}, got {view}")
+        metric = config["scene"]["metric"]
+        if metric is not None and metric not in self.adapter.Simulation.DIAGNOSTICS:
+            raise self.error("scene.metric", f"expected one of {', '.join(self.adapter.Simulation.DIAGNOSTICS)} "
+                             f"for a {kind} scene, got {metric!r}")
+        return config
+
+    @property
+    def fps(self):
+        return self.config["scene"]["fps"]
+
+    @property
+    def default_frames(self):
+        """Frames of the whole duration: the initial state and one per 1/fps."""
+        return int(round(self.config["scene"]["duration"] * self.fps)) + 1
+
+    def fingerprint(self):
+        """A hash of everything that shapes the simulation (not the frame count or outputs):
+        a checkpoint only resumes the scene that wrote it."""
+        sim = {k: self.config[k] for k in ("solver", "objects")}
+        sim["fps"] = self.fps
+        return hashlib.sha256(json.dumps(sim, sort_keys=True).encode()).hexdigest()[:16]
+
+    def build(self):
+        """The solver with exactly the scene's objects (an adapters.base.Simulation)."""
+        return self.adapter.Simulation(self)
+
+    def run(self, out, frames=None, *, resume=False, progress=True, on_frame=None):
+        """Runs the scene into the folder ``out``: frames 0..frames-1 (frame k at t = k/fps;
+        default: the whole duration), writing the outputs the scene asks for and a checkpoint.
+        resume: continue from out/checkpoint.npz (bit for bit). progress: a progress bar on
+        stderr (True), a stream, or False. on_frame(frame, sim): called after each frame.
+        Ctrl-C stops cleanly: the frames written so far stay, the video is made of them, and
+        KeyboardInterrupt is raised again. Returns a RunResult."""
+        from kinema.scenes.runner import run
+
+        return run(self, out, frames, resume=resume, progress=progress, on_frame=on_frame)
+
+    def __repr__(self):
+        return f"Scene({self.name!r}, solver={self.solver!r}, path={self.path!r})"
+
+
+def examples():
+    """The example scenes shipped with kinema: name -> path."""
+    folder = Path(__file__).parent / "examples"
+    return {p.stem: p for p in sorted(folder.glob("*.toml"))}
+
+
+def resolve(name_or_path):
+    """A scene file path, or the name of a shipped example (``kinema list``)."""
+    p = Path(name_or_path)
+    if p.exists() or p.suffix == ".toml":
+        return p
+    known = examples()
+    if name_or_path in known:
+        return known[name_or_path]
+    raise SceneError(name_or_path, "", f"no such file, nor an example scene (examples: {', '.join(known)})")

@@ -1,0 +1,321 @@
+"""Scene files (kinema.scenes): validation messages, every example scene end to end with real
+files, bit-for-bit resume for every solver, atomic writes and interruption, and a Dask sweep."""
+
+import csv
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import kinema as km
+from kinema.scenes import SceneError, examples, output
+from kinema.scenes.adapters import ADAPTERS
+
+EXAMPLES = examples()
+ALL_DATA = [("output.vtu", True), ("output.ply", True), ("output.vti", True), ("output.every", 1)]
+
+GRID_SCENE = """
+[scene]
+name = "t"
+duration = 0.1
+threads = 1
+[solver]
+type = "grid"
+resolution = [16, 16]
+[[objects]]
+type = "obstacle"
+region = { shape = "sphere", center = [0.5, 0.5], radius = 0.1 }
+[[objects]]
+type = "block"
+region = { shape = "box", lower = [0.1, 0.1], upper = [0.3, 0.3] }
+velocity = [1.0, 0.0]
+"""
+
+
+def write(tmp_path, text, name="scene.toml"):
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+# ----------------------------------------------------------------------------- validation
+
+@pytest.mark.parametrize("edit, key, expected", [
+    (("[[objects]]\ntype = \"obstacle\"", "[[objects]]\ntype = \"obstacle\"\nsize = 3"), "objects[0].size", "unknown key"),
+    (("resolution = [16, 16]", "resolution = \"big\""), "solver.resolution", "expected an array of 2 or 3 items, each an integer >= 1"),
+    (("resolution = [16, 16]", "resolution = [16, 1.5]"), "solver.resolution[1]", "expected an integer >= 1"),
+    (("duration = 0.1", ""), "scene.duration", "missing required key"),
+    (("type = \"grid\"", "type = \"lbm\""), "solver.type", "expected one of \"grid\", \"sph\""),
+    (("radius = 0.1", "radius = -0.1"), "objects[0].region.radius", "expected a number > 0"),
+    (("center = [0.5, 0.5]", "center = [0.5, 0.5, 0.5]"), "objects[0].region.center", "expected 2 components"),
+    (("shape = \"sphere\"", "shape = \"cone\""), "objects[0].region.shape", "expected one of \"box\", \"sphere\""),
+    (("type = \"block\"", "type = \"fluid\""), "objects[1].type", "expected one of \"obstacle\""),
+    (("velocity = [1.0, 0.0]", "velocity = [true, 0.0]"), "objects[1].velocity[0]", "expected a number"),
+    (("[scene]", "[scenery]\nx = 1\n[scene]"), "scenery", "unknown table"),
+])
+def test_validation_names_file_key_path_and_expectation(tmp_path, edit, key, expected):
+    old, new = edit
+    assert old in GRID_SCENE
+    path = write(tmp_path, GRID_SCENE.replace(old, new, 1))
+    with pytest.raises(SceneError) as err:
+        km.Scene.load(path)
+    msg = str(err.value)
+    assert msg.startswith(f"{path}: {key}: "), msg
+    assert expected in msg, msg
+    assert isinstance(err.value, ValueError)
+
+
+def test_valid_scene_fills_defaults_and_builds_only_what_it_names(tmp_path):
+    scene = km.Scene.load(write(tmp_path, GRID_SCENE))
+    assert scene.solver == "grid" and scene.dim == 2
+    assert scene.config["solver"]["advection"] == "maccormack"
+    assert scene.config["output"]["png"] is True
+    sim = scene.build()
+    # Fields the scene does not name are not allocated.
+    with pytest.raises(AttributeError, match="density"):
+        sim.fluid.density
+    # The block's velocity landed on the faces of its cells, the obstacle in the solid mask.
+    assert sim.fluid.u.max() == 1.0 and sim.fluid.solid.sum() > 0
+
+
+def test_only_the_named_adapter_is_imported(tmp_path):
+    path = write(tmp_path, GRID_SCENE)
+    code = ("import sys, kinema as km; km.Scene.load(sys.argv[1]).build(); "
+            "print(sorted(m for m in sys.modules if m.startswith('kinema.scenes.adapters.')))")
+    out = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == str(["kinema.scenes.adapters.base", "kinema.scenes.adapters.grid"]), out.stdout
+
+
+def test_bad_toml_and_missing_file(tmp_path):
+    with pytest.raises(SceneError, match="not valid TOML"):
+        km.Scene.load(write(tmp_path, "[scene\nname = 1"))
+    with pytest.raises(SceneError, match="no such scene file"):
+        km.Scene.load(tmp_path / "missing.toml")
+
+
+def test_overrides_and_quick_profile(tmp_path):
+    path = write(tmp_path, GRID_SCENE + '\n[quick]\nsolver.resolution = [8, 8]\n"objects[1].velocity" = [2.0, 0.0]\n')
+    assert km.Scene.load(path).config["solver"]["resolution"] == [16, 16]
+    quick = km.Scene.load(path, quick=True)
+    assert quick.config["solver"]["resolution"] == [8, 8]
+    assert quick.config["objects"][1]["velocity"] == [2.0, 0.0]
+    s = km.Scene.load(path, overrides=[("objects[0].region.radius", 0.2), ("output.vti", True)])
+    assert s.config["objects"][0]["region"]["radius"] == 0.2 and s.config["output"]["vti"] is True
+    with pytest.raises(SceneError, match=r"objects\[0\]\.region\.radius: expected a number > 0"):
+        km.Scene.load(path, overrides=[("objects[0].region.radius", "wide")])
+    with pytest.raises(ValueError, match="has no item 5"):
+        km.Scene.load(path, overrides=[("objects[5].type", "obstacle")])
+
+
+def test_every_solver_has_an_example():
+    solvers = {km.Scene.load(p).solver for p in EXAMPLES.values()}
+    assert solvers == set(ADAPTERS), solvers
+
+
+# ----------------------------------------------------------------------------- example runs
+
+def _png(path):
+    from PIL import Image
+
+    with Image.open(path) as im:
+        assert im.mode == "RGB"
+        return np.asarray(im)
+
+
+def _ffprobe(path):
+    out = subprocess.run(["ffprobe", "-v", "error", "-count_frames", "-select_streams", "v:0", "-show_entries",
+                          "stream=codec_name,width,height,nb_read_frames", "-of", "json", str(path)],
+                         capture_output=True, text=True, check=True)
+    return json.loads(out.stdout)["streams"][0]
+
+
+@pytest.mark.skipif(shutil.which("ffprobe") is None, reason="ffmpeg/ffprobe not installed")
+@pytest.mark.parametrize("name", sorted(EXAMPLES))
+def test_example_scene_writes_real_files(tmp_path, name):
+    import meshio
+
+    frames = 3
+    scene = km.Scene.load(EXAMPLES[name], quick=True, overrides=ALL_DATA)
+    result = scene.run(tmp_path, frames, progress=False)
+    assert result.frames == frames and not result.interrupted and result.steps > 0
+    fresh = scene.build()  # the initial state, to check frame 0's files against
+    # PNG: decodes to exactly the preview image of the initial state, every frame the same size.
+    first = _png(tmp_path / "frames" / "frame_00000.png")
+    np.testing.assert_array_equal(first, fresh.image(scene.config["output"]))
+    assert first.shape[1] >= scene.config["output"]["width"]
+    for k in range(1, frames):
+        assert _png(tmp_path / "frames" / f"frame_{k:05d}.png").shape == first.shape
+    # MP4: H.264 with every frame, padded to even sizes.
+    info = _ffprobe(tmp_path / "video.mp4")
+    assert info["codec_name"] == "h264" and int(info["nb_read_frames"]) == frames, info
+    assert info["width"] == first.shape[1] + first.shape[1] % 2
+    # Data files: re-read with meshio (VTU, PLY) or the VTI reader, point counts and values.
+    for item in fresh.data():
+        folder = tmp_path / item.name
+        if hasattr(item, "fields"):
+            fields, spacing, _ = output.read_vti(folder / f"{item.name}_00000.vti")
+            for key, value in item.fields.items():
+                got = fields[key]
+                if value.ndim > scene.dim:  # vectors are stored with 3 components
+                    got = got.reshape(value.shape[:-1] + (3,))[..., :value.shape[-1]]
+                np.testing.assert_array_equal(got.reshape(value.shape), value)
+            assert spacing[0] == item.h
+            continue
+        mesh = meshio.read(folder / f"{item.name}_00000.vtu")
+        assert len(mesh.points) == len(item.points)
+        np.testing.assert_array_equal(mesh.points[:, :item.points.shape[1]], item.points)
+        for kind, cells in item.cells:
+            assert any(b.type == kind and np.array_equal(b.data, cells) for b in mesh.cells), kind
+        ply = meshio.read(folder / f"{item.name}_00000.ply")
+        np.testing.assert_allclose(ply.points[:, :item.points.shape[1]], item.points, rtol=1e-15)
+        if "velocity" in item.point_data:
+            np.testing.assert_array_equal(ply.point_data["velocity_x"], item.point_data["velocity"][:, 0])
+        if item.surface is not None:
+            assert len(ply.cells_dict["triangle"]) == len(item.surface)
+    with open(tmp_path / "diagnostics.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert [int(r["frame"]) for r in rows] == list(range(frames))
+
+
+# ----------------------------------------------------------------------------- resume
+
+@pytest.mark.parametrize("name", ["smoke_plume", "dam_break", "hanging_cloth", "soft_body", "vortex_sheet"])
+def test_resume_is_bit_for_bit(tmp_path, name):
+    frames = 5
+    scene = km.Scene.load(EXAMPLES[name], quick=True, overrides=[("output.mp4", False)])
+    straight = scene.run(tmp_path / "straight", frames, progress=False)
+    with pytest.raises(KeyboardInterrupt):  # Ctrl-C after frame 2, as a callback raising it
+        scene.run(tmp_path / "resumed", frames, progress=False,
+                  on_frame=lambda frame, sim: (_ for _ in ()).throw(KeyboardInterrupt) if frame == 2 else None)
+    assert not list((tmp_path / "resumed").rglob("*.tmp")), "a temporary file was left behind"
+    assert sorted(p.name for p in (tmp_path / "resumed" / "frames").iterdir()) == \
+        [f"frame_{k:05d}.png" for k in range(3)]
+    _, meta = output.load_checkpoint(tmp_path / "resumed" / "checkpoint.npz")
+    assert meta["frame"] == 2
+    resumed = km.Scene.load(EXAMPLES[name], quick=True).run(tmp_path / "resumed", frames, resume=True,
+                                                              progress=False)
+    assert resumed.new_frames == frames - 3 and resumed.frames == frames
+    a, _ = output.load_checkpoint(tmp_path / "straight" / "checkpoint.npz")
+    b, _ = output.load_checkpoint(tmp_path / "resumed" / "checkpoint.npz")
+    assert sorted(a) == sorted(b)
+    for key in a:
+        assert np.array_equal(a[key], b[key]), f"{name}: {key} differs after resume"
+    assert straight.steps == int(a["steps"])
+    last = f"frames/frame_{frames - 1:05d}.png"
+    assert (tmp_path / "straight" / last).read_bytes() == (tmp_path / "resumed" / last).read_bytes()
+
+
+def test_resume_refuses_another_scene(tmp_path):
+    km.Scene.load(EXAMPLES["vortex_sheet"], quick=True).run(tmp_path, 2, progress=False)
+    other = km.Scene.load(EXAMPLES["vortex_sheet"], quick=True, overrides=[("solver.substeps", 1)])
+    with pytest.raises(ValueError, match="different scene"):
+        other.run(tmp_path, 3, resume=True, progress=False)
+    with pytest.raises(FileNotFoundError, match="no checkpoint"):
+        other.run(tmp_path / "empty", 3, resume=True, progress=False)
+
+
+def test_atomic_write_leaves_nothing_on_failure(tmp_path):
+    target = tmp_path / "frame.png"
+    with pytest.raises(KeyboardInterrupt):
+        with output.atomic_path(target) as tmp:
+            tmp.write_bytes(b"half a frame")
+            raise KeyboardInterrupt
+    assert list(tmp_path.iterdir()) == []
+    output.write_png(target, np.zeros((4, 6, 3), np.uint8))
+    output.write_png(target, np.full((4, 6, 3), 200, np.uint8))  # replaces the file
+    assert [p.name for p in tmp_path.iterdir()] == ["frame.png"]
+    assert (_png(target) == 200).all()
+
+
+def test_vti_round_trip_scalar_and_vector(tmp_path):
+    rng = np.random.default_rng(0)
+    q, v = rng.random((3, 4, 5)), rng.random((3, 4, 5, 3))
+    output.write_vti(tmp_path / "g.vti", {"q": q, "v": v}, 0.25, origin=(1.0, 2.0, 3.0))
+    fields, spacing, origin = output.read_vti(tmp_path / "g.vti")
+    np.testing.assert_array_equal(fields["q"], q)
+    np.testing.assert_array_equal(fields["v"], v)
+    assert spacing == [0.25] * 3 and origin == [1.0, 2.0, 3.0]
+
+
+# ----------------------------------------------------------------------------- sweep
+
+def test_sweep_on_a_local_dask_cluster(tmp_path):
+    pytest.importorskip("dask.distributed")
+    from kinema.scenes.sweep import parse_param, sweep
+
+    key, values = parse_param("substeps=1,3")
+    assert (key, values) == ("solver.substeps", [1, 3])
+    assert parse_param("solver.resolution=[8,8],[16,16]")[1] == [[8, 8], [16, 16]]
+    rows = sweep(EXAMPLES["vortex_sheet"], {key: values}, tmp_path, frames=3, quick=True,
+                 workers=1, processes=False, log=lambda m: None)
+    with open(tmp_path / "sweep.csv") as fh:
+        table = list(csv.DictReader(fh))
+    assert len(table) == 2 == len(rows)
+    assert [int(r["solver.substeps"]) for r in table] == [1, 3]
+    # 3 frames = 2 frame advances of `substeps` RK4 steps each.
+    assert [int(r["steps"]) for r in table] == [2, 6]
+    assert all(float(r["wall_seconds"]) > 0 and r["metric"] == r["impulse_drift"] for r in table)
+    assert (tmp_path / "sweep.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert (tmp_path / "run_001" / "video.mp4").exists() or shutil.which("ffmpeg") is None
+
+
+def test_meshes_from_files(tmp_path):
+    import meshio
+
+    V, T = km.fem.box_mesh([0, 0, 0], [1.0, 0.2, 0.2], (4, 1, 1))
+    meshio.write_points_cells(tmp_path / "beam.vtu", V, [("tetra", T)])
+    meshio.write_points_cells(tmp_path / "sheet.obj", V[:4], [("triangle", np.array([[0, 1, 2], [1, 3, 2]]))])
+    fem = write(tmp_path, """
+[scene]
+name = "beam from a file"
+duration = 0.1
+threads = 1
+[solver]
+type = "fem"
+gravity = [0.0, 0.0, -9.81]
+[[objects]]
+type = "mesh"
+file = "beam.vtu"
+scale = 2.0
+youngs_modulus = 1e5
+poisson_ratio = 0.3
+density = 1000.0
+fixed = [{ shape = "box", lower = [-0.1, -0.1, -0.1], upper = [0.01, 1.0, 1.0] }]
+""", "fem.toml")
+    sim = km.Scene.load(fem).build()
+    np.testing.assert_array_equal(sim.body.x, 2.0 * V)
+    np.testing.assert_array_equal(sim.body.elements, T)
+    assert set(sim.body.fixed) == set(np.flatnonzero(V[:, 0] == 0))
+    springs = write(tmp_path, """
+[scene]
+name = "springs from a file"
+duration = 0.1
+[solver]
+type = "massspring"
+[[objects]]
+type = "mesh"
+file = "sheet.obj"
+stiffness = 10.0
+""", "ms.toml")
+    sim = km.Scene.load(springs).build()
+    assert sorted(map(tuple, sim.body.springs)) == [(0, 1), (0, 2), (1, 2), (1, 3), (2, 3)]
+    bad = write(tmp_path, fem.read_text().replace("beam.vtu", "missing.vtu"), "bad.toml")
+    with pytest.raises(SceneError, match=r"objects\[0\]\.file: cannot read"):
+        km.Scene.load(bad).build()
+
+
+def test_3d_grid_scene(tmp_path):
+    text = GRID_SCENE.replace("[16, 16]", "[8, 8, 6]").replace("[0.5, 0.5]", "[0.5, 0.5, 0.3]") \
+        .replace("[0.1, 0.1]", "[0.1, 0.1, 0.1]").replace("[0.3, 0.3]", "[0.3, 0.3, 0.3]") \
+        .replace("[1.0, 0.0]", "[1.0, 0.0, 0.0]")
+    scene = km.Scene.load(write(tmp_path, text), overrides=[("output.vti", True), ("output.mp4", False)])
+    assert scene.dim == 3
+    scene.run(tmp_path / "out", 2, progress=False)
+    fields, _, _ = output.read_vti(tmp_path / "out" / "grid" / "grid_00001.vti")
+    assert fields["pressure"].shape == (8, 8, 6) and fields["velocity"].shape == (8, 8, 6, 3)
+    assert _png(tmp_path / "out" / "frames" / "frame_00001.png").shape[:2] == (8 * 80, 8 * 80)
