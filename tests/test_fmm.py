@@ -187,12 +187,7 @@ def test_one_million_points_subset(dist, eps):
 
 
 @pytest.mark.parametrize("which", ["direct2d", "laplace2d"])
-def test_ctrl_c_interrupts_a_long_sum(which):
-    import os
-    import signal
-    import threading
-    import time
-
+def test_ctrl_c_interrupts_a_long_sum(which, ctrl_c_delay):
     rng = np.random.default_rng(17)
     if which == "direct2d":
         x = rng.random((200_000, 2))  # 4e10 pairs: minutes
@@ -200,22 +195,5 @@ def test_ctrl_c_interrupts_a_long_sum(which):
     else:
         x = 0.5 + 1e-12 * rng.random((3_000_000, 2))  # a deep tree: several seconds
         run = lambda: km.fmm.laplace2d(x, np.ones(len(x)), eps=1e-13)
-    fired = []
-
-    def interrupt():
-        fired.append(time.perf_counter())
-        os.kill(os.getpid(), signal.SIGINT)
-
-    # Background shells start with SIGINT ignored: install Python's handler, as a terminal has.
-    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
-    timer = threading.Timer(0.5, interrupt)
-    timer.start()
-    try:
-        with pytest.raises(KeyboardInterrupt):
-            run()
-        caught = time.perf_counter()
-    finally:
-        timer.cancel()
-        signal.signal(signal.SIGINT, previous)
-    assert fired, f"{which} returned before the interrupt was sent"
-    assert caught - fired[0] < 2.0, f"{which} took {caught - fired[0]:.2f} s to honour Ctrl-C"
+    seconds = ctrl_c_delay(run)
+    assert seconds < 2.0, f"{which} took {seconds:.2f} s to honour Ctrl-C"

@@ -15,7 +15,7 @@ from kinema.errors import (
     NotPositiveDefiniteError,
     StabilityError,
 )
-from kinema import diffusion, fem, fmm, grid, massspring, poisson, sparse, sph, vortex
+from kinema import diffusion, fem, fmm, grid, massspring, poisson, render, sparse, sph, vortex
 from kinema.scenes import Scene, SceneError
 
 __version__ = "0.1.0"
@@ -40,6 +40,7 @@ __all__ = [
     "massspring",
     "fem",
     "sph",
+    "render",
     "Scene",
     "SceneError",
 ]

@@ -1,0 +1,147 @@
+// Binned-SAH BVH construction (Wald 2007; PBRT 3rd ed., sec. 4.3.2).
+#include "render/bvh.h"
+
+#include <algorithm>
+#include <array>
+
+#include "core/errors.h"
+
+namespace kinema::render {
+
+namespace {
+
+struct Box {
+  Scalar lo[3] = {kInfinity, kInfinity, kInfinity};
+  Scalar hi[3] = {-kInfinity, -kInfinity, -kInfinity};
+  void grow(const Scalar* l, const Scalar* h) {
+    for (int a = 0; a < 3; ++a) {
+      lo[a] = std::min(lo[a], l[a]);
+      hi[a] = std::max(hi[a], h[a]);
+    }
+  }
+  void grow(const Box& b) { grow(b.lo, b.hi); }
+  Scalar area() const {
+    const Scalar dx = hi[0] - lo[0], dy = hi[1] - lo[1], dz = hi[2] - lo[2];
+    return dx < 0 ? 0 : 2 * (dx * dy + dy * dz + dz * dx);
+  }
+};
+
+// Relative cost of a traversal step against one primitive test (PBRT's 1/8).
+constexpr Scalar kTraversalCost = 0.125;
+
+}  // namespace
+
+Bvh::Bvh(const std::vector<Scalar>& lo, const std::vector<Scalar>& hi) {
+  const Index n = static_cast<Index>(lo.size() / 3);
+  if (n == 0) return;
+  if (n > (Index(1) << 29)) throw InvalidArgument("scene: more than 2^29 spheres and triangles");
+  std::vector<Scalar> centroid(lo.size());
+  for (size_t i = 0; i < lo.size(); ++i) centroid[i] = 0.5 * (lo[i] + hi[i]);
+  order_.resize(static_cast<size_t>(n));
+  for (Index i = 0; i < n; ++i) order_[static_cast<size_t>(i)] = i;
+  nodes_.reserve(static_cast<size_t>(2 * n));
+  build(0, n, 0, lo, hi, centroid);
+}
+
+std::int32_t Bvh::build(Index begin, Index end, int depth, const std::vector<Scalar>& lo,
+                        const std::vector<Scalar>& hi, const std::vector<Scalar>& centroid) {
+  depth_ = std::max(depth_, depth + 1);
+  const auto self = static_cast<std::int32_t>(nodes_.size());
+  nodes_.emplace_back();
+  Box bounds, cbounds;
+  for (Index i = begin; i < end; ++i) {
+    const size_t p = 3 * static_cast<size_t>(order_[static_cast<size_t>(i)]);
+    bounds.grow(&lo[p], &hi[p]);
+    cbounds.grow(&centroid[p], &centroid[p]);
+  }
+  auto make_leaf = [&] {
+    BvhNode& node = nodes_[static_cast<size_t>(self)];
+    std::copy(bounds.lo, bounds.lo + 3, node.lo);
+    std::copy(bounds.hi, bounds.hi + 3, node.hi);
+    node.second = -1;
+    node.axis = 0;
+    node.first = static_cast<std::int32_t>(begin);
+    node.count = static_cast<std::int32_t>(end - begin);
+    return self;
+  };
+  const Index n = end - begin;
+  if (n <= kMaxLeafSize) return make_leaf();
+
+  int axis = 0;
+  for (int a = 1; a < 3; ++a)
+    if (cbounds.hi[a] - cbounds.lo[a] > cbounds.hi[axis] - cbounds.lo[axis]) axis = a;
+  const Scalar c_lo = cbounds.lo[axis], extent = cbounds.hi[axis] - cbounds.lo[axis];
+  auto key = [&](Index prim) { return centroid[3 * static_cast<size_t>(prim) + axis]; };
+
+  Index mid = begin + n / 2;
+  bool median = extent <= 0 || depth >= kMaxSahDepth;
+  if (!median) {
+    auto bin_of = [&](Index prim) {
+      const auto b = static_cast<int>(kBins * ((key(prim) - c_lo) / extent));
+      return std::min(std::max(b, 0), kBins - 1);
+    };
+    std::array<Index, kBins> count{};
+    std::array<Box, kBins> box;
+    for (Index i = begin; i < end; ++i) {
+      const Index prim = order_[static_cast<size_t>(i)];
+      const int b = bin_of(prim);
+      ++count[b];
+      box[b].grow(&lo[3 * static_cast<size_t>(prim)], &hi[3 * static_cast<size_t>(prim)]);
+    }
+    // Sweep from the right for the right-hand areas, then from the left for the costs.
+    std::array<Scalar, kBins> right_area{};
+    std::array<Index, kBins> right_count{};
+    Box acc;
+    Index cnt = 0;
+    for (int b = kBins - 1; b > 0; --b) {
+      acc.grow(box[b]);
+      cnt += count[b];
+      right_area[b] = acc.area();
+      right_count[b] = cnt;
+    }
+    Box left;
+    Index left_count = 0;
+    Scalar best_cost = kInfinity;
+    int best = -1;
+    const Scalar inv_area = bounds.area() > 0 ? 1 / bounds.area() : 0;
+    for (int b = 1; b < kBins; ++b) {
+      left.grow(box[b - 1]);
+      left_count += count[b - 1];
+      if (left_count == 0 || right_count[b] == 0) continue;
+      const Scalar cost = kTraversalCost + inv_area * (static_cast<Scalar>(left_count) * left.area() +
+                                                       static_cast<Scalar>(right_count[b]) * right_area[b]);
+      if (cost < best_cost) {
+        best_cost = cost;
+        best = b;
+      }
+    }
+    if (best < 0) {
+      median = true;
+    } else {
+      if (n <= kMaxLeafSize * 4 && best_cost >= static_cast<Scalar>(n)) return make_leaf();
+      auto split = std::partition(order_.begin() + begin, order_.begin() + end,
+                                  [&](Index prim) { return bin_of(prim) < best; });
+      mid = split - order_.begin();
+    }
+  }
+  if (median) {
+    // Ties broken by primitive id, so the tree does not depend on the library's nth_element.
+    std::nth_element(order_.begin() + begin, order_.begin() + mid, order_.begin() + end,
+                     [&](Index a, Index b) { return key(a) < key(b) || (key(a) == key(b) && a < b); });
+  }
+
+  {
+    BvhNode& node = nodes_[static_cast<size_t>(self)];
+    std::copy(bounds.lo, bounds.lo + 3, node.lo);
+    std::copy(bounds.hi, bounds.hi + 3, node.hi);
+    node.axis = axis;
+    node.first = 0;
+    node.count = 0;
+  }
+  build(begin, mid, depth + 1, lo, hi, centroid);
+  const std::int32_t second = build(mid, end, depth + 1, lo, hi, centroid);
+  nodes_[static_cast<size_t>(self)].second = second;
+  return self;
+}
+
+}  // namespace kinema::render

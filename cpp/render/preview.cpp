@@ -1,0 +1,214 @@
+// The z-buffered splatter/rasteriser behind render::preview.
+#include "render/preview.h"
+
+#include <algorithm>
+#include <cmath>
+
+#include "core/errors.h"
+#include "render/camera.h"
+
+namespace kinema::render {
+
+namespace {
+
+constexpr Index kBandRows = 8;
+
+// Pixel box [row0, row1) x [col0, col1) of a primitive, empty when row0 >= row1.
+struct PixelBox {
+  Index row0 = 0, row1 = 0, col0 = 0, col1 = 0;
+};
+
+// Projects camera-space points (x, y, z), z > 0 along the view, to continuous pixel coordinates.
+class Projector {
+ public:
+  explicit Projector(const CameraFrame& f)
+      : frame_(f),
+        right_unit_(f.right().normalized()),
+        up_unit_(f.up().normalized()),
+        right_len_(f.right().norm()),
+        up_len_(f.up().norm()) {}
+
+  Vec3 to_camera(const Vec3& p) const {
+    const Vec3 q = p - frame_.origin();
+    return Vec3(q.dot(right_unit_), q.dot(up_unit_), q.dot(frame_.forward()));
+  }
+  // The pixels whose centres lie in the image-plane rectangle x / z in [sx_lo, sx_hi],
+  // y / z in [sy_lo, sy_hi]: ndc u = (x / z) / |right| maps to col + 0.5 = (u + 1) w / 2, and
+  // v = (y / z) / |up| to row + 0.5 = (1 - v) h / 2. A millionth of a pixel absorbs rounding.
+  PixelBox box(Scalar sx_lo, Scalar sx_hi, Scalar sy_lo, Scalar sy_hi) const {
+    const auto w = static_cast<Scalar>(frame_.width()), h = static_cast<Scalar>(frame_.height());
+    constexpr Scalar slack = 1e-6;
+    PixelBox b;
+    b.col0 = clamp_index(std::ceil((sx_lo / right_len_ + 1) * 0.5 * w - 0.5 - slack), frame_.width());
+    b.col1 = clamp_index(std::floor((sx_hi / right_len_ + 1) * 0.5 * w - 0.5 + slack) + 1, frame_.width());
+    b.row0 = clamp_index(std::ceil((1 - sy_hi / up_len_) * 0.5 * h - 0.5 - slack), frame_.height());
+    b.row1 = clamp_index(std::floor((1 - sy_lo / up_len_) * 0.5 * h - 0.5 + slack) + 1, frame_.height());
+    return b;
+  }
+  PixelBox whole() const { return PixelBox{0, frame_.height(), 0, frame_.width()}; }
+
+ private:
+  static Index clamp_index(Scalar v, Index n) {
+    if (!(v > 0)) return 0;  // NaN too
+    return v >= static_cast<Scalar>(n) ? n : static_cast<Index>(v);
+  }
+  const CameraFrame& frame_;
+  Vec3 right_unit_, up_unit_;
+  Scalar right_len_, up_len_;
+};
+
+// Range of a / z over a sphere of radius r centred at (a, z) in a plane through the eye: the
+// tangent lines from the eye make angles theta +- h with the view axis, tan(theta) = a / z,
+// tan(h) = r / sqrt(a^2 + z^2 - r^2), combined by the tangent addition formula. False when the
+// sphere reaches within 1e-6 of the eye or a tangent line is 90 degrees or more off the axis.
+bool tangent_range(Scalar a, Scalar z, Scalar r, Scalar& lo, Scalar& hi) {
+  const Scalar d2 = a * a + z * z;
+  if (z <= 0 || d2 <= r * r * (1 + 2e-6)) return false;
+  const Scalar t = a / z, th = r / std::sqrt(d2 - r * r);
+  const Scalar den_hi = 1 - t * th, den_lo = 1 + t * th;
+  if (den_hi <= 1e-6 || den_lo <= 1e-6) return false;
+  // A relative widening of 1e-12 covers the rounding of these few operations.
+  const Scalar pad = 1e-12 * (1 + std::abs(t) + th) / std::min(den_hi, den_lo);
+  lo = (t - th) / den_lo - pad;
+  hi = (t + th) / den_hi + pad;
+  return true;
+}
+
+PixelBox sphere_box(const Projector& p, const Scene::Sphere& s) {
+  const Vec3 c = p.to_camera(s.center);
+  if (c.z() + s.radius <= 0) return PixelBox{};
+  Scalar x_lo, x_hi, y_lo, y_hi;
+  if (!tangent_range(c.x(), c.z(), s.radius, x_lo, x_hi) || !tangent_range(c.y(), c.z(), s.radius, y_lo, y_hi))
+    return p.whole();
+  return p.box(x_lo, x_hi, y_lo, y_hi);
+}
+
+// Primitives reaching closer than this to the eye plane (or behind it) get the whole image.
+constexpr Scalar kNearFraction = 1e-9;
+
+PixelBox triangle_box(const Projector& p, const Scene::Triangle& t, Scalar scale) {
+  const Vec3 v[3] = {p.to_camera(t.v0), p.to_camera(t.v0 + t.e1), p.to_camera(t.v0 + t.e2)};
+  const Scalar z_lo = std::min({v[0].z(), v[1].z(), v[2].z()});
+  if (std::max({v[0].z(), v[1].z(), v[2].z()}) <= 0) return PixelBox{};
+  if (z_lo <= kNearFraction * scale) return p.whole();
+  // The projection of a triangle in front of the eye is the triangle of its projected vertices.
+  Scalar x_lo = kInfinity, x_hi = -kInfinity, y_lo = kInfinity, y_hi = -kInfinity;
+  for (const Vec3& q : v) {
+    x_lo = std::min(x_lo, q.x() / q.z());
+    x_hi = std::max(x_hi, q.x() / q.z());
+    y_lo = std::min(y_lo, q.y() / q.z());
+    y_hi = std::max(y_hi, q.y() / q.z());
+  }
+  const Scalar pad = 1e-12 * (1 + std::max({std::abs(x_lo), std::abs(x_hi), std::abs(y_lo), std::abs(y_hi)}));
+  return p.box(x_lo - pad, x_hi + pad, y_lo - pad, y_hi + pad);
+}
+
+}  // namespace
+
+PreviewResult preview(const Scene& scene, const Camera& camera, const Sky& sky,
+                      const PreviewConfig& config, Interrupt& interrupt) {
+  validate(camera);
+  if (!config.light.allFinite() || config.light.norm() == 0)
+    throw InvalidArgument("light: expected a finite non-zero direction");
+  if (!(config.ambient >= 0 && config.ambient <= 1))
+    throw InvalidArgument("ambient: expected a number in [0, 1], got " + format_real(config.ambient));
+  const CameraFrame frame(camera);
+  const Projector projector(frame);
+  const Index width = camera.width, height = camera.height;
+  const Index s_count = scene.sphere_count(), bounded = s_count + scene.triangle_count();
+  const Scalar scale = scene.scale(), t_min = kRayEpsilon * scale;
+
+  // Pixel boxes of all bounded primitives, then a counting sort of the primitives into bands.
+  // near[i]: no hit of primitive i is closer than this (|c - eye| - r for a sphere, shrunk by far
+  // more than its rounding; 0 for triangles), so pixels already holding a nearer hit skip it.
+  std::vector<PixelBox> boxes(static_cast<size_t>(bounded));
+  std::vector<Scalar> near(static_cast<size_t>(bounded), 0);
+#pragma omp parallel for schedule(static)
+  for (Index i = 0; i < bounded; ++i) {
+    if (i < s_count) {
+      const Scene::Sphere& sp = scene.spheres()[static_cast<size_t>(i)];
+      boxes[static_cast<size_t>(i)] = sphere_box(projector, sp);
+      near[static_cast<size_t>(i)] = ((sp.center - frame.origin()).norm() - sp.radius) * (1 - 1e-9);
+    } else {
+      boxes[static_cast<size_t>(i)] =
+          triangle_box(projector, scene.triangles()[static_cast<size_t>(i - s_count)], scale);
+    }
+  }
+  const Index bands = (height + kBandRows - 1) / kBandRows;
+  std::vector<Index> start(static_cast<size_t>(bands + 1), 0);
+  for (const PixelBox& b : boxes)
+    if (b.row0 < b.row1 && b.col0 < b.col1)
+      for (Index k = b.row0 / kBandRows; k <= (b.row1 - 1) / kBandRows; ++k) ++start[static_cast<size_t>(k + 1)];
+  for (Index k = 0; k < bands; ++k) start[static_cast<size_t>(k + 1)] += start[static_cast<size_t>(k)];
+  std::vector<Index> members(static_cast<size_t>(start.back()));
+  {
+    std::vector<Index> fill(start.begin(), start.end() - 1);
+    for (Index i = 0; i < bounded; ++i) {
+      const PixelBox& b = boxes[static_cast<size_t>(i)];
+      if (b.row0 < b.row1 && b.col0 < b.col1)
+        for (Index k = b.row0 / kBandRows; k <= (b.row1 - 1) / kBandRows; ++k)
+          members[static_cast<size_t>(fill[static_cast<size_t>(k)]++)] = i;
+    }
+  }
+  interrupt.check();
+
+  PreviewResult out;
+  const auto pixels = static_cast<size_t>(width * height);
+  out.image.assign(3 * pixels, 0);
+  out.ids.assign(pixels, -1);
+  out.depth.assign(pixels, kInfinity);
+  const Vec3 light = config.light.normalized();
+#pragma omp parallel for schedule(dynamic, 1)
+  for (Index k = 0; k < bands; ++k) {
+    const Index row0 = k * kBandRows, row1 = std::min(height, row0 + kBandRows);
+    // The pixel-centre rays of the band, made once and shared by every primitive.
+    std::vector<Ray> rays(static_cast<size_t>((row1 - row0) * width));
+    for (Index row = row0; row < row1; ++row)
+      for (Index col = 0; col < width; ++col)
+        rays[static_cast<size_t>((row - row0) * width + col)] = frame.ray(row, col, 0.5, 0.5);
+    auto test = [&](Index id, Index row, Index col) {
+      const size_t px = static_cast<size_t>(row * width + col);
+      const Scalar t = scene.intersect_primitive(id, rays[static_cast<size_t>((row - row0) * width + col)],
+                                                 t_min, out.depth[px]);
+      if (t < out.depth[px]) {
+        out.depth[px] = t;
+        out.ids[px] = id;
+      }
+    };
+    // Planes first: every pixel of the band.
+    for (Index id = bounded; id < scene.primitive_count(); ++id)
+      for (Index row = row0; row < row1; ++row)
+        for (Index col = 0; col < width; ++col) test(id, row, col);
+    for (Index m = start[static_cast<size_t>(k)]; m < start[static_cast<size_t>(k + 1)]; ++m) {
+      const Index id = members[static_cast<size_t>(m)];
+      const PixelBox& b = boxes[static_cast<size_t>(id)];
+      const Scalar near_id = near[static_cast<size_t>(id)];
+      for (Index row = std::max(row0, b.row0); row < std::min(row1, b.row1); ++row)
+        for (Index col = b.col0; col < b.col1; ++col)
+          if (out.depth[static_cast<size_t>(row * width + col)] > near_id) test(id, row, col);
+    }
+    for (Index row = row0; row < row1; ++row)
+      for (Index col = 0; col < width; ++col) {
+        const size_t px = static_cast<size_t>(row * width + col);
+        const Ray& ray = rays[static_cast<size_t>((row - row0) * width + col)];
+        Color c;
+        if (out.ids[px] < 0) {
+          c = sky.radiance(ray.direction);
+        } else {
+          Hit hit;
+          hit.t = out.depth[px];
+          hit.primitive = out.ids[px];
+          scene.finish_hit(ray, hit);
+          const Material& mat = scene.material(hit.material);
+          const Color albedo = mat.kind == MaterialKind::dielectric ? Color::Constant(0.9) : mat.albedo;
+          const Scalar lambert = std::max(Scalar(0), hit.normal.dot(light));
+          c = albedo * (config.ambient + (1 - config.ambient) * lambert) + mat.emission;
+        }
+        for (int ch = 0; ch < 3; ++ch) out.image[3 * px + static_cast<size_t>(ch)] = c[ch];
+      }
+  }
+  interrupt.check();
+  return out;
+}
+
+}  // namespace kinema::render
