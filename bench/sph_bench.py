@@ -186,7 +186,7 @@ def bench_splishsplash(sizes, rec, dts, tol, threads, results):
             load = harness.other_load(before, after)
             results[(n, f"splishsplash-{method}")] = (per_step, dt, load)
             rec.record(f"splishsplash-{method}", res["particles"], per_step, error=err,
-                       notes={"dt": f"{dt:.3g}", "other_load_whole_run": f"{load:.2f}",
+                       notes={"dt": f"{dt:.3g}", "other_load_whole_run": f"{load:.2f}", **res["applied"],
                               "s_per_sim_s": f"{per_step / dt:.3g}"})
             print(f"  splishsplash-{method:6s} n={res['particles']:7d} {per_step * 1e3:8.1f} ms/step "
                   f"density error {err:.1e} (other load over the run {load:.2f})")
