@@ -22,10 +22,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import harness  # noqa: E402
+from sph_bench import OUT, plot_and_report  # noqa: E402
 
 G = 9.81
 A = 0.1  # column width [m]; height 2a, tank 8a x 3a
-OUT = Path(__file__).resolve().parent / "out"
 
 
 def dam_break(method, ratio, tol):
@@ -74,12 +74,7 @@ def main(argv=None) -> int:
                    notes={"density_error": f"{density:.3g}", "spacing": A / ratio, "tol": tol})
         print(f"{method:6s} {ratio:5d} {tol if method == 'dfsph' else float('nan'):7.0e} "
               f"{m.seconds:8.2f} {steps:6d} {front:9.3f} {density:11.2e} {m.other_load:10.2f}")
-    try:
-        harness.plot_work_precision(csv_path, OUT / "sph_work_precision.png",
-                                    benchmark="sph_dambreak2d_work_precision")
-    except Exception as exc:  # the plot is a convenience; the CSV is the record
-        print(f"(plot skipped: {exc})")
-    print(f"CSV: {csv_path}")
+    plot_and_report(csv_path, "sph_work_precision.png", "sph_dambreak2d_work_precision")
     return 0
 
 
