@@ -7,6 +7,7 @@ spacing (both methods) and the DFSPH solver tolerance, against two errors:
 
     python bench/sph_work_precision.py            # ratios 10, 20, 40 particles across the column
     python bench/sph_work_precision.py --quick    # ratios 10, 20
+    python bench/sph_work_precision.py --settings # DFSPH warm start and Verlet skin counts
 
 Each run is timed with bench/harness.py (the load of other processes is recorded per run).
 CSV: bench/out/sph_work_precision.csv; plot: bench/out/sph_work_precision.png.
@@ -49,14 +50,47 @@ def dam_break(method, ratio, tol):
     return front_error, float(np.mean(compression)), steps
 
 
+def settings():
+    """Solver iterations per step against warm_start, and grid searches against neighbor_skin,
+    on the column at 20 particles across, in CFL steps to t = 0.2 s (counts, not times)."""
+    import kinema as km
+
+    s = A / 20
+    x = km.sph.block([0, 0], [A, 2 * A], s)
+    domain = ([0, 0], [8 * A, 3 * A])
+    for warm in (0.0, 0.5, 0.75, 1.0):
+        fluid = km.sph.Fluid(x, s, domain=domain, warm_start=warm)
+        its = div = steps = 0
+        try:
+            while fluid.time < 0.2:
+                st = fluid.step(fluid.stable_dt())
+                its, div, steps = its + st["iterations"], div + st["divergence_iterations"], steps + 1
+            print(f"dfsph warm_start={warm}: {steps} steps, {its / steps:.2f} density and "
+                  f"{div / steps:.2f} divergence iterations per step")
+        except km.DivergenceError:
+            print(f"dfsph warm_start={warm}: diverged at step {steps}")
+    for method in ("wcsph", "dfsph"):
+        for skin in (0.0, 0.2):
+            fluid = km.sph.Fluid(x, s, method=method, domain=domain, neighbor_skin=skin)
+            searches = steps = 0
+            while fluid.time < 0.2:
+                searches += fluid.step(fluid.stable_dt())["neighbor_rebuild"]
+                steps += 1
+            print(f"{method} neighbor_skin={skin}: {searches} grid searches in {steps} steps")
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--quick", action="store_true")
+    p.add_argument("--settings", action="store_true", help="warm start and skin counts only")
     p.add_argument("--threads", type=int, default=harness.default_threads())
     args = p.parse_args(argv)
     import kinema as km
 
     km.set_num_threads(args.threads)
+    if args.settings:
+        settings()
+        return 0
     ratios = [10, 20] if args.quick else [10, 20, 40]
     OUT.mkdir(exist_ok=True)
     csv_path = OUT / "sph_work_precision.csv"
