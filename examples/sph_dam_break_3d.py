@@ -2,10 +2,12 @@
 
     python examples/sph_dam_break_3d.py --out out/dambreak [--spacing 0.02] [--frames 60] [--fps 30]
 
-Writes OUT/frame_0000.ply ... (binary little-endian PLY: x, y, z and the speed per vertex;
-ParaView and Blender open them), OUT/obstacle.ply (the obstacle's boundary samples) and
-OUT/preview.mp4 (a side view coloured by speed, rendered with matplotlib and encoded by ffmpeg
-when both are available).
+Writes per frame OUT/frame_0000.ply ... (binary little-endian PLY point clouds: x, y, z and the
+speed per vertex; Blender imports them, ParaView opens them too) and OUT/frame_0000.vtk ...
+(legacy binary VTK polydata with one vertex cell per particle and a "speed" array: ParaView
+renders them directly and reads the numbered files as one time series), OUT/obstacle.ply and
+OUT/obstacle.vtk (the obstacle's boundary samples) and OUT/preview.mp4 (a side view coloured by
+speed, rendered with matplotlib and encoded by ffmpeg when both are available).
 """
 
 import argparse
@@ -30,6 +32,24 @@ def write_ply(path, x, speed=None):
     with open(path, "wb") as f:
         f.write(header.encode("ascii"))
         f.write(np.ascontiguousarray(np.hstack(cols)).tobytes())
+
+
+def write_vtk(path, x, speed=None):
+    """Legacy binary VTK polydata (big-endian): the points, one VERTICES cell each, and speed."""
+    n = len(x)
+    with open(path, "wb") as f:
+        f.write(b"# vtk DataFile Version 3.0\nkinema sph particles\nBINARY\nDATASET POLYDATA\n")
+        f.write(b"POINTS %d float\n" % n)
+        f.write(np.ascontiguousarray(x, dtype=">f4").tobytes())
+        cells = np.empty((n, 2), dtype=">i4")
+        cells[:, 0] = 1
+        cells[:, 1] = np.arange(n)
+        f.write(b"\nVERTICES %d %d\n" % (n, 2 * n))
+        f.write(cells.tobytes())
+        if speed is not None:
+            f.write(b"\nPOINT_DATA %d\nSCALARS speed float 1\nLOOKUP_TABLE default\n" % n)
+            f.write(np.ascontiguousarray(speed, dtype=">f4").tobytes())
+        f.write(b"\n")
 
 
 def scene(spacing):
@@ -72,6 +92,7 @@ def main(argv=None):
     fluid = km.sph.Fluid(water, args.spacing, method=args.method, domain=tank, boundary=obstacle,
                          viscosity=1e-5)
     write_ply(out / "obstacle.ply", obstacle)
+    write_vtk(out / "obstacle.vtk", obstacle)
     video = not args.no_video and shutil.which("ffmpeg") is not None
     print(f"{fluid.n} particles, {fluid.boundary_count} boundary samples, {args.frames} frames")
     t0 = time.perf_counter()
@@ -82,6 +103,7 @@ def main(argv=None):
                   f"density error {fluid.density_error():.1e}  wall {time.perf_counter() - t0:.1f} s")
         speed = np.linalg.norm(fluid.v, axis=1)
         write_ply(out / f"frame_{frame:04d}.ply", fluid.x, speed)
+        write_vtk(out / f"frame_{frame:04d}.vtk", fluid.x, speed)
         if video:
             render(out / f"frame_{frame:04d}.png", fluid.x, speed, tank)
     if video:

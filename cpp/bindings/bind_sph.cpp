@@ -24,7 +24,7 @@ struct PyFluid {
           Scalar rho0, Scalar viscosity, std::vector<Scalar> gravity, std::optional<py::array> boundary,
           std::optional<std::vector<Scalar>> lower, std::optional<std::vector<Scalar>> upper,
           Scalar speed_of_sound, Scalar gamma, Scalar tol, Scalar divergence_tol, int max_iter,
-          bool divergence_solve, int reorder_every)
+          bool divergence_solve, int reorder_every, Scalar neighbor_skin, Scalar warm_start)
       : state(dim_of(positions, "positions"), positions.shape(0)) {
     const int d = state.dim;
     const Scalar* xp = checked_data(positions, "positions", state.n * d, false);
@@ -53,6 +53,8 @@ struct PyFluid {
     config.max_iter = max_iter;
     config.divergence_solve = divergence_solve;
     config.reorder_every = reorder_every;
+    config.neighbor_skin = neighbor_skin;
+    config.warm_start = warm_start;
     py::gil_scoped_release release;
     const sph::Model model = sph::make_model(d, spacing, rho0, std::move(xb),
                                              lower ? lower->data() : nullptr,
@@ -101,6 +103,7 @@ struct PyFluid {
     d["divergence_error"] = s.divergence_error;
     d["max_speed"] = s.max_speed;
     d["neighbor_count"] = s.neighbor_count;
+    d["neighbor_rebuild"] = s.neighbor_rebuild;
     d["seconds"] = s.seconds;
     return d;
   }
@@ -121,12 +124,14 @@ void bind_sph(py::module_& m) {
   py::class_<PyFluid>(m, "Fluid")
       .def(py::init<py::array, py::array, Scalar, const std::string&, Scalar, Scalar, std::vector<Scalar>,
                     std::optional<py::array>, std::optional<std::vector<Scalar>>,
-                    std::optional<std::vector<Scalar>>, Scalar, Scalar, Scalar, Scalar, int, bool, int>(),
+                    std::optional<std::vector<Scalar>>, Scalar, Scalar, Scalar, Scalar, int, bool, int,
+                    Scalar, Scalar>(),
            py::arg("positions"), py::arg("velocity"), py::arg("spacing"), py::arg("method"),
            py::arg("rho0"), py::arg("viscosity"), py::arg("gravity"), py::arg("boundary"),
            py::arg("lower"), py::arg("upper"), py::arg("speed_of_sound"), py::arg("gamma"),
            py::arg("tol"), py::arg("divergence_tol"), py::arg("max_iter"),
-           py::arg("divergence_solve"), py::arg("reorder_every"))
+           py::arg("divergence_solve"), py::arg("reorder_every"), py::arg("neighbor_skin"),
+           py::arg("warm_start"))
       .def("step", &PyFluid::step, py::arg("dt"))
       .def("advance", &PyFluid::advance, py::arg("duration"), py::arg("cfl"))
       .def("stable_dt", [](const PyFluid& f, Scalar cfl) { return f.solver->stable_dt(f.state, cfl); },
@@ -134,6 +139,16 @@ void bind_sph(py::module_& m) {
       .def("density_error", [](PyFluid& f) {
         py::gil_scoped_release release;
         return f.solver->density_error(f.state);
+      })
+      // (fluid pairs (P, 2), (fluid, boundary sample) pairs (Q, 2)) that the next step will use.
+      .def("neighbor_pairs_in_use", [](PyFluid& f) {
+        std::vector<Index> pairs, boundary_pairs;
+        {
+          py::gil_scoped_release release;
+          pairs = f.solver->neighbor_pairs_in_use(f.state, boundary_pairs);
+        }
+        const Index p = static_cast<Index>(pairs.size()) / 2, q = static_cast<Index>(boundary_pairs.size()) / 2;
+        return py::make_tuple(to_numpy(std::move(pairs), {p, 2}), to_numpy(std::move(boundary_pairs), {q, 2}));
       })
       .def_property_readonly("x", [](py::object self) {
         auto& f = self.cast<PyFluid&>();

@@ -36,7 +36,9 @@ struct Config {
   Scalar divergence_tol = 1e-3;                // DFSPH: mean (d rho/dt) dt / rho0 after the divergence solve
   int max_iter = 100;                          // DFSPH: iterations per solve
   bool divergence_solve = true;                // DFSPH: run the divergence-free solver
-  int reorder_every = 16;                      // steps between Morton reorderings (0: never)
+  int reorder_every = 16;                      // least steps between Morton reorderings (0: never)
+  Scalar neighbor_skin = 0.2;                  // Verlet skin of the neighbour lists, fraction of h
+  Scalar warm_start = 0.5;                     // DFSPH: share of the last step's stiffnesses to start from
 };
 
 struct Model {
@@ -79,6 +81,7 @@ struct StepStats {
   Scalar divergence_error = 0;    // the divergence solve's error (DFSPH)
   Scalar max_speed = 0;           // after the step [m/s]
   Index neighbor_count = 0;       // fluid-fluid neighbour entries (2 per pair)
+  bool neighbor_rebuild = false;  // the neighbour lists were rebuilt from the cell grid
   Scalar seconds = 0;
 };
 
@@ -96,6 +99,10 @@ class Solver {
   // Recomputes the densities of the current positions into state.density and returns the
   // mean over particles of max(rho/rho0 - 1, 0).
   virtual Scalar density_error(State& state) = 0;
+  // Brings the neighbour lists up to date for the current positions exactly as step() does
+  // (rebuilding or reordering if due) and returns the pairs i < j they hold (row indices, flat
+  // [i0, j0, i1, j1, ...], in list order) and the (fluid, boundary sample) pairs.
+  virtual std::vector<Index> neighbor_pairs_in_use(State& state, std::vector<Index>& boundary_pairs) = 0;
 
   const Model& model() const { return model_; }
   const Config& config() const { return config_; }

@@ -2,8 +2,6 @@
 // Equation numbers: Becker and Teschner 2007 (WCSPH), Bender and Koschier 2017 (DFSPH,
 // "Divergence-Free SPH for Incompressible and Viscous Fluids", IEEE TVCG), Akinci et al. 2012
 // (boundary), Koschier et al. 2019 (the course notes: kernel, viscosity, CFL).
-#include <omp.h>
-
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
@@ -13,61 +11,13 @@
 #include "core/parallel.h"
 #include "core/timer.h"
 #include "particles/neighbor_grid.h"
+#include "particles/neighbor_lists.h"
 #include "sph/fluid.h"
 #include "sph/kernels.h"
 
 namespace kinema::sph {
 
 namespace {
-
-// Fixed-radius neighbour lists in CSR form: the neighbours of query point i are
-// list[start[i] .. start[i+1]). Rebuilt every step without reallocating once grown.
-struct NeighborLists {
-  std::vector<Index> start;
-  std::vector<std::int32_t> list;
-  std::vector<std::vector<std::int32_t>> per_thread;
-
-  Index size() const { return static_cast<Index>(list.size()); }
-
-  // Neighbours within radius of each query point xq (nq rows) among the points the grid binned
-  // (coordinates xs); a query point is its own neighbour only if !self.
-  template <int D>
-  void build(const NeighborGrid<D>& grid, const Scalar* xs, const Scalar* xq, Index nq,
-             Scalar radius, bool self) {
-    using Vec = Eigen::Matrix<Scalar, D, 1>;
-    const Scalar r2 = radius * radius;
-    start.assign(static_cast<size_t>(nq) + 1, 0);
-    const int threads = nq > kParallelGrain ? num_threads() : 1;
-    per_thread.resize(static_cast<size_t>(std::max(threads, 1)));
-    // Each thread fills the lists of one contiguous chunk of points; concatenating the chunks
-    // in order gives the same CSR arrays for any thread count.
-#pragma omp parallel num_threads(threads)
-    {
-      const int t = omp_get_thread_num();
-      const int nt = omp_get_num_threads();
-      const Index begin = nq * t / nt, end = nq * (t + 1) / nt;
-      auto& buf = per_thread[static_cast<size_t>(t)];
-      buf.clear();
-      for (Index i = begin; i < end; ++i) {
-        const Vec xi = Eigen::Map<const Vec>(xq + i * D);
-        const size_t before = buf.size();
-        grid.for_each_candidate(xi, [&](Index j) {
-          if (self && j == i) return;
-          if ((Eigen::Map<const Vec>(xs + j * D) - xi).squaredNorm() < r2)
-            buf.push_back(static_cast<std::int32_t>(j));
-        });
-        start[static_cast<size_t>(i) + 1] = static_cast<Index>(buf.size() - before);
-      }
-#pragma omp barrier
-#pragma omp single
-      {
-        for (Index i = 0; i < nq; ++i) start[i + 1] += start[i];
-        list.resize(static_cast<size_t>(start[nq]));
-      }
-      std::copy(buf.begin(), buf.end(), list.begin() + start[begin]);
-    }
-  }
-};
 
 template <int D>
 class SolverD final : public Solver {
@@ -81,13 +31,12 @@ class SolverD final : public Solver {
     for (int a = 0; a < D; ++a) g_[a] = config.gravity[a];
     c_ = config.speed_of_sound > 0 ? config.speed_of_sound : default_speed_of_sound(state);
     B_ = config.rho0 * c_ * c_ / config.gamma;
-    if (model.boundary_count() > 0)
-      boundary_grid_.build(model.boundary_x.data(), model.boundary_count(), model.h);
     const auto n = static_cast<size_t>(state.n);
     accel_.assign(n * D, 0);
     aux_.assign(n, 0);
     kappa_.assign(n, 0);
-    kappa_sum_.assign(n, 0);
+    kappa_density_.assign(n, 0);
+    kappa_divergence_.assign(n, 0);
     factor_.assign(n, 0);
   }
 
@@ -101,8 +50,10 @@ class SolverD final : public Solver {
     else step_dfsph(s, dt, stats, interrupt);
     s.time += dt;
     ++s.steps;
+    last_dt_ = dt;
     stats.max_speed = check_state(s, dt);
-    stats.neighbor_count = fluid_.size();
+    stats.neighbor_count = fluid().size();
+    stats.neighbor_rebuild = rebuilt_;
     stats.seconds = watch.seconds();
     return stats;
   }
@@ -159,12 +110,11 @@ class SolverD final : public Solver {
   // it is given, as SPlisHSPlasH's TimeStepDFSPH::step does).
   void step_dfsph(State& s, Scalar dt, StepStats& stats, Interrupt& interrupt) {
     const Index n = s.n;
-    // Neighbourhoods of the current positions (Morton reordering every few steps).
+    // Neighbourhoods of the current positions (Verlet lists; Morton reordering every few steps).
     neighborhoods(s, true);
     // Densities and the factors alpha_i (eq. 11) of the current positions.
     densities(s);
     dfsph_factors(s);
-    std::fill(kappa_sum_.begin(), kappa_sum_.end(), 0);
     // Divergence-free solver (Algorithm 2): make D rho / Dt = 0 with the current velocities.
     if (config_.divergence_solve) stats.divergence_iterations = divergence_solve(s, dt, stats, interrupt);
     // Non-pressure accelerations (gravity, viscosity) and the predicted velocity v* (eq. 2).
@@ -175,8 +125,13 @@ class SolverD final : public Solver {
     // Positions: x += dt v*.
     parallel_for(n, [&](Index i) { Map(s.x.data() + i * D) += dt * CMap(s.v.data() + i * D); });
     enforce_domain(s);
-    // The pressure that the solves applied: p_i = kappa_i rho_i = rho_i^2 (kappa_i / rho_i).
-    parallel_for(n, [&](Index i) { s.pressure[i] = s.density[i] * s.density[i] * kappa_sum_[i]; });
+    // Pressure of the constant-density solver: its velocity change is that of the force
+    // -(m_i / rho_i) grad p_i with p_i = kappa_i rho_i (Bender and Koschier 2017, eqs. 5-6),
+    // and kappa_density_ holds kappa_i / rho_i summed over the step's iterations.
+    parallel_for(n, [&](Index i) {
+      s.pressure[i] = s.density[i] * s.density[i] * kappa_density_[i];
+    });
+    warm_ = true;
   }
 
   // ------------------------------------------------------------------ DFSPH solvers
@@ -189,13 +144,13 @@ class SolverD final : public Solver {
       const Vec xi = CMap(s.x.data() + i * D);
       Vec sum = Vec::Zero();
       Scalar sum_sq = 0;
-      for (Index k = fluid_.start[i]; k < fluid_.start[i + 1]; ++k) {
-        const Vec gw = m * W_.grad(xi - CMap(s.x.data() + fluid_.list[k] * D));
+      for (Index k = fluid().start[i]; k < fluid().start[i + 1]; ++k) {
+        const Vec gw = m * W_.grad(xi - CMap(s.x.data() + fluid().list[k] * D));
         sum += gw;
         sum_sq += gw.squaredNorm();
       }
-      for (Index k = boundary_.start[i]; k < boundary_.start[i + 1]; ++k) {
-        const Index b = boundary_.list[k];
+      for (Index k = boundary().start[i]; k < boundary().start[i + 1]; ++k) {
+        const Index b = boundary().list[k];
         sum += model_.boundary_psi[b] * W_.grad(xi - CMap(model_.boundary_x.data() + b * D));
       }
       const Scalar denom = sum.squaredNorm() + sum_sq;
@@ -210,32 +165,32 @@ class SolverD final : public Solver {
     const Vec xi = CMap(s.x.data() + i * D);
     const Vec vi = CMap(s.v.data() + i * D);
     Scalar rate = 0;
-    for (Index k = fluid_.start[i]; k < fluid_.start[i + 1]; ++k) {
-      const Index j = fluid_.list[k];
+    for (Index k = fluid().start[i]; k < fluid().start[i + 1]; ++k) {
+      const Index j = fluid().list[k];
       rate += model_.mass * (vi - CMap(s.v.data() + j * D)).dot(W_.grad(xi - CMap(s.x.data() + j * D)));
     }
-    for (Index k = boundary_.start[i]; k < boundary_.start[i + 1]; ++k) {
-      const Index b = boundary_.list[k];
+    for (Index k = boundary().start[i]; k < boundary().start[i + 1]; ++k) {
+      const Index b = boundary().list[k];
       rate += model_.boundary_psi[b] * vi.dot(W_.grad(xi - CMap(model_.boundary_x.data() + b * D)));
     }
     return rate;
   }
 
   // v_i -= dt sum_j m (k_i + k_j) grad W_ij + dt k_i sum_b psi_b grad W_ib, with
-  // k_i = kappa_i / rho_i in kappa_ (eqs. 6 and 12).
+  // k_i = kappa_i / rho_i (an iteration's increment) in kappa_ (eqs. 6 and 12).
   void apply_kappa(State& s, Scalar dt) {
     parallel_for(s.n, [&](Index i) {
       const Vec xi = CMap(s.x.data() + i * D);
       const Scalar ki = kappa_[i];
       Vec dv = Vec::Zero();
-      for (Index k = fluid_.start[i]; k < fluid_.start[i + 1]; ++k) {
-        const Index j = fluid_.list[k];
+      for (Index k = fluid().start[i]; k < fluid().start[i + 1]; ++k) {
+        const Index j = fluid().list[k];
         const Scalar kij = ki + kappa_[j];
         if (kij != 0) dv += (model_.mass * kij) * W_.grad(xi - CMap(s.x.data() + j * D));
       }
       if (ki != 0)
-        for (Index k = boundary_.start[i]; k < boundary_.start[i + 1]; ++k) {
-          const Index b = boundary_.list[k];
+        for (Index k = boundary().start[i]; k < boundary().start[i + 1]; ++k) {
+          const Index b = boundary().list[k];
           dv += (model_.boundary_psi[b] * ki) * W_.grad(xi - CMap(model_.boundary_x.data() + b * D));
         }
       // Staged in accel_ so that every particle reads the velocities of the same iterate.
@@ -244,71 +199,147 @@ class SolverD final : public Solver {
     parallel_for(s.n, [&](Index i) { Map(s.v.data() + i * D) -= dt * CMap(accel_.data() + i * D); });
   }
 
-  // Algorithm 2. Only compression is corrected (D rho/Dt clamped to >= 0), and particles with
-  // fewer neighbours than a filled kernel support (free surface) are skipped, as SPlisHSPlasH does.
-  int divergence_solve(State& s, Scalar dt, StepStats& stats, Interrupt& interrupt) {
+  // Algorithms 2 and 3 as one Jacobi iteration on the stiffnesses k_i = kappa_i / rho_i (stored
+  // in k): each iteration adds max(residual_i, 0) alpha_i / (scale rho_i) (eqs. 6 and 12: the
+  // residual is rho*_i - rho0 with scale dt^2, or D rho_i / Dt with scale dt) and applies the
+  // velocity change of the increments. Only compression is corrected, as in the paper and
+  // SPlisHSPlasH: letting expanded particles take pressure back (a projected Jacobi) made the
+  // iteration diverge, since alpha_i only approximates the inverse diagonal.
+  // Warm start (Bender and Koschier 2017, sec. 4.5): the solve begins from warm_start x the
+  // stiffnesses of the last step. k_i is a pressure over rho_i^2, which does not scale with dt,
+  // so it is reused as is when dt changes. residual() fills aux_ and returns the solver's error;
+  // iterations continue until it is below tol.
+  template <class Residual>
+  int projected_jacobi(State& s, Scalar dt, Scalar scale, std::vector<Scalar>& k, Scalar tol, int min_iter,
+                       Residual&& residual, Scalar& error, Interrupt& interrupt) {
     const Index n = s.n;
-    const Index min_neighbors = D == 3 ? 20 : 7;
-    const Scalar rho0 = config_.rho0;
-    auto update_rates = [&] {
-      parallel_for(n, [&](Index i) {
-        const bool full = fluid_.start[i + 1] - fluid_.start[i] + boundary_.start[i + 1] - boundary_.start[i] >= min_neighbors;
-        aux_[i] = full ? std::max<Scalar>(density_rate(s, i), 0) : 0;
-      });
-      return parallel_sum(n, [&](Index i) { return aux_[i]; }) / std::max<Index>(n, 1) * dt / rho0;
-    };
-    Scalar error = update_rates();
+    const Scalar w = warm_ ? config_.warm_start : 0;
+    if (w > 0) {
+      parallel_for(n, [&](Index i) { k[i] = kappa_[i] = w * k[i]; });
+      apply_kappa(s, dt);
+    } else {
+      std::fill(k.begin(), k.end(), 0);
+    }
+    error = residual();
     int it = 0;
-    while ((error > config_.divergence_tol || it < 1) && it < config_.max_iter) {
+    while ((error > tol || it < min_iter) && it < config_.max_iter) {
       interrupt.check();
-      // kappa^v_i = (1/dt) (D rho_i/Dt) alpha_i (eq. 12), stored divided by rho_i.
       parallel_for(n, [&](Index i) {
-        kappa_[i] = s.density[i] > 0 ? aux_[i] * factor_[i] / (dt * s.density[i]) : 0;
-        kappa_sum_[i] += kappa_[i];
+        kappa_[i] = s.density[i] > 0 ? std::max<Scalar>(aux_[i], 0) * factor_[i] / (scale * s.density[i]) : 0;
+        k[i] += kappa_[i];
       });
       apply_kappa(s, dt);
-      error = update_rates();
+      error = residual();
       ++it;
     }
-    stats.divergence_error = error;
     return it;
   }
 
-  // Algorithm 3: predicted density rho*_i = rho_i + dt D rho_i/Dt (eq. 4), clamped below at
-  // rho0 (a free surface is not pulled together); kappa_i = (rho*_i - rho0) alpha_i / dt^2 (eq. 6).
+  // Algorithm 2 on D rho_i / Dt. The error is the mean compression rate (D rho/Dt clamped to
+  // >= 0) times dt / rho0. Particles with fewer neighbours than a filled kernel support (free
+  // surface) are skipped, as SPlisHSPlasH does.
+  int divergence_solve(State& s, Scalar dt, StepStats& stats, Interrupt& interrupt) {
+    const Index n = s.n;
+    const Index min_neighbors = D == 3 ? 20 : 7;
+    auto residual = [&] {
+      parallel_for(n, [&](Index i) {
+        const bool full = fluid().start[i + 1] - fluid().start[i] + boundary().start[i + 1] - boundary().start[i] >= min_neighbors;
+        aux_[i] = full ? density_rate(s, i) : 0;
+      });
+      return parallel_sum(n, [&](Index i) { return std::max<Scalar>(aux_[i], 0); }) / std::max<Index>(n, 1) * dt /
+             config_.rho0;
+    };
+    const int it = projected_jacobi(s, dt, dt, kappa_divergence_, config_.divergence_tol, 1, residual,
+                                    stats.divergence_error, interrupt);
+    return it;
+  }
+
+  // Algorithm 3 on the predicted density rho*_i = rho_i + dt D rho_i/Dt (eq. 4); the error is
+  // the mean compression max(rho*_i / rho0 - 1, 0).
   int density_solve(State& s, Scalar dt, StepStats& stats, Interrupt& interrupt) {
     const Index n = s.n;
     const Scalar rho0 = config_.rho0;
-    auto update_predictions = [&] {
-      parallel_for(n, [&](Index i) { aux_[i] = std::max(s.density[i] + dt * density_rate(s, i), rho0); });
-      return mean_compression(aux_.data(), n);
+    auto residual = [&] {
+      parallel_for(n, [&](Index i) { aux_[i] = s.density[i] + dt * density_rate(s, i) - rho0; });
+      return parallel_sum(n, [&](Index i) { return std::max<Scalar>(aux_[i], 0); }) / std::max<Index>(n, 1) / rho0;
     };
-    Scalar error = update_predictions();
-    int it = 0;
-    while ((error > config_.tol || it < 2) && it < config_.max_iter) {
-      interrupt.check();
-      parallel_for(n, [&](Index i) {
-        kappa_[i] = s.density[i] > 0 ? (aux_[i] - rho0) * factor_[i] / (dt * dt * s.density[i]) : 0;
-        kappa_sum_[i] += kappa_[i];
-      });
-      apply_kappa(s, dt);
-      error = update_predictions();
-      ++it;
-    }
-    stats.density_error = error;
-    return it;
+    return projected_jacobi(s, dt, dt * dt, kappa_density_, config_.tol, 2, residual, stats.density_error,
+                            interrupt);
   }
 
   // ------------------------------------------------------------------ shared passes
 
+  const NeighborLists& fluid() const { return skin_ > 0 ? fluid_exact_ : fluid_wide_; }
+  const NeighborLists& boundary() const { return skin_ > 0 ? boundary_exact_ : boundary_wide_; }
+
+  // Neighbour lists of the current positions. The cell-grid search runs only when the Verlet
+  // lists (radius h (1 + skin)) may have lost a pair: when some particle has moved skin h / 2
+  // or more since they were built. Each call then filters them to the exact pairs within h.
+  // The skin pays when the lists live a few steps; when the fastest particle would cross it
+  // in under two steps (DFSPH's large steps), the search runs with no skin and no filter.
+  // Morton reordering happens at a rebuild, at most every reorder_every steps.
   void neighborhoods(State& s, bool may_reorder) {
-    if (may_reorder && config_.reorder_every > 0 && s.steps % config_.reorder_every == 0) reorder(s);
-    fluid_grid_.build(s.x.data(), s.n, model_.h);
-    fluid_.build<D>(fluid_grid_, s.x.data(), s.x.data(), s.n, model_.h, true);
-    if (model_.boundary_count() > 0)
-      boundary_.build<D>(boundary_grid_, model_.boundary_x.data(), s.x.data(), s.n, model_.h, false);
-    else
-      boundary_.start.assign(static_cast<size_t>(s.n) + 1, 0);
+    const Scalar h = model_.h;
+    rebuilt_ = !built_ || skin_ == 0 || 2 * max_displacement(s) >= 0.999 * skin_ * h;
+    if (rebuilt_) {
+      if (may_reorder && config_.reorder_every > 0 && (!reordered_ || s.steps - reorder_step_ >= config_.reorder_every)) {
+        reorder(s);
+        reordered_ = true;
+        reorder_step_ = s.steps;
+      }
+      const Scalar travel = last_dt_ * max_speed(s);  // expected distance per step
+      skin_ = config_.neighbor_skin * h >= 4 * travel ? config_.neighbor_skin : 0;
+      const Scalar radius = h * (1 + skin_);
+      fluid_grid_.build(s.x.data(), s.n, radius);
+      fluid_wide_.build<D>(fluid_grid_, s.x.data(), s.x.data(), s.n, radius, true);
+      if (model_.boundary_count() > 0) {
+        if (boundary_grid_radius_ != radius) {
+          boundary_grid_.build(model_.boundary_x.data(), model_.boundary_count(), radius);
+          boundary_grid_radius_ = radius;
+        }
+        boundary_wide_.build<D>(boundary_grid_, model_.boundary_x.data(), s.x.data(), s.n, radius, false);
+      } else {
+        boundary_wide_.start.assign(static_cast<size_t>(s.n) + 1, 0);
+      }
+      x_built_ = s.x;
+      built_ = true;
+    }
+    if (skin_ > 0) {
+      fluid_exact_.filter<D>(fluid_wide_, s.x.data(), s.x.data(), s.n, h);
+      if (model_.boundary_count() > 0)
+        boundary_exact_.filter<D>(boundary_wide_, model_.boundary_x.data(), s.x.data(), s.n, h);
+      else
+        boundary_exact_.start.assign(static_cast<size_t>(s.n) + 1, 0);
+    }
+  }
+
+  // Largest distance a particle has moved since the lists were built [m].
+  Scalar max_displacement(const State& s) const {
+    Scalar d2 = 0;
+    const Scalar* x = s.x.data();
+    const Scalar* x0 = x_built_.data();
+#pragma omp parallel for schedule(static) reduction(max : d2) if (s.n > kParallelGrain)
+    for (Index i = 0; i < s.n; ++i) d2 = std::max(d2, (CMap(x + i * D) - CMap(x0 + i * D)).squaredNorm());
+    return std::sqrt(d2);
+  }
+
+  std::vector<Index> neighbor_pairs_in_use(State& s, std::vector<Index>& boundary_pairs) override {
+    check_finite(s, "x", s.x);
+    neighborhoods(s, true);
+    std::vector<Index> pairs;
+    boundary_pairs.clear();
+    for (Index i = 0; i < s.n; ++i) {
+      for (Index k = fluid().start[i]; k < fluid().start[i + 1]; ++k)
+        if (fluid().list[k] > i) {
+          pairs.push_back(i);
+          pairs.push_back(fluid().list[k]);
+        }
+      for (Index k = boundary().start[i]; k < boundary().start[i + 1]; ++k) {
+        boundary_pairs.push_back(i);
+        boundary_pairs.push_back(boundary().list[k]);
+      }
+    }
+    return pairs;
   }
 
   // Permutes every per-particle array in place along the Morton curve (buffers keep their
@@ -329,6 +360,8 @@ class SolverD final : public Solver {
     permute(s.density, 1);
     permute(s.pressure, 1);
     permute(s.ids, 1);
+    permute(kappa_density_, 1);
+    permute(kappa_divergence_, 1);
   }
 
   void densities(State& s) {
@@ -336,10 +369,10 @@ class SolverD final : public Solver {
     parallel_for(s.n, [&](Index i) {
       const Vec xi = CMap(s.x.data() + i * D);
       Scalar rho = m * W_.w0();
-      for (Index k = fluid_.start[i]; k < fluid_.start[i + 1]; ++k)
-        rho += m * W_.w((xi - CMap(s.x.data() + fluid_.list[k] * D)).norm());
-      for (Index k = boundary_.start[i]; k < boundary_.start[i + 1]; ++k) {
-        const Index b = boundary_.list[k];
+      for (Index k = fluid().start[i]; k < fluid().start[i + 1]; ++k)
+        rho += m * W_.w((xi - CMap(s.x.data() + fluid().list[k] * D)).norm());
+      for (Index k = boundary().start[i]; k < boundary().start[i + 1]; ++k) {
+        const Index b = boundary().list[k];
         rho += model_.boundary_psi[b] * W_.w((xi - CMap(model_.boundary_x.data() + b * D)).norm());
       }
       s.density[i] = rho;
@@ -358,8 +391,8 @@ class SolverD final : public Solver {
       if (nu > 0) {
         const Vec xi = CMap(s.x.data() + i * D);
         const Vec vi = CMap(s.v.data() + i * D);
-        for (Index k = fluid_.start[i]; k < fluid_.start[i + 1]; ++k) {
-          const Index j = fluid_.list[k];
+        for (Index k = fluid().start[i]; k < fluid().start[i + 1]; ++k) {
+          const Index j = fluid().list[k];
           const Vec xij = xi - CMap(s.x.data() + j * D);
           a += viscosity_term<D>(xij, vi - CMap(s.v.data() + j * D), W_.grad(xij),
                                  model_.mass / s.density[j], nu, model_.h);
@@ -375,15 +408,15 @@ class SolverD final : public Solver {
       const Scalar pi = s.pressure[i] / (s.density[i] * s.density[i]);
       const Vec xi = CMap(s.x.data() + i * D);
       Vec a = Vec::Zero();
-      for (Index k = fluid_.start[i]; k < fluid_.start[i + 1]; ++k) {
-        const Index j = fluid_.list[k];
+      for (Index k = fluid().start[i]; k < fluid().start[i + 1]; ++k) {
+        const Index j = fluid().list[k];
         const Scalar pij = pi + s.pressure[j] / (s.density[j] * s.density[j]);
         if (pij != 0) a -= (m * pij) * W_.grad(xi - CMap(s.x.data() + j * D));
       }
       // Pressure mirroring at the boundary: p_b / rho_b^2 = p_i / rho_i^2.
       if (pi != 0)
-        for (Index k = boundary_.start[i]; k < boundary_.start[i + 1]; ++k) {
-          const Index b = boundary_.list[k];
+        for (Index k = boundary().start[i]; k < boundary().start[i + 1]; ++k) {
+          const Index b = boundary().list[k];
           a -= (2 * model_.boundary_psi[b] * pi) * W_.grad(xi - CMap(model_.boundary_x.data() + b * D));
         }
       Map(accel_.data() + i * D) += a;
@@ -419,7 +452,9 @@ class SolverD final : public Solver {
 
   static Scalar max_speed(const State& s) {
     Scalar vmax2 = 0;
-    for (Index i = 0; i < s.n; ++i) vmax2 = std::max(vmax2, CMap(s.v.data() + i * D).squaredNorm());
+    const Scalar* v = s.v.data();
+#pragma omp parallel for schedule(static) reduction(max : vmax2) if (s.n > kParallelGrain)
+    for (Index i = 0; i < s.n; ++i) vmax2 = std::max(vmax2, CMap(v + i * D).squaredNorm());
     return std::sqrt(vmax2);
   }
 
@@ -482,11 +517,20 @@ class SolverD final : public Solver {
   Vec g_ = Vec::Zero();
   Scalar B_ = 0;
   NeighborGrid<D> fluid_grid_, boundary_grid_;
-  NeighborLists fluid_, boundary_;
+  Scalar boundary_grid_radius_ = 0;           // cell size boundary_grid_ was built for
+  NeighborLists fluid_wide_, boundary_wide_;    // Verlet lists, radius h (1 + skin_)
+  NeighborLists fluid_exact_, boundary_exact_;  // their entries within h (used when skin_ > 0)
+  std::vector<Scalar> x_built_;                 // positions the Verlet lists were built at
+  Scalar skin_ = 0;                             // skin of the current lists (fraction of h)
+  bool built_ = false, rebuilt_ = false, reordered_ = false;
+  Index reorder_step_ = 0;
+  Scalar last_dt_ = 0;                          // the previous step's dt [s]
   std::vector<Scalar> accel_;      // (n, d) accelerations, or velocity corrections in DFSPH
   std::vector<Scalar> aux_;        // DFSPH: predicted densities or density rates
-  std::vector<Scalar> kappa_;      // DFSPH: kappa_i / rho_i of the current iteration
-  std::vector<Scalar> kappa_sum_;  // DFSPH: kappa_i / rho_i summed over the step's solves
+  std::vector<Scalar> kappa_;             // DFSPH: increment of kappa_i / rho_i in the current iteration
+  std::vector<Scalar> kappa_density_;     // DFSPH: kappa_i / rho_i of the constant-density solve
+  std::vector<Scalar> kappa_divergence_;  // DFSPH: kappa^v_i / rho_i of the divergence-free solve
+  bool warm_ = false;                     // the kappa arrays hold a previous step's values
   std::vector<Scalar> factor_;     // DFSPH: alpha_i
 };
 
@@ -503,6 +547,10 @@ std::unique_ptr<Solver> Solver::create(const Model& model, const Config& config,
   if (!(config.divergence_tol > 0)) throw InvalidArgument("divergence_tol: expected a number > 0");
   if (config.max_iter < 1) throw InvalidArgument("max_iter: expected an integer >= 1");
   if (config.reorder_every < 0) throw InvalidArgument("reorder_every: expected an integer >= 0");
+  if (!(config.neighbor_skin >= 0) || !(config.neighbor_skin <= 1))
+    throw InvalidArgument("neighbor_skin: expected a number in [0, 1], got " + std::to_string(config.neighbor_skin));
+  if (!(config.warm_start >= 0) || !(config.warm_start <= 1))
+    throw InvalidArgument("warm_start: expected a number in [0, 1], got " + std::to_string(config.warm_start));
   if (model.dim == 2) return std::make_unique<SolverD<2>>(model, config, state);
   return std::make_unique<SolverD<3>>(model, config, state);
 }

@@ -23,7 +23,7 @@ import numpy as np
 from kinema import _core
 from kinema._checks import as_float_array, choice, non_negative, positive, positive_int
 
-__all__ = ["Fluid", "neighbor_pairs", "kernel", "block", "box_boundary", "METHODS"]
+__all__ = ["Fluid", "neighbor_pairs", "kernel", "block", "box_boundary", "martin_moyce", "METHODS"]
 
 METHODS = ("wcsph", "dfsph")
 
@@ -46,6 +46,15 @@ def _box(lower, upper, name_lower="lower", name_upper="upper"):
         raise ValueError(f"{name_upper}: expected {name_upper} > {name_lower} on every axis, got "
                          f"{name_lower}={lo.tolist()}, {name_upper}={hi.tolist()}")
     return lo, hi
+
+
+def martin_moyce() -> np.ndarray:
+    """Martin and Moyce (1952), Fig. 3: surge-front positions of a collapsing water column of
+    width a and height 2a, as an (m, 2) array of (T, Z) with T = t sqrt(2 g / a), Z = z / a
+    (as digitised for PySPH's dam-break examples). The validation data of dam-break runs.
+    """
+    return np.array([(0.832, 1.217), (1.219, 1.474), (1.997, 2.292), (2.547, 2.995),
+                     (3.345, 4.134), (4.034, 4.944)])
 
 
 def neighbor_pairs(points, radius) -> np.ndarray:
@@ -114,7 +123,12 @@ class Fluid:
     initial fluid height H. gamma: Tait exponent.
     Further keywords: velocity ((n, d) initial velocities), tol (DFSPH mean density error,
     default 1e-3), divergence_tol (1e-3), max_iter (100), divergence_solve (True),
-    reorder_every (steps between Morton reorderings, 16; 0 keeps the input order).
+    reorder_every (least steps between Morton reorderings, 16; 0 keeps the input order),
+    neighbor_skin (Verlet skin of the neighbour lists as a fraction of h, 0.2: the cell-grid
+    search reruns only when a particle has moved half the skin; 0 searches every step),
+    warm_start (DFSPH: share of the last step's stiffnesses each solve starts from, 0.5; it
+    halved the density iterations of a collapsing column, while 1.0 overshot and diverged:
+    the solver only adds pressure, so an over-pressured start cannot be taken back).
 
     State (writable zero-copy views of the solver's memory; they stay valid for the life of
     the Fluid, but Morton reordering permutes rows in place, so row k of ``x`` is the particle
@@ -122,14 +136,15 @@ class Fluid:
 
     * x: (n, d) positions [m]; v: (n, d) velocities [m/s]
     * density: (n,) [kg/m^d] at the start of the last step (``density_error()`` refreshes it)
-    * pressure: (n,) [Pa] of the last step (DFSPH: the pressure its solves applied)
+    * pressure: (n,) [Pa] of the last step (DFSPH: p_i = kappa_i rho_i of its constant-density
+      solve, the pressure whose force that solve applied)
     * ids: (n,) int64 original index of each row; time [s]
     """
 
     def __init__(self, positions, spacing, *, method="dfsph", rho0=1000.0, viscosity=0.0,
                  gravity=None, domain=None, boundary=None, speed_of_sound=None, gamma=7.0,
                  velocity=None, tol=1e-3, divergence_tol=1e-3, max_iter=100,
-                 divergence_solve=True, reorder_every=16):
+                 divergence_solve=True, reorder_every=16, neighbor_skin=0.2, warm_start=0.5):
         x = _points(positions, "positions")
         n, d = x.shape
         self.dim = d
@@ -160,6 +175,13 @@ class Fluid:
                 or reorder_every < 0:
             raise ValueError(f"reorder_every: expected an integer >= 0, got {reorder_every!r}")
 
+        neighbor_skin = non_negative(neighbor_skin, "neighbor_skin")
+        if neighbor_skin > 1:
+            raise ValueError(f"neighbor_skin: expected a number in [0, 1], got {neighbor_skin!r}")
+        warm_start = non_negative(warm_start, "warm_start")
+        if warm_start > 1:
+            raise ValueError(f"warm_start: expected a number in [0, 1], got {warm_start!r}")
+
         parts = []
         lower = upper = None
         if domain is not None:
@@ -181,7 +203,8 @@ class Fluid:
         self.domain = None if lower is None else (np.array(lower), np.array(upper))
         self._core = _core.sph.Fluid(x, v, self.spacing, self.method, self.rho0, self.viscosity,
                                      g.tolist(), xb, lower, upper, c, gamma, tol, divergence_tol,
-                                     max_iter, bool(divergence_solve), int(reorder_every))
+                                     max_iter, bool(divergence_solve), int(reorder_every),
+                                     neighbor_skin, warm_start)
 
     # ------------------------------------------------------------------ state
     @property
@@ -241,7 +264,7 @@ class Fluid:
     # ------------------------------------------------------------------ stepping
     def step(self, dt) -> dict:
         """Advances by dt [s]. Returns stats: dt, iterations, divergence_iterations,
-        density_error, divergence_error, max_speed, neighbor_count, seconds.
+        density_error, divergence_error, max_speed, neighbor_count, neighbor_rebuild, seconds.
 
         Raises km.DivergenceError when a value turns non-finite or speeds run away (dt too
         large: see :meth:`stable_dt`).
@@ -266,6 +289,14 @@ class Fluid:
         """0.5 * m * sum |v|^2 [J] (2D: per unit depth)."""
         v = self.v
         return 0.5 * self.mass * float(np.einsum("ij,ij->", v, v))
+
+    def neighbor_pairs(self):
+        """The neighbour pairs the next step will use, brought up to date as a step does.
+
+        Returns (fluid, boundary): (P, 2) int64 row pairs i < j of ``x`` closer than the support
+        radius, and (Q, 2) pairs (row i, boundary sample b) closer than it.
+        """
+        return self._core.neighbor_pairs_in_use()
 
     def density_error(self) -> float:
         """Mean over particles of max(rho/rho0 - 1, 0) at the current positions (refreshes

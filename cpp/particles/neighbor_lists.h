@@ -1,0 +1,95 @@
+// Fixed-radius neighbour lists in CSR form: the neighbours of query point i are
+// list[start[i] .. start[i+1]), in the order the candidates were offered (deterministic).
+// Two ways to fill them, both allocation-free once the buffers have grown:
+// - build(): from a NeighborGrid, all binned points within `radius` of each query point;
+// - filter(): from wider lists (a Verlet list with a skin, Verlet 1967), only the entries
+//   within `radius` at the current positions. A Verlet list built with radius h (1 + skin)
+//   holds every pair closer than h as long as no point has moved more than skin h / 2 since
+//   the build, so filtering it each step gives exactly the pairs a fresh search would.
+#pragma once
+
+#include <omp.h>
+
+#include <Eigen/Core>
+#include <algorithm>
+#include <cstdint>
+#include <vector>
+
+#include "core/parallel.h"
+#include "core/types.h"
+#include "particles/neighbor_grid.h"
+
+namespace kinema {
+
+struct NeighborLists {
+  std::vector<Index> start;
+  std::vector<std::int32_t> list;
+
+  Index size() const { return static_cast<Index>(list.size()); }
+
+  // Neighbours within radius of each query point xq (nq rows of D) among the points the grid
+  // binned (coordinates xs); a query point is its own neighbour only if !self.
+  template <int D>
+  void build(const NeighborGrid<D>& grid, const Scalar* xs, const Scalar* xq, Index nq, Scalar radius,
+             bool self) {
+    using Vec = Eigen::Matrix<Scalar, D, 1>;
+    const Scalar r2 = radius * radius;
+    fill(nq, [&](Index i, auto&& push) {
+      const Vec xi = Eigen::Map<const Vec>(xq + i * D);
+      grid.for_each_candidate(xi, [&](Index j) {
+        if (self && j == i) return;
+        if ((Eigen::Map<const Vec>(xs + j * D) - xi).squaredNorm() < r2) push(j);
+      });
+    });
+  }
+
+  // The entries of `wider` (lists of the same query points) within radius at the current
+  // coordinates xs (listed points) and xq (query points).
+  template <int D>
+  void filter(const NeighborLists& wider, const Scalar* xs, const Scalar* xq, Index nq, Scalar radius) {
+    using Vec = Eigen::Matrix<Scalar, D, 1>;
+    const Scalar r2 = radius * radius;
+    fill(nq, [&](Index i, auto&& push) {
+      const Vec xi = Eigen::Map<const Vec>(xq + i * D);
+      for (Index k = wider.start[i]; k < wider.start[i + 1]; ++k) {
+        const Index j = wider.list[k];
+        if ((Eigen::Map<const Vec>(xs + j * D) - xi).squaredNorm() < r2) push(j);
+      }
+    });
+  }
+
+ private:
+  std::vector<std::vector<std::int32_t>> per_thread_;
+
+  // candidates(i, push) calls push(j) for each neighbour j of query point i, in order.
+  template <class Candidates>
+  void fill(Index nq, Candidates&& candidates) {
+    start.assign(static_cast<size_t>(nq) + 1, 0);
+    const int threads = nq > kParallelGrain ? num_threads() : 1;
+    per_thread_.resize(static_cast<size_t>(std::max(threads, 1)));
+    // Each thread fills the lists of one contiguous chunk of points; concatenating the chunks
+    // in order gives the same CSR arrays for any thread count.
+#pragma omp parallel num_threads(threads)
+    {
+      const int t = omp_get_thread_num();
+      const int nt = omp_get_num_threads();
+      const Index begin = nq * t / nt, end = nq * (t + 1) / nt;
+      auto& buf = per_thread_[static_cast<size_t>(t)];
+      buf.clear();
+      for (Index i = begin; i < end; ++i) {
+        const size_t before = buf.size();
+        candidates(i, [&](Index j) { buf.push_back(static_cast<std::int32_t>(j)); });
+        start[static_cast<size_t>(i) + 1] = static_cast<Index>(buf.size() - before);
+      }
+#pragma omp barrier
+#pragma omp single
+      {
+        for (Index i = 0; i < nq; ++i) start[i + 1] += start[i];
+        list.resize(static_cast<size_t>(start[nq]));
+      }
+      std::copy(buf.begin(), buf.end(), list.begin() + start[begin]);
+    }
+  }
+};
+
+}  // namespace kinema
