@@ -136,6 +136,7 @@ void bind_sph(py::module_& m) {
       .def("advance", &PyFluid::advance, py::arg("duration"), py::arg("cfl"))
       .def("stable_dt", [](const PyFluid& f, Scalar cfl) { return f.solver->stable_dt(f.state, cfl); },
            py::arg("cfl"))
+      .def("reset_caches", [](PyFluid& f) { f.solver->reset_caches(); })
       .def("density_error", [](PyFluid& f) {
         py::gil_scoped_release release;
         return f.solver->density_error(f.state);

@@ -103,6 +103,11 @@ class Solver {
   // (rebuilding or reordering if due) and returns the pairs i < j they hold (row indices, flat
   // [i0, j0, i1, j1, ...], in list order) and the (fluid, boundary sample) pairs.
   virtual std::vector<Index> neighbor_pairs_in_use(State& state, std::vector<Index>& boundary_pairs) = 0;
+  // Forgets what is carried from step to step besides the state (the Verlet lists and the
+  // positions they were built at, the reordering schedule, DFSPH's warm-start stiffnesses, the
+  // last dt): the next step searches afresh and solves from cold. Runs that reset at the same
+  // steps are functions of the state alone, so a checkpoint of the state resumes them exactly.
+  virtual void reset_caches() = 0;
 
   const Model& model() const { return model_; }
   const Config& config() const { return config_; }

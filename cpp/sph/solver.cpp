@@ -313,6 +313,13 @@ class SolverD final : public Solver {
     }
   }
 
+  void reset_caches() override {
+    built_ = reordered_ = warm_ = false;
+    last_dt_ = 0;
+    std::fill(kappa_density_.begin(), kappa_density_.end(), Scalar(0));
+    std::fill(kappa_divergence_.begin(), kappa_divergence_.end(), Scalar(0));
+  }
+
   // Largest distance a particle has moved since the lists were built [m].
   Scalar max_displacement(const State& s) const {
     Scalar d2 = 0;

@@ -290,6 +290,16 @@ class Fluid:
         v = self.v
         return 0.5 * self.mass * float(np.einsum("ij,ij->", v, v))
 
+    def reset_caches(self) -> None:
+        """Forgets what the solver carries between steps besides the state arrays and time.
+
+        That is the Verlet neighbour lists, the Morton reordering schedule, DFSPH's warm-start
+        stiffnesses and the last dt: the next step searches neighbours afresh (reordering
+        particles if ``reorder_every`` > 0) and solves from cold. Two runs that reset at the
+        same steps depend on the state alone, which is how scene checkpoints resume exactly.
+        """
+        self._core.reset_caches()
+
     def neighbor_pairs(self):
         """The neighbour pairs the next step will use, brought up to date as a step does.
 
