@@ -227,6 +227,8 @@ def run_targets(args) -> int:
     figures: dict = {}
     failures = 0
     for target in targets(args.quick):
+        if args.only and not any(word.lower() in target.name.lower() for word in args.only):
+            continue
         print(f"{target.name}: {harness.format_size(target.shape)}")
         problem = problems.setdefault(target.shape, Problem(target.shape))
         for method in (target.ours, target.peer):
@@ -320,6 +322,8 @@ def main(argv=None) -> int:
     parser.add_argument("--threads", type=int, default=os.cpu_count() or 1)
     parser.add_argument("--min-of", type=int, default=1, help="undisturbed timed calls to keep the best of")
     parser.add_argument("--max-tries", type=int, default=5, help="timed calls at most when disturbed")
+    parser.add_argument("--only", nargs="+", metavar="WORD",
+                        help="only the targets whose name holds one of these words (e.g. cholesky)")
     args = parser.parse_args(argv)
     if kinema_has("set_num_threads"):
         import kinema
