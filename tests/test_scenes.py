@@ -57,6 +57,16 @@ def write(tmp_path, text, name="scene.toml"):
     (("type = \"block\"", "type = \"fluid\""), "objects[1].type", "expected one of \"obstacle\""),
     (("velocity = [1.0, 0.0]", "velocity = [true, 0.0]"), "objects[1].velocity[0]", "expected a number"),
     (("[scene]", "[scenery]\nx = 1\n[scene]"), "scenery", "unknown table"),
+    # [output] rendering keys; a 2D grid scene has only the flat view
+    (("[solver]", "[output]\nrender = \"raytrace\"\n[solver]"), "output.render",
+     'expected one of "flat", "preview", "pathtrace"'),
+    (("[solver]", "[output]\nrender = \"pathtrace\"\n[solver]"), "output.render", 'has only "flat"'),
+    (("[solver]", "[output]\nspp = 0\n[solver]"), "output.spp", "expected an integer >= 1"),
+    (("[solver]", "[output]\ncamera = { vfov = \"wide\" }\n[solver]"), "output.camera.vfov", "expected a number > 0"),
+    (("[solver]", "[output]\ncamera = { look_from = [1, 2] }\n[solver]"), "output.camera.look_from",
+     "expected an array of 3 items"),
+    (("[solver]", "[output]\ncamera = { fov = 30 }\n[solver]"), "output.camera.fov", "unknown key"),
+    (("[solver]", "[output]\ncamera = 3\n[solver]"), "output.camera", "expected a table"),
 ])
 def test_validation_names_file_key_path_and_expectation(tmp_path, edit, key, expected):
     old, new = edit
@@ -217,6 +227,83 @@ def test_resume_refuses_another_scene(tmp_path):
         other.run(tmp_path, 3, resume=True, progress=False)
     with pytest.raises(FileNotFoundError, match="no checkpoint"):
         other.run(tmp_path / "empty", 3, resume=True, progress=False)
+
+
+# ----------------------------------------------------------------------------- render modes
+
+SPH_SCENE = """
+[scene]
+name = "tank"
+duration = 0.1
+fps = 20
+threads = 1
+[solver]
+type = "sph"
+spacing = 0.1
+domain = { lower = [0.0, 0.0, 0.0], upper = [1.0, 0.6, 0.6] }
+[[objects]]
+type = "fluid"
+region = { shape = "box", lower = [0.0, 0.0, 0.0], upper = [0.4, 0.4, 0.6] }
+[output]
+mp4 = false
+width = 64
+"""
+
+
+def _is_water(img):
+    """Pixels of the sph water colour (0.15, 0.4, 0.8) shaded: red well below blue (the grey
+    ground and the white-to-light-blue sky have red >= 0.7 blue after tone mapping)."""
+    rgb = img.astype(float)
+    return (rgb[..., 0] < 0.6 * rgb[..., 2]) & (rgb[..., 2] > 20)
+
+
+@pytest.mark.parametrize("mode", ["flat", "preview", "pathtrace"])
+def test_render_modes_write_frames_of_the_requested_width(tmp_path, mode):
+    scene = km.Scene.load(write(tmp_path, SPH_SCENE), overrides=[("output.render", mode), ("output.spp", 2)])
+    assert scene.config["output"]["render"] == mode
+    scene.run(tmp_path / "out", 2, progress=False)
+    for k in range(2):
+        img = _png(tmp_path / "out" / "frames" / f"frame_{k:05d}.png")
+        assert img.shape[1] == 64 if mode != "flat" else img.shape[1] >= 64, img.shape
+        _, counts = np.unique(img.reshape(-1, 3), axis=0, return_counts=True)
+        assert len(counts) >= 3 and counts.max() < 0.95 * counts.sum(), \
+            f"{mode}: frame {k} has {len(counts)} colours, the commonest on {counts.max() / counts.sum():.3f} of it"
+        if mode != "flat":
+            assert img.shape[0] == 48, img.shape  # default height: 3/4 of the width
+            water = _is_water(img).mean()
+            assert 0.01 < water < 0.9, f"{mode}: water covers {water:.3f} of frame {k}"
+
+
+def test_3d_particle_and_mesh_scenes_default_to_preview_2d_fields_to_flat(tmp_path):
+    assert km.Scene.load(write(tmp_path, SPH_SCENE)).config["output"]["render"] == "preview"
+    assert km.Scene.load(EXAMPLES["soft_body"]).config["output"]["render"] == "preview"
+    assert km.Scene.load(write(tmp_path, GRID_SCENE, "grid.toml")).config["output"]["render"] == "flat"
+    assert km.Scene.load(EXAMPLES["vortex_sheet"]).config["output"]["render"] == "flat"
+    assert km.Scene.load(EXAMPLES["hanging_cloth"]).config["output"]["render"] == "pathtrace"
+
+
+def test_pathtrace_frames_are_deterministic_and_follow_the_camera(tmp_path):
+    base = [("output.render", "pathtrace"), ("output.spp", 2)]
+    for run in ("a", "b"):
+        km.Scene.load(write(tmp_path, SPH_SCENE), overrides=base).run(tmp_path / run, 2, progress=False)
+    for k in range(2):
+        name = f"frames/frame_{k:05d}.png"
+        assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes(), name
+    # An explicit camera straight above the tank, looking down: the water fills the left part
+    # of the picture (x to the right), the floor the rest.
+    top = base + [("output.camera", {"look_from": [0.5, 3.0, 0.3], "look_at": [0.5, 0.0, 0.3],
+                                     "up": [0.0, 0.0, -1.0], "vfov": 14.0})]
+    km.Scene.load(write(tmp_path, SPH_SCENE), overrides=top).run(tmp_path / "top", 1, progress=False)
+    water = _is_water(_png(tmp_path / "top" / "frames" / "frame_00000.png"))
+    left, right = water[:, :20].mean(), water[:, 40:].mean()
+    assert left > 0.5 and right < 0.05, (left, right)
+
+
+def test_a_camera_that_cannot_be_built_names_the_key(tmp_path):
+    scene = km.Scene.load(write(tmp_path, SPH_SCENE),
+                          overrides=[("output.camera", {"look_from": [1.0, 1.0, 1.0], "look_at": [1.0, 1.0, 1.0]})])
+    with pytest.raises(SceneError, match=r"output\.camera: look_at: must differ from look_from"):
+        scene.run(tmp_path / "out", 1, progress=False)
 
 
 def test_atomic_write_leaves_nothing_on_failure(tmp_path):

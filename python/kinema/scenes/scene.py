@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 
 from kinema.scenes import adapters
+from kinema.scenes.render3d import MODES
 from kinema.scenes.schema import Bool, Context, Field, Int, ListOf, Real, SceneError, Str, Table, Tagged, Vec
 
 if sys.version_info >= (3, 11):
@@ -40,7 +41,20 @@ OUTPUT = Table({
     "vti": Field(Bool(), False, "grids as VTK image data"),
     "every": Field(Int(ge=1), 1, "frames between data files (VTU, PLY, VTI)"),
     "checkpoint_every": Field(Int(ge=1), 1, "frames between checkpoints"),
-    "width": Field(Int(ge=16), 640, "preview width [pixels]"),
+    "width": Field(Int(ge=16), 640, "image width [pixels]"),
+    "height": Field(Int(ge=16), None, "preview/pathtrace image height [pixels] (default 3/4 of the width)"),
+    "render": Field(Str(MODES), None, '"flat" (NumPy colour-mapped view), "preview" (km.render\'s z-buffered '
+                    'view) or "pathtrace" (km.render\'s path tracer); default "preview" for 3D particle and '
+                    'mesh scenes, "flat" otherwise'),
+    "spp": Field(Int(ge=1), 16, "pathtrace: samples per pixel"),
+    "max_depth": Field(Int(ge=1), 8, "pathtrace: bounces per path"),
+    "seed": Field(Int(ge=0), 0, "pathtrace: random seed (the same for every frame)"),
+    "camera": Field(Table({
+        "look_from": Field(Vec(3), None, "camera position [m]"),
+        "look_at": Field(Vec(3), None, "the point in the image centre [m]"),
+        "up": Field(Vec(3), None, "the direction shown upwards (default: the view's up axis)"),
+        "vfov": Field(Real(gt=0, le=170), None, "vertical field of view [degrees] (default 40)"),
+    }), None, "preview/pathtrace camera; missing keys are computed from the scene's bounds"),
     "view": Field(Vec(2, Int(ge=0)), None, "the two world axes the preview shows (right, up)"),
     "field": Field(Str(), None, "what the preview colours (solver-specific)"),
     "range": Field(Vec(2), None, "colour range [lo, hi]"),
@@ -172,6 +186,13 @@ class Scene:
         view = config["output"]["view"]
         if view is not None and (max(view) >= self.dim or view[0] == view[1]):
             raise self.error("output.view", f"expected two different axes in 0..{self.dim - 1}, got {view}")
+        out = config["output"]
+        geometric = self.dim == 3 and hasattr(self.adapter.Simulation, "geometry")
+        if out["render"] is None:
+            out["render"] = "preview" if geometric else "flat"
+        elif out["render"] != "flat" and not geometric:
+            raise self.error("output.render", f'"{out["render"]}" draws 3D particles and meshes; a {self.dim}D '
+                             f'{kind} scene has only "flat" (its colour-mapped view)')
         metric = config["scene"]["metric"]
         if metric is not None and metric not in self.adapter.Simulation.DIAGNOSTICS:
             raise self.error("scene.metric", f"expected one of {', '.join(self.adapter.Simulation.DIAGNOSTICS)} "

@@ -7,7 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from kinema.scenes import preview, regions
+import kinema as km
+from kinema.scenes import preview, regions, render3d
 from kinema.scenes.adapters.base import ArrayStateSimulation, PointData, view_camera
 from kinema.scenes.schema import REGION, Field, ListOf, Real, Str, Vec
 
@@ -80,7 +81,21 @@ class DeformableSimulation(ArrayStateSimulation):
     def _core(self):
         return self.body._core
 
+    MATERIAL = km.render.lambertian((0.8, 0.35, 0.25))
+
+    def geometry(self, axes):
+        """The surface triangles in a box fixed by the initial shape, with room below for the
+        body to hang by its own size (the ground lies under that room)."""
+        lo, hi = (b.copy() for b in self.rest_box)
+        reach = (hi - lo).max()
+        lo, hi = lo - 0.15 * reach, hi + 0.15 * reach
+        lo[axes[1]] = self.rest_box[0][axes[1]] - 1.1 * reach
+        return render3d.Geometry(lo, hi, meshes=[(self.body.x, self.surface, self.MATERIAL)])
+
     def image(self, output):
+        if output["render"] != "flat":
+            axes = output["view"] or (0, 2)
+            return render3d.image(self.geometry(axes), output, axes, self.scene.error)
         # The view is fixed by the initial shape (built before a checkpoint is restored), with
         # room below for the body to hang and swing by its own size.
         lo, hi = self.rest_box

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 import kinema as km
-from kinema.scenes import preview, regions
+from kinema.scenes import preview, regions, render3d
 from kinema.scenes.adapters.base import ArrayStateSimulation, PointData, view_camera
 from kinema.scenes.schema import REGION, Bool, Field, Int, Real, Str, Table, Vec
 
@@ -131,7 +131,19 @@ class SPHSimulation(ArrayStateSimulation):
         return {"density_error": f.density_error(), "kinetic_energy": f.kinetic_energy(),
                 "max_speed": float(np.linalg.norm(f.v, axis=1).max())}
 
+    WATER = km.render.lambertian((0.15, 0.4, 0.8))
+    SOLID = km.render.lambertian(0.6)
+
+    def geometry(self, axes):
+        """Particles as spheres of radius spacing/2 (touching on the lattice) in the tank."""
+        r = 0.5 * self.spacing
+        return render3d.Geometry(self.lower, self.upper,
+                                 spheres=[(self.fluid.x, r, self.WATER), (self.obstacles, r, self.SOLID)])
+
     def image(self, output):
+        if output["render"] != "flat":
+            axes = output["view"] or (0, 1)
+            return render3d.image(self.geometry(axes), output, axes, self.scene.error)
         cam = view_camera(output, self.dim, self.lower, self.upper, (0, 1))
         img = cam.canvas()
         if len(self.obstacles):
