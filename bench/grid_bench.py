@@ -3,6 +3,7 @@ and Taichi's bundled stable-fluids example as the side-by-side peer (issue 3, "S
 
     .venv/bin/python bench/grid_bench.py             # the issue's figures, one run (~5 min quiet)
     .venv/bin/python bench/grid_bench.py --quick     # 256^2 / 48^3 smoke, small sweep (~1 min)
+    .venv/bin/python bench/grid_bench.py --only 3d --steps 4   # the 128^3 smoke step alone
 
 One run gives: the 2D 512^2 smoke step (MacCormack, MGPCG to 1e-6) and its ratios to Taichi's
 stable_fluid.py step with 500 Jacobi iterations and with MGPCG, the 3D 128^3 smoke step, each
@@ -212,6 +213,9 @@ def main(argv=None):
     p.add_argument("--quick", action="store_true")
     p.add_argument("--no-taichi", action="store_true")
     p.add_argument("--taichi-worker", nargs=2, type=int, help=argparse.SUPPRESS)
+    p.add_argument("--only", choices=["3d"], help="only the 3D smoke step (128^3, 48^3 with --quick); "
+                   "with --steps, the min over that many timed steps")
+    p.add_argument("--steps", type=int, default=2, help="timed steps of the 3D smoke case (default 2)")
     args = p.parse_args(argv)
     if args.taichi_worker:
         taichi_worker(*args.taichi_worker)
@@ -221,8 +225,11 @@ def main(argv=None):
     rec = harness.Recorder(OUT / "grid.csv", benchmark="grid_smoke", threads=threads)
     n2, n3 = (256, 48) if args.quick else (512, 128)
     print(f"kinema {km.__version__}, {threads} threads, commit {harness.git_commit(HERE)}", flush=True)
+    if args.only == "3d":
+        time_smoke((n3, n3, n3), rec, steps=args.steps)
+        return 0
     k2 = time_smoke((n2, n2), rec)
-    k3 = time_smoke((n3, n3, n3), rec, steps=2)
+    k3 = time_smoke((n3, n3, n3), rec, steps=args.steps)
     sl2 = time_smoke((n2, n2), rec, advection="semi_lagrangian")
 
     jac = mg = bare = None

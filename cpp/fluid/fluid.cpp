@@ -148,6 +148,12 @@ void FluidSolver::refresh_solids() {
       }
       fixed_[a][f] = flag;
     });
+    pinned_faces_[a].clear();
+    duplicate_faces_[a].clear();
+    for (Index f = 0; f < L.size(); ++f) {
+      if (fixed_[a][f] == 1) pinned_faces_[a].push_back(f);
+      else if (fixed_[a][f] == 2) duplicate_faces_[a].push_back(f);
+    }
   }
   PoissonConfig pc;
   pc.method = config_.projection;
@@ -295,7 +301,7 @@ void FluidSolver::advect(Scalar dt) {
 
 // --------------------------------------------------------------------------------- forces
 
-void FluidSolver::add_cell_force(int axis, const Scalar* f, Scalar dt) {
+void FluidSolver::add_cell_force(int axis, const Scalar* f, Scalar dt, Scalar du) {
   const FieldLayout& L = faces_[axis];
   Scalar* u = state_.velocity[axis].data();
   const std::vector<std::uint8_t>& fixed = fixed_[axis];
@@ -306,44 +312,49 @@ void FluidSolver::add_cell_force(int axis, const Scalar* f, Scalar dt) {
     // free faces are interior (or a periodic face 0), so cell (i, j, k) is the upper neighbour
     const Index hi = cells_.index(i, j, k);
     const Index lo = (axis == 0 ? i : axis == 1 ? j : k) == 0 ? hi + (n_axis - 1) * stride : hi - stride;
-    u[face] += dt * 0.5 * (f[lo] + f[hi]);
+    u[face] += dt * 0.5 * (f[lo] + f[hi]) + du;
   });
 }
 
 void FluidSolver::add_forces(Scalar dt) {
-  // Gravity: uniform, so every free face gets the same increment.
-  for (int a = 0; a < 3; ++a) {
-    if (!active_[a] || config_.gravity[a] == 0) continue;
-    Scalar* u = state_.velocity[a].data();
-    const std::vector<std::uint8_t>& fixed = fixed_[a];
-    const Scalar du = dt * config_.gravity[a];
-    parallel_for(faces_[a].size(), [&](Index f) {
-      if (!fixed[f]) u[f] += du;
-    });
-  }
-  // Buoyancy (-alpha rho + beta T) up, cell-centred, averaged to the faces.
+  // One pass per component: the cell-centred forces (buoyancy and vorticity confinement, summed
+  // per cell into force_) averaged to the faces, plus gravity, uniform on every free face.
   const bool rho = !state_.density.empty() && config_.alpha != 0;
   const bool temp = !state_.temperature.empty() && config_.beta != 0;
-  if (rho || temp) {
-    const Index n = cells_.size();
-    Scalar* b = force_[2].data();  // reused as scalar scratch
-    parallel_for(n, [&](Index c) {
-      b[c] = (rho ? -config_.alpha * state_.density[c] : 0) + (temp ? config_.beta * state_.temperature[c] : 0);
-    });
+  const bool buoyant = rho || temp;
+  const bool confined = config_.vorticity_confinement > 0;
+  if (confined) {
+    confinement_force(buoyant);
+  } else if (buoyant) {
+    const Scalar* density = state_.density.data();
+    const Scalar* temperature = state_.temperature.data();
+    const Scalar alpha = config_.alpha, beta = config_.beta;
     for (int a = 0; a < 3; ++a) {
       if (!active_[a] || config_.up[a] == 0) continue;
-      add_cell_force(a, b, dt * config_.up[a]);
+      Scalar* f = force_[a].data();
+      const Scalar up = config_.up[a];
+      parallel_for(cells_.size(), [&](Index c) {
+        f[c] = up * ((rho ? -alpha * density[c] : 0) + (temp ? beta * temperature[c] : 0));
+      });
     }
   }
-  if (config_.vorticity_confinement > 0) {
-    confinement_force();
-    for (int a = 0; a < 3; ++a)
-      if (active_[a]) add_cell_force(a, force_[a].data(), dt);
+  for (int a = 0; a < 3; ++a) {
+    if (!active_[a]) continue;
+    const Scalar du = dt * config_.gravity[a];
+    if (confined || (buoyant && config_.up[a] != 0)) {
+      add_cell_force(a, force_[a].data(), dt, du);
+    } else if (du != 0) {
+      Scalar* u = state_.velocity[a].data();
+      const std::uint8_t* fixed = fixed_[a].data();
+      parallel_for(faces_[a].size(), [&](Index f) {
+        if (!fixed[f]) u[f] += du;
+      });
+    }
   }
-  enforce_boundary();
+  // Prescribed faces and periodic duplicates are never written above: no boundary pass needed.
 }
 
-void FluidSolver::confinement_force() {
+void FluidSolver::confinement_force(bool buoyant) {
   const GridShape& s = model_.shape;
   const FieldLayout& C = cells_;
   const Scalar h = model_.h;
@@ -393,22 +404,27 @@ void FluidSolver::confinement_force() {
     }
     vorticity_norm_[c] = std::sqrt(norm2);
   });
-  // f = eps h (N x omega), N = grad|omega| / |grad|omega||.
+  // f = eps h (N x omega), N = grad|omega| / |grad|omega||, plus buoyancy (-alpha rho + beta T) up.
   const Scalar eps = config_.vorticity_confinement;
   const Scalar* wn = vorticity_norm_.data();
+  const bool rho = buoyant && !state_.density.empty() && config_.alpha != 0;
+  const bool temp = buoyant && !state_.temperature.empty() && config_.beta != 0;
+  const Scalar* density = state_.density.data();
+  const Scalar* temperature = state_.temperature.data();
+  const Scalar alpha = config_.alpha, beta = config_.beta;
+  const Vec3 up = config_.up;
   for_each_node(C, [&](Index i, Index j, Index k, Index c) {
+    const Scalar b = (rho ? -alpha * density[c] : 0) + (temp ? beta * temperature[c] : 0);
     Vec3 N{diff(wn, c, i, 0), diff(wn, c, j, 1), diff(wn, c, k, 2)};
     const Scalar len = std::sqrt(N[0] * N[0] + N[1] * N[1] + N[2] * N[2]);
     Vec3 w{vorticity_[0][c], three_d ? vorticity_[1][c] : 0, three_d ? vorticity_[2][c] : 0};
-    if (len <= 1e-12 * (wn[c] + 1e-300) / h || !fluid_cell(c)) {
-      for (int a = 0; a < 3; ++a)
-        if (active_[a]) force_[a][c] = 0;
-      return;
+    Vec3 f{0, 0, 0};
+    if (len > 1e-12 * (wn[c] + 1e-300) / h && fluid_cell(c)) {
+      for (Scalar& x : N) x /= len;
+      f = Vec3{N[1] * w[2] - N[2] * w[1], N[2] * w[0] - N[0] * w[2], N[0] * w[1] - N[1] * w[0]};
     }
-    for (Scalar& x : N) x /= len;
-    const Vec3 f{N[1] * w[2] - N[2] * w[1], N[2] * w[0] - N[0] * w[2], N[0] * w[1] - N[1] * w[0]};
     for (int a = 0; a < 3; ++a)
-      if (active_[a]) force_[a][c] = eps * h * f[a];
+      if (active_[a]) force_[a][c] = eps * h * f[a] + up[a] * b;
   });
 }
 
@@ -490,7 +506,7 @@ Index FluidSolver::diffuse(Scalar dt, Interrupt& interrupt) {
 
 // ----------------------------------------------------------------------------- projection
 
-void FluidSolver::divergence(Scalar* out) const {
+void FluidSolver::divergence(Scalar* out, Scalar scale) const {
   const Scalar inv_h = 1 / model_.h;
   for_each_node(cells_, [&](Index i, Index j, Index k, Index c) {
     if (!fluid_cell(c)) {
@@ -504,15 +520,14 @@ void FluidSolver::divergence(Scalar* out) const {
       const Index f = F.index(i, j, k);
       d += state_.velocity[a][f + F.stride(a)] - state_.velocity[a][f];
     }
-    out[c] = d * inv_h;
+    out[c] = d * inv_h * scale;
   });
 }
 
 SolveInfo FluidSolver::project(Scalar dt, Interrupt& interrupt) {
   const Index n = cells_.size();
   Scalar* b = rhs_.data();
-  divergence(b);
-  parallel_for(n, [&](Index c) { b[c] *= -1 / dt; });
+  divergence(b, -1 / dt);
   Scalar* p = state_.pressure.data();
   IterativeOptions options{config_.tol, config_.max_iter};
   SolveInfo info;
@@ -562,13 +577,13 @@ SolveInfo FluidSolver::project(Scalar dt, Interrupt& interrupt) {
 void FluidSolver::enforce_boundary() {
   for (int a = 0; a < 3; ++a) {
     if (!active_[a]) continue;
-    const FieldLayout& F = faces_[a];
     Scalar* u = state_.velocity[a].data();
-    const std::vector<std::uint8_t>& fixed = fixed_[a];
-    const Index back = model_.shape.n[a] * F.stride(a);  // from the duplicate to face 0
-    parallel_for(F.size(), [&](Index f) {
-      if (fixed[f] == 1) u[f] = 0;
-      else if (fixed[f] == 2) u[f] = u[f - back];
+    const Index back = model_.shape.n[a] * faces_[a].stride(a);  // from the duplicate to face 0
+    const Index* pinned = pinned_faces_[a].data();
+    const Index* duplicate = duplicate_faces_[a].data();
+    parallel_for(static_cast<Index>(pinned_faces_[a].size()), [&](Index e) { u[pinned[e]] = 0; });
+    parallel_for(static_cast<Index>(duplicate_faces_[a].size()), [&](Index e) {
+      u[duplicate[e]] = u[duplicate[e] - back];
     });
   }
 }

@@ -80,7 +80,7 @@ class FluidSolver {
   // wall = 2*axis + side (internal axis); the velocity's normal component must be 0.
   void set_wall_velocity(int wall, const Vec3& velocity);
 
-  void divergence(Scalar* out) const;      // per cell [1/s]; 0 in solid cells
+  void divergence(Scalar* out, Scalar scale = 1) const;  // scale * div u per cell [1/s]; 0 in solid cells
   Vec3 velocity_at(const Vec3& x) const;   // x in metres, internal axes
   Scalar kinetic_energy() const;           // 0.5 int |u|^2 dV [m^(d+2)/s^2]
   Scalar max_speed() const;                // max |u_a| over faces; +inf if any is non-finite
@@ -103,8 +103,10 @@ class FluidSolver {
 
   void refresh_solids();            // rebuilds face flags and the pressure solver on change
   void enforce_boundary();          // fixed faces to their values, periodic copies in sync
-  void add_cell_force(int axis, const Scalar* f, Scalar dt);  // u_a += dt * face average of f
-  void confinement_force();          // Fedkiw et al. 2001, Eq. (9)-(11), into force_
+  // u_a += dt * (face average of f) + du on the free faces
+  void add_cell_force(int axis, const Scalar* f, Scalar dt, Scalar du);
+  // Fedkiw et al. 2001, Eq. (9)-(11), plus the buoyancy when `buoyant`, into force_
+  void confinement_force(bool buoyant);
   void apply_viscosity_operator(int axis, Scalar c, const Scalar* x, Scalar* y) const;
   MacVelocity mac_velocity() const;  // the state's velocity, with the walls
   bool is_fixed(int axis, Index f) const { return fixed_[axis][f] != 0; }
@@ -122,6 +124,8 @@ class FluidSolver {
   // Face flags: 1 where the velocity is prescribed (closed-wall normal faces, faces of solid
   // cells); 2 on a periodic domain's duplicate last face.
   std::array<std::vector<std::uint8_t>, 3> fixed_;
+  // The faces of each flag, listed once per mask so enforce_boundary touches only them.
+  std::array<std::vector<Index>, 3> pinned_faces_, duplicate_faces_;
   std::vector<std::uint8_t> solid_used_;  // the mask the flags and pressure solver were built for
   bool has_solid_ = false, built_ = false;
 
