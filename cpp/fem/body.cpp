@@ -274,10 +274,7 @@ void Body::step_symplectic(Scalar dt) {
   });
   check_finite(v, "v");
   check_finite(x, "x");
-  std::copy(x.begin(), x.end(), state_.x.begin());  // in place: numpy views alias it
-  std::copy(v.begin(), v.end(), state_.v.begin());
-  state_.time += dt;
-  ++state_.step;
+  accept_step(state_, x, v, dt);
 }
 
 NewtonStats Body::step_implicit(Scalar dt, const NewtonOptions& options, Interrupt& interrupt) {
@@ -300,10 +297,7 @@ NewtonStats Body::step_implicit(Scalar dt, const NewtonOptions& options, Interru
   std::vector<Scalar> v(n);
   parallel_for(n, [&](Index q) { v[q] = (x[q] - state_.x[q]) / dt; });
   check_finite(v, "v");
-  std::copy(x.begin(), x.end(), state_.x.begin());  // in place: numpy views alias it
-  std::copy(v.begin(), v.end(), state_.v.begin());
-  state_.time += dt;
-  ++state_.step;
+  accept_step(state_, x, v, dt);
   return stats;
 }
 

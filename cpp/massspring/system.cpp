@@ -273,10 +273,7 @@ StepStats System::step(Scalar dt, Integrator integrator, Scalar beta, LinearSolv
   }
   check_finite(v, "v");
   check_finite(x, "x");
-  std::copy(x.begin(), x.end(), state_.x.begin());  // in place: numpy views alias it
-  std::copy(v.begin(), v.end(), state_.v.begin());
-  state_.time += dt;
-  ++state_.step;
+  accept_step(state_, x, v, dt);
   stats.seconds = clock.seconds();
   return stats;
 }

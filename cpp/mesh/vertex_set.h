@@ -1,6 +1,7 @@
 // Vertex subsets given as index lists (fixed vertices, pinned handles), as per-vertex flags.
 #pragma once
 
+#include <algorithm>
 #include <string>
 #include <vector>
 
@@ -31,6 +32,18 @@ inline Scalar lumped_kinetic_energy(const Scalar* mass, const Scalar* v, Index c
     for (int r = 0; r < dim; ++r) v2 += v[i * dim + r] * v[i * dim + r];
     return mass[i] * v2 / 2;
   });
+}
+
+// Ends a time step of a vertex state {x, v, time, step}: the new positions and velocities are
+// copied into the state's own buffers (numpy views alias them, so never swap), time and step
+// count advance.
+template <class VertexState>
+void accept_step(VertexState& state, const std::vector<Scalar>& x, const std::vector<Scalar>& v,
+                 Scalar dt) {
+  std::copy(x.begin(), x.end(), state.x.begin());
+  std::copy(v.begin(), v.end(), state.v.begin());
+  state.time += dt;
+  ++state.step;
 }
 
 }  // namespace kinema
