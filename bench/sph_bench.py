@@ -202,8 +202,8 @@ def bench_splishsplash(sizes, rec, dts, tol, threads, results, boundaries=("akin
                 name = f"splishsplash-{method}" + ("" if boundary == "akinci" else f"-{boundary}")
                 out = Path(tempfile.mkstemp(suffix=".json")[1])
                 cmd = [sys.executable, str(script), "--method", method, "--spacing", repr(s),
-                       "--steps", str(STEPS + 1), "--dt", repr(dt), "--tol", repr(tol),
-                       "--stiffness", repr(stiffness), "--out", str(out), "--skip", str(skip),
+                       "--steps", str(STEPS + 1), "--dt", repr(float(dt)), "--tol", repr(float(tol)),
+                       "--stiffness", repr(float(stiffness)), "--out", str(out), "--skip", str(skip),
                        "--boundary", boundary, "--cache", str(cache)]
                 proc = subprocess.run(cmd, capture_output=True, text=True, timeout=3600, env=env)
                 if proc.returncode != 0 or not out.stat().st_size:
