@@ -204,7 +204,8 @@ def bench_splishsplash(sizes, rec, dts, tol, threads, results, boundaries=("akin
                 cmd = [sys.executable, str(script), "--method", method, "--spacing", repr(s),
                        "--steps", str(STEPS + 1), "--dt", repr(float(dt)), "--tol", repr(float(tol)),
                        "--stiffness", repr(float(stiffness)), "--out", str(out), "--skip", str(skip),
-                       "--boundary", boundary, "--cache", str(cache)]
+                       "--boundary", boundary, "--cache", str(cache),
+                       "--quiet-timeout", str(MEASURE.get("quiet_timeout", harness.DEFAULT_QUIET_TIMEOUT))]
                 proc = subprocess.run(cmd, capture_output=True, text=True, timeout=3600, env=env)
                 if proc.returncode != 0 or not out.stat().st_size:
                     print(f"  {name}: failed (exit {proc.returncode}): {proc.stderr[-300:]}")
@@ -228,8 +229,11 @@ def bench_splishsplash(sizes, rec, dts, tol, threads, results, boundaries=("akin
                 load = res["other_load"]
                 its = float(np.mean(res["iterations_per_step"])) if method == "dfsph" else 0
                 results[(n, name)] = (per_step, dt, load)
-                rec.record(name, res["particles"], per_step, error=err, iterations=its or None,
-                           notes={"dt": f"{dt:.3g}", "other_load": f"{load:.2f}", "cpu_s_per_step": f"{cpu:.3g}",
+                # Its process's figures as a harness.Measurement, for the CSV's load columns.
+                m = harness.Measurement(seconds=per_step, wall=sum(res["per_step"]), other_load=load, repeats=1,
+                                        disturbed=load > harness.DEFAULT_MAX_LOAD, value=None, runs=())
+                rec.record(name, res["particles"], per_step, error=err, iterations=its or None, measurement=m,
+                           notes={"dt": f"{dt:.3g}", "cpu_s_per_step": f"{cpu:.3g}",
                                   "s_per_sim_s": f"{per_step / dt:.3g}", "boundary": boundary,
                                   "boundary_samples": res["boundary_samples"],
                                   "precompute_s": f"{res['precompute_s']:.3g}",

@@ -4,8 +4,9 @@ bench/sph_bench.py, so that a crash of the peer cannot take the benchmark down.
     python bench/splishsplash_run.py --method wcsph --spacing S --steps N --dt DT --tol TOL \\
         --stiffness B --out OUT.json [--skip K] [--boundary akinci|volume-map] [--cache DIR]
 
-K steps are run untimed first (the benchmark's start-up transient), then N are timed, each
-stamped with wall and process CPU time by a per-step callback.
+K steps are run untimed first (the benchmark's start-up transient), then, after waiting up to
+--quiet-timeout seconds for a quiet machine, N are timed, each stamped with wall and process CPU
+time by a per-step callback; other_load is harness.other_load over the timed steps.
 
 Scene (the same as sph_bench.scene): water column [0, a] x [0, 2a] x [0, a] (a = 0.5 m) in the
 closed box [0, 4a] x [0, 3a] x [0, a], no viscosity, fixed dt (CFL off). The fluid starts on
@@ -148,6 +149,8 @@ def main():
     p.add_argument("--out", required=True)
     p.add_argument("--skip", type=int, default=0, help="untimed start-up steps")
     p.add_argument("--boundary", choices=sorted(BOUNDARIES), default="akinci")
+    p.add_argument("--quiet-timeout", type=float, default=harness.DEFAULT_QUIET_TIMEOUT,
+                   help="seconds to wait for a quiet machine before the timed steps")
     p.add_argument("--cache", help="directory kept between runs for the wall sampling / volume map")
     args = p.parse_args()
     if args.method == "wcsph" and args.stiffness <= 0:
@@ -189,7 +192,8 @@ def main():
             "precompute_s": stamps[0][0] - t_start if stamps else None,
             "precompute_cpu_s": stamps[0][1] - c_start if stamps else None,
             "boundary": args.boundary,
-            "precompute_cached": bool(cached),
+            # Nothing new in the cache: the wall sampling / volume map was read, not computed.
+            "precompute_cached": set(os.listdir(cache_dir)) <= set(cached),
             "boundary_samples": bm.numberOfParticles() if hasattr(bm, "numberOfParticles") else 0,
             "applied": {**applied, **config},
             **state_check(fluid, args.spacing),
@@ -207,7 +211,11 @@ def main():
             its = ts.getValueInt(ts.SOLVER_ITERATIONS) + ts.getValueInt(ts.SOLVER_ITERATIONS_V)
         stamps.append((time.perf_counter(), time.process_time(), tm.getTime(), its))
         if len(stamps) == args.skip + 1:
+            # As harness.measure does for kinema: wait (up to --quiet-timeout) for a quiet
+            # machine before the timed steps, then restart their clock.
+            harness.wait_for_quiet(timeout=args.quiet_timeout)
             load.append(harness.sample_cpu())
+            stamps[-1] = (time.perf_counter(), time.process_time(), tm.getTime(), its)
         if len(stamps) > args.skip + args.steps:
             finish()
 
