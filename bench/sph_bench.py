@@ -183,36 +183,43 @@ def bench_taichi(sizes, rec, dts, threads, results):
               f"(other load {m.other_load:.2f})")
 
 
+def run_splishsplash(method, boundary, spacing, dt, tol, stiffness, skip, threads):
+    """One bench/splishsplash_run.py process; its JSON result, or None (reported) if it failed."""
+    script = Path(__file__).resolve().parent / "splishsplash_run.py"
+    cache = OUT / "splishsplash_cache"  # wall samplings / volume maps, reused between runs
+    out = Path(tempfile.mkstemp(suffix=".json")[1])
+    cmd = [sys.executable, str(script), "--method", method, "--spacing", repr(float(spacing)),
+           "--steps", str(STEPS + 1), "--dt", repr(float(dt)), "--tol", repr(float(tol)),
+           "--stiffness", repr(float(stiffness)), "--out", str(out), "--skip", str(skip),
+           "--boundary", boundary, "--cache", str(cache),
+           "--quiet-timeout", str(MEASURE.get("quiet_timeout", harness.DEFAULT_QUIET_TIMEOUT))]
+    env = dict(os.environ, OMP_NUM_THREADS=str(threads))
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=3600, env=env)
+    text = out.read_text()
+    out.unlink()
+    if proc.returncode != 0 or not text:
+        print(f"  splishsplash-{method} ({boundary}): failed (exit {proc.returncode}): {proc.stderr[-300:]}")
+        return None
+    return json.loads(text)
+
+
 def bench_splishsplash(sizes, rec, dts, tol, threads, results, boundaries=("akinci",)):
     """SPlisHSPlasH on the same scene, per method and wall model, each run in its own process
     (bench/splishsplash_run.py: kinema's lattice, kinema's dt, Tait B and tol, set on its objects
     and read back). Its per-step figure is the median of the timed steps; the check also rejects
     a run that lost particles through a wall or blew up (its earlier runs did, unnoticed, since
     scattered particles have no compression)."""
-    script = Path(__file__).resolve().parent / "splishsplash_run.py"
-    cache = OUT / "splishsplash_cache"  # wall samplings / volume maps, reused between runs
     for n in sizes:
         for method in ("wcsph", "dfsph"):
             dt, s, c = dts[(n, method)]
             stiffness = 1000.0 * c * c / 7.0  # kinema's Tait B = rho0 c^2 / gamma
             # Past the same start-up transient as kinema (its steps there are not timed).
             skip = max(1, round(START / dt))
-            env = dict(os.environ, OMP_NUM_THREADS=str(threads))
             for boundary in boundaries:
                 name = f"splishsplash-{method}" + ("" if boundary == "akinci" else f"-{boundary}")
-                out = Path(tempfile.mkstemp(suffix=".json")[1])
-                cmd = [sys.executable, str(script), "--method", method, "--spacing", repr(s),
-                       "--steps", str(STEPS + 1), "--dt", repr(float(dt)), "--tol", repr(float(tol)),
-                       "--stiffness", repr(float(stiffness)), "--out", str(out), "--skip", str(skip),
-                       "--boundary", boundary, "--cache", str(cache),
-                       "--quiet-timeout", str(MEASURE.get("quiet_timeout", harness.DEFAULT_QUIET_TIMEOUT))]
-                proc = subprocess.run(cmd, capture_output=True, text=True, timeout=3600, env=env)
-                if proc.returncode != 0 or not out.stat().st_size:
-                    print(f"  {name}: failed (exit {proc.returncode}): {proc.stderr[-300:]}")
-                    out.unlink()
+                res = run_splishsplash(method, boundary, s, dt, tol, stiffness, skip, threads)
+                if res is None:
                     continue
-                res = json.loads(out.read_text())
-                out.unlink()
                 per_step = float(np.median(res["per_step"]))
                 cpu = float(np.median(res["cpu_per_step"]))
                 err = res["density_error"]
@@ -220,11 +227,11 @@ def bench_splishsplash(sizes, rec, dts, tol, threads, results, boundaries=("akin
                 steps_dt = np.array(res["sim_dt_per_step"])
                 ok = (np.isfinite(per_step) and err < bound and res["outside_box"] == 0
                       and res["max_speed"] < c and np.allclose(steps_dt, dt, rtol=1e-3))
-                detail = (f"density error {err:.2e}, {res['outside_box']} particles out of the box, "
-                          f"top speed {res['max_speed']:.3g} m/s (bound c = {c:.3g}), "
-                          f"dt per step {steps_dt.min():.3g}..{steps_dt.max():.3g} (want {dt:.3g})")
                 if not ok:  # one peer variant failing must not take kinema's figures down
-                    print(f"  {name}: result check failed ({detail}); not recording a time")
+                    print(f"  {name}: result check failed (density error {err:.2e}, {res['outside_box']} "
+                          f"particles out of the box, top speed {res['max_speed']:.3g} m/s (bound c = "
+                          f"{c:.3g}), dt per step {steps_dt.min():.3g}..{steps_dt.max():.3g} (want "
+                          f"{dt:.3g})); not recording a time")
                     continue
                 load = res["other_load"]
                 its = float(np.mean(res["iterations_per_step"])) if method == "dfsph" else 0
