@@ -7,6 +7,7 @@ side by side with SPlisHSPlasH (pysplishsplash, WCSPH and DFSPH) and a Taichi CP
     python bench/sph_bench.py --no-peers      # kinema only
     python bench/sph_bench.py --side-by-side  # the issue's comparison: ~150k particles, all five
                                               # codes in one run, with the ratios
+    python bench/sph_bench.py --side-by-side --splishsplash-only   # rerun SPlisHSPlasH alone
 
 Scene (sph_bench.scene): a water column [0, a] x [0, 2a] x [0, a] (a = 0.5 m) in the closed box
 [0, 4a] x [0, 3a] x [0, a], released at rest; the spacing sets the particle count. Each figure is
@@ -87,19 +88,35 @@ def kinema_fluid(n, method, tol):
     return fluid, s
 
 
+def started_dt(fluid, method, s):
+    """Runs the untimed start-up and returns the step every code is timed at."""
+    fluid.advance(START)  # past the start-up transient
+    # WCSPH: its acoustic CFL step. DFSPH: the CFL step at the surge front's speed
+    # sqrt(2 g 2a) that the run soon reaches (at START the fluid is still near rest and
+    # stable_dt would give the 5 ms cap, at which a 1 m column of ~150k particles needs
+    # more than max_iter Jacobi iterations: measured 2.8% compression).
+    dt = fluid.stable_dt(0.4)
+    if method == "dfsph":
+        dt = min(dt, 0.4 * s / np.sqrt(2 * 9.81 * 2 * A))
+    return dt
+
+
+def peer_dts(sizes, tol):
+    """The dts bench_kinema would time at, without timing kinema (for --splishsplash-only)."""
+    dts = {}
+    for n in sizes:
+        for method in ("wcsph", "dfsph"):
+            fluid, s = kinema_fluid(n, method, tol)
+            dts[(n, method)] = (started_dt(fluid, method, s), s, fluid.speed_of_sound)
+    return dts
+
+
 def bench_kinema(sizes, rec, tol, results):
     dts = {}
     for n in sizes:
         for method in ("wcsph", "dfsph"):
             fluid, s = kinema_fluid(n, method, tol)
-            fluid.advance(START)  # past the start-up transient
-            # WCSPH: its acoustic CFL step. DFSPH: the CFL step at the surge front's speed
-            # sqrt(2 g 2a) that the run soon reaches (at START the fluid is still near rest and
-            # stable_dt would give the 5 ms cap, at which a 1 m column of ~150k particles needs
-            # more than max_iter Jacobi iterations: measured 2.8% compression).
-            dt = fluid.stable_dt(0.4)
-            if method == "dfsph":
-                dt = min(dt, 0.4 * s / np.sqrt(2 * 9.81 * 2 * A))
+            dt = started_dt(fluid, method, s)
             dts[(n, method)] = (dt, s, fluid.speed_of_sound)
 
             iterations = []
@@ -166,44 +183,84 @@ def bench_taichi(sizes, rec, dts, threads, results):
               f"(other load {m.other_load:.2f})")
 
 
-def bench_splishsplash(sizes, rec, dts, tol, threads, results):
+def run_splishsplash(method, boundary, spacing, dt, tol, stiffness, skip, threads):
+    """One bench/splishsplash_run.py process; its JSON result, or None (reported) if it failed."""
     script = Path(__file__).resolve().parent / "splishsplash_run.py"
+    cache = OUT / "splishsplash_cache"  # wall samplings / volume maps, reused between runs
+    out = Path(tempfile.mkstemp(suffix=".json")[1])
+    cmd = [sys.executable, str(script), "--method", method, "--spacing", repr(float(spacing)),
+           "--steps", str(STEPS + 1), "--dt", repr(float(dt)), "--tol", repr(float(tol)),
+           "--stiffness", repr(float(stiffness)), "--out", str(out), "--skip", str(skip),
+           "--boundary", boundary, "--cache", str(cache),
+           "--quiet-timeout", str(MEASURE.get("quiet_timeout", harness.DEFAULT_QUIET_TIMEOUT))]
+    env = dict(os.environ, OMP_NUM_THREADS=str(threads))
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=3600, env=env)
+    text = out.read_text()
+    out.unlink()
+    if proc.returncode != 0 or not text:
+        print(f"  splishsplash-{method} ({boundary}): failed (exit {proc.returncode}): {proc.stderr[-300:]}")
+        return None
+    return json.loads(text)
+
+
+def bench_splishsplash(sizes, rec, dts, tol, threads, results, boundaries=("akinci",)):
+    """SPlisHSPlasH on the same scene, per method and wall model, each run in its own process
+    (bench/splishsplash_run.py: kinema's lattice, kinema's dt, Tait B and tol, set on its objects
+    and read back). Its per-step figure is the median of the timed steps; the check also rejects
+    a run that lost particles through a wall or blew up (its earlier runs did, unnoticed, since
+    scattered particles have no compression)."""
     for n in sizes:
         for method in ("wcsph", "dfsph"):
             dt, s, c = dts[(n, method)]
             stiffness = 1000.0 * c * c / 7.0  # kinema's Tait B = rho0 c^2 / gamma
-            out = Path(tempfile.mkstemp(suffix=".json")[1])
             # Past the same start-up transient as kinema (its steps there are not timed).
             skip = max(1, round(START / dt))
-            env = dict(os.environ, OMP_NUM_THREADS=str(threads))
-            before = harness.sample_cpu()
-            proc = subprocess.run([sys.executable, str(script), method, str(s), str(STEPS + 1), str(dt),
-                                   str(tol), str(stiffness), str(out), str(skip)], capture_output=True,
-                                  text=True, timeout=3600, env=env)
-            after = harness.sample_cpu()
-            if proc.returncode != 0 or not out.stat().st_size:
-                print(f"  splishsplash-{method}: failed (exit {proc.returncode}): {proc.stderr[-300:]}")
-                continue
-            res = json.loads(out.read_text())
-            out.unlink()
-            per_step = float(np.median(res["per_step"]))
-            err = res["density_error"]
-            bound = 0.02 if method == "wcsph" else 5 * tol  # as for kinema
-            check(f"splishsplash-{method}", np.isfinite(per_step) and err < bound, f"density error {err:.2e}")
-            load = harness.other_load(before, after)
-            results[(n, f"splishsplash-{method}")] = (per_step, dt, load)
-            rec.record(f"splishsplash-{method}", res["particles"], per_step, error=err,
-                       notes={"dt": f"{dt:.3g}", "other_load_whole_run": f"{load:.2f}", **res["applied"],
-                              "s_per_sim_s": f"{per_step / dt:.3g}"})
-            print(f"  splishsplash-{method:6s} n={res['particles']:7d} {per_step * 1e3:8.1f} ms/step "
-                  f"density error {err:.1e} (other load over the run {load:.2f})")
+            for boundary in boundaries:
+                name = f"splishsplash-{method}" + ("" if boundary == "akinci" else f"-{boundary}")
+                res = run_splishsplash(method, boundary, s, dt, tol, stiffness, skip, threads)
+                if res is None:
+                    continue
+                per_step = float(np.median(res["per_step"]))
+                cpu = float(np.median(res["cpu_per_step"]))
+                err = res["density_error"]
+                bound = 0.02 if method == "wcsph" else 5 * tol  # as for kinema
+                steps_dt = np.array(res["sim_dt_per_step"])
+                ok = (np.isfinite(per_step) and err < bound and res["outside_box"] == 0
+                      and res["max_speed"] < c and np.allclose(steps_dt, dt, rtol=1e-3))
+                if not ok:  # one peer variant failing must not take kinema's figures down
+                    print(f"  {name}: result check failed (density error {err:.2e}, {res['outside_box']} "
+                          f"particles out of the box, top speed {res['max_speed']:.3g} m/s (bound c = "
+                          f"{c:.3g}), dt per step {steps_dt.min():.3g}..{steps_dt.max():.3g} (want "
+                          f"{dt:.3g})); not recording a time")
+                    continue
+                load = res["other_load"]
+                its = float(np.mean(res["iterations_per_step"])) if method == "dfsph" else 0
+                results[(n, name)] = (per_step, dt, load)
+                # Its process's figures as a harness.Measurement, for the CSV's load columns.
+                m = harness.Measurement(seconds=per_step, wall=sum(res["per_step"]), other_load=load, repeats=1,
+                                        disturbed=load > harness.DEFAULT_MAX_LOAD, value=None, runs=())
+                rec.record(name, res["particles"], per_step, error=err, iterations=its or None, measurement=m,
+                           notes={"dt": f"{dt:.3g}", "cpu_s_per_step": f"{cpu:.3g}",
+                                  "s_per_sim_s": f"{per_step / dt:.3g}", "boundary": boundary,
+                                  "boundary_samples": res["boundary_samples"],
+                                  "precompute_s": f"{res['precompute_s']:.3g}",
+                                  "precompute_cached": res["precompute_cached"],
+                                  "max_speed": f"{res['max_speed']:.3g}", **res["applied"]})
+                print(f"  {name:30s} n={res['particles']:7d} {per_step * 1e3:8.1f} ms/step "
+                      f"(CPU {cpu * 1e3:.1f} ms/step) density error {err:.1e}"
+                      + (f", {its:.1f} solver iterations/step" if its else "")
+                      + f", wall {boundary} ({res['boundary_samples']} samples), precompute "
+                      f"{res['precompute_s']:.1f} s{' (cached)' if res['precompute_cached'] else ''} "
+                      f"(other load {load:.2f})")
 
 
 def print_ratios(sizes, results):
     """The issue's targets as ratios of figures from this one run."""
     for n in sizes:
         def ratio(slow, fast):
-            a, b = results.get((n, slow)), results.get((n, fast))
+            # A peer run with several wall models counts with its fastest that passed its checks.
+            peer = [v for (m, name), v in results.items() if m == n and (name == slow or name.startswith(slow + "-"))]
+            a, b = min(peer, default=None), results.get((n, fast))
             return f"{a[0] / b[0]:.2f}x" if a and b else "n/a"
 
         k_w, k_d = results.get((n, "kinema-wcsph")), results.get((n, "kinema-dfsph"))
@@ -232,6 +289,10 @@ def main(argv=None) -> int:
     p.add_argument("--sizes", type=int, nargs="+", help="particle counts (overrides the defaults)")
     p.add_argument("--tol", type=float, default=1e-3, help="DFSPH density tolerance (both codes)")
     p.add_argument("--threads", type=int, default=harness.default_threads())
+    p.add_argument("--splishsplash-only", action="store_true",
+                   help="time only SPlisHSPlasH (kinema's start-up still runs, untimed, to give the dts)")
+    p.add_argument("--splishsplash-boundary", choices=("akinci", "volume-map", "both"), default="akinci",
+                   help="SPlisHSPlasH's wall model: Akinci samples as kinema (default), its volume maps, or both")
     p.add_argument("--loaded", action="store_true",
                    help="on a busy machine: keep the best of 2 tries instead of waiting for quiet")
     args = p.parse_args(argv)
@@ -247,16 +308,20 @@ def main(argv=None) -> int:
     OUT.mkdir(exist_ok=True)
     csv_path = OUT / "sph.csv"
     print(f"threads {args.threads}, commit {harness.git_commit()}")
-    if not args.side_by_side:
+    if not (args.side_by_side or args.splishsplash_only):
         print("neighbour search (radius 2 x spacing):")
         bench_neighbors(sizes, harness.Recorder(csv_path, "sph_neighbors", threads=args.threads))
     rec = harness.Recorder(csv_path, "sph_dambreak3d_step", threads=args.threads)
     print("time per step, 3D dam break:")
     results = {}
+    walls = ("akinci", "volume-map") if args.splishsplash_boundary == "both" else (args.splishsplash_boundary,)
+    if args.splishsplash_only:
+        bench_splishsplash(sizes, rec, peer_dts(sizes, args.tol), args.tol, args.threads, results, walls)
+        return 0
     dts = bench_kinema(sizes, rec, args.tol, results)
     if not args.no_peers:
         bench_taichi(sizes, rec, dts, args.threads, results)
-        bench_splishsplash(sizes, rec, dts, args.tol, args.threads, results)
+        bench_splishsplash(sizes, rec, dts, args.tol, args.threads, results, walls)
     print_ratios(sizes, results)
     plot_and_report(csv_path, "sph_step.png", "sph_dambreak3d_step")
     return 0
