@@ -2,6 +2,8 @@
 
 #include <algorithm>
 
+#include "fluid/advect_rows.h"
+
 namespace kinema::fluid {
 
 FieldLayout cell_layout(const GridShape& shape, bool periodic) {
@@ -19,8 +21,6 @@ FieldLayout face_layout(const GridShape& shape, int axis, bool periodic) {
 }
 
 namespace {
-
-constexpr int kMaxFields = 8;
 
 // The advection passes over the nodes of L, with the dimension and whether no-slip walls enter
 // the interpolation fixed at compile time. Every pass traces each node once (k1 = u(node), then the Runge-Kutta stages)
@@ -124,7 +124,7 @@ struct Passes {
       semi_lagrangian(q, out, dt, nullptr, nullptr);
       return;
     }
-    Scalar *fwd[kMaxFields], *lo[kMaxFields], *hi[kMaxFields], *bar[kMaxFields];
+    Scalar *fwd[kMaxAdvectedFields], *lo[kMaxAdvectedFields], *hi[kMaxAdvectedFields], *bar[kMaxAdvectedFields];
     for (int f = 0; f < count; ++f) {
       fwd[f] = s.forward[f].data();
       lo[f] = s.lo[f].data();
@@ -179,10 +179,23 @@ void AdvectionScratch::reserve(Index n, AdvectionScheme scheme, int fields) {
 
 void advect_fields(AdvectionScheme scheme, const MacVelocity& u, const FieldLayout& L, int count,
                    const Scalar* const* q, Scalar* const* out, Scalar dt, int rk_order,
-                   AdvectionScratch& scratch, int wall_component) {
+                   AdvectionScratch& scratch, int wall_component, AdvectionKernel kernel) {
   if (count <= 0) return;
-  if (count > kMaxFields) throw InvalidArgument("advect: at most 8 fields per call");
+  if (count > kMaxAdvectedFields) throw InvalidArgument("advect: at most 8 fields per call");
   scratch.reserve(L.size(), scheme, count);  // a no-op when the solver reserved enough
+  if (kernel != AdvectionKernel::Nodes) {
+    const bool rows = rows_apply(u, L), avx2 = rows_avx2_supported();
+    if (kernel == AdvectionKernel::Auto && rows) {
+      advect_rows(scheme, u, L, count, q, out, dt, rk_order, scratch, avx2);
+      return;
+    }
+    if (kernel != AdvectionKernel::Auto) {
+      if (!rows) throw InvalidArgument("advect: the row kernels do not apply to this problem");
+      if (kernel == AdvectionKernel::RowsAvx2 && !avx2) throw InvalidArgument("advect: this CPU has no AVX2");
+      advect_rows(scheme, u, L, count, q, out, dt, rk_order, scratch, kernel == AdvectionKernel::RowsAvx2);
+      return;
+    }
+  }
   // the velocity's layouts fix the dimension: 2D fields have one node along axis 0
   if (u.comp[0]) dispatch_walls<true>(scheme, u, L, count, q, out, dt, rk_order, scratch, wall_component);
   else dispatch_walls<false>(scheme, u, L, count, q, out, dt, rk_order, scratch, wall_component);
