@@ -316,13 +316,8 @@ struct RowPasses {
       pass(RowJob{RowPass::Plain, dt, q, q, out, nullptr, nullptr}, avx2);
       return;
     }
-    Scalar *fwd[kMaxAdvectedFields], *lo[kMaxAdvectedFields], *hi[kMaxAdvectedFields], *bar[kMaxAdvectedFields];
-    for (int f = 0; f < count; ++f) {
-      fwd[f] = scratch.forward[f].data();
-      lo[f] = scratch.lo[f].data();
-      hi[f] = scratch.hi[f].data();
-      if (scheme == AdvectionScheme::BFECC) bar[f] = scratch.corrected[f].data();
-    }
+    AdvectionScratch::Fields s = scratch.fields(count, scheme);
+    Scalar *const *fwd = s.forward, *const *lo = s.lo, *const *hi = s.hi, *const *bar = s.corrected;
     // q^ = SL(q, dt) with the clamping bounds of Selle et al.
     pass(RowJob{RowPass::Forward, dt, q, q, fwd, lo, hi}, avx2);
     if (scheme == AdvectionScheme::MacCormack) {
@@ -332,10 +327,7 @@ struct RowPasses {
     // BFECC: the error-compensated field advected forward once more, clamped to q^'s bounds.
     pass(RowJob{RowPass::BFECC, -dt, fwd, q, bar, nullptr, nullptr}, avx2);
     pass(RowJob{RowPass::Plain, dt, bar, q, out, nullptr, nullptr}, avx2);
-    for (int f = 0; f < count; ++f) {
-      Scalar *o = out[f], *l = lo[f], *h = hi[f];
-      parallel_for(L.size(), [&](Index c) { o[c] = std::clamp(o[c], l[c], h[c]); });
-    }
+    clamp_fields(L, count, out, lo, hi);
   }
 };
 

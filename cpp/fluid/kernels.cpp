@@ -124,13 +124,8 @@ struct Passes {
       semi_lagrangian(q, out, dt, nullptr, nullptr);
       return;
     }
-    Scalar *fwd[kMaxAdvectedFields], *lo[kMaxAdvectedFields], *hi[kMaxAdvectedFields], *bar[kMaxAdvectedFields];
-    for (int f = 0; f < count; ++f) {
-      fwd[f] = s.forward[f].data();
-      lo[f] = s.lo[f].data();
-      hi[f] = s.hi[f].data();
-      if (scheme == AdvectionScheme::BFECC) bar[f] = s.corrected[f].data();
-    }
+    AdvectionScratch::Fields scratch = s.fields(count, scheme);
+    Scalar *const *fwd = scratch.forward, *const *lo = scratch.lo, *const *hi = scratch.hi, *const *bar = scratch.corrected;
     // q^ = SL(q, dt) with the clamping bounds of Selle et al.
     semi_lagrangian(q, fwd, dt, lo, hi);
     if (scheme == AdvectionScheme::MacCormack) {
@@ -144,10 +139,7 @@ struct Passes {
     // departure points, so its stencil bounds still apply.
     round_trip(fwd, dt, [&](int f, Index c, Scalar back) { bar[f][c] = q[f][c] + 0.5 * (q[f][c] - back); });
     semi_lagrangian(bar, out, dt, nullptr, nullptr);
-    for (int f = 0; f < count; ++f) {
-      Scalar *o = out[f], *l = lo[f], *h = hi[f];
-      parallel_for(L.size(), [&](Index c) { o[c] = std::clamp(o[c], l[c], h[c]); });
-    }
+    clamp_fields(L, count, out, lo, hi);
   }
 };
 
@@ -175,6 +167,24 @@ void AdvectionScratch::reserve(Index n, AdvectionScheme scheme, int fields) {
   grow(lo);
   grow(hi);
   if (scheme == AdvectionScheme::BFECC) grow(corrected);
+}
+
+AdvectionScratch::Fields AdvectionScratch::fields(int count, AdvectionScheme scheme) {
+  Fields f{};
+  for (int i = 0; i < count; ++i) {
+    f.forward[i] = forward[i].data();
+    f.lo[i] = lo[i].data();
+    f.hi[i] = hi[i].data();
+    if (scheme == AdvectionScheme::BFECC) f.corrected[i] = corrected[i].data();
+  }
+  return f;
+}
+
+void clamp_fields(const FieldLayout& L, int count, Scalar* const* out, Scalar* const* lo, Scalar* const* hi) {
+  for (int f = 0; f < count; ++f) {
+    Scalar *o = out[f], *l = lo[f], *h = hi[f];
+    parallel_for(L.size(), [&](Index c) { o[c] = std::clamp(o[c], l[c], h[c]); });
+  }
 }
 
 void advect_fields(AdvectionScheme scheme, const MacVelocity& u, const FieldLayout& L, int count,

@@ -306,7 +306,17 @@ constexpr int kMaxAdvectedFields = 8;  // fields per advect_fields call
 struct AdvectionScratch {
   std::vector<std::vector<Scalar>> forward, lo, hi, corrected;
   void reserve(Index n, AdvectionScheme scheme, int fields = 1);
+
+  // The arrays of fields 0..count-1 (corrected only for BFECC), as the passes take them.
+  struct Fields {
+    Scalar *forward[kMaxAdvectedFields], *lo[kMaxAdvectedFields], *hi[kMaxAdvectedFields],
+        *corrected[kMaxAdvectedFields];
+  };
+  Fields fields(int count, AdvectionScheme scheme);
 };
+
+// BFECC's last step: out[f] clamped to [lo[f], hi[f]] on every node of L.
+void clamp_fields(const FieldLayout& L, int count, Scalar* const* out, Scalar* const* lo, Scalar* const* hi);
 
 // One advection step of `count` fields sharing the layout L: q[f] into out[f] (out[f] must not
 // alias any q) by the chosen scheme. The back-traces are computed once per node and pass and
