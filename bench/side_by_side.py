@@ -300,7 +300,7 @@ def run_stream(args) -> None:
                                "repetitions": len(rows)})
         print(f"STREAM triad, {threads} thread(s): {best['GB']:.1f} GB/s "
               f"({best['GB_write_alloc']:.1f} GB/s counting write-allocate), other_load {m.other_load:.2f}")
-    for kernel in ("PoissonApply", "RedBlackSweep"):
+    for kernel in ("PoissonApply", "PoissonApplyBaseline", "RedBlackSweep"):
         for size in ("2/1024", "3/128", "3/256"):
             rows = [b for b in m.value if b["name"].startswith(f"BM_{kernel}/{size}/")]
             if not rows:
@@ -310,7 +310,7 @@ def run_stream(args) -> None:
             share = best["bytes_per_second"] / triad.get(threads, float("nan"))
             recorder.record(kernel, size.replace("/", "D "), best["real_time"] * 1e-3, threads=threads,
                             measurement=m, notes={"GB/s": best["bytes_per_second"] / 1e9, "share_of_triad": share})
-            print(f"{kernel:14s} {size.replace('/', 'D '):>8}: {best['real_time']:.3f} ms, "
+            print(f"{kernel:20s} {size.replace('/', 'D '):>8}: {best['real_time']:.3f} ms, "
                   f"{best['bytes_per_second'] / 1e9:.1f} GB/s = {100 * share:.0f}% of the triad ({threads} threads)")
 
 

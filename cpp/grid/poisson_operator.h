@@ -68,6 +68,9 @@ class PoissonOperator {
   // Whether a pass over this grid is worth an OpenMP team.
   bool parallel() const { return shape_.size() > 8 * kParallelGrain; }
   Index fluid_count() const { return fluid_count_; }
+  // Whether the plain-stencil rows run with AVX2 (chosen at construction, core/simd.h); the
+  // results are bitwise the same either way.
+  bool avx2() const { return avx2_; }
   // A_cc for a fluid cell.
   Scalar diagonal(Index c) const { return shift_ + inv_h2_ * diag_[c]; }
 
@@ -99,6 +102,7 @@ class PoissonOperator {
   GridShape shape_;
   Scalar h_ = 1, inv_h2_ = 1, shift_ = 0;
   Boundary bc_ = Boundary::Dirichlet;
+  bool avx2_ = false;                   // run the plain-stencil rows with AVX2 (core/simd.h)
   std::vector<std::uint8_t> mask_;      // neighbour-coupling bits 0-5 and kFluidBit
   std::vector<std::uint8_t> diag_;      // couplings + 2 per Dirichlet face (fluid cells)
   std::vector<std::uint8_t> wrap_;      // periodic: directions whose neighbour wraps around

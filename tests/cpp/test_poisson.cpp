@@ -4,6 +4,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <cstdlib>
 #include <random>
 #include <vector>
 
@@ -121,6 +122,35 @@ TEST(Mgpcg, ManufacturedSolutionSecondOrder) {
   for (size_t l = 1; l < errors.size(); ++l) {
     const Scalar order = std::log2(errors[l - 1] / errors[l]);
     EXPECT_NEAR(order, 2.0, 0.2) << "between levels " << l - 1 << " and " << l;
+  }
+}
+
+// The AVX2 and baseline versions of the plain-stencil rows do the same operations in the same
+// order (no FMA), so apply and residual must agree bit for bit, on fast rows and masked ones.
+TEST(PoissonOperator, Avx2RowsEqualBaselineBitwise) {
+  if (!__builtin_cpu_supports("avx2")) GTEST_SKIP() << "this CPU has no AVX2";
+  for (const auto& dims : {std::vector<Index>{67, 45}, std::vector<Index>{19, 23, 37}}) {
+    for (Boundary bc : {Boundary::Dirichlet, Boundary::Neumann}) {
+      const GridShape shape(dims);
+      std::vector<std::uint8_t> solid(shape.size(), 0);
+      for (Index c = 0; c < shape.size(); c += 97) solid[c] = 1;  // a few masked rows
+      setenv("KINEMA_SIMD", "baseline", 1);
+      const PoissonOperator baseline(shape, 0.3, bc, solid.data(), 0.5);
+      unsetenv("KINEMA_SIMD");
+      const PoissonOperator wide(shape, 0.3, bc, solid.data(), 0.5);
+      ASSERT_FALSE(baseline.avx2());
+      ASSERT_TRUE(wide.avx2());
+      const auto x = random_vector(shape.size(), 3), b = random_vector(shape.size(), 4);
+      std::vector<Scalar> y0(shape.size()), y1(shape.size()), r0(shape.size()), r1(shape.size());
+      baseline.apply(x.data(), y0.data());
+      wide.apply(x.data(), y1.data());
+      baseline.residual(b.data(), x.data(), r0.data());
+      wide.residual(b.data(), x.data(), r1.data());
+      for (Index c = 0; c < shape.size(); ++c) {
+        ASSERT_EQ(y0[c], y1[c]) << "apply, cell " << c;
+        ASSERT_EQ(r0[c], r1[c]) << "residual, cell " << c;
+      }
+    }
   }
 }
 
