@@ -7,9 +7,7 @@
 #include <utility>
 #include <vector>
 
-#if defined(__GNUC__) && defined(__x86_64__)
-#define KINEMA_ROWS_AVX2 1
-#endif
+#include "core/simd.h"
 
 namespace kinema::fluid {
 
@@ -285,9 +283,9 @@ struct RowPasses {
   static void row_baseline(const RowPasses& p, const RowJob& job, Index i, Index j, RowScratch& s) {
     p.row(job, i, j, s);
   }
-#ifdef KINEMA_ROWS_AVX2
+#if KINEMA_HAVE_AVX2_CLONES
   // "avx2" without "fma": no contraction, so the same bits as the baseline.
-  [[gnu::target("avx2")]] static void row_avx2(const RowPasses& p, const RowJob& job, Index i, Index j,
+  KINEMA_TARGET_AVX2 static void row_avx2(const RowPasses& p, const RowJob& job, Index i, Index j,
                                                RowScratch& s) {
     p.row(job, i, j, s);
   }
@@ -296,7 +294,7 @@ struct RowPasses {
   // Every row of L, handed out in small blocks on demand (for_each_node's schedule).
   void pass(const RowJob& job, bool avx2) const {
     RowFunction fn = &row_baseline;
-#ifdef KINEMA_ROWS_AVX2
+#if KINEMA_HAVE_AVX2_CLONES
     if (avx2) fn = &row_avx2;
 #else
     (void)avx2;
@@ -348,7 +346,7 @@ bool rows_apply(const MacVelocity& u, const FieldLayout& L) {
 }
 
 bool rows_avx2_supported() {
-#ifdef KINEMA_ROWS_AVX2
+#if KINEMA_HAVE_AVX2_CLONES
   return __builtin_cpu_supports("avx2");
 #else
   return false;

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 
+#include "core/simd.h"
 #include "fluid/advect_rows.h"
 
 namespace kinema::fluid {
@@ -194,14 +195,15 @@ void advect_fields(AdvectionScheme scheme, const MacVelocity& u, const FieldLayo
   if (count > kMaxAdvectedFields) throw InvalidArgument("advect: at most 8 fields per call");
   scratch.reserve(L.size(), scheme, count);  // a no-op when the solver reserved enough
   if (kernel != AdvectionKernel::Nodes) {
-    const bool rows = rows_apply(u, L), avx2 = rows_avx2_supported();
+    const bool rows = rows_apply(u, L);
     if (kernel == AdvectionKernel::Auto && rows) {
-      advect_rows(scheme, u, L, count, q, out, dt, rk_order, scratch, avx2);
+      advect_rows(scheme, u, L, count, q, out, dt, rk_order, scratch, use_avx2());
       return;
     }
     if (kernel != AdvectionKernel::Auto) {
       if (!rows) throw InvalidArgument("advect: the row kernels do not apply to this problem");
-      if (kernel == AdvectionKernel::RowsAvx2 && !avx2) throw InvalidArgument("advect: this CPU has no AVX2");
+      if (kernel == AdvectionKernel::RowsAvx2 && !rows_avx2_supported())
+        throw InvalidArgument("advect: this CPU has no AVX2");
       advect_rows(scheme, u, L, count, q, out, dt, rk_order, scratch, kernel == AdvectionKernel::RowsAvx2);
       return;
     }
