@@ -4,6 +4,8 @@ and Taichi's bundled stable-fluids example as the side-by-side peer (issue 3, "S
     .venv/bin/python bench/grid_bench.py             # the issue's figures, one run (~5 min quiet)
     .venv/bin/python bench/grid_bench.py --quick     # 256^2 / 48^3 smoke, small sweep (~1 min)
     .venv/bin/python bench/grid_bench.py --only 3d --steps 4   # the 128^3 smoke step alone
+    .venv/bin/python bench/grid_bench.py --only 3d --steps 3 --kernel nodes auto --rounds 2
+        # before/after the row advection kernels, alternating in one run
 
 One run gives: the 2D 512^2 smoke step (MacCormack, MGPCG to 1e-6) and its ratios to Taichi's
 stable_fluid.py step with 500 Jacobi iterations and with MGPCG, the 3D 128^3 smoke step, each
@@ -49,14 +51,14 @@ OUT = HERE / "out"
 
 # ------------------------------------------------------------------ kinema
 
-def smoke(shape, *, advection="maccormack", tol=1e-6):
+def smoke(shape, *, advection="maccormack", tol=1e-6, kernel="auto"):
     """A buoyant smoke plume: source near the floor, a round obstacle above it."""
     n = shape[0]
     d = len(shape)
     g = [0.0] * d
     g[1] = -9.81
     f = km.grid.Fluid(shape, 1.0 / n, advection=advection, tol=tol, density=True, temperature=True,
-                      buoyancy=(0.05, 1.0), gravity=g, vorticity_confinement=0.2)
+                      buoyancy=(0.05, 1.0), gravity=g, vorticity_confinement=0.2, advection_kernel=kernel)
     centre = [(i + 0.5) / n for i in range(n)]
     grids = np.meshgrid(*[np.asarray(centre) * shape[a] / n for a in range(d)], indexing="ij")
     r2 = sum((x - c) ** 2 for x, c in zip(grids, [0.5] + [0.55] + [0.5] * (d - 2)))
@@ -65,8 +67,8 @@ def smoke(shape, *, advection="maccormack", tol=1e-6):
     return f, src
 
 
-def time_smoke(shape, rec, *, steps=3, advection="maccormack"):
-    f, src = smoke(shape, advection=advection)
+def time_smoke(shape, rec, *, steps=3, advection="maccormack", kernel="auto"):
+    f, src = smoke(shape, advection=advection, kernel=kernel)
     dt = 0.5 / shape[0]
     for _ in range(3):  # develop a flow first, so the projection has work to do
         f.density[src] = 1.0
@@ -85,10 +87,11 @@ def time_smoke(shape, rec, *, steps=3, advection="maccormack"):
     div = np.linalg.norm(f.divergence())
     assert info.pressure.converged and info.pressure.residual <= 1e-6, info.pressure
     stages = {k: round(v, 4) for k, v in info.seconds.items()}
-    rec.record(f"kinema-smoke-{advection}", shape, m.seconds, error=info.pressure.residual,
+    name = f"kinema-smoke-{advection}" + ("" if kernel == "auto" else f"-{kernel}")
+    rec.record(name, shape, m.seconds, error=info.pressure.residual,
                iterations=info.pressure.iterations, measurement=m,
                notes={**stages, "cpu_s": round(cpu, 4), "div_l2": f"{div:.2e}"})
-    print(f"kinema smoke {shape} {advection}: {m.seconds:.3f} s/step (cpu {cpu:.3f} s, other load "
+    print(f"kinema smoke {shape} {advection}{'' if kernel == 'auto' else ' ' + kernel}: {m.seconds:.3f} s/step (cpu {cpu:.3f} s, other load "
           f"{m.other_load:.2f}{', disturbed' if m.disturbed else ''}), pressure {info.pressure.iterations} it, "
           f"residual {info.pressure.residual:.1e}, stages {stages}", flush=True)
     return {"seconds": m.seconds, "cpu": cpu, "load": m.other_load, "disturbed": m.disturbed,
@@ -216,6 +219,10 @@ def main(argv=None):
     p.add_argument("--only", choices=["3d"], help="only the 3D smoke step (128^3, 48^3 with --quick); "
                    "with --steps, the min over that many timed steps")
     p.add_argument("--steps", type=int, default=2, help="timed steps of the 3D smoke case (default 2)")
+    p.add_argument("--kernel", nargs="+", default=["auto"], choices=km.grid.ADVECTION_KERNELS,
+                   help="with --only 3d: the advection kernels to time, in turn (e.g. 'nodes auto' for "
+                   "before/after: 'nodes' is the node-wise code the row kernels replaced)")
+    p.add_argument("--rounds", type=int, default=1, help="with --only 3d: repeat the kernels this many times")
     args = p.parse_args(argv)
     if args.taichi_worker:
         taichi_worker(*args.taichi_worker)
@@ -226,7 +233,9 @@ def main(argv=None):
     n2, n3 = (256, 48) if args.quick else (512, 128)
     print(f"kinema {km.__version__}, {threads} threads, commit {harness.git_commit(HERE)}", flush=True)
     if args.only == "3d":
-        time_smoke((n3, n3, n3), rec, steps=args.steps)
+        for _ in range(args.rounds):
+            for kernel in args.kernel:
+                time_smoke((n3, n3, n3), rec, steps=args.steps, kernel=kernel)
         return 0
     k2 = time_smoke((n2, n2), rec)
     k3 = time_smoke((n3, n3, n3), rec, steps=args.steps)

@@ -23,6 +23,14 @@ AdvectionScheme parse_scheme(const std::string& name) {
   throw InvalidArgument("scheme: expected 'semi_lagrangian', 'maccormack' or 'bfecc', got '" + name + "'");
 }
 
+fluid::AdvectionKernel parse_advection_kernel(const std::string& name) {
+  if (name == "auto") return fluid::AdvectionKernel::Auto;
+  if (name == "nodes") return fluid::AdvectionKernel::Nodes;
+  if (name == "rows") return fluid::AdvectionKernel::Rows;
+  if (name == "rows_avx2") return fluid::AdvectionKernel::RowsAvx2;
+  throw InvalidArgument("advection_kernel: expected 'auto', 'nodes', 'rows' or 'rows_avx2', got '" + name + "'");
+}
+
 int internal_axis(int dim, int user_axis) { return user_axis + 3 - dim; }
 
 Vec3 to_internal(int dim, const std::vector<Scalar>& v, const char* name) {
@@ -64,7 +72,8 @@ struct PyFluid {
   PyFluid(const std::vector<Index>& shape, Scalar h, const std::string& advection, int rk_order,
           const std::string& projection, Scalar tol, Index max_iter, Scalar viscosity,
           const std::string& boundary, const std::string& walls, const std::vector<Scalar>& gravity,
-          bool density, bool temperature, Scalar alpha, Scalar beta, Scalar confinement)
+          bool density, bool temperature, Scalar alpha, Scalar beta, Scalar confinement,
+          const std::string& advection_kernel)
       : shape_(shape) {
     const int dim = shape_.dim;
     FluidConfig c;
@@ -86,6 +95,7 @@ struct PyFluid {
     c.alpha = alpha;
     c.beta = beta;
     c.vorticity_confinement = confinement;
+    c.advection_kernel = parse_advection_kernel(advection_kernel);
     // Buoyancy acts against gravity, or along +y without it.
     const Scalar g = std::sqrt(c.gravity[0] * c.gravity[0] + c.gravity[1] * c.gravity[1] +
                                c.gravity[2] * c.gravity[2]);
@@ -160,11 +170,11 @@ void bind_grid(py::module_& m) {
   py::class_<PyFluid>(m, "Fluid")
       .def(py::init<const std::vector<Index>&, Scalar, const std::string&, int, const std::string&, Scalar,
                     Index, Scalar, const std::string&, const std::string&, const std::vector<Scalar>&, bool,
-                    bool, Scalar, Scalar, Scalar>(),
+                    bool, Scalar, Scalar, Scalar, const std::string&>(),
            py::arg("shape"), py::arg("h"), py::arg("advection"), py::arg("rk_order"), py::arg("projection"),
            py::arg("tol"), py::arg("max_iter"), py::arg("viscosity"), py::arg("boundary"), py::arg("walls"),
            py::arg("gravity"), py::arg("density"), py::arg("temperature"), py::arg("alpha"), py::arg("beta"),
-           py::arg("vorticity_confinement"))
+           py::arg("vorticity_confinement"), py::arg("advection_kernel"))
       .def("step", &PyFluid::step, py::arg("dt"))
       .def("advance", &PyFluid::advance, py::arg("duration"), py::arg("cfl"))
       .def("set_wall_velocity", &PyFluid::set_wall_velocity, py::arg("axis"), py::arg("side"),

@@ -9,6 +9,7 @@
 #include "core/errors.h"
 #include "core/parallel.h"
 #include "core/timer.h"
+#include "fluid/advect_rows.h"
 #include "linalg/cg.h"
 
 namespace kinema::fluid {
@@ -32,6 +33,19 @@ Scalar max_abs(const std::vector<Scalar>& v) {
                                                  : std::numeric_limits<Scalar>::infinity();
   }
   return m;
+}
+
+// body(i, j, first node of the row, scratch) for every row of L, handed out in small blocks on
+// demand as for_each_node does, with `arrays` scratch rows of L.n[2] values per thread.
+template <class Body>
+void for_each_row(const FieldLayout& L, int arrays, Body&& body) {
+  const Index rows = L.rows(), n1 = L.n[1], nk = L.n[2];
+#pragma omp parallel if (L.size() > 8 * kParallelGrain)
+  {
+    std::vector<Scalar> scratch(static_cast<size_t>(arrays * nk));
+#pragma omp for schedule(dynamic, 8)
+    for (Index row = 0; row < rows; ++row) body(row / n1, row % n1, row * nk, scratch.data());
+  }
 }
 
 // Runs the enclosing scope on one thread when the grid is small: the shared kernels (CG, vector
@@ -103,7 +117,21 @@ FluidSolver::FluidSolver(const GridShape& shape, Scalar h, const FluidConfig& co
     vorticity_norm_.assign(shape.size(), 0);
   }
   if (config.no_slip && !config.periodic) walls_.no_slip.fill(true);
+  check_kernel();
   refresh_solids();
+}
+
+void FluidSolver::check_kernel() const {
+  const AdvectionKernel k = config_.advection_kernel;
+  if (k == AdvectionKernel::Auto || k == AdvectionKernel::Nodes) return;
+  if (k == AdvectionKernel::RowsAvx2 && !rows_avx2_supported())
+    throw InvalidArgument("advection_kernel: 'rows_avx2' needs a CPU with AVX2");
+  const MacVelocity u = mac_velocity();
+  bool apply = rows_apply(u, cells_);
+  for (int a = 0; a < 3; ++a) apply = apply && (!active_[a] || rows_apply(u, faces_[a]));
+  if (!apply)
+    throw InvalidArgument("advection_kernel: the row kernels need at least 2 cells per axis and no no-slip or "
+                          "moving walls; use 'auto' or 'nodes'");
 }
 
 Index FluidSolver::neighbour(const FieldLayout& L, const std::array<Index, 3>& idx, int axis,
@@ -178,9 +206,14 @@ void FluidSolver::set_wall_velocity(int wall, const Vec3& velocity) {
     throw InvalidArgument("velocity: a wall can only move tangentially (its normal component must be 0)");
   for (Scalar x : velocity)
     if (!std::isfinite(x)) throw InvalidArgument("velocity: expected finite values");
+  const bool moving = velocity[0] != 0 || velocity[1] != 0 || velocity[2] != 0;
+  const AdvectionKernel k = config_.advection_kernel;
+  if (moving && (k == AdvectionKernel::Rows || k == AdvectionKernel::RowsAvx2))
+    throw InvalidArgument("velocity: the row advection kernels do not handle moving walls; use "
+                          "advection_kernel='auto' or 'nodes'");
   model_.wall_velocity[wall] = velocity;
-  model_.wall_moving[wall] = velocity[0] != 0 || velocity[1] != 0 || velocity[2] != 0;
-  walls_.no_slip[wall] = config_.no_slip || model_.wall_moving[wall];
+  model_.wall_moving[wall] = moving;
+  walls_.no_slip[wall] = config_.no_slip || moving;
   walls_.velocity[wall] = velocity;
 }
 
@@ -276,7 +309,8 @@ void FluidSolver::advect(Scalar dt) {
     out[count] = scalar_new_[count].data();
     ++count;
   }
-  fluid::advect_fields(config_.advection, u, cells_, count, q, out, dt_grid, rk, advection_scratch_);
+  fluid::advect_fields(config_.advection, u, cells_, count, q, out, dt_grid, rk, advection_scratch_, -1,
+                       config_.advection_kernel);
   const std::vector<std::uint8_t>& solid = model_.solid;
   for (int f = 0; f < count; ++f) {
     Scalar* dst = fields[f];
@@ -288,7 +322,8 @@ void FluidSolver::advect(Scalar dt) {
     if (!active_[a]) continue;
     const Scalar* qa = state_.velocity[a].data();
     Scalar* oa = velocity_new_[a].data();
-    fluid::advect_fields(config_.advection, u, faces_[a], 1, &qa, &oa, dt_grid, rk, advection_scratch_, a);
+    fluid::advect_fields(config_.advection, u, faces_[a], 1, &qa, &oa, dt_grid, rk, advection_scratch_, a,
+                         config_.advection_kernel);
   }
   for (int a = 0; a < 3; ++a) {
     if (!active_[a]) continue;
@@ -387,22 +422,71 @@ void FluidSolver::confinement_force(bool buoyant) {
     }
     return span > 0 ? (q[up] - q[dn]) / (span * h) : 0;
   };
+  // diff over the cells of row (i, j) starting at c0 into out: the neighbours along axes 0 and 1
+  // are the same for the whole row, along axis 2 only the row's two end cells differ, so the
+  // loops run without branches and vectorise.
+  const Index nk = C.n[2];
+  auto diff_row = [&](const Scalar* q, Index i, Index j, Index c0, int axis, Scalar* out) {
+    if (!active_[axis] || !q) {
+      std::fill(out, out + nk, Scalar(0));
+    } else if (axis < 2) {
+      const Index ib = axis == 0 ? i : j, n = s.n[axis], stride = C.stride(axis);
+      Index up = stride, dn = -stride;
+      Scalar span = 2;
+      if (ib + 1 >= n) {
+        if (periodic) up = -(n - 1) * stride;
+        else up = 0, span -= 1;
+      }
+      if (ib == 0) {
+        if (periodic) dn = (n - 1) * stride;
+        else dn = 0, span -= 1;
+      }
+      if (span > 0) {
+        const Scalar d = span * h;
+        const Scalar *hi = q + c0 + up, *lo = q + c0 + dn;
+        for (Index k = 0; k < nk; ++k) out[k] = (hi[k] - lo[k]) / d;
+      } else {
+        std::fill(out, out + nk, Scalar(0));
+      }
+    } else {
+      const Scalar d = 2 * h;
+      const Scalar* r = q + c0;
+      for (Index k = 1; k + 1 < nk; ++k) out[k] = (r[k + 1] - r[k - 1]) / d;
+      out[0] = diff(q, c0, 0, 2);
+      if (nk > 1) out[nk - 1] = diff(q, c0 + nk - 1, nk - 1, 2);
+    }
+  };
   auto comp = [&](int a) -> const Scalar* { return active_[a] ? cell_velocity_[a].data() : nullptr; };
   const Scalar *u0 = comp(0), *u1 = comp(1), *u2 = comp(2);
   const bool three_d = s.dim == 3;
   // omega = curl u; in 2D only the component along the inactive axis 0 exists.
-  for_each_node(C, [&](Index i, Index j, Index k, Index c) {
-    const Scalar w0 = diff(u2, c, j, 1) - diff(u1, c, k, 2);
-    vorticity_[0][c] = w0;
-    Scalar norm2 = w0 * w0;
+  for_each_row(C, 6, [&](Index i, Index j, Index c0, Scalar* d) {
+    Scalar *d0 = d, *d1 = d + nk, *d2 = d + 2 * nk, *d3 = d + 3 * nk, *d4 = d + 4 * nk, *d5 = d + 5 * nk;
+    diff_row(u2, i, j, c0, 1, d0);
+    diff_row(u1, i, j, c0, 2, d1);
     if (three_d) {
-      const Scalar w1 = diff(u0, c, k, 2) - diff(u2, c, i, 0);
-      const Scalar w2 = diff(u1, c, i, 0) - diff(u0, c, j, 1);
-      vorticity_[1][c] = w1;
-      vorticity_[2][c] = w2;
-      norm2 += w1 * w1 + w2 * w2;
+      diff_row(u0, i, j, c0, 2, d2);
+      diff_row(u2, i, j, c0, 0, d3);
+      diff_row(u1, i, j, c0, 0, d4);
+      diff_row(u0, i, j, c0, 1, d5);
     }
-    vorticity_norm_[c] = std::sqrt(norm2);
+    Scalar *v0 = vorticity_[0].data() + c0, *norm = vorticity_norm_.data() + c0;
+    if (!three_d) {
+      for (Index k = 0; k < nk; ++k) {
+        const Scalar w0 = d0[k] - d1[k];
+        v0[k] = w0;
+        norm[k] = std::sqrt(w0 * w0);
+      }
+      return;
+    }
+    Scalar *v1 = vorticity_[1].data() + c0, *v2 = vorticity_[2].data() + c0;
+    for (Index k = 0; k < nk; ++k) {
+      const Scalar w0 = d0[k] - d1[k], w1 = d2[k] - d3[k], w2 = d4[k] - d5[k];
+      v0[k] = w0;
+      v1[k] = w1;
+      v2[k] = w2;
+      norm[k] = std::sqrt(w0 * w0 + (w1 * w1 + w2 * w2));
+    }
   });
   // f = eps h (N x omega), N = grad|omega| / |grad|omega||, plus buoyancy (-alpha rho + beta T) up.
   const Scalar eps = config_.vorticity_confinement;
@@ -413,18 +497,24 @@ void FluidSolver::confinement_force(bool buoyant) {
   const Scalar* temperature = state_.temperature.data();
   const Scalar alpha = config_.alpha, beta = config_.beta;
   const Vec3 up = config_.up;
-  for_each_node(C, [&](Index i, Index j, Index k, Index c) {
-    const Scalar b = (rho ? -alpha * density[c] : 0) + (temp ? beta * temperature[c] : 0);
-    Vec3 N{diff(wn, c, i, 0), diff(wn, c, j, 1), diff(wn, c, k, 2)};
-    const Scalar len = std::sqrt(N[0] * N[0] + N[1] * N[1] + N[2] * N[2]);
-    Vec3 w{vorticity_[0][c], three_d ? vorticity_[1][c] : 0, three_d ? vorticity_[2][c] : 0};
-    Vec3 f{0, 0, 0};
-    if (len > 1e-12 * (wn[c] + 1e-300) / h && fluid_cell(c)) {
-      for (Scalar& x : N) x /= len;
-      f = Vec3{N[1] * w[2] - N[2] * w[1], N[2] * w[0] - N[0] * w[2], N[0] * w[1] - N[1] * w[0]};
+  for_each_row(C, 3, [&](Index i, Index j, Index c0, Scalar* grad) {
+    diff_row(wn, i, j, c0, 0, grad);
+    diff_row(wn, i, j, c0, 1, grad + nk);
+    diff_row(wn, i, j, c0, 2, grad + 2 * nk);
+    for (Index k = 0; k < nk; ++k) {
+      const Index c = c0 + k;
+      const Scalar b = (rho ? -alpha * density[c] : 0) + (temp ? beta * temperature[c] : 0);
+      Vec3 N{grad[k], grad[nk + k], grad[2 * nk + k]};
+      const Scalar len = std::sqrt(N[0] * N[0] + N[1] * N[1] + N[2] * N[2]);
+      Vec3 w{vorticity_[0][c], three_d ? vorticity_[1][c] : 0, three_d ? vorticity_[2][c] : 0};
+      Vec3 f{0, 0, 0};
+      if (len > 1e-12 * (wn[c] + 1e-300) / h && fluid_cell(c)) {
+        for (Scalar& x : N) x /= len;
+        f = Vec3{N[1] * w[2] - N[2] * w[1], N[2] * w[0] - N[0] * w[2], N[0] * w[1] - N[1] * w[0]};
+      }
+      for (int a = 0; a < 3; ++a)
+        if (active_[a]) force_[a][c] = eps * h * f[a] + up[a] * b;
     }
-    for (int a = 0; a < 3; ++a)
-      if (active_[a]) force_[a][c] = eps * h * f[a] + up[a] * b;
   });
 }
 

@@ -28,6 +28,7 @@ namespace kinema::fluid {
 struct FluidConfig {
   AdvectionScheme advection = AdvectionScheme::MacCormack;
   int rk_order = 2;                 // back-trace order, 1-3
+  AdvectionKernel advection_kernel = AdvectionKernel::Auto;  // implementation (same results)
   PoissonMethod projection = PoissonMethod::MGPCG;
   Scalar tol = 1e-6;                // relative residual of the pressure solve
   Index max_iter = 0;               // 0: the solver's default
@@ -109,6 +110,7 @@ class FluidSolver {
   void confinement_force(bool buoyant);
   void apply_viscosity_operator(int axis, Scalar c, const Scalar* x, Scalar* y) const;
   MacVelocity mac_velocity() const;  // the state's velocity, with the walls
+  void check_kernel() const;         // throws when a requested row kernel does not apply
   bool is_fixed(int axis, Index f) const { return fixed_[axis][f] != 0; }
   bool fluid_cell(Index c) const { return model_.solid.empty() || !model_.solid[c]; }
   // Neighbour of node idx along `axis` by `step` (+-1) in layout L, or -1 outside a closed domain.

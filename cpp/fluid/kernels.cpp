@@ -2,6 +2,9 @@
 
 #include <algorithm>
 
+#include "core/simd.h"
+#include "fluid/advect_rows.h"
+
 namespace kinema::fluid {
 
 FieldLayout cell_layout(const GridShape& shape, bool periodic) {
@@ -19,8 +22,6 @@ FieldLayout face_layout(const GridShape& shape, int axis, bool periodic) {
 }
 
 namespace {
-
-constexpr int kMaxFields = 8;
 
 // The advection passes over the nodes of L, with the dimension and whether no-slip walls enter
 // the interpolation fixed at compile time. Every pass traces each node once (k1 = u(node), then the Runge-Kutta stages)
@@ -124,13 +125,8 @@ struct Passes {
       semi_lagrangian(q, out, dt, nullptr, nullptr);
       return;
     }
-    Scalar *fwd[kMaxFields], *lo[kMaxFields], *hi[kMaxFields], *bar[kMaxFields];
-    for (int f = 0; f < count; ++f) {
-      fwd[f] = s.forward[f].data();
-      lo[f] = s.lo[f].data();
-      hi[f] = s.hi[f].data();
-      if (scheme == AdvectionScheme::BFECC) bar[f] = s.corrected[f].data();
-    }
+    AdvectionScratch::Fields scratch = s.fields(count, scheme);
+    Scalar *const *fwd = scratch.forward, *const *lo = scratch.lo, *const *hi = scratch.hi, *const *bar = scratch.corrected;
     // q^ = SL(q, dt) with the clamping bounds of Selle et al.
     semi_lagrangian(q, fwd, dt, lo, hi);
     if (scheme == AdvectionScheme::MacCormack) {
@@ -144,10 +140,7 @@ struct Passes {
     // departure points, so its stencil bounds still apply.
     round_trip(fwd, dt, [&](int f, Index c, Scalar back) { bar[f][c] = q[f][c] + 0.5 * (q[f][c] - back); });
     semi_lagrangian(bar, out, dt, nullptr, nullptr);
-    for (int f = 0; f < count; ++f) {
-      Scalar *o = out[f], *l = lo[f], *h = hi[f];
-      parallel_for(L.size(), [&](Index c) { o[c] = std::clamp(o[c], l[c], h[c]); });
-    }
+    clamp_fields(L, count, out, lo, hi);
   }
 };
 
@@ -177,12 +170,44 @@ void AdvectionScratch::reserve(Index n, AdvectionScheme scheme, int fields) {
   if (scheme == AdvectionScheme::BFECC) grow(corrected);
 }
 
+AdvectionScratch::Fields AdvectionScratch::fields(int count, AdvectionScheme scheme) {
+  Fields f{};
+  for (int i = 0; i < count; ++i) {
+    f.forward[i] = forward[i].data();
+    f.lo[i] = lo[i].data();
+    f.hi[i] = hi[i].data();
+    if (scheme == AdvectionScheme::BFECC) f.corrected[i] = corrected[i].data();
+  }
+  return f;
+}
+
+void clamp_fields(const FieldLayout& L, int count, Scalar* const* out, Scalar* const* lo, Scalar* const* hi) {
+  for (int f = 0; f < count; ++f) {
+    Scalar *o = out[f], *l = lo[f], *h = hi[f];
+    parallel_for(L.size(), [&](Index c) { o[c] = std::clamp(o[c], l[c], h[c]); });
+  }
+}
+
 void advect_fields(AdvectionScheme scheme, const MacVelocity& u, const FieldLayout& L, int count,
                    const Scalar* const* q, Scalar* const* out, Scalar dt, int rk_order,
-                   AdvectionScratch& scratch, int wall_component) {
+                   AdvectionScratch& scratch, int wall_component, AdvectionKernel kernel) {
   if (count <= 0) return;
-  if (count > kMaxFields) throw InvalidArgument("advect: at most 8 fields per call");
+  if (count > kMaxAdvectedFields) throw InvalidArgument("advect: at most 8 fields per call");
   scratch.reserve(L.size(), scheme, count);  // a no-op when the solver reserved enough
+  if (kernel != AdvectionKernel::Nodes) {
+    const bool rows = rows_apply(u, L);
+    if (kernel == AdvectionKernel::Auto && rows) {
+      advect_rows(scheme, u, L, count, q, out, dt, rk_order, scratch, use_avx2());
+      return;
+    }
+    if (kernel != AdvectionKernel::Auto) {
+      if (!rows) throw InvalidArgument("advect: the row kernels do not apply to this problem");
+      if (kernel == AdvectionKernel::RowsAvx2 && !rows_avx2_supported())
+        throw InvalidArgument("advect: this CPU has no AVX2");
+      advect_rows(scheme, u, L, count, q, out, dt, rk_order, scratch, kernel == AdvectionKernel::RowsAvx2);
+      return;
+    }
+  }
   // the velocity's layouts fix the dimension: 2D fields have one node along axis 0
   if (u.comp[0]) dispatch_walls<true>(scheme, u, L, count, q, out, dt, rk_order, scratch, wall_component);
   else dispatch_walls<false>(scheme, u, L, count, q, out, dt, rk_order, scratch, wall_component);

@@ -294,20 +294,39 @@ void for_each_node(const FieldLayout& L, Body&& body) {
 
 enum class AdvectionScheme { SemiLagrangian, MacCormack, BFECC };
 
+// Which implementation advects; all give the same bits (tests/cpp compares them). Nodes: one
+// node at a time, for every case. Rows, RowsAvx2: along rows of the contiguous axis with the
+// baseline ISA or AVX2 (advect_rows.h; not with no-slip walls). Auto: the fastest that applies.
+enum class AdvectionKernel { Auto, Nodes, Rows, RowsAvx2 };
+
+constexpr int kMaxAdvectedFields = 8;  // fields per advect_fields call
+
 // Scratch of the advection schemes, sized once for the largest field set: per field the
 // forward pass and its stencil bounds, and the BFECC-corrected field.
 struct AdvectionScratch {
   std::vector<std::vector<Scalar>> forward, lo, hi, corrected;
   void reserve(Index n, AdvectionScheme scheme, int fields = 1);
+
+  // The arrays of fields 0..count-1 (corrected only for BFECC), as the passes take them.
+  struct Fields {
+    Scalar *forward[kMaxAdvectedFields], *lo[kMaxAdvectedFields], *hi[kMaxAdvectedFields],
+        *corrected[kMaxAdvectedFields];
+  };
+  Fields fields(int count, AdvectionScheme scheme);
 };
+
+// BFECC's last step: out[f] clamped to [lo[f], hi[f]] on every node of L.
+void clamp_fields(const FieldLayout& L, int count, Scalar* const* out, Scalar* const* lo, Scalar* const* hi);
 
 // One advection step of `count` fields sharing the layout L: q[f] into out[f] (out[f] must not
 // alias any q) by the chosen scheme. The back-traces are computed once per node and pass and
 // serve every field. `wall_component` >= 0 marks the fields as that velocity component, which
-// then see u.walls next to no-slip walls; -1 for scalars (extended to the walls).
+// then see u.walls next to no-slip walls; -1 for scalars (extended to the walls). A kernel
+// other than Auto or Nodes throws InvalidArgument where it does not apply.
 void advect_fields(AdvectionScheme scheme, const MacVelocity& u, const FieldLayout& L, int count,
                    const Scalar* const* q, Scalar* const* out, Scalar dt, int rk_order,
-                   AdvectionScratch& scratch, int wall_component = -1);
+                   AdvectionScratch& scratch, int wall_component = -1,
+                   AdvectionKernel kernel = AdvectionKernel::Auto);
 
 // One advection step of q into out (out must not alias q) by the chosen scheme.
 void advect(AdvectionScheme scheme, const MacVelocity& u, const FieldLayout& L, const Scalar* q,

@@ -24,9 +24,10 @@ from kinema import _core
 from kinema._checks import as_float_array, choice, grid_shape, non_negative, positive, positive_int
 from kinema._info import SolveInfo
 
-__all__ = ["Fluid", "StepInfo", "advect", "SCHEMES"]
+__all__ = ["Fluid", "StepInfo", "advect", "SCHEMES", "ADVECTION_KERNELS"]
 
 SCHEMES = ("semi_lagrangian", "maccormack", "bfecc")
+ADVECTION_KERNELS = ("auto", "nodes", "rows", "rows_avx2")
 _PROJECTIONS = ("mgpcg", "multigrid", "cg")
 _SIDES = {"x-": (0, 0), "x+": (0, 1), "y-": (1, 0), "y+": (1, 1), "z-": (2, 0), "z+": (2, 1)}
 
@@ -74,6 +75,9 @@ class Fluid:
     gravity: None or a d-vector [m/s^2]. density, temperature: enable the passive scalars;
     buoyancy = (alpha, beta): force (-alpha*density + beta*temperature) * up [m/s^2], up
     opposite to gravity (or +y without gravity). vorticity_confinement: epsilon >= 0.
+    advection_kernel: which implementation advects, all with bitwise the same results: "auto"
+    (the fastest that applies), "nodes" (node by node, every case), "rows" or "rows_avx2"
+    (vectorised along rows, baseline ISA or AVX2; not with no-slip or moving walls).
 
     State (writable views of the solver's memory, never reallocated):
       u, v[, w]: MAC velocities [m/s] (see the module docstring for shapes);
@@ -85,7 +89,8 @@ class Fluid:
 
     def __init__(self, shape, h, *, advection="maccormack", rk_order=2, projection="mgpcg", tol=1e-6,
                  viscosity=0.0, boundary="closed", walls="free_slip", gravity=None, density=False,
-                 temperature=False, buoyancy=(0.0, 0.0), vorticity_confinement=0.0, max_iter=None):
+                 temperature=False, buoyancy=(0.0, 0.0), vorticity_confinement=0.0, max_iter=None,
+                 advection_kernel="auto"):
         self.shape = grid_shape(shape, "shape")
         self.dim = len(self.shape)
         self.h = positive(h, "h")
@@ -117,10 +122,11 @@ class Fluid:
         self.buoyancy = (alpha, beta)
         self.vorticity_confinement = non_negative(vorticity_confinement, "vorticity_confinement")
         max_iter = positive_int(max_iter, "max_iter", allow_none=True) or 0
+        self.advection_kernel = choice(advection_kernel, "advection_kernel", ADVECTION_KERNELS)
         self._core = _core.grid.Fluid(
             list(self.shape), self.h, self.advection, self.rk_order, self.projection, self.tol, max_iter,
             self.viscosity, self.boundary, self.walls, g, bool(density), bool(temperature), alpha, beta,
-            self.vorticity_confinement)
+            self.vorticity_confinement, self.advection_kernel)
 
     # ------------------------------------------------------------------ state views
     @property
