@@ -75,7 +75,7 @@ class SolverD final : public Solver {
   Scalar density_error(State& s) override {
     check_finite(s, "x", s.x);
     neighborhoods(s, false);
-    densities(s);
+    kernel_pass(s, false);
     if (config_.method == Method::WCSPH) pressures(s);
     return mean_compression(s.density.data(), s.n);
   }
@@ -87,8 +87,9 @@ class SolverD final : public Solver {
   void step_wcsph(State& s, Scalar dt, StepStats& stats) {
     // Neighbourhoods of the current positions (Morton reordering every few steps).
     neighborhoods(s, true);
-    // Density: rho_i = sum_j m W_ij + sum_b psi_b W_ib (Akinci et al. 2012, eq. 5).
-    densities(s);
+    // Density: rho_i = sum_j m W_ij + sum_b psi_b W_ib (Akinci et al. 2012, eq. 5), and the
+    // step's kernel gradients.
+    kernel_pass(s, false);
     // Pressure from Tait's equation of state (Becker and Teschner 2007, eq. 6).
     pressures(s);
     // Accelerations: gravity, viscosity (course notes eq. 33) and the symmetric pressure force
@@ -112,9 +113,8 @@ class SolverD final : public Solver {
     const Index n = s.n;
     // Neighbourhoods of the current positions (Verlet lists; Morton reordering every few steps).
     neighborhoods(s, true);
-    // Densities and the factors alpha_i (eq. 11) of the current positions.
-    densities(s);
-    dfsph_factors(s);
+    // Densities, the step's kernel gradients and the factors alpha_i (eq. 11), in one pass.
+    kernel_pass(s, true);
     // Divergence-free solver (Algorithm 2): make D rho / Dt = 0 with the current velocities.
     if (config_.divergence_solve) stats.divergence_iterations = divergence_solve(s, dt, stats, interrupt);
     // Non-pressure accelerations (gravity, viscosity) and the predicted velocity v* (eq. 2).
@@ -136,63 +136,36 @@ class SolverD final : public Solver {
 
   // ------------------------------------------------------------------ DFSPH solvers
 
-  // alpha_i = rho_i / (|sum_j m grad W_ij + sum_b psi_b grad W_ib|^2 + sum_j |m grad W_ij|^2)
-  // (eq. 11; the static boundary enters only the first sum). Zero without neighbours.
-  void dfsph_factors(const State& s) {
-    const Scalar m = model_.mass;
-    parallel_for(s.n, [&](Index i) {
-      const Vec xi = CMap(s.x.data() + i * D);
-      Vec sum = Vec::Zero();
-      Scalar sum_sq = 0;
-      for (Index k = fluid().start[i]; k < fluid().start[i + 1]; ++k) {
-        const Vec gw = m * W_.grad(xi - CMap(s.x.data() + fluid().list[k] * D));
-        sum += gw;
-        sum_sq += gw.squaredNorm();
-      }
-      for (Index k = boundary().start[i]; k < boundary().start[i + 1]; ++k) {
-        const Index b = boundary().list[k];
-        sum += model_.boundary_psi[b] * W_.grad(xi - CMap(model_.boundary_x.data() + b * D));
-      }
-      const Scalar denom = sum.squaredNorm() + sum_sq;
-      // Below this a particle has (almost) no neighbours and no pressure to apply.
-      factor_[i] = denom > 1e-6 * m * m / std::pow(model_.h, 2 * D + 2) ? s.density[i] / denom : 0;
-    });
-  }
-
   // Rate of density change of i under the current velocities, D rho_i / Dt =
   // sum_j m (v_i - v_j) . grad W_ij + sum_b psi_b v_i . grad W_ib (eq. 9).
   Scalar density_rate(const State& s, Index i) const {
+    const Pairs f = fluid_pairs(s), b = boundary_pairs();
     const Vec xi = CMap(s.x.data() + i * D);
     const Vec vi = CMap(s.v.data() + i * D);
+    const Scalar* v = s.v.data();
+    const Scalar m = model_.mass;
     Scalar rate = 0;
-    for (Index k = fluid().start[i]; k < fluid().start[i + 1]; ++k) {
-      const Index j = fluid().list[k];
-      rate += model_.mass * (vi - CMap(s.v.data() + j * D)).dot(W_.grad(xi - CMap(s.x.data() + j * D)));
-    }
-    for (Index k = boundary().start[i]; k < boundary().start[i + 1]; ++k) {
-      const Index b = boundary().list[k];
-      rate += model_.boundary_psi[b] * vi.dot(W_.grad(xi - CMap(model_.boundary_x.data() + b * D)));
-    }
+    for (Index k = f.start[i]; k < f.start[i + 1]; ++k) rate += m * (vi - CMap(v + f.list[k] * D)).dot(f.grad(xi, k));
+    for (Index k = b.start[i]; k < b.start[i + 1]; ++k) rate += b.psi[b.list[k]] * vi.dot(b.grad(xi, k));
     return rate;
   }
 
   // v_i -= dt sum_j m (k_i + k_j) grad W_ij + dt k_i sum_b psi_b grad W_ib, with
   // k_i = kappa_i / rho_i (an iteration's increment) in kappa_ (eqs. 6 and 12).
   void apply_kappa(State& s, Scalar dt) {
+    const Pairs f = fluid_pairs(s), b = boundary_pairs();
+    const Scalar* kappa = kappa_.data();
+    const Scalar m = model_.mass;
     parallel_for(s.n, [&](Index i) {
       const Vec xi = CMap(s.x.data() + i * D);
-      const Scalar ki = kappa_[i];
+      const Scalar ki = kappa[i];
       Vec dv = Vec::Zero();
-      for (Index k = fluid().start[i]; k < fluid().start[i + 1]; ++k) {
-        const Index j = fluid().list[k];
-        const Scalar kij = ki + kappa_[j];
-        if (kij != 0) dv += (model_.mass * kij) * W_.grad(xi - CMap(s.x.data() + j * D));
+      for (Index k = f.start[i]; k < f.start[i + 1]; ++k) {
+        const Scalar kij = ki + kappa[f.list[k]];
+        if (kij != 0) dv += (m * kij) * f.grad(xi, k);
       }
       if (ki != 0)
-        for (Index k = boundary().start[i]; k < boundary().start[i + 1]; ++k) {
-          const Index b = boundary().list[k];
-          dv += (model_.boundary_psi[b] * ki) * W_.grad(xi - CMap(model_.boundary_x.data() + b * D));
-        }
+        for (Index k = b.start[i]; k < b.start[i + 1]; ++k) dv += (b.psi[b.list[k]] * ki) * b.grad(xi, k);
       // Staged in accel_ so that every particle reads the velocities of the same iterate.
       Map(accel_.data() + i * D) = dv;
     });
@@ -271,6 +244,77 @@ class SolverD final : public Solver {
 
   const NeighborLists& fluid() const { return skin_ > 0 ? fluid_exact_ : fluid_wide_; }
   const NeighborLists& boundary() const { return skin_ > 0 ? boundary_exact_ : boundary_wide_; }
+
+  // A neighbour list of the step with its kernel-gradient factors, as raw pointers for the
+  // inner loops (valid from the step's kernel_pass until its positions move).
+  struct Pairs {
+    const Index* start;
+    const std::int32_t* list;
+    const Scalar* dw;  // dW/dr / r of each entry at the step's positions
+    const Scalar* xs;  // coordinates of the listed points
+    const Scalar* psi;  // boundary lists: psi_b of the listed samples
+    // grad_i W_ij of entry k = j for the query point at xi.
+    Vec grad(const Vec& xi, Index k) const { return dw[k] * (xi - CMap(xs + Index{list[k]} * D)); }
+  };
+  Pairs fluid_pairs(const State& s) const {
+    return {fluid().start.data(), fluid().list.data(), fluid_dw_.data(), s.x.data(), nullptr};
+  }
+  Pairs boundary_pairs() const {
+    return {boundary().start.data(), boundary().list.data(), boundary_dw_.data(), model_.boundary_x.data(),
+            model_.boundary_psi.data()};
+  }
+
+  // One pass over the lists at the step's positions: densities rho_i = sum_j m W_ij +
+  // sum_b psi_b W_ib (Akinci et al. 2012, eq. 5); the kernel-gradient factors dW/dr / r of every
+  // entry, which the step's later passes read instead of evaluating the kernel again (the
+  // positions do not move until the step's end; about 15 passes per DFSPH step); and, with
+  // `factors`, DFSPH's alpha_i (eq. 11)
+  //   alpha_i = rho_i / (|sum_j m grad W_ij + sum_b psi_b grad W_ib|^2 + sum_j |m grad W_ij|^2),
+  // the static boundary entering only the first sum; zero without neighbours.
+  void kernel_pass(State& s, bool factors) {
+    fluid_dw_.resize(fluid().list.size());
+    boundary_dw_.resize(boundary().list.size());
+    const NeighborLists& fl = fluid();
+    const NeighborLists& bl = boundary();
+    const Scalar* x = s.x.data();
+    const Scalar* xb = model_.boundary_x.data();
+    const Scalar* psi = model_.boundary_psi.data();
+    Scalar* fdw = fluid_dw_.data();
+    Scalar* bdw = boundary_dw_.data();
+    const Scalar m = model_.mass;
+    // Below this a particle has (almost) no neighbours and no pressure to apply.
+    const Scalar tiny = 1e-6 * m * m / std::pow(model_.h, 2 * D + 2);
+    parallel_for(s.n, [&](Index i) {
+      const Vec xi = CMap(x + i * D);
+      Scalar rho = m * W_.w0();
+      Vec sum = Vec::Zero();
+      Scalar sum_sq = 0;
+      for (Index k = fl.start[i]; k < fl.start[i + 1]; ++k) {
+        const Vec xij = xi - CMap(x + Index{fl.list[k]} * D);
+        const Scalar r = std::sqrt(xij.squaredNorm());
+        rho += m * W_.w(r);
+        fdw[k] = W_.grad_factor(r);
+        if (factors) {
+          const Vec gw = m * (fdw[k] * xij);
+          sum += gw;
+          sum_sq += gw.squaredNorm();
+        }
+      }
+      for (Index k = bl.start[i]; k < bl.start[i + 1]; ++k) {
+        const Index b = bl.list[k];
+        const Vec xib = xi - CMap(xb + b * D);
+        const Scalar r = std::sqrt(xib.squaredNorm());
+        rho += psi[b] * W_.w(r);
+        bdw[k] = W_.grad_factor(r);
+        if (factors) sum += psi[b] * (bdw[k] * xib);
+      }
+      s.density[i] = rho;
+      if (factors) {
+        const Scalar denom = sum.squaredNorm() + sum_sq;
+        factor_[i] = denom > tiny ? rho / denom : 0;
+      }
+    });
+  }
 
   // Neighbour lists of the current positions. The cell-grid search runs only when the Verlet
   // lists (radius h (1 + skin)) may have lost a pair: when some particle has moved skin h / 2
@@ -371,21 +415,6 @@ class SolverD final : public Solver {
     permute(kappa_divergence_, 1);
   }
 
-  void densities(State& s) {
-    const Scalar m = model_.mass;
-    parallel_for(s.n, [&](Index i) {
-      const Vec xi = CMap(s.x.data() + i * D);
-      Scalar rho = m * W_.w0();
-      for (Index k = fluid().start[i]; k < fluid().start[i + 1]; ++k)
-        rho += m * W_.w((xi - CMap(s.x.data() + fluid().list[k] * D)).norm());
-      for (Index k = boundary().start[i]; k < boundary().start[i + 1]; ++k) {
-        const Index b = boundary().list[k];
-        rho += model_.boundary_psi[b] * W_.w((xi - CMap(model_.boundary_x.data() + b * D)).norm());
-      }
-      s.density[i] = rho;
-    });
-  }
-
   void pressures(State& s) {
     parallel_for(s.n, [&](Index i) { s.pressure[i] = tait_pressure(s.density[i], config_.rho0, B_, config_.gamma); });
   }
@@ -393,15 +422,16 @@ class SolverD final : public Solver {
   // accel_ = g + viscosity (fluid-fluid; walls are free-slip).
   void non_pressure_accelerations(const State& s) {
     const Scalar nu = config_.viscosity;
+    const Pairs f = fluid_pairs(s);
     parallel_for(s.n, [&](Index i) {
       Vec a = g_;
       if (nu > 0) {
         const Vec xi = CMap(s.x.data() + i * D);
         const Vec vi = CMap(s.v.data() + i * D);
-        for (Index k = fluid().start[i]; k < fluid().start[i + 1]; ++k) {
-          const Index j = fluid().list[k];
+        for (Index k = f.start[i]; k < f.start[i + 1]; ++k) {
+          const Index j = f.list[k];
           const Vec xij = xi - CMap(s.x.data() + j * D);
-          a += viscosity_term<D>(xij, vi - CMap(s.v.data() + j * D), W_.grad(xij),
+          a += viscosity_term<D>(xij, vi - CMap(s.v.data() + j * D), f.grad(xi, k),
                                  model_.mass / s.density[j], nu, model_.h);
         }
       }
@@ -411,21 +441,21 @@ class SolverD final : public Solver {
 
   void pressure_accelerations(const State& s) {
     const Scalar m = model_.mass;
+    const Pairs f = fluid_pairs(s), b = boundary_pairs();
+    const Scalar* p = s.pressure.data();
+    const Scalar* rho = s.density.data();
     parallel_for(s.n, [&](Index i) {
-      const Scalar pi = s.pressure[i] / (s.density[i] * s.density[i]);
+      const Scalar pi = p[i] / (rho[i] * rho[i]);
       const Vec xi = CMap(s.x.data() + i * D);
       Vec a = Vec::Zero();
-      for (Index k = fluid().start[i]; k < fluid().start[i + 1]; ++k) {
-        const Index j = fluid().list[k];
-        const Scalar pij = pi + s.pressure[j] / (s.density[j] * s.density[j]);
-        if (pij != 0) a -= (m * pij) * W_.grad(xi - CMap(s.x.data() + j * D));
+      for (Index k = f.start[i]; k < f.start[i + 1]; ++k) {
+        const Index j = f.list[k];
+        const Scalar pij = pi + p[j] / (rho[j] * rho[j]);
+        if (pij != 0) a -= (m * pij) * f.grad(xi, k);
       }
       // Pressure mirroring at the boundary: p_b / rho_b^2 = p_i / rho_i^2.
       if (pi != 0)
-        for (Index k = boundary().start[i]; k < boundary().start[i + 1]; ++k) {
-          const Index b = boundary().list[k];
-          a -= (2 * model_.boundary_psi[b] * pi) * W_.grad(xi - CMap(model_.boundary_x.data() + b * D));
-        }
+        for (Index k = b.start[i]; k < b.start[i + 1]; ++k) a -= (2 * b.psi[b.list[k]] * pi) * b.grad(xi, k);
       Map(accel_.data() + i * D) += a;
     });
   }
@@ -539,6 +569,9 @@ class SolverD final : public Solver {
   std::vector<Scalar> kappa_divergence_;  // DFSPH: kappa^v_i / rho_i of the divergence-free solve
   bool warm_ = false;                     // the kappa arrays hold a previous step's values
   std::vector<Scalar> factor_;     // DFSPH: alpha_i
+  // The step's kernel-gradient factors dW/dr / r of each entry of fluid() and boundary(), set by
+  // kernel_pass (step-local: every step recomputes them before use).
+  std::vector<Scalar> fluid_dw_, boundary_dw_;
 };
 
 }  // namespace
