@@ -74,8 +74,7 @@ class SolverD final : public Solver {
 
   Scalar density_error(State& s) override {
     check_finite(s, "x", s.x);
-    neighborhoods(s, false);
-    kernel_pass(s, false);
+    neighborhoods(s, false, false, s.density.data());
     if (config_.method == Method::WCSPH) pressures(s);
     return mean_compression(s.density.data(), s.n);
   }
@@ -85,11 +84,9 @@ class SolverD final : public Solver {
 
   // Becker and Teschner 2007, section 3, with symplectic Euler.
   void step_wcsph(State& s, Scalar dt, StepStats& stats) {
-    // Neighbourhoods of the current positions (Morton reordering every few steps).
-    neighborhoods(s, true);
-    // Density: rho_i = sum_j m W_ij + sum_b psi_b W_ib (Akinci et al. 2012, eq. 5), and the
-    // step's kernel gradients.
-    kernel_pass(s, false);
+    // Neighbourhoods of the current positions (Morton reordering every few steps), the step's
+    // kernel gradients and the densities rho_i = sum_j m W_ij + sum_b psi_b W_ib (Akinci et al. 2012, eq. 5).
+    neighborhoods(s, true, false, s.density.data());
     // Pressure from Tait's equation of state (Becker and Teschner 2007, eq. 6).
     pressures(s);
     // Accelerations: gravity, viscosity (course notes eq. 33) and the symmetric pressure force
@@ -111,10 +108,9 @@ class SolverD final : public Solver {
   // it is given, as SPlisHSPlasH's TimeStepDFSPH::step does).
   void step_dfsph(State& s, Scalar dt, StepStats& stats, Interrupt& interrupt) {
     const Index n = s.n;
-    // Neighbourhoods of the current positions (Verlet lists; Morton reordering every few steps).
-    neighborhoods(s, true);
-    // Densities, the step's kernel gradients and the factors alpha_i (eq. 11), in one pass.
-    kernel_pass(s, true);
+    // Neighbourhoods of the current positions (Verlet lists; Morton reordering every few steps),
+    // the step's kernel gradients, densities and the factors alpha_i (eq. 11).
+    neighborhoods(s, true, true, s.density.data());
     // Divergence-free solver (Algorithm 2): make D rho / Dt = 0 with the current velocities.
     if (config_.divergence_solve) stats.divergence_iterations = divergence_solve(s, dt, stats, interrupt);
     // Non-pressure accelerations (gravity, viscosity) and the predicted velocity v* (eq. 2).
@@ -242,8 +238,9 @@ class SolverD final : public Solver {
 
   // ------------------------------------------------------------------ shared passes
 
-  const NeighborLists& fluid() const { return skin_ > 0 ? fluid_exact_ : fluid_wide_; }
-  const NeighborLists& boundary() const { return skin_ > 0 ? boundary_exact_ : boundary_wide_; }
+  // The step's neighbour lists: the entries within h at the current positions.
+  const NeighborLists& fluid() const { return fluid_exact_; }
+  const NeighborLists& boundary() const { return boundary_exact_; }
 
   // A neighbour list of the step with its kernel-gradient factors, as raw pointers for the
   // inner loops (valid from the step's kernel_pass until its positions move).
@@ -264,65 +261,98 @@ class SolverD final : public Solver {
             model_.boundary_psi.data()};
   }
 
-  // One pass over the lists at the step's positions: densities rho_i = sum_j m W_ij +
-  // sum_b psi_b W_ib (Akinci et al. 2012, eq. 5); the kernel-gradient factors dW/dr / r of every
-  // entry, which the step's later passes read instead of evaluating the kernel again (the
-  // positions do not move until the step's end; about 15 passes per DFSPH step); and, with
-  // `factors`, DFSPH's alpha_i (eq. 11)
+  // One pass over the Verlet lists at the step's positions that keeps their entries within h
+  // (the exact lists fluid() and boundary()) and computes on the way: the densities
+  // rho_i = sum_j m W_ij + sum_b psi_b W_ib (Akinci et al. 2012, eq. 5) into `density`; the
+  // kernel-gradient factors dW/dr / r of every entry kept, which the step's later passes read
+  // instead of evaluating the kernel again (the positions do not move until the step's end;
+  // a DFSPH step makes about 15 passes); and, with `factors`, DFSPH's alpha_i (eq. 11)
   //   alpha_i = rho_i / (|sum_j m grad W_ij + sum_b psi_b grad W_ib|^2 + sum_j |m grad W_ij|^2),
   // the static boundary entering only the first sum; zero without neighbours.
-  void kernel_pass(State& s, bool factors) {
-    fluid_dw_.resize(fluid().list.size());
-    boundary_dw_.resize(boundary().list.size());
-    const NeighborLists& fl = fluid();
-    const NeighborLists& bl = boundary();
-    const Scalar* x = s.x.data();
-    const Scalar* xb = model_.boundary_x.data();
-    const Scalar* psi = model_.boundary_psi.data();
-    Scalar* fdw = fluid_dw_.data();
-    Scalar* bdw = boundary_dw_.data();
+  // Calls keep(j, x_i - x_j, |x_i - x_j|) for the entries j of row i of the Verlet list `wide`
+  // (listed points xs) within h, in list order. The test is done branch-free a chunk of entries
+  // at a time (about 40% of a Verlet list's entries fail it, at random).
+  template <class Keep>
+  void within_support(const NeighborLists& wide, const Scalar* xs, const Vec& xi, Index i, Keep&& keep) const {
+    constexpr Index kChunk = 64;
+    const Scalar h2 = model_.h * model_.h;
+    const std::int32_t* list = wide.list.data();
+    const Index end = wide.start[i + 1];
+    for (Index k0 = wide.start[i]; k0 < end; k0 += kChunk) {
+      const Index k1 = std::min(end, k0 + kChunk);
+      std::int32_t kept[kChunk];
+      Scalar kept_r2[kChunk];
+      int count = 0;
+      for (Index k = k0; k < k1; ++k) {
+        const std::int32_t j = list[k];
+        const Scalar r2 = (xi - CMap(xs + Index{j} * D)).squaredNorm();
+        kept[count] = j;
+        kept_r2[count] = r2;
+        count += r2 < h2;
+      }
+      for (int e = 0; e < count; ++e) {
+        const Index j = kept[e];
+        keep(j, Vec(xi - CMap(xs + j * D)), std::sqrt(kept_r2[e]));
+      }
+    }
+  }
+
+  void kernel_pass(State& s, bool factors, Scalar* density) {
     const Scalar m = model_.mass;
-    // Below this a particle has (almost) no neighbours and no pressure to apply.
-    const Scalar tiny = 1e-6 * m * m / std::pow(model_.h, 2 * D + 2);
-    parallel_for(s.n, [&](Index i) {
+    const Scalar* x = s.x.data();
+    // With factors, the fluid parts of sum_j m grad W_ij and sum_j |m grad W_ij|^2 go from the
+    // fluid pass to the boundary pass in accel_ and factor_.
+    Scalar* sum = accel_.data();
+    Scalar* sum_sq = factor_.data();
+    fluid_exact_.fill_with_values(s.n, fluid_dw_, [&](Index i, auto&& push) {
       const Vec xi = CMap(x + i * D);
       Scalar rho = m * W_.w0();
-      Vec sum = Vec::Zero();
-      Scalar sum_sq = 0;
-      for (Index k = fl.start[i]; k < fl.start[i + 1]; ++k) {
-        const Vec xij = xi - CMap(x + Index{fl.list[k]} * D);
-        const Scalar r = std::sqrt(xij.squaredNorm());
+      Vec gsum = Vec::Zero();
+      Scalar gsq = 0;
+      within_support(fluid_wide_, x, xi, i, [&](Index j, const Vec& xij, Scalar r) {
+        const Scalar dw = W_.grad_factor(r);
         rho += m * W_.w(r);
-        fdw[k] = W_.grad_factor(r);
+        push(j, dw);
         if (factors) {
-          const Vec gw = m * (fdw[k] * xij);
-          sum += gw;
-          sum_sq += gw.squaredNorm();
+          const Vec gw = m * (dw * xij);
+          gsum += gw;
+          gsq += gw.squaredNorm();
         }
-      }
-      for (Index k = bl.start[i]; k < bl.start[i + 1]; ++k) {
-        const Index b = bl.list[k];
-        const Vec xib = xi - CMap(xb + b * D);
-        const Scalar r = std::sqrt(xib.squaredNorm());
-        rho += psi[b] * W_.w(r);
-        bdw[k] = W_.grad_factor(r);
-        if (factors) sum += psi[b] * (bdw[k] * xib);
-      }
-      s.density[i] = rho;
+      });
+      density[i] = rho;
       if (factors) {
-        const Scalar denom = sum.squaredNorm() + sum_sq;
-        factor_[i] = denom > tiny ? rho / denom : 0;
+        Map(sum + i * D) = gsum;
+        sum_sq[i] = gsq;
+      }
+    });
+    const Scalar* xb = model_.boundary_x.data();
+    const Scalar* psi = model_.boundary_psi.data();
+    boundary_exact_.fill_with_values(s.n, boundary_dw_, [&](Index i, auto&& push) {
+      const Vec xi = CMap(x + i * D);
+      Scalar rho = density[i];
+      Vec gsum = factors ? Vec(CMap(sum + i * D)) : Vec::Zero();
+      within_support(boundary_wide_, xb, xi, i, [&](Index b, const Vec& xib, Scalar r) {
+        const Scalar dw = W_.grad_factor(r);
+        rho += psi[b] * W_.w(r);
+        push(b, dw);
+        if (factors) gsum += psi[b] * (dw * xib);
+      });
+      density[i] = rho;
+      if (factors) {
+        // Below this a particle has (almost) no neighbours and no pressure to apply.
+        const Scalar denom = gsum.squaredNorm() + sum_sq[i];
+        factor_[i] = denom > 1e-6 * m * m / std::pow(model_.h, 2 * D + 2) ? rho / denom : 0;
       }
     });
   }
 
   // Neighbour lists of the current positions. The cell-grid search runs only when the Verlet
   // lists (radius h (1 + skin)) may have lost a pair: when some particle has moved skin h / 2
-  // or more since they were built. Each call then filters them to the exact pairs within h.
-  // The skin pays when the lists live a few steps; when the fastest particle would cross it
-  // in under two steps (DFSPH's large steps), the search runs with no skin and no filter.
-  // Morton reordering happens at a rebuild, at most every reorder_every steps.
-  void neighborhoods(State& s, bool may_reorder) {
+  // or more since they were built. Each call then filters them to the exact pairs within h in
+  // kernel_pass (which see). The skin pays when the lists live a few steps; when the fastest
+  // particle would cross it in under two steps (DFSPH's large steps), the search runs with no
+  // skin. Morton reordering happens at a rebuild, at most every reorder_every steps.
+  void neighborhoods(State& s, bool may_reorder, bool factors, Scalar* density) {
     const Scalar h = model_.h;
     rebuilt_ = !built_ || skin_ == 0 || 2 * max_displacement(s) >= 0.999 * skin_ * h;
     if (rebuilt_) {
@@ -348,13 +378,7 @@ class SolverD final : public Solver {
       x_built_ = s.x;
       built_ = true;
     }
-    if (skin_ > 0) {
-      fluid_exact_.filter<D>(fluid_wide_, s.x.data(), s.x.data(), s.n, h);
-      if (model_.boundary_count() > 0)
-        boundary_exact_.filter<D>(boundary_wide_, model_.boundary_x.data(), s.x.data(), s.n, h);
-      else
-        boundary_exact_.start.assign(static_cast<size_t>(s.n) + 1, 0);
-    }
+    kernel_pass(s, factors, density);
   }
 
   void reset_caches() override {
@@ -376,7 +400,7 @@ class SolverD final : public Solver {
 
   std::vector<Index> neighbor_pairs_in_use(State& s, std::vector<Index>& boundary_pairs) override {
     check_finite(s, "x", s.x);
-    neighborhoods(s, true);
+    neighborhoods(s, true, false, aux_.data());  // the densities only as a by-product
     std::vector<Index> pairs;
     boundary_pairs.clear();
     for (Index i = 0; i < s.n; ++i) {
@@ -556,7 +580,7 @@ class SolverD final : public Solver {
   NeighborGrid<D> fluid_grid_, boundary_grid_;
   Scalar boundary_grid_radius_ = 0;           // cell size boundary_grid_ was built for
   NeighborLists fluid_wide_, boundary_wide_;    // Verlet lists, radius h (1 + skin_)
-  NeighborLists fluid_exact_, boundary_exact_;  // their entries within h (used when skin_ > 0)
+  NeighborLists fluid_exact_, boundary_exact_;  // their entries within h (kernel_pass)
   std::vector<Scalar> x_built_;                 // positions the Verlet lists were built at
   Scalar skin_ = 0;                             // skin of the current lists (fraction of h)
   bool built_ = false, rebuilt_ = false, reordered_ = false;
