@@ -38,10 +38,20 @@ struct NeighborLists {
     const Scalar r2 = radius * radius;
     fill(nq, [&](Index i, auto&& push) {
       const Vec xi = Eigen::Map<const Vec>(xq + i * D);
+      // Most candidates of the 3^D cells fail the test, at random: the test is done branch-free
+      // into a small buffer that is handed on when full.
+      constexpr int kChunk = 64;
+      Index kept[kChunk];
+      int count = 0;
       grid.for_each_candidate(xi, [&](Index j) {
-        if (self && j == i) return;
-        if ((Eigen::Map<const Vec>(xs + j * D) - xi).squaredNorm() < r2) push(j);
+        kept[count] = j;
+        count += (Eigen::Map<const Vec>(xs + j * D) - xi).squaredNorm() < r2 && !(self && j == i);
+        if (count == kChunk) {
+          for (int e = 0; e < count; ++e) push(kept[e]);
+          count = 0;
+        }
       });
+      for (int e = 0; e < count; ++e) push(kept[e]);
     });
   }
 

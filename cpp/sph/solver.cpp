@@ -132,13 +132,31 @@ class SolverD final : public Solver {
 
   // ------------------------------------------------------------------ DFSPH solvers
 
+  // A neighbour list of the step with its kernel-gradient factors, as raw pointers for the
+  // inner loops (valid from the step's kernel_pass until its positions move).
+  struct Pairs {
+    const Index* start;
+    const std::int32_t* list;
+    const Scalar* dw;  // dW/dr / r of each entry at the step's positions
+    const Scalar* xs;  // coordinates of the listed points
+    const Scalar* psi;  // boundary lists: psi_b of the listed samples
+    // grad_i W_ij of entry k = j for the query point at xi.
+    Vec grad(const Vec& xi, Index k) const { return dw[k] * (xi - CMap(xs + Index{list[k]} * D)); }
+  };
+  Pairs fluid_pairs(const State& s) const {
+    return {fluid().start.data(), fluid().list.data(), fluid_dw_.data(), s.x.data(), nullptr};
+  }
+  Pairs boundary_pairs() const {
+    return {boundary().start.data(), boundary().list.data(), boundary_dw_.data(), model_.boundary_x.data(),
+            model_.boundary_psi.data()};
+  }
+
   // Rate of density change of i under the current velocities, D rho_i / Dt =
   // sum_j m (v_i - v_j) . grad W_ij + sum_b psi_b v_i . grad W_ib (eq. 9).
-  Scalar density_rate(const State& s, Index i) const {
-    const Pairs f = fluid_pairs(s), b = boundary_pairs();
-    const Vec xi = CMap(s.x.data() + i * D);
-    const Vec vi = CMap(s.v.data() + i * D);
-    const Scalar* v = s.v.data();
+  // f and b are fluid_pairs(s) and boundary_pairs(), v the velocities.
+  Scalar density_rate(const Pairs& f, const Pairs& b, const Scalar* v, Index i) const {
+    const Vec xi = CMap(f.xs + i * D);
+    const Vec vi = CMap(v + i * D);
     const Scalar m = model_.mass;
     Scalar rate = 0;
     for (Index k = f.start[i]; k < f.start[i + 1]; ++k) rate += m * (vi - CMap(v + f.list[k] * D)).dot(f.grad(xi, k));
@@ -156,10 +174,9 @@ class SolverD final : public Solver {
       const Vec xi = CMap(s.x.data() + i * D);
       const Scalar ki = kappa[i];
       Vec dv = Vec::Zero();
-      for (Index k = f.start[i]; k < f.start[i + 1]; ++k) {
-        const Scalar kij = ki + kappa[f.list[k]];
-        if (kij != 0) dv += (m * kij) * f.grad(xi, k);
-      }
+      // (No test for k_i + k_j = 0: where only compressed particles have stiffness it would
+      // branch at random; adding the zero changes nothing.)
+      for (Index k = f.start[i]; k < f.start[i + 1]; ++k) dv += (m * (ki + kappa[f.list[k]])) * f.grad(xi, k);
       if (ki != 0)
         for (Index k = b.start[i]; k < b.start[i + 1]; ++k) dv += (b.psi[b.list[k]] * ki) * b.grad(xi, k);
       // Staged in accel_ so that every particle reads the velocities of the same iterate.
@@ -211,9 +228,10 @@ class SolverD final : public Solver {
     const Index n = s.n;
     const Index min_neighbors = D == 3 ? 20 : 7;
     auto residual = [&] {
+      const Pairs f = fluid_pairs(s), b = boundary_pairs();
       parallel_for(n, [&](Index i) {
-        const bool full = fluid().start[i + 1] - fluid().start[i] + boundary().start[i + 1] - boundary().start[i] >= min_neighbors;
-        aux_[i] = full ? density_rate(s, i) : 0;
+        const bool full = f.start[i + 1] - f.start[i] + b.start[i + 1] - b.start[i] >= min_neighbors;
+        aux_[i] = full ? density_rate(f, b, s.v.data(), i) : 0;
       });
       return parallel_sum(n, [&](Index i) { return std::max<Scalar>(aux_[i], 0); }) / std::max<Index>(n, 1) * dt /
              config_.rho0;
@@ -229,7 +247,8 @@ class SolverD final : public Solver {
     const Index n = s.n;
     const Scalar rho0 = config_.rho0;
     auto residual = [&] {
-      parallel_for(n, [&](Index i) { aux_[i] = s.density[i] + dt * density_rate(s, i) - rho0; });
+      const Pairs f = fluid_pairs(s), b = boundary_pairs();
+      parallel_for(n, [&](Index i) { aux_[i] = s.density[i] + dt * density_rate(f, b, s.v.data(), i) - rho0; });
       return parallel_sum(n, [&](Index i) { return std::max<Scalar>(aux_[i], 0); }) / std::max<Index>(n, 1) / rho0;
     };
     return projected_jacobi(s, dt, dt * dt, kappa_density_, config_.tol, 2, residual, stats.density_error,
@@ -242,33 +261,6 @@ class SolverD final : public Solver {
   const NeighborLists& fluid() const { return fluid_exact_; }
   const NeighborLists& boundary() const { return boundary_exact_; }
 
-  // A neighbour list of the step with its kernel-gradient factors, as raw pointers for the
-  // inner loops (valid from the step's kernel_pass until its positions move).
-  struct Pairs {
-    const Index* start;
-    const std::int32_t* list;
-    const Scalar* dw;  // dW/dr / r of each entry at the step's positions
-    const Scalar* xs;  // coordinates of the listed points
-    const Scalar* psi;  // boundary lists: psi_b of the listed samples
-    // grad_i W_ij of entry k = j for the query point at xi.
-    Vec grad(const Vec& xi, Index k) const { return dw[k] * (xi - CMap(xs + Index{list[k]} * D)); }
-  };
-  Pairs fluid_pairs(const State& s) const {
-    return {fluid().start.data(), fluid().list.data(), fluid_dw_.data(), s.x.data(), nullptr};
-  }
-  Pairs boundary_pairs() const {
-    return {boundary().start.data(), boundary().list.data(), boundary_dw_.data(), model_.boundary_x.data(),
-            model_.boundary_psi.data()};
-  }
-
-  // One pass over the Verlet lists at the step's positions that keeps their entries within h
-  // (the exact lists fluid() and boundary()) and computes on the way: the densities
-  // rho_i = sum_j m W_ij + sum_b psi_b W_ib (Akinci et al. 2012, eq. 5) into `density`; the
-  // kernel-gradient factors dW/dr / r of every entry kept, which the step's later passes read
-  // instead of evaluating the kernel again (the positions do not move until the step's end;
-  // a DFSPH step makes about 15 passes); and, with `factors`, DFSPH's alpha_i (eq. 11)
-  //   alpha_i = rho_i / (|sum_j m grad W_ij + sum_b psi_b grad W_ib|^2 + sum_j |m grad W_ij|^2),
-  // the static boundary entering only the first sum; zero without neighbours.
   // Calls keep(j, x_i - x_j, |x_i - x_j|) for the entries j of row i of the Verlet list `wide`
   // (listed points xs) within h, in list order. The test is done branch-free a chunk of entries
   // at a time (about 40% of a Verlet list's entries fail it, at random).
@@ -297,6 +289,14 @@ class SolverD final : public Solver {
     }
   }
 
+  // One pass over the Verlet lists at the step's positions that keeps their entries within h
+  // (the exact lists fluid() and boundary()) and computes on the way: the densities
+  // rho_i = sum_j m W_ij + sum_b psi_b W_ib (Akinci et al. 2012, eq. 5) into `density`; the
+  // kernel-gradient factors dW/dr / r of every entry kept, which the step's later passes read
+  // instead of evaluating the kernel again (the positions do not move until the step's end;
+  // a DFSPH step makes about 15 passes); and, with `factors`, DFSPH's alpha_i (eq. 11)
+  //   alpha_i = rho_i / (|sum_j m grad W_ij + sum_b psi_b grad W_ib|^2 + sum_j |m grad W_ij|^2),
+  // the static boundary entering only the first sum; zero without neighbours.
   void kernel_pass(State& s, bool factors, Scalar* density) {
     const Scalar m = model_.mass;
     const Scalar* x = s.x.data();
