@@ -472,10 +472,11 @@ class SolverD final : public Solver {
       const Scalar pi = p[i] / (rho[i] * rho[i]);
       const Vec xi = CMap(s.x.data() + i * D);
       Vec a = Vec::Zero();
+      // (No test for pij = 0: only compressed particles have pressure, so it would branch at
+      // random; subtracting the zero changes nothing.)
       for (Index k = f.start[i]; k < f.start[i + 1]; ++k) {
         const Index j = f.list[k];
-        const Scalar pij = pi + p[j] / (rho[j] * rho[j]);
-        if (pij != 0) a -= (m * pij) * f.grad(xi, k);
+        a -= (m * (pi + p[j] / (rho[j] * rho[j]))) * f.grad(xi, k);
       }
       // Pressure mirroring at the boundary: p_b / rho_b^2 = p_i / rho_i^2.
       if (pi != 0)
