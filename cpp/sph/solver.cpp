@@ -257,9 +257,10 @@ class SolverD final : public Solver {
 
   // ------------------------------------------------------------------ shared passes
 
-  // The step's neighbour lists: the entries within h at the current positions.
-  const NeighborLists& fluid() const { return fluid_exact_; }
-  const NeighborLists& boundary() const { return boundary_exact_; }
+  // The step's neighbour lists: the entries within h at the current positions (without a
+  // skin, the lists of the grid search are these already).
+  const NeighborLists& fluid() const { return skin_ > 0 ? fluid_exact_ : fluid_wide_; }
+  const NeighborLists& boundary() const { return skin_ > 0 ? boundary_exact_ : boundary_wide_; }
 
   // Calls keep(j, x_i - x_j, |x_i - x_j|) for the entries j of row i of the Verlet list `wide`
   // (listed points xs) within h, in list order. The test is done branch-free a chunk of entries
@@ -297,6 +298,35 @@ class SolverD final : public Solver {
   // a DFSPH step makes about 15 passes); and, with `factors`, DFSPH's alpha_i (eq. 11)
   //   alpha_i = rho_i / (|sum_j m grad W_ij + sum_b psi_b grad W_ib|^2 + sum_j |m grad W_ij|^2),
   // the static boundary entering only the first sum; zero without neighbours.
+  // For every particle i (at x): row(i, x_i, entries), where entries(entry) calls
+  // entry(j, x_i - x_j, |x_i - x_j|) for each neighbour j within h (listed points xs) in list
+  // order and keeps the dW/dr / r it returns in dw, parallel to the step's list. With a skin
+  // the Verlet list `wide` is filtered into `exact` on the way; without, it is exact already.
+  template <class Row>
+  void kernel_rows(const NeighborLists& wide, NeighborLists& exact, std::vector<Scalar>& dw, const Scalar* xs,
+                   const Scalar* x, Index n, Row&& row) {
+    if (skin_ > 0) {
+      exact.fill_with_values(n, dw, [&](Index i, auto&& push) {
+        const Vec xi = CMap(x + i * D);
+        row(i, xi, [&](auto&& entry) {
+          within_support(wide, xs, xi, i, [&](Index j, const Vec& xij, Scalar r) { push(j, entry(j, xij, r)); });
+        });
+      });
+      return;
+    }
+    dw.resize(wide.list.size());
+    parallel_for(n, [&](Index i) {
+      const Vec xi = CMap(x + i * D);
+      row(i, xi, [&](auto&& entry) {
+        for (Index k = wide.start[i]; k < wide.start[i + 1]; ++k) {
+          const Index j = wide.list[k];
+          const Vec xij = xi - CMap(xs + j * D);
+          dw[k] = entry(j, xij, std::sqrt(xij.squaredNorm()));
+        }
+      });
+    });
+  }
+
   void kernel_pass(State& s, bool factors, Scalar* density) {
     const Scalar m = model_.mass;
     const Scalar* x = s.x.data();
@@ -304,20 +334,19 @@ class SolverD final : public Solver {
     // fluid pass to the boundary pass in accel_ and factor_.
     Scalar* sum = accel_.data();
     Scalar* sum_sq = factor_.data();
-    fluid_exact_.fill_with_values(s.n, fluid_dw_, [&](Index i, auto&& push) {
-      const Vec xi = CMap(x + i * D);
+    kernel_rows(fluid_wide_, fluid_exact_, fluid_dw_, x, x, s.n, [&](Index i, const Vec&, auto&& entries) {
       Scalar rho = m * W_.w0();
       Vec gsum = Vec::Zero();
       Scalar gsq = 0;
-      within_support(fluid_wide_, x, xi, i, [&](Index j, const Vec& xij, Scalar r) {
+      entries([&](Index, const Vec& xij, Scalar r) {
         const Scalar dw = W_.grad_factor(r);
         rho += m * W_.w(r);
-        push(j, dw);
         if (factors) {
           const Vec gw = m * (dw * xij);
           gsum += gw;
           gsq += gw.squaredNorm();
         }
+        return dw;
       });
       density[i] = rho;
       if (factors) {
@@ -327,15 +356,14 @@ class SolverD final : public Solver {
     });
     const Scalar* xb = model_.boundary_x.data();
     const Scalar* psi = model_.boundary_psi.data();
-    boundary_exact_.fill_with_values(s.n, boundary_dw_, [&](Index i, auto&& push) {
-      const Vec xi = CMap(x + i * D);
+    kernel_rows(boundary_wide_, boundary_exact_, boundary_dw_, xb, x, s.n, [&](Index i, const Vec&, auto&& entries) {
       Scalar rho = density[i];
       Vec gsum = factors ? Vec(CMap(sum + i * D)) : Vec::Zero();
-      within_support(boundary_wide_, xb, xi, i, [&](Index b, const Vec& xib, Scalar r) {
+      entries([&](Index b, const Vec& xib, Scalar r) {
         const Scalar dw = W_.grad_factor(r);
         rho += psi[b] * W_.w(r);
-        push(b, dw);
         if (factors) gsum += psi[b] * (dw * xib);
+        return dw;
       });
       density[i] = rho;
       if (factors) {
@@ -581,7 +609,7 @@ class SolverD final : public Solver {
   NeighborGrid<D> fluid_grid_, boundary_grid_;
   Scalar boundary_grid_radius_ = 0;           // cell size boundary_grid_ was built for
   NeighborLists fluid_wide_, boundary_wide_;    // Verlet lists, radius h (1 + skin_)
-  NeighborLists fluid_exact_, boundary_exact_;  // their entries within h (kernel_pass)
+  NeighborLists fluid_exact_, boundary_exact_;  // their entries within h (kernel_pass; with a skin)
   std::vector<Scalar> x_built_;                 // positions the Verlet lists were built at
   Scalar skin_ = 0;                             // skin of the current lists (fraction of h)
   bool built_ = false, rebuilt_ = false, reordered_ = false;
