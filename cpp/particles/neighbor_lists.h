@@ -43,7 +43,7 @@ struct NeighborLists {
       constexpr int kChunk = 64;
       Index kept[kChunk];
       int count = 0;
-      grid.for_each_candidate(xi, [&](Index j) {
+      grid.for_each_candidate(xi, radius, [&](Index j) {
         kept[count] = j;
         count += (Eigen::Map<const Vec>(xs + j * D) - xi).squaredNorm() < r2 && !(self && j == i);
         if (count == kChunk) {
