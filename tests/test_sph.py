@@ -384,6 +384,31 @@ def test_runs_are_bitwise_reproducible():
     np.testing.assert_array_equal(results[0], results[1])
 
 
+@pytest.mark.parametrize("method", ["wcsph", "dfsph"])
+def test_runs_do_not_depend_on_the_thread_count(method):
+    # Large enough (> 4096 particles, the parallel grain) that every pass, the neighbour search
+    # and the reductions really split across threads; walls and a free surface included.
+    s = 0.005
+    x = km.sph.block([0, 0], [0.33, 0.33], s)
+    assert len(x) > 4096
+    threads = km.get_num_threads()
+    results = []
+    try:
+        for t in (1, 2):
+            km.set_num_threads(t)
+            fluid = km.sph.Fluid(x, s, method=method, domain=([0, 0], [0.6, 0.4]))
+            dt = 0.5 * fluid.stable_dt()
+            stats = [fluid.step(dt) for _ in range(4)]
+            results.append((fluid.x.copy(), fluid.v.copy(), fluid.density.copy(),
+                            [st["iterations"] for st in stats]))
+    finally:
+        km.set_num_threads(threads)
+    (x1, v1, rho1, it1), (x2, v2, rho2, it2) = results
+    assert it1 == it2, (it1, it2)
+    for name, a, b in (("x", x1, x2), ("v", v1, v2), ("density", rho1, rho2)):
+        assert np.array_equal(a, b), f"{method} {name}: 1 vs 2 threads differ by {np.abs(a - b).max():.3e}"
+
+
 # ---------------------------------------------------------------- bad input
 
 @pytest.mark.parametrize("kwargs, match", [

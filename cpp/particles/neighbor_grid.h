@@ -12,6 +12,7 @@
 #include <array>
 #include <cmath>
 #include <cstdint>
+#include <limits>
 #include <vector>
 
 #include "core/types.h"
@@ -44,29 +45,52 @@ class NeighborGrid {
   }
 
   // Calls visit(j) for every binned point j in the 3^D cells around p: a superset of the points
-  // within cell_size of p, in cell order (deterministic).
+  // within cell_size of p, in cell order (deterministic). With a radius (at most cell_size),
+  // the cells that lie radius or farther from p are skipped (same order for the others).
   template <class Visit>
   void for_each_candidate(const Vec& p, Visit&& visit) const {
+    for_each_candidate(p, std::numeric_limits<Scalar>::infinity(), visit);
+  }
+  template <class Visit>
+  void for_each_candidate(const Vec& p, Scalar radius, Visit&& visit) const {
     if (sorted_.empty()) return;
     const Cell c = cell_of(p);
     Cell lo, hi;
+    // Squared distances from p to the neighbouring cells on each axis: gap[a][0] below (cell
+    // c - 1), gap[a][1] above (c + 1); less a margin for the rounding of the binning.
+    Scalar gap[D][2];
     for (int a = 0; a < D; ++a) {
       lo[a] = std::max<Index>(c[a] - 1, 0);
       hi[a] = std::min<Index>(c[a] + 1, dims_[a] - 1);
       if (lo[a] > hi[a]) return;
+      const Scalar margin = 1e-9 * (cell_ + std::abs(p[a]) + std::abs(origin_[a]));
+      const Scalar below = std::max<Scalar>(p[a] - (origin_[a] + c[a] * cell_) - margin, 0);
+      const Scalar above = std::max<Scalar>(origin_[a] + (c[a] + 1) * cell_ - p[a] - margin, 0);
+      gap[a][0] = below * below;
+      gap[a][1] = above * above;
     }
+    const Scalar r2 = radius * radius;
+    // Squared distance from p to the cells at offset i - c[a] on axis a.
+    auto dist2 = [&](int a, Index i) { return i < c[a] ? gap[a][0] : i > c[a] ? gap[a][1] : Scalar(0); };
     if constexpr (D == 2) {
       for (Index i = lo[0]; i <= hi[0]; ++i) {
-        // Cells of one row are contiguous: visit the whole run at once.
+        const Scalar d0 = dist2(0, i);
+        if (d0 >= r2) continue;
+        // Cells of one row are contiguous: visit the run of those within reach at once.
+        const Index first = lo[1] < c[1] && d0 + gap[1][0] >= r2 ? c[1] : lo[1];
+        const Index last = hi[1] > c[1] && d0 + gap[1][1] >= r2 ? c[1] : hi[1];
         const Index row = i * dims_[1];
-        for (Index k = cell_start_[row + lo[1]]; k < cell_start_[row + hi[1] + 1]; ++k) visit(sorted_[k]);
+        for (Index k = cell_start_[row + first]; k < cell_start_[row + last + 1]; ++k) visit(sorted_[k]);
       }
     } else {
       for (Index i = lo[0]; i <= hi[0]; ++i)
         for (Index j = lo[1]; j <= hi[1]; ++j) {
+          const Scalar d01 = dist2(0, i) + dist2(1, j);
+          if (d01 >= r2) continue;
+          const Index first = lo[2] < c[2] && d01 + gap[2][0] >= r2 ? c[2] : lo[2];
+          const Index last = hi[2] > c[2] && d01 + gap[2][1] >= r2 ? c[2] : hi[2];
           const Index row = (i * dims_[1] + j) * dims_[2];
-          for (Index k = cell_start_[row + lo[2]]; k < cell_start_[row + hi[2] + 1]; ++k)
-            visit(sorted_[k]);
+          for (Index k = cell_start_[row + first]; k < cell_start_[row + last + 1]; ++k) visit(sorted_[k]);
         }
     }
   }

@@ -56,26 +56,29 @@ struct CubicSpline {
 
   explicit CubicSpline(Scalar h_) : h(h_), inv_h(1 / h_), sigma(kernel_sigma(D, h_)) {}
 
+  // Both pieces are evaluated and one is selected, so that the inner loops do not branch on
+  // q <= 1/2.
   Scalar w(Scalar r) const {
     const Scalar q = r * inv_h;
-    if (q >= 1) return 0;
-    if (q <= 0.5) return sigma * (6 * (q * q * q - q * q) + 1);
     const Scalar t = 1 - q;
-    return sigma * 2 * t * t * t;
+    const Scalar inner = sigma * (6 * (q * q * q - q * q) + 1);
+    const Scalar outer = sigma * 2 * t * t * t;
+    return q >= 1 ? 0 : q <= 0.5 ? inner : outer;
   }
   Scalar w0() const { return sigma; }
 
-  // grad_i W(x_i - x_j) for xij = x_i - x_j; zero at r = 0 where the direction is undefined.
-  Vec grad(const Vec& xij) const {
-    const Scalar r2 = xij.squaredNorm();
-    if (r2 <= 0) return Vec::Zero();
-    const Scalar r = std::sqrt(r2);
+  // (dW/dr) / r at distance r, so that grad_i W(x_i - x_j) = grad_factor(r) (x_i - x_j); zero
+  // at r = 0, where the direction is undefined, and outside the support.
+  Scalar grad_factor(Scalar r) const {
+    if (r <= 0) return 0;
     const Scalar q = r * inv_h;
-    if (q >= 1) return Vec::Zero();
-    const Scalar dw = q <= 0.5 ? sigma * inv_h * 6 * (3 * q * q - 2 * q)
-                               : -sigma * inv_h * 6 * (1 - q) * (1 - q);
-    return (dw / r) * xij;
+    const Scalar inner = sigma * inv_h * 6 * (3 * q * q - 2 * q);
+    const Scalar outer = -sigma * inv_h * 6 * (1 - q) * (1 - q);
+    return q >= 1 ? 0 : (q <= 0.5 ? inner : outer) / r;
   }
+
+  // grad_i W(x_i - x_j) for xij = x_i - x_j.
+  Vec grad(const Vec& xij) const { return grad_factor(std::sqrt(xij.squaredNorm())) * xij; }
 
   Scalar h, inv_h, sigma;
 };

@@ -74,8 +74,7 @@ class SolverD final : public Solver {
 
   Scalar density_error(State& s) override {
     check_finite(s, "x", s.x);
-    neighborhoods(s, false);
-    densities(s);
+    neighborhoods(s, false, false, s.density.data());
     if (config_.method == Method::WCSPH) pressures(s);
     return mean_compression(s.density.data(), s.n);
   }
@@ -85,10 +84,9 @@ class SolverD final : public Solver {
 
   // Becker and Teschner 2007, section 3, with symplectic Euler.
   void step_wcsph(State& s, Scalar dt, StepStats& stats) {
-    // Neighbourhoods of the current positions (Morton reordering every few steps).
-    neighborhoods(s, true);
-    // Density: rho_i = sum_j m W_ij + sum_b psi_b W_ib (Akinci et al. 2012, eq. 5).
-    densities(s);
+    // Neighbourhoods of the current positions (Morton reordering every few steps), the step's
+    // kernel gradients and the densities rho_i = sum_j m W_ij + sum_b psi_b W_ib (Akinci et al. 2012, eq. 5).
+    neighborhoods(s, true, false, s.density.data());
     // Pressure from Tait's equation of state (Becker and Teschner 2007, eq. 6).
     pressures(s);
     // Accelerations: gravity, viscosity (course notes eq. 33) and the symmetric pressure force
@@ -110,11 +108,9 @@ class SolverD final : public Solver {
   // it is given, as SPlisHSPlasH's TimeStepDFSPH::step does).
   void step_dfsph(State& s, Scalar dt, StepStats& stats, Interrupt& interrupt) {
     const Index n = s.n;
-    // Neighbourhoods of the current positions (Verlet lists; Morton reordering every few steps).
-    neighborhoods(s, true);
-    // Densities and the factors alpha_i (eq. 11) of the current positions.
-    densities(s);
-    dfsph_factors(s);
+    // Neighbourhoods of the current positions (Verlet lists; Morton reordering every few steps),
+    // the step's kernel gradients, densities and the factors alpha_i (eq. 11).
+    neighborhoods(s, true, true, s.density.data());
     // Divergence-free solver (Algorithm 2): make D rho / Dt = 0 with the current velocities.
     if (config_.divergence_solve) stats.divergence_iterations = divergence_solve(s, dt, stats, interrupt);
     // Non-pressure accelerations (gravity, viscosity) and the predicted velocity v* (eq. 2).
@@ -136,63 +132,53 @@ class SolverD final : public Solver {
 
   // ------------------------------------------------------------------ DFSPH solvers
 
-  // alpha_i = rho_i / (|sum_j m grad W_ij + sum_b psi_b grad W_ib|^2 + sum_j |m grad W_ij|^2)
-  // (eq. 11; the static boundary enters only the first sum). Zero without neighbours.
-  void dfsph_factors(const State& s) {
-    const Scalar m = model_.mass;
-    parallel_for(s.n, [&](Index i) {
-      const Vec xi = CMap(s.x.data() + i * D);
-      Vec sum = Vec::Zero();
-      Scalar sum_sq = 0;
-      for (Index k = fluid().start[i]; k < fluid().start[i + 1]; ++k) {
-        const Vec gw = m * W_.grad(xi - CMap(s.x.data() + fluid().list[k] * D));
-        sum += gw;
-        sum_sq += gw.squaredNorm();
-      }
-      for (Index k = boundary().start[i]; k < boundary().start[i + 1]; ++k) {
-        const Index b = boundary().list[k];
-        sum += model_.boundary_psi[b] * W_.grad(xi - CMap(model_.boundary_x.data() + b * D));
-      }
-      const Scalar denom = sum.squaredNorm() + sum_sq;
-      // Below this a particle has (almost) no neighbours and no pressure to apply.
-      factor_[i] = denom > 1e-6 * m * m / std::pow(model_.h, 2 * D + 2) ? s.density[i] / denom : 0;
-    });
+  // A neighbour list of the step with its kernel-gradient factors, as raw pointers for the
+  // inner loops (valid from the step's kernel_pass until its positions move).
+  struct Pairs {
+    const Index* start;
+    const std::int32_t* list;
+    const Scalar* dw;  // dW/dr / r of each entry at the step's positions
+    const Scalar* xs;  // coordinates of the listed points
+    const Scalar* psi;  // boundary lists: psi_b of the listed samples
+    // grad_i W_ij of entry k = j for the query point at xi.
+    Vec grad(const Vec& xi, Index k) const { return dw[k] * (xi - CMap(xs + Index{list[k]} * D)); }
+  };
+  Pairs fluid_pairs(const State& s) const {
+    return {fluid().start.data(), fluid().list.data(), fluid_dw_.data(), s.x.data(), nullptr};
+  }
+  Pairs boundary_pairs() const {
+    return {boundary().start.data(), boundary().list.data(), boundary_dw_.data(), model_.boundary_x.data(),
+            model_.boundary_psi.data()};
   }
 
   // Rate of density change of i under the current velocities, D rho_i / Dt =
   // sum_j m (v_i - v_j) . grad W_ij + sum_b psi_b v_i . grad W_ib (eq. 9).
-  Scalar density_rate(const State& s, Index i) const {
-    const Vec xi = CMap(s.x.data() + i * D);
-    const Vec vi = CMap(s.v.data() + i * D);
+  // f and b are fluid_pairs(s) and boundary_pairs(), v the velocities.
+  Scalar density_rate(const Pairs& f, const Pairs& b, const Scalar* v, Index i) const {
+    const Vec xi = CMap(f.xs + i * D);
+    const Vec vi = CMap(v + i * D);
+    const Scalar m = model_.mass;
     Scalar rate = 0;
-    for (Index k = fluid().start[i]; k < fluid().start[i + 1]; ++k) {
-      const Index j = fluid().list[k];
-      rate += model_.mass * (vi - CMap(s.v.data() + j * D)).dot(W_.grad(xi - CMap(s.x.data() + j * D)));
-    }
-    for (Index k = boundary().start[i]; k < boundary().start[i + 1]; ++k) {
-      const Index b = boundary().list[k];
-      rate += model_.boundary_psi[b] * vi.dot(W_.grad(xi - CMap(model_.boundary_x.data() + b * D)));
-    }
+    for (Index k = f.start[i]; k < f.start[i + 1]; ++k) rate += m * (vi - CMap(v + f.list[k] * D)).dot(f.grad(xi, k));
+    for (Index k = b.start[i]; k < b.start[i + 1]; ++k) rate += b.psi[b.list[k]] * vi.dot(b.grad(xi, k));
     return rate;
   }
 
   // v_i -= dt sum_j m (k_i + k_j) grad W_ij + dt k_i sum_b psi_b grad W_ib, with
   // k_i = kappa_i / rho_i (an iteration's increment) in kappa_ (eqs. 6 and 12).
   void apply_kappa(State& s, Scalar dt) {
+    const Pairs f = fluid_pairs(s), b = boundary_pairs();
+    const Scalar* kappa = kappa_.data();
+    const Scalar m = model_.mass;
     parallel_for(s.n, [&](Index i) {
       const Vec xi = CMap(s.x.data() + i * D);
-      const Scalar ki = kappa_[i];
+      const Scalar ki = kappa[i];
       Vec dv = Vec::Zero();
-      for (Index k = fluid().start[i]; k < fluid().start[i + 1]; ++k) {
-        const Index j = fluid().list[k];
-        const Scalar kij = ki + kappa_[j];
-        if (kij != 0) dv += (model_.mass * kij) * W_.grad(xi - CMap(s.x.data() + j * D));
-      }
+      // (No test for k_i + k_j = 0: where only compressed particles have stiffness it would
+      // branch at random; adding the zero changes nothing.)
+      for (Index k = f.start[i]; k < f.start[i + 1]; ++k) dv += (m * (ki + kappa[f.list[k]])) * f.grad(xi, k);
       if (ki != 0)
-        for (Index k = boundary().start[i]; k < boundary().start[i + 1]; ++k) {
-          const Index b = boundary().list[k];
-          dv += (model_.boundary_psi[b] * ki) * W_.grad(xi - CMap(model_.boundary_x.data() + b * D));
-        }
+        for (Index k = b.start[i]; k < b.start[i + 1]; ++k) dv += (b.psi[b.list[k]] * ki) * b.grad(xi, k);
       // Staged in accel_ so that every particle reads the velocities of the same iterate.
       Map(accel_.data() + i * D) = dv;
     });
@@ -242,9 +228,10 @@ class SolverD final : public Solver {
     const Index n = s.n;
     const Index min_neighbors = D == 3 ? 20 : 7;
     auto residual = [&] {
+      const Pairs f = fluid_pairs(s), b = boundary_pairs();
       parallel_for(n, [&](Index i) {
-        const bool full = fluid().start[i + 1] - fluid().start[i] + boundary().start[i + 1] - boundary().start[i] >= min_neighbors;
-        aux_[i] = full ? density_rate(s, i) : 0;
+        const bool full = f.start[i + 1] - f.start[i] + b.start[i + 1] - b.start[i] >= min_neighbors;
+        aux_[i] = full ? density_rate(f, b, s.v.data(), i) : 0;
       });
       return parallel_sum(n, [&](Index i) { return std::max<Scalar>(aux_[i], 0); }) / std::max<Index>(n, 1) * dt /
              config_.rho0;
@@ -260,7 +247,8 @@ class SolverD final : public Solver {
     const Index n = s.n;
     const Scalar rho0 = config_.rho0;
     auto residual = [&] {
-      parallel_for(n, [&](Index i) { aux_[i] = s.density[i] + dt * density_rate(s, i) - rho0; });
+      const Pairs f = fluid_pairs(s), b = boundary_pairs();
+      parallel_for(n, [&](Index i) { aux_[i] = s.density[i] + dt * density_rate(f, b, s.v.data(), i) - rho0; });
       return parallel_sum(n, [&](Index i) { return std::max<Scalar>(aux_[i], 0); }) / std::max<Index>(n, 1) / rho0;
     };
     return projected_jacobi(s, dt, dt * dt, kappa_density_, config_.tol, 2, residual, stats.density_error,
@@ -269,16 +257,130 @@ class SolverD final : public Solver {
 
   // ------------------------------------------------------------------ shared passes
 
+  // The step's neighbour lists: the entries within h at the current positions (without a
+  // skin, the lists of the grid search are these already).
   const NeighborLists& fluid() const { return skin_ > 0 ? fluid_exact_ : fluid_wide_; }
   const NeighborLists& boundary() const { return skin_ > 0 ? boundary_exact_ : boundary_wide_; }
 
+  // Calls keep(j, x_i - x_j, |x_i - x_j|) for the entries j of row i of the Verlet list `wide`
+  // (listed points xs) within h, in list order. The test is done branch-free a chunk of entries
+  // at a time (about 40% of a Verlet list's entries fail it, at random).
+  template <class Keep>
+  void within_support(const NeighborLists& wide, const Scalar* xs, const Vec& xi, Index i, Keep&& keep) const {
+    constexpr Index kChunk = 64;
+    const Scalar h2 = model_.h * model_.h;
+    const std::int32_t* list = wide.list.data();
+    const Index end = wide.start[i + 1];
+    for (Index k0 = wide.start[i]; k0 < end; k0 += kChunk) {
+      const Index k1 = std::min(end, k0 + kChunk);
+      std::int32_t kept[kChunk];
+      Scalar kept_r2[kChunk];
+      int count = 0;
+      for (Index k = k0; k < k1; ++k) {
+        const std::int32_t j = list[k];
+        const Scalar r2 = (xi - CMap(xs + Index{j} * D)).squaredNorm();
+        kept[count] = j;
+        kept_r2[count] = r2;
+        count += r2 < h2;
+      }
+      for (int e = 0; e < count; ++e) {
+        const Index j = kept[e];
+        keep(j, Vec(xi - CMap(xs + j * D)), std::sqrt(kept_r2[e]));
+      }
+    }
+  }
+
+  // One pass over the Verlet lists at the step's positions that keeps their entries within h
+  // (the exact lists fluid() and boundary()) and computes on the way: the densities
+  // rho_i = sum_j m W_ij + sum_b psi_b W_ib (Akinci et al. 2012, eq. 5) into `density`; the
+  // kernel-gradient factors dW/dr / r of every entry kept, which the step's later passes read
+  // instead of evaluating the kernel again (the positions do not move until the step's end;
+  // a DFSPH step makes about 15 passes); and, with `factors`, DFSPH's alpha_i (eq. 11)
+  //   alpha_i = rho_i / (|sum_j m grad W_ij + sum_b psi_b grad W_ib|^2 + sum_j |m grad W_ij|^2),
+  // the static boundary entering only the first sum; zero without neighbours.
+  // For every particle i (at x): row(i, x_i, entries), where entries(entry) calls
+  // entry(j, x_i - x_j, |x_i - x_j|) for each neighbour j within h (listed points xs) in list
+  // order and keeps the dW/dr / r it returns in dw, parallel to the step's list. With a skin
+  // the Verlet list `wide` is filtered into `exact` on the way; without, it is exact already.
+  template <class Row>
+  void kernel_rows(const NeighborLists& wide, NeighborLists& exact, std::vector<Scalar>& dw, const Scalar* xs,
+                   const Scalar* x, Index n, Row&& row) {
+    if (skin_ > 0) {
+      exact.fill_with_values(n, dw, [&](Index i, auto&& push) {
+        const Vec xi = CMap(x + i * D);
+        row(i, xi, [&](auto&& entry) {
+          within_support(wide, xs, xi, i, [&](Index j, const Vec& xij, Scalar r) { push(j, entry(j, xij, r)); });
+        });
+      });
+      return;
+    }
+    dw.resize(wide.list.size());
+    parallel_for(n, [&](Index i) {
+      const Vec xi = CMap(x + i * D);
+      row(i, xi, [&](auto&& entry) {
+        for (Index k = wide.start[i]; k < wide.start[i + 1]; ++k) {
+          const Index j = wide.list[k];
+          const Vec xij = xi - CMap(xs + j * D);
+          dw[k] = entry(j, xij, std::sqrt(xij.squaredNorm()));
+        }
+      });
+    });
+  }
+
+  void kernel_pass(State& s, bool factors, Scalar* density) {
+    const Scalar m = model_.mass;
+    const Scalar* x = s.x.data();
+    // With factors, the fluid parts of sum_j m grad W_ij and sum_j |m grad W_ij|^2 go from the
+    // fluid pass to the boundary pass in accel_ and factor_.
+    Scalar* sum = accel_.data();
+    Scalar* sum_sq = factor_.data();
+    kernel_rows(fluid_wide_, fluid_exact_, fluid_dw_, x, x, s.n, [&](Index i, const Vec&, auto&& entries) {
+      Scalar rho = m * W_.w0();
+      Vec gsum = Vec::Zero();
+      Scalar gsq = 0;
+      entries([&](Index, const Vec& xij, Scalar r) {
+        const Scalar dw = W_.grad_factor(r);
+        rho += m * W_.w(r);
+        if (factors) {
+          const Vec gw = m * (dw * xij);
+          gsum += gw;
+          gsq += gw.squaredNorm();
+        }
+        return dw;
+      });
+      density[i] = rho;
+      if (factors) {
+        Map(sum + i * D) = gsum;
+        sum_sq[i] = gsq;
+      }
+    });
+    const Scalar* xb = model_.boundary_x.data();
+    const Scalar* psi = model_.boundary_psi.data();
+    kernel_rows(boundary_wide_, boundary_exact_, boundary_dw_, xb, x, s.n, [&](Index i, const Vec&, auto&& entries) {
+      Scalar rho = density[i];
+      Vec gsum = factors ? Vec(CMap(sum + i * D)) : Vec::Zero();
+      entries([&](Index b, const Vec& xib, Scalar r) {
+        const Scalar dw = W_.grad_factor(r);
+        rho += psi[b] * W_.w(r);
+        if (factors) gsum += psi[b] * (dw * xib);
+        return dw;
+      });
+      density[i] = rho;
+      if (factors) {
+        // Below this a particle has (almost) no neighbours and no pressure to apply.
+        const Scalar denom = gsum.squaredNorm() + sum_sq[i];
+        factor_[i] = denom > 1e-6 * m * m / std::pow(model_.h, 2 * D + 2) ? rho / denom : 0;
+      }
+    });
+  }
+
   // Neighbour lists of the current positions. The cell-grid search runs only when the Verlet
   // lists (radius h (1 + skin)) may have lost a pair: when some particle has moved skin h / 2
-  // or more since they were built. Each call then filters them to the exact pairs within h.
-  // The skin pays when the lists live a few steps; when the fastest particle would cross it
-  // in under two steps (DFSPH's large steps), the search runs with no skin and no filter.
-  // Morton reordering happens at a rebuild, at most every reorder_every steps.
-  void neighborhoods(State& s, bool may_reorder) {
+  // or more since they were built. Each call then filters them to the exact pairs within h in
+  // kernel_pass (which see). The skin pays when the lists live a few steps; when the fastest
+  // particle would cross it in under two steps (DFSPH's large steps), the search runs with no
+  // skin. Morton reordering happens at a rebuild, at most every reorder_every steps.
+  void neighborhoods(State& s, bool may_reorder, bool factors, Scalar* density) {
     const Scalar h = model_.h;
     rebuilt_ = !built_ || skin_ == 0 || 2 * max_displacement(s) >= 0.999 * skin_ * h;
     if (rebuilt_) {
@@ -304,13 +406,7 @@ class SolverD final : public Solver {
       x_built_ = s.x;
       built_ = true;
     }
-    if (skin_ > 0) {
-      fluid_exact_.filter<D>(fluid_wide_, s.x.data(), s.x.data(), s.n, h);
-      if (model_.boundary_count() > 0)
-        boundary_exact_.filter<D>(boundary_wide_, model_.boundary_x.data(), s.x.data(), s.n, h);
-      else
-        boundary_exact_.start.assign(static_cast<size_t>(s.n) + 1, 0);
-    }
+    kernel_pass(s, factors, density);
   }
 
   void reset_caches() override {
@@ -332,7 +428,7 @@ class SolverD final : public Solver {
 
   std::vector<Index> neighbor_pairs_in_use(State& s, std::vector<Index>& boundary_pairs) override {
     check_finite(s, "x", s.x);
-    neighborhoods(s, true);
+    neighborhoods(s, true, false, aux_.data());  // the densities only as a by-product
     std::vector<Index> pairs;
     boundary_pairs.clear();
     for (Index i = 0; i < s.n; ++i) {
@@ -371,21 +467,6 @@ class SolverD final : public Solver {
     permute(kappa_divergence_, 1);
   }
 
-  void densities(State& s) {
-    const Scalar m = model_.mass;
-    parallel_for(s.n, [&](Index i) {
-      const Vec xi = CMap(s.x.data() + i * D);
-      Scalar rho = m * W_.w0();
-      for (Index k = fluid().start[i]; k < fluid().start[i + 1]; ++k)
-        rho += m * W_.w((xi - CMap(s.x.data() + fluid().list[k] * D)).norm());
-      for (Index k = boundary().start[i]; k < boundary().start[i + 1]; ++k) {
-        const Index b = boundary().list[k];
-        rho += model_.boundary_psi[b] * W_.w((xi - CMap(model_.boundary_x.data() + b * D)).norm());
-      }
-      s.density[i] = rho;
-    });
-  }
-
   void pressures(State& s) {
     parallel_for(s.n, [&](Index i) { s.pressure[i] = tait_pressure(s.density[i], config_.rho0, B_, config_.gamma); });
   }
@@ -393,15 +474,16 @@ class SolverD final : public Solver {
   // accel_ = g + viscosity (fluid-fluid; walls are free-slip).
   void non_pressure_accelerations(const State& s) {
     const Scalar nu = config_.viscosity;
+    const Pairs f = fluid_pairs(s);
     parallel_for(s.n, [&](Index i) {
       Vec a = g_;
       if (nu > 0) {
         const Vec xi = CMap(s.x.data() + i * D);
         const Vec vi = CMap(s.v.data() + i * D);
-        for (Index k = fluid().start[i]; k < fluid().start[i + 1]; ++k) {
-          const Index j = fluid().list[k];
+        for (Index k = f.start[i]; k < f.start[i + 1]; ++k) {
+          const Index j = f.list[k];
           const Vec xij = xi - CMap(s.x.data() + j * D);
-          a += viscosity_term<D>(xij, vi - CMap(s.v.data() + j * D), W_.grad(xij),
+          a += viscosity_term<D>(xij, vi - CMap(s.v.data() + j * D), f.grad(xi, k),
                                  model_.mass / s.density[j], nu, model_.h);
         }
       }
@@ -411,21 +493,22 @@ class SolverD final : public Solver {
 
   void pressure_accelerations(const State& s) {
     const Scalar m = model_.mass;
+    const Pairs f = fluid_pairs(s), b = boundary_pairs();
+    const Scalar* p = s.pressure.data();
+    const Scalar* rho = s.density.data();
     parallel_for(s.n, [&](Index i) {
-      const Scalar pi = s.pressure[i] / (s.density[i] * s.density[i]);
+      const Scalar pi = p[i] / (rho[i] * rho[i]);
       const Vec xi = CMap(s.x.data() + i * D);
       Vec a = Vec::Zero();
-      for (Index k = fluid().start[i]; k < fluid().start[i + 1]; ++k) {
-        const Index j = fluid().list[k];
-        const Scalar pij = pi + s.pressure[j] / (s.density[j] * s.density[j]);
-        if (pij != 0) a -= (m * pij) * W_.grad(xi - CMap(s.x.data() + j * D));
+      // (No test for pij = 0: only compressed particles have pressure, so it would branch at
+      // random; subtracting the zero changes nothing.)
+      for (Index k = f.start[i]; k < f.start[i + 1]; ++k) {
+        const Index j = f.list[k];
+        a -= (m * (pi + p[j] / (rho[j] * rho[j]))) * f.grad(xi, k);
       }
       // Pressure mirroring at the boundary: p_b / rho_b^2 = p_i / rho_i^2.
       if (pi != 0)
-        for (Index k = boundary().start[i]; k < boundary().start[i + 1]; ++k) {
-          const Index b = boundary().list[k];
-          a -= (2 * model_.boundary_psi[b] * pi) * W_.grad(xi - CMap(model_.boundary_x.data() + b * D));
-        }
+        for (Index k = b.start[i]; k < b.start[i + 1]; ++k) a -= (2 * b.psi[b.list[k]] * pi) * b.grad(xi, k);
       Map(accel_.data() + i * D) += a;
     });
   }
@@ -526,7 +609,7 @@ class SolverD final : public Solver {
   NeighborGrid<D> fluid_grid_, boundary_grid_;
   Scalar boundary_grid_radius_ = 0;           // cell size boundary_grid_ was built for
   NeighborLists fluid_wide_, boundary_wide_;    // Verlet lists, radius h (1 + skin_)
-  NeighborLists fluid_exact_, boundary_exact_;  // their entries within h (used when skin_ > 0)
+  NeighborLists fluid_exact_, boundary_exact_;  // their entries within h (kernel_pass; with a skin)
   std::vector<Scalar> x_built_;                 // positions the Verlet lists were built at
   Scalar skin_ = 0;                             // skin of the current lists (fraction of h)
   bool built_ = false, rebuilt_ = false, reordered_ = false;
@@ -539,6 +622,9 @@ class SolverD final : public Solver {
   std::vector<Scalar> kappa_divergence_;  // DFSPH: kappa^v_i / rho_i of the divergence-free solve
   bool warm_ = false;                     // the kappa arrays hold a previous step's values
   std::vector<Scalar> factor_;     // DFSPH: alpha_i
+  // The step's kernel-gradient factors dW/dr / r of each entry of fluid() and boundary(), set by
+  // kernel_pass (step-local: every step recomputes them before use).
+  std::vector<Scalar> fluid_dw_, boundary_dw_;
 };
 
 }  // namespace
