@@ -132,53 +132,47 @@ class SolverD final : public Solver {
 
   // ------------------------------------------------------------------ DFSPH solvers
 
-  // A neighbour list of the step with its kernel-gradient factors, as raw pointers for the
-  // inner loops (valid from the step's kernel_pass until its positions move).
+  // A neighbour list of the step with its kernel gradients, as raw pointers for the inner loops
+  // (valid from the step's kernel_pass until its positions move).
   struct Pairs {
     const Index* start;
     const std::int32_t* list;
-    const Scalar* dw;  // dW/dr / r of each entry at the step's positions
-    const Scalar* xs;  // coordinates of the listed points
-    const Scalar* psi;  // boundary lists: psi_b of the listed samples
-    // grad_i W_ij of entry k = j for the query point at xi.
-    Vec grad(const Vec& xi, Index k) const { return dw[k] * (xi - CMap(xs + Index{list[k]} * D)); }
+    const float* grads;  // grad_i W_ij of each entry at the step's positions, D floats
+    const Scalar* psi;   // boundary lists: psi_b of the listed samples
+    // grad_i W_ij of entry k = j.
+    Vec grad(Index k) const { return Eigen::Map<const Eigen::Matrix<float, D, 1>>(grads + k * D).template cast<Scalar>(); }
   };
-  Pairs fluid_pairs(const State& s) const {
-    return {fluid().start.data(), fluid().list.data(), fluid_dw_.data(), s.x.data(), nullptr};
-  }
+  Pairs fluid_pairs() const { return {fluid().start.data(), fluid().list.data(), fluid_grad_.data(), nullptr}; }
   Pairs boundary_pairs() const {
-    return {boundary().start.data(), boundary().list.data(), boundary_dw_.data(), model_.boundary_x.data(),
-            model_.boundary_psi.data()};
+    return {boundary().start.data(), boundary().list.data(), boundary_grad_.data(), model_.boundary_psi.data()};
   }
 
   // Rate of density change of i under the current velocities, D rho_i / Dt =
   // sum_j m (v_i - v_j) . grad W_ij + sum_b psi_b v_i . grad W_ib (eq. 9).
-  // f and b are fluid_pairs(s) and boundary_pairs(), v the velocities.
+  // f and b are fluid_pairs() and boundary_pairs(), v the velocities.
   Scalar density_rate(const Pairs& f, const Pairs& b, const Scalar* v, Index i) const {
-    const Vec xi = CMap(f.xs + i * D);
     const Vec vi = CMap(v + i * D);
     const Scalar m = model_.mass;
     Scalar rate = 0;
-    for (Index k = f.start[i]; k < f.start[i + 1]; ++k) rate += m * (vi - CMap(v + f.list[k] * D)).dot(f.grad(xi, k));
-    for (Index k = b.start[i]; k < b.start[i + 1]; ++k) rate += b.psi[b.list[k]] * vi.dot(b.grad(xi, k));
+    for (Index k = f.start[i]; k < f.start[i + 1]; ++k) rate += m * (vi - CMap(v + f.list[k] * D)).dot(f.grad(k));
+    for (Index k = b.start[i]; k < b.start[i + 1]; ++k) rate += b.psi[b.list[k]] * vi.dot(b.grad(k));
     return rate;
   }
 
   // v_i -= dt sum_j m (k_i + k_j) grad W_ij + dt k_i sum_b psi_b grad W_ib, with
   // k_i = kappa_i / rho_i (an iteration's increment) in kappa_ (eqs. 6 and 12).
   void apply_kappa(State& s, Scalar dt) {
-    const Pairs f = fluid_pairs(s), b = boundary_pairs();
+    const Pairs f = fluid_pairs(), b = boundary_pairs();
     const Scalar* kappa = kappa_.data();
     const Scalar m = model_.mass;
     parallel_for(s.n, [&](Index i) {
-      const Vec xi = CMap(s.x.data() + i * D);
       const Scalar ki = kappa[i];
       Vec dv = Vec::Zero();
       // (No test for k_i + k_j = 0: where only compressed particles have stiffness it would
       // branch at random; adding the zero changes nothing.)
-      for (Index k = f.start[i]; k < f.start[i + 1]; ++k) dv += (m * (ki + kappa[f.list[k]])) * f.grad(xi, k);
+      for (Index k = f.start[i]; k < f.start[i + 1]; ++k) dv += (m * (ki + kappa[f.list[k]])) * f.grad(k);
       if (ki != 0)
-        for (Index k = b.start[i]; k < b.start[i + 1]; ++k) dv += (b.psi[b.list[k]] * ki) * b.grad(xi, k);
+        for (Index k = b.start[i]; k < b.start[i + 1]; ++k) dv += (b.psi[b.list[k]] * ki) * b.grad(k);
       // Staged in accel_ so that every particle reads the velocities of the same iterate.
       Map(accel_.data() + i * D) = dv;
     });
@@ -228,7 +222,7 @@ class SolverD final : public Solver {
     const Index n = s.n;
     const Index min_neighbors = D == 3 ? 20 : 7;
     auto residual = [&] {
-      const Pairs f = fluid_pairs(s), b = boundary_pairs();
+      const Pairs f = fluid_pairs(), b = boundary_pairs();
       parallel_for(n, [&](Index i) {
         const bool full = f.start[i + 1] - f.start[i] + b.start[i + 1] - b.start[i] >= min_neighbors;
         aux_[i] = full ? density_rate(f, b, s.v.data(), i) : 0;
@@ -247,7 +241,7 @@ class SolverD final : public Solver {
     const Index n = s.n;
     const Scalar rho0 = config_.rho0;
     auto residual = [&] {
-      const Pairs f = fluid_pairs(s), b = boundary_pairs();
+      const Pairs f = fluid_pairs(), b = boundary_pairs();
       parallel_for(n, [&](Index i) { aux_[i] = s.density[i] + dt * density_rate(f, b, s.v.data(), i) - rho0; });
       return parallel_sum(n, [&](Index i) { return std::max<Scalar>(aux_[i], 0); }) / std::max<Index>(n, 1) / rho0;
     };
@@ -293,35 +287,47 @@ class SolverD final : public Solver {
   // One pass over the Verlet lists at the step's positions that keeps their entries within h
   // (the exact lists fluid() and boundary()) and computes on the way: the densities
   // rho_i = sum_j m W_ij + sum_b psi_b W_ib (Akinci et al. 2012, eq. 5) into `density`; the
-  // kernel-gradient factors dW/dr / r of every entry kept, which the step's later passes read
+  // kernel gradients grad_i W_ij of every entry kept, which the step's later passes read
   // instead of evaluating the kernel again (the positions do not move until the step's end;
-  // a DFSPH step makes about 15 passes); and, with `factors`, DFSPH's alpha_i (eq. 11)
+  // a DFSPH step makes about 13 passes); and, with `factors`, DFSPH's alpha_i (eq. 11)
   //   alpha_i = rho_i / (|sum_j m grad W_ij + sum_b psi_b grad W_ib|^2 + sum_j |m grad W_ij|^2),
   // the static boundary entering only the first sum; zero without neighbours.
   // For every particle i (at x): row(i, x_i, entries), where entries(entry) calls
   // entry(j, x_i - x_j, |x_i - x_j|) for each neighbour j within h (listed points xs) in list
-  // order and keeps the dW/dr / r it returns in dw, parallel to the step's list. With a skin
-  // the Verlet list `wide` is filtered into `exact` on the way; without, it is exact already.
+  // order; with the dW/dr / r it returns, grad_i W_ij = (dW/dr / r)(x_i - x_j) goes into
+  // grads (D floats per entry, parallel to the step's list). The later passes then stream the
+  // gradients instead of gathering x_j: 12 bytes per entry, and single precision perturbs a
+  // gradient by ~1e-7 relative, far below the solvers' tolerances. With a skin the Verlet list
+  // `wide` is filtered into `exact` on the way (the factors staged in dw_), without it is exact
+  // already.
   template <class Row>
-  void kernel_rows(const NeighborLists& wide, NeighborLists& exact, std::vector<Scalar>& dw, const Scalar* xs,
+  void kernel_rows(const NeighborLists& wide, NeighborLists& exact, std::vector<float>& grads, const Scalar* xs,
                    const Scalar* x, Index n, Row&& row) {
+    auto store = [&](Index k, Scalar dw, const Vec& xij) {
+      for (int a = 0; a < D; ++a) grads[k * D + a] = static_cast<float>(dw * xij[a]);
+    };
     if (skin_ > 0) {
-      exact.fill_with_values(n, dw, [&](Index i, auto&& push) {
+      exact.fill_with_values(n, dw_, [&](Index i, auto&& push) {
         const Vec xi = CMap(x + i * D);
         row(i, xi, [&](auto&& entry) {
           within_support(wide, xs, xi, i, [&](Index j, const Vec& xij, Scalar r) { push(j, entry(j, xij, r)); });
         });
       });
+      grads.resize(exact.list.size() * D);
+      parallel_for(n, [&](Index i) {
+        const Vec xi = CMap(x + i * D);
+        for (Index k = exact.start[i]; k < exact.start[i + 1]; ++k) store(k, dw_[k], xi - CMap(xs + Index{exact.list[k]} * D));
+      });
       return;
     }
-    dw.resize(wide.list.size());
+    grads.resize(wide.list.size() * D);
     parallel_for(n, [&](Index i) {
       const Vec xi = CMap(x + i * D);
       row(i, xi, [&](auto&& entry) {
         for (Index k = wide.start[i]; k < wide.start[i + 1]; ++k) {
           const Index j = wide.list[k];
           const Vec xij = xi - CMap(xs + j * D);
-          dw[k] = entry(j, xij, std::sqrt(xij.squaredNorm()));
+          store(k, entry(j, xij, std::sqrt(xij.squaredNorm())), xij);
         }
       });
     });
@@ -334,7 +340,7 @@ class SolverD final : public Solver {
     // fluid pass to the boundary pass in accel_ and factor_.
     Scalar* sum = accel_.data();
     Scalar* sum_sq = factor_.data();
-    kernel_rows(fluid_wide_, fluid_exact_, fluid_dw_, x, x, s.n, [&](Index i, const Vec&, auto&& entries) {
+    kernel_rows(fluid_wide_, fluid_exact_, fluid_grad_, x, x, s.n, [&](Index i, const Vec&, auto&& entries) {
       Scalar rho = m * W_.w0();
       Vec gsum = Vec::Zero();
       Scalar gsq = 0;
@@ -356,7 +362,7 @@ class SolverD final : public Solver {
     });
     const Scalar* xb = model_.boundary_x.data();
     const Scalar* psi = model_.boundary_psi.data();
-    kernel_rows(boundary_wide_, boundary_exact_, boundary_dw_, xb, x, s.n, [&](Index i, const Vec&, auto&& entries) {
+    kernel_rows(boundary_wide_, boundary_exact_, boundary_grad_, xb, x, s.n, [&](Index i, const Vec&, auto&& entries) {
       Scalar rho = density[i];
       Vec gsum = factors ? Vec(CMap(sum + i * D)) : Vec::Zero();
       entries([&](Index b, const Vec& xib, Scalar r) {
@@ -474,7 +480,7 @@ class SolverD final : public Solver {
   // accel_ = g + viscosity (fluid-fluid; walls are free-slip).
   void non_pressure_accelerations(const State& s) {
     const Scalar nu = config_.viscosity;
-    const Pairs f = fluid_pairs(s);
+    const Pairs f = fluid_pairs();
     parallel_for(s.n, [&](Index i) {
       Vec a = g_;
       if (nu > 0) {
@@ -483,7 +489,7 @@ class SolverD final : public Solver {
         for (Index k = f.start[i]; k < f.start[i + 1]; ++k) {
           const Index j = f.list[k];
           const Vec xij = xi - CMap(s.x.data() + j * D);
-          a += viscosity_term<D>(xij, vi - CMap(s.v.data() + j * D), f.grad(xi, k),
+          a += viscosity_term<D>(xij, vi - CMap(s.v.data() + j * D), f.grad(k),
                                  model_.mass / s.density[j], nu, model_.h);
         }
       }
@@ -493,22 +499,21 @@ class SolverD final : public Solver {
 
   void pressure_accelerations(const State& s) {
     const Scalar m = model_.mass;
-    const Pairs f = fluid_pairs(s), b = boundary_pairs();
+    const Pairs f = fluid_pairs(), b = boundary_pairs();
     const Scalar* p = s.pressure.data();
     const Scalar* rho = s.density.data();
     parallel_for(s.n, [&](Index i) {
       const Scalar pi = p[i] / (rho[i] * rho[i]);
-      const Vec xi = CMap(s.x.data() + i * D);
       Vec a = Vec::Zero();
       // (No test for pij = 0: only compressed particles have pressure, so it would branch at
       // random; subtracting the zero changes nothing.)
       for (Index k = f.start[i]; k < f.start[i + 1]; ++k) {
         const Index j = f.list[k];
-        a -= (m * (pi + p[j] / (rho[j] * rho[j]))) * f.grad(xi, k);
+        a -= (m * (pi + p[j] / (rho[j] * rho[j]))) * f.grad(k);
       }
       // Pressure mirroring at the boundary: p_b / rho_b^2 = p_i / rho_i^2.
       if (pi != 0)
-        for (Index k = b.start[i]; k < b.start[i + 1]; ++k) a -= (2 * b.psi[b.list[k]] * pi) * b.grad(xi, k);
+        for (Index k = b.start[i]; k < b.start[i + 1]; ++k) a -= (2 * b.psi[b.list[k]] * pi) * b.grad(k);
       Map(accel_.data() + i * D) += a;
     });
   }
@@ -622,9 +627,10 @@ class SolverD final : public Solver {
   std::vector<Scalar> kappa_divergence_;  // DFSPH: kappa^v_i / rho_i of the divergence-free solve
   bool warm_ = false;                     // the kappa arrays hold a previous step's values
   std::vector<Scalar> factor_;     // DFSPH: alpha_i
-  // The step's kernel-gradient factors dW/dr / r of each entry of fluid() and boundary(), set by
-  // kernel_pass (step-local: every step recomputes them before use).
-  std::vector<Scalar> fluid_dw_, boundary_dw_;
+  // The step's kernel gradients grad_i W_ij of each entry of fluid() and boundary() (D floats),
+  // set by kernel_pass (step-local: every step recomputes them before use).
+  std::vector<float> fluid_grad_, boundary_grad_;
+  std::vector<Scalar> dw_;  // kernel_pass with a skin: dW/dr / r of the entries kept
 };
 
 }  // namespace
