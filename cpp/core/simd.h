@@ -21,16 +21,21 @@ namespace kinema {
 #define KINEMA_ALWAYS_INLINE inline
 #endif
 
-// True when this CPU runs AVX2 and the environment does not ask for the baseline
-// (KINEMA_SIMD=baseline, for reproducing a figure or a bug on the narrower path).
-inline bool use_avx2() {
+// True when this CPU runs AVX2 and the AVX2 versions were compiled in.
+inline bool cpu_has_avx2() {
 #if KINEMA_HAVE_AVX2_CLONES
-  const char* choice = std::getenv("KINEMA_SIMD");
-  if (choice != nullptr && std::strcmp(choice, "baseline") == 0) return false;
   return __builtin_cpu_supports("avx2");
 #else
   return false;
 #endif
+}
+
+// The default choice: AVX2 where the CPU has it, unless the environment asks for the baseline
+// (KINEMA_SIMD=baseline, for reproducing a figure or a bug on the narrower path).
+inline bool use_avx2() {
+  const char* choice = std::getenv("KINEMA_SIMD");
+  if (choice != nullptr && std::strcmp(choice, "baseline") == 0) return false;
+  return cpu_has_avx2();
 }
 
 }  // namespace kinema

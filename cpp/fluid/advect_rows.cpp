@@ -345,13 +345,6 @@ bool rows_apply(const MacVelocity& u, const FieldLayout& L) {
   return true;
 }
 
-bool rows_avx2_supported() {
-#if KINEMA_HAVE_AVX2_CLONES
-  return __builtin_cpu_supports("avx2");
-#else
-  return false;
-#endif
-}
 
 void advect_rows(AdvectionScheme scheme, const MacVelocity& u, const FieldLayout& L, int count,
                  const Scalar* const* q, Scalar* const* out, Scalar dt, int rk_order, AdvectionScratch& scratch,

@@ -17,11 +17,7 @@ namespace kinema::fluid {
 // nodes with 32-bit integers, which AVX2 converts and multiplies in one instruction).
 bool rows_apply(const MacVelocity& u, const FieldLayout& L);
 
-// Whether this CPU runs the AVX2 version (AdvectionKernel::Auto also honours KINEMA_SIMD=baseline,
-// core/simd.h).
-bool rows_avx2_supported();
-
-// advect_fields by rows; requires rows_apply(u, L), and rows_avx2_supported() when avx2.
+// advect_fields by rows; requires rows_apply(u, L), and cpu_has_avx2() (core/simd.h) when avx2.
 void advect_rows(AdvectionScheme scheme, const MacVelocity& u, const FieldLayout& L, int count,
                  const Scalar* const* q, Scalar* const* out, Scalar dt, int rk_order,
                  AdvectionScratch& scratch, bool avx2);

@@ -8,6 +8,7 @@
 
 #include "core/errors.h"
 #include "core/parallel.h"
+#include "core/simd.h"
 #include "core/timer.h"
 #include "fluid/advect_rows.h"
 #include "linalg/cg.h"
@@ -124,7 +125,7 @@ FluidSolver::FluidSolver(const GridShape& shape, Scalar h, const FluidConfig& co
 void FluidSolver::check_kernel() const {
   const AdvectionKernel k = config_.advection_kernel;
   if (k == AdvectionKernel::Auto || k == AdvectionKernel::Nodes) return;
-  if (k == AdvectionKernel::RowsAvx2 && !rows_avx2_supported())
+  if (k == AdvectionKernel::RowsAvx2 && !cpu_has_avx2())
     throw InvalidArgument("advection_kernel: 'rows_avx2' needs a CPU with AVX2");
   const MacVelocity u = mac_velocity();
   bool apply = rows_apply(u, cells_);

@@ -202,7 +202,7 @@ void advect_fields(AdvectionScheme scheme, const MacVelocity& u, const FieldLayo
     }
     if (kernel != AdvectionKernel::Auto) {
       if (!rows) throw InvalidArgument("advect: the row kernels do not apply to this problem");
-      if (kernel == AdvectionKernel::RowsAvx2 && !rows_avx2_supported())
+      if (kernel == AdvectionKernel::RowsAvx2 && !cpu_has_avx2())
         throw InvalidArgument("advect: this CPU has no AVX2");
       advect_rows(scheme, u, L, count, q, out, dt, rk_order, scratch, kernel == AdvectionKernel::RowsAvx2);
       return;

@@ -12,6 +12,7 @@
 #include <vector>
 
 #include "core/errors.h"
+#include "core/simd.h"
 #include "fluid/advect_rows.h"
 #include "fluid/kernels.h"
 
@@ -116,7 +117,7 @@ TEST(FluidKernels, HigherOrderBackTraceFollowsTheCircle) {
 // must reproduce the node-wise passes exactly, and so the results cannot depend on the CPU.
 TEST(FluidKernels, RowKernelsGiveTheSameBitsAsTheNodeWisePasses) {
   std::vector<AdvectionKernel> kernels{AdvectionKernel::Rows};
-  if (rows_avx2_supported()) kernels.push_back(AdvectionKernel::RowsAvx2);
+  if (cpu_has_avx2()) kernels.push_back(AdvectionKernel::RowsAvx2);
   std::mt19937 rng(7);
   std::uniform_real_distribution<Scalar> uniform(-1, 1);
   for (const auto& dims : {std::vector<Index>{13, 10}, std::vector<Index>{9, 6, 11}}) {

@@ -8,6 +8,7 @@
 #include <random>
 #include <vector>
 
+#include "core/simd.h"
 #include "grid/poisson_solver.h"
 
 namespace kinema {
@@ -128,7 +129,7 @@ TEST(Mgpcg, ManufacturedSolutionSecondOrder) {
 // The AVX2 and baseline versions of the plain-stencil rows do the same operations in the same
 // order (no FMA), so apply and residual must agree bit for bit, on fast rows and masked ones.
 TEST(PoissonOperator, Avx2RowsEqualBaselineBitwise) {
-  if (!__builtin_cpu_supports("avx2")) GTEST_SKIP() << "this CPU has no AVX2";
+  if (!cpu_has_avx2()) GTEST_SKIP() << "this CPU has no AVX2";
   for (const auto& dims : {std::vector<Index>{67, 45}, std::vector<Index>{19, 23, 37}}) {
     for (Boundary bc : {Boundary::Dirichlet, Boundary::Neumann}) {
       const GridShape shape(dims);
