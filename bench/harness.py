@@ -220,6 +220,25 @@ def measure(fn: Callable[[], Any], *, min_of: int = 1, max_load: float = DEFAULT
                        runs=tuple(runs), waited=waited)
 
 
+def combine(measurements) -> Measurement:
+    """One Measurement from several of the same call (for instance taken in rounds alternated
+    with a peer's, so that a drift of the machine's speed over minutes cannot favour either):
+    the kept run is chosen among all their kept runs as `measure` chooses; repeats, runs and
+    waiting add up."""
+    measurements = list(measurements)
+    if not measurements:
+        raise ValueError("measurements: expected at least one Measurement")
+    best = measurements[0]
+    for m in measurements[1:]:
+        if _better(Run(m.wall, m.other_load, m.seconds, m.disturbed),
+                   Run(best.wall, best.other_load, best.seconds, best.disturbed)):
+            best = m
+    return Measurement(seconds=best.seconds, wall=best.wall, other_load=best.other_load,
+                       repeats=sum(m.repeats for m in measurements), disturbed=best.disturbed,
+                       value=best.value, runs=tuple(r for m in measurements for r in m.runs),
+                       waited=sum(m.waited for m in measurements))
+
+
 def with_cpu(fn: Callable[[], Any]) -> Callable[[], tuple]:
     """fn wrapped to return (fn's value, CPU seconds this process used during the call): all its
     threads (OpenMP, BLAS, a peer's thread pool) and waited-for children. A second figure, the

@@ -4,6 +4,8 @@
     .venv/bin/python bench/side_by_side.py                  # the targets at full size
     .venv/bin/python bench/side_by_side.py --sweep          # plus work-precision sweeps over tol
     .venv/bin/python bench/side_by_side.py --stream         # plus the STREAM triad (build/bench)
+    .venv/bin/python bench/side_by_side.py --only cholesky --min-of 5 --alternate
+                                   # one target, its two codes timed in alternating rounds
 
 Problem: -lap u = f on the cell-centred grid, Dirichlet (ghost = -u), h = 1/N, f random in
 [-1, 1) (seed 0, every mode excited). kinema and the matrix peers (PyAMG, SciPy, CHOLMOD via
@@ -192,16 +194,17 @@ def thread_count(method: str, threads: int) -> int:
 # ------------------------------------------------------------------ runs
 
 
-def measure_method(method: str, problem: Problem, tol: Optional[float], args, recorder: harness.Recorder,
-                   *, error_reference: Optional[np.ndarray] = None, benchmark_note: str = ""):
-    """Measures, verifies and records one method on one problem; returns (Measurement, result) or None."""
+def time_method(method: str, problem: Problem, tol: Optional[float], args, min_of: int) -> harness.Measurement:
+    """Times and verifies one method on one problem (raises when its result fails verification)."""
     run, phase = method_runner(method, problem, tol, args.threads)
-    try:
-        m = harness.measure(run, min_of=args.min_of, max_tries=args.max_tries,
-                            figure=lambda result, wall: result.seconds[phase])
-    except (peers.VerificationError, RuntimeError) as error:  # kinema's errors derive from RuntimeError
-        print(f"  {method:18s} FAILED: {type(error).__name__}: {error}")
-        return None
+    return harness.measure(run, min_of=min_of, max_tries=max(args.max_tries, min_of),
+                           figure=lambda result, wall: result.seconds[phase])
+
+
+def record_method(method: str, problem: Problem, tol: Optional[float], m: harness.Measurement, args,
+                  recorder: harness.Recorder, *, error_reference: Optional[np.ndarray] = None,
+                  benchmark_note: str = ""):
+    """Records and prints one method's measurement; returns (Measurement, result)."""
     result = m.value
     error = result.residual
     notes = {"tol": tol if tol is not None else "direct", "residual": result.residual,
@@ -219,6 +222,39 @@ def measure_method(method: str, problem: Problem, tol: Optional[float], args, re
     return m, result
 
 
+def measure_method(method: str, problem: Problem, tol: Optional[float], args, recorder: harness.Recorder,
+                   *, error_reference: Optional[np.ndarray] = None, benchmark_note: str = ""):
+    """Measures, verifies and records one method on one problem; returns (Measurement, result) or None."""
+    try:
+        m = time_method(method, problem, tol, args, args.min_of)
+    except (peers.VerificationError, RuntimeError) as error:  # kinema's errors derive from RuntimeError
+        print(f"  {method:18s} FAILED: {type(error).__name__}: {error}")
+        return None
+    return record_method(method, problem, tol, m, args, recorder, error_reference=error_reference,
+                         benchmark_note=benchmark_note)
+
+
+def measure_alternated(methods, problem: Problem, tol: Optional[float], args, recorder: harness.Recorder):
+    """Measures several methods on one problem in args.min_of rounds, one call of each per round
+    (A B A B ...), and records each method's best undisturbed call: a drift of the machine's
+    speed over minutes then cannot favour the method measured first. Returns {method:
+    Measurement or None (failed)}."""
+    taken = {method: [] for method in methods}
+    failed = set()
+    for _ in range(args.min_of):
+        for method in methods:
+            if method in failed:
+                continue
+            try:
+                taken[method].append(time_method(method, problem, tol, args, 1))
+            except (peers.VerificationError, RuntimeError) as error:
+                print(f"  {method:18s} FAILED: {type(error).__name__}: {error}")
+                failed.add(method)
+    return {method: None if method in failed else
+            record_method(method, problem, tol, harness.combine(taken[method]), args, recorder)[0]
+            for method in methods}
+
+
 def run_targets(args) -> int:
     """Measures every target's pair once (shared between targets) and prints the ratios."""
     recorder = harness.Recorder(OUT / "side_by_side.csv", benchmark="side_by_side", threads=args.threads)
@@ -231,6 +267,12 @@ def run_targets(args) -> int:
             continue
         print(f"{target.name}: {harness.format_size(target.shape)}")
         problem = problems.setdefault(target.shape, Problem(target.shape))
+        pair = [method for method in (target.ours, target.peer)
+                if (method, target.shape, target.tol) not in figures and available(method)]
+        if args.alternate and len(pair) == 2:
+            for method, m in measure_alternated(pair, problem, target.tol, args, recorder).items():
+                figures[(method, target.shape, target.tol)] = m
+                failures += m is None
         for method in (target.ours, target.peer):
             key = (method, target.shape, target.tol)
             if key in figures:
@@ -321,6 +363,9 @@ def main(argv=None) -> int:
     parser.add_argument("--stream", action="store_true", help="also the STREAM triad")
     parser.add_argument("--threads", type=int, default=os.cpu_count() or 1)
     parser.add_argument("--min-of", type=int, default=1, help="undisturbed timed calls to keep the best of")
+    parser.add_argument("--alternate", action="store_true",
+                        help="time each target's two codes in alternation, one call each per round, "
+                             "--min-of rounds (instead of all calls of one code, then the other's)")
     parser.add_argument("--max-tries", type=int, default=5, help="timed calls at most when disturbed")
     parser.add_argument("--only", nargs="+", metavar="WORD",
                         help="only the targets whose name holds one of these words (e.g. cholesky)")
