@@ -8,8 +8,14 @@
 
 #include <Eigen/Core>
 #include <cmath>
+#include <cstdint>
 
+#include "core/simd.h"
 #include "core/types.h"
+
+#if KINEMA_HAVE_AVX2_CLONES
+#include <immintrin.h>
+#endif
 
 namespace kinema::sph {
 
@@ -103,5 +109,119 @@ inline Eigen::Matrix<Scalar, D, 1> viscosity_term(const Eigen::Matrix<Scalar, D,
   const Scalar c = 2 * (D + 2) * nu * volume_j * vij.dot(xij) / (xij.squaredNorm() + 0.01 * h * h);
   return c * grad_w;
 }
+
+// Sums over one row of a neighbour list, the solvers' light passes (DFSPH's density rates and
+// velocity corrections, WCSPH's pressure force). A row is the entries k in [begin, end) of a list
+// (list[k] = j) whose kernel gradients g_k = grad_i W_ij are stored as D floats at grads + D k:
+//   row_dot:      sum_k v_j . g_k    (v: D doubles per particle)
+//   row_weighted: sum_k c_j g_k      (c: one double per particle; D results into out)
+// Entry e of the row goes into partial sum e mod 4 (four independent add chains), the partials
+// are combined as (p0 + p1) + (p2 + p3) per component, and row_dot's components as (x + y) + z.
+// The AVX2 versions (3D) hold an entry's components in the lanes of a 4-double vector and do the
+// same multiplications and additions in the same order, without FMA: their results are bitwise
+// equal to these.
+template <int D>
+inline Scalar row_dot(const std::int32_t* list, const float* grads, Index begin, Index end, const Scalar* v) {
+  Scalar p[4][D] = {};
+  for (Index k = begin; k < end; ++k) {
+    const Scalar* vj = v + Index{list[k]} * D;
+    Scalar* pe = p[(k - begin) & 3];
+    for (int a = 0; a < D; ++a) pe[a] += vj[a] * static_cast<Scalar>(grads[k * D + a]);
+  }
+  Scalar sum[D];
+  for (int a = 0; a < D; ++a) sum[a] = (p[0][a] + p[1][a]) + (p[2][a] + p[3][a]);
+  return D == 3 ? (sum[0] + sum[1]) + sum[D - 1] : sum[0] + sum[1];
+}
+
+template <int D>
+inline void row_weighted(const std::int32_t* list, const float* grads, Index begin, Index end, const Scalar* c,
+                         Scalar* out) {
+  Scalar p[4][D] = {};
+  for (Index k = begin; k < end; ++k) {
+    const Scalar cj = c[list[k]];
+    Scalar* pe = p[(k - begin) & 3];
+    for (int a = 0; a < D; ++a) pe[a] += cj * static_cast<Scalar>(grads[k * D + a]);
+  }
+  for (int a = 0; a < D; ++a) out[a] = (p[0][a] + p[1][a]) + (p[2][a] + p[3][a]);
+}
+
+#if KINEMA_HAVE_AVX2_CLONES
+namespace detail {
+
+// Entry k's gradient (x, y, z, 0) in doubles; masked loads, so nothing past the arrays is read.
+KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE __m256d load_grad3(const float* grads, Index k) {
+  return _mm256_cvtps_pd(_mm_maskload_ps(grads + 3 * k, _mm_setr_epi32(-1, -1, -1, 0)));
+}
+KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE __m256d load_vec3(const Scalar* v, Index j) {
+  return _mm256_maskload_pd(v + 3 * j, _mm256_setr_epi64x(-1, -1, -1, 0));
+}
+// (p0 + p1) + (p2 + p3) lane-wise, stored as 4 doubles.
+KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE void combine4(__m256d p0, __m256d p1, __m256d p2, __m256d p3, Scalar* out4) {
+  _mm256_storeu_pd(out4, _mm256_add_pd(_mm256_add_pd(p0, p1), _mm256_add_pd(p2, p3)));
+}
+
+}  // namespace detail
+
+KINEMA_TARGET_AVX2 inline Scalar row_dot_avx2(const std::int32_t* list, const float* grads, Index begin, Index end,
+                                              const Scalar* v) {
+  using detail::load_grad3, detail::load_vec3;
+  __m256d p0 = _mm256_setzero_pd(), p1 = p0, p2 = p0, p3 = p0;
+  Index k = begin;
+  for (; k + 4 <= end; k += 4) {
+    p0 = _mm256_add_pd(p0, _mm256_mul_pd(load_vec3(v, list[k]), load_grad3(grads, k)));
+    p1 = _mm256_add_pd(p1, _mm256_mul_pd(load_vec3(v, list[k + 1]), load_grad3(grads, k + 1)));
+    p2 = _mm256_add_pd(p2, _mm256_mul_pd(load_vec3(v, list[k + 2]), load_grad3(grads, k + 2)));
+    p3 = _mm256_add_pd(p3, _mm256_mul_pd(load_vec3(v, list[k + 3]), load_grad3(grads, k + 3)));
+  }
+  if (k < end) p0 = _mm256_add_pd(p0, _mm256_mul_pd(load_vec3(v, list[k]), load_grad3(grads, k)));
+  if (k + 1 < end) p1 = _mm256_add_pd(p1, _mm256_mul_pd(load_vec3(v, list[k + 1]), load_grad3(grads, k + 1)));
+  if (k + 2 < end) p2 = _mm256_add_pd(p2, _mm256_mul_pd(load_vec3(v, list[k + 2]), load_grad3(grads, k + 2)));
+  alignas(32) Scalar sum[4];
+  detail::combine4(p0, p1, p2, p3, sum);
+  return (sum[0] + sum[1]) + sum[2];
+}
+
+KINEMA_TARGET_AVX2 inline void row_weighted_avx2(const std::int32_t* list, const float* grads, Index begin,
+                                                 Index end, const Scalar* c, Scalar* out) {
+  using detail::load_grad3;
+  __m256d p0 = _mm256_setzero_pd(), p1 = p0, p2 = p0, p3 = p0;
+  Index k = begin;
+  for (; k + 4 <= end; k += 4) {
+    p0 = _mm256_add_pd(p0, _mm256_mul_pd(_mm256_broadcast_sd(c + list[k]), load_grad3(grads, k)));
+    p1 = _mm256_add_pd(p1, _mm256_mul_pd(_mm256_broadcast_sd(c + list[k + 1]), load_grad3(grads, k + 1)));
+    p2 = _mm256_add_pd(p2, _mm256_mul_pd(_mm256_broadcast_sd(c + list[k + 2]), load_grad3(grads, k + 2)));
+    p3 = _mm256_add_pd(p3, _mm256_mul_pd(_mm256_broadcast_sd(c + list[k + 3]), load_grad3(grads, k + 3)));
+  }
+  if (k < end) p0 = _mm256_add_pd(p0, _mm256_mul_pd(_mm256_broadcast_sd(c + list[k]), load_grad3(grads, k)));
+  if (k + 1 < end) p1 = _mm256_add_pd(p1, _mm256_mul_pd(_mm256_broadcast_sd(c + list[k + 1]), load_grad3(grads, k + 1)));
+  if (k + 2 < end) p2 = _mm256_add_pd(p2, _mm256_mul_pd(_mm256_broadcast_sd(c + list[k + 2]), load_grad3(grads, k + 2)));
+  alignas(32) Scalar sum[4];
+  detail::combine4(p0, p1, p2, p3, sum);
+  for (int a = 0; a < 3; ++a) out[a] = sum[a];
+}
+#endif
+
+// The row sums of one dimension, AVX2 (3D, where the CPU has it and KINEMA_SIMD is not
+// "baseline", see core/simd.h) or the baseline.
+template <int D>
+struct RowSums {
+  Scalar (*dot)(const std::int32_t*, const float*, Index, Index, const Scalar*) = row_dot<D>;
+  void (*weighted)(const std::int32_t*, const float*, Index, Index, const Scalar*, Scalar*) = row_weighted<D>;
+  bool avx2 = false;
+
+  static RowSums choose(bool avx2) {
+    RowSums rows;
+#if KINEMA_HAVE_AVX2_CLONES
+    if constexpr (D == 3) {
+      if (avx2 && cpu_has_avx2()) {
+        rows.dot = row_dot_avx2;
+        rows.weighted = row_weighted_avx2;
+        rows.avx2 = true;
+      }
+    }
+#endif
+    return rows;
+  }
+};
 
 }  // namespace kinema::sph
