@@ -296,8 +296,9 @@ class SolverD final : public Solver {
   // For every particle i (at x): row(i, x_i, entries), where entries(entry) calls
   // entry(j, x_i - x_j, |x_i - x_j|) for each neighbour j within h (listed points xs) in list
   // order; with the dW/dr / r it returns, grad_i W_ij = (dW/dr / r)(x_i - x_j) goes into
-  // grads (D floats per entry, parallel to the step's list; nothing stored if grads is null).
-  // The later passes then stream the gradients instead of gathering x_j: 12 bytes per entry, and single precision perturbs a
+  // grads (D floats per entry, parallel to the step's list, and one float of padding that the
+  // row sums of kernels.h read; nothing stored if grads is null). The later passes then stream
+  // the gradients instead of gathering x_j: 12 bytes per entry, and single precision perturbs a
   // gradient by ~1e-7 relative, far below the solvers' tolerances. With a skin the Verlet list
   // `wide` is filtered into `exact` on the way (the factors staged in dw_), without it is exact
   // already.
@@ -315,14 +316,14 @@ class SolverD final : public Solver {
         });
       });
       if (!grads) return;
-      grads->resize(exact.list.size() * D);
+      grads->resize(exact.list.size() * D + 1);
       parallel_for(n, [&](Index i) {
         const Vec xi = CMap(x + i * D);
         for (Index k = exact.start[i]; k < exact.start[i + 1]; ++k) store(k, dw_[k], xi - CMap(xs + Index{exact.list[k]} * D));
       });
       return;
     }
-    if (grads) grads->resize(wide.list.size() * D);
+    if (grads) grads->resize(wide.list.size() * D + 1);
     parallel_for(n, [&](Index i) {
       const Vec xi = CMap(x + i * D);
       row(i, xi, [&](auto&& entry) {

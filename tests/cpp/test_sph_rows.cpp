@@ -37,6 +37,9 @@ struct RandomRows {
       }
       start.push_back(static_cast<Index>(list.size()));
     }
+    // The padding float the row sums may read (kernels.h): a NaN, so that a result that used
+    // it would show.
+    grads.push_back(std::numeric_limits<float>::quiet_NaN());
     for (Index i = 0; i < 3 * n; ++i) v.push_back(3 * u(rng) * std::exp(2 * u(rng)));
     for (Index i = 0; i < n; ++i) c.push_back(1e-6 * u(rng));
   }
