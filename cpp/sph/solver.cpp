@@ -337,12 +337,14 @@ class SolverD final : public Solver {
   }
 
   // grad_i W_ij = (dW/dr / r) x_ij as the light passes read it (rounded to float).
-  static Eigen::Matrix<float, D, 1> stored_gradient(Scalar dw, const Vec& xij) { return (dw * xij).template cast<float>(); }
+  static Eigen::Matrix<float, D, 1> stored_gradient(Scalar dw, const Vec& xij) {
+    return (dw * xij).template cast<float>();
+  }
 
-  // Also forms the gradient sums of the light passes (from the gradients as stored, so that
-  // their algebra is exact up to double rounding): grad_sum_ = G_i = sum_j m grad W_ij +
-  // sum_b psi_b grad W_ib and boundary_grad_sum_ = sum_b psi_b grad W_ib. The boundary
-  // gradients themselves are not stored: no later pass reads them.
+  // Also forms the gradient sums of the light passes, grad_sum_ = G_i = sum_j m grad W_ij +
+  // sum_b psi_b grad W_ib and boundary_grad_sum_ = sum_b psi_b grad W_ib, the fluid part from
+  // the gradients as stored, so that the light passes' algebra is exact up to double rounding.
+  // The boundary gradients themselves are not stored: no later pass reads them.
   void kernel_pass(State& s, bool factors, Scalar* density) {
     const Scalar m = model_.mass;
     const Scalar* x = s.x.data();
@@ -372,7 +374,7 @@ class SolverD final : public Solver {
       entries([&](Index b, const Vec& xib, Scalar r) {
         const Scalar dw = W_.grad_factor(r);
         rho += psi[b] * W_.w(r);
-        bsum += psi[b] * stored_gradient(dw, xib).template cast<Scalar>();
+        bsum += psi[b] * (dw * xib);
         return dw;
       });
       density[i] = rho;
