@@ -76,7 +76,7 @@ void BM_RowWeighted(benchmark::State& state, bool avx2) {
   std::vector<Scalar> out(static_cast<size_t>(3 * r.n));
   for (auto _ : state) {
     for (Index i = 0; i < r.n; ++i)
-      sums.weighted(r.lists.list.data(), r.grads.data(), r.lists.start[i], r.lists.start[i + 1], r.c.data(),
+      sums.weighted(r.lists.list.data(), r.grads.data(), r.lists.start[i], r.lists.start[i + 1], r.c[i], r.c.data(),
                     out.data() + 3 * i);
     benchmark::DoNotOptimize(out.data());
   }

@@ -115,8 +115,9 @@ inline Eigen::Matrix<Scalar, D, 1> viscosity_term(const Eigen::Matrix<Scalar, D,
 // (list[k] = j) whose kernel gradients g_k = grad_i W_ij are stored as D floats at grads + D k,
 // and one float more must be readable after the list's last gradient (the AVX2 versions load an
 // entry's gradient as 4 floats and drop the fourth):
-//   row_dot:      sum_k v_j . g_k    (v: D doubles per particle)
-//   row_weighted: sum_k c_j g_k      (c: one double per particle; D results into out)
+//   row_dot:      sum_k v_j . g_k            (v: D doubles per particle)
+//   row_weighted: sum_k (c_i + c_j) g_k      (c: one double per particle, c_i one for the row;
+//                                             D results into out)
 // Entry e of the row goes into partial sum e mod 4 (four independent add chains), the partials
 // are combined as (p0 + p1) + (p2 + p3) per component, and row_dot's components as (x + y) + z.
 // The AVX2 versions (3D) hold an entry's components in the lanes of a 4-double vector and do the
@@ -149,10 +150,10 @@ inline Scalar row_dot(const std::int32_t* list, const float* grads, Index begin,
 }
 
 template <int D>
-inline void row_weighted(const std::int32_t* list, const float* grads, Index begin, Index end, const Scalar* c,
-                         Scalar* out) {
+inline void row_weighted(const std::int32_t* list, const float* grads, Index begin, Index end, Scalar ci,
+                         const Scalar* c, Scalar* out) {
   row_partials<D>(begin, end, [&](Index k, Scalar* p) {
-    const Scalar cj = c[list[k]];
+    const Scalar cj = ci + c[list[k]];
     for (int a = 0; a < D; ++a) p[a] += cj * static_cast<Scalar>(grads[k * D + a]);
   }, out);
 }
@@ -200,8 +201,9 @@ struct VelocityOf {
 };
 struct WeightOf {
   const std::int32_t* list;
+  Scalar ci;
   const Scalar* c;
-  KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE __m256d operator()(Index k) const { return _mm256_broadcast_sd(c + list[k]); }
+  KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE __m256d operator()(Index k) const { return _mm256_set1_pd(ci + c[list[k]]); }
 };
 
 }  // namespace detail
@@ -214,9 +216,9 @@ KINEMA_TARGET_AVX2 inline Scalar row_dot_avx2(const std::int32_t* list, const fl
 }
 
 KINEMA_TARGET_AVX2 inline void row_weighted_avx2(const std::int32_t* list, const float* grads, Index begin,
-                                                 Index end, const Scalar* c, Scalar* out) {
+                                                 Index end, Scalar ci, const Scalar* c, Scalar* out) {
   alignas(32) Scalar sum[4];
-  detail::row_partials_avx2(grads, begin, end, detail::WeightOf{list, c}, sum);
+  detail::row_partials_avx2(grads, begin, end, detail::WeightOf{list, ci, c}, sum);
   for (int a = 0; a < 3; ++a) out[a] = sum[a];
 }
 #endif
@@ -226,7 +228,7 @@ KINEMA_TARGET_AVX2 inline void row_weighted_avx2(const std::int32_t* list, const
 template <int D>
 struct RowSums {
   Scalar (*dot)(const std::int32_t*, const float*, Index, Index, const Scalar*) = row_dot<D>;
-  void (*weighted)(const std::int32_t*, const float*, Index, Index, const Scalar*, Scalar*) = row_weighted<D>;
+  void (*weighted)(const std::int32_t*, const float*, Index, Index, Scalar, const Scalar*, Scalar*) = row_weighted<D>;
   bool avx2 = false;
 
   static RowSums choose(bool avx2) {

@@ -38,7 +38,7 @@ class SolverD final : public Solver {
     kappa_density_.assign(n, 0);
     kappa_divergence_.assign(n, 0);
     factor_.assign(n, 0);
-    grad_sum_.assign(n * D, 0);
+    if (config.method == Method::DFSPH) grad_sum_.assign(n * D, 0);
     boundary_grad_sum_.assign(n * D, 0);
   }
 
@@ -145,17 +145,17 @@ class SolverD final : public Solver {
   };
   Pairs fluid_pairs() const { return {fluid().start.data(), fluid().list.data(), fluid_grad_.data()}; }
 
-  // sum_j c_j grad W_ij over the fluid neighbours j of i (c: one value per particle).
-  Vec weighted_gradient_sum(const Pairs& f, const Scalar* c, Index i) const {
+  // sum_j (c_i + c_j) grad W_ij over the fluid neighbours j of i (c: one value per particle).
+  Vec symmetric_gradient_sum(const Pairs& f, const Scalar* c, Index i) const {
     Vec sum;
-    rows_.weighted(f.list, f.grads, f.start[i], f.start[i + 1], c, sum.data());
+    rows_.weighted(f.list, f.grads, f.start[i], f.start[i + 1], c[i], c, sum.data());
     return sum;
   }
 
-  // The light passes below rest on the step's gradient sums G_i = sum_j m grad W_ij +
-  // sum_b psi_b grad W_ib (kernel_pass, from the gradients as stored), which take every
-  // boundary term and every term in v_i or k_i out of the loops over neighbours: what is left
-  // is one gather (v_j or k_j) and D multiply-adds per fluid entry.
+  // The light passes below rest on the step's gradient sums (kernel_pass) G_i = sum_j m grad
+  // W_ij + sum_b psi_b grad W_ib and B_i = sum_b psi_b grad W_ib, which take the boundary
+  // lists and every term in v_i out of the loops over neighbours: what is left is one gather
+  // (v_j or k_j) and D multiply-adds per fluid entry.
 
   // Rate of density change of i under the velocities v (eq. 9),
   //   D rho_i / Dt = sum_j m (v_i - v_j) . grad W_ij + sum_b psi_b v_i . grad W_ib
@@ -167,14 +167,13 @@ class SolverD final : public Solver {
 
   // The velocity change of one iteration's stiffness increments k_i = kappa_i / rho_i (in
   // kappa_), eqs. 6 and 12, the static boundary acting with the stiffness of i:
-  //   v_i -= dt (sum_j m (k_i + k_j) grad W_ij + k_i sum_b psi_b grad W_ib)
-  //        = dt (k_i G_i + m sum_j k_j grad W_ij).
+  //   v_i -= dt (m sum_j (k_i + k_j) grad W_ij + k_i B_i).
   // Written in place: the pass reads no velocity.
   void apply_kappa(State& s, Scalar dt) {
     const Pairs f = fluid_pairs();
     const Scalar m = model_.mass;
     parallel_for(s.n, [&](Index i) {
-      const Vec dv = kappa_[i] * CMap(grad_sum_.data() + i * D) + m * weighted_gradient_sum(f, kappa_.data(), i);
+      const Vec dv = m * symmetric_gradient_sum(f, kappa_.data(), i) + kappa_[i] * CMap(boundary_grad_sum_.data() + i * D);
       Map(s.v.data() + i * D) -= dt * dv;
     });
   }
@@ -341,9 +340,9 @@ class SolverD final : public Solver {
     return (dw * xij).template cast<float>();
   }
 
-  // Also forms the gradient sums of the light passes, grad_sum_ = G_i = sum_j m grad W_ij +
-  // sum_b psi_b grad W_ib and boundary_grad_sum_ = sum_b psi_b grad W_ib, the fluid part from
-  // the gradients as stored, so that the light passes' algebra is exact up to double rounding.
+  // Also forms the gradient sums of the light passes: boundary_grad_sum_ = B_i = sum_b psi_b
+  // grad W_ib and, with factors, grad_sum_ = G_i = sum_j m grad W_ij + B_i, the fluid part from
+  // the gradients as stored, so that density_rate's algebra is exact up to double rounding.
   // The boundary gradients themselves are not stored: no later pass reads them.
   void kernel_pass(State& s, bool factors, Scalar* density) {
     const Scalar m = model_.mass;
@@ -357,14 +356,18 @@ class SolverD final : public Solver {
       entries([&](Index, const Vec& xij, Scalar r) {
         const Scalar dw = W_.grad_factor(r);
         rho += m * W_.w(r);
-        const Vec gw = m * stored_gradient(dw, xij).template cast<Scalar>();
-        gsum += gw;
-        if (factors) gsq += gw.squaredNorm();
+        if (factors) {
+          const Vec gw = m * stored_gradient(dw, xij).template cast<Scalar>();
+          gsum += gw;
+          gsq += gw.squaredNorm();
+        }
         return dw;
       });
       density[i] = rho;
-      Map(grad_sum_.data() + i * D) = gsum;
-      if (factors) sum_sq[i] = gsq;
+      if (factors) {
+        Map(grad_sum_.data() + i * D) = gsum;
+        sum_sq[i] = gsq;
+      }
     });
     const Scalar* xb = model_.boundary_x.data();
     const Scalar* psi = model_.boundary_psi.data();
@@ -379,8 +382,8 @@ class SolverD final : public Solver {
       });
       density[i] = rho;
       Map(boundary_grad_sum_.data() + i * D) = bsum;
-      const Vec gsum = Map(grad_sum_.data() + i * D) += bsum;
       if (factors) {
+        const Vec gsum = Map(grad_sum_.data() + i * D) += bsum;
         // Below this a particle has (almost) no neighbours and no pressure to apply.
         const Scalar denom = gsum.squaredNorm() + sum_sq[i];
         factor_[i] = denom > 1e-6 * m * m / std::pow(model_.h, 2 * D + 2) ? rho / denom : 0;
@@ -507,16 +510,15 @@ class SolverD final : public Solver {
 
   // The symmetric pressure force (Becker and Teschner 2007, eq. 5) with pressure mirroring at
   // the boundary (p_b / rho_b^2 = p_i / rho_i^2, Akinci et al. 2012), for P_i = p_i / rho_i^2:
-  //   a_i = -sum_j m (P_i + P_j) grad W_ij - 2 P_i sum_b psi_b grad W_ib
-  //       = -P_i (G_i + sum_b psi_b grad W_ib) - m sum_j P_j grad W_ij,
-  // with the step's gradient sums (kernel_pass); P is staged in aux_.
+  //   a_i = -m sum_j (P_i + P_j) grad W_ij - 2 P_i B_i,
+  // with the step's boundary gradient sums B_i (kernel_pass); P is staged in aux_.
   void pressure_accelerations(const State& s) {
     const Scalar m = model_.mass;
     const Pairs f = fluid_pairs();
     parallel_for(s.n, [&](Index i) { aux_[i] = s.pressure[i] / (s.density[i] * s.density[i]); });
     parallel_for(s.n, [&](Index i) {
-      const Vec mirrored = CMap(grad_sum_.data() + i * D) + CMap(boundary_grad_sum_.data() + i * D);
-      Map(accel_.data() + i * D) -= aux_[i] * mirrored + m * weighted_gradient_sum(f, aux_.data(), i);
+      Map(accel_.data() + i * D) -= m * symmetric_gradient_sum(f, aux_.data(), i) +
+                                    (2 * aux_[i]) * CMap(boundary_grad_sum_.data() + i * D);
     });
   }
 
@@ -633,7 +635,7 @@ class SolverD final : public Solver {
   // The step's kernel gradients grad_i W_ij of each entry of fluid() (D floats) and their sums,
   // set by kernel_pass (step-local: every step recomputes them before use).
   std::vector<float> fluid_grad_;
-  std::vector<Scalar> grad_sum_;           // (n, d) G_i = sum_j m grad W_ij + sum_b psi_b grad W_ib
+  std::vector<Scalar> grad_sum_;           // (n, d) DFSPH: G_i = sum_j m grad W_ij + sum_b psi_b grad W_ib
   std::vector<Scalar> boundary_grad_sum_;  // (n, d) sum_b psi_b grad W_ib
   std::vector<Scalar> dw_;  // kernel_pass with a skin: dW/dr / r of the entries kept
 };

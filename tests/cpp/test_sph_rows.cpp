@@ -47,7 +47,8 @@ struct RandomRows {
 
 // gamma_k = k u / (1 - k u): each term of a row of `length` entries passes through one
 // multiplication and at most length / 4 + 4 additions (its partial sum's chain, the
-// combination of the partials and of the components).
+// combination of the partials and of the components). The reference forms row_weighted's
+// c_i + c_j in double, as the sums do.
 Scalar gamma_bound(Index length) {
   const Scalar k = static_cast<Scalar>(length / 4 + 5);
   const Scalar u = std::numeric_limits<Scalar>::epsilon() / 2;
@@ -60,21 +61,22 @@ TEST(SphRows, BaselineSumsAgreeWithLongDoubleReference) {
   const RandomRows r;
   for (Index i = 0; i < r.n; ++i) {
     long double dot = 0, dot_abs = 0, weighted[3] = {}, weighted_abs[3] = {};
+    const Scalar ci = r.c[i];
     for (Index k = r.start[i]; k < r.start[i + 1]; ++k) {
       const Index j = r.list[k];
       for (int a = 0; a < 3; ++a) {
         const long double g = r.grads[k * 3 + a];
         dot += r.v[j * 3 + a] * g;
         dot_abs += std::fabs(r.v[j * 3 + a] * g);
-        weighted[a] += r.c[j] * g;
-        weighted_abs[a] += std::fabs(r.c[j] * g);
+        weighted[a] += (ci + r.c[j]) * g;
+        weighted_abs[a] += std::fabs((ci + r.c[j]) * g);
       }
     }
     const Scalar bound = gamma_bound(r.start[i + 1] - r.start[i]);
     const Scalar got = sph::row_dot<3>(r.list.data(), r.grads.data(), r.start[i], r.start[i + 1], r.v.data());
     EXPECT_LE(std::fabs(got - static_cast<Scalar>(dot)), bound * dot_abs) << "row_dot, row " << i;
     Scalar out[3];
-    sph::row_weighted<3>(r.list.data(), r.grads.data(), r.start[i], r.start[i + 1], r.c.data(), out);
+    sph::row_weighted<3>(r.list.data(), r.grads.data(), r.start[i], r.start[i + 1], ci, r.c.data(), out);
     for (int a = 0; a < 3; ++a)
       EXPECT_LE(std::fabs(out[a] - static_cast<Scalar>(weighted[a])), bound * weighted_abs[a])
           << "row_weighted, row " << i << ", component " << a;
@@ -97,8 +99,8 @@ TEST(SphRows, Avx2EqualsBaselineBitwise) {
               wide.dot(r.list.data(), r.grads.data(), b, e, r.v.data()))
         << "row_dot, row " << i;
     Scalar out0[3], out1[3];
-    baseline.weighted(r.list.data(), r.grads.data(), b, e, r.c.data(), out0);
-    wide.weighted(r.list.data(), r.grads.data(), b, e, r.c.data(), out1);
+    baseline.weighted(r.list.data(), r.grads.data(), b, e, r.c[i], r.c.data(), out0);
+    wide.weighted(r.list.data(), r.grads.data(), b, e, r.c[i], r.c.data(), out1);
     for (int a = 0; a < 3; ++a) ASSERT_EQ(out0[a], out1[a]) << "row_weighted, row " << i << ", component " << a;
   }
 }
