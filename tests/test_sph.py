@@ -265,10 +265,13 @@ def test_dam_break_front_smoke(method):
 @pytest.mark.slow
 @pytest.mark.parametrize("method", ["wcsph", "dfsph"])
 def test_dam_break_front_martin_moyce(method):
-    # 20 particles across the column, the whole record to Z ~ 5 (measured: within 19%).
+    # 20 particles across the column, the whole record to Z ~ 5 (measured: within 22%). The
+    # last point is chaotic: moving the initial positions by 1e-12 m spread WCSPH's error there
+    # over 0.18-0.22 (main at 51ba820, four seeds), so rounding-level changes of the solver
+    # move it by that much; the bound leaves room for the spread.
     Z = dam_break_front(method, 20)
     rel = Z / MARTIN_MOYCE[:, 1] - 1
-    assert np.all(np.abs(rel) < 0.2), f"{method}: relative front errors {np.round(rel, 3)}"
+    assert np.all(np.abs(rel) < 0.25), f"{method}: relative front errors {np.round(rel, 3)}"
 
 
 # ---------------------------------------------------------------- stability
@@ -407,6 +410,31 @@ def test_runs_do_not_depend_on_the_thread_count(method):
     assert it1 == it2, (it1, it2)
     for name, a, b in (("x", x1, x2), ("v", v1, v2), ("density", rho1, rho2)):
         assert np.array_equal(a, b), f"{method} {name}: 1 vs 2 threads differ by {np.abs(a - b).max():.3e}"
+
+
+@pytest.mark.parametrize("method", ["wcsph", "dfsph"])
+def test_avx2_and_baseline_runs_are_bitwise_equal(method, monkeypatch):
+    # The light passes' row sums (3D) take AVX2 where the CPU has it; KINEMA_SIMD=baseline
+    # (read when the solver is built) forces the portable code. Both do the same operations in
+    # the same order, so whole runs agree bit for bit (tests/cpp/test_sph_rows.cpp checks the
+    # row sums themselves, and skips where the CPU has no AVX2).
+    s = 0.02
+    x = km.sph.block([0, 0, 0], [0.2, 0.3, 0.2], s)
+    domain = ([0, 0, 0], [0.5, 0.4, 0.2])
+    results = []
+    for simd in ("baseline", None):
+        if simd:
+            monkeypatch.setenv("KINEMA_SIMD", simd)
+        else:
+            monkeypatch.delenv("KINEMA_SIMD", raising=False)
+        fluid = km.sph.Fluid(x, s, method=method, domain=domain)
+        dt = 0.5 * fluid.stable_dt()
+        stats = [fluid.step(dt) for _ in range(4)]
+        results.append((fluid.x.copy(), fluid.v.copy(), [st["iterations"] for st in stats]))
+    (x1, v1, it1), (x2, v2, it2) = results
+    assert it1 == it2, (it1, it2)
+    for name, a, b in (("x", x1, x2), ("v", v1, v2)):
+        assert np.array_equal(a, b), f"{method} {name}: AVX2 vs baseline differ by {np.abs(a - b).max():.3e}"
 
 
 # ---------------------------------------------------------------- bad input

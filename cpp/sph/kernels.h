@@ -8,8 +8,14 @@
 
 #include <Eigen/Core>
 #include <cmath>
+#include <cstdint>
 
+#include "core/simd.h"
 #include "core/types.h"
+
+#if KINEMA_HAVE_AVX2_CLONES
+#include <immintrin.h>
+#endif
 
 namespace kinema::sph {
 
@@ -103,5 +109,141 @@ inline Eigen::Matrix<Scalar, D, 1> viscosity_term(const Eigen::Matrix<Scalar, D,
   const Scalar c = 2 * (D + 2) * nu * volume_j * vij.dot(xij) / (xij.squaredNorm() + 0.01 * h * h);
   return c * grad_w;
 }
+
+// Sums over one row of a neighbour list, the solvers' light passes (DFSPH's density rates and
+// velocity corrections, WCSPH's pressure force). A row is the entries k in [begin, end) of a list
+// (list[k] = j) whose kernel gradients g_k = grad_i W_ij are stored as D floats at grads + D k,
+// and one float more must be readable after the list's last gradient (the AVX2 versions load an
+// entry's gradient as 4 floats and drop the fourth):
+//   row_dot:      sum_k v_j . g_k            (v: D doubles per particle)
+//   row_weighted: sum_k (c_i + c_j) g_k      (c: one double per particle, c_i one for the row;
+//                                             D results into out)
+// Entry e of the row goes into partial sum e mod 4 (four independent add chains), the partials
+// are combined as (p0 + p1) + (p2 + p3) per component, and row_dot's components as (x + y) + z.
+// The AVX2 versions (3D) hold an entry's components in the lanes of a 4-double vector and do the
+// same multiplications and additions in the same order, without FMA: their results are bitwise
+// equal to these.
+template <int D, class Term>
+KINEMA_ALWAYS_INLINE void row_partials(Index begin, Index end, Term&& term, Scalar* sum) {
+  Scalar p0[D] = {}, p1[D] = {}, p2[D] = {}, p3[D] = {};
+  Index k = begin;
+  for (; k + 4 <= end; k += 4) {
+    term(k, p0);
+    term(k + 1, p1);
+    term(k + 2, p2);
+    term(k + 3, p3);
+  }
+  if (k < end) term(k, p0);
+  if (k + 1 < end) term(k + 1, p1);
+  if (k + 2 < end) term(k + 2, p2);
+  for (int a = 0; a < D; ++a) sum[a] = (p0[a] + p1[a]) + (p2[a] + p3[a]);
+}
+
+template <int D>
+inline Scalar row_dot(const std::int32_t* list, const float* grads, Index begin, Index end, const Scalar* v) {
+  Scalar sum[D];
+  row_partials<D>(begin, end, [&](Index k, Scalar* p) {
+    const Scalar* vj = v + Index{list[k]} * D;
+    for (int a = 0; a < D; ++a) p[a] += vj[a] * static_cast<Scalar>(grads[k * D + a]);
+  }, sum);
+  return D == 3 ? (sum[0] + sum[1]) + sum[D - 1] : sum[0] + sum[1];
+}
+
+template <int D>
+inline void row_weighted(const std::int32_t* list, const float* grads, Index begin, Index end, Scalar ci,
+                         const Scalar* c, Scalar* out) {
+  row_partials<D>(begin, end, [&](Index k, Scalar* p) {
+    const Scalar cj = ci + c[list[k]];
+    for (int a = 0; a < D; ++a) p[a] += cj * static_cast<Scalar>(grads[k * D + a]);
+  }, out);
+}
+
+#if KINEMA_HAVE_AVX2_CLONES
+namespace detail {
+
+// (Masked loads would spare the padding float but run at half the speed on AMD Zen 3.)
+KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE __m256d load_grad3(const float* grads, Index k) {
+  return _mm256_cvtps_pd(_mm_loadu_ps(grads + 3 * k));
+}
+// (v_j, v_j + 1, v_j + 2, 0) without reading past v_j.
+KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE __m256d load_vec3(const Scalar* v, Index j) {
+  return _mm256_insertf128_pd(_mm256_castpd128_pd256(_mm_loadu_pd(v + 3 * j)), _mm_load_sd(v + 3 * j + 2), 1);
+}
+// One entry's term: p += a * g_k, lane-wise.
+KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE __m256d add_term(__m256d p, __m256d a, const float* grads, Index k) {
+  return _mm256_add_pd(p, _mm256_mul_pd(a, load_grad3(grads, k)));
+}
+
+// row_partials of 4-lane terms: term(k) is entry k's vector.
+template <class Term>
+KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE void row_partials_avx2(const float* grads, Index begin, Index end,
+                                                              Term&& term, Scalar* sum4) {
+  __m256d p0 = _mm256_setzero_pd(), p1 = p0, p2 = p0, p3 = p0;
+  Index k = begin;
+  for (; k + 4 <= end; k += 4) {
+    p0 = add_term(p0, term(k), grads, k);
+    p1 = add_term(p1, term(k + 1), grads, k + 1);
+    p2 = add_term(p2, term(k + 2), grads, k + 2);
+    p3 = add_term(p3, term(k + 3), grads, k + 3);
+  }
+  if (k < end) p0 = add_term(p0, term(k), grads, k);
+  if (k + 1 < end) p1 = add_term(p1, term(k + 1), grads, k + 1);
+  if (k + 2 < end) p2 = add_term(p2, term(k + 2), grads, k + 2);
+  _mm256_storeu_pd(sum4, _mm256_add_pd(_mm256_add_pd(p0, p1), _mm256_add_pd(p2, p3)));
+}
+
+// Entry k's factor: v_j (row_dot) or c_j broadcast (row_weighted). (Function objects, not
+// lambdas: a lambda would not inherit the AVX2 target.)
+struct VelocityOf {
+  const std::int32_t* list;
+  const Scalar* v;
+  KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE __m256d operator()(Index k) const { return load_vec3(v, list[k]); }
+};
+struct WeightOf {
+  const std::int32_t* list;
+  Scalar ci;
+  const Scalar* c;
+  KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE __m256d operator()(Index k) const { return _mm256_set1_pd(ci + c[list[k]]); }
+};
+
+}  // namespace detail
+
+KINEMA_TARGET_AVX2 inline Scalar row_dot_avx2(const std::int32_t* list, const float* grads, Index begin, Index end,
+                                              const Scalar* v) {
+  alignas(32) Scalar sum[4];
+  detail::row_partials_avx2(grads, begin, end, detail::VelocityOf{list, v}, sum);
+  return (sum[0] + sum[1]) + sum[2];
+}
+
+KINEMA_TARGET_AVX2 inline void row_weighted_avx2(const std::int32_t* list, const float* grads, Index begin,
+                                                 Index end, Scalar ci, const Scalar* c, Scalar* out) {
+  alignas(32) Scalar sum[4];
+  detail::row_partials_avx2(grads, begin, end, detail::WeightOf{list, ci, c}, sum);
+  for (int a = 0; a < 3; ++a) out[a] = sum[a];
+}
+#endif
+
+// The row sums of one dimension, AVX2 (3D, where the CPU has it and KINEMA_SIMD is not
+// "baseline", see core/simd.h) or the baseline.
+template <int D>
+struct RowSums {
+  Scalar (*dot)(const std::int32_t*, const float*, Index, Index, const Scalar*) = row_dot<D>;
+  void (*weighted)(const std::int32_t*, const float*, Index, Index, Scalar, const Scalar*, Scalar*) = row_weighted<D>;
+  bool avx2 = false;
+
+  static RowSums choose(bool avx2) {
+    RowSums rows;
+#if KINEMA_HAVE_AVX2_CLONES
+    if constexpr (D == 3) {
+      if (avx2 && cpu_has_avx2()) {
+        rows.dot = row_dot_avx2;
+        rows.weighted = row_weighted_avx2;
+        rows.avx2 = true;
+      }
+    }
+#endif
+    return rows;
+  }
+};
 
 }  // namespace kinema::sph

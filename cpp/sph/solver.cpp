@@ -27,7 +27,7 @@ class SolverD final : public Solver {
   using CMap = Eigen::Map<const Vec>;
 
   SolverD(const Model& model, const Config& config, const State& state)
-      : Solver(model, config), W_(model.h) {
+      : Solver(model, config), W_(model.h), rows_(RowSums<D>::choose(use_avx2())) {
     for (int a = 0; a < D; ++a) g_[a] = config.gravity[a];
     c_ = config.speed_of_sound > 0 ? config.speed_of_sound : default_speed_of_sound(state);
     B_ = config.rho0 * c_ * c_ / config.gamma;
@@ -38,6 +38,8 @@ class SolverD final : public Solver {
     kappa_density_.assign(n, 0);
     kappa_divergence_.assign(n, 0);
     factor_.assign(n, 0);
+    if (config.method == Method::DFSPH) grad_sum_.assign(n * D, 0);
+    boundary_grad_sum_.assign(n * D, 0);
   }
 
   StepStats step(State& s, Scalar dt, Interrupt& interrupt) override {
@@ -132,51 +134,48 @@ class SolverD final : public Solver {
 
   // ------------------------------------------------------------------ DFSPH solvers
 
-  // A neighbour list of the step with its kernel gradients, as raw pointers for the inner loops
-  // (valid from the step's kernel_pass until its positions move).
+  // The step's fluid neighbour list with its kernel gradients, as raw pointers for the inner
+  // loops (valid from the step's kernel_pass until its positions move).
   struct Pairs {
     const Index* start;
     const std::int32_t* list;
     const float* grads;  // grad_i W_ij of each entry at the step's positions, D floats
-    const Scalar* psi;   // boundary lists: psi_b of the listed samples
     // grad_i W_ij of entry k = j.
     Vec grad(Index k) const { return Eigen::Map<const Eigen::Matrix<float, D, 1>>(grads + k * D).template cast<Scalar>(); }
   };
-  Pairs fluid_pairs() const { return {fluid().start.data(), fluid().list.data(), fluid_grad_.data(), nullptr}; }
-  Pairs boundary_pairs() const {
-    return {boundary().start.data(), boundary().list.data(), boundary_grad_.data(), model_.boundary_psi.data()};
+  Pairs fluid_pairs() const { return {fluid().start.data(), fluid().list.data(), fluid_grad_.data()}; }
+
+  // sum_j (c_i + c_j) grad W_ij over the fluid neighbours j of i (c: one value per particle).
+  Vec symmetric_gradient_sum(const Pairs& f, const Scalar* c, Index i) const {
+    Vec sum;
+    rows_.weighted(f.list, f.grads, f.start[i], f.start[i + 1], c[i], c, sum.data());
+    return sum;
   }
 
-  // Rate of density change of i under the current velocities, D rho_i / Dt =
-  // sum_j m (v_i - v_j) . grad W_ij + sum_b psi_b v_i . grad W_ib (eq. 9).
-  // f and b are fluid_pairs() and boundary_pairs(), v the velocities.
-  Scalar density_rate(const Pairs& f, const Pairs& b, const Scalar* v, Index i) const {
-    const Vec vi = CMap(v + i * D);
-    const Scalar m = model_.mass;
-    Scalar rate = 0;
-    for (Index k = f.start[i]; k < f.start[i + 1]; ++k) rate += m * (vi - CMap(v + f.list[k] * D)).dot(f.grad(k));
-    for (Index k = b.start[i]; k < b.start[i + 1]; ++k) rate += b.psi[b.list[k]] * vi.dot(b.grad(k));
-    return rate;
+  // The light passes below rest on the step's gradient sums (kernel_pass) G_i = sum_j m grad
+  // W_ij + sum_b psi_b grad W_ib and B_i = sum_b psi_b grad W_ib, which take the boundary
+  // lists and every term in v_i out of the loops over neighbours: what is left is one gather
+  // (v_j or k_j) and D multiply-adds per fluid entry.
+
+  // Rate of density change of i under the velocities v (eq. 9),
+  //   D rho_i / Dt = sum_j m (v_i - v_j) . grad W_ij + sum_b psi_b v_i . grad W_ib
+  //                = v_i . G_i - m sum_j v_j . grad W_ij.
+  Scalar density_rate(const Pairs& f, const Scalar* v, Index i) const {
+    return CMap(v + i * D).dot(CMap(grad_sum_.data() + i * D)) -
+           model_.mass * rows_.dot(f.list, f.grads, f.start[i], f.start[i + 1], v);
   }
 
-  // v_i -= dt sum_j m (k_i + k_j) grad W_ij + dt k_i sum_b psi_b grad W_ib, with
-  // k_i = kappa_i / rho_i (an iteration's increment) in kappa_ (eqs. 6 and 12).
+  // The velocity change of one iteration's stiffness increments k_i = kappa_i / rho_i (in
+  // kappa_), eqs. 6 and 12, the static boundary acting with the stiffness of i:
+  //   v_i -= dt (m sum_j (k_i + k_j) grad W_ij + k_i B_i).
+  // Written in place: the pass reads no velocity.
   void apply_kappa(State& s, Scalar dt) {
-    const Pairs f = fluid_pairs(), b = boundary_pairs();
-    const Scalar* kappa = kappa_.data();
+    const Pairs f = fluid_pairs();
     const Scalar m = model_.mass;
     parallel_for(s.n, [&](Index i) {
-      const Scalar ki = kappa[i];
-      Vec dv = Vec::Zero();
-      // (No test for k_i + k_j = 0: where only compressed particles have stiffness it would
-      // branch at random; adding the zero changes nothing.)
-      for (Index k = f.start[i]; k < f.start[i + 1]; ++k) dv += (m * (ki + kappa[f.list[k]])) * f.grad(k);
-      if (ki != 0)
-        for (Index k = b.start[i]; k < b.start[i + 1]; ++k) dv += (b.psi[b.list[k]] * ki) * b.grad(k);
-      // Staged in accel_ so that every particle reads the velocities of the same iterate.
-      Map(accel_.data() + i * D) = dv;
+      const Vec dv = m * symmetric_gradient_sum(f, kappa_.data(), i) + kappa_[i] * CMap(boundary_grad_sum_.data() + i * D);
+      Map(s.v.data() + i * D) -= dt * dv;
     });
-    parallel_for(s.n, [&](Index i) { Map(s.v.data() + i * D) -= dt * CMap(accel_.data() + i * D); });
   }
 
   // Algorithms 2 and 3 as one Jacobi iteration on the stiffnesses k_i = kappa_i / rho_i (stored
@@ -222,10 +221,11 @@ class SolverD final : public Solver {
     const Index n = s.n;
     const Index min_neighbors = D == 3 ? 20 : 7;
     auto residual = [&] {
-      const Pairs f = fluid_pairs(), b = boundary_pairs();
+      const Pairs f = fluid_pairs();
+      const Index* b = boundary().start.data();
       parallel_for(n, [&](Index i) {
-        const bool full = f.start[i + 1] - f.start[i] + b.start[i + 1] - b.start[i] >= min_neighbors;
-        aux_[i] = full ? density_rate(f, b, s.v.data(), i) : 0;
+        const bool full = f.start[i + 1] - f.start[i] + b[i + 1] - b[i] >= min_neighbors;
+        aux_[i] = full ? density_rate(f, s.v.data(), i) : 0;
       });
       return parallel_sum(n, [&](Index i) { return std::max<Scalar>(aux_[i], 0); }) / std::max<Index>(n, 1) * dt /
              config_.rho0;
@@ -241,8 +241,8 @@ class SolverD final : public Solver {
     const Index n = s.n;
     const Scalar rho0 = config_.rho0;
     auto residual = [&] {
-      const Pairs f = fluid_pairs(), b = boundary_pairs();
-      parallel_for(n, [&](Index i) { aux_[i] = s.density[i] + dt * density_rate(f, b, s.v.data(), i) - rho0; });
+      const Pairs f = fluid_pairs();
+      parallel_for(n, [&](Index i) { aux_[i] = s.density[i] + dt * density_rate(f, s.v.data(), i) - rho0; });
       return parallel_sum(n, [&](Index i) { return std::max<Scalar>(aux_[i], 0); }) / std::max<Index>(n, 1) / rho0;
     };
     return projected_jacobi(s, dt, dt * dt, kappa_density_, config_.tol, 2, residual, stats.density_error,
@@ -287,7 +287,7 @@ class SolverD final : public Solver {
   // One pass over the Verlet lists at the step's positions that keeps their entries within h
   // (the exact lists fluid() and boundary()) and computes on the way: the densities
   // rho_i = sum_j m W_ij + sum_b psi_b W_ib (Akinci et al. 2012, eq. 5) into `density`; the
-  // kernel gradients grad_i W_ij of every entry kept, which the step's later passes read
+  // kernel gradients grad_i W_ij of every fluid entry kept, which the step's later passes read
   // instead of evaluating the kernel again (the positions do not move until the step's end;
   // a DFSPH step makes about 13 passes); and, with `factors`, DFSPH's alpha_i (eq. 11)
   //   alpha_i = rho_i / (|sum_j m grad W_ij + sum_b psi_b grad W_ib|^2 + sum_j |m grad W_ij|^2),
@@ -295,16 +295,17 @@ class SolverD final : public Solver {
   // For every particle i (at x): row(i, x_i, entries), where entries(entry) calls
   // entry(j, x_i - x_j, |x_i - x_j|) for each neighbour j within h (listed points xs) in list
   // order; with the dW/dr / r it returns, grad_i W_ij = (dW/dr / r)(x_i - x_j) goes into
-  // grads (D floats per entry, parallel to the step's list). The later passes then stream the
-  // gradients instead of gathering x_j: 12 bytes per entry, and single precision perturbs a
+  // grads (D floats per entry, parallel to the step's list, and one float of padding that the
+  // row sums of kernels.h read; nothing stored if grads is null). The later passes then stream
+  // the gradients instead of gathering x_j: 12 bytes per entry, and single precision perturbs a
   // gradient by ~1e-7 relative, far below the solvers' tolerances. With a skin the Verlet list
   // `wide` is filtered into `exact` on the way (the factors staged in dw_), without it is exact
   // already.
   template <class Row>
-  void kernel_rows(const NeighborLists& wide, NeighborLists& exact, std::vector<float>& grads, const Scalar* xs,
+  void kernel_rows(const NeighborLists& wide, NeighborLists& exact, std::vector<float>* grads, const Scalar* xs,
                    const Scalar* x, Index n, Row&& row) {
     auto store = [&](Index k, Scalar dw, const Vec& xij) {
-      for (int a = 0; a < D; ++a) grads[k * D + a] = static_cast<float>(dw * xij[a]);
+      if (grads) Eigen::Map<Eigen::Matrix<float, D, 1>>(grads->data() + k * D) = stored_gradient(dw, xij);
     };
     if (skin_ > 0) {
       exact.fill_with_values(n, dw_, [&](Index i, auto&& push) {
@@ -313,14 +314,15 @@ class SolverD final : public Solver {
           within_support(wide, xs, xi, i, [&](Index j, const Vec& xij, Scalar r) { push(j, entry(j, xij, r)); });
         });
       });
-      grads.resize(exact.list.size() * D);
+      if (!grads) return;
+      grads->resize(exact.list.size() * D + 1);
       parallel_for(n, [&](Index i) {
         const Vec xi = CMap(x + i * D);
         for (Index k = exact.start[i]; k < exact.start[i + 1]; ++k) store(k, dw_[k], xi - CMap(xs + Index{exact.list[k]} * D));
       });
       return;
     }
-    grads.resize(wide.list.size() * D);
+    if (grads) grads->resize(wide.list.size() * D + 1);
     parallel_for(n, [&](Index i) {
       const Vec xi = CMap(x + i * D);
       row(i, xi, [&](auto&& entry) {
@@ -333,14 +335,21 @@ class SolverD final : public Solver {
     });
   }
 
+  // grad_i W_ij = (dW/dr / r) x_ij as the light passes read it (rounded to float).
+  static Eigen::Matrix<float, D, 1> stored_gradient(Scalar dw, const Vec& xij) {
+    return (dw * xij).template cast<float>();
+  }
+
+  // Also forms the gradient sums of the light passes: boundary_grad_sum_ = B_i = sum_b psi_b
+  // grad W_ib and, with factors, grad_sum_ = G_i = sum_j m grad W_ij + B_i, the fluid part from
+  // the gradients as stored, so that density_rate's algebra is exact up to double rounding.
+  // The boundary gradients themselves are not stored: no later pass reads them.
   void kernel_pass(State& s, bool factors, Scalar* density) {
     const Scalar m = model_.mass;
     const Scalar* x = s.x.data();
-    // With factors, the fluid parts of sum_j m grad W_ij and sum_j |m grad W_ij|^2 go from the
-    // fluid pass to the boundary pass in accel_ and factor_.
-    Scalar* sum = accel_.data();
+    // With factors, sum_j |m grad W_ij|^2 goes from the fluid pass to the boundary pass in factor_.
     Scalar* sum_sq = factor_.data();
-    kernel_rows(fluid_wide_, fluid_exact_, fluid_grad_, x, x, s.n, [&](Index i, const Vec&, auto&& entries) {
+    kernel_rows(fluid_wide_, fluid_exact_, &fluid_grad_, x, x, s.n, [&](Index i, const Vec&, auto&& entries) {
       Scalar rho = m * W_.w0();
       Vec gsum = Vec::Zero();
       Scalar gsq = 0;
@@ -348,7 +357,7 @@ class SolverD final : public Solver {
         const Scalar dw = W_.grad_factor(r);
         rho += m * W_.w(r);
         if (factors) {
-          const Vec gw = m * (dw * xij);
+          const Vec gw = m * stored_gradient(dw, xij).template cast<Scalar>();
           gsum += gw;
           gsq += gw.squaredNorm();
         }
@@ -356,23 +365,25 @@ class SolverD final : public Solver {
       });
       density[i] = rho;
       if (factors) {
-        Map(sum + i * D) = gsum;
+        Map(grad_sum_.data() + i * D) = gsum;
         sum_sq[i] = gsq;
       }
     });
     const Scalar* xb = model_.boundary_x.data();
     const Scalar* psi = model_.boundary_psi.data();
-    kernel_rows(boundary_wide_, boundary_exact_, boundary_grad_, xb, x, s.n, [&](Index i, const Vec&, auto&& entries) {
+    kernel_rows(boundary_wide_, boundary_exact_, nullptr, xb, x, s.n, [&](Index i, const Vec&, auto&& entries) {
       Scalar rho = density[i];
-      Vec gsum = factors ? Vec(CMap(sum + i * D)) : Vec::Zero();
+      Vec bsum = Vec::Zero();
       entries([&](Index b, const Vec& xib, Scalar r) {
         const Scalar dw = W_.grad_factor(r);
         rho += psi[b] * W_.w(r);
-        if (factors) gsum += psi[b] * (dw * xib);
+        bsum += psi[b] * (dw * xib);
         return dw;
       });
       density[i] = rho;
+      Map(boundary_grad_sum_.data() + i * D) = bsum;
       if (factors) {
+        const Vec gsum = Map(grad_sum_.data() + i * D) += bsum;
         // Below this a particle has (almost) no neighbours and no pressure to apply.
         const Scalar denom = gsum.squaredNorm() + sum_sq[i];
         factor_[i] = denom > 1e-6 * m * m / std::pow(model_.h, 2 * D + 2) ? rho / denom : 0;
@@ -497,24 +508,17 @@ class SolverD final : public Solver {
     });
   }
 
+  // The symmetric pressure force (Becker and Teschner 2007, eq. 5) with pressure mirroring at
+  // the boundary (p_b / rho_b^2 = p_i / rho_i^2, Akinci et al. 2012), for P_i = p_i / rho_i^2:
+  //   a_i = -m sum_j (P_i + P_j) grad W_ij - 2 P_i B_i,
+  // with the step's boundary gradient sums B_i (kernel_pass); P is staged in aux_.
   void pressure_accelerations(const State& s) {
     const Scalar m = model_.mass;
-    const Pairs f = fluid_pairs(), b = boundary_pairs();
-    const Scalar* p = s.pressure.data();
-    const Scalar* rho = s.density.data();
+    const Pairs f = fluid_pairs();
+    parallel_for(s.n, [&](Index i) { aux_[i] = s.pressure[i] / (s.density[i] * s.density[i]); });
     parallel_for(s.n, [&](Index i) {
-      const Scalar pi = p[i] / (rho[i] * rho[i]);
-      Vec a = Vec::Zero();
-      // (No test for pij = 0: only compressed particles have pressure, so it would branch at
-      // random; subtracting the zero changes nothing.)
-      for (Index k = f.start[i]; k < f.start[i + 1]; ++k) {
-        const Index j = f.list[k];
-        a -= (m * (pi + p[j] / (rho[j] * rho[j]))) * f.grad(k);
-      }
-      // Pressure mirroring at the boundary: p_b / rho_b^2 = p_i / rho_i^2.
-      if (pi != 0)
-        for (Index k = b.start[i]; k < b.start[i + 1]; ++k) a -= (2 * b.psi[b.list[k]] * pi) * b.grad(k);
-      Map(accel_.data() + i * D) += a;
+      Map(accel_.data() + i * D) -= m * symmetric_gradient_sum(f, aux_.data(), i) +
+                                    (2 * aux_[i]) * CMap(boundary_grad_sum_.data() + i * D);
     });
   }
 
@@ -615,21 +619,24 @@ class SolverD final : public Solver {
   Scalar boundary_grid_radius_ = 0;           // cell size boundary_grid_ was built for
   NeighborLists fluid_wide_, boundary_wide_;    // Verlet lists, radius h (1 + skin_)
   NeighborLists fluid_exact_, boundary_exact_;  // their entries within h (kernel_pass; with a skin)
+  RowSums<D> rows_;                             // the light passes' row sums (AVX2 or baseline)
   std::vector<Scalar> x_built_;                 // positions the Verlet lists were built at
   Scalar skin_ = 0;                             // skin of the current lists (fraction of h)
   bool built_ = false, rebuilt_ = false, reordered_ = false;
   Index reorder_step_ = 0;
   Scalar last_dt_ = 0;                          // the previous step's dt [s]
-  std::vector<Scalar> accel_;      // (n, d) accelerations, or velocity corrections in DFSPH
-  std::vector<Scalar> aux_;        // DFSPH: predicted densities or density rates
+  std::vector<Scalar> accel_;      // (n, d) accelerations
+  std::vector<Scalar> aux_;        // DFSPH: predicted densities or density rates; WCSPH: p_i / rho_i^2
   std::vector<Scalar> kappa_;             // DFSPH: increment of kappa_i / rho_i in the current iteration
   std::vector<Scalar> kappa_density_;     // DFSPH: kappa_i / rho_i of the constant-density solve
   std::vector<Scalar> kappa_divergence_;  // DFSPH: kappa^v_i / rho_i of the divergence-free solve
   bool warm_ = false;                     // the kappa arrays hold a previous step's values
   std::vector<Scalar> factor_;     // DFSPH: alpha_i
-  // The step's kernel gradients grad_i W_ij of each entry of fluid() and boundary() (D floats),
+  // The step's kernel gradients grad_i W_ij of each entry of fluid() (D floats) and their sums,
   // set by kernel_pass (step-local: every step recomputes them before use).
-  std::vector<float> fluid_grad_, boundary_grad_;
+  std::vector<float> fluid_grad_;
+  std::vector<Scalar> grad_sum_;           // (n, d) DFSPH: G_i = sum_j m grad W_ij + sum_b psi_b grad W_ib
+  std::vector<Scalar> boundary_grad_sum_;  // (n, d) sum_b psi_b grad W_ib
   std::vector<Scalar> dw_;  // kernel_pass with a skin: dW/dr / r of the entries kept
 };
 
