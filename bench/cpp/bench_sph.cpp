@@ -1,5 +1,6 @@
 // Google Benchmark of the SPH kernels on a jittered 3D lattice (spacing s, support h = 2 s,
-// about 33 neighbours per particle): the cell-grid neighbour build (counting sort + lists),
+// about 33 neighbours per particle): the cell-grid neighbour build (counting sort + lists, per
+// cell subdivision and SIMD path),
 // the Verlet-list filter that replaces it between rebuilds, and the density pass of the solver
 // (Solver::density_error at unchanged positions: lists filter, density sum, mean compression).
 // Items processed are neighbour entries (2 per pair), so items/s reads as entries per second.
@@ -14,6 +15,7 @@
 
 #include "core/interrupt.h"
 #include "core/parallel.h"
+#include "core/simd.h"
 #include "particles/neighbor_grid.h"
 #include "particles/neighbor_lists.h"
 #include "sph/fluid.h"
@@ -35,20 +37,25 @@ std::vector<Scalar> jittered_cube(Index n) {
   return x;
 }
 
+// Arguments: particles, cell subdivision (cells of edge h / subdivision), 1 for the AVX2 path
+// (where the CPU has it) or 0 for the baseline.
 void BM_NeighborBuild(benchmark::State& state) {
   const std::vector<Scalar> x = jittered_cube(state.range(0));
   const Index n = static_cast<Index>(x.size()) / 3;
   const Scalar h = 2 * kSpacing;
+  const int subdivision = static_cast<int>(state.range(1));
+  const bool avx2 = state.range(2) != 0 && use_avx2();
   NeighborGrid<3> grid;
   NeighborLists lists;
   for (auto _ : state) {
-    grid.build(x.data(), n, h);
-    lists.build<3>(grid, x.data(), x.data(), n, h, true);
+    grid.build(x.data(), n, h, subdivision);
+    lists.build<3>(grid, x.data(), n, h, true, avx2);
     benchmark::DoNotOptimize(lists.list.data());
   }
   state.SetItemsProcessed(state.iterations() * lists.size());
   state.counters["particles"] = static_cast<double>(n);
   state.counters["threads"] = num_threads();
+  state.counters["avx2"] = avx2;
 }
 
 void BM_VerletFilter(benchmark::State& state) {
@@ -58,7 +65,7 @@ void BM_VerletFilter(benchmark::State& state) {
   NeighborGrid<3> grid;
   NeighborLists wide, exact;
   grid.build(x.data(), n, 1.2 * h);  // skin 0.2 h, the solver's default
-  wide.build<3>(grid, x.data(), x.data(), n, 1.2 * h, true);
+  wide.build<3>(grid, x.data(), n, 1.2 * h, true);
   for (auto _ : state) {
     exact.filter<3>(wide, x.data(), x.data(), n, h);
     benchmark::DoNotOptimize(exact.list.data());
@@ -120,7 +127,9 @@ void BM_DamBreakStep(benchmark::State& state, sph::Method method) {
   state.counters["iterations"] = benchmark::Counter(iterations, benchmark::Counter::kAvgIterations);
 }
 
-BENCHMARK(BM_NeighborBuild)->Arg(20000)->Arg(150000)->Unit(benchmark::kMillisecond)->UseRealTime();
+BENCHMARK(BM_NeighborBuild)
+    ->ArgsProduct({{20000, 150000}, {1, 2}, {0, 1}})
+    ->Unit(benchmark::kMillisecond)->UseRealTime();
 BENCHMARK(BM_VerletFilter)->Arg(20000)->Arg(150000)->Unit(benchmark::kMillisecond)->UseRealTime();
 BENCHMARK(BM_DensityPass)->Arg(20000)->Arg(150000)->Unit(benchmark::kMillisecond)->UseRealTime();
 BENCHMARK_CAPTURE(BM_DamBreakStep, dfsph, sph::Method::DFSPH)->Arg(150000)->Unit(benchmark::kMillisecond)->UseRealTime();
