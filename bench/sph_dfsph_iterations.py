@@ -5,10 +5,11 @@ figures compare only with other calls of it on an equally quiet machine).
     python bench/sph_dfsph_iterations.py                     # 150k particles, 20 steps
     python bench/sph_dfsph_iterations.py 150000 20 '{"warm_start": 0.75}'
 
-The run starts as sph_bench.py's does (advance to START, then the DFSPH step at the surge
-front's CFL speed, one untimed step) and prints, per step on average: the constant-density and
-divergence-free iterations, the density error the solver reached (predicted), the mean
-compression recomputed at the final positions, and the CPU and wall milliseconds.
+The run starts as sph_bench.py's does (round(START / dt) steps from rest at the DFSPH step of
+sph_bench.timed_dt, the surge front's CFL step) and prints, per step on average: the
+constant-density and divergence-free iterations, the density error the solver reached
+(predicted), the mean compression recomputed at the final positions, and the CPU and wall
+milliseconds.
 """
 
 from __future__ import annotations
@@ -32,9 +33,9 @@ def main():
     kw = json.loads(sys.argv[3]) if len(sys.argv) > 3 else {}
     x, s, domain = sb.scene(n)
     fluid = km.sph.Fluid(x, s, method="dfsph", domain=domain, tol=1e-3, divergence_tol=1e-3, **kw)
-    fluid.advance(sb.START)
-    dt = min(fluid.stable_dt(0.4), 0.4 * s / np.sqrt(2 * 9.81 * 2 * sb.A))
-    fluid.step(dt)
+    dt = sb.timed_dt(n, "dfsph", 1e-3)[0]
+    for _ in range(max(1, round(sb.START / dt))):  # sph_bench.py's start-up (started_fluid)
+        fluid.step(dt)
     density_its, divergence_its, errors = [], [], []
     cpu, wall = time.process_time(), time.perf_counter()
     for _ in range(steps):
