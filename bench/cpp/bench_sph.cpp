@@ -25,7 +25,8 @@ namespace {
 
 constexpr Scalar kSpacing = 0.01;
 
-// A cube of about n particles on the lattice, each moved by up to 0.1 spacing per axis.
+// A cube of about n particles on the lattice, each moved by up to 0.1 spacing per axis, in
+// Morton order.
 std::vector<Scalar> jittered_cube(Index n) {
   const Index side = static_cast<Index>(std::cbrt(static_cast<double>(n)));
   const Scalar lower[3] = {0, 0, 0};
@@ -34,7 +35,13 @@ std::vector<Scalar> jittered_cube(Index n) {
   std::mt19937 rng(7);
   std::uniform_real_distribution<Scalar> jitter(-0.1 * kSpacing, 0.1 * kSpacing);
   for (Scalar& c : x) c += jitter(rng);
-  return x;
+  // In Morton order of cells of edge h, as the solver keeps its particles.
+  const Index n_points = static_cast<Index>(x.size()) / 3;
+  const std::vector<Index> order = morton_order<3>(x.data(), n_points, 2 * kSpacing);
+  std::vector<Scalar> sorted(x.size());
+  for (Index k = 0; k < n_points; ++k)
+    for (int a = 0; a < 3; ++a) sorted[k * 3 + a] = x[order[k] * 3 + a];
+  return sorted;
 }
 
 // Arguments: particles, cell subdivision (cells of edge h / subdivision), 1 for the AVX2 path

@@ -71,23 +71,26 @@ class NeighborGrid {
   // that come within `radius` (at most the build radius) of p and returns their count (at most
   // kMaxSpans): a superset of the points within radius, in cell order (deterministic). Along
   // the last axis a line is trimmed to the cells within reach, which are contiguous.
-  int spans(const Vec& p, Scalar radius, Span* spans) const {
+  int spans(const Vec& p, Scalar radius, Span* spans) const { return spans_of_box(cell_of(p), p, p, radius, spans); }
+
+  // The same for all points of the box [lo, hi] inside cell c (= cell_of of its points): the
+  // runs of the cells that come within radius of some point of the box.
+  int spans_of_box(const Cell& c, const Vec& box_lo, const Vec& box_hi, Scalar radius, Span* spans) const {
     if (count_ == 0) return 0;
-    const Cell c = cell_of(p);
     const Index R = reach_;
     Index lo[D], hi[D];
-    // gap[a][R + o]: squared distance from p to the cells at offset o on axis a, less a margin
-    // for the rounding of the binning.
+    // gap[a][R + o]: squared distance from the box to the cells at offset o on axis a, less a
+    // margin for the rounding of the binning.
     Scalar gap[D][2 * kMaxSubdivision + 1];
     for (int a = 0; a < D; ++a) {
       lo[a] = std::max<Index>(c[a] - R, 0);
       hi[a] = std::min<Index>(c[a] + R, dims_[a] - 1);
       if (lo[a] > hi[a]) return 0;
-      const Scalar margin = 1e-9 * (cell_ + std::abs(p[a]) + std::abs(origin_[a]));
+      const Scalar margin = 1e-9 * (cell_ + std::max(std::abs(box_lo[a]), std::abs(box_hi[a])) + std::abs(origin_[a]));
       gap[a][R] = 0;
       for (Index o = 1; o <= R; ++o) {
-        const Scalar below = std::max<Scalar>(p[a] - (origin_[a] + (c[a] - o + 1) * cell_) - margin, 0);
-        const Scalar above = std::max<Scalar>(origin_[a] + (c[a] + o) * cell_ - p[a] - margin, 0);
+        const Scalar below = std::max<Scalar>(box_lo[a] - (origin_[a] + (c[a] - o + 1) * cell_) - margin, 0);
+        const Scalar above = std::max<Scalar>(origin_[a] + (c[a] + o) * cell_ - box_hi[a] - margin, 0);
         gap[a][R - o] = below * below;
         gap[a][R + o] = above * above;
       }

@@ -17,37 +17,29 @@ namespace {
 
 using IdBuffer = NeighborLists::Buffer<std::int32_t>;
 
-// Candidates in the runs: the room a row needs (reserved at once: a buffer that grows keeps
-// only the entries before its size).
-template <class Span>
-size_t candidate_count(const Span* spans, int count) {
-  Index total = 0;
-  for (int s = 0; s < count; ++s) total += spans[s].end - spans[s].begin;
-  return static_cast<size_t>(total);
-}
-
-// Appends to `out` the points of grid.spans(p, radius) within radius of p, except the point
-// `skip` (-1: none), and returns how many.
+// The runs of a group of queries (see search_rows) and the coordinates they index.
 template <int D>
-Index search_row(const NeighborGrid<D>& grid, const Scalar* p, Scalar radius, std::int32_t skip, IdBuffer& out) {
-  using Span = typename NeighborGrid<D>::Span;
-  Span spans[NeighborGrid<D>::kMaxSpans];
-  const int count = grid.spans(Eigen::Map<const typename NeighborGrid<D>::Vec>(p), radius, spans);
-  const Scalar r2 = radius * radius;
-  const std::int32_t* ids = grid.sorted();
+struct Candidates {
+  typename NeighborGrid<D>::Span spans[NeighborGrid<D>::kMaxSpans];
+  int count = 0;
   const Scalar* xs[D];
-  for (int a = 0; a < D; ++a) xs[a] = grid.sorted_coordinates(a);
-  std::int32_t* row = out.room(candidate_count(spans, count));
+  const std::int32_t* ids;
+};
+
+// Writes to row the candidates within radius (r2 = radius^2) of p, except the point `skip`
+// (-1: none), in order, and returns how many. Room: all candidates (+ 3 for AVX2).
+template <int D>
+Index test_candidates(const Candidates<D>& cand, const Scalar* p, Scalar r2, std::int32_t skip, std::int32_t* row) {
   Index kept = 0;
-  for (int s = 0; s < count; ++s)
-    for (Index k = spans[s].begin; k < spans[s].end; ++k) {
+  for (int s = 0; s < cand.count; ++s)
+    for (Index k = cand.spans[s].begin; k < cand.spans[s].end; ++k) {
       Scalar d2 = 0;
       for (int a = 0; a < D; ++a) {
-        const Scalar d = xs[a][k] - p[a];
+        const Scalar d = cand.xs[a][k] - p[a];
         d2 += d * d;
       }
-      row[kept] = ids[k];
-      kept += (d2 < r2) & (ids[k] != skip);
+      row[kept] = cand.ids[k];
+      kept += (d2 < r2) & (cand.ids[k] != skip);
     }
   return kept;
 }
@@ -72,38 +64,28 @@ struct PackTable {
 };
 constexpr PackTable kPack;
 
-// search_row, 4 candidates at a time. A run's last group reads up to 3 entries past it (the
-// grid pads its arrays) and masks them out; the row keeps 3 entries of slack for the 16-byte
-// stores.
+// test_candidates, 4 candidates at a time. A run's last group reads up to 3 entries past it
+// (the grid pads its arrays) and masks them out; the 16-byte stores need 3 entries of slack.
 template <int D>
-KINEMA_TARGET_AVX2 Index search_row_avx2(const NeighborGrid<D>& grid, const Scalar* p, Scalar radius,
-                                         std::int32_t skip, IdBuffer& out) {
-  using Span = typename NeighborGrid<D>::Span;
-  Span spans[NeighborGrid<D>::kMaxSpans];
-  const int count = grid.spans(Eigen::Map<const typename NeighborGrid<D>::Vec>(p), radius, spans);
-  const __m256d r2 = _mm256_set1_pd(radius * radius);
+KINEMA_TARGET_AVX2 Index test_candidates_avx2(const Candidates<D>& cand, const Scalar* p, Scalar radius2,
+                                              std::int32_t skip, std::int32_t* row) {
+  const __m256d r2 = _mm256_set1_pd(radius2);
   const __m128i skipped = _mm_set1_epi32(skip);
-  const std::int32_t* ids = grid.sorted();
-  const Scalar* xs[D];
   __m256d px[D];
-  for (int a = 0; a < D; ++a) {
-    xs[a] = grid.sorted_coordinates(a);
-    px[a] = _mm256_set1_pd(p[a]);
-  }
-  std::int32_t* row = out.room(candidate_count(spans, count) + 3);
+  for (int a = 0; a < D; ++a) px[a] = _mm256_set1_pd(p[a]);
   Index kept = 0;
-  for (int s = 0; s < count; ++s) {
-    const Index begin = spans[s].begin, end = spans[s].end;
+  for (int s = 0; s < cand.count; ++s) {
+    const Index begin = cand.spans[s].begin, end = cand.spans[s].end;
     for (Index k = begin; k < end; k += 4) {
       __m256d d2 = _mm256_setzero_pd();
       for (int a = 0; a < D; ++a) {
-        const __m256d d = _mm256_sub_pd(_mm256_loadu_pd(xs[a] + k), px[a]);
+        const __m256d d = _mm256_sub_pd(_mm256_loadu_pd(cand.xs[a] + k), px[a]);
         d2 = _mm256_add_pd(d2, _mm256_mul_pd(d, d));
       }
-      const __m128i id = _mm_loadu_si128(reinterpret_cast<const __m128i*>(ids + k));
+      const __m128i id = _mm_loadu_si128(reinterpret_cast<const __m128i*>(cand.ids + k));
       int mask = _mm256_movemask_pd(_mm256_cmp_pd(d2, r2, _CMP_LT_OQ));
       mask &= ~_mm_movemask_ps(_mm_castsi128_ps(_mm_cmpeq_epi32(id, skipped)));
-      if (end - k < 4) mask &= (1 << (end - k)) - 1;
+      mask &= 0xf >> (4 - std::min<Index>(end - k, 4));  // lanes past the run
       const __m128i control = _mm_load_si128(reinterpret_cast<const __m128i*>(kPack.control[mask]));
       _mm_storeu_si128(reinterpret_cast<__m128i*>(row + kept), _mm_shuffle_epi8(id, control));
       kept += kPack.popcount[mask];
@@ -113,19 +95,60 @@ KINEMA_TARGET_AVX2 Index search_row_avx2(const NeighborGrid<D>& grid, const Scal
 }
 #endif
 
+// The rows of the queries [begin, end) (sizes[i]: the size of row i). Consecutive queries in
+// one cell (most of them once the points are sorted along a space-filling curve) share the
+// runs of the cells within radius of their bounding box: the lookups of the runs and the
+// branches of the loops over them are paid once per group.
+template <int D>
+void search_rows(const NeighborGrid<D>& grid, const Scalar* xq, Index begin, Index end, Scalar radius, bool self,
+                 bool avx2, IdBuffer& out, Index* sizes) {
+  using Vec = typename NeighborGrid<D>::Vec;
+  auto test = &test_candidates<D>;
+#if KINEMA_HAVE_AVX2_CLONES
+  if (avx2) test = &test_candidates_avx2<D>;
+#else
+  (void)avx2;
+#endif
+  constexpr Index kMaxGroup = 32;
+  Candidates<D> cand;
+  for (int a = 0; a < D; ++a) cand.xs[a] = grid.sorted_coordinates(a);
+  cand.ids = grid.sorted();
+  const Scalar r2 = radius * radius;
+  Index i = begin;
+  typename NeighborGrid<D>::Cell cell = grid.cell_of(Eigen::Map<const Vec>(xq + i * D));
+  while (i < end) {
+    Vec lo = Eigen::Map<const Vec>(xq + i * D), hi = lo;
+    Index j = i + 1;
+    typename NeighborGrid<D>::Cell next = cell;
+    for (; j < end && j - i < kMaxGroup; ++j) {
+      const Eigen::Map<const Vec> p(xq + j * D);
+      next = grid.cell_of(p);
+      if (next != cell) break;
+      lo = lo.cwiseMin(p);
+      hi = hi.cwiseMax(p);
+    }
+    cand.count = grid.spans_of_box(cell, lo, hi, radius, cand.spans);
+    Index room = 3;
+    for (int s = 0; s < cand.count; ++s) room += cand.spans[s].end - cand.spans[s].begin;
+    for (Index q = i; q < j; ++q) {
+      const Index kept = test(cand, xq + q * D, r2, self ? static_cast<std::int32_t>(q) : -1,
+                              out.room(static_cast<size_t>(room)));
+      out.size += static_cast<size_t>(kept);
+      sizes[q] = kept;
+    }
+    if (j < end && j - i == kMaxGroup) next = grid.cell_of(Eigen::Map<const Vec>(xq + j * D));
+    cell = next;
+    i = j;
+  }
+}
+
 }  // namespace
 
 template <int D>
 void NeighborLists::build(const NeighborGrid<D>& grid, const Scalar* xq, Index nq, Scalar radius, bool self,
                           bool avx2) {
-  auto row = &search_row<D>;
-#if KINEMA_HAVE_AVX2_CLONES
-  if (avx2) row = &search_row_avx2<D>;
-#else
-  (void)avx2;
-#endif
-  fill_rows(nq, nullptr, [&](Index i, Buffer<std::int32_t>& out, Buffer<Scalar>*) {
-    out.size += static_cast<size_t>(row(grid, xq + i * D, radius, self ? static_cast<std::int32_t>(i) : -1, out));
+  fill_chunks(nq, nullptr, [&](Index begin, Index end, Buffer<std::int32_t>& out, Buffer<Scalar>*, Index* sizes) {
+    search_rows<D>(grid, xq, begin, end, radius, self, avx2, out, sizes);
   });
 }
 

@@ -36,7 +36,7 @@ struct NeighborLists {
   // of D) among the points the grid binned; a query point is its own neighbour only if !self.
   // Each row lists its neighbours in the grid's sorted order (cell order). The distance test
   // runs over the grid's contiguous runs of coordinates, 4 candidates at a time with AVX2 where
-  // the CPU has it (avx2 = use_avx2()); both paths give identical lists.
+  // the CPU has it (avx2 = use_avx2()); both paths give identical lists (neighbor_lists.cpp).
   template <int D>
   void build(const NeighborGrid<D>& grid, const Scalar* xq, Index nq, Scalar radius, bool self) {
     build<D>(grid, xq, nq, radius, self, use_avx2());
@@ -105,6 +105,19 @@ struct NeighborLists {
   // value each to vout).
   template <class Row>
   void fill_rows(Index nq, std::vector<Scalar>* values, Row&& row) {
+    fill_chunks(nq, values, [&](Index begin, Index end, Buffer<std::int32_t>& out, Buffer<Scalar>* vout, Index* sizes) {
+      for (Index i = begin; i < end; ++i) {
+        const size_t before = out.size;
+        row(i, out, vout);
+        sizes[i] = static_cast<Index>(out.size - before);
+      }
+    });
+  }
+
+  // rows(begin, end, out, vout, sizes) appends the rows of the query points [begin, end) to out
+  // (and vout) and sets sizes[i] to the length of row i.
+  template <class Rows>
+  void fill_chunks(Index nq, std::vector<Scalar>* values, Rows&& rows) {
     start.assign(static_cast<size_t>(nq) + 1, 0);
     const int threads = nq > kParallelGrain ? num_threads() : 1;
     per_thread_.resize(static_cast<size_t>(std::max(threads, 1)));
@@ -120,11 +133,7 @@ struct NeighborLists {
       buf.size = 0;
       Buffer<Scalar>* vbuf = values != nullptr ? &per_thread_values_[static_cast<size_t>(t)] : nullptr;
       if (vbuf != nullptr) vbuf->size = 0;
-      for (Index i = begin; i < end; ++i) {
-        const size_t before = buf.size;
-        row(i, buf, vbuf);
-        start[static_cast<size_t>(i) + 1] = static_cast<Index>(buf.size - before);
-      }
+      if (begin < end) rows(begin, end, buf, vbuf, start.data() + 1);
 #pragma omp barrier
 #pragma omp single
       {
