@@ -78,6 +78,24 @@ void NeighborGrid<D>::build(const Scalar* x, Index n, Scalar radius, int subdivi
   for (Index c = cells; c > 0; --c) cell_start_[c] = cell_start_[c - 1];
   cell_start_[0] = 0;
 
+  // near_: the cells with a point within reach, the occupied cells dilated by reach_ cells along
+  // each axis in turn (a separable maximum filter).
+  near_.resize(static_cast<size_t>(cells));
+  dilated_.resize(static_cast<size_t>(cells));
+  for (Index c = 0; c < cells; ++c) near_[c] = cell_start_[c + 1] > cell_start_[c];
+  Index stride = cells;
+  for (int a = 0; a < D; ++a) {
+    stride /= dims_[a];
+    const Index span = stride * dims_[a];
+    parallel_for(cells, [&](Index c) {
+      const Index along = c % span / stride;
+      std::uint8_t any = 0;
+      for (Index o = std::max(-reach_, -along); o <= std::min(reach_, dims_[a] - 1 - along); ++o) any |= near_[c + o * stride];
+      dilated_[c] = any;
+    });
+    near_.swap(dilated_);
+  }
+
   // The coordinates in sorted order, one array per axis; the padding is never a candidate.
   std::fill_n(sorted_.begin() + n, kPadding, -1);
   stride_ = n + kPadding;

@@ -60,9 +60,12 @@ class NeighborGrid {
   Cell cell_of(const Vec& p) const {
     Cell c;
     for (int a = 0; a < D; ++a) {
-      // Clamped before the cast: a far-away point must not overflow the integer.
-      const Scalar f = std::floor((p[a] - origin_[a]) * inv_cell_);
-      c[a] = static_cast<Index>(std::min<Scalar>(std::max<Scalar>(f, -2), static_cast<Scalar>(dims_[a] + 1)));
+      // Clamped before the cast: a far-away point must not overflow the integer. The floor of
+      // the clamped value by truncation (std::floor is a library call on baseline x86-64).
+      const Scalar f = std::min<Scalar>(std::max<Scalar>((p[a] - origin_[a]) * inv_cell_, -2),
+                                        static_cast<Scalar>(dims_[a] + 1));
+      const Index t = static_cast<Index>(f);
+      c[a] = t - (f < static_cast<Scalar>(t));
     }
     return c;
   }
@@ -77,6 +80,14 @@ class NeighborGrid {
   // runs of the cells that come within radius of some point of the box.
   int spans_of_box(const Cell& c, const Vec& box_lo, const Vec& box_hi, Scalar radius, Span* spans) const {
     if (count_ == 0) return 0;
+    // Most queries far from all points (a fluid particle away from the walls) stop here.
+    bool inside = true;
+    Index flat = 0;
+    for (int a = 0; a < D; ++a) {
+      inside = inside && c[a] >= 0 && c[a] < dims_[a];
+      flat = flat * dims_[a] + c[a];
+    }
+    if (inside && !near_[static_cast<size_t>(flat)]) return 0;
     const Index R = reach_;
     Index lo[D], hi[D];
     // gap[a][R + o]: squared distance from the box to the cells at offset o on axis a, less a
@@ -149,6 +160,8 @@ class NeighborGrid {
   std::vector<Index> cell_start_;    // CSR row pointer over cells, size cell_count + 1
   std::vector<std::int32_t> sorted_; // point indices grouped by cell, in index order within a cell
   std::vector<Scalar> coords_;       // the points' coordinates in sorted order, per axis
+  std::vector<std::uint8_t> near_;   // per cell: 1 if a point lies in a cell within reach
+  std::vector<std::uint8_t> dilated_;  // scratch of near_
   std::vector<Index> point_cell_;    // scratch: the cell of each point
 };
 

@@ -66,30 +66,46 @@ constexpr PackTable kPack;
 
 // test_candidates, 4 candidates at a time. A run's last group reads up to 3 entries past it
 // (the grid pads its arrays) and masks them out; the 16-byte stores need 3 entries of slack.
+// One group of 4 candidates at k: appends those of the lanes in `valid` within the radius
+// (r2 broadcast), except `skipped`, to row[kept..].
+template <int D>
+KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE void test_group_avx2(const Scalar* const* xs, const std::int32_t* ids,
+                                                             const __m256d* px, __m256d r2, __m128i skipped, Index k,
+                                                             int valid, std::int32_t* row, Index& kept) {
+  __m256d d2 = _mm256_setzero_pd();
+  for (int a = 0; a < D; ++a) {
+    const __m256d d = _mm256_sub_pd(_mm256_loadu_pd(xs[a] + k), px[a]);
+    d2 = _mm256_add_pd(d2, _mm256_mul_pd(d, d));
+  }
+  const __m128i id = _mm_loadu_si128(reinterpret_cast<const __m128i*>(ids + k));
+  const int mask = _mm256_movemask_pd(_mm256_cmp_pd(d2, r2, _CMP_LT_OQ)) &
+                   ~_mm_movemask_ps(_mm_castsi128_ps(_mm_cmpeq_epi32(id, skipped))) & valid;
+  const __m128i control = _mm_load_si128(reinterpret_cast<const __m128i*>(kPack.control[mask]));
+  _mm_storeu_si128(reinterpret_cast<__m128i*>(row + kept), _mm_shuffle_epi8(id, control));
+  kept += kPack.popcount[mask];
+}
+
+// test_candidates, 4 candidates at a time. A run's last group reads up to 3 entries past it
+// (the grid pads its arrays) and masks them out; the 16-byte stores need 3 entries of slack.
 template <int D>
 KINEMA_TARGET_AVX2 Index test_candidates_avx2(const Candidates<D>& cand, const Scalar* p, Scalar radius2,
                                               std::int32_t skip, std::int32_t* row) {
   const __m256d r2 = _mm256_set1_pd(radius2);
   const __m128i skipped = _mm_set1_epi32(skip);
+  // Local copies: the stores into the row may alias anything, the compiler would reload these.
+  const Scalar* xs[D];
   __m256d px[D];
-  for (int a = 0; a < D; ++a) px[a] = _mm256_set1_pd(p[a]);
+  for (int a = 0; a < D; ++a) {
+    xs[a] = cand.xs[a];
+    px[a] = _mm256_set1_pd(p[a]);
+  }
+  const std::int32_t* ids = cand.ids;
   Index kept = 0;
   for (int s = 0; s < cand.count; ++s) {
-    const Index begin = cand.spans[s].begin, end = cand.spans[s].end;
-    for (Index k = begin; k < end; k += 4) {
-      __m256d d2 = _mm256_setzero_pd();
-      for (int a = 0; a < D; ++a) {
-        const __m256d d = _mm256_sub_pd(_mm256_loadu_pd(cand.xs[a] + k), px[a]);
-        d2 = _mm256_add_pd(d2, _mm256_mul_pd(d, d));
-      }
-      const __m128i id = _mm_loadu_si128(reinterpret_cast<const __m128i*>(cand.ids + k));
-      int mask = _mm256_movemask_pd(_mm256_cmp_pd(d2, r2, _CMP_LT_OQ));
-      mask &= ~_mm_movemask_ps(_mm_castsi128_ps(_mm_cmpeq_epi32(id, skipped)));
-      mask &= 0xf >> (4 - std::min<Index>(end - k, 4));  // lanes past the run
-      const __m128i control = _mm_load_si128(reinterpret_cast<const __m128i*>(kPack.control[mask]));
-      _mm_storeu_si128(reinterpret_cast<__m128i*>(row + kept), _mm_shuffle_epi8(id, control));
-      kept += kPack.popcount[mask];
-    }
+    const Index end = cand.spans[s].end;
+    Index k = cand.spans[s].begin;
+    for (; k + 4 <= end; k += 4) test_group_avx2<D>(xs, ids, px, r2, skipped, k, 0xf, row, kept);
+    if (k < end) test_group_avx2<D>(xs, ids, px, r2, skipped, k, 0xf >> (4 - (end - k)), row, kept);
   }
   return kept;
 }
