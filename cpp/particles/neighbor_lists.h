@@ -70,12 +70,22 @@ struct NeighborLists {
   template <class Candidates>
   void fill_with_values(Index nq, std::vector<Scalar>& values, Candidates&& candidates) {
     fill_rows(nq, &values, [&](Index i, Buffer<std::int32_t>& out, Buffer<Scalar>* vout) {
+      // The two buffers grow together; their ends are kept in locals (registers) over the row.
+      size_t size = out.size, capacity = std::min(out.capacity, vout->capacity);
+      std::int32_t* ids = out.data.get();
+      Scalar* vals = vout->data.get();
       candidates(i, [&](Index j, Scalar value) {
-        *out.room(1) = static_cast<std::int32_t>(j);
-        ++out.size;
-        *vout->room(1) = value;
-        ++vout->size;
+        if (size == capacity) {
+          out.size = vout->size = size;
+          ids = out.room(1) - size;
+          vals = vout->room(1) - size;
+          capacity = std::min(out.capacity, vout->capacity);
+        }
+        ids[size] = static_cast<std::int32_t>(j);
+        vals[size] = value;
+        ++size;
       });
+      out.size = vout->size = size;
     });
   }
 
