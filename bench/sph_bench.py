@@ -304,6 +304,8 @@ def main(argv=None) -> int:
     p.add_argument("--side-by-side", action="store_true",
                    help="the issue's comparison: ~150k particles, kinema and all peers in one run")
     p.add_argument("--no-peers", action="store_true")
+    p.add_argument("--neighbors-only", action="store_true",
+                   help="only the neighbour search (km.sph.neighbor_pairs against cKDTree, pairs per second)")
     p.add_argument("--sizes", type=int, nargs="+", help="particle counts (overrides the defaults)")
     p.add_argument("--tol", type=float, default=1e-3, help="DFSPH density tolerance (both codes)")
     p.add_argument("--threads", type=int, default=harness.default_threads())
@@ -329,6 +331,8 @@ def main(argv=None) -> int:
     if not (args.side_by_side or args.splishsplash_only):
         print("neighbour search (radius 2 x spacing):")
         bench_neighbors(sizes, harness.Recorder(csv_path, "sph_neighbors", threads=args.threads))
+    if args.neighbors_only:
+        return 0
     rec = harness.Recorder(csv_path, "sph_dambreak3d_step", threads=args.threads)
     print("time per step, 3D dam break:")
     results = {}

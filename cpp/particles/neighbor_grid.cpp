@@ -2,10 +2,12 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <string>
 
 #include "core/errors.h"
 #include "core/parallel.h"
+#include "particles/neighbor_lists.h"
 
 namespace kinema {
 
@@ -19,9 +21,14 @@ constexpr Index kMinCellBudget = 1 << 12;
 }  // namespace
 
 template <int D>
-void NeighborGrid<D>::build(const Scalar* x, Index n, Scalar cell_size) {
-  if (!(cell_size > 0) || !std::isfinite(cell_size))
-    throw InvalidArgument("radius: expected a finite number > 0, got " + std::to_string(cell_size));
+void NeighborGrid<D>::build(const Scalar* x, Index n, Scalar radius, int subdivision) {
+  if (!(radius > 0) || !std::isfinite(radius))
+    throw InvalidArgument("radius: expected a finite number > 0, got " + std::to_string(radius));
+  if (subdivision < 1 || subdivision > kMaxSubdivision)
+    throw InvalidArgument("subdivision: expected 1 to " + std::to_string(kMaxSubdivision) + ", got " +
+                          std::to_string(subdivision));
+  if (n > std::numeric_limits<std::int32_t>::max())
+    throw InvalidArgument("points: at most 2^31 - 1 points, got " + std::to_string(n));
   Vec lo = Vec::Constant(0), hi = Vec::Constant(0);
   if (n > 0) {
     lo = hi = Eigen::Map<const Vec>(x);
@@ -33,14 +40,17 @@ void NeighborGrid<D>::build(const Scalar* x, Index n, Scalar cell_size) {
     if (!lo.allFinite() || !hi.allFinite())
       throw InvalidArgument("points: coordinates must be finite");
   }
-  // Cell edge: the radius, enlarged until the bounding box needs at most `budget` cells.
+  // Cell edge: radius / subdivision, enlarged until the bounding box needs at most `budget`
+  // cells; the reach then shrinks to the cells the radius still spans.
   const Scalar budget = static_cast<Scalar>(std::max(kCellsPerPoint * n, kMinCellBudget));
-  cell_ = cell_size;
+  cell_ = radius / subdivision;
+  reach_ = subdivision;
   for (;;) {
     Scalar cells = 1;
     for (int a = 0; a < D; ++a) cells *= std::floor((hi[a] - lo[a]) / cell_) + 1;
     if (cells <= budget) break;
     cell_ *= std::max<Scalar>(1.25, std::pow(cells / budget, 1.0 / D));
+    reach_ = std::max<Index>(1, static_cast<Index>(std::ceil(radius / cell_)));
   }
   inv_cell_ = 1 / cell_;
   origin_ = lo;
@@ -61,46 +71,63 @@ void NeighborGrid<D>::build(const Scalar* x, Index n, Scalar cell_size) {
   cell_start_.assign(static_cast<size_t>(cells + 1), 0);
   for (Index i = 0; i < n; ++i) ++cell_start_[static_cast<size_t>(point_cell_[i] + 1)];
   for (Index c = 0; c < cells; ++c) cell_start_[c + 1] += cell_start_[c];
-  sorted_.resize(static_cast<size_t>(n));
+  count_ = n;
+  sorted_.resize(static_cast<size_t>(n + kPadding));
   // Scatter through a moving cursor per cell; cell_start_ is restored afterwards.
-  for (Index i = 0; i < n; ++i) sorted_[static_cast<size_t>(cell_start_[point_cell_[i]]++)] = i;
+  for (Index i = 0; i < n; ++i) sorted_[static_cast<size_t>(cell_start_[point_cell_[i]]++)] = static_cast<std::int32_t>(i);
   for (Index c = cells; c > 0; --c) cell_start_[c] = cell_start_[c - 1];
   cell_start_[0] = 0;
+
+  // near_: the cells with a point within reach, the occupied cells dilated by reach_ cells along
+  // each axis in turn (a separable maximum filter).
+  near_.resize(static_cast<size_t>(cells));
+  dilated_.resize(static_cast<size_t>(cells));
+  for (Index c = 0; c < cells; ++c) near_[c] = cell_start_[c + 1] > cell_start_[c];
+  Index stride = cells;
+  for (int a = 0; a < D; ++a) {
+    stride /= dims_[a];
+    const Index span = stride * dims_[a];
+    parallel_for(cells, [&](Index c) {
+      const Index along = c % span / stride;
+      std::uint8_t any = 0;
+      for (Index o = std::max(-reach_, -along); o <= std::min(reach_, dims_[a] - 1 - along); ++o) any |= near_[c + o * stride];
+      dilated_[c] = any;
+    });
+    near_.swap(dilated_);
+  }
+
+  // The coordinates in sorted order, one array per axis; the padding is never a candidate.
+  std::fill_n(sorted_.begin() + n, kPadding, -1);
+  stride_ = n + kPadding;
+  coords_.resize(static_cast<size_t>(D * stride_));
+  parallel_for(n, [&](Index k) {
+    for (int a = 0; a < D; ++a) coords_[a * stride_ + k] = x[Index{sorted_[k]} * D + a];
+  });
+  for (int a = 0; a < D; ++a) std::fill_n(coords_.begin() + a * stride_ + n, kPadding, Scalar(0));
 }
 
 template <int D>
 std::vector<Index> neighbor_pairs(const Scalar* x, Index n, Scalar radius) {
-  using Vec = typename NeighborGrid<D>::Vec;
   NeighborGrid<D> grid;
   grid.build(x, n, radius);
-  const Scalar r2 = radius * radius;
-  // Two passes (count, then fill at known offsets) keep the output order independent of the
-  // thread count.
+  NeighborLists lists;
+  lists.build<D>(grid, x, n, radius, true);
+  // Each row sorted, its partners j > i kept: two passes (count, then fill at known offsets)
+  // keep the output independent of the thread count.
   std::vector<Index> count(static_cast<size_t>(n) + 1, 0);
   parallel_for(n, [&](Index i) {
-    const Vec xi = Eigen::Map<const Vec>(x + i * D);
+    std::sort(lists.list.begin() + lists.start[i], lists.list.begin() + lists.start[i + 1]);
     Index c = 0;
-    grid.for_each_candidate(xi, [&](Index j) {
-      if (j > i && (Eigen::Map<const Vec>(x + j * D) - xi).squaredNorm() < r2) ++c;
-    });
+    for (Index k = lists.start[i]; k < lists.start[i + 1]; ++k) c += lists.list[k] > i;
     count[static_cast<size_t>(i) + 1] = c;
   });
   for (Index i = 0; i < n; ++i) count[i + 1] += count[i];
   std::vector<Index> pairs(static_cast<size_t>(2 * count[n]));
   parallel_for(n, [&](Index i) {
-    const Vec xi = Eigen::Map<const Vec>(x + i * D);
     Index* out = pairs.data() + 2 * count[i];
-    Index k = 0;
-    grid.for_each_candidate(xi, [&](Index j) {
-      if (j > i && (Eigen::Map<const Vec>(x + j * D) - xi).squaredNorm() < r2) out[2 * k++ + 1] = j;
-    });
-    // Candidates arrive in cell order; sort the partners of i.
-    std::vector<Index> js(static_cast<size_t>(k));
-    for (Index m = 0; m < k; ++m) js[m] = out[2 * m + 1];
-    std::sort(js.begin(), js.end());
-    for (Index m = 0; m < k; ++m) {
-      out[2 * m] = i;
-      out[2 * m + 1] = js[m];
+    for (Index k = lists.start[i + 1] - (count[i + 1] - count[i]); k < lists.start[i + 1]; ++k) {
+      *out++ = i;
+      *out++ = lists.list[k];
     }
   });
   return pairs;

@@ -410,13 +410,13 @@ class SolverD final : public Solver {
       skin_ = config_.neighbor_skin * h >= 4 * travel ? config_.neighbor_skin : 0;
       const Scalar radius = h * (1 + skin_);
       fluid_grid_.build(s.x.data(), s.n, radius);
-      fluid_wide_.build<D>(fluid_grid_, s.x.data(), s.x.data(), s.n, radius, true);
+      fluid_wide_.build<D>(fluid_grid_, s.x.data(), s.n, radius, true);
       if (model_.boundary_count() > 0) {
         if (boundary_grid_radius_ != radius) {
           boundary_grid_.build(model_.boundary_x.data(), model_.boundary_count(), radius);
           boundary_grid_radius_ = radius;
         }
-        boundary_wide_.build<D>(boundary_grid_, model_.boundary_x.data(), s.x.data(), s.n, radius, false);
+        boundary_wide_.build<D>(boundary_grid_, s.x.data(), s.n, radius, false);
       } else {
         boundary_wide_.start.assign(static_cast<size_t>(s.n) + 1, 0);
       }

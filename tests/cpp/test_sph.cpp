@@ -1,5 +1,6 @@
 // SPH building blocks: the cell-grid neighbour search equals brute force (2D, 3D, clustered
-// and duplicate points), the Morton order is a permutation, and the cubic spline kernel is
+// and duplicate points, every cell subdivision, queries off the grid), its AVX2 and baseline
+// paths give identical lists, the Morton order is a permutation, and the cubic spline kernel is
 // normalised with derivatives that match finite differences.
 #include <gtest/gtest.h>
 
@@ -8,7 +9,10 @@
 #include <random>
 #include <vector>
 
+#include "core/errors.h"
+#include "core/simd.h"
 #include "particles/neighbor_grid.h"
+#include "particles/neighbor_lists.h"
 #include "sph/kernels.h"
 
 namespace kinema {
@@ -59,6 +63,13 @@ void expect_pairs_match(bool clustered) {
 TEST(NeighborGrid, PairsEqualBruteForce2D) { expect_pairs_match<2>(false); expect_pairs_match<2>(true); }
 TEST(NeighborGrid, PairsEqualBruteForce3D) { expect_pairs_match<3>(false); expect_pairs_match<3>(true); }
 
+TEST(NeighborGrid, RejectsABadSubdivision) {
+  const std::vector<Scalar> x = {0, 0, 1, 1};
+  NeighborGrid<2> grid;
+  EXPECT_THROW(grid.build(x.data(), 2, 0.5, 0), InvalidArgument);
+  EXPECT_THROW(grid.build(x.data(), 2, 0.5, NeighborGrid<2>::kMaxSubdivision + 1), InvalidArgument);
+}
+
 TEST(NeighborGrid, CandidatesCoverTheRadiusForQueriesOutsideTheGrid) {
   std::vector<Scalar> x = {0, 0, 0.5, 0.5, 1, 1};
   NeighborGrid<2> grid;
@@ -69,6 +80,83 @@ TEST(NeighborGrid, CandidatesCoverTheRadiusForQueriesOutsideTheGrid) {
   seen.clear();
   grid.for_each_candidate(Eigen::Vector2d(5, 5), [&](Index j) { seen.push_back(j); });
   EXPECT_TRUE(seen.empty());
+}
+
+// NeighborLists::build against brute force, row by row: the same set of neighbours (the row
+// order is the grid's cell order), for both paths, and the AVX2 rows equal the baseline rows
+// entry for entry. Queries: the binned points themselves (self) and points scattered beyond
+// the grid (not self).
+template <int D>
+void expect_lists_match(bool clustered, int subdivision) {
+  const Index n = 700, nq = 300;
+  const auto x = random_points<D>(n, 11 + D, clustered);
+  std::vector<Scalar> q = random_points<D>(nq, 5, false);
+  for (Scalar& c : q) c = 1.6 * c - 0.3;
+  for (Scalar r : {0.002, 0.07, 0.3}) {
+    NeighborGrid<D> grid;
+    grid.build(x.data(), n, r, subdivision);
+    for (bool self : {true, false}) {
+      const std::vector<Scalar>& xq = self ? x : q;
+      const Index m = self ? n : nq;
+      NeighborLists base, wide;
+      base.build<D>(grid, xq.data(), m, r, self, false);
+      wide.build<D>(grid, xq.data(), m, r, self, true);
+      if (cpu_has_avx2()) {
+        EXPECT_EQ(base.start, wide.start) << "D=" << D << " r=" << r << " subdivision=" << subdivision;
+        EXPECT_EQ(base.list, wide.list) << "D=" << D << " r=" << r << " subdivision=" << subdivision;
+      }
+      for (Index i = 0; i < m; ++i) {
+        std::vector<std::int32_t> got(base.list.begin() + base.start[i], base.list.begin() + base.start[i + 1]);
+        std::sort(got.begin(), got.end());
+        std::vector<std::int32_t> want;
+        for (Index j = 0; j < n; ++j) {
+          Scalar d2 = 0;
+          for (int a = 0; a < D; ++a) d2 += (x[j * D + a] - xq[i * D + a]) * (x[j * D + a] - xq[i * D + a]);
+          if (d2 < r * r && !(self && j == i)) want.push_back(static_cast<std::int32_t>(j));
+        }
+        ASSERT_EQ(got, want) << "D=" << D << " r=" << r << " subdivision=" << subdivision << " self=" << self
+                             << " query " << i << " clustered=" << clustered;
+      }
+    }
+  }
+}
+
+TEST(NeighborLists, RowsEqualBruteForceAndAvx2EqualsBaseline2D) {
+  for (int sub = 1; sub <= NeighborGrid<2>::kMaxSubdivision; ++sub) {
+    expect_lists_match<2>(false, sub);
+    expect_lists_match<2>(true, sub);
+  }
+}
+TEST(NeighborLists, RowsEqualBruteForceAndAvx2EqualsBaseline3D) {
+  for (int sub = 1; sub <= NeighborGrid<3>::kMaxSubdivision; ++sub) {
+    expect_lists_match<3>(false, sub);
+    expect_lists_match<3>(true, sub);
+  }
+}
+
+TEST(NeighborGrid, FinerCellsOfferFewerCandidates) {
+  // A jittered lattice of spacing 0.1 in the unit cube, radius r = 0.2. The cells that meet
+  // the ball around a point fill on average the ball grown by a cell of edge c (Steiner):
+  // c^3 + 6 c^2 r + 3 pi c r^2 + 4 pi r^3 / 3, that is 20.6 r^3 at c = r and 10.5 r^3 at
+  // c = r / 2 (ratio 0.51; the cube's faces cut both alike).
+  std::vector<Scalar> x;
+  std::mt19937 rng(3);
+  std::uniform_real_distribution<Scalar> jitter(-0.01, 0.01);
+  for (int i = 0; i < 10; ++i)
+    for (int j = 0; j < 10; ++j)
+      for (int k = 0; k < 10; ++k)
+        for (Scalar c : {0.1 * i, 0.1 * j, 0.1 * k}) x.push_back(c + jitter(rng));
+  const Index n = static_cast<Index>(x.size()) / 3;
+  Index candidates[2] = {0, 0};
+  for (int sub : {1, 2}) {
+    NeighborGrid<3> grid;
+    grid.build(x.data(), n, 0.2, sub);
+    EXPECT_EQ(grid.reach(), sub);
+    for (Index i = 0; i < n; ++i)
+      grid.for_each_candidate(Eigen::Map<const Eigen::Vector3d>(x.data() + 3 * i), 0.2,
+                              [&](Index) { ++candidates[sub - 1]; });
+  }
+  EXPECT_LT(candidates[1], 0.6 * candidates[0]) << candidates[1] << " vs " << candidates[0];
 }
 
 TEST(NeighborGrid, MortonOrderIsAPermutation) {
