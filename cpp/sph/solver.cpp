@@ -371,6 +371,8 @@ class SolverD final : public Solver {
     });
     const Scalar* xb = model_.boundary_x.data();
     const Scalar* psi = model_.boundary_psi.data();
+    // Below this a particle has (almost) no neighbours and no pressure to apply.
+    const Scalar min_denom = 1e-6 * m * m / std::pow(model_.h, 2 * D + 2);
     kernel_rows(boundary_wide_, boundary_exact_, nullptr, xb, x, s.n, [&](Index i, const Vec&, auto&& entries) {
       Scalar rho = density[i];
       Vec bsum = Vec::Zero();
@@ -384,9 +386,8 @@ class SolverD final : public Solver {
       Map(boundary_grad_sum_.data() + i * D) = bsum;
       if (factors) {
         const Vec gsum = Map(grad_sum_.data() + i * D) += bsum;
-        // Below this a particle has (almost) no neighbours and no pressure to apply.
         const Scalar denom = gsum.squaredNorm() + sum_sq[i];
-        factor_[i] = denom > 1e-6 * m * m / std::pow(model_.h, 2 * D + 2) ? rho / denom : 0;
+        factor_[i] = denom > min_denom ? rho / denom : 0;
       }
     });
   }
