@@ -165,6 +165,37 @@ def test_refactor_new_values_same_pattern():
     assert np.array_equal(f.permutation, perm)  # the analysis was reused
 
 
+def with_index_dtype(A, dtype):
+    B = sp.csr_matrix(A, copy=True)
+    B.sum_duplicates()  # canonical already: _csr_arrays then keeps the arrays as they are
+    B.indptr = B.indptr.astype(dtype)
+    B.indices = B.indices.astype(dtype)
+    return B
+
+
+def test_cholesky_reads_int32_and_int64_indices_alike():
+    # scipy's int32 index arrays reach CHOLMOD without a 64-bit copy; the answer, the pattern
+    # check of refactor and the symmetry check must not depend on the width.
+    A = random_spd(120, 11)
+    A32, A64 = with_index_dtype(A, np.int32), with_index_dtype(A, np.int64)
+    assert _csr_arrays(A32, "A", True, keep_int32=True)[1].dtype == np.int32
+    assert _csr_arrays(A64, "A", True, keep_int32=True)[1].dtype == np.int64
+    b = np.random.default_rng(12).standard_normal(120)
+    f32, f64 = km.sparse.cholesky(A32), km.sparse.cholesky(A64)
+    assert np.array_equal(f32.solve(b), f64.solve(b))
+    assert np.array_equal(f32.permutation, f64.permutation)
+    f32.refactor(2 * A64)  # the other width, same pattern
+    f64.refactor(with_index_dtype(2 * A, np.int32))
+    assert np.array_equal(f32.solve(b), f64.solve(b))
+    other = with_index_dtype(laplacian_2d(11)[:120, :120], np.int32)  # another pattern
+    with pytest.raises(ValueError, match="A2: sparsity pattern differs"):
+        f64.refactor(other)
+    C = A32.tolil()
+    C[0, 5] = C[0, 5] + 1.0
+    with pytest.raises(ValueError, match=r"A: not symmetric: \|A\[0, 5\]"):
+        km.sparse.cholesky(with_index_dtype(C.tocsr(), np.int32))
+
+
 def test_refactor_rejects_another_pattern():
     A = laplacian_2d(10)
     f = km.sparse.cholesky(A)

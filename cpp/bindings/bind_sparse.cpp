@@ -8,6 +8,7 @@
 #include "core/errors.h"
 #include "linalg/cg.h"
 #include "linalg/cholmod_factor.h"
+#include "linalg/csr.h"
 
 namespace kinema::bind {
 
@@ -15,10 +16,14 @@ namespace {
 
 std::string str(Index i) { return std::to_string(i); }
 
+// scipy's default index arrays, taken as they are (no conversion to 64 bits) where the core
+// reads both widths.
+using Index32Array = py::array_t<std::int32_t, py::array::c_style>;
+
 // indptr, indices, data of an n x n CSR matrix, checked only for lengths, so that the core may
 // read indptr[0..n] and indptr[n] entries of the others.
-void check_lengths(Index n, const IndexArray& indptr, const IndexArray& indices,
-                   const ScalarArray& data) {
+template <class Indices>
+void check_lengths(Index n, const Indices& indptr, const Indices& indices, const ScalarArray& data) {
   if (n < 0) throw InvalidArgument("n: expected >= 0, got " + str(n));
   if (indptr.ndim() != 1 || indptr.size() != n + 1)
     throw InvalidArgument("A.indptr: expected " + str(n + 1) + " entries, got " +
@@ -26,7 +31,7 @@ void check_lengths(Index n, const IndexArray& indptr, const IndexArray& indices,
   if (indices.ndim() != 1 || data.ndim() != 1 || indices.size() != data.size())
     throw InvalidArgument("A: indices and data must be 1-D of equal length, got " +
                           str(indices.size()) + " and " + str(data.size()));
-  const Index nnz = indptr.data()[n];
+  const Index nnz = static_cast<Index>(indptr.data()[n]);
   if (nnz < 0 || nnz > indices.size())
     throw InvalidArgument("A.indptr: last entry " + str(nnz) + " is outside [0, " +
                           str(indices.size()) + "], the number of stored entries");
@@ -39,10 +44,11 @@ std::string shape_str(const py::array& a) {
 }
 
 // A symmetric matrix's CSR arrays are its CSC arrays.
-CscView csc_view(Index n, const IndexArray& indptr, const IndexArray& indices,
-                 const ScalarArray& data) {
+template <class Indices>
+auto csc_view(Index n, const Indices& indptr, const Indices& indices, const ScalarArray& data) {
   check_lengths(n, indptr, indices, data);
-  return CscView{n, n, indptr.data(), indices.data(), data.data()};
+  using I = typename Indices::value_type;
+  return BasicCscView<I>{n, n, indptr.data(), indices.data(), data.data()};
 }
 
 CholmodOrdering parse_ordering(const std::string& name) {
@@ -53,13 +59,13 @@ CholmodOrdering parse_ordering(const std::string& name) {
   throw InvalidArgument("ordering: expected 'default', 'amd', 'metis' or 'natural', got '" + name + "'");
 }
 
-}  // namespace
-
-void bind_sparse(py::module_& m) {
-  py::class_<CholmodFactor>(m, "Factor")
-      .def(py::init([](Index n, const IndexArray& indptr, const IndexArray& indices,
-                       const ScalarArray& data, const std::string& ordering) {
-             const CscView A = csc_view(n, indptr, indices, data);
+// Factor(n, indptr, indices, data, ordering) and Factor.refactor for one index width.
+template <class Indices>
+void bind_factor_arrays(py::class_<CholmodFactor>& factor) {
+  factor
+      .def(py::init([](Index n, const Indices& indptr, const Indices& indices, const ScalarArray& data,
+                       const std::string& ordering) {
+             const auto A = csc_view(n, indptr, indices, data);
              const CholmodOrdering order = parse_ordering(ordering);
              py::gil_scoped_release release;
              return std::make_unique<CholmodFactor>(A, order);
@@ -68,13 +74,37 @@ void bind_sparse(py::module_& m) {
            py::arg("ordering") = "default")
       .def(
           "refactor",
-          [](CholmodFactor& f, Index n, const IndexArray& indptr, const IndexArray& indices,
+          [](CholmodFactor& f, Index n, const Indices& indptr, const Indices& indices,
              const ScalarArray& data) {
-            const CscView A = csc_view(n, indptr, indices, data);
+            const auto A = csc_view(n, indptr, indices, data);
             py::gil_scoped_release release;
             f.refactor(A);
           },
-          py::arg("n"), py::arg("indptr"), py::arg("indices"), py::arg("data"))
+          py::arg("n"), py::arg("indptr"), py::arg("indices"), py::arg("data"));
+}
+
+template <class Indices>
+py::tuple asymmetry_of(Index n, const Indices& indptr, const Indices& indices, const ScalarArray& data) {
+  check_lengths(n, indptr, indices, data);
+  using I = typename Indices::value_type;
+  const BasicCsrView<I> A{n, n, indptr.data(), indices.data(), data.data()};
+  Asymmetry a;
+  {
+    py::gil_scoped_release release;
+    a = asymmetry(A);
+  }
+  return py::make_tuple(a.value, a.row, a.col);
+}
+
+
+}  // namespace
+
+void bind_sparse(py::module_& m) {
+  py::class_<CholmodFactor> factor(m, "Factor");
+  // int32 index arrays first: overload resolution then takes scipy's default arrays as they are.
+  bind_factor_arrays<Index32Array>(factor);
+  bind_factor_arrays<IndexArray>(factor);
+  factor
       // b: (n,) or (k, n) C-contiguous, i.e. k right-hand sides stored column-major n x k.
       .def(
           "solve",
@@ -107,19 +137,10 @@ void bind_sparse(py::module_& m) {
                              })
       .def("logdet", &CholmodFactor::log_determinant);
 
-  m.def(
-      "asymmetry",
-      [](Index n, const IndexArray& indptr, const IndexArray& indices, const ScalarArray& data) {
-        check_lengths(n, indptr, indices, data);
-        const CsrView A{n, n, indptr.data(), indices.data(), data.data()};
-        Asymmetry a;
-        {
-          py::gil_scoped_release release;
-          a = asymmetry(A);
-        }
-        return py::make_tuple(a.value, a.row, a.col);
-      },
-      py::arg("n"), py::arg("indptr"), py::arg("indices"), py::arg("data"));
+  m.def("asymmetry", &asymmetry_of<Index32Array>, py::arg("n"), py::arg("indptr"), py::arg("indices"),
+        py::arg("data"));
+  m.def("asymmetry", &asymmetry_of<IndexArray>, py::arg("n"), py::arg("indptr"), py::arg("indices"),
+        py::arg("data"));
 
   // x holds the initial guess and receives the solution in place (no conversion allowed, so
   // the caller's array is the one written).

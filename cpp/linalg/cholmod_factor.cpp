@@ -36,7 +36,8 @@ std::string str(Index i) { return std::to_string(i); }
 // Square, non-empty, col_ptr monotone from 0, row indices in range and strictly increasing
 // within a column (sorted, no duplicates: CHOLMOD would otherwise read them inconsistently),
 // finite values. O(nnz), far below the cost of a factorisation.
-void check_view(const CscView& A) {
+template <class J>
+void check_view(const BasicCscView<J>& A) {
   if (A.rows != A.cols)
     throw InvalidArgument("A: expected a square matrix, got " + str(A.rows) + " x " + str(A.cols));
   if (A.rows <= 0) throw InvalidArgument("A: expected a non-empty matrix, got 0 x 0");
@@ -123,8 +124,9 @@ struct TooLargeForInt {};
 // for the duration of a call.
 struct CholmodFactor::Impl {
   virtual ~Impl() = default;
-  virtual void factorize(const CscView& A) = 0;  // pattern already checked equal
+  virtual void factorize(const Scalar* values) = 0;  // of the analysed pattern
   virtual bool same_pattern(const CscView& A, Index* first_difference) const = 0;
+  virtual bool same_pattern(const CscView32& A, Index* first_difference) const = 0;
   virtual void solve(const Scalar* b, Scalar* x, Index nrhs) = 0;
   virtual Scalar log_determinant() const = 0;
   virtual bool is_supernodal() const = 0;
@@ -143,7 +145,8 @@ namespace {
 template <class I>
 class Backend final : public CholmodFactor::Impl {
  public:
-  Backend(const CscView& A, CholmodOrdering ordering) {
+  template <class J>
+  Backend(const BasicCscView<J>& A, CholmodOrdering ordering) {
     Api<I>::start(&common_);
     common_.print = 0;
     common_.error_handler = record_error;
@@ -174,8 +177,8 @@ class Backend final : public CholmodFactor::Impl {
 
   // Fill-reducing ordering and symbolic factorisation (separate from the constructor, so that
   // a throw still runs the destructor).
-  void analyse(const CscView& A) {
-    cholmod_sparse s = wrap(A.values);
+  void analyse(const Scalar* values) {
+    cholmod_sparse s = wrap(values);
     cholmod_message.clear();
     L_ = Api<I>::analyze(&s, &common_);
     if (!L_) {
@@ -196,9 +199,9 @@ class Backend final : public CholmodFactor::Impl {
     Api<I>::finish(&common_);
   }
 
-  void factorize(const CscView& A) override {
+  void factorize(const Scalar* values) override {
     valid = false;
-    cholmod_sparse s = wrap(A.values);
+    cholmod_sparse s = wrap(values);
     cholmod_message.clear();
     Api<I>::factorize(&s, L_, &common_);
     check("factorisation");
@@ -216,6 +219,14 @@ class Backend final : public CholmodFactor::Impl {
   }
 
   bool same_pattern(const CscView& A, Index* first_difference) const override {
+    return same_pattern_as(A, first_difference);
+  }
+  bool same_pattern(const CscView32& A, Index* first_difference) const override {
+    return same_pattern_as(A, first_difference);
+  }
+
+  template <class J>
+  bool same_pattern_as(const BasicCscView<J>& A, Index* first_difference) const {
     for (Index j = 0; j < n; ++j) {
       const Index begin = A.col_ptr[j], end = A.col_ptr[j + 1];
       if (begin != col_ptr_[j] || end != col_ptr_[j + 1] ||
@@ -299,12 +310,14 @@ class Backend final : public CholmodFactor::Impl {
   I no_index_ = 0;
 };
 
-bool fits_int(const CscView& A) {
+template <class J>
+bool fits_int(const BasicCscView<J>& A) {
   return A.col_ptr[A.cols] < std::numeric_limits<int>::max() &&
          A.cols < std::numeric_limits<int>::max();
 }
 
-std::unique_ptr<CholmodFactor::Impl> make_backend(const CscView& A, CholmodOrdering ordering,
+template <class J>
+std::unique_ptr<CholmodFactor::Impl> make_backend(const BasicCscView<J>& A, CholmodOrdering ordering,
                                                   CholmodIndexWidth width) {
   if (width != CholmodIndexWidth::Long) {
     const bool fits = fits_int(A);
@@ -314,7 +327,7 @@ std::unique_ptr<CholmodFactor::Impl> make_backend(const CscView& A, CholmodOrder
     try {
       if (fits) {
         auto backend = std::make_unique<Backend<int>>(A, ordering);
-        backend->analyse(A);
+        backend->analyse(A.values);
         return backend;
       }
     } catch (const TooLargeForInt&) {
@@ -324,25 +337,22 @@ std::unique_ptr<CholmodFactor::Impl> make_backend(const CscView& A, CholmodOrder
     }
   }
   auto backend = std::make_unique<Backend<SuiteSparse_long>>(A, ordering);
-  backend->analyse(A);
+  backend->analyse(A.values);
   return backend;
 }
 
-}  // namespace
-
-CholmodFactor::CholmodFactor(const CscView& A, CholmodOrdering ordering,
-                             CholmodIndexWidth width) {
+// The two index widths of the input share one body.
+template <class J>
+std::unique_ptr<CholmodFactor::Impl> factorise(const BasicCscView<J>& A, CholmodOrdering ordering,
+                                               CholmodIndexWidth width) {
   check_view(A);
-  impl_ = make_backend(A, ordering, width);
-  impl_->factorize(A);
+  auto impl = make_backend(A, ordering, width);
+  impl->factorize(A.values);
+  return impl;
 }
 
-CholmodFactor::~CholmodFactor() = default;
-CholmodFactor::CholmodFactor(CholmodFactor&&) noexcept = default;
-CholmodFactor& CholmodFactor::operator=(CholmodFactor&&) noexcept = default;
-
-void CholmodFactor::refactor(const CscView& A) {
-  Impl& m = *impl_;
+template <class J>
+void refactorise(CholmodFactor::Impl& m, const BasicCscView<J>& A) {
   std::lock_guard<std::mutex> lock(m.mutex);
   check_view(A);
   if (A.cols != m.n)
@@ -353,8 +363,22 @@ void CholmodFactor::refactor(const CscView& A) {
     throw InvalidArgument("A: sparsity pattern differs from the factorised matrix's (first in "
                           "column " + str(j) + "); refactor needs the same pattern, "
                           "factorise the new matrix instead");
-  m.factorize(A);
+  m.factorize(A.values);
 }
+
+}  // namespace
+
+CholmodFactor::CholmodFactor(const CscView& A, CholmodOrdering ordering, CholmodIndexWidth width)
+    : impl_(factorise(A, ordering, width)) {}
+CholmodFactor::CholmodFactor(const CscView32& A, CholmodOrdering ordering, CholmodIndexWidth width)
+    : impl_(factorise(A, ordering, width)) {}
+
+CholmodFactor::~CholmodFactor() = default;
+CholmodFactor::CholmodFactor(CholmodFactor&&) noexcept = default;
+CholmodFactor& CholmodFactor::operator=(CholmodFactor&&) noexcept = default;
+
+void CholmodFactor::refactor(const CscView& A) { refactorise(*impl_, A); }
+void CholmodFactor::refactor(const CscView32& A) { refactorise(*impl_, A); }
 
 void CholmodFactor::solve(const Scalar* b, Scalar* x, Index nrhs) const {
   Impl& m = *impl_;

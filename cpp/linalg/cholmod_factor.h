@@ -9,21 +9,27 @@
 // CHOLMOD's dense kernels run in the BLAS (OpenBLAS), with the BLAS's own threads.
 #pragma once
 
+#include <cstdint>
 #include <memory>
 
 #include "core/types.h"
 
 namespace kinema {
 
-// A borrowed compressed-sparse-column matrix (or, equivalently for a symmetric matrix, CSR).
-// Only the lower triangle is read, so the full symmetric matrix may be passed.
-struct CscView {
+// A borrowed compressed-sparse-column matrix (or, equivalently for a symmetric matrix, CSR)
+// with indices of type I: kinema's 64-bit Index (CscView) or scipy's default 32 bits
+// (CscView32, read without conversion). Only the lower triangle is read, so the full symmetric
+// matrix may be passed.
+template <class I>
+struct BasicCscView {
   Index rows = 0;
   Index cols = 0;
-  const Index* col_ptr = nullptr;   // cols + 1 entries
-  const Index* row_index = nullptr; // col_ptr[cols] entries, sorted within each column
+  const I* col_ptr = nullptr;   // cols + 1 entries
+  const I* row_index = nullptr; // col_ptr[cols] entries, sorted within each column
   const Scalar* values = nullptr;
 };
+using CscView = BasicCscView<Index>;
+using CscView32 = BasicCscView<std::int32_t>;
 
 // Fill-reducing ordering chosen by the analysis.
 enum class CholmodOrdering {
@@ -45,6 +51,8 @@ class CholmodFactor {
   // Index width Int throws InvalidArgument when the matrix or its factor does not fit in int.
   explicit CholmodFactor(const CscView& A, CholmodOrdering ordering = CholmodOrdering::Default,
                          CholmodIndexWidth width = CholmodIndexWidth::Auto);
+  explicit CholmodFactor(const CscView32& A, CholmodOrdering ordering = CholmodOrdering::Default,
+                         CholmodIndexWidth width = CholmodIndexWidth::Auto);
   ~CholmodFactor();
   CholmodFactor(const CholmodFactor&) = delete;
   CholmodFactor& operator=(const CholmodFactor&) = delete;
@@ -55,6 +63,7 @@ class CholmodFactor {
   // Throws InvalidArgument when the pattern differs, NotPositiveDefinite when a pivot fails
   // (the factor is then unusable until a successful refactor).
   void refactor(const CscView& A);
+  void refactor(const CscView32& A);
 
   // Solves A X = B for nrhs right-hand sides stored column by column (column-major, n x nrhs).
   // b and x may not overlap.

@@ -22,15 +22,18 @@ void spmv(const CsrView& A, const Scalar* x, Scalar* y) {
   }
 }
 
-Asymmetry asymmetry(const CsrView& A) {
-  const Index* row_ptr = A.row_ptr;
-  const Index* col = A.col_index;
+namespace {
+
+template <class I>
+Asymmetry asymmetry_of(const BasicCsrView<I>& A) {
+  const I* row_ptr = A.row_ptr;
+  const I* col = A.col_index;
   const Scalar* val = A.values;
   auto transposed = [&](Index i, Index j) -> Scalar {  // a_ji; 0 if j is out of range
     if (j < 0 || j >= A.rows) return 0;
-    const Index* first = col + row_ptr[j];
-    const Index* last = col + row_ptr[j + 1];
-    const Index* hit = std::lower_bound(first, last, i);
+    const I* first = col + row_ptr[j];
+    const I* last = col + row_ptr[j + 1];
+    const I* hit = std::lower_bound(first, last, static_cast<I>(i));
     return (hit != last && *hit == i) ? val[hit - col] : 0.0;
   };
   // Per-row maxima, then a serial scan: the reported location is the first largest one.
@@ -50,5 +53,10 @@ Asymmetry asymmetry(const CsrView& A) {
     if (worst[i] > result.value) result = {worst[i], i, where[i]};
   return result;
 }
+
+}  // namespace
+
+Asymmetry asymmetry(const CsrView& A) { return asymmetry_of(A); }
+Asymmetry asymmetry(const CsrView32& A) { return asymmetry_of(A); }
 
 }  // namespace kinema

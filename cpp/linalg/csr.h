@@ -1,18 +1,24 @@
 // Sparse matrix-vector products on borrowed CSR storage, OpenMP over rows.
 #pragma once
 
+#include <cstdint>
+
 #include "core/types.h"
 
 namespace kinema {
 
-// A borrowed compressed-sparse-row matrix with 64-bit indices (scipy's CSR arrays, zero-copy).
-struct CsrView {
+// A borrowed compressed-sparse-row matrix (scipy's CSR arrays, zero-copy) with indices of type
+// I: kinema's 64-bit Index (CsrView), or scipy's default 32 bits (CsrView32).
+template <class I>
+struct BasicCsrView {
   Index rows = 0;
   Index cols = 0;
-  const Index* row_ptr = nullptr;   // rows + 1 entries
-  const Index* col_index = nullptr; // row_ptr[rows] entries
+  const I* row_ptr = nullptr;   // rows + 1 entries
+  const I* col_index = nullptr; // row_ptr[rows] entries
   const Scalar* values = nullptr;
 };
+using CsrView = BasicCsrView<Index>;
+using CsrView32 = BasicCsrView<std::int32_t>;
 
 // y = A x
 void spmv(const CsrView& A, const Scalar* x, Scalar* y);
@@ -25,5 +31,6 @@ struct Asymmetry {
   Index row = -1, col = -1;
 };
 Asymmetry asymmetry(const CsrView& A);
+Asymmetry asymmetry(const CsrView32& A);
 
 }  // namespace kinema

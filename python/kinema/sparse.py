@@ -32,8 +32,9 @@ SYMMETRY_RTOL = 1e-10
 _ORDERINGS = ("default", "amd", "metis", "natural")
 
 
-def _csr_arrays(A, name, check_symmetry):
-    """(n, indptr, indices, data) of ``A`` as canonical CSR, int64/int64/float64, checked."""
+def _csr_arrays(A, name, check_symmetry, keep_int32=False):
+    """(n, indptr, indices, data) of ``A`` as canonical CSR, int64/int64/float64, checked; with
+    keep_int32, scipy's int32 index arrays are passed on as they are (no 64-bit copy)."""
     if not sp.issparse(A):
         raise ValueError(
             f"{name}: expected a scipy.sparse matrix (any format), got {type(A).__name__}; "
@@ -50,8 +51,9 @@ def _csr_arrays(A, name, check_symmetry):
     if not A.has_canonical_format:
         A = A.copy()  # never reorder the caller's matrix in place
         A.sum_duplicates()
-    indptr = np.ascontiguousarray(A.indptr, dtype=np.int64)
-    indices = np.ascontiguousarray(A.indices, dtype=np.int64)
+    index_dtype = np.int32 if keep_int32 and A.indptr.dtype == A.indices.dtype == np.int32 else np.int64
+    indptr = np.ascontiguousarray(A.indptr, dtype=index_dtype)
+    indices = np.ascontiguousarray(A.indices, dtype=index_dtype)
     data = np.ascontiguousarray(A.data, dtype=np.float64)
     if not np.isfinite(data).all():
         p = int(np.flatnonzero(~np.isfinite(data))[0])
@@ -159,7 +161,7 @@ class Factor:
             km.NotPositiveDefiniteError (the factor is then unusable until a successful
             refactor) when a pivot fails.
         """
-        n, indptr, indices, data = _csr_arrays(A2, "A2", check_symmetry)
+        n, indptr, indices, data = _csr_arrays(A2, "A2", check_symmetry, keep_int32=True)
         if n != self.n:
             raise ValueError(f"A2: expected shape ({self.n}, {self.n}), got {A2.shape}")
         try:
@@ -191,7 +193,7 @@ def cholesky(A, *, ordering: str = "default", check_symmetry: bool = True) -> Fa
     """
     if not isinstance(ordering, str) or ordering not in _ORDERINGS:
         raise ValueError(f"ordering: expected one of {_ORDERINGS}, got {ordering!r}")
-    n, indptr, indices, data = _csr_arrays(A, "A", check_symmetry)
+    n, indptr, indices, data = _csr_arrays(A, "A", check_symmetry, keep_int32=True)
     return Factor(_core.sparse.Factor(n, indptr, indices, data, ordering), ordering)
 
 
