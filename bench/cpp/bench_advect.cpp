@@ -10,6 +10,7 @@
 #include <vector>
 
 #include "core/parallel.h"
+#include "core/simd.h"
 #include "fluid/advect_rows.h"
 #include "fluid/kernels.h"
 
@@ -18,7 +19,7 @@ namespace {
 
 void BM_AdvectStage(benchmark::State& state) {
   const auto kernel = static_cast<AdvectionKernel>(state.range(0));
-  if (kernel == AdvectionKernel::RowsAvx2 && !rows_avx2_supported()) {
+  if (kernel == AdvectionKernel::RowsAvx2 && !cpu_has_avx2()) {
     state.SkipWithError("this CPU has no AVX2");
     return;
   }

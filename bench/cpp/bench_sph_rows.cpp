@@ -41,7 +41,7 @@ struct RowScene {
       for (int a = 0; a < 3; ++a) sorted[k * 3 + a] = x[order[k] * 3 + a];
     NeighborGrid<3> grid;
     grid.build(sorted.data(), n, 2 * s);
-    lists.build<3>(grid, sorted.data(), sorted.data(), n, 2 * s, true);
+    lists.build<3>(grid, sorted.data(), n, 2 * s, true);
     grads.resize(static_cast<size_t>(lists.size()) * 3 + 1);
     for (float& g : grads) g = static_cast<float>(jitter(rng));
     v.resize(static_cast<size_t>(3 * n));
