@@ -2,16 +2,23 @@
 
 #include <algorithm>
 #include <array>
+#include <cstdint>
 #include <string>
 
 #include "core/parallel.h"
 #include "core/simd.h"
 
+#if KINEMA_HAVE_AVX2_CLONES
+#include <immintrin.h>
+#endif
+
 namespace kinema {
 
 PoissonOperator::PoissonOperator(const GridShape& shape, Scalar h, Boundary bc,
                                  const std::uint8_t* solid, Scalar shift)
-    : shape_(shape), h_(h), inv_h2_(1 / (h * h)), shift_(shift), bc_(bc), avx2_(use_avx2()) {
+    : shape_(shape), h_(h), inv_h2_(1 / (h * h)), shift_(shift), bc_(bc), avx2_(use_avx2()),
+      stream_stores_(avx2_ && shape.size() * static_cast<Index>(sizeof(Scalar)) >= kStreamBytes),
+      ends_plain_(bc != Boundary::Periodic) {
   if (!(h > 0)) throw InvalidArgument("h: expected a grid spacing > 0");
   if (!(shift >= 0)) throw InvalidArgument("shift: expected a diagonal shift >= 0");
   const Index n = shape_.size();
@@ -213,6 +220,25 @@ inline Scalar PoissonOperator::neighbour_sum(const Scalar* x, Index c) const {
   return sum;
 }
 
+// The neighbour sum of an end cell (k = 0 or n2 - 1) of a plain row on a grid without periodic
+// wrap, from the row's geometry rather than its mask: such a cell couples to its four
+// neighbours in the next rows and planes and to the one cell along the row (`inward`), as
+// row_fast_ guarantees, so neither the mask nor the diagonal count needs to be read (for the
+// 3D passes they would be two more streams from memory, one byte used per row). The terms are
+// added in neighbour_sum's order, so the result is bitwise the same.
+template <bool ThreeD>
+KINEMA_ALWAYS_INLINE Scalar end_cell_sum(const Scalar* x, Index c, Index inward, Index s0, Index s1) {
+  Scalar sum = 0;
+  if (ThreeD) {
+    sum += x[c - s0];
+    sum += x[c + s0];
+  }
+  sum += x[c - s1];
+  sum += x[c + s1];
+  sum += x[c + inward];
+  return sum;
+}
+
 namespace {
 
 // The plain (2d+1)-point stencil on cells [begin, end) of a row: y = A x, or y = b - A x.
@@ -234,12 +260,77 @@ void plain_row_baseline(const Scalar* x, Scalar* y, const Scalar* b, Index begin
   plain_row_body<ThreeD, Residual>(x, y, b, begin, end, s0, s1, d, ih2);
 }
 
-// The 3D stencil makes seven loads per cell: with SSE2's two lanes it is bound by the load
-// ports rather than by memory, with AVX2's four it is not.
-template <bool ThreeD, bool Residual>
-KINEMA_TARGET_AVX2 void plain_row_avx2(const Scalar* x, Scalar* y, const Scalar* b, Index begin,
-                                       Index end, Index s0, Index s1, Scalar d, Scalar ih2) {
-  plain_row_body<ThreeD, Residual>(x, y, b, begin, end, s0, s1, d, ih2);
+#if KINEMA_HAVE_AVX2_CLONES
+// Cells ahead of the current one that the 3D rows prefetch: the next plane, read there for the
+// first time, is what they wait on; the hardware prefetcher alone keeps too few lines in flight
+// for a core to reach the memory bandwidth. 64 cells (512 B) was the best of 16 to 256 in
+// bench_grid on 128^3 and 256^3 (bench/RESULTS.md). Through an integer, so that no pointer is
+// formed past the end of an array.
+constexpr Index kPrefetchAhead = 64;
+
+KINEMA_ALWAYS_INLINE void prefetch_ahead(const Scalar* p, bool for_write = false) {
+  const auto address = reinterpret_cast<std::uintptr_t>(p) + kPrefetchAhead * sizeof(Scalar);
+  if (for_write) __builtin_prefetch(reinterpret_cast<const void*>(address), 1, 3);
+  else __builtin_prefetch(reinterpret_cast<const void*>(address), 0, 3);
+}
+
+// The 3D plain stencil on a row with AVX2: the operations of plain_row_body in the same order
+// (no FMA), so the results are bitwise those of the baseline. The 3D stencil makes seven loads
+// per cell: with SSE2's two lanes it is bound by the load ports rather than by memory, with
+// AVX2's four it is not. With Stream, y is written by non-temporal stores that bypass the
+// cache: no read of y's old contents, a third less memory traffic, for grids too large for y
+// to be read back from cache anyway (kStreamBytes).
+template <bool Residual, bool Stream>
+KINEMA_TARGET_AVX2 void plain_row3_avx2(const Scalar* x, Scalar* y, const Scalar* b, Index begin,
+                                        Index end, Index s0, Index s1, Scalar d, Scalar ih2) {
+  const __m256d vd = _mm256_set1_pd(d), vih2 = _mm256_set1_pd(ih2);
+  Index c = begin;
+  if (Stream)  // non-temporal stores need 32-byte aligned addresses
+    for (; c < end && (reinterpret_cast<std::uintptr_t>(y + c) & 31); ++c)
+      plain_row_body<true, Residual>(x, y, b, c, c + 1, s0, s1, d, ih2);
+  for (; c + 4 <= end; c += 4) {
+    if ((c & 7) < 4) {  // once per 64-byte line
+      prefetch_ahead(x + c + s0);
+      if (Residual) prefetch_ahead(b + c);
+      if (!Stream) prefetch_ahead(y + c, true);
+    }
+    __m256d nb = _mm256_add_pd(_mm256_add_pd(_mm256_add_pd(_mm256_loadu_pd(x + c - s1),
+                                                           _mm256_loadu_pd(x + c + s1)),
+                                             _mm256_loadu_pd(x + c - 1)),
+                               _mm256_loadu_pd(x + c + 1));
+    nb = _mm256_add_pd(nb, _mm256_add_pd(_mm256_loadu_pd(x + c - s0), _mm256_loadu_pd(x + c + s0)));
+    __m256d ax = _mm256_sub_pd(_mm256_mul_pd(vd, _mm256_loadu_pd(x + c)), _mm256_mul_pd(vih2, nb));
+    if (Residual) ax = _mm256_sub_pd(_mm256_loadu_pd(b + c), ax);
+    if (Stream) _mm256_stream_pd(y + c, ax);
+    else _mm256_storeu_pd(y + c, ax);
+  }
+  plain_row_body<true, Residual>(x, y, b, c, end, s0, s1, d, ih2);
+  if (Stream) _mm_sfence();  // order the non-temporal stores before any later read of y
+}
+
+// 2D rows stay in cache (a 1024^2 grid's rows are 8 KB): the plain body, compiled for AVX2.
+template <bool Residual>
+KINEMA_TARGET_AVX2 void plain_row2_avx2(const Scalar* x, Scalar* y, const Scalar* b, Index begin,
+                                        Index end, Index s0, Index s1, Scalar d, Scalar ih2) {
+  plain_row_body<false, Residual>(x, y, b, begin, end, s0, s1, d, ih2);
+}
+#endif
+
+using PlainRow = void (*)(const Scalar*, Scalar*, const Scalar*, Index, Index, Index, Index, Scalar,
+                          Scalar);
+
+template <bool ThreeD>
+PlainRow pick_plain_row(bool residual, bool avx2, bool stream) {
+#if KINEMA_HAVE_AVX2_CLONES
+  if (avx2) {
+    if (!ThreeD) return residual ? plain_row2_avx2<true> : plain_row2_avx2<false>;
+    if (stream) return residual ? plain_row3_avx2<true, true> : plain_row3_avx2<false, true>;
+    return residual ? plain_row3_avx2<true, false> : plain_row3_avx2<false, false>;
+  }
+#endif
+  (void)avx2;
+  (void)stream;
+  return residual ? plain_row_baseline<ThreeD, true> : plain_row_baseline<ThreeD, false>;
 }
 
 }  // namespace
@@ -252,8 +343,8 @@ void PoissonOperator::apply_impl(const Scalar* x, Scalar* y, const Scalar* b) co
   const Index n2 = shape_.n[2], s0 = shape_.stride(0), s1 = shape_.stride(1);
   const Scalar ih2 = inv_h2_;
   const Scalar d_plain = shift_ + ih2 * (ThreeD ? 6 : 4);
-  auto plain_row = b ? (avx2_ ? plain_row_avx2<ThreeD, true> : plain_row_baseline<ThreeD, true>)
-                     : (avx2_ ? plain_row_avx2<ThreeD, false> : plain_row_baseline<ThreeD, false>);
+  const Scalar d_end = end_diagonal<ThreeD>();
+  const PlainRow plain_row = pick_plain_row<ThreeD>(b != nullptr, avx2_, stream_stores_);
   auto masked = [&](Index c) -> Scalar {
     if (!fluid(c)) return 0;
     return diagonal(c) * x[c] - ih2 * neighbour_sum(x, c);
@@ -262,9 +353,14 @@ void PoissonOperator::apply_impl(const Scalar* x, Scalar* y, const Scalar* b) co
     const Index base = row * n2;
     if (row_fast_[row]) {
       const Index last = base + n2 - 1;
-      y[base] = b ? b[base] - masked(base) : masked(base);
+      auto end_cell = [&](Index c, Index inward) -> Scalar {
+        if (!ends_plain_) return masked(c);
+        return d_end * x[c] - ih2 * end_cell_sum<ThreeD>(x, c, inward, s0, s1);
+      };
+      const Scalar first_ax = end_cell(base, 1), last_ax = end_cell(last, -1);
+      y[base] = b ? b[base] - first_ax : first_ax;
       plain_row(x, y, b, base + 1, last, s0, s1, d_plain, ih2);
-      y[last] = b ? b[last] - masked(last) : masked(last);
+      y[last] = b ? b[last] - last_ax : last_ax;
     } else {
       for (Index c = base; c < base + n2; ++c) {
         const Scalar ax = masked(c);
@@ -286,6 +382,58 @@ void PoissonOperator::residual(const Scalar* b, const Scalar* x, Scalar* r) cons
   else apply_impl<false>(x, r, b);
 }
 
+#if KINEMA_HAVE_AVX2_CLONES
+namespace {
+
+// One colour on the inner cells [1, n2 - 1) of a plain row starting at `base`: the cells with
+// k % 2 == k0. The update runs on whole AVX2 vectors and keeps the other colour's lanes by a
+// blend, so that every load is contiguous. Each vector's store waits until the next vector's
+// loads are issued: those at c - 1 and c + 1 overlap the previous store by one cell, and a load
+// from a store still in flight would stall on the failed store forwarding (the lanes read there
+// belong to the other colour, which this pass does not change). In 3D the next plane and b are
+// prefetched (kPrefetchAhead). Same operations in the same order as the scalar body in
+// smooth_row, so the results are bitwise those of the baseline.
+template <bool ThreeD>
+KINEMA_TARGET_AVX2 void colour_row_avx2(const Scalar* b, Scalar* x, Index base, Index n2, Index k0,
+                                        Index s0, Index s1, Scalar ih2, Scalar inv) {
+  const __m256d vih2 = _mm256_set1_pd(ih2), vinv = _mm256_set1_pd(inv);
+  // Vectors start at odd k: lanes 0 and 2 hold odd cells.
+  const __m256d take_new = k0 == 1 ? _mm256_castsi256_pd(_mm256_setr_epi64x(-1, 0, -1, 0))
+                                   : _mm256_castsi256_pd(_mm256_setr_epi64x(0, -1, 0, -1));
+  Index k = 1;
+  __m256d pending = _mm256_setzero_pd();
+  Scalar* pending_at = nullptr;
+  for (; k + 4 <= n2 - 1; k += 4) {
+    const Index c = base + k;
+    if (ThreeD && (c & 7) < 4) {  // once per 64-byte line
+      prefetch_ahead(x + c + s0);
+      prefetch_ahead(b + c);
+    }
+    __m256d nb = _mm256_add_pd(_mm256_add_pd(_mm256_add_pd(_mm256_loadu_pd(x + c - s1),
+                                                           _mm256_loadu_pd(x + c + s1)),
+                                             _mm256_loadu_pd(x + c - 1)),
+                               _mm256_loadu_pd(x + c + 1));
+    if (ThreeD)
+      nb = _mm256_add_pd(nb, _mm256_add_pd(_mm256_loadu_pd(x + c - s0), _mm256_loadu_pd(x + c + s0)));
+    const __m256d updated =
+        _mm256_mul_pd(_mm256_add_pd(_mm256_loadu_pd(b + c), _mm256_mul_pd(vih2, nb)), vinv);
+    const __m256d merged = _mm256_blendv_pd(_mm256_loadu_pd(x + c), updated, take_new);
+    if (pending_at) _mm256_storeu_pd(pending_at, pending);
+    pending = merged;
+    pending_at = x + c;
+  }
+  if (pending_at) _mm256_storeu_pd(pending_at, pending);
+  for (k += (k & 1) != k0; k < n2 - 1; k += 2) {
+    const Index c = base + k;
+    Scalar nb = x[c - s1] + x[c + s1] + x[c - 1] + x[c + 1];
+    if (ThreeD) nb += x[c - s0] + x[c + s0];
+    x[c] = (b[c] + ih2 * nb) * inv;
+  }
+}
+
+}  // namespace
+#endif
+
 // Gauss-Seidel on the cells of one colour in one row: x_c = (b_c + sum_nb x_nb / h^2) / diag_c.
 // Cells of one colour only couple to the other colour, so every update of a colour reads the
 // same values whatever the order: the sweeps below are parallel and thread-count independent.
@@ -306,16 +454,28 @@ void PoissonOperator::smooth_row(const Scalar* b, Scalar* x, Index row, int colo
     return;
   }
   const Scalar inv_plain = 1 / (shift_ + ih2 * (ThreeD ? 6 : 4));
-  if (k0 == 0) masked(base);
-  const Index first = k0 == 0 ? 2 : 1;
+  const Scalar d_end = end_diagonal<ThreeD>();
+  auto end_cell = [&](Index c, Index inward) {
+    if (!ends_plain_) return masked(c);
+    x[c] = (b[c] + ih2 * end_cell_sum<ThreeD>(x, c, inward, s0, s1)) / d_end;
+  };
+  if (k0 == 0) end_cell(base, 1);
+#if KINEMA_HAVE_AVX2_CLONES
+  if (avx2_) {
+    colour_row_avx2<ThreeD>(b, x, base, n2, k0, s0, s1, ih2, inv_plain);
+  } else
+#endif
+  {
+    const Index first = k0 == 0 ? 2 : 1;
 #pragma omp simd
-  for (Index k = first; k < n2 - 1; k += 2) {
-    const Index c = base + k;
-    Scalar nb = x[c - s1] + x[c + s1] + x[c - 1] + x[c + 1];
-    if (ThreeD) nb += x[c - s0] + x[c + s0];
-    x[c] = (b[c] + ih2 * nb) * inv_plain;
+    for (Index k = first; k < n2 - 1; k += 2) {
+      const Index c = base + k;
+      Scalar nb = x[c - s1] + x[c + s1] + x[c - 1] + x[c + 1];
+      if (ThreeD) nb += x[c - s0] + x[c + s0];
+      x[c] = (b[c] + ih2 * nb) * inv_plain;
+    }
   }
-  if (((n2 - 1) & 1) == k0) masked(base + n2 - 1);
+  if (((n2 - 1) & 1) == k0) end_cell(base + n2 - 1, -1);
 }
 
 // Both colours in one pass over memory: slabs (planes i in 3D, rows j in 2D) are swept in

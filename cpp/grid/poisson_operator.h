@@ -71,6 +71,12 @@ class PoissonOperator {
   // Whether the plain-stencil rows run with AVX2 (chosen at construction, core/simd.h); the
   // results are bitwise the same either way.
   bool avx2() const { return avx2_; }
+  // Whether the 3D apply and residual write their result with non-temporal stores (AVX2 rows
+  // on grids of at least kStreamBytes per array); bitwise the same results either way. Tests
+  // and benchmarks may switch it.
+  bool stream_stores() const { return stream_stores_; }
+  void set_stream_stores(bool on) { stream_stores_ = on && avx2_; }
+  static constexpr Index kStreamBytes = Index(64) << 20;
   // A_cc for a fluid cell.
   Scalar diagonal(Index c) const { return shift_ + inv_h2_ * diag_[c]; }
 
@@ -84,6 +90,13 @@ class PoissonOperator {
   void label_components();
 
   Scalar neighbour_sum(const Scalar* x, Index c) const;
+  // A_cc of an end cell (k = 0 or n2 - 1) of a plain row without periodic wrap: 2d - 1
+  // couplings, plus the ghost's 2 under Dirichlet. Computed as diagonal() computes it.
+  template <bool ThreeD>
+  Scalar end_diagonal() const {
+    const int count = (ThreeD ? 5 : 3) + (bc_ == Boundary::Dirichlet ? 2 : 0);
+    return shift_ + inv_h2_ * static_cast<std::uint8_t>(count);
+  }
   Scalar wrapped_neighbour_sum(const Scalar* x, Index c) const;
 
  public:
@@ -103,6 +116,8 @@ class PoissonOperator {
   Scalar h_ = 1, inv_h2_ = 1, shift_ = 0;
   Boundary bc_ = Boundary::Dirichlet;
   bool avx2_ = false;                   // run the plain-stencil rows with AVX2 (core/simd.h)
+  bool stream_stores_ = false;          // 3D apply: non-temporal stores of the result
+  bool ends_plain_ = false;             // end cells of plain rows: no periodic wrap (end_diagonal)
   std::vector<std::uint8_t> mask_;      // neighbour-coupling bits 0-5 and kFluidBit
   std::vector<std::uint8_t> diag_;      // couplings + 2 per Dirichlet face (fluid cells)
   std::vector<std::uint8_t> wrap_;      // periodic: directions whose neighbour wraps around

@@ -155,6 +155,105 @@ TEST(PoissonOperator, Avx2RowsEqualBaselineBitwise) {
   }
 }
 
+// One red-black sweep, written plainly from the assembled matrix: every cell of the first
+// colour in index order, then every cell of the second.
+std::vector<Scalar> reference_sweep(const PoissonOperator& op, const std::vector<Scalar>& b,
+                                    std::vector<Scalar> x, int first_color) {
+  const CsrArrays A = op.assemble();
+  const GridShape& s = op.shape();
+  for (int color : {first_color, 1 - first_color}) {
+    for (Index i = 0; i < s.n[0]; ++i)
+      for (Index j = 0; j < s.n[1]; ++j)
+        for (Index k = 0; k < s.n[2]; ++k) {
+          const Index c = s.index(i, j, k);
+          if (((i + j + k) & 1) != color || !op.fluid(c)) continue;
+          Scalar off = 0, diag = 0;
+          for (Index p = A.row_ptr[c]; p < A.row_ptr[c + 1]; ++p) {
+            if (A.col_index[p] == c) diag = A.values[p];
+            else off += A.values[p] * x[A.col_index[p]];
+          }
+          x[c] = diag > 0 ? (b[c] - off) / diag : 0;
+        }
+  }
+  return x;
+}
+
+// The fused, threaded sweep must be the plain two-pass red-black sweep: against the reference
+// to rounding (its sums run in another order), and bitwise the same whatever the thread count
+// and the instruction set (AVX2 blended rows or the scalar loop), since each cell's update reads
+// the same values in every schedule.
+TEST(PoissonOperator, FusedSweepIsTheRedBlackSweep) {
+  const int saved_threads = num_threads();
+  // Grids above PoissonOperator::parallel()'s threshold, to run threaded, and small odd ones.
+  for (const auto& dims : {std::vector<Index>{35, 30, 34}, std::vector<Index>{41, 36, 27},
+                           std::vector<Index>{5, 9, 11}, std::vector<Index>{200, 190},
+                           std::vector<Index>{45, 38}}) {
+    const GridShape shape(dims);
+    std::vector<std::uint8_t> solid(shape.size(), 0);
+    for (Index c = 0; c < shape.size(); c += 89) solid[c] = 1;  // a few masked rows
+    const auto b = random_vector(shape.size(), 11), x0 = random_vector(shape.size(), 12);
+    for (auto [first, bc] : {std::pair{0, Boundary::Dirichlet}, std::pair{1, Boundary::Dirichlet},
+                             std::pair{0, Boundary::Neumann}}) {
+      const PoissonOperator plain(shape, 0.3, bc, solid.data(), 0.25);
+      const auto expected = reference_sweep(plain, b, x0, first);
+      std::vector<Scalar> first_result;
+      for (bool baseline : {false, true}) {
+        if (baseline) setenv("KINEMA_SIMD", "baseline", 1);
+        const PoissonOperator op(shape, 0.3, bc, solid.data(), 0.25);
+        unsetenv("KINEMA_SIMD");
+        ASSERT_EQ(op.avx2(), !baseline && cpu_has_avx2());
+        for (int threads : {1, 2, 3}) {
+          set_num_threads(threads);
+          auto x = x0;
+          op.sweep(b.data(), x.data(), first);
+          for (Index c = 0; c < shape.size(); ++c)
+            ASSERT_NEAR(x[c], expected[c], 1e-12 * (1 + std::abs(expected[c])))
+                << "cell " << c << ", threads " << threads << ", baseline " << baseline;
+          if (first_result.empty()) first_result = x;
+          for (Index c = 0; c < shape.size(); ++c)
+            ASSERT_EQ(x[c], first_result[c]) << "cell " << c << ", threads " << threads << ", baseline "
+                                             << baseline;
+        }
+      }
+    }
+  }
+  set_num_threads(saved_threads);
+}
+
+// The 3D apply and residual with non-temporal stores (switched on here for a small grid) give
+// the products of the cached stores and of the baseline bit for bit, at any thread count.
+TEST(PoissonOperator, StreamingStoresChangeNoBit) {
+  if (!cpu_has_avx2()) GTEST_SKIP() << "this CPU has no AVX2";
+  const int saved_threads = num_threads();
+  const GridShape shape({40, 30, 31});  // above PoissonOperator::parallel()'s threshold
+  std::vector<std::uint8_t> solid(shape.size(), 0);
+  for (Index c = 0; c < shape.size(); c += 101) solid[c] = 1;
+  setenv("KINEMA_SIMD", "baseline", 1);
+  const PoissonOperator baseline(shape, 0.3, Boundary::Neumann, solid.data());
+  unsetenv("KINEMA_SIMD");
+  PoissonOperator op(shape, 0.3, Boundary::Neumann, solid.data());
+  ASSERT_FALSE(op.stream_stores());  // 1 MB per array: far below kStreamBytes
+  const auto x = random_vector(shape.size(), 13), b = random_vector(shape.size(), 14);
+  std::vector<Scalar> y0(shape.size()), r0(shape.size());
+  baseline.apply(x.data(), y0.data());
+  baseline.residual(b.data(), x.data(), r0.data());
+  for (bool stream : {false, true}) {
+    op.set_stream_stores(stream);
+    ASSERT_EQ(op.stream_stores(), stream);
+    for (int threads : {1, 2, 3}) {
+      set_num_threads(threads);
+      std::vector<Scalar> y(shape.size()), r(shape.size());
+      op.apply(x.data(), y.data());
+      op.residual(b.data(), x.data(), r.data());
+      for (Index c = 0; c < shape.size(); ++c) {
+        ASSERT_EQ(y[c], y0[c]) << "apply, cell " << c << ", stream " << stream;
+        ASSERT_EQ(r[c], r0[c]) << "residual, cell " << c << ", stream " << stream;
+      }
+    }
+  }
+  set_num_threads(saved_threads);
+}
+
 TEST(PoissonOperator, RejectsBadSpacing) {
   const GridShape shape({4, 4});
   EXPECT_THROW(PoissonOperator(shape, 0.0, Boundary::Dirichlet, nullptr), InvalidArgument);
