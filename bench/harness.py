@@ -260,7 +260,8 @@ def _better(run: Run, best: Run) -> bool:
 
 
 def run_google_benchmark(binary: Union[str, Path], benchmark_filter: str = ".", *,
-                         repetitions: int = 3, max_load: float = DEFAULT_MAX_LOAD,
+                         repetitions: int = 3, interleave: bool = False,
+                         max_load: float = DEFAULT_MAX_LOAD,
                          max_tries: int = DEFAULT_MAX_TRIES) -> Measurement:
     """Runs a Google Benchmark program under `measure` and returns its parsed JSON report.
 
@@ -269,11 +270,16 @@ def run_google_benchmark(binary: Union[str, Path], benchmark_filter: str = ".", 
     rows dropped), each a dict with 'name', 'real_time', 'time_unit' and the counters, e.g.
     'bytes_per_second', 'GB' (a rate) for the STREAM triad of bench/cpp/bench_stream.cpp.
     measurement.seconds is the wall time of the kept program run, not of one benchmark.
+    With `interleave`, the repetitions of all selected benchmarks run in one random order
+    (Google Benchmark's random interleaving), so that figures meant to be compared as a ratio
+    sample the same stretch of a drifting host rather than consecutive blocks of it.
     """
     import json
 
     command = [str(binary), f"--benchmark_filter={benchmark_filter}", "--benchmark_format=json",
                f"--benchmark_repetitions={int(repetitions)}"]
+    if interleave:
+        command.append("--benchmark_enable_random_interleaving=true")
 
     def run():
         done = subprocess.run(command, capture_output=True, text=True, check=True)

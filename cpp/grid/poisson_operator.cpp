@@ -254,10 +254,15 @@ KINEMA_ALWAYS_INLINE void plain_row_body(const Scalar* x, Scalar* y, const Scala
   }
 }
 
+// A whole plain row [base, base + n2): y_first and y_last are the results of its two end cells,
+// computed by the caller (they see the domain face or the periodic wrap), the cells between
+// take the plain stencil.
 template <bool ThreeD, bool Residual>
-void plain_row_baseline(const Scalar* x, Scalar* y, const Scalar* b, Index begin, Index end,
-                        Index s0, Index s1, Scalar d, Scalar ih2) {
-  plain_row_body<ThreeD, Residual>(x, y, b, begin, end, s0, s1, d, ih2);
+void plain_row_baseline(const Scalar* x, Scalar* y, const Scalar* b, Index base, Index n2, Index s0,
+                        Index s1, Scalar d, Scalar ih2, Scalar y_first, Scalar y_last) {
+  y[base] = y_first;
+  plain_row_body<ThreeD, Residual>(x, y, b, base + 1, base + n2 - 1, s0, s1, d, ih2);
+  y[base + n2 - 1] = y_last;
 }
 
 #if KINEMA_HAVE_AVX2_CLONES
@@ -274,50 +279,77 @@ KINEMA_ALWAYS_INLINE void prefetch_ahead(const Scalar* p, bool for_write = false
   else __builtin_prefetch(reinterpret_cast<const void*>(address), 0, 3);
 }
 
-// The 3D plain stencil on a row with AVX2: the operations of plain_row_body in the same order
-// (no FMA), so the results are bitwise those of the baseline. The 3D stencil makes seven loads
-// per cell: with SSE2's two lanes it is bound by the load ports rather than by memory, with
-// AVX2's four it is not. With Stream, y is written by non-temporal stores that bypass the
-// cache: no read of y's old contents, a third less memory traffic, for grids too large for y
-// to be read back from cache anyway (kStreamBytes).
+// A 3D plain row with AVX2: the operations of plain_row_body in the same order (no FMA), so the
+// results are bitwise those of the baseline. The 3D stencil makes seven loads per cell: with
+// SSE2's two lanes it is bound by the load ports rather than by memory, with AVX2's four it is
+// not. When the row is a whole number of vectors, the end cells are blended into the first and
+// last vector (their plain values, read across the row's ends, are discarded), so that the
+// row is written by whole vectors only. With Stream those are non-temporal stores that bypass
+// the cache: no read of y's old contents, a third less memory traffic, for grids too large for
+// y to be read back from cache anyway (kStreamBytes); a row that is not 32-byte aligned is
+// written through the cache.
+// The plain stencil's result on the four cells from c (plain_row_body's operations and order).
+template <bool Residual>
+KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE __m256d plain_vector3(const Scalar* x, const Scalar* b, Index c,
+                                                              Index s0, Index s1, __m256d vd, __m256d vih2) {
+  __m256d nb = _mm256_add_pd(_mm256_add_pd(_mm256_add_pd(_mm256_loadu_pd(x + c - s1),
+                                                         _mm256_loadu_pd(x + c + s1)),
+                                           _mm256_loadu_pd(x + c - 1)),
+                             _mm256_loadu_pd(x + c + 1));
+  nb = _mm256_add_pd(nb, _mm256_add_pd(_mm256_loadu_pd(x + c - s0), _mm256_loadu_pd(x + c + s0)));
+  const __m256d ax = _mm256_sub_pd(_mm256_mul_pd(vd, _mm256_loadu_pd(x + c)), _mm256_mul_pd(vih2, nb));
+  return Residual ? _mm256_sub_pd(_mm256_loadu_pd(b + c), ax) : ax;
+}
+
 template <bool Residual, bool Stream>
-KINEMA_TARGET_AVX2 void plain_row3_avx2(const Scalar* x, Scalar* y, const Scalar* b, Index begin,
-                                        Index end, Index s0, Index s1, Scalar d, Scalar ih2) {
+KINEMA_TARGET_AVX2 void plain_row3_avx2(const Scalar* x, Scalar* y, const Scalar* b, Index base,
+                                        Index n2, Index s0, Index s1, Scalar d, Scalar ih2,
+                                        Scalar y_first, Scalar y_last) {
   const __m256d vd = _mm256_set1_pd(d), vih2 = _mm256_set1_pd(ih2);
-  Index c = begin;
-  if (Stream)  // non-temporal stores need 32-byte aligned addresses
-    for (; c < end && (reinterpret_cast<std::uintptr_t>(y + c) & 31); ++c)
-      plain_row_body<true, Residual>(x, y, b, c, c + 1, s0, s1, d, ih2);
-  for (; c + 4 <= end; c += 4) {
+  auto prefetch = [&](Index c, bool write_y) {
     if ((c & 7) < 4) {  // once per 64-byte line
       prefetch_ahead(x + c + s0);
       if (Residual) prefetch_ahead(b + c);
-      if (!Stream) prefetch_ahead(y + c, true);
+      if (write_y) prefetch_ahead(y + c, true);
     }
-    __m256d nb = _mm256_add_pd(_mm256_add_pd(_mm256_add_pd(_mm256_loadu_pd(x + c - s1),
-                                                           _mm256_loadu_pd(x + c + s1)),
-                                             _mm256_loadu_pd(x + c - 1)),
-                               _mm256_loadu_pd(x + c + 1));
-    nb = _mm256_add_pd(nb, _mm256_add_pd(_mm256_loadu_pd(x + c - s0), _mm256_loadu_pd(x + c + s0)));
-    __m256d ax = _mm256_sub_pd(_mm256_mul_pd(vd, _mm256_loadu_pd(x + c)), _mm256_mul_pd(vih2, nb));
-    if (Residual) ax = _mm256_sub_pd(_mm256_loadu_pd(b + c), ax);
-    if (Stream) _mm256_stream_pd(y + c, ax);
-    else _mm256_storeu_pd(y + c, ax);
+  };
+  const Index end = base + n2;
+  if (n2 % 4 == 0) {
+    const bool stream = Stream && (reinterpret_cast<std::uintptr_t>(y + base) & 31) == 0;
+    for (Index c = base; c < end; c += 4) {
+      prefetch(c, !stream);
+      __m256d v = plain_vector3<Residual>(x, b, c, s0, s1, vd, vih2);
+      if (c == base) v = _mm256_blend_pd(v, _mm256_set1_pd(y_first), 0b0001);
+      if (c + 4 == end) v = _mm256_blend_pd(v, _mm256_set1_pd(y_last), 0b1000);
+      if (stream) _mm256_stream_pd(y + c, v);
+      else _mm256_storeu_pd(y + c, v);
+    }
+    if (stream) _mm_sfence();  // order the non-temporal stores before any later read of y
+    return;
   }
-  plain_row_body<true, Residual>(x, y, b, c, end, s0, s1, d, ih2);
-  if (Stream) _mm_sfence();  // order the non-temporal stores before any later read of y
+  y[base] = y_first;
+  Index c = base + 1;
+  for (; c + 4 <= end - 1; c += 4) {
+    prefetch(c, true);
+    _mm256_storeu_pd(y + c, plain_vector3<Residual>(x, b, c, s0, s1, vd, vih2));
+  }
+  plain_row_body<true, Residual>(x, y, b, c, end - 1, s0, s1, d, ih2);
+  y[end - 1] = y_last;
 }
 
 // 2D rows stay in cache (a 1024^2 grid's rows are 8 KB): the plain body, compiled for AVX2.
 template <bool Residual>
-KINEMA_TARGET_AVX2 void plain_row2_avx2(const Scalar* x, Scalar* y, const Scalar* b, Index begin,
-                                        Index end, Index s0, Index s1, Scalar d, Scalar ih2) {
-  plain_row_body<false, Residual>(x, y, b, begin, end, s0, s1, d, ih2);
+KINEMA_TARGET_AVX2 void plain_row2_avx2(const Scalar* x, Scalar* y, const Scalar* b, Index base,
+                                        Index n2, Index s0, Index s1, Scalar d, Scalar ih2,
+                                        Scalar y_first, Scalar y_last) {
+  y[base] = y_first;
+  plain_row_body<false, Residual>(x, y, b, base + 1, base + n2 - 1, s0, s1, d, ih2);
+  y[base + n2 - 1] = y_last;
 }
 #endif
 
 using PlainRow = void (*)(const Scalar*, Scalar*, const Scalar*, Index, Index, Index, Index, Scalar,
-                          Scalar);
+                          Scalar, Scalar, Scalar);
 
 template <bool ThreeD>
 PlainRow pick_plain_row(bool residual, bool avx2, bool stream) {
@@ -358,9 +390,8 @@ void PoissonOperator::apply_impl(const Scalar* x, Scalar* y, const Scalar* b) co
         return d_end * x[c] - ih2 * end_cell_sum<ThreeD>(x, c, inward, s0, s1);
       };
       const Scalar first_ax = end_cell(base, 1), last_ax = end_cell(last, -1);
-      y[base] = b ? b[base] - first_ax : first_ax;
-      plain_row(x, y, b, base + 1, last, s0, s1, d_plain, ih2);
-      y[last] = b ? b[last] - last_ax : last_ax;
+      plain_row(x, y, b, base, n2, s0, s1, d_plain, ih2, b ? b[base] - first_ax : first_ax,
+                b ? b[last] - last_ax : last_ax);
     } else {
       for (Index c = base; c < base + n2; ++c) {
         const Scalar ax = masked(c);
