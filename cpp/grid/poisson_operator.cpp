@@ -462,6 +462,64 @@ KINEMA_TARGET_AVX2 void colour_row_avx2(const Scalar* b, Scalar* x, Index base, 
   }
 }
 
+// The two colours of a sweep on a pair of plain rows at once: the first colour on the row at
+// `base` (plane p) and the second colour on the row below it at base - s0 (plane p - 1), whose
+// first-colour cells are already final. The second colour of a cell reads the first colour's new
+// value of the cell above it, which this vector has just computed, and the cell above reads
+// the old value of the cell below, loaded once for both: one pass over the rows where two
+// would load them twice. Both rows' cells of their colour have the same k parity k0. Stores
+// are delayed by one vector as in colour_row_avx2, and the operations are those of the scalar
+// body in the same order: bitwise the result of the two colour passes.
+KINEMA_TARGET_AVX2 void colour_row_pair_avx2(const Scalar* b, Scalar* x, Index base, Index n2, Index k0,
+                                             Index s0, Index s1, Scalar ih2, Scalar inv) {
+  const __m256d vih2 = _mm256_set1_pd(ih2), vinv = _mm256_set1_pd(inv);
+  const __m256d take_new = k0 == 1 ? _mm256_castsi256_pd(_mm256_setr_epi64x(-1, 0, -1, 0))
+                                   : _mm256_castsi256_pd(_mm256_setr_epi64x(0, -1, 0, -1));
+  auto update = [&](Index c, __m256d own, __m256d below, __m256d above) KINEMA_TARGET_AVX2 {
+    __m256d nb = _mm256_add_pd(_mm256_add_pd(_mm256_add_pd(_mm256_loadu_pd(x + c - s1),
+                                                           _mm256_loadu_pd(x + c + s1)),
+                                             _mm256_loadu_pd(x + c - 1)),
+                               _mm256_loadu_pd(x + c + 1));
+    nb = _mm256_add_pd(nb, _mm256_add_pd(below, above));
+    const __m256d updated =
+        _mm256_mul_pd(_mm256_add_pd(_mm256_loadu_pd(b + c), _mm256_mul_pd(vih2, nb)), vinv);
+    return _mm256_blendv_pd(own, updated, take_new);
+  };
+  Index k = 1;
+  __m256d pending_first = _mm256_setzero_pd(), pending_second = _mm256_setzero_pd();
+  Index pending_at = -1;
+  for (; k + 4 <= n2 - 1; k += 4) {
+    const Index c = base + k, d = c - s0;
+    if ((c & 7) < 4) {  // once per 64-byte line
+      prefetch_ahead(x + c + s0);
+      prefetch_ahead(b + c);
+      prefetch_ahead(b + d);
+    }
+    const __m256d middle = _mm256_loadu_pd(x + d);  // plane p - 1: below the first row, the second row's own
+    const __m256d first = update(c, _mm256_loadu_pd(x + c), middle, _mm256_loadu_pd(x + c + s0));
+    const __m256d second = update(d, middle, _mm256_loadu_pd(x + d - s0), first);
+    if (pending_at >= 0) {
+      _mm256_storeu_pd(x + pending_at, pending_first);
+      _mm256_storeu_pd(x + pending_at - s0, pending_second);
+    }
+    pending_first = first;
+    pending_second = second;
+    pending_at = c;
+  }
+  if (pending_at >= 0) {
+    _mm256_storeu_pd(x + pending_at, pending_first);
+    _mm256_storeu_pd(x + pending_at - s0, pending_second);
+  }
+  const Index tail = k + ((k & 1) != k0);
+  for (Index row_base : {base, base - s0})
+    for (Index t = tail; t < n2 - 1; t += 2) {
+      const Index c = row_base + t;
+      Scalar nb = x[c - s1] + x[c + s1] + x[c - 1] + x[c + 1];
+      nb += x[c - s0] + x[c + s0];
+      x[c] = (b[c] + ih2 * nb) * inv;
+    }
+}
+
 }  // namespace
 #endif
 
@@ -509,6 +567,30 @@ void PoissonOperator::smooth_row(const Scalar* b, Scalar* x, Index row, int colo
   if (((n2 - 1) & 1) == k0) end_cell(base + n2 - 1, -1);
 }
 
+// The first colour on row `row` (plane p) and the second on the row below it (plane p - 1):
+// fused when both rows are plain (colour_row_pair_avx2), else the two row updates in turn.
+template <bool ThreeD>
+void PoissonOperator::smooth_row_pair(const Scalar* b, Scalar* x, Index row, int color) const {
+  const Index n1 = shape_.n[1], below = row - n1;
+#if KINEMA_HAVE_AVX2_CLONES
+  if (ThreeD && avx2_ && ends_plain_ && row_fast_[row] && row_fast_[below]) {
+    const Index n2 = shape_.n[2], s0 = shape_.stride(0), s1 = shape_.stride(1);
+    const Scalar ih2 = inv_h2_, inv_plain = 1 / (shift_ + ih2 * 6), d_end = end_diagonal<ThreeD>();
+    const Index base = row * n2, k0 = (row / n1 + row % n1 + color) & 1;
+    auto end_cells = [&](Index k, Index inward) {
+      for (Index c : {base + k, base + k - s0})
+        x[c] = (b[c] + ih2 * end_cell_sum<ThreeD>(x, c, inward, s0, s1)) / d_end;
+    };
+    if (k0 == 0) end_cells(0, 1);
+    colour_row_pair_avx2(b, x, base, n2, k0, s0, s1, ih2, inv_plain);
+    if (((n2 - 1) & 1) == k0) end_cells(n2 - 1, -1);
+    return;
+  }
+#endif
+  smooth_row<ThreeD>(b, x, row, color);
+  smooth_row<ThreeD>(b, x, below, 1 - color);
+}
+
 // Both colours in one pass over memory: slabs (planes i in 3D, rows j in 2D) are swept in
 // order, the second colour trailing one slab behind the first, whose neighbours are then final.
 // Each thread takes a contiguous block of slabs; the second colour on a block's first and last
@@ -526,6 +608,15 @@ void PoissonOperator::sweep_impl(const Scalar* b, Scalar* x, int first_color) co
     const Index team = omp_get_num_threads(), t = omp_get_thread_num();
     const Index lo = slabs * t / team, hi = slabs * (t + 1) / team;
     for (Index p = lo; p < hi; ++p) {
+      if (ThreeD && p - 1 > lo) {
+        // Row by row, the first colour on row j of plane p, then the second on row j of plane
+        // p - 1: the latter reads the first colour at (p, j), just done, and at (p - 2, j),
+        // (p - 1, j +- 1) and along its row, all final since the previous plane; the first
+        // colour on later rows of plane p reads the second only at (p - 1, j' > j), still old.
+        for (Index r = p * rows_per_slab; r < (p + 1) * rows_per_slab; ++r)
+          smooth_row_pair<ThreeD>(b, x, r, first_color);
+        continue;
+      }
       slab(p, first_color);
       if (p - 1 > lo) slab(p - 1, second_color);
     }

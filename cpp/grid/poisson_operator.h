@@ -86,6 +86,8 @@ class PoissonOperator {
   template <bool ThreeD>
   void smooth_row(const Scalar* b, Scalar* x, Index row, int color) const;
   template <bool ThreeD>
+  void smooth_row_pair(const Scalar* b, Scalar* x, Index row, int color) const;
+  template <bool ThreeD>
   void sweep_impl(const Scalar* b, Scalar* x, int first_color) const;
   void label_components();
 
