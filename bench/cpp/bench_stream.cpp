@@ -19,6 +19,7 @@
 #include <benchmark/benchmark.h>
 #include <emmintrin.h>
 #include <omp.h>
+#include <sys/mman.h>
 
 #include <cstddef>
 #include <cstdint>
@@ -31,12 +32,17 @@ namespace {
 constexpr std::int64_t kTriadLength = std::int64_t{10} << 20;
 constexpr double kTriadScalar = 3.0;
 
-// Cache-line aligned storage for one array, deliberately left uninitialised so that the first
+// 2 MiB aligned storage for one array (huge-page aligned), deliberately left uninitialised so that the first
 // touch (and with it page placement) happens in the parallel loop below.
 struct AlignedArray {
   explicit AlignedArray(std::int64_t n)
-      : data(static_cast<double*>(std::aligned_alloc(64, static_cast<std::size_t>(n) * sizeof(double)))) {
+      : data(static_cast<double*>(std::aligned_alloc(std::size_t{2} << 20, static_cast<std::size_t>(n) * sizeof(double)))) {
     if (data == nullptr) throw std::bad_alloc();
+#ifdef MADV_HUGEPAGE
+    // Transparent huge pages, as numpy asks for its large arrays and as the stencil
+    // benchmarks (bench_grid.cpp) get them: the ceiling on the same pages as the kernels.
+    madvise(data, static_cast<std::size_t>(n) * sizeof(double), MADV_HUGEPAGE);
+#endif
   }
   ~AlignedArray() { std::free(data); }
   AlignedArray(const AlignedArray&) = delete;

@@ -15,6 +15,7 @@
 #include <memory>
 #include <vector>
 
+#include "core/buffer.h"
 #include "grid/poisson_operator.h"
 
 namespace kinema {
@@ -49,7 +50,7 @@ class Multigrid {
 
   const PoissonOperator* fine_;       // owned by the caller, which outlives the hierarchy
   std::vector<PoissonOperator> ops_;  // coarse levels 1, 2, ...
-  std::vector<std::vector<Scalar>> b_, x_, r_;
+  std::vector<ScalarBuffer> b_, x_, r_;
   MultigridOptions options_;
   struct Coarse;
   std::unique_ptr<Coarse> coarse_;

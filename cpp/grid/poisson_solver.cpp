@@ -46,7 +46,7 @@ Index PoissonSolver::default_max_iter() const {
 Scalar PoissonSolver::incompatibility(const Scalar* b) const {
   if (!op_->singular()) return 0;
   // The projection removes exactly the null-space component; compare it with b's size.
-  std::vector<Scalar> p(b, b + op_->size());
+  ScalarBuffer p(b, b + op_->size());
   op_->project(p.data());
   Scalar worst = 0;
   const Index n = op_->size();

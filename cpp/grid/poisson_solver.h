@@ -51,7 +51,7 @@ class PoissonSolver {
   std::unique_ptr<PoissonOperator> op_;  // heap-held so the hierarchy's pointer stays valid
   std::unique_ptr<Multigrid> mg_;
   PoissonConfig config_;
-  std::vector<Scalar> r_, z_, bp_, inv_diag_;
+  ScalarBuffer r_, z_, bp_, inv_diag_;
   CgWorkspace cg_;
 };
 

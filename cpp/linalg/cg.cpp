@@ -27,7 +27,7 @@ SolveInfo pcg(Index n, const LinearOperator& A, const LinearOperator& precond, c
   CgWorkspace local;
   CgWorkspace& w = workspace ? *workspace : local;
   for (auto* v : {&w.r, &w.z, &w.p, &w.q}) v->resize(n);
-  std::vector<Scalar>&r = w.r, &z = w.z, &p = w.p, &q = w.q;
+  ScalarBuffer &r = w.r, &z = w.z, &p = w.p, &q = w.q;
 
   const Scalar b_norm = std::sqrt(dot(n, b, b));
   if (b_norm == 0) {  // the solution of A x = 0 is x = 0

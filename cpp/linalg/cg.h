@@ -6,6 +6,7 @@
 #include <functional>
 #include <vector>
 
+#include "core/buffer.h"
 #include "core/interrupt.h"
 #include "core/types.h"
 #include "linalg/csr.h"
@@ -18,7 +19,7 @@ using LinearOperator = std::function<void(const Scalar* x, Scalar* y)>;
 
 // The four work vectors of PCG; a solver that solves repeatedly keeps one to allocate nothing.
 struct CgWorkspace {
-  std::vector<Scalar> r, z, p, q;
+  ScalarBuffer r, z, p, q;
 };
 
 // Solves A x = b by PCG. x holds the initial guess on entry. `precond` applies z = M^-1 r and

@@ -2,8 +2,10 @@
 // thread count; the interrupt poll is honoured.
 #include <gtest/gtest.h>
 
+#include <cstdint>
 #include <vector>
 
+#include "core/buffer.h"
 #include "core/interrupt.h"
 #include "core/parallel.h"
 
@@ -32,4 +34,29 @@ TEST(Interrupt, PollStopsTheComputation) {
   EXPECT_NO_THROW(never.check());
 }
 
+}  // namespace kinema
+
+namespace kinema {
+namespace {
+
+// Large ScalarBuffers sit on 2 MiB boundaries (so that the kernel can back them by huge pages)
+// and small ones come from operator new; both hold and copy their values like any vector.
+TEST(ScalarBuffer, LargeBlocksAreHugePageAlignedAndBehaveAsVectors) {
+  for (std::size_t n : {std::size_t{10}, std::size_t{1} << 20}) {  // 80 B and 8 MiB
+    ScalarBuffer v(n, 1.5);
+    if (n * sizeof(Scalar) >= HugePageAllocator<Scalar>::kHugeThreshold) {
+#if defined(__linux__)
+      EXPECT_EQ(reinterpret_cast<std::uintptr_t>(v.data()) % HugePageAllocator<Scalar>::kHugePage, 0u);
+#endif
+    }
+    v.back() = 2.5;
+    ScalarBuffer w = v;
+    w.resize(n + 3, 0.5);
+    EXPECT_EQ(w[0], 1.5);
+    EXPECT_EQ(w[n - 1], 2.5);
+    EXPECT_EQ(w[n + 2], 0.5);
+  }
+}
+
+}  // namespace
 }  // namespace kinema
