@@ -239,6 +239,13 @@ KINEMA_ALWAYS_INLINE Scalar end_cell_sum(const Scalar* x, Index c, Index inward,
   return sum;
 }
 
+// The Gauss-Seidel update of such an end cell, with its diagonal d_end (end_diagonal).
+template <bool ThreeD>
+KINEMA_ALWAYS_INLINE void end_cell_update(const Scalar* b, Scalar* x, Index c, Index inward, Index s0,
+                                          Index s1, Scalar ih2, Scalar d_end) {
+  x[c] = (b[c] + ih2 * end_cell_sum<ThreeD>(x, c, inward, s0, s1)) / d_end;
+}
+
 namespace {
 
 // The plain (2d+1)-point stencil on cells [begin, end) of a row: y = A x, or y = b - A x.
@@ -279,15 +286,6 @@ KINEMA_ALWAYS_INLINE void prefetch_ahead(const Scalar* p, bool for_write = false
   else __builtin_prefetch(reinterpret_cast<const void*>(address), 0, 3);
 }
 
-// A 3D plain row with AVX2: the operations of plain_row_body in the same order (no FMA), so the
-// results are bitwise those of the baseline. The 3D stencil makes seven loads per cell: with
-// SSE2's two lanes it is bound by the load ports rather than by memory, with AVX2's four it is
-// not. When the row is a whole number of vectors, the end cells are blended into the first and
-// last vector (their plain values, read across the row's ends, are discarded), so that the
-// row is written by whole vectors only. With Stream those are non-temporal stores that bypass
-// the cache: no read of y's old contents, a third less memory traffic, for grids too large for
-// y to be read back from cache anyway (kStreamBytes); a row that is not 32-byte aligned is
-// written through the cache.
 // The plain stencil's result on the four cells from c (plain_row_body's operations and order).
 template <bool Residual>
 KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE __m256d plain_vector3(const Scalar* x, const Scalar* b, Index c,
@@ -301,6 +299,15 @@ KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE __m256d plain_vector3(const Scalar* x, c
   return Residual ? _mm256_sub_pd(_mm256_loadu_pd(b + c), ax) : ax;
 }
 
+// A 3D plain row with AVX2: the operations of plain_row_body in the same order (no FMA), so the
+// results are bitwise those of the baseline. The 3D stencil makes seven loads per cell: with
+// SSE2's two lanes it is bound by the load ports rather than by memory, with AVX2's four it is
+// not. When the row is a whole number of vectors, the end cells are blended into the first and
+// last vector (their plain values, read across the row's ends, are discarded), so that the
+// row is written by whole vectors only. With Stream those are non-temporal stores that bypass
+// the cache: no read of y's old contents, a third less memory traffic, for grids too large for
+// y to be read back from cache anyway (kStreamBytes); a row that is not 32-byte aligned is
+// written through the cache.
 template <bool Residual, bool Stream>
 KINEMA_TARGET_AVX2 void plain_row3_avx2(const Scalar* x, Scalar* y, const Scalar* b, Index base,
                                         Index n2, Index s0, Index s1, Scalar d, Scalar ih2,
@@ -424,13 +431,32 @@ namespace {
 // belong to the other colour, which this pass does not change). In 3D the next plane and b are
 // prefetched (kPrefetchAhead). Same operations in the same order as the scalar body in
 // smooth_row, so the results are bitwise those of the baseline.
+// The Gauss-Seidel update of the four cells from c, kept where take_new is set (one colour)
+// and `own` elsewhere; `below` and `above` are the cells at c -+ s0 (3D only). The scalar body's
+// operations in its order.
+template <bool ThreeD>
+KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE __m256d colour_vector(const Scalar* b, const Scalar* x, Index c, Index s1,
+                                                              __m256d own, __m256d below, __m256d above,
+                                                              __m256d vih2, __m256d vinv, __m256d take_new) {
+  __m256d nb = _mm256_add_pd(_mm256_add_pd(_mm256_add_pd(_mm256_loadu_pd(x + c - s1),
+                                                         _mm256_loadu_pd(x + c + s1)),
+                                           _mm256_loadu_pd(x + c - 1)),
+                             _mm256_loadu_pd(x + c + 1));
+  if (ThreeD) nb = _mm256_add_pd(nb, _mm256_add_pd(below, above));
+  const __m256d updated = _mm256_mul_pd(_mm256_add_pd(_mm256_loadu_pd(b + c), _mm256_mul_pd(vih2, nb)), vinv);
+  return _mm256_blendv_pd(own, updated, take_new);
+}
+
+// Lanes of the colour whose cells have k % 2 == k0, in vectors that start at odd k.
+KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE __m256d colour_lanes(Index k0) {
+  return k0 == 1 ? _mm256_castsi256_pd(_mm256_setr_epi64x(-1, 0, -1, 0))
+                 : _mm256_castsi256_pd(_mm256_setr_epi64x(0, -1, 0, -1));
+}
+
 template <bool ThreeD>
 KINEMA_TARGET_AVX2 void colour_row_avx2(const Scalar* b, Scalar* x, Index base, Index n2, Index k0,
                                         Index s0, Index s1, Scalar ih2, Scalar inv) {
-  const __m256d vih2 = _mm256_set1_pd(ih2), vinv = _mm256_set1_pd(inv);
-  // Vectors start at odd k: lanes 0 and 2 hold odd cells.
-  const __m256d take_new = k0 == 1 ? _mm256_castsi256_pd(_mm256_setr_epi64x(-1, 0, -1, 0))
-                                   : _mm256_castsi256_pd(_mm256_setr_epi64x(0, -1, 0, -1));
+  const __m256d vih2 = _mm256_set1_pd(ih2), vinv = _mm256_set1_pd(inv), take_new = colour_lanes(k0);
   Index k = 1;
   __m256d pending = _mm256_setzero_pd();
   Scalar* pending_at = nullptr;
@@ -440,15 +466,10 @@ KINEMA_TARGET_AVX2 void colour_row_avx2(const Scalar* b, Scalar* x, Index base, 
       prefetch_ahead(x + c + s0);
       prefetch_ahead(b + c);
     }
-    __m256d nb = _mm256_add_pd(_mm256_add_pd(_mm256_add_pd(_mm256_loadu_pd(x + c - s1),
-                                                           _mm256_loadu_pd(x + c + s1)),
-                                             _mm256_loadu_pd(x + c - 1)),
-                               _mm256_loadu_pd(x + c + 1));
-    if (ThreeD)
-      nb = _mm256_add_pd(nb, _mm256_add_pd(_mm256_loadu_pd(x + c - s0), _mm256_loadu_pd(x + c + s0)));
-    const __m256d updated =
-        _mm256_mul_pd(_mm256_add_pd(_mm256_loadu_pd(b + c), _mm256_mul_pd(vih2, nb)), vinv);
-    const __m256d merged = _mm256_blendv_pd(_mm256_loadu_pd(x + c), updated, take_new);
+    const __m256d below = ThreeD ? _mm256_loadu_pd(x + c - s0) : _mm256_setzero_pd();
+    const __m256d above = ThreeD ? _mm256_loadu_pd(x + c + s0) : _mm256_setzero_pd();
+    const __m256d merged =
+        colour_vector<ThreeD>(b, x, c, s1, _mm256_loadu_pd(x + c), below, above, vih2, vinv, take_new);
     if (pending_at) _mm256_storeu_pd(pending_at, pending);
     pending = merged;
     pending_at = x + c;
@@ -472,18 +493,9 @@ KINEMA_TARGET_AVX2 void colour_row_avx2(const Scalar* b, Scalar* x, Index base, 
 // body in the same order: bitwise the result of the two colour passes.
 KINEMA_TARGET_AVX2 void colour_row_pair_avx2(const Scalar* b, Scalar* x, Index base, Index n2, Index k0,
                                              Index s0, Index s1, Scalar ih2, Scalar inv) {
-  const __m256d vih2 = _mm256_set1_pd(ih2), vinv = _mm256_set1_pd(inv);
-  const __m256d take_new = k0 == 1 ? _mm256_castsi256_pd(_mm256_setr_epi64x(-1, 0, -1, 0))
-                                   : _mm256_castsi256_pd(_mm256_setr_epi64x(0, -1, 0, -1));
+  const __m256d vih2 = _mm256_set1_pd(ih2), vinv = _mm256_set1_pd(inv), take_new = colour_lanes(k0);
   auto update = [&](Index c, __m256d own, __m256d below, __m256d above) KINEMA_TARGET_AVX2 {
-    __m256d nb = _mm256_add_pd(_mm256_add_pd(_mm256_add_pd(_mm256_loadu_pd(x + c - s1),
-                                                           _mm256_loadu_pd(x + c + s1)),
-                                             _mm256_loadu_pd(x + c - 1)),
-                               _mm256_loadu_pd(x + c + 1));
-    nb = _mm256_add_pd(nb, _mm256_add_pd(below, above));
-    const __m256d updated =
-        _mm256_mul_pd(_mm256_add_pd(_mm256_loadu_pd(b + c), _mm256_mul_pd(vih2, nb)), vinv);
-    return _mm256_blendv_pd(own, updated, take_new);
+    return colour_vector<true>(b, x, c, s1, own, below, above, vih2, vinv, take_new);
   };
   Index k = 1;
   __m256d pending_first = _mm256_setzero_pd(), pending_second = _mm256_setzero_pd();
@@ -546,7 +558,7 @@ void PoissonOperator::smooth_row(const Scalar* b, Scalar* x, Index row, int colo
   const Scalar d_end = end_diagonal<ThreeD>();
   auto end_cell = [&](Index c, Index inward) {
     if (!ends_plain_) return masked(c);
-    x[c] = (b[c] + ih2 * end_cell_sum<ThreeD>(x, c, inward, s0, s1)) / d_end;
+    end_cell_update<ThreeD>(b, x, c, inward, s0, s1, ih2, d_end);
   };
   if (k0 == 0) end_cell(base, 1);
 #if KINEMA_HAVE_AVX2_CLONES
@@ -578,8 +590,7 @@ void PoissonOperator::smooth_row_pair(const Scalar* b, Scalar* x, Index row, int
     const Scalar ih2 = inv_h2_, inv_plain = 1 / (shift_ + ih2 * 6), d_end = end_diagonal<ThreeD>();
     const Index base = row * n2, k0 = (row / n1 + row % n1 + color) & 1;
     auto end_cells = [&](Index k, Index inward) {
-      for (Index c : {base + k, base + k - s0})
-        x[c] = (b[c] + ih2 * end_cell_sum<ThreeD>(x, c, inward, s0, s1)) / d_end;
+      for (Index c : {base + k, base + k - s0}) end_cell_update<ThreeD>(b, x, c, inward, s0, s1, ih2, d_end);
     };
     if (k0 == 0) end_cells(0, 1);
     colour_row_pair_avx2(b, x, base, n2, k0, s0, s1, ih2, inv_plain);
