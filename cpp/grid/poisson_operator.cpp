@@ -92,6 +92,22 @@ PoissonOperator::PoissonOperator(const GridShape& shape, Scalar h, Boundary bc,
     });
   }
 
+  // The other rows whose inner cells all see the same stencil: fluid, coupled along the row,
+  // with one set of couplings to the next rows and planes and one diagonal (the rows along the
+  // domain's faces, most of all), and no periodic wrap. The AVX2 passes run them by vectors.
+  row_dirs_.assign(shape_.rows(), kMixedRow);
+  if (s[2] >= 3) {
+    parallel_for(shape_.rows(), [&](Index row) {
+      if (row_fast_[row]) return;
+      const Index first = row * s[2] + 1, end = (row + 1) * s[2] - 1;
+      const std::uint8_t m = mask_[first], count = diag_[first];
+      if (!(m & kFluidBit) || (m & 0x30) != 0x30) return;
+      for (Index c = first; c < end; ++c)
+        if (mask_[c] != m || diag_[c] != count || (periodic && wrap_[c])) return;
+      row_dirs_[row] = m & 0x0F;
+    });
+  }
+
   // Row flags: all fluid; clear of solids in the 3^d neighbourhood of every cell.
   row_clear_.assign(shape_.rows(), 0);
   row_fluid_.assign(shape_.rows(), 0);
@@ -261,15 +277,33 @@ KINEMA_ALWAYS_INLINE void plain_row_body(const Scalar* x, Scalar* y, const Scala
   }
 }
 
-// A whole plain row [base, base + n2): y_first and y_last are the results of its two end cells,
-// computed by the caller (they see the domain face or the periodic wrap), the cells between
-// take the plain stencil.
+// The results of the two end cells of a plain row (k = 0 and n2 - 1), which see the domain
+// face or the periodic wrap. With plain ends (no wrap) the row computes them from its geometry
+// (end_cell_sum, diagonal d_end), once it has reached them; otherwise the caller has computed
+// them through the mask, y_first and y_last.
+struct RowEnds {
+  bool plain = false;
+  Scalar d_end = 0;
+  Scalar y_first = 0, y_last = 0;
+
+  // The end cell c, whose one neighbour along the row is at c + inward.
+  template <bool ThreeD, bool Residual>
+  KINEMA_ALWAYS_INLINE Scalar value(const Scalar* x, const Scalar* b, Index c, Index inward, Index s0,
+                                    Index s1, Scalar ih2) const {
+    if (!plain) return inward > 0 ? y_first : y_last;
+    const Scalar ax = d_end * x[c] - ih2 * end_cell_sum<ThreeD>(x, c, inward, s0, s1);
+    return Residual ? b[c] - ax : ax;
+  }
+};
+
+// A whole plain row [base, base + n2): its end cells as `ends` says, the cells between take
+// the plain stencil.
 template <bool ThreeD, bool Residual>
 void plain_row_baseline(const Scalar* x, Scalar* y, const Scalar* b, Index base, Index n2, Index s0,
-                        Index s1, Scalar d, Scalar ih2, Scalar y_first, Scalar y_last) {
-  y[base] = y_first;
+                        Index s1, Scalar d, Scalar ih2, const RowEnds& ends) {
+  y[base] = ends.value<ThreeD, Residual>(x, b, base, 1, s0, s1, ih2);
   plain_row_body<ThreeD, Residual>(x, y, b, base + 1, base + n2 - 1, s0, s1, d, ih2);
-  y[base + n2 - 1] = y_last;
+  y[base + n2 - 1] = ends.value<ThreeD, Residual>(x, b, base + n2 - 1, -1, s0, s1, ih2);
 }
 
 #if KINEMA_HAVE_AVX2_CLONES
@@ -286,6 +320,21 @@ KINEMA_ALWAYS_INLINE void prefetch_ahead(const Scalar* p, bool for_write = false
   else __builtin_prefetch(reinterpret_cast<const void*>(address), 0, 3);
 }
 
+// Orders the calling thread's non-temporal stores before its later stores.
+inline void stream_fence() { _mm_sfence(); }
+
+// The prefetches of a 3D row at cell c, once per 64-byte line: the next plane, b for the
+// residual, and y when it is written through the cache.
+template <bool Residual>
+KINEMA_ALWAYS_INLINE void prefetch_row3(const Scalar* x, const Scalar* b, const Scalar* y, Index c, Index s0,
+                                        bool write_y) {
+  if ((c & 7) < 4) {
+    prefetch_ahead(x + c + s0);
+    if (Residual) prefetch_ahead(b + c);
+    if (write_y) prefetch_ahead(y + c, true);
+  }
+}
+
 // The plain stencil's result on the four cells from c (plain_row_body's operations and order).
 template <bool Residual>
 KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE __m256d plain_vector3(const Scalar* x, const Scalar* b, Index c,
@@ -299,64 +348,142 @@ KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE __m256d plain_vector3(const Scalar* x, c
   return Residual ? _mm256_sub_pd(_mm256_loadu_pd(b + c), ax) : ax;
 }
 
+// The four cells from c computed as end cells of a plain row (end_cell_sum, with diagonal
+// d_end and the one neighbour along the row at `inward`): the lane of the row's actual end cell
+// is kept, the others are discarded. The loads are plain_vector3's, so they come from cache.
+template <bool Residual>
+KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE __m256d end_vector3(const Scalar* x, const Scalar* b, Index c,
+                                                            Index inward, Index s0, Index s1, __m256d vd_end,
+                                                            __m256d vih2) {
+  __m256d sum = _mm256_add_pd(_mm256_setzero_pd(), _mm256_loadu_pd(x + c - s0));
+  sum = _mm256_add_pd(sum, _mm256_loadu_pd(x + c + s0));
+  sum = _mm256_add_pd(sum, _mm256_loadu_pd(x + c - s1));
+  sum = _mm256_add_pd(sum, _mm256_loadu_pd(x + c + s1));
+  sum = _mm256_add_pd(sum, _mm256_loadu_pd(x + c + inward));
+  const __m256d ax = _mm256_sub_pd(_mm256_mul_pd(vd_end, _mm256_loadu_pd(x + c)), _mm256_mul_pd(vih2, sum));
+  return Residual ? _mm256_sub_pd(_mm256_loadu_pd(b + c), ax) : ax;
+}
+
 // A 3D plain row with AVX2: the operations of plain_row_body in the same order (no FMA), so the
 // results are bitwise those of the baseline. The 3D stencil makes seven loads per cell: with
 // SSE2's two lanes it is bound by the load ports rather than by memory, with AVX2's four it is
 // not. When the row is a whole number of vectors, the end cells are blended into the first and
-// last vector (their plain values, read across the row's ends, are discarded), so that the
-// row is written by whole vectors only. With Stream those are non-temporal stores that bypass
-// the cache: no read of y's old contents, a third less memory traffic, for grids too large for
-// y to be read back from cache anyway (kStreamBytes); a row that is not 32-byte aligned is
-// written through the cache.
+// last vector, so that the row is written by whole vectors only; with plain ends they are
+// computed there too, from the same loads (end_vector3). Computed ahead of the row, the last
+// end cell's load from the next plane missed in every cache and stalled the core once per row.
+// With Stream the vectors are non-temporal stores that bypass the cache: no read of y's old
+// contents, a third less memory traffic, for grids too large for y to be read back from cache
+// anyway (kStreamBytes); a row that is not 32-byte aligned is written through the cache.
 template <bool Residual, bool Stream>
 KINEMA_TARGET_AVX2 void plain_row3_avx2(const Scalar* x, Scalar* y, const Scalar* b, Index base,
                                         Index n2, Index s0, Index s1, Scalar d, Scalar ih2,
-                                        Scalar y_first, Scalar y_last) {
+                                        const RowEnds& ends) {
   const __m256d vd = _mm256_set1_pd(d), vih2 = _mm256_set1_pd(ih2);
-  auto prefetch = [&](Index c, bool write_y) {
-    if ((c & 7) < 4) {  // once per 64-byte line
-      prefetch_ahead(x + c + s0);
-      if (Residual) prefetch_ahead(b + c);
-      if (write_y) prefetch_ahead(y + c, true);
-    }
-  };
+  // A function, not a lambda: GCC judged a lambda holding only prefetches free of side
+  // effects and dropped its calls (the assembly showed no prefetch at all).
+  const auto prefetch = prefetch_row3<Residual>;
   const Index end = base + n2;
-  if (n2 % 4 == 0) {
+  if (n2 % 4 == 0 && n2 >= 8) {
     const bool stream = Stream && (reinterpret_cast<std::uintptr_t>(y + base) & 31) == 0;
-    for (Index c = base; c < end; c += 4) {
-      prefetch(c, !stream);
-      __m256d v = plain_vector3<Residual>(x, b, c, s0, s1, vd, vih2);
-      if (c == base) v = _mm256_blend_pd(v, _mm256_set1_pd(y_first), 0b0001);
-      if (c + 4 == end) v = _mm256_blend_pd(v, _mm256_set1_pd(y_last), 0b1000);
+    const __m256d vd_end = _mm256_set1_pd(ends.d_end);
+    auto put = [&](Index c, __m256d v) KINEMA_TARGET_AVX2 {
       if (stream) _mm256_stream_pd(y + c, v);
       else _mm256_storeu_pd(y + c, v);
+    };
+    // The first and last vector, with the end cells blended in, outside the loop.
+    const __m256d first = ends.plain ? end_vector3<Residual>(x, b, base, 1, s0, s1, vd_end, vih2)
+                                     : _mm256_set1_pd(ends.y_first);
+    put(base, _mm256_blend_pd(plain_vector3<Residual>(x, b, base, s0, s1, vd, vih2), first, 0b0001));
+    if (stream) {
+      for (Index c = base + 4; c < end - 4; c += 4) {
+        prefetch(x, b, y, c, s0, false);
+        _mm256_stream_pd(y + c, plain_vector3<Residual>(x, b, c, s0, s1, vd, vih2));
+      }
+    } else {
+      for (Index c = base + 4; c < end - 4; c += 4) {
+        prefetch(x, b, y, c, s0, true);
+        _mm256_storeu_pd(y + c, plain_vector3<Residual>(x, b, c, s0, s1, vd, vih2));
+      }
     }
-    if (stream) _mm_sfence();  // order the non-temporal stores before any later read of y
-    return;
+    const Index c = end - 4;
+    const __m256d last = ends.plain ? end_vector3<Residual>(x, b, c, -1, s0, s1, vd_end, vih2)
+                                    : _mm256_set1_pd(ends.y_last);
+    put(c, _mm256_blend_pd(plain_vector3<Residual>(x, b, c, s0, s1, vd, vih2), last, 0b1000));
+    return;  // a non-temporal store is ordered by the caller's stream_fence
   }
-  y[base] = y_first;
+  y[base] = ends.value<true, Residual>(x, b, base, 1, s0, s1, ih2);
   Index c = base + 1;
   for (; c + 4 <= end - 1; c += 4) {
-    prefetch(c, true);
+    prefetch(x, b, y, c, s0, true);
     _mm256_storeu_pd(y + c, plain_vector3<Residual>(x, b, c, s0, s1, vd, vih2));
   }
   plain_row_body<true, Residual>(x, y, b, c, end - 1, s0, s1, d, ih2);
-  y[end - 1] = y_last;
+  y[end - 1] = ends.value<true, Residual>(x, b, end - 1, -1, s0, s1, ih2);
+}
+
+// The couplings of a row whose inner cells share one stencil (row_dirs_) to the rows and
+// planes next to it, in neighbour_sum's order (-s0, +s0, -s1, +s1): the offset of each, 0 where
+// the row has no such coupling, and a lane mask set there. An absent term is added as -0.0,
+// which leaves every sum bitwise as it is (x + -0.0 == x, also for x = +-0), so the vector sum
+// is bitwise neighbour_sum's, and no load leaves the grid.
+struct OffRowTerms {
+  Index offset[4];
+  __m256d absent[4];
+};
+
+KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE OffRowTerms off_row_terms(std::uint8_t dirs, Index s0, Index s1) {
+  const Index strides[4] = {-s0, s0, -s1, s1};
+  OffRowTerms t;
+  for (int q = 0; q < 4; ++q) {
+    const bool present = (dirs >> q) & 1;
+    t.offset[q] = present ? strides[q] : 0;
+    t.absent[q] = _mm256_castsi256_pd(_mm256_set1_epi64x(present ? 0 : -1));
+  }
+  return t;
+}
+
+// neighbour_sum on the four cells from c of such a row.
+KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE __m256d off_row_sum(const Scalar* x, Index c, const OffRowTerms& t) {
+  const __m256d neg_zero = _mm256_set1_pd(-0.0);
+  __m256d sum = _mm256_setzero_pd();
+  for (int q = 0; q < 4; ++q)
+    sum = _mm256_add_pd(sum, _mm256_blendv_pd(_mm256_loadu_pd(x + c + t.offset[q]), neg_zero, t.absent[q]));
+  sum = _mm256_add_pd(sum, _mm256_loadu_pd(x + c - 1));
+  return _mm256_add_pd(sum, _mm256_loadu_pd(x + c + 1));
+}
+
+// The inner cells of such a row from base + 1 by whole vectors, with the masked path's
+// operations (diagonal d); returns where they stop, for the caller's scalar cells.
+template <bool Residual>
+KINEMA_TARGET_AVX2 Index off_row_apply_avx2(const Scalar* x, Scalar* y, const Scalar* b, Index base, Index n2,
+                                            std::uint8_t dirs, Index s0, Index s1, Scalar d, Scalar ih2) {
+  const OffRowTerms t = off_row_terms(dirs, s0, s1);
+  const __m256d vd = _mm256_set1_pd(d), vih2 = _mm256_set1_pd(ih2);
+  Index c = base + 1;
+  for (; c + 4 <= base + n2 - 1; c += 4) {
+    if ((c & 7) < 4) {  // once per 64-byte line
+      prefetch_ahead(x + c + t.offset[1]);
+      if (Residual) prefetch_ahead(b + c);
+    }
+    const __m256d ax = _mm256_sub_pd(_mm256_mul_pd(vd, _mm256_loadu_pd(x + c)), _mm256_mul_pd(vih2, off_row_sum(x, c, t)));
+    _mm256_storeu_pd(y + c, Residual ? _mm256_sub_pd(_mm256_loadu_pd(b + c), ax) : ax);
+  }
+  return c;
 }
 
 // 2D rows stay in cache (a 1024^2 grid's rows are 8 KB): the plain body, compiled for AVX2.
 template <bool Residual>
 KINEMA_TARGET_AVX2 void plain_row2_avx2(const Scalar* x, Scalar* y, const Scalar* b, Index base,
                                         Index n2, Index s0, Index s1, Scalar d, Scalar ih2,
-                                        Scalar y_first, Scalar y_last) {
-  y[base] = y_first;
+                                        const RowEnds& ends) {
+  y[base] = ends.value<false, Residual>(x, b, base, 1, s0, s1, ih2);
   plain_row_body<false, Residual>(x, y, b, base + 1, base + n2 - 1, s0, s1, d, ih2);
-  y[base + n2 - 1] = y_last;
+  y[base + n2 - 1] = ends.value<false, Residual>(x, b, base + n2 - 1, -1, s0, s1, ih2);
 }
 #endif
 
 using PlainRow = void (*)(const Scalar*, Scalar*, const Scalar*, Index, Index, Index, Index, Scalar,
-                          Scalar, Scalar, Scalar);
+                          Scalar, const RowEnds&);
 
 template <bool ThreeD>
 PlainRow pick_plain_row(bool residual, bool avx2, bool stream) {
@@ -391,23 +518,45 @@ void PoissonOperator::apply_impl(const Scalar* x, Scalar* y, const Scalar* b) co
   auto row_kernel = [&](Index row) {
     const Index base = row * n2;
     if (row_fast_[row]) {
-      const Index last = base + n2 - 1;
-      auto end_cell = [&](Index c, Index inward) -> Scalar {
-        if (!ends_plain_) return masked(c);
-        return d_end * x[c] - ih2 * end_cell_sum<ThreeD>(x, c, inward, s0, s1);
-      };
-      const Scalar first_ax = end_cell(base, 1), last_ax = end_cell(last, -1);
-      plain_row(x, y, b, base, n2, s0, s1, d_plain, ih2, b ? b[base] - first_ax : first_ax,
-                b ? b[last] - last_ax : last_ax);
-    } else {
-      for (Index c = base; c < base + n2; ++c) {
-        const Scalar ax = masked(c);
-        y[c] = b ? (fluid(c) ? b[c] - ax : 0) : ax;
+      RowEnds ends;
+      ends.plain = ends_plain_;
+      ends.d_end = d_end;
+      if (!ends_plain_) {
+        const Index last = base + n2 - 1;
+        const Scalar first_ax = masked(base), last_ax = masked(last);
+        ends.y_first = b ? b[base] - first_ax : first_ax;
+        ends.y_last = b ? b[last] - last_ax : last_ax;
       }
+      plain_row(x, y, b, base, n2, s0, s1, d_plain, ih2, ends);
+    } else {
+      auto masked_cells = [&](Index from, Index to) {
+        for (Index c = from; c < to; ++c) {
+          const Scalar ax = masked(c);
+          y[c] = b ? (fluid(c) ? b[c] - ax : 0) : ax;
+        }
+      };
+      Index c = base;
+#if KINEMA_HAVE_AVX2_CLONES
+      if (avx2_ && row_dirs_[row] != kMixedRow) {
+        masked_cells(base, base + 1);
+        const Scalar d = diagonal(base + 1);
+        c = b ? off_row_apply_avx2<true>(x, y, b, base, n2, row_dirs_[row], s0, s1, d, ih2)
+              : off_row_apply_avx2<false>(x, y, b, base, n2, row_dirs_[row], s0, s1, d, ih2);
+      }
+#endif
+      masked_cells(c, base + n2);
     }
   };
-#pragma omp parallel for schedule(static) if (parallel())
-  for (Index row = 0; row < shape_.rows(); ++row) row_kernel(row);
+#pragma omp parallel if (parallel())
+  {
+#pragma omp for schedule(static) nowait
+    for (Index row = 0; row < shape_.rows(); ++row) row_kernel(row);
+    // Each thread orders its own non-temporal stores before the team's closing barrier, after
+    // which y is read. Once per pass: a fence per row waited for each row's stores to drain.
+#if KINEMA_HAVE_AVX2_CLONES
+    if (stream_stores_) stream_fence();
+#endif
+  }
 }
 
 void PoissonOperator::apply(const Scalar* x, Scalar* y) const {
@@ -497,30 +646,34 @@ KINEMA_TARGET_AVX2 void colour_row_pair_avx2(const Scalar* b, Scalar* x, Index b
   auto update = [&](Index c, __m256d own, __m256d below, __m256d above) KINEMA_TARGET_AVX2 {
     return colour_vector<true>(b, x, c, s1, own, below, above, vih2, vinv, take_new);
   };
-  Index k = 1;
-  __m256d pending_first = _mm256_setzero_pd(), pending_second = _mm256_setzero_pd();
-  Index pending_at = -1;
-  for (; k + 4 <= n2 - 1; k += 4) {
-    const Index c = base + k, d = c - s0;
-    if ((c & 7) < 4) {  // once per 64-byte line
-      prefetch_ahead(x + c + s0);
-      prefetch_ahead(b + c);
-      prefetch_ahead(b + d);
-    }
+  // Both rows' updates of the four cells from c: (first row, second row).
+  auto pair = [&](Index c, __m256d& first, __m256d& second) KINEMA_TARGET_AVX2 {
+    const Index d = c - s0;
     const __m256d middle = _mm256_loadu_pd(x + d);  // plane p - 1: below the first row, the second row's own
-    const __m256d first = update(c, _mm256_loadu_pd(x + c), middle, _mm256_loadu_pd(x + c + s0));
-    const __m256d second = update(d, middle, _mm256_loadu_pd(x + d - s0), first);
-    if (pending_at >= 0) {
-      _mm256_storeu_pd(x + pending_at, pending_first);
-      _mm256_storeu_pd(x + pending_at - s0, pending_second);
+    first = update(c, _mm256_loadu_pd(x + c), middle, _mm256_loadu_pd(x + c + s0));
+    second = update(d, middle, _mm256_loadu_pd(x + d - s0), first);
+  };
+  Index k = 1;
+  if (k + 4 <= n2 - 1) {
+    // The first vector outside the loop, so that the loop stores the previous one unconditionally.
+    __m256d pending_first, pending_second;
+    pair(base + k, pending_first, pending_second);
+    for (k += 4; k + 4 <= n2 - 1; k += 4) {
+      const Index c = base + k;
+      if ((c & 7) < 4) {  // once per 64-byte line
+        prefetch_ahead(x + c + s0);
+        prefetch_ahead(b + c);
+        prefetch_ahead(b + c - s0);
+      }
+      __m256d first, second;
+      pair(c, first, second);
+      _mm256_storeu_pd(x + c - 4, pending_first);
+      _mm256_storeu_pd(x + c - 4 - s0, pending_second);
+      pending_first = first;
+      pending_second = second;
     }
-    pending_first = first;
-    pending_second = second;
-    pending_at = c;
-  }
-  if (pending_at >= 0) {
-    _mm256_storeu_pd(x + pending_at, pending_first);
-    _mm256_storeu_pd(x + pending_at - s0, pending_second);
+    _mm256_storeu_pd(x + base + k - 4, pending_first);
+    _mm256_storeu_pd(x + base + k - 4 - s0, pending_second);
   }
   const Index tail = k + ((k & 1) != k0);
   for (Index row_base : {base, base - s0})
@@ -530,6 +683,34 @@ KINEMA_TARGET_AVX2 void colour_row_pair_avx2(const Scalar* b, Scalar* x, Index b
       nb += x[c - s0] + x[c + s0];
       x[c] = (b[c] + ih2 * nb) * inv;
     }
+}
+
+// One colour on the inner cells of a row whose inner cells share one stencil (row_dirs_),
+// by whole vectors from k = 1 as in colour_row_avx2, with the masked path's operations
+// (x_c = (b_c + ih2 neighbour_sum) / d, d > 0 as the row couples along itself); returns the k
+// where the vectors stop, for the caller's scalar cells.
+KINEMA_TARGET_AVX2 Index off_row_colour_avx2(const Scalar* b, Scalar* x, Index base, Index n2, Index k0,
+                                             std::uint8_t dirs, Index s0, Index s1, Scalar d, Scalar ih2) {
+  const OffRowTerms t = off_row_terms(dirs, s0, s1);
+  const __m256d vd = _mm256_set1_pd(d), vih2 = _mm256_set1_pd(ih2), take_new = colour_lanes(k0);
+  Index k = 1;
+  __m256d pending = _mm256_setzero_pd();
+  Scalar* pending_at = nullptr;
+  for (; k + 4 <= n2 - 1; k += 4) {
+    const Index c = base + k;
+    if ((c & 7) < 4) {  // once per 64-byte line
+      prefetch_ahead(x + c + t.offset[1]);
+      prefetch_ahead(b + c);
+    }
+    const __m256d updated =
+        _mm256_div_pd(_mm256_add_pd(_mm256_loadu_pd(b + c), _mm256_mul_pd(vih2, off_row_sum(x, c, t))), vd);
+    const __m256d merged = _mm256_blendv_pd(_mm256_loadu_pd(x + c), updated, take_new);
+    if (pending_at) _mm256_storeu_pd(pending_at, pending);
+    pending = merged;
+    pending_at = x + c;
+  }
+  if (pending_at) _mm256_storeu_pd(pending_at, pending);
+  return k;
 }
 
 }  // namespace
@@ -551,7 +732,15 @@ void PoissonOperator::smooth_row(const Scalar* b, Scalar* x, Index row, int colo
     x[c] = d > 0 ? (b[c] + ih2 * neighbour_sum(x, c)) / d : 0;
   };
   if (!row_fast_[row]) {
-    for (Index k = k0; k < n2; k += 2) masked(base + k);
+    Index k = k0;
+#if KINEMA_HAVE_AVX2_CLONES
+    if (avx2_ && row_dirs_[row] != kMixedRow) {
+      if (k0 == 0) masked(base);
+      k = off_row_colour_avx2(b, x, base, n2, k0, row_dirs_[row], s0, s1, diagonal(base + 1), ih2);
+      k += (k & 1) != k0;
+    }
+#endif
+    for (; k < n2; k += 2) masked(base + k);
     return;
   }
   const Scalar inv_plain = 1 / (shift_ + ih2 * (ThreeD ? 6 : 4));

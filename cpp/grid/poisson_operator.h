@@ -124,6 +124,10 @@ class PoissonOperator {
   std::vector<std::uint8_t> diag_;      // couplings + 2 per Dirichlet face (fluid cells)
   std::vector<std::uint8_t> wrap_;      // periodic: directions whose neighbour wraps around
   std::vector<std::uint8_t> row_fast_;  // row whose inner cells see the plain stencil
+  // Other rows whose inner cells share one stencil: its couplings off the row (mask bits 0-3),
+  // or kMixedRow.
+  std::vector<std::uint8_t> row_dirs_;
+  static constexpr std::uint8_t kMixedRow = 0xFF;
   std::vector<std::uint8_t> row_clear_, row_fluid_;
   Index fluid_count_ = 0;
   std::vector<std::int32_t> component_;          // per cell; -1 for solid
