@@ -16,7 +16,8 @@ namespace kinema {
 
 PoissonOperator::PoissonOperator(const GridShape& shape, Scalar h, Boundary bc,
                                  const std::uint8_t* solid, Scalar shift)
-    : shape_(shape), h_(h), inv_h2_(1 / (h * h)), shift_(shift), bc_(bc), avx2_(use_avx2()),
+    : shape_(shape), h_(h), inv_h2_(1 / (h * h)), shift_(shift),
+      inv_plain_(1 / (shift + inv_h2_ * (shape.dim == 3 ? 6 : 4))), bc_(bc), avx2_(use_avx2()),
       stream_stores_(avx2_ && shape.size() * static_cast<Index>(sizeof(Scalar)) >= kStreamBytes),
       ends_plain_(bc != Boundary::Periodic) {
   if (!(h > 0)) throw InvalidArgument("h: expected a grid spacing > 0");
@@ -719,13 +720,13 @@ KINEMA_TARGET_AVX2 Index off_row_colour_avx2(const Scalar* b, Scalar* x, Index b
 // Gauss-Seidel on the cells of one colour in one row: x_c = (b_c + sum_nb x_nb / h^2) / diag_c.
 // Cells of one colour only couple to the other colour, so every update of a colour reads the
 // same values whatever the order: the sweeps below are parallel and thread-count independent.
+// k0 is the first k of the colour in the row, (i + j + colour) % 2, from the caller: an integer
+// division here, and the division for inv_plain_, sat on every row's critical path.
 template <bool ThreeD>
-void PoissonOperator::smooth_row(const Scalar* b, Scalar* x, Index row, int color) const {
-  const Index n1 = shape_.n[1], n2 = shape_.n[2], s0 = shape_.stride(0), s1 = shape_.stride(1);
+void PoissonOperator::smooth_row(const Scalar* b, Scalar* x, Index row, Index k0) const {
+  const Index n2 = shape_.n[2], s0 = shape_.stride(0), s1 = shape_.stride(1);
   const Scalar ih2 = inv_h2_;
-  const Index i = row / n1, j = row % n1;
   const Index base = row * n2;
-  const Index k0 = (i + j + color) & 1;  // first k of this colour in the row
   auto masked = [&](Index c) {
     if (!fluid(c)) return;
     const Scalar d = diagonal(c);
@@ -743,7 +744,7 @@ void PoissonOperator::smooth_row(const Scalar* b, Scalar* x, Index row, int colo
     for (; k < n2; k += 2) masked(base + k);
     return;
   }
-  const Scalar inv_plain = 1 / (shift_ + ih2 * (ThreeD ? 6 : 4));
+  const Scalar inv_plain = inv_plain_;
   const Scalar d_end = end_diagonal<ThreeD>();
   auto end_cell = [&](Index c, Index inward) {
     if (!ends_plain_) return masked(c);
@@ -770,14 +771,15 @@ void PoissonOperator::smooth_row(const Scalar* b, Scalar* x, Index row, int colo
 
 // The first colour on row `row` (plane p) and the second on the row below it (plane p - 1):
 // fused when both rows are plain (colour_row_pair_avx2), else the two row updates in turn.
+// Both rows' cells of their colour start at the same k0.
 template <bool ThreeD>
-void PoissonOperator::smooth_row_pair(const Scalar* b, Scalar* x, Index row, int color) const {
-  const Index n1 = shape_.n[1], below = row - n1;
+void PoissonOperator::smooth_row_pair(const Scalar* b, Scalar* x, Index row, Index k0) const {
+  const Index below = row - shape_.n[1];
 #if KINEMA_HAVE_AVX2_CLONES
   if (ThreeD && avx2_ && ends_plain_ && row_fast_[row] && row_fast_[below]) {
     const Index n2 = shape_.n[2], s0 = shape_.stride(0), s1 = shape_.stride(1);
-    const Scalar ih2 = inv_h2_, inv_plain = 1 / (shift_ + ih2 * 6), d_end = end_diagonal<ThreeD>();
-    const Index base = row * n2, k0 = (row / n1 + row % n1 + color) & 1;
+    const Scalar ih2 = inv_h2_, inv_plain = inv_plain_, d_end = end_diagonal<ThreeD>();
+    const Index base = row * n2;
     auto end_cells = [&](Index k, Index inward) {
       for (Index c : {base + k, base + k - s0}) end_cell_update<ThreeD>(b, x, c, inward, s0, s1, ih2, d_end);
     };
@@ -787,8 +789,8 @@ void PoissonOperator::smooth_row_pair(const Scalar* b, Scalar* x, Index row, int
     return;
   }
 #endif
-  smooth_row<ThreeD>(b, x, row, color);
-  smooth_row<ThreeD>(b, x, below, 1 - color);
+  smooth_row<ThreeD>(b, x, row, k0);
+  smooth_row<ThreeD>(b, x, below, k0);
 }
 
 // Both colours in one pass over memory: slabs (planes i in 3D, rows j in 2D) are swept in
@@ -800,8 +802,10 @@ void PoissonOperator::sweep_impl(const Scalar* b, Scalar* x, int first_color) co
   const int second_color = 1 - first_color;
   const Index slabs = ThreeD ? shape_.n[0] : shape_.n[1];
   const Index rows_per_slab = ThreeD ? shape_.n[1] : 1;
+  // Row j of slab p is row p * rows_per_slab + j, (i, j) = (p, j) in 3D and (0, p) in 2D: its
+  // cells of a colour start at k0 = (p + j + colour) % 2.
   auto slab = [&](Index p, int color) {
-    for (Index r = p * rows_per_slab; r < (p + 1) * rows_per_slab; ++r) smooth_row<ThreeD>(b, x, r, color);
+    for (Index j = 0; j < rows_per_slab; ++j) smooth_row<ThreeD>(b, x, p * rows_per_slab + j, (p + j + color) & 1);
   };
 #pragma omp parallel if (parallel())
   {
@@ -813,8 +817,8 @@ void PoissonOperator::sweep_impl(const Scalar* b, Scalar* x, int first_color) co
         // p - 1: the latter reads the first colour at (p, j), just done, and at (p - 2, j),
         // (p - 1, j +- 1) and along its row, all final since the previous plane; the first
         // colour on later rows of plane p reads the second only at (p - 1, j' > j), still old.
-        for (Index r = p * rows_per_slab; r < (p + 1) * rows_per_slab; ++r)
-          smooth_row_pair<ThreeD>(b, x, r, first_color);
+        for (Index j = 0; j < rows_per_slab; ++j)
+          smooth_row_pair<ThreeD>(b, x, p * rows_per_slab + j, (p + j + first_color) & 1);
         continue;
       }
       slab(p, first_color);

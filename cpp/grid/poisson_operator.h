@@ -84,9 +84,9 @@ class PoissonOperator {
   template <bool ThreeD>
   void apply_impl(const Scalar* x, Scalar* y, const Scalar* b) const;
   template <bool ThreeD>
-  void smooth_row(const Scalar* b, Scalar* x, Index row, int color) const;
+  void smooth_row(const Scalar* b, Scalar* x, Index row, Index k0) const;
   template <bool ThreeD>
-  void smooth_row_pair(const Scalar* b, Scalar* x, Index row, int color) const;
+  void smooth_row_pair(const Scalar* b, Scalar* x, Index row, Index k0) const;
   template <bool ThreeD>
   void sweep_impl(const Scalar* b, Scalar* x, int first_color) const;
   void label_components();
@@ -116,6 +116,7 @@ class PoissonOperator {
 
   GridShape shape_;
   Scalar h_ = 1, inv_h2_ = 1, shift_ = 0;
+  Scalar inv_plain_ = 1;                // 1 / A_cc of a plain cell, for the smoother
   Boundary bc_ = Boundary::Dirichlet;
   bool avx2_ = false;                   // run the plain-stencil rows with AVX2 (core/simd.h)
   bool stream_stores_ = false;          // 3D apply: non-temporal stores of the result
