@@ -714,6 +714,105 @@ KINEMA_TARGET_AVX2 Index off_row_colour_avx2(const Scalar* b, Scalar* x, Index b
   return k;
 }
 
+// The Gauss-Seidel updates of the four cells from c computed as end cells of a plain row
+// (end_cell_update's operations and order; `inward` is the one neighbour along the row, `below`
+// and `above` the cells at c -+ s0): the lane of the row's actual end cell is kept.
+template <bool ThreeD>
+KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE __m256d end_colour_vector(const Scalar* b, const Scalar* x, Index c,
+                                                                  Index inward, Index s1, __m256d below,
+                                                                  __m256d above, __m256d vih2, __m256d vd_end) {
+  __m256d sum = _mm256_setzero_pd();
+  if (ThreeD) sum = _mm256_add_pd(_mm256_add_pd(sum, below), above);
+  sum = _mm256_add_pd(sum, _mm256_loadu_pd(x + c - s1));
+  sum = _mm256_add_pd(sum, _mm256_loadu_pd(x + c + s1));
+  sum = _mm256_add_pd(sum, _mm256_loadu_pd(x + c + inward));
+  return _mm256_div_pd(_mm256_add_pd(_mm256_loadu_pd(b + c), _mm256_mul_pd(vih2, sum)), vd_end);
+}
+
+// colour_row_avx2 on a row of whole vectors (n2 % 4 == 0, n2 >= 8) with plain ends, the end
+// cells blended in as in colour_row_pair_whole_avx2.
+template <bool ThreeD>
+KINEMA_TARGET_AVX2 void colour_row_whole_avx2(const Scalar* b, Scalar* x, Index base, Index n2, Index k0,
+                                              Index s0, Index s1, Scalar ih2, Scalar inv, Scalar d_end) {
+  const __m256d vih2 = _mm256_set1_pd(ih2), vinv = _mm256_set1_pd(inv), vd_end = _mm256_set1_pd(d_end),
+                take_new = colour_lanes(1 - k0);
+  auto row_vector = [&](Index c, int end_lane) KINEMA_TARGET_AVX2 {
+    const __m256d below = ThreeD ? _mm256_loadu_pd(x + c - s0) : _mm256_setzero_pd();
+    const __m256d above = ThreeD ? _mm256_loadu_pd(x + c + s0) : _mm256_setzero_pd();
+    __m256d v = colour_vector<ThreeD>(b, x, c, s1, _mm256_loadu_pd(x + c), below, above, vih2, vinv, take_new);
+    if (end_lane == 0)
+      v = _mm256_blend_pd(v, end_colour_vector<ThreeD>(b, x, c, 1, s1, below, above, vih2, vd_end), 0b0001);
+    if (end_lane == 3)
+      v = _mm256_blend_pd(v, end_colour_vector<ThreeD>(b, x, c, -1, s1, below, above, vih2, vd_end), 0b1000);
+    return v;
+  };
+  const Index end = base + n2;
+  __m256d pending = row_vector(base, k0 == 0 ? 0 : -1);
+  for (Index c = base + 4; c < end - 4; c += 4) {
+    if (ThreeD && (c & 7) < 4) {  // once per 64-byte line
+      prefetch_ahead(x + c + s0);
+      prefetch_ahead(b + c);
+    }
+    const __m256d v = row_vector(c, -1);
+    _mm256_storeu_pd(x + c - 4, pending);
+    pending = v;
+  }
+  const __m256d last = row_vector(end - 4, ((n2 - 1) & 1) == k0 ? 3 : -1);
+  _mm256_storeu_pd(x + end - 8, pending);
+  _mm256_storeu_pd(x + end - 4, last);
+}
+
+// colour_row_pair_avx2 on rows of whole vectors (n2 % 4 == 0, n2 >= 8) with plain ends: the
+// vectors start at k = 0 and the end cells' updates are blended into the first and last vector
+// (end_colour_vector), from the same loads. The scalar end cells these replace stood on every
+// row pair's critical path, their stores right before the vector loads of the same line.
+KINEMA_TARGET_AVX2 void colour_row_pair_whole_avx2(const Scalar* b, Scalar* x, Index base, Index n2, Index k0,
+                                                   Index s0, Index s1, Scalar ih2, Scalar inv, Scalar d_end) {
+  // Vectors starting at even k: the colour's lanes are those colour_lanes gives the other
+  // parity for vectors starting at odd k.
+  const __m256d vih2 = _mm256_set1_pd(ih2), vinv = _mm256_set1_pd(inv), vd_end = _mm256_set1_pd(d_end),
+                take_new = colour_lanes(1 - k0);
+  // Both rows' updates of the four cells from c: (first row, second row); the end lane
+  // `end_lane` (0 or 3, -1 for none) is of this colour and takes the end-cell update.
+  auto pair = [&](Index c, int end_lane, __m256d& first, __m256d& second) KINEMA_TARGET_AVX2 {
+    const Index d = c - s0;
+    const __m256d middle = _mm256_loadu_pd(x + d), above = _mm256_loadu_pd(x + c + s0),
+                  bottom = _mm256_loadu_pd(x + d - s0);
+    first = colour_vector<true>(b, x, c, s1, _mm256_loadu_pd(x + c), middle, above, vih2, vinv, take_new);
+    if (end_lane == 0)
+      first = _mm256_blend_pd(first, end_colour_vector<true>(b, x, c, 1, s1, middle, above, vih2, vd_end), 0b0001);
+    if (end_lane == 3)
+      first = _mm256_blend_pd(first, end_colour_vector<true>(b, x, c, -1, s1, middle, above, vih2, vd_end), 0b1000);
+    second = colour_vector<true>(b, x, d, s1, middle, bottom, first, vih2, vinv, take_new);
+    if (end_lane == 0)
+      second = _mm256_blend_pd(second, end_colour_vector<true>(b, x, d, 1, s1, bottom, first, vih2, vd_end), 0b0001);
+    if (end_lane == 3)
+      second = _mm256_blend_pd(second, end_colour_vector<true>(b, x, d, -1, s1, bottom, first, vih2, vd_end), 0b1000);
+  };
+  const Index end = base + n2;
+  __m256d pending_first, pending_second;
+  pair(base, k0 == 0 ? 0 : -1, pending_first, pending_second);
+  for (Index c = base + 4; c < end - 4; c += 4) {
+    if ((c & 7) < 4) {  // once per 64-byte line
+      prefetch_ahead(x + c + s0);
+      prefetch_ahead(b + c);
+      prefetch_ahead(b + c - s0);
+    }
+    __m256d first, second;
+    pair(c, -1, first, second);
+    _mm256_storeu_pd(x + c - 4, pending_first);
+    _mm256_storeu_pd(x + c - 4 - s0, pending_second);
+    pending_first = first;
+    pending_second = second;
+  }
+  __m256d first, second;
+  pair(end - 4, ((n2 - 1) & 1) == k0 ? 3 : -1, first, second);
+  _mm256_storeu_pd(x + end - 8, pending_first);
+  _mm256_storeu_pd(x + end - 8 - s0, pending_second);
+  _mm256_storeu_pd(x + end - 4, first);
+  _mm256_storeu_pd(x + end - 4 - s0, second);
+}
+
 }  // namespace
 #endif
 
@@ -750,6 +849,12 @@ void PoissonOperator::smooth_row(const Scalar* b, Scalar* x, Index row, Index k0
     if (!ends_plain_) return masked(c);
     end_cell_update<ThreeD>(b, x, c, inward, s0, s1, ih2, d_end);
   };
+#if KINEMA_HAVE_AVX2_CLONES
+  if (avx2_ && ends_plain_ && n2 % 4 == 0 && n2 >= 8) {
+    colour_row_whole_avx2<ThreeD>(b, x, base, n2, k0, s0, s1, ih2, inv_plain, d_end);
+    return;
+  }
+#endif
   if (k0 == 0) end_cell(base, 1);
 #if KINEMA_HAVE_AVX2_CLONES
   if (avx2_) {
@@ -783,6 +888,10 @@ void PoissonOperator::smooth_row_pair(const Scalar* b, Scalar* x, Index row, Ind
     auto end_cells = [&](Index k, Index inward) {
       for (Index c : {base + k, base + k - s0}) end_cell_update<ThreeD>(b, x, c, inward, s0, s1, ih2, d_end);
     };
+    if (n2 % 4 == 0 && n2 >= 8) {
+      colour_row_pair_whole_avx2(b, x, base, n2, k0, s0, s1, ih2, inv_plain, d_end);
+      return;
+    }
     if (k0 == 0) end_cells(0, 1);
     colour_row_pair_avx2(b, x, base, n2, k0, s0, s1, ih2, inv_plain);
     if (((n2 - 1) & 1) == k0) end_cells(n2 - 1, -1);
