@@ -210,12 +210,14 @@ std::vector<Scalar> reference_sweep(const PoissonOperator& op, const std::vector
 TEST(PoissonOperator, FusedSweepIsTheRedBlackSweep) {
   const int saved_threads = num_threads();
   // Grids above PoissonOperator::parallel()'s threshold, to run threaded, and small odd ones.
-  // Rows of 32, 8 and 44 cells take the whole-vector rows, the others the odd-start ones.
+  // Rows of 32, 8 and 44 cells take the whole-vector rows, the others the odd-start ones (rows
+  // of 4 and 3 cells: no vector at all).
   // Red-black needs an even number of cells on every periodic axis: those grids also run periodic.
   for (const auto& dims : {std::vector<Index>{35, 30, 34}, std::vector<Index>{41, 36, 27},
                            std::vector<Index>{5, 9, 11}, std::vector<Index>{200, 190},
                            std::vector<Index>{45, 38}, std::vector<Index>{36, 30, 34},
-                           std::vector<Index>{36, 31, 32}, std::vector<Index>{20, 18, 8}, std::vector<Index>{190, 44}}) {
+                           std::vector<Index>{36, 31, 32}, std::vector<Index>{20, 18, 8}, std::vector<Index>{190, 44},
+                           std::vector<Index>{12, 10, 4}, std::vector<Index>{6, 5, 3}}) {
     const GridShape shape(dims);
     const auto solid = scattered_solids_and_a_solid_row(shape);
     const auto b = random_vector(shape.size(), 11), x0 = random_vector(shape.size(), 12);
