@@ -603,28 +603,38 @@ KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE __m256d colour_lanes(Index k0) {
                  : _mm256_castsi256_pd(_mm256_setr_epi64x(0, -1, 0, -1));
 }
 
-template <bool ThreeD>
-KINEMA_TARGET_AVX2 void colour_row_avx2(const Scalar* b, Scalar* x, Index base, Index n2, Index k0,
-                                        Index s0, Index s1, Scalar ih2, Scalar inv) {
-  const __m256d vih2 = _mm256_set1_pd(ih2), vinv = _mm256_set1_pd(inv), take_new = colour_lanes(k0);
+// The whole vectors of a row from k = 1 up to its last cell, each stored one vector later as
+// described above: `merged(c)` is the vector at cell c, its colour updated and the other colour
+// as it was. Returns the k where the vectors stop.
+template <class Merged>
+KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE Index delayed_colour_vectors(Scalar* x, Index base, Index n2,
+                                                                     Merged&& merged) {
   Index k = 1;
   __m256d pending = _mm256_setzero_pd();
   Scalar* pending_at = nullptr;
   for (; k + 4 <= n2 - 1; k += 4) {
-    const Index c = base + k;
+    const __m256d v = merged(base + k);
+    if (pending_at) _mm256_storeu_pd(pending_at, pending);
+    pending = v;
+    pending_at = x + base + k;
+  }
+  if (pending_at) _mm256_storeu_pd(pending_at, pending);
+  return k;
+}
+
+template <bool ThreeD>
+KINEMA_TARGET_AVX2 void colour_row_avx2(const Scalar* b, Scalar* x, Index base, Index n2, Index k0,
+                                        Index s0, Index s1, Scalar ih2, Scalar inv) {
+  const __m256d vih2 = _mm256_set1_pd(ih2), vinv = _mm256_set1_pd(inv), take_new = colour_lanes(k0);
+  Index k = delayed_colour_vectors(x, base, n2, [&](Index c) KINEMA_TARGET_AVX2 {
     if (ThreeD && (c & 7) < 4) {  // once per 64-byte line
       prefetch_ahead(x + c + s0);
       prefetch_ahead(b + c);
     }
     const __m256d below = ThreeD ? _mm256_loadu_pd(x + c - s0) : _mm256_setzero_pd();
     const __m256d above = ThreeD ? _mm256_loadu_pd(x + c + s0) : _mm256_setzero_pd();
-    const __m256d merged =
-        colour_vector<ThreeD>(b, x, c, s1, _mm256_loadu_pd(x + c), below, above, vih2, vinv, take_new);
-    if (pending_at) _mm256_storeu_pd(pending_at, pending);
-    pending = merged;
-    pending_at = x + c;
-  }
-  if (pending_at) _mm256_storeu_pd(pending_at, pending);
+    return colour_vector<ThreeD>(b, x, c, s1, _mm256_loadu_pd(x + c), below, above, vih2, vinv, take_new);
+  });
   for (k += (k & 1) != k0; k < n2 - 1; k += 2) {
     const Index c = base + k;
     Scalar nb = x[c - s1] + x[c + s1] + x[c - 1] + x[c + 1];
@@ -694,24 +704,15 @@ KINEMA_TARGET_AVX2 Index off_row_colour_avx2(const Scalar* b, Scalar* x, Index b
                                              std::uint8_t dirs, Index s0, Index s1, Scalar d, Scalar ih2) {
   const OffRowTerms t = off_row_terms(dirs, s0, s1);
   const __m256d vd = _mm256_set1_pd(d), vih2 = _mm256_set1_pd(ih2), take_new = colour_lanes(k0);
-  Index k = 1;
-  __m256d pending = _mm256_setzero_pd();
-  Scalar* pending_at = nullptr;
-  for (; k + 4 <= n2 - 1; k += 4) {
-    const Index c = base + k;
+  return delayed_colour_vectors(x, base, n2, [&](Index c) KINEMA_TARGET_AVX2 {
     if ((c & 7) < 4) {  // once per 64-byte line
       prefetch_ahead(x + c + t.offset[1]);
       prefetch_ahead(b + c);
     }
     const __m256d updated =
         _mm256_div_pd(_mm256_add_pd(_mm256_loadu_pd(b + c), _mm256_mul_pd(vih2, off_row_sum(x, c, t))), vd);
-    const __m256d merged = _mm256_blendv_pd(_mm256_loadu_pd(x + c), updated, take_new);
-    if (pending_at) _mm256_storeu_pd(pending_at, pending);
-    pending = merged;
-    pending_at = x + c;
-  }
-  if (pending_at) _mm256_storeu_pd(pending_at, pending);
-  return k;
+    return _mm256_blendv_pd(_mm256_loadu_pd(x + c), updated, take_new);
+  });
 }
 
 // The Gauss-Seidel updates of the four cells from c computed as end cells of a plain row
