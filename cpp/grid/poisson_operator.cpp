@@ -325,7 +325,9 @@ KINEMA_ALWAYS_INLINE void prefetch_ahead(const Scalar* p, bool for_write = false
 inline void stream_fence() { _mm_sfence(); }
 
 // The prefetches of a 3D row at cell c, once per 64-byte line: the next plane, b for the
-// residual, and y when it is written through the cache.
+// residual, and y when it is written through the cache. A function, not a lambda: GCC judged
+// a lambda holding only prefetches free of side effects and dropped its calls (the assembly
+// showed no prefetch at all).
 template <bool Residual>
 KINEMA_ALWAYS_INLINE void prefetch_row3(const Scalar* x, const Scalar* b, const Scalar* y, Index c, Index s0,
                                         bool write_y) {
@@ -380,9 +382,6 @@ KINEMA_TARGET_AVX2 void plain_row3_avx2(const Scalar* x, Scalar* y, const Scalar
                                         Index n2, Index s0, Index s1, Scalar d, Scalar ih2,
                                         const RowEnds& ends) {
   const __m256d vd = _mm256_set1_pd(d), vih2 = _mm256_set1_pd(ih2);
-  // A function, not a lambda: GCC judged a lambda holding only prefetches free of side
-  // effects and dropped its calls (the assembly showed no prefetch at all).
-  const auto prefetch = prefetch_row3<Residual>;
   const Index end = base + n2;
   if (n2 % 4 == 0 && n2 >= 8) {
     const bool stream = Stream && (reinterpret_cast<std::uintptr_t>(y + base) & 31) == 0;
@@ -397,12 +396,12 @@ KINEMA_TARGET_AVX2 void plain_row3_avx2(const Scalar* x, Scalar* y, const Scalar
     put(base, _mm256_blend_pd(plain_vector3<Residual>(x, b, base, s0, s1, vd, vih2), first, 0b0001));
     if (stream) {
       for (Index c = base + 4; c < end - 4; c += 4) {
-        prefetch(x, b, y, c, s0, false);
+        prefetch_row3<Residual>(x, b, y, c, s0, false);
         _mm256_stream_pd(y + c, plain_vector3<Residual>(x, b, c, s0, s1, vd, vih2));
       }
     } else {
       for (Index c = base + 4; c < end - 4; c += 4) {
-        prefetch(x, b, y, c, s0, true);
+        prefetch_row3<Residual>(x, b, y, c, s0, true);
         _mm256_storeu_pd(y + c, plain_vector3<Residual>(x, b, c, s0, s1, vd, vih2));
       }
     }
@@ -415,7 +414,7 @@ KINEMA_TARGET_AVX2 void plain_row3_avx2(const Scalar* x, Scalar* y, const Scalar
   y[base] = ends.value<true, Residual>(x, b, base, 1, s0, s1, ih2);
   Index c = base + 1;
   for (; c + 4 <= end - 1; c += 4) {
-    prefetch(x, b, y, c, s0, true);
+    prefetch_row3<Residual>(x, b, y, c, s0, true);
     _mm256_storeu_pd(y + c, plain_vector3<Residual>(x, b, c, s0, s1, vd, vih2));
   }
   plain_row_body<true, Residual>(x, y, b, c, end - 1, s0, s1, d, ih2);
@@ -553,7 +552,7 @@ void PoissonOperator::apply_impl(const Scalar* x, Scalar* y, const Scalar* b) co
 #pragma omp for schedule(static) nowait
     for (Index row = 0; row < shape_.rows(); ++row) row_kernel(row);
     // Each thread orders its own non-temporal stores before the team's closing barrier, after
-    // which y is read. Once per pass: a fence per row waited for each row's stores to drain.
+    // which y is read: one fence per pass, where there was one per row.
 #if KINEMA_HAVE_AVX2_CLONES
     if (stream_stores_) stream_fence();
 #endif
