@@ -12,7 +12,12 @@
 #include <vector>
 
 #include "core/parallel.h"
+#include "core/simd.h"
 #include "grid/multigrid.h"
+
+#if KINEMA_HAVE_AVX2_CLONES
+#include <immintrin.h>
+#endif
 
 namespace kinema {
 namespace {
@@ -41,6 +46,31 @@ class BenchArray {
   Index n_;
   Scalar* data_ = nullptr;
 };
+
+#if KINEMA_HAVE_AVX2_CLONES
+KINEMA_TARGET_AVX2 void hand_loop_apply(const Scalar* x, Scalar* y, Index n, Index s0, Index s1, Scalar d,
+                                        Scalar ih2) {
+  const __m256d vd = _mm256_set1_pd(d), vih2 = _mm256_set1_pd(ih2);
+#pragma omp parallel for schedule(static)
+  for (Index row = n; row < n * n - n; ++row) {  // planes 1 .. n-2: every load in range
+    for (Index c = row * n; c < (row + 1) * n; c += 4) {
+      if ((c & 7) < 4) __builtin_prefetch(x + c + s0 + 64, 0, 3);
+      __m256d nb = _mm256_add_pd(_mm256_add_pd(_mm256_add_pd(_mm256_loadu_pd(x + c - s1), _mm256_loadu_pd(x + c + s1)),
+                                               _mm256_loadu_pd(x + c - 1)),
+                                 _mm256_loadu_pd(x + c + 1));
+      nb = _mm256_add_pd(nb, _mm256_add_pd(_mm256_loadu_pd(x + c - s0), _mm256_loadu_pd(x + c + s0)));
+      _mm256_stream_pd(y + c, _mm256_sub_pd(_mm256_mul_pd(vd, _mm256_loadu_pd(x + c)), _mm256_mul_pd(vih2, nb)));
+    }
+  }
+  _mm_sfence();
+}
+#else
+void hand_loop_apply(const Scalar* x, Scalar* y, Index n, Index s0, Index s1, Scalar d, Scalar ih2) {
+#pragma omp parallel for schedule(static)
+  for (Index c = s0; c < n * n * n - s0; ++c)
+    y[c] = d * x[c] - ih2 * (x[c - s1] + x[c + s1] + x[c - 1] + x[c + 1] + x[c - s0] + x[c + s0]);
+}
+#endif
 
 GridShape shape_of(int64_t dim, int64_t n) {
   return dim == 2 ? GridShape({n, n}) : GridShape({n, n, n});
@@ -80,6 +110,22 @@ void BM_PoissonApplyStores(benchmark::State& state) {
   state.SetBytesProcessed(state.iterations() * shape.size() * 16);
   state.counters["threads"] = num_threads();
   state.counters["stream"] = op.stream_stores();
+}
+
+// A reference for the 3D apply: the plain 7-point loop with the same operations, written by
+// hand with non-temporal stores, on every row (the domain faces read across them, so the result
+// is not the operator's; only its time matters). What kinema's apply at 256^3 should come close
+// to: the library ran 25% behind it before session 7 (bench/RESULTS.md).
+void BM_ApplyHandLoop(benchmark::State& state) {
+  const Index n = state.range(0), s1 = n, s0 = n * n, size = n * n * n;
+  BenchArray x(size, 1.0), y(size, 0.0);
+  const Scalar d = 6.0 * n * n, ih2 = 1.0 * n * n;
+  for (auto _ : state) {
+    hand_loop_apply(x.data(), y.data(), n, s0, s1, d, ih2);
+    benchmark::DoNotOptimize(y.data());
+  }
+  state.SetBytesProcessed(state.iterations() * size * 16);
+  state.counters["threads"] = num_threads();
 }
 
 void BM_RedBlackSweep(benchmark::State& state) {
@@ -138,6 +184,7 @@ void BM_VCycle(benchmark::State& state) {
 BENCHMARK(BM_PoissonApply)->GRID_ARGS->Args({3, 256});
 BENCHMARK(BM_PoissonApplyBaseline)->GRID_ARGS->Args({3, 256});
 BENCHMARK(BM_RedBlackSweep)->GRID_ARGS->Args({3, 256});
+BENCHMARK(BM_ApplyHandLoop)->Arg(256)->Unit(benchmark::kMillisecond)->UseRealTime();
 BENCHMARK(BM_PoissonApplyStores)->ArgsProduct({{128, 256}, {0, 1}})->Unit(benchmark::kMillisecond)->UseRealTime();
 BENCHMARK(BM_Restrict)->GRID_ARGS;
 BENCHMARK(BM_Prolong)->GRID_ARGS;
