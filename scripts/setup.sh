@@ -27,7 +27,7 @@ if [ ! -x "$venv/bin/python" ]; then
 fi
 py="$venv/bin/python"
 
-extras="test,demo,scenes${1:+,$1}"
+extras="test,demo,sweep,docs${1:+,$1}"
 dep_stamp="$venv/.kinema-deps-$(echo "$extras" | tr ',' '-')"
 dep_hash=$(sha1sum pyproject.toml | cut -d' ' -f1)
 if [ ! -f "$dep_stamp" ] || [ "$(cat "$dep_stamp")" != "$dep_hash" ]; then
@@ -54,6 +54,10 @@ src_hash=$(find CMakeLists.txt pyproject.toml cmake cpp python -type f \( -name 
 src_stamp="$venv/.kinema-src"
 if [ ! -f "$src_stamp" ] || [ "$(cat "$src_stamp")" != "$src_hash" ]; then
   echo "[setup] building and installing kinema (C++ core, 1-2 minutes on first build)"
-  "$py" -m pip install -q --no-build-isolation --no-deps .
+  # One wheel, built incrementally in build/, installed here and reused by tests/test_install.py
+  # (a plain virtual environment with the base dependencies only).
+  rm -rf build/dist
+  "$py" -m pip wheel -q --no-build-isolation --no-deps -C build-dir="build/{wheel_tag}" -w build/dist .
+  "$py" -m pip install -q --no-deps --force-reinstall build/dist/kinema-*.whl
   echo "$src_hash" > "$src_stamp"
 fi

@@ -3,7 +3,8 @@
     import kinema as km
     u, info = km.poisson.solve(f, h=1/256)
 
-See README.md for an overview and API.md for the public contract.
+The user guide and API reference: docs/ in the source repository (``bash scripts/docs.sh``
+builds them into HTML), or each function's docstring (``help(km.sph.Fluid)``).
 """
 
 from kinema import _core
@@ -17,6 +18,7 @@ from kinema.errors import (
 )
 from kinema import diffusion, fem, fmm, grid, massspring, poisson, render, sparse, sph, vortex
 from kinema.scenes import Scene, SceneError
+from kinema import io
 
 __version__ = "0.1.0"
 
@@ -43,6 +45,7 @@ __all__ = [
     "render",
     "Scene",
     "SceneError",
+    "io",
 ]
 
 

@@ -178,14 +178,35 @@ class System:
         return self._core.forces()
 
 
-def cloth(nx, ny, size, *, dim=3, return_kinds=False):
+class ClothMesh(tuple):
+    """What :func:`cloth` returns: the pair ``(x, springs)`` (so ``x, springs = cloth(...)``
+    unpacks as before), or ``(x, springs, kinds)`` with ``return_kinds=True``, with the
+    attributes ``x``, ``springs``, ``kinds`` (0 structural, 1 shear, 2 bending) and
+    ``triangles`` ((2 (nx-1)(ny-1), 3) vertex indices, counter-clockwise seen from the plane's
+    normal, for rendering and for :func:`kinema.io.write_mesh`)."""
+
+    def __new__(cls, x, springs, kinds, triangles, return_kinds):
+        self = super().__new__(cls, (x, springs, kinds) if return_kinds else (x, springs))
+        self.x, self.springs, self.kinds, self.triangles = x, springs, kinds, triangles
+        return self
+
+
+_PLANES = {"xy": (0, 1), "xz": (0, 2), "yz": (1, 2)}
+
+
+def cloth(nx, ny, size, *, dim=3, plane="xy", origin=None, return_kinds=False):
     """A rectangular cloth of nx x ny vertices with structural, shear and bending springs.
 
     size: side length [m] (scalar) or (sx, sy). Vertex (i, j) -> index i * ny + j at
-    (i sx/(nx-1), j sy/(ny-1)) in the x-y plane (z = 0 when dim = 3).
-    Springs: structural (grid edges), shear (both cell diagonals), bending (every second
-    vertex along each axis), in that order.
-    Returns (x, springs), or (x, springs, kinds) with kinds (m,) in {0, 1, 2} when return_kinds.
+    origin + i sx/(nx-1) e_a + j sy/(ny-1) e_b, where (a, b) are the axes of ``plane``: "xy"
+    (default), "xz" (horizontal when y is up) or "yz" (3D only). origin: the position of
+    vertex (0, 0) (default 0). Springs: structural (grid edges), shear (both cell diagonals),
+    bending (every second vertex along each axis), in that order.
+    Returns a :class:`ClothMesh`: it unpacks as (x, springs), or (x, springs, kinds) when
+    return_kinds, and has ``.triangles`` (two per grid cell).
+
+        x, springs = km.massspring.cloth(20, 20, 1.0, plane="xz", origin=(0, 1, 0))
+        tris = km.massspring.cloth(20, 20, 1.0).triangles
     """
     nx = positive_int(nx, "nx")
     ny = positive_int(ny, "ny")
@@ -193,6 +214,9 @@ def cloth(nx, ny, size, *, dim=3, return_kinds=False):
         raise ValueError(f"nx, ny: expected at least 2 vertices per side, got ({nx}, {ny})")
     if dim not in (2, 3):
         raise ValueError(f"dim: expected 2 or 3, got {dim!r}")
+    if plane not in _PLANES or (dim == 2 and plane != "xy"):
+        allowed = ", ".join(f'"{p}"' for p in (_PLANES if dim == 3 else ["xy"]))
+        raise ValueError(f"plane: expected one of {allowed} for dim={dim}, got {plane!r}")
     s = as_float_array(size, "size", ndim=(0, 1))
     if np.ndim(size) == 0:
         sx = sy = float(s[0])
@@ -204,8 +228,14 @@ def cloth(nx, ny, size, *, dim=3, return_kinds=False):
     positive(sy, "size")
     I, J = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
     x = np.zeros((nx * ny, dim))
-    x[:, 0] = (I * sx / (nx - 1)).ravel()
-    x[:, 1] = (J * sy / (ny - 1)).ravel()
+    if origin is not None:
+        o = as_float_array(origin, "origin", ndim=1)
+        if o.shape != (dim,):
+            raise ValueError(f"origin: expected {dim} components, got shape {o.shape}")
+        x[:] = o
+    a, b = _PLANES[plane]
+    x[:, a] += (I * sx / (nx - 1)).ravel()
+    x[:, b] += (J * sy / (ny - 1)).ravel()
     idx = (I * ny + J)
 
     def pairs(a, b):
@@ -222,6 +252,7 @@ def cloth(nx, ny, size, *, dim=3, return_kinds=False):
             springs.append(p)
             kinds.append(np.full(len(p), kind, dtype=np.int64))
     springs = np.ascontiguousarray(np.concatenate(springs), dtype=np.int64)
-    if return_kinds:
-        return x, springs, np.concatenate(kinds)
-    return x, springs
+    q = idx[:-1, :-1].ravel()
+    triangles = np.ascontiguousarray(np.concatenate([np.stack([q, q + ny, q + ny + 1], 1),
+                                                     np.stack([q, q + ny + 1, q + 1], 1)]), dtype=np.int64)
+    return ClothMesh(x, springs, np.concatenate(kinds), triangles, return_kinds)

@@ -1,43 +1,28 @@
-"""Files a scene run writes, each atomically (a temporary file in the same folder, then
-os.replace), so an interrupted or killed run never leaves a half-written file under a final name.
+"""Files a scene run writes besides kinema.io's data files, each atomically (a temporary file
+in the same folder, then os.replace, with the umask's permissions), so an interrupted or killed
+run never leaves a half-written file under a final name.
 
 * PNG images (8-bit RGB, zlib; no imaging library needed)
-* VTK image data (.vti, binary inline) for cell-centred grids; VTU and PLY through meshio
-  for particles and meshes
 * MP4 video from the PNG frames through ffmpeg
-* the ``.npz`` checkpoint from which ``kinema run --resume`` continues
+* the ``.npz`` checkpoint from which ``kinema run --resume`` continues, read back with every
+  kind of damage reported as one :class:`CheckpointError` naming the file
 """
 
 from __future__ import annotations
 
-import base64
-import contextlib
 import json
 import os
 import shutil
 import struct
 import subprocess
-import tempfile
 import zlib
 from pathlib import Path
 
 import numpy as np
 
+from kinema.io import atomic_path
 
-@contextlib.contextmanager
-def atomic_path(path):
-    """Yields a temporary path beside ``path``; on success it replaces ``path``, on any
-    exception (KeyboardInterrupt included) it is removed."""
-    path = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
-        yield Path(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
+__all__ = ["atomic_path", "write_png", "write_mp4", "save_checkpoint", "load_checkpoint", "CheckpointError"]
 
 
 def write_png(path, rgb):
@@ -55,94 +40,6 @@ def write_png(path, rgb):
            + chunk(b"IDAT", zlib.compress(raw.tobytes(), 6)) + chunk(b"IEND", b""))
     with atomic_path(path) as tmp:
         tmp.write_bytes(png)
-
-
-def write_vti(path, fields, h, origin=(0.0, 0.0, 0.0)):
-    """Cell-centred fields on a grid of cells of size h [m] as VTK XML image data (binary).
-
-    fields: name -> array of the grid's shape (a scalar) or shape + (d,) (a vector, padded to 3
-    components). ParaView reads it; :func:`read_vti` reads it back."""
-    fields = {name: np.asarray(a, dtype=np.float64) for name, a in fields.items()}
-    dims = min((a.shape for a in fields.values()), key=len)  # the grid: a scalar's shape
-    arrays = []
-    for name, a in fields.items():
-        ncomp = 1 if a.shape == dims else a.shape[-1]
-        if a.shape[:len(dims)] != dims:
-            raise ValueError(f"fields[{name!r}]: expected shape {dims} or {dims} + (d,), got {a.shape}")
-        if ncomp > 1:
-            a = np.concatenate([a, np.zeros(dims + (3 - ncomp,))], axis=-1) if ncomp < 3 else a
-            ncomp = 3
-        # VTK runs x fastest; the arrays are [i, j(, k)] with the last index fastest.
-        grid = a.reshape(dims + (1,) * (3 - len(dims)) + ((ncomp,) if ncomp > 1 else ()))
-        data = np.ascontiguousarray(np.moveaxis(grid, (0, 1, 2), (2, 1, 0))).tobytes()
-        payload = base64.b64encode(struct.pack("<Q", len(data)) + data).decode("ascii")
-        arrays.append(f'        <DataArray type="Float64" Name="{name}" NumberOfComponents="{ncomp}" '
-                      f'format="binary">{payload}</DataArray>\n')
-    shape3 = tuple(dims) + (1,) * (3 - len(dims))
-    extent = " ".join(f"0 {n}" for n in shape3)
-    org = " ".join(str(float(o)) for o in list(origin) + [0.0] * (3 - len(origin)))
-    text = ('<?xml version="1.0"?>\n<VTKFile type="ImageData" version="1.0" byte_order="LittleEndian" '
-            'header_type="UInt64">\n'
-            f'  <ImageData WholeExtent="{extent}" Origin="{org}" Spacing="{h} {h} {h}">\n'
-            f'    <Piece Extent="{extent}">\n      <CellData>\n' + "".join(arrays)
-            + "      </CellData>\n    </Piece>\n  </ImageData>\n</VTKFile>\n")
-    with atomic_path(path) as tmp:
-        tmp.write_text(text)
-
-
-def read_vti(path):
-    """Reads a file of :func:`write_vti`: (fields as [i, j, k(, c)] arrays, spacing, origin)."""
-    import xml.etree.ElementTree as ET
-
-    image = ET.parse(path).getroot().find("ImageData")
-    ext = [int(v) for v in image.get("WholeExtent").split()]
-    shape = (ext[1] - ext[0], ext[3] - ext[2], ext[5] - ext[4])
-    fields = {}
-    for arr in image.iter("DataArray"):
-        raw = base64.b64decode(arr.text.strip())
-        (nbytes,) = struct.unpack("<Q", raw[:8])
-        ncomp = int(arr.get("NumberOfComponents", "1"))
-        flat = np.frombuffer(raw[8:8 + nbytes], dtype="<f8")
-        vtk = flat.reshape(shape[::-1] + ((ncomp,) if ncomp > 1 else ()))
-        fields[arr.get("Name")] = np.moveaxis(vtk, (0, 1, 2), (2, 1, 0))
-    spacing = [float(v) for v in image.get("Spacing").split()]
-    origin = [float(v) for v in image.get("Origin").split()]
-    return fields, spacing, origin
-
-
-def _meshio():
-    try:
-        import meshio
-    except ImportError:
-        raise ImportError("VTU and PLY output need meshio: pip install 'kinema[scenes]' "
-                          "(scripts/setup.sh installs it)") from None
-    return meshio
-
-
-def write_mesh(path, points, cells=(), point_data=None, file_format=None):
-    """Points (with optional cells: [(meshio cell type, (m, k) indices)]) as VTU or PLY via
-    meshio; 2D points are padded with z = 0."""
-    meshio = _meshio()
-    p = np.asarray(points, dtype=np.float64)
-    if p.shape[1] == 2:
-        p = np.hstack([p, np.zeros((len(p), 1))])
-    cells = list(cells) or [("vertex", np.arange(len(p), dtype=np.int64)[:, None])]
-    if file_format == "ply" or (file_format is None and str(path).endswith(".ply")):
-        # PLY holds polygons only: a point cloud is written without cells.
-        cells = [(kind, np.asarray(c, np.int32)) for kind, c in cells if kind in ("triangle", "quad")]
-        file_format = "ply"
-    else:
-        file_format = file_format or "vtu"
-    data = {}
-    for name, value in (point_data or {}).items():
-        value = np.asarray(value, dtype=np.float64)
-        if value.ndim == 2 and file_format == "ply":  # PLY properties are scalars: one per component
-            data.update({f"{name}_{'xyz'[c]}": np.ascontiguousarray(value[:, c]) for c in range(value.shape[1])})
-        else:
-            data[name] = np.ascontiguousarray(value)
-    with atomic_path(path) as tmp:
-        meshio.write_points_cells(str(tmp), p, cells, point_data=data, file_format=file_format,
-                                  **({"binary": True} if file_format in ("vtu", "ply") else {}))
 
 
 def write_mp4(path, frame_pattern, fps, start_number=0):
@@ -168,9 +65,42 @@ def save_checkpoint(path, state, meta):
             np.savez(fh, meta=np.array(json.dumps(meta, sort_keys=True)), **arrays)
 
 
+class CheckpointError(ValueError):
+    """A checkpoint that cannot be resumed from: names the file and what is wrong with it."""
+
+
 def load_checkpoint(path):
-    """(state, meta) as written by :func:`save_checkpoint`."""
-    with np.load(path, allow_pickle=False) as z:
-        meta = json.loads(str(z["meta"]))
-        state = {k[len("state/"):]: z[k] for k in z.files if k.startswith("state/")}
+    """(state, meta) as written by :func:`save_checkpoint`. A missing, truncated, empty or
+    altered file, or one without the expected entries, raises :class:`CheckpointError`."""
+    import zipfile
+    import zlib as _zlib
+
+    def bad(what):
+        return CheckpointError(f"{path}: damaged checkpoint ({what}); run without --resume to start over")
+
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if "meta" not in z.files:
+                raise bad("no meta entry")
+            meta = json.loads(str(z["meta"]))
+            state = {k[len("state/"):]: z[k] for k in z.files if k.startswith("state/")}
+    except CheckpointError:
+        raise
+    except FileNotFoundError:
+        raise CheckpointError(f"{path}: no checkpoint (run without --resume first)") from None
+    except IsADirectoryError:
+        raise CheckpointError(f"{path}: is a folder, expected a checkpoint file") from None
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError, TypeError, _zlib.error,
+            UnicodeDecodeError, RecursionError) as exc:
+        raise bad(f"{exc.__class__.__name__}: {str(exc)[:120]}") from None
+    if not isinstance(meta, dict):
+        raise bad("meta is not a table")
+    for key, kind in (("frame", int), ("fingerprint", str)):
+        if not isinstance(meta.get(key), kind) or isinstance(meta.get(key), bool):
+            raise bad(f"meta.{key} missing or not {'an integer' if kind is int else 'a string'}")
+    if meta["frame"] < 0:
+        raise bad(f"meta.frame = {meta['frame']} is negative")
+    for name, value in state.items():
+        if value.dtype.kind not in "biuf":
+            raise bad(f"{name} holds {value.dtype}, not numbers")
     return state, meta

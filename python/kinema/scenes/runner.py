@@ -4,9 +4,15 @@ Layout of the output folder::
 
     frames/frame_00000.png ...     preview images (output.png)
     video.mp4                      the frames as a video (output.mp4, ffmpeg)
-    <name>/<name>_00000.vtu|ply|vti  data files every output.every frames
+    <name>/<name>_00000.vtu|ply|vti  data files every output.every frames (kinema.io)
+    <name>.pvd                     the VTU/VTI files with their simulated times (ParaView)
     checkpoint.npz                 the state after the last frame written (kinema run --resume)
     diagnostics.csv                one row per frame: time, steps, the solver's diagnostics
+    run.json                       which scene wrote the folder
+
+A run into a folder that holds an earlier run starts clean: the earlier run's files (those
+named above) are removed first, and the run says so. A folder that is not empty and holds no
+run is refused. ``resume=True`` continues the run in the folder instead.
 """
 
 from __future__ import annotations
@@ -14,6 +20,10 @@ from __future__ import annotations
 import contextlib
 import csv
 import io
+import json
+import os
+import re
+import shutil
 import signal
 import sys
 import threading
@@ -24,6 +34,7 @@ from pathlib import Path
 import kinema as km
 from kinema.scenes import output as io_out
 from kinema.scenes.adapters.base import GridData
+from kinema.scenes.scene import MAX_FRAMES
 
 
 @dataclass
@@ -40,6 +51,13 @@ class RunResult:
     diagnostics: dict = field(default_factory=dict)
     interrupted: bool = False
     video: Path | None = None
+    #: what the user should know (an earlier run replaced, no video without ffmpeg)
+    notes: list = field(default_factory=list)
+
+    def summary(self):
+        """The run's final line: frames, steps, seconds and the folder."""
+        what = "interrupted" if self.interrupted else "done"
+        return f"{what}: {self.frames} frames, {self.steps} steps in {self.seconds:.1f} s -> {self.out}"
 
 
 class Progress:
@@ -77,20 +95,25 @@ class Progress:
         self.stream.flush()
 
 
-def _write_data(out, item, frame, fmt):
-    folder = out / item.name
-    folder.mkdir(exist_ok=True)
-    path = folder / f"{item.name}_{frame:05d}.{fmt}"
+def _write_data(out, item, frame, fmt, series):
+    path = out / item.name / f"{item.name}_{frame:05d}.{fmt}"
     if isinstance(item, GridData):
-        io_out.write_vti(path, item.fields, item.h)
-    elif fmt == "ply":
-        cells = [("triangle", item.surface)] if item.surface is not None else []
-        io_out.write_mesh(path, item.points, cells, item.point_data, "ply")
+        km.io.write_grid(path, item.fields, item.h)
+    elif fmt == "ply" and item.surface is not None:
+        km.io.write_mesh(path, item.points, item.surface, item.point_data)
+    elif fmt == "vtu" and item.cells:
+        km.io.write_mesh(path, item.points, item.cells, item.point_data)
     else:
-        io_out.write_mesh(path, item.points, item.cells, item.point_data, "vtu")
+        km.io.write_particles(path, item.points, item.point_data, ids=item.ids)
+    if fmt in ("vtu", "vti"):
+        key = (item.name, fmt)
+        if key not in series:
+            series[key] = km.io.Series(out / f"{item.name}.pvd", resume=True)
+        return path, series[key]
+    return path, None
 
 
-def _write_frame(scene, sim, out, frame):
+def _write_frame(scene, sim, out, frame, series):
     o = scene.config["output"]
     if o["png"]:
         io_out.write_png(out / "frames" / f"frame_{frame:05d}.png", sim.image(o))
@@ -99,7 +122,61 @@ def _write_frame(scene, sim, out, frame):
             formats = ["vti"] if isinstance(item, GridData) else ["vtu", "ply"]
             for fmt in formats:
                 if o[fmt]:
-                    _write_data(out, item, frame, fmt)
+                    path, listing = _write_data(out, item, frame, fmt, series)
+                    if listing is not None:
+                        listing.add(sim.time, path)
+
+
+_MARKER = "run.json"
+_RUN_FILES = ("video.mp4", "checkpoint.npz", "diagnostics.csv", _MARKER)
+
+
+def _holds_run(out):
+    return any((out / name).is_file() for name in ("run.json", "checkpoint.npz", "diagnostics.csv"))
+
+
+def _clear_run(out):
+    """Removes the files of an earlier run in ``out`` (and only those)."""
+    for name in _RUN_FILES:
+        with contextlib.suppress(FileNotFoundError):
+            (out / name).unlink()
+    for p in out.glob("*.pvd"):
+        p.unlink()
+    for p in out.glob(".*.tmp"):  # left by a killed run
+        p.unlink()
+    for folder in [d for d in out.iterdir() if d.is_dir()]:
+        pattern = re.compile(r"frame_\d+\.png" if folder.name == "frames"
+                             else re.escape(folder.name) + r"_\d+\.(vtu|ply|vti)")
+        for p in folder.iterdir():
+            if p.is_file() and (pattern.fullmatch(p.name) or (p.name.startswith(".") and p.name.endswith(".tmp"))):
+                p.unlink()
+        with contextlib.suppress(OSError):
+            folder.rmdir()  # only when empty
+
+
+def _prepare(scene, out, resume):
+    """Makes ``out`` ready for a run: returns (created, notes). Refuses a file, and a folder
+    with other content than an earlier run's."""
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"out: {out} is a file, expected a folder")
+    notes = []
+    created = not out.exists()
+    if resume:
+        if created:
+            raise FileNotFoundError(f"--resume: no folder {out} (run without --resume first)")
+    elif not created and any(out.iterdir()):
+        if not _holds_run(out):
+            raise ValueError(f"out: {out} is not empty and holds no kinema run; choose a new or empty folder "
+                             "(kinema replaces only its own earlier runs)")
+        _clear_run(out)
+        notes.append(f"{out} held an earlier run: its frames, data files, video and checkpoint were removed "
+                     "(use --resume to continue a run instead)")
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "frames").mkdir(exist_ok=True)
+    with io_out.atomic_path(out / _MARKER) as tmp:
+        tmp.write_text(json.dumps({"scene": scene.name, "path": scene.path, "solver": scene.solver,
+                                   "fingerprint": scene.fingerprint(), "kinema": km.__version__}, indent=1))
+    return created, notes
 
 
 @contextlib.contextmanager
@@ -140,8 +217,10 @@ def run(scene, out, frames=None, *, resume=False, progress=True, on_frame=None):
     frames = scene.default_frames if frames is None else int(frames)
     if frames < 1:
         raise ValueError(f"frames: expected an integer >= 1, got {frames}")
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "frames").mkdir(exist_ok=True)
+    if frames > MAX_FRAMES:
+        raise ValueError(f"frames: expected at most {MAX_FRAMES:,}, got {frames}")
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"out: {out} is a file, expected a folder")
     threads = scene.config["scene"]["threads"]
     previous_threads = km.get_num_threads()
     if threads:
@@ -154,7 +233,7 @@ def run(scene, out, frames=None, *, resume=False, progress=True, on_frame=None):
 
 def _run(scene, out, frames, resume, progress, on_frame):
     o = scene.config["output"]
-    sim = scene.build()
+    sim = scene.build()  # before the folder is touched: a scene that fails here writes nothing
     checkpoint = out / "checkpoint.npz"
     start = 0
     if resume:
@@ -163,19 +242,28 @@ def _run(scene, out, frames, resume, progress, on_frame):
         state, meta = io_out.load_checkpoint(checkpoint)
         if meta["fingerprint"] != scene.fingerprint():
             raise ValueError(f"--resume: {checkpoint} was written by a different scene or different "
-                             f"solver/object settings ({meta['scene']}); run without --resume")
-        sim.set_state(state)
+                             f"solver/object settings ({meta.get('scene')}); run without --resume")
+        try:
+            sim.set_state(state)
+        except (KeyError, ValueError, TypeError) as exc:
+            raise io_out.CheckpointError(f"{checkpoint}: damaged checkpoint (state {exc}); run without --resume "
+                                         "to start over") from None
         start = meta["frame"] + 1
+    created, notes = _prepare(scene, out, resume)
     stream = None if progress is False else sys.stderr if progress is True else progress
     bar = Progress(stream, frames, start) if stream is not None else None
-    result = RunResult(out=out, frames=start)
+    result = RunResult(out=out, frames=start, notes=notes)
+    if bar:
+        for note in notes:
+            stream.write(f"kinema: {note}\n")
+    series = {}
     t0 = time.perf_counter()
     try:
         for frame in range(start, frames):
             steps = sim.advance_to(frame / scene.fps) if frame > 0 else 0
             result.steps += steps
             with _frame_commit():
-                _write_frame(scene, sim, out, frame)
+                _write_frame(scene, sim, out, frame, series)
                 result.diagnostics = sim.diagnostics()
                 _append_diagnostics(out, {"frame": frame, "time": sim.time, "steps": sim.steps,
                                           **result.diagnostics})
@@ -191,15 +279,24 @@ def _run(scene, out, frames, resume, progress, on_frame):
                 on_frame(frame, sim)
     except KeyboardInterrupt:
         result.interrupted = True
+    except BaseException:
+        # Nothing of this run is worth keeping when it fails before its first frame.
+        if created and result.new_frames == 0:
+            shutil.rmtree(out, ignore_errors=True)
+        raise
     result.seconds = time.perf_counter() - t0
     result.time = sim.time
     if o["png"] and o["mp4"] and result.frames > 1:
         video = out / "video.mp4"
         if io_out.write_mp4(video, out / "frames" / "frame_%05d.png", scene.fps):
             result.video = video
+        else:
+            result.notes.append("ffmpeg not found: no video.mp4 (install ffmpeg, e.g. apt-get install ffmpeg, "
+                                "or set output.mp4 = false)")
+            if bar:
+                stream.write(f"kinema: {result.notes[-1]}\n")
     if bar:
-        what = "interrupted" if result.interrupted else "done"
-        bar.finish(f"{what}: {result.frames} frames, {result.steps} steps in {result.seconds:.1f} s -> {out}")
+        bar.finish(result.summary())
     if result.interrupted:
         raise KeyboardInterrupt(result)
     return result

@@ -82,6 +82,8 @@ def parse_value(text):
         return tomllib.loads(f"v = {text}")["v"]
     except tomllib.TOMLDecodeError:
         return text
+    except RecursionError:
+        raise ValueError(f"the value {text[:40]!r}...: arrays or tables nested too deeply") from None
 
 
 def apply_override(raw, path, value):
@@ -152,8 +154,14 @@ class Scene:
                 raw = tomllib.load(fh)
         except FileNotFoundError:
             raise SceneError(path, "", "no such scene file") from None
+        except IsADirectoryError:
+            raise SceneError(path, "", "is a folder, expected a scene file (.toml)") from None
+        except (PermissionError, UnicodeDecodeError) as exc:
+            raise SceneError(path, "", f"cannot read it ({exc.__class__.__name__}: {exc})") from None
         except tomllib.TOMLDecodeError as exc:
             raise SceneError(path, "", f"not valid TOML: {exc}") from None
+        except RecursionError:
+            raise SceneError(path, "", "not usable: arrays or tables nested too deeply") from None
         return cls(raw, path, overrides, quick)
 
     def error(self, path, message):
@@ -193,6 +201,8 @@ class Scene:
         elif out["render"] != "flat" and not geometric:
             raise self.error("output.render", f'"{out["render"]}" draws 3D particles and meshes; a {self.dim}D '
                              f'{kind} scene has only "flat" (its colour-mapped view)')
+        _check_colormap(out["colormap"], self.error)
+        _check_effort(config, kind, self.error)
         metric = config["scene"]["metric"]
         if metric is not None and metric not in self.adapter.Simulation.DIAGNOSTICS:
             raise self.error("scene.metric", f"expected one of {', '.join(self.adapter.Simulation.DIAGNOSTICS)} "
@@ -241,11 +251,103 @@ def examples():
 
 
 def resolve(name_or_path):
-    """A scene file path, or the name of a shipped example (``kinema list``)."""
+    """A scene file path, or the name of a shipped example (``kinema list``). A file wins over
+    an example of the same name; a folder does not (``kinema run smoke_plume`` runs the
+    example even where a folder ``smoke_plume`` exists, e.g. the output of an earlier run)."""
     p = Path(name_or_path)
-    if p.exists() or p.suffix == ".toml":
+    if p.is_file() or (p.suffix == ".toml" and not p.is_dir()):
         return p
     known = examples()
-    if name_or_path in known:
-        return known[name_or_path]
+    if str(name_or_path) in known:
+        return known[str(name_or_path)]
+    if p.is_dir():
+        raise SceneError(name_or_path, "", "is a folder, expected a scene file (.toml) or an example name "
+                         f"(examples: {', '.join(known)})")
     raise SceneError(name_or_path, "", f"no such file, nor an example scene (examples: {', '.join(known)})")
+
+
+def _check_colormap(name, error):
+    import matplotlib
+
+    if name not in matplotlib.colormaps:
+        raise error("output.colormap", f"expected a matplotlib colormap name (e.g. viridis, inferno, "
+                    f"coolwarm), got {name!r}")
+
+
+#: refuse runs beyond these: they could not finish (a frame count, a lower bound of solver steps)
+MAX_FRAMES = 1_000_000
+MAX_STEPS = 1_000_000_000
+
+
+def _available_memory():
+    """Bytes the system can still give (MemAvailable), or None where unknown."""
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def _sizes(config, kind):
+    """(key path, item count, bytes per item) of what the scene allocates, roughly from above."""
+    import math
+
+    solver, objects, out = config["solver"], config["objects"], config["output"]
+    width = out["width"]
+    height = out["height"] or width * 3 // 4
+    sizes = [("output.width, output.height", float(width) * height, 64)]
+    if kind == "grid":
+        sizes.append(("solver.resolution", math.prod(float(n) for n in solver["resolution"]), 400))
+    elif kind == "sph":
+        d = len(solver["domain"]["lower"])
+        for k, obj in enumerate(objects):
+            r = obj["region"]
+            if r["shape"] == "box":
+                volume = math.prod(max(hi - lo, 0.0) for lo, hi in zip(r["lower"], r["upper"]))
+            else:
+                volume = (2 * r["radius"]) ** d
+            sizes.append((f"objects[{k}].region, solver.spacing", volume / solver["spacing"] ** d, 4000))
+        lo, hi = solver["domain"]["lower"], solver["domain"]["upper"]
+        area = sum(math.prod(max(h - l, 0.0) for a, (l, h) in enumerate(zip(lo, hi)) if a != skip)
+                   for skip in range(d))
+        sizes.append(("solver.domain, solver.spacing", 4 * area / solver["spacing"] ** (d - 1), 4000))
+    elif kind in ("massspring", "fem"):
+        for k, obj in enumerate(objects):
+            for key in ("resolution", "cells"):
+                if key in obj:
+                    sizes.append((f"objects[{k}].{key}", math.prod(float(n) + 1 for n in obj[key]), 3000))
+    elif kind == "vortex":
+        for k, obj in enumerate(objects):
+            if "particles" in obj:
+                sizes.append((f"objects[{k}].particles", float(obj["particles"]), 2000))
+    return sizes
+
+
+def _check_effort(config, kind, error):
+    """Refuses scenes that cannot finish (too many frames or solver steps) or cannot fit in
+    memory, naming the keys, before anything is built or written."""
+    scene, solver = config["scene"], config["solver"]
+    frames = scene["duration"] * scene["fps"]
+    if not frames <= MAX_FRAMES:
+        raise error("scene.duration", f"{scene['duration']:g} s at scene.fps = {scene['fps']:g} is {frames:.3g} "
+                    f"frames, more than {MAX_FRAMES:,} (shorten the duration or lower the fps)")
+    steps, why = frames, None
+    if "substeps" in solver:
+        steps, why = frames * solver["substeps"], "solver.substeps"
+    if "max_dt" in solver:
+        # The grid's adaptive step is at most max_dt (and at least one step per frame).
+        steps, why = max(frames, scene["duration"] / solver["max_dt"]), "solver.max_dt"
+    if not steps <= MAX_STEPS:
+        raise error(why, f"the run would take at least {steps:.3g} solver steps (scene.duration = "
+                    f"{scene['duration']:g} s), more than {MAX_STEPS:,}")
+    available = _available_memory()
+    if available is None:
+        return
+    for key, count, per_item in _sizes(config, kind):
+        need = count * per_item
+        if not need <= available:
+            raise error(key, f"about {count:.3g} items needing about {need / 2**30:.3g} GiB, more than the "
+                        f"{available / 2**30:.3g} GiB of memory available")

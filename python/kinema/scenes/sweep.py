@@ -13,15 +13,16 @@ from pathlib import Path
 from kinema.scenes.output import atomic_path
 from kinema.scenes.scene import Scene, parse_value
 
+MAX_WORKERS = 256
+
 
 def parse_param(text):
-    """'solver.dt=1e-3,5e-4' -> ('solver.dt', [0.001, 0.0005]); a bare key means solver.KEY."""
+    """'solver.dt=1e-3,5e-4' -> ('solver.dt', [0.001, 0.0005]). A bare key (no dot, no
+    index) is kept as given; :func:`resolve_key` finds it in the scene."""
     key, sep, values = text.partition("=")
     if not sep or not key or not values:
         raise ValueError(f"--param: expected KEY=V1,V2,..., got {text!r}")
     key = key.strip()
-    if "." not in key and "[" not in key:
-        key = f"solver.{key}"
     # Split on commas outside brackets, so that [32, 32],[64, 64] gives two vectors.
     parts, depth, cur = [], 0, ""
     for ch in values:
@@ -34,6 +35,26 @@ def parse_param(text):
             cur += ch
     parts.append(cur)
     return key, [parse_value(p.strip()) for p in parts]
+
+
+def resolve_key(path, key, quick=False):
+    """The key path a bare ``--param`` key names: ``solver.KEY`` when the solver has that
+    option, else ``objects[i].KEY`` when exactly one object of the scene has it (e.g.
+    ``youngs_modulus`` of the only fem body). A dotted or indexed path is returned as given."""
+    if "." in key or "[" in key:
+        return key
+    scene = Scene.load(path, quick=quick)
+    if key in scene.adapter.SOLVER.fields:
+        return f"solver.{key}"
+    hits = [f"objects[{i}].{key}" for i, obj in enumerate(scene.config["objects"])
+            if key in scene.adapter.OBJECTS[obj["type"]].fields]
+    if len(hits) == 1:
+        return hits[0]
+    if hits:
+        raise ValueError(f"--param {key}: several objects have it ({', '.join(hits)}); give the full key path")
+    raise ValueError(f"--param {key}: neither a {scene.solver} solver option nor a key of the scene's objects "
+                     f"(solver options: {', '.join(sorted(scene.adapter.SOLVER.fields))}; "
+                     "kinema list --keys shows all)")
 
 
 def run_one(path, overrides, quick, frames, out):
@@ -49,6 +70,7 @@ def run_one(path, overrides, quick, frames, out):
     row.update(wall_seconds=time.perf_counter() - t0, steps=result.steps, frames=result.frames,
                sim_time=result.time)
     metric = scene.config["scene"]["metric"]
+    out.mkdir(parents=True, exist_ok=True)
     row["metric"] = result.diagnostics.get(metric) if metric else None
     row.update(result.diagnostics)
     return row
@@ -56,20 +78,29 @@ def run_one(path, overrides, quick, frames, out):
 
 def sweep(path, params, out, *, frames=None, quick=False, overrides=(), scheduler=None, workers=2,
           processes=True, log=print):
-    """Runs every combination of ``params`` ({key path: [values]}) and writes out/sweep.csv
-    and out/sweep.png. scheduler: a Dask scheduler address (default: a LocalCluster of
+    """Runs every combination of ``params`` ({key path: [values]}; a bare key as in
+    :func:`resolve_key`) and writes out/sweep.csv and out/sweep.png. scheduler: a Dask scheduler address (default: a LocalCluster of
     ``workers`` workers, separate processes unless processes=False). Returns the rows."""
-    from dask.distributed import Client, LocalCluster
-
     if not params:
         raise ValueError("params: expected at least one --param KEY=V1,V2")
+    if isinstance(workers, bool) or not isinstance(workers, int) or not 1 <= workers <= MAX_WORKERS:
+        raise ValueError(f"workers: expected an integer in 1..{MAX_WORKERS}, got {workers!r}")
+    try:
+        from dask.distributed import Client, LocalCluster
+    except ImportError:
+        raise ImportError("kinema sweep needs Dask: pip install 'kinema[sweep]' "
+                          "(or pip install 'dask[distributed]')") from None
+    params = {resolve_key(path, k, quick): v for k, v in params.items()}
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"out: {out} is a file, expected a folder")
     keys = list(params)
     combos = list(itertools.product(*(params[k] for k in keys)))
     # Validate every combination here, so that a bad value fails before any cluster starts.
     for combo in combos:
-        Scene.load(path, overrides=list(overrides) + list(zip(keys, combo)), quick=quick)
+        scene = Scene.load(path, overrides=list(overrides) + list(zip(keys, combo)), quick=quick)
+    metric = scene.config["scene"]["metric"]
+    out.mkdir(parents=True, exist_ok=True)
     cluster = None
     if scheduler is None:
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=processes,
@@ -92,7 +123,7 @@ def sweep(path, params, out, *, frames=None, quick=False, overrides=(), schedule
             if key not in keys:
                 row.pop(key, None)
     _write_csv(out / "sweep.csv", rows)
-    _plot(out / "sweep.png", rows, keys)
+    _plot(out / "sweep.png", rows, keys, metric)
     log(f"sweep: wrote {out / 'sweep.csv'} and {out / 'sweep.png'}")
     return rows
 
@@ -107,7 +138,7 @@ def _write_csv(path, rows):
         writer.writerows(rows)
 
 
-def _plot(path, rows, keys):
+def _plot(path, rows, keys, metric=None):
     import matplotlib
 
     matplotlib.use("Agg")
@@ -129,7 +160,7 @@ def _plot(path, rows, keys):
             label = ", ".join(f"{k.rsplit('.', 1)[-1]}={r[k]}" for k in keys)
             ax2.annotate(label, (r["wall_seconds"], r["metric"]), fontsize=7)
         ax2.set_xlabel("wall time [s]")
-        ax2.set_ylabel("metric")
+        ax2.set_ylabel(metric or "metric")
     if numeric and all(x > 0 for x in xs):
         ax.set_xscale("log")
     fig.tight_layout()

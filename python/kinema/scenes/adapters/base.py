@@ -21,13 +21,15 @@ class GridData:
 @dataclass
 class PointData:
     """Points (n, d) with optional cells [(meshio type, indices)], per-point data and the
-    surface triangles a PLY file holds: a .vtu and a .ply."""
+    surface triangles a PLY file holds: a .vtu and a .ply (kinema.io). ids: the input index of
+    each row, when the solver reorders its particles (written in input order)."""
 
     name: str
     points: np.ndarray
     cells: list = field(default_factory=list)
     point_data: dict = field(default_factory=dict)
     surface: np.ndarray | None = None
+    ids: np.ndarray | None = None
 
 
 class Simulation:

@@ -156,8 +156,8 @@ class SPHSimulation(ArrayStateSimulation):
 
     def data(self):
         f = self.fluid
-        items = [PointData("fluid", f.x.copy(), point_data={"velocity": f.v.copy(), "density": f.density.copy(),
-                                                            "id": f.ids.astype(float)})]
+        items = [PointData("fluid", f.x.copy(), point_data={"velocity": f.v.copy(), "density": f.density.copy()},
+                           ids=f.ids.copy())]
         if self.steps == 0 and len(self.obstacles):
             items.append(PointData("obstacles", self.obstacles))
         return items
