@@ -89,3 +89,81 @@ def test_ctrl_c_keeps_frames_and_resume_continues(tmp_path):
     a, _ = output.load_checkpoint(tmp_path / "checkpoint.npz")
     b, _ = output.load_checkpoint(tmp_path / "straight" / "checkpoint.npz")
     assert all(np.array_equal(a[k], b[k]) for k in a)
+
+
+def _run_in(tmp_path, *args):
+    return kinema("run", "vortex_sheet", "--quick", "--out", tmp_path, "--set", "output.mp4=false", *args)
+
+
+@needs_script
+def test_a_second_run_replaces_the_first_and_says_so(tmp_path):
+    first = _run_in(tmp_path, "--frames", 5, "--set", "output.vtu=true")
+    assert first.returncode == 0, first.stderr
+    assert len(list((tmp_path / "frames").iterdir())) == 5
+    second = _run_in(tmp_path, "--frames", 3)
+    assert second.returncode == 0, second.stderr
+    assert "held an earlier run" in second.stderr.splitlines()[0]
+    assert sorted(p.name for p in (tmp_path / "frames").iterdir()) == [f"frame_{k:05d}.png" for k in range(3)]
+    assert not list(tmp_path.glob("vortices/*.vtu")) and not (tmp_path / "vortices.pvd").exists()
+    _, meta = output.load_checkpoint(tmp_path / "checkpoint.npz")
+    assert meta["frame"] == 2
+    # A folder with anything else is refused, and left alone.
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("keep me")
+    refused = kinema("run", "vortex_sheet", "--quick", "--out", mine, "--frames", 2)
+    assert refused.returncode == 2 and "is not empty and holds no kinema run" in refused.stderr
+    assert [p.name for p in mine.iterdir()] == ["notes.txt"]
+
+
+@needs_script
+def test_example_name_beside_a_folder_of_that_name(tmp_path):
+    (tmp_path / "vortex_sheet").mkdir()
+    done = kinema("run", "vortex_sheet", "--quick", "--frames", 2, "--out", "o", "--no-progress", cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    folder = kinema("run", "other", cwd=tmp_path / "o")
+    assert "no such file, nor an example scene" in folder.stderr
+    (tmp_path / "sub").mkdir()
+    folder = kinema("run", "sub", cwd=tmp_path)
+    assert folder.returncode == 2 and "sub: is a folder, expected a scene file" in folder.stderr
+
+
+@needs_script
+def test_outputs_follow_the_umask(tmp_path):
+    done = subprocess.run(["sh", "-c", f"umask 022 && exec {KINEMA} run vortex_sheet --quick --frames 2 "
+                           f"--out {tmp_path} --set output.vtu=true --no-progress"], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    files = [p for p in tmp_path.rglob("*") if p.is_file()]
+    assert len(files) >= 6
+    for p in files:
+        assert p.stat().st_mode & 0o777 == 0o644, p
+
+
+@needs_script
+def test_no_ffmpeg_is_said_and_no_progress_keeps_the_final_line(tmp_path):
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    env = {**os.environ, "PATH": str(bin_dir)}  # no ffmpeg on the PATH
+    done = subprocess.run([str(KINEMA), "run", "vortex_sheet", "--quick", "--frames", "3", "--out", str(tmp_path / "o"),
+                           "--no-progress"], capture_output=True, text=True, env=env)
+    assert done.returncode == 0, done.stderr
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 2, lines
+    assert "ffmpeg not found: no video.mp4" in lines[0]
+    assert lines[1].startswith("done: 3 frames") and str(tmp_path / "o") in lines[1]
+    assert not (tmp_path / "o" / "video.mp4").exists()
+
+
+def test_invalid_scene_creates_no_folder(tmp_path, capsys):
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[scene]\nname = "x"\nduration = 1\n[solver]\ntype = "massspring"\n'
+                   '[[objects]]\ntype = "mesh"\nfile = "missing.obj"\nstiffness = 1.0\n')
+    assert main(["run", str(bad), "--out", str(tmp_path / "o")]) == 2
+    assert "objects[0].file" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_info_prints_each_key_once(capsys):
+    assert main(["info"]) == 0
+    keys = [line.split()[0] for line in capsys.readouterr().out.splitlines() if line.strip()]
+    assert keys.count("version") == 1 and len(keys) == len(set(keys))

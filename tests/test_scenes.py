@@ -168,7 +168,8 @@ def test_example_scene_writes_real_files(tmp_path, name):
     for item in fresh.data():
         folder = tmp_path / item.name
         if hasattr(item, "fields"):
-            fields, spacing, _ = output.read_vti(folder / f"{item.name}_00000.vti")
+            back = km.io.read_vtk(folder / f"{item.name}_00000.vti")
+            fields, spacing = back["fields"], back["spacing"]
             for key, value in item.fields.items():
                 got = fields[key]
                 if value.ndim > scene.dim:  # vectors are stored with 3 components
@@ -176,15 +177,22 @@ def test_example_scene_writes_real_files(tmp_path, name):
                 np.testing.assert_array_equal(got.reshape(value.shape), value)
             assert spacing[0] == item.h
             continue
+        # Particles a solver reorders are written in their input order (row k = particle k).
+        order = np.argsort(item.ids) if item.ids is not None else np.arange(len(item.points))
         mesh = meshio.read(folder / f"{item.name}_00000.vtu")
         assert len(mesh.points) == len(item.points)
-        np.testing.assert_array_equal(mesh.points[:, :item.points.shape[1]], item.points)
+        np.testing.assert_array_equal(mesh.points[:, :item.points.shape[1]], item.points[order])
         for kind, cells in item.cells:
             assert any(b.type == kind and np.array_equal(b.data, cells) for b in mesh.cells), kind
         ply = meshio.read(folder / f"{item.name}_00000.ply")
-        np.testing.assert_allclose(ply.points[:, :item.points.shape[1]], item.points, rtol=1e-15)
+        np.testing.assert_allclose(ply.points[:, :item.points.shape[1]], item.points[order], rtol=1e-15)
         if "velocity" in item.point_data:
-            np.testing.assert_array_equal(ply.point_data["velocity_x"], item.point_data["velocity"][:, 0])
+            np.testing.assert_array_equal(ply.point_data["velocity_x"], item.point_data["velocity"][order, 0])
+        # The series lists every VTU file with its simulated time.
+        series = km.io.Series(tmp_path / f"{item.name}.pvd", resume=True).entries
+        written = sorted(f"{item.name}/{p.name}" for p in folder.glob("*.vtu"))  # static items: frame 0 only
+        assert [f for _, f in series] == written and len(written) in (1, frames)
+        assert series[0][0] == 0.0 and all(b[0] > a[0] for a, b in zip(series, series[1:]))
         if item.surface is not None:
             assert len(ply.cells_dict["triangle"]) == len(item.surface)
     with open(tmp_path / "diagnostics.csv") as fh:
@@ -319,16 +327,6 @@ def test_atomic_write_leaves_nothing_on_failure(tmp_path):
     assert (_png(target) == 200).all()
 
 
-def test_vti_round_trip_scalar_and_vector(tmp_path):
-    rng = np.random.default_rng(0)
-    q, v = rng.random((3, 4, 5)), rng.random((3, 4, 5, 3))
-    output.write_vti(tmp_path / "g.vti", {"q": q, "v": v}, 0.25, origin=(1.0, 2.0, 3.0))
-    fields, spacing, origin = output.read_vti(tmp_path / "g.vti")
-    np.testing.assert_array_equal(fields["q"], q)
-    np.testing.assert_array_equal(fields["v"], v)
-    assert spacing == [0.25] * 3 and origin == [1.0, 2.0, 3.0]
-
-
 # ----------------------------------------------------------------------------- sweep
 
 def test_sweep_on_a_local_dask_cluster(tmp_path):
@@ -336,7 +334,7 @@ def test_sweep_on_a_local_dask_cluster(tmp_path):
     from kinema.scenes.sweep import parse_param, sweep
 
     key, values = parse_param("substeps=1,3")
-    assert (key, values) == ("solver.substeps", [1, 3])
+    assert (key, values) == ("substeps", [1, 3])  # a bare key: resolved against the scene
     assert parse_param("solver.resolution=[8,8],[16,16]")[1] == [[8, 8], [16, 16]]
     rows = sweep(EXAMPLES["vortex_sheet"], {key: values}, tmp_path, frames=3, quick=True,
                  workers=1, processes=False, log=lambda m: None)
@@ -348,6 +346,7 @@ def test_sweep_on_a_local_dask_cluster(tmp_path):
     assert [int(r["steps"]) for r in table] == [2, 6]
     assert all(float(r["wall_seconds"]) > 0 and r["metric"] == r["impulse_drift"] for r in table)
     assert (tmp_path / "sweep.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert not list(tmp_path.glob("run_*/*.tmp"))
     assert (tmp_path / "run_001" / "video.mp4").exists() or shutil.which("ffmpeg") is None
 
 
@@ -403,6 +402,27 @@ def test_3d_grid_scene(tmp_path):
     scene = km.Scene.load(write(tmp_path, text), overrides=[("output.vti", True), ("output.mp4", False)])
     assert scene.dim == 3
     scene.run(tmp_path / "out", 2, progress=False)
-    fields, _, _ = output.read_vti(tmp_path / "out" / "grid" / "grid_00001.vti")
+    fields = km.io.read_vtk(tmp_path / "out" / "grid" / "grid_00001.vti")["fields"]
     assert fields["pressure"].shape == (8, 8, 6) and fields["velocity"].shape == (8, 8, 6, 3)
     assert _png(tmp_path / "out" / "frames" / "frame_00001.png").shape[:2] == (8 * 80, 8 * 80)
+
+
+def test_sweep_keys_reach_objects_and_the_plot_names_the_metric(tmp_path, monkeypatch):
+    import matplotlib.pyplot as plt
+
+    from kinema.scenes.sweep import _plot, resolve_key
+
+    assert resolve_key(EXAMPLES["soft_body"], "youngs_modulus") == "objects[0].youngs_modulus"
+    assert resolve_key(EXAMPLES["soft_body"], "substeps") == "solver.substeps"
+    assert resolve_key(EXAMPLES["soft_body"], "objects[0].density") == "objects[0].density"
+    with pytest.raises(ValueError, match="--param nothing: neither a fem solver option nor a key"):
+        resolve_key(EXAMPLES["soft_body"], "nothing")
+    two = write(tmp_path, GRID_SCENE, "two.toml")  # two objects with a region each
+    with pytest.raises(ValueError, match=r"several objects have it \(objects\[0\]\.region, objects\[1\]\.region\)"):
+        resolve_key(two, "region")
+    figures = []
+    monkeypatch.setattr(plt, "close", figures.append)
+    rows = [{"solver.substeps": s, "wall_seconds": 0.1 * s, "metric": 1.0 / s} for s in (1, 2)]
+    _plot(tmp_path / "s.png", rows, ["solver.substeps"], "impulse_drift")
+    assert figures[0].axes[1].get_ylabel() == "impulse_drift"
+    assert figures[0].axes[0].get_xlabel() == "solver.substeps"

@@ -42,7 +42,7 @@ def _overrides(items):
     for item in items or []:
         key, sep, value = item.partition("=")
         if not sep or not key:
-            raise SystemExit(f"kinema: --set expects KEY=VALUE (e.g. solver.resolution=[32,48]), got {item!r}")
+            raise ValueError(f"--set expects KEY=VALUE (e.g. solver.resolution=[32,48]), got {item!r}")
         pairs.append((key.strip(), parse_value(value.strip())))
     return pairs
 

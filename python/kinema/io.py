@@ -37,6 +37,7 @@ import struct
 import tempfile
 import xml.etree.ElementTree as ET
 import zlib
+from xml.sax.saxutils import quoteattr
 from pathlib import Path
 
 import numpy as np
@@ -111,7 +112,8 @@ def _data_array(name, array, compress, ncomp=None):
         a = a.astype("<i8")
     if ncomp is None:
         ncomp = 1 if a.ndim == 1 else a.shape[1]
-    return (f'<DataArray type="{_VTK_TYPES[a.dtype]}" Name="{name}" NumberOfComponents="{ncomp}" '
+    comps = f' NumberOfComponents="{ncomp}"' if ncomp > 1 else ""
+    return (f'<DataArray type="{_VTK_TYPES[a.dtype]}" Name={quoteattr(str(name))}{comps} '
             f'format="binary">{_encode(a, compress)}</DataArray>')
 
 
@@ -467,7 +469,7 @@ class Series:
             text = json.dumps({"file-series-version": "1.0",
                                "files": [{"name": f, "time": t} for t, f in self.entries]}, indent=1)
         else:
-            rows = "".join(f'    <DataSet timestep="{t!r}" part="0" file="{f}"/>\n' for t, f in self.entries)
+            rows = "".join(f'    <DataSet timestep="{t!r}" part="0" file={quoteattr(f)}/>\n' for t, f in self.entries)
             text = ('<?xml version="1.0"?>\n<VTKFile type="Collection" version="0.1" byte_order="LittleEndian">\n'
                     f"  <Collection>\n{rows}  </Collection>\n</VTKFile>\n")
         with atomic_path(self.path) as tmp:

@@ -79,19 +79,23 @@ def load_checkpoint(path):
         return CheckpointError(f"{path}: damaged checkpoint ({what}); run without --resume to start over")
 
     try:
-        with np.load(path, allow_pickle=False) as z:
-            if "meta" not in z.files:
-                raise bad("no meta entry")
-            meta = json.loads(str(z["meta"]))
-            state = {k[len("state/"):]: z[k] for k in z.files if k.startswith("state/")}
+        with open(path, "rb") as fh:  # closed whatever np.load makes of the bytes
+            z = np.load(fh, allow_pickle=False)
+            if not isinstance(z, np.lib.npyio.NpzFile):
+                raise bad("not an .npz archive")
+            with z:
+                if "meta" not in z.files:
+                    raise bad("no meta entry")
+                meta = json.loads(str(z["meta"]))
+                state = {k[len("state/"):]: z[k] for k in z.files if k.startswith("state/")}
     except CheckpointError:
         raise
     except FileNotFoundError:
         raise CheckpointError(f"{path}: no checkpoint (run without --resume first)") from None
     except IsADirectoryError:
         raise CheckpointError(f"{path}: is a folder, expected a checkpoint file") from None
-    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError, TypeError, _zlib.error,
-            UnicodeDecodeError, RecursionError) as exc:
+    except (zipfile.BadZipFile, EOFError, OSError, ValueError, KeyError, TypeError, AttributeError,
+            _zlib.error, UnicodeDecodeError, RecursionError) as exc:
         raise bad(f"{exc.__class__.__name__}: {str(exc)[:120]}") from None
     if not isinstance(meta, dict):
         raise bad("meta is not a table")

@@ -70,7 +70,6 @@ def run_one(path, overrides, quick, frames, out):
     row.update(wall_seconds=time.perf_counter() - t0, steps=result.steps, frames=result.frames,
                sim_time=result.time)
     metric = scene.config["scene"]["metric"]
-    out.mkdir(parents=True, exist_ok=True)
     row["metric"] = result.diagnostics.get(metric) if metric else None
     row.update(result.diagnostics)
     return row
