@@ -23,7 +23,7 @@ html_theme = "alabaster"
 html_static_path = []
 myst_heading_anchors = 3
 autodoc_member_order = "bysource"
-autodoc_default_options = {"members": True, "show-inheritance": False}
+autodoc_default_options = {"show-inheritance": False}
 nitpicky = False
 
 #: the API reference, in this order; public modules not listed are appended after them
@@ -54,13 +54,39 @@ def api_modules():
     return API_MODULES + sorted(m for m in found if m not in API_MODULES and m not in NOT_API)
 
 
+def _members(module, documented, seen):
+    """The public names of ``module`` to describe there: its ``__all__`` (or, without one, the
+    names it defines), leaving out objects described in an earlier section (``seen``) and
+    objects whose own module has a section of its own."""
+    names = getattr(module, "__all__", None)
+    if names is None:
+        names = [n for n, v in vars(module).items()
+                 if not n.startswith("_") and getattr(v, "__module__", None) == module.__name__]
+    out = []
+    for n in names:
+        obj = getattr(module, n, None)
+        home = getattr(obj, "__module__", module.__name__)
+        if obj is None or type(obj).__name__ == "module" or id(obj) in seen:
+            continue
+        if home != module.__name__ and home in documented:
+            continue
+        if callable(obj) or isinstance(obj, type):
+            seen.add(id(obj))
+            out.append(n)
+    return out
+
+
 def _api_page(app, docname, source):
     if docname != "api":
         return
     parts = [source[0]]
-    for name in api_modules():
-        importlib.import_module(name)
-        parts.append(f"\n## `{name}`\n\n```{{eval-rst}}\n.. automodule:: {name}\n   :members:\n```\n")
+    names = api_modules()
+    seen = set()
+    for name in names:
+        module = importlib.import_module(name)
+        members = _members(module, set(names), seen)
+        option = f"   :members: {', '.join(members)}\n" if members else ""
+        parts.append(f"\n## `{name}`\n\n```{{eval-rst}}\n.. automodule:: {name}\n{option}```\n")
     source[0] = "".join(parts)
 
 
