@@ -17,7 +17,7 @@ Peers (all called through their installed packages, none of their code is copied
   What it solves is stated in TaichiMGPCG's docstring and in TAICHI_OPERATOR below.
 
 The matrix peers take the cell-centred Laplacian of laplacian_matrix(), the operator of
-km.poisson (API.md) with the same C-order unknown numbering as ``f.ravel()``.
+km.poisson with the same C-order unknown numbering as ``f.ravel()``.
 """
 
 from __future__ import annotations

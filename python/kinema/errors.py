@@ -1,4 +1,4 @@
-"""kinema's exception hierarchy (API.md, "Errors").
+"""kinema's exception hierarchy.
 
 Every package error derives from :class:`KinemaError`, itself a ``RuntimeError``. Errors that
 are also about a bad argument (an unstable explicit step, a matrix that is not positive
