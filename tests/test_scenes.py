@@ -336,8 +336,12 @@ def test_sweep_on_a_local_dask_cluster(tmp_path):
     key, values = parse_param("substeps=1,3")
     assert (key, values) == ("substeps", [1, 3])  # a bare key: resolved against the scene
     assert parse_param("solver.resolution=[8,8],[16,16]")[1] == [[8, 8], [16, 16]]
+    stale = tmp_path / "run_005"  # a run of an earlier, larger sweep into the same folder
+    stale.mkdir()
+    (stale / "run.json").write_text("{}")
     rows = sweep(EXAMPLES["vortex_sheet"], {key: values}, tmp_path, frames=3, quick=True,
                  workers=1, processes=False, log=lambda m: None)
+    assert sorted(p.name for p in tmp_path.glob("run_*")) == ["run_000", "run_001"]
     with open(tmp_path / "sweep.csv") as fh:
         table = list(csv.DictReader(fh))
     assert len(table) == 2 == len(rows)

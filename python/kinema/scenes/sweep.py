@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import csv
 import itertools
+import shutil
 import time
 from pathlib import Path
 
@@ -100,6 +101,10 @@ def sweep(path, params, out, *, frames=None, quick=False, overrides=(), schedule
         scene = Scene.load(path, overrides=list(overrides) + list(zip(keys, combo)), quick=quick)
     metric = scene.config["scene"]["metric"]
     out.mkdir(parents=True, exist_ok=True)
+    # Runs of an earlier, larger sweep into this folder would be mistaken for this one's.
+    for folder in out.glob("run_[0-9][0-9][0-9]"):
+        if int(folder.name[4:]) >= len(combos) and (folder / "run.json").is_file():
+            shutil.rmtree(folder)
     cluster = None
     if scheduler is None:
         cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=processes,
