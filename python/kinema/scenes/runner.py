@@ -34,7 +34,7 @@ from pathlib import Path
 import kinema as km
 from kinema.scenes import output as io_out
 from kinema.scenes.adapters.base import GridData
-from kinema.scenes.scene import MAX_FRAMES
+from kinema.scenes.scene import MAX_FRAMES, MAX_STEPS, min_steps
 
 
 @dataclass
@@ -219,6 +219,10 @@ def run(scene, out, frames=None, *, resume=False, progress=True, on_frame=None):
         raise ValueError(f"frames: expected an integer >= 1, got {frames}")
     if frames > MAX_FRAMES:
         raise ValueError(f"frames: expected at most {MAX_FRAMES:,}, got {frames}")
+    steps, why = min_steps(scene.config, frames)
+    if steps > MAX_STEPS:
+        raise ValueError(f"frames: {frames} frames would take at least {steps:.3g} solver steps ({why}), "
+                         f"more than {MAX_STEPS:,}")
     if out.exists() and not out.is_dir():
         raise ValueError(f"out: {out} is a file, expected a folder")
     threads = scene.config["scene"]["threads"]

@@ -326,6 +326,18 @@ def _sizes(config, kind):
     return sizes
 
 
+def min_steps(config, frames):
+    """A lower bound of the solver steps of ``frames`` frames, and the key that sets it."""
+    solver, fps = config["solver"], config["scene"]["fps"]
+    steps, why = float(frames), "scene.fps"
+    if "substeps" in solver:
+        steps, why = frames * float(solver["substeps"]), "solver.substeps"
+    if "max_dt" in solver:
+        # The grid's adaptive step is at most max_dt (and at least one step per frame).
+        steps, why = max(float(frames), frames / fps / solver["max_dt"]), "solver.max_dt"
+    return steps, why
+
+
 def _check_effort(config, kind, error):
     """Refuses scenes that cannot finish (too many frames or solver steps) or cannot fit in
     memory, naming the keys, before anything is built or written."""
@@ -334,12 +346,7 @@ def _check_effort(config, kind, error):
     if not frames <= MAX_FRAMES:
         raise error("scene.duration", f"{scene['duration']:g} s at scene.fps = {scene['fps']:g} is {frames:.3g} "
                     f"frames, more than {MAX_FRAMES:,} (shorten the duration or lower the fps)")
-    steps, why = frames, None
-    if "substeps" in solver:
-        steps, why = frames * solver["substeps"], "solver.substeps"
-    if "max_dt" in solver:
-        # The grid's adaptive step is at most max_dt (and at least one step per frame).
-        steps, why = max(frames, scene["duration"] / solver["max_dt"]), "solver.max_dt"
+    steps, why = min_steps(config, frames)
     if not steps <= MAX_STEPS:
         raise error(why, f"the run would take at least {steps:.3g} solver steps (scene.duration = "
                     f"{scene['duration']:g} s), more than {MAX_STEPS:,}")
