@@ -3,7 +3,8 @@
 A scene file is TOML with the tables ``[scene]`` (name, duration, fps, metric), ``[solver]``
 (``type`` names the solver, the other keys are its options), ``[[objects]]`` (each with a
 ``type`` the solver knows), ``[output]`` (which files to write) and ``[quick]`` (overrides for a
-short test run, in the shape of the file or as dotted key paths). See README.md, "Scenes".
+short test run, in the shape of the file or as dotted key paths). ``kinema list --keys`` lists
+every key; the user guide (docs/guide/scenes.md) describes the format.
 """
 
 from __future__ import annotations
