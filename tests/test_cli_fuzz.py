@@ -123,6 +123,8 @@ def _bad_alloc(monkeypatch):
     monkeypatch.setattr(base.Simulation, "__init__", no_memory)
 
 
+# resume the finished 2-frame run in tmp/out to 4 frames
+RESUME = ["run", "{tmp}/scene.toml", "--out", "{tmp}/out", "--resume", "--frames", "4", "--quick", "--no-progress"]
 DEEP = "a = " + "[" * 50000 + "]" * 50000 + "\n"
 CASES = [
     # -- the command line itself
@@ -218,52 +220,38 @@ CASES = [
     Case("resume-without-folder", ["run", "{tmp}/scene.toml", "--out", "{tmp}/none", "--resume", *QUICK],
          needle="--resume: no checkpoint", files={"scene.toml": GOOD}),
     # -- damaged checkpoints: one line naming the file, the folder untouched
-    Case("checkpoint-truncated", ["run", "{tmp}/scene.toml", "--out", "{tmp}/out", "--resume", *QUICK[:1],
-                                  "--frames", "4", *QUICK[3:]],
+    Case("checkpoint-truncated", RESUME,
          needle="{tmp}/out/checkpoint.npz: damaged checkpoint", files={"scene.toml": GOOD}, run_first=True,
          damage=_truncate, untouched=True),
-    Case("checkpoint-empty", ["run", "{tmp}/scene.toml", "--out", "{tmp}/out", "--resume", "--frames", "4",
-                              "--quick", "--no-progress"],
+    Case("checkpoint-empty", RESUME,
          needle="checkpoint.npz: damaged checkpoint", files={"scene.toml": GOOD}, run_first=True,
          damage=lambda p: p.write_bytes(b""), untouched=True),
-    Case("checkpoint-bit-flips", ["run", "{tmp}/scene.toml", "--out", "{tmp}/out", "--resume", "--frames", "4",
-                                  "--quick", "--no-progress"],
+    Case("checkpoint-bit-flips", RESUME,
          needle="checkpoint.npz: damaged checkpoint", files={"scene.toml": GOOD}, run_first=True, damage=_flip,
          untouched=True),
-    Case("checkpoint-no-time", ["run", "{tmp}/scene.toml", "--out", "{tmp}/out", "--resume", "--frames", "4",
-                                "--quick", "--no-progress"],
+    Case("checkpoint-no-time", RESUME,
          needle="checkpoint.npz: damaged checkpoint (state", files={"scene.toml": GOOD}, run_first=True,
          damage=_rewrite(drop=["state/time"]), untouched=True),
-    Case("checkpoint-no-frame", ["run", "{tmp}/scene.toml", "--out", "{tmp}/out", "--resume", "--frames", "4",
-                                 "--quick", "--no-progress"],
+    Case("checkpoint-no-frame", RESUME,
          needle="meta.frame missing", files={"scene.toml": GOOD}, run_first=True,
          damage=_rewrite(meta={"frame": _DROP}), untouched=True),
-    Case("checkpoint-frame-text", ["run", "{tmp}/scene.toml", "--out", "{tmp}/out", "--resume", "--frames", "4",
-                                   "--quick", "--no-progress"],
+    Case("checkpoint-frame-text", RESUME,
          needle="meta.frame", files={"scene.toml": GOOD}, run_first=True,
          damage=_rewrite(meta={"frame": "two"}), untouched=True),
-    Case("checkpoint-wrong-shape", ["run", "{tmp}/scene.toml", "--out", "{tmp}/out", "--resume", "--frames", "4",
-                                    "--quick", "--no-progress"],
+    Case("checkpoint-wrong-shape", RESUME,
          needle="checkpoint", files={"scene.toml": GOOD}, run_first=True,
          damage=_rewrite(state={"state/x": np.zeros((3, 7))}), untouched=True),
-    Case("checkpoint-text-array", ["run", "{tmp}/scene.toml", "--out", "{tmp}/out", "--resume", "--frames", "4",
-                                   "--quick", "--no-progress"],
+    Case("checkpoint-text-array", RESUME,
          needle="checkpoint", files={"scene.toml": GOOD}, run_first=True,
          damage=_rewrite(state={"state/time": np.array("soon")}), untouched=True),
-    Case("checkpoint-meta-not-json", ["run", "{tmp}/scene.toml", "--out", "{tmp}/out", "--resume", "--frames", "4",
-                                      "--quick", "--no-progress"],
+    Case("checkpoint-meta-not-json", RESUME,
          needle="checkpoint.npz: damaged checkpoint", files={"scene.toml": GOOD}, run_first=True,
          damage=lambda p: np.savez(p, meta=np.array("{not json")), untouched=True),
-    Case("checkpoint-folder", ["run", "{tmp}/scene.toml", "--out", "{tmp}/out", "--resume", "--frames", "4",
-                               "--quick", "--no-progress"],
+    Case("checkpoint-folder", RESUME,
          needle="checkpoint.npz: is a folder", files={"scene.toml": GOOD}, run_first=True,
          damage=lambda p: (p.unlink(), p.mkdir()), untouched=True),
-    Case("resume-ok", ["run", "{tmp}/scene.toml", "--out", "{tmp}/out", "--resume", "--frames", "4",
-                       "--quick", "--no-progress"], expect="ok", files={"scene.toml": GOOD}, run_first=True),
+    Case("resume-ok", RESUME, expect="ok", files={"scene.toml": GOOD}, run_first=True),
 ]
-# The checkpoint cases share one argv form; the first one's is spelled out above for clarity.
-CASES[[c.name for c in CASES].index("checkpoint-truncated")].argv = [
-    "run", "{tmp}/scene.toml", "--out", "{tmp}/out", "--resume", "--frames", "4", "--quick", "--no-progress"]
 
 
 def _prepare(case, tmp):
