@@ -136,6 +136,8 @@ CASES = [
          files={"scene.toml": GOOD}),
     Case("threads-huge", ["run", "{tmp}/scene.toml", "--threads", "100000"], needle="--threads",
          files={"scene.toml": GOOD}),
+    Case("scene-threads-huge", ["run", "{tmp}/scene.toml"], needle="scene.threads: expected an integer >= 1 and <= 4096",
+         files={"scene.toml": _scene(**{"fps = 20": "fps = 20\nthreads = 100000"})}),
     Case("threads-text", ["run", "{tmp}/scene.toml", "--threads", "many"], needle="--threads",
          files={"scene.toml": GOOD}),
     Case("frames-0", ["run", "{tmp}/scene.toml", "--frames", "0"], needle="--frames", files={"scene.toml": GOOD}),

@@ -31,7 +31,7 @@ SCENE = Table({
     "duration": Field(Real(gt=0), doc="simulated time [s]"),
     "fps": Field(Real(gt=0), 30.0, "frames per simulated second"),
     "metric": Field(Str(), None, "the diagnostic a sweep reports as its error metric"),
-    "threads": Field(Int(ge=1), None, "OpenMP threads (default: all)"),
+    "threads": Field(Int(ge=1, le=4096), None, "OpenMP threads (default: all)"),
 })
 
 OUTPUT = Table({

@@ -80,12 +80,16 @@ class Real(Spec):
 
 
 class Int(Spec):
-    def __init__(self, *, ge=None):
-        self.ge = ge
-        self.expected = "an integer" + (f" >= {ge}" if ge is not None else "")
+    """An integer, optionally bounded: ge below, le above."""
+
+    def __init__(self, *, ge=None, le=None):
+        self.ge, self.le = ge, le
+        bounds = [f"{op} {v}" for op, v in ((">=", ge), ("<=", le)) if v is not None]
+        self.expected = "an integer" + (" " + " and ".join(bounds) if bounds else "")
 
     def validate(self, value, ctx, path):
-        if isinstance(value, bool) or not isinstance(value, int) or (self.ge is not None and value < self.ge):
+        if isinstance(value, bool) or not isinstance(value, int) or (self.ge is not None and value < self.ge) \
+                or (self.le is not None and value > self.le):
             raise self.fail(value, ctx, path)
         return value
 
