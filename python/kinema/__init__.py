@@ -6,7 +6,18 @@
 See README.md for an overview and API.md for the public contract.
 """
 
-from kinema import _core
+import os as _os
+
+# OpenMP's waiting policy is read once, when the runtime starts (at the import of _core below).
+# libgomp's default lets an idle thread spin ~3 ms before it sleeps: on a machine where another
+# process keeps a core busy that spinning starves the thread it waits for, and a CG solve took
+# 60x longer. A bounded spin of about 0.1 ms keeps the quiet-machine speed and the loaded-machine
+# speed (bench/omp_wait_policy.py, bench/RESULTS.md). A user's own setting of either variable
+# wins; this has no effect when another library started the OpenMP runtime first.
+if "GOMP_SPINCOUNT" not in _os.environ and "OMP_WAIT_POLICY" not in _os.environ:
+    _os.environ["GOMP_SPINCOUNT"] = "10000"
+
+from kinema import _core  # noqa: E402
 from kinema._info import SolveInfo
 from kinema.errors import (
     ConvergenceError,
@@ -16,6 +27,7 @@ from kinema.errors import (
     StabilityError,
 )
 from kinema import diffusion, fem, fmm, grid, massspring, poisson, render, sparse, sph, vortex
+from kinema import mesh
 from kinema.scenes import Scene, SceneError
 
 __version__ = "0.1.0"
@@ -39,6 +51,7 @@ __all__ = [
     "grid",
     "massspring",
     "fem",
+    "mesh",
     "sph",
     "render",
     "Scene",
