@@ -11,11 +11,14 @@ import os as _os
 # OpenMP's waiting policy is read once, when the runtime starts (at the import of _core below).
 # libgomp's default lets an idle thread spin ~3 ms before it sleeps: on a machine where another
 # process keeps a core busy that spinning starves the thread it waits for, and a CG solve took
-# 60x longer. A bounded spin of about 0.1 ms keeps the quiet-machine speed and the loaded-machine
+# 60x longer. A short bounded spin keeps most of the quiet-machine speed and the loaded-machine
 # speed (bench/omp_wait_policy.py, bench/RESULTS.md). A user's own setting of either variable
 # wins; this has no effect when another library started the OpenMP runtime first.
-if "GOMP_SPINCOUNT" not in _os.environ and "OMP_WAIT_POLICY" not in _os.environ:
-    _os.environ["GOMP_SPINCOUNT"] = "10000"
+#: GOMP_SPINCOUNT kinema sets when the user set neither it nor OMP_WAIT_POLICY.
+DEFAULT_GOMP_SPINCOUNT = "1000"
+_OMP_USER = {k: _os.environ[k] for k in ("GOMP_SPINCOUNT", "OMP_WAIT_POLICY") if k in _os.environ}
+if not _OMP_USER:
+    _os.environ["GOMP_SPINCOUNT"] = DEFAULT_GOMP_SPINCOUNT
 
 from kinema import _core  # noqa: E402
 from kinema._info import SolveInfo
@@ -75,4 +78,6 @@ def build_info() -> dict:
     """How this kinema was built: compiler, flags, OpenMP, Eigen, CHOLMOD and the BLAS in use."""
     info = dict(_core.build_info())
     info["threads"] = str(get_num_threads())
+    info["openmp_wait"] = (", ".join(f"{k}={v}" for k, v in _OMP_USER.items()) + " (set by the user)" if _OMP_USER
+                           else f"GOMP_SPINCOUNT={DEFAULT_GOMP_SPINCOUNT} (kinema default)")
     return info

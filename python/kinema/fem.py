@@ -31,6 +31,7 @@ import scipy.sparse as sp
 
 from kinema import _core
 from kinema._checks import as_float_array, choice, non_negative, positive, positive_int
+from kinema._state import state_property
 from kinema.massspring import _gravity, _indices
 
 __all__ = ["Body", "NewtonInfo", "MODELS", "lame", "psi", "piola", "piola_derivative",
@@ -169,8 +170,8 @@ class Body:
         self.model = model
         self.fixed = fixed
 
-    x = property(lambda self: self._core.x)
-    v = property(lambda self: self._core.v)
+    x = state_property(lambda self: self._core.x, "x", "(n, d) positions [m] (assigning copies in)")
+    v = state_property(lambda self: self._core.v, "v", "(n, d) velocities [m/s] (assigning copies in)")
     rest = property(lambda self: self._core.rest)
     mass = property(lambda self: self._core.mass)
     time = property(lambda self: self._core.time, doc="Simulated time [s].")

@@ -22,6 +22,7 @@ import numpy as np
 
 from kinema import _core
 from kinema._checks import as_float_array, choice, non_negative, positive, positive_int
+from kinema._state import assign
 
 __all__ = ["Fluid", "neighbor_pairs", "kernel", "block", "box_boundary", "martin_moyce", "METHODS"]
 
@@ -209,23 +210,40 @@ class Fluid:
     # ------------------------------------------------------------------ state
     @property
     def x(self) -> np.ndarray:
-        """(n, d) positions [m] (writable view)."""
+        """(n, d) positions [m] (writable view; assigning copies in, shape checked)."""
         return self._core.x
+
+    @x.setter
+    def x(self, value):
+        assign(self.x, value, "x")
 
     @property
     def v(self) -> np.ndarray:
-        """(n, d) velocities [m/s] (writable view)."""
+        """(n, d) velocities [m/s] (writable view; assigning copies in, shape checked)."""
         return self._core.v
+
+    @v.setter
+    def v(self, value):
+        assign(self.v, value, "v")
 
     @property
     def density(self) -> np.ndarray:
-        """(n,) densities [kg/m^d] at the start of the last step (writable view)."""
+        """(n,) densities [kg/m^d] at the start of the last step (writable view; recomputed
+        by every step)."""
         return self._core.density
+
+    @density.setter
+    def density(self, value):
+        assign(self.density, value, "density")
 
     @property
     def pressure(self) -> np.ndarray:
-        """(n,) pressures [Pa] of the last step (writable view)."""
+        """(n,) pressures [Pa] of the last step (writable view; recomputed by every step)."""
         return self._core.pressure
+
+    @pressure.setter
+    def pressure(self, value):
+        assign(self.pressure, value, "pressure")
 
     @property
     def ids(self) -> np.ndarray:
@@ -413,8 +431,8 @@ def mesh_boundary(vertices, faces, spacing, layers=2, *, fluid="outside") -> np.
     ``faces`` (F, 3)) or polygon (2D: ``faces`` (F, 2) edges, interior on their left), such as
     :func:`kinema.mesh.surface` returns.
 
-    The samples are the points of the lattice of ``spacing`` (aligned with the mesh's bounding
-    box) whose distance to the surface is below ``layers * spacing`` on the solid's side:
+    The samples are the points of the lattice of ``spacing`` centred on the mesh's bounding box
+    (a box of whole cells has them at the cell centres, as :func:`block`) whose distance to the surface is below ``layers * spacing`` on the solid's side:
     inside the surface for ``fluid="outside"`` (an obstacle), outside it for ``fluid="inside"``
     (a container). Inside and outside are told by the generalised winding number (Jacobson et
     al. 2013), so small gaps in the surface do not flip them. Returns (M, d) positions [m].
@@ -436,7 +454,7 @@ def mesh_boundary(vertices, faces, spacing, layers=2, *, fluid="outside") -> np.
     band = layers * s
     pad = band if fluid == "inside" else 0.0
     lo, hi = v.min(0) - pad, v.max(0) + pad
-    counts = np.floor((hi - lo) / s).astype(np.int64) + 1
+    counts = np.maximum(1, np.round((hi - lo) / s)).astype(np.int64)  # one point per cell of the box
     if np.prod(counts.astype(float)) > 2**31:
         raise ValueError(f"spacing: {s} gives more than 2^31 lattice points over the mesh")
     start = lo + 0.5 * ((hi - lo) - (counts - 1) * s)  # the lattice centred on the box
