@@ -406,10 +406,11 @@ def _triangle_distance(p, a, b, c):
     return np.where(inside & (nn > 0), plane, edge)
 
 
-def _winding_number(points, v, f, chunk=256):
+def _winding_number(points, v, f):
     """Generalised winding number of closed oriented triangles (3D, Van Oosterom and Strackee's
     solid angle) or segments (2D, signed angles) about each point: 1 inside, 0 outside."""
     out = np.empty(len(points))
+    chunk = max(1, (1 << 20) // len(f))  # points per pass: about a million point-face pairs
     for s0 in range(0, len(points), chunk):
         p = points[s0:s0 + chunk, None, :]
         if v.shape[1] == 2:
