@@ -514,3 +514,130 @@ def test_dam_break_example_smoke(tmp_path):
     pts = np.frombuffer(vtk[start:start + 12 * n], ">f4").reshape(n, 3)
     np.testing.assert_array_equal(pts, xyz[:, :3])
     assert b"VERTICES %d %d" % (n, 2 * n) in vtk
+
+
+# ---------------------------------------------------------------- obstacles other than boxes
+
+
+def _nearest(points):
+    from scipy.spatial import cKDTree
+
+    return cKDTree(points).query(points, 2)[0][:, 1]
+
+
+@pytest.mark.parametrize("d", [2, 3])
+@pytest.mark.parametrize("fluid", ["outside", "inside"])
+def test_sphere_boundary_layers_radii_and_spacing(d, fluid):
+    c, r, s = np.full(d, 0.2), 0.3, 0.02
+    b = km.sph.sphere_boundary(c, r, s, layers=3, fluid=fluid)
+    rad = np.linalg.norm(b - c, axis=1)
+    sign = -1 if fluid == "outside" else 1
+    total = 0
+    for k in range(3):
+        rk = r + sign * (k + 0.5) * s
+        layer = b[np.abs(rad - rk) < 1e-12]
+        area = 2 * np.pi * rk if d == 2 else 4 * np.pi * rk**2
+        assert len(layer) == round(area / s ** (d - 1))  # one sample per spacing^(d-1) of surface
+        nn = _nearest(layer) / s
+        # even spreading: equal arcs on a circle (chord 2 r sin(pi/n) ~ s); the Fibonacci lattice's
+        # nearest neighbours lie within 0.85-1.0 s for an area of s^2 per sample
+        lo, hi = (0.99, 1.01) if d == 2 else (0.85, 1.05)
+        assert lo <= nn.min() and nn.max() <= hi, (nn.min(), nn.max())
+        total += len(layer)
+    assert total == len(b)  # nothing else
+    with pytest.raises(ValueError, match="fluid"):
+        km.sph.sphere_boundary(c, r, s, fluid="above")
+    with pytest.raises(ValueError, match="radius"):
+        km.sph.sphere_boundary(c, -1.0, s)
+    # a sphere smaller than its layers ends in one centre sample
+    small = km.sph.sphere_boundary(c, 1.2 * s, s, layers=3)
+    assert np.allclose(small[-1], c) and len(small) >= 2
+
+
+def test_mesh_boundary_of_a_box_is_the_lattice_band_inside_it():
+    """The surface of a tet-meshed unit cube (km.mesh.surface): the samples are exactly the
+    points of the centred spacing-0.1 lattice within 2 spacings of the walls, inside."""
+    v, tets = km.fem.box_mesh((0, 0, 0), (1, 1, 1), 3)
+    faces = km.mesh.surface(v, tets)
+    b = km.sph.mesh_boundary(v, faces, 0.1, layers=2)
+    assert len(b) == 10**3 - 6**3  # the 6^3 points deeper than 0.2 are left out
+    assert ((b > 0) & (b < 1)).all()
+    depth = np.minimum(b, 1 - b).min(axis=1)
+    assert depth.max() < 0.2 and depth.min() == pytest.approx(0.05)
+    np.testing.assert_allclose(_nearest(b), 0.1, rtol=1e-12)
+    # a container instead: the band outside the walls
+    out = km.sph.mesh_boundary(v, faces, 0.1, layers=2, fluid="inside")
+    assert len(out) > 0 and (((out < 0) | (out > 1)).any(axis=1)).all()
+    assert (np.maximum(-out, out - 1).max(axis=1) < 0.2 + 1e-12).all()
+
+
+def test_mesh_boundary_of_a_polygon_in_2d():
+    square = np.array([[0, 0], [1, 0], [1, 1], [0, 1]], float)
+    edges = np.array([[0, 1], [1, 2], [2, 3], [3, 0]])  # counter-clockwise: interior on the left
+    b = km.sph.mesh_boundary(square, edges, 0.1)
+    assert len(b) == 10**2 - 6**2
+    assert ((b > 0) & (b < 1)).all()
+    with pytest.raises(ValueError, match="faces"):
+        km.sph.mesh_boundary(square, edges[:, :1], 0.1)
+    with pytest.raises(ValueError, match="faces"):
+        km.sph.mesh_boundary(square, edges + 10, 0.1)
+
+
+def _sphere_mesh(c, r, n=400):
+    """A closed triangle mesh of the sphere (convex hull of Fibonacci points), faces outward."""
+    from scipy.spatial import ConvexHull
+
+    k = np.arange(n) + 0.5
+    z = 1 - 2 * k / n
+    phi = np.pi * (3 - np.sqrt(5)) * np.arange(n)
+    p = np.stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z], 1)
+    f = ConvexHull(p).simplices.copy()
+    normal = np.cross(p[f[:, 1]] - p[f[:, 0]], p[f[:, 2]] - p[f[:, 0]])
+    inward = np.einsum("ij,ij->i", normal, p[f].mean(1)) < 0
+    f[inward] = f[inward][:, ::-1]
+    return c + r * p, f
+
+
+def test_mesh_boundary_of_a_sphere_mesh_lies_inside_it_within_the_band():
+    c, r, s = np.array([0.5, 0.5, 0.5]), 0.3, 0.03
+    v, f = _sphere_mesh(c, r)
+    b = km.sph.mesh_boundary(v, f, s, layers=2)
+    rad = np.linalg.norm(b - c, axis=1)
+    # the inscribed polyhedron lies within r (1 - cos of its edge angle) of the sphere
+    edge = np.linalg.norm(v[f[:, 0]] - v[f[:, 1]], axis=1).max()
+    sag = r - np.sqrt(r**2 - (edge / 2) ** 2)
+    assert rad.max() < r and rad.min() > r - 2 * s - sag
+    shell = 4 / 3 * np.pi * (r**3 - (r - 2 * s) ** 3)
+    assert len(b) == pytest.approx(shell / s**3, rel=0.1)  # one lattice point per s^3
+
+
+@pytest.mark.parametrize("d", [2, 3])
+@pytest.mark.parametrize("sampler", ["sphere", "mesh"])
+def test_fluid_column_on_a_sphere_obstacle_does_not_leak(d, sampler):
+    """A water column falls onto a sphere (circle) obstacle in a closed box and flows around
+    it: no particle crosses the first boundary layer (radius r - spacing/2). Without the
+    obstacle the same particles fall through where the sphere would be (the test can fail)."""
+    s = 0.02 if d == 2 else 0.04
+    c, r = np.array([0.5, 0.3, 0.5][:d]), (0.15 if d == 2 else 0.2)
+    x = km.sph.block([0.38, 0.5, 0.38][:d], [0.62, 0.9, 0.62][:d], s)
+    if sampler == "sphere":
+        obstacle = km.sph.sphere_boundary(c, r, s)
+    elif d == 2:
+        t = 2 * np.pi * np.arange(96) / 96
+        poly = c + r * np.stack([np.cos(t), np.sin(t)], 1)
+        obstacle = km.sph.mesh_boundary(poly, np.stack([np.arange(96), (np.arange(96) + 1) % 96], 1), s)
+    else:
+        obstacle = km.sph.mesh_boundary(*_sphere_mesh(c, r), s)
+    closest = {}
+    for with_obstacle in (True, False):
+        fluid = km.sph.Fluid(x, s, gravity=np.r_[0, -9.81, 0][:d], domain=(np.zeros(d), np.ones(d)),
+                             boundary=obstacle if with_obstacle else None)
+        m = np.inf
+        for _ in range(10):
+            fluid.advance(0.05)
+            m = min(m, np.linalg.norm(fluid.x - c, axis=1).min())
+        assert np.isfinite(fluid.x).all()
+        closest[with_obstacle] = m
+    assert closest[True] > r - 0.5 * s, (closest, r - 0.5 * s)
+    assert closest[True] < r + 1.5 * s  # the fluid did reach the obstacle
+    assert closest[False] < 0.5 * r, closest

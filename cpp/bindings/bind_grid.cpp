@@ -73,7 +73,7 @@ struct PyFluid {
           const std::string& projection, Scalar tol, Index max_iter, Scalar viscosity,
           const std::string& boundary, const std::string& walls, const std::vector<Scalar>& gravity,
           bool density, bool temperature, Scalar alpha, Scalar beta, Scalar confinement,
-          const std::string& advection_kernel)
+          const std::string& advection_kernel, const std::vector<std::string>& open)
       : shape_(shape) {
     const int dim = shape_.dim;
     FluidConfig c;
@@ -96,6 +96,13 @@ struct PyFluid {
     c.beta = beta;
     c.vorticity_confinement = confinement;
     c.advection_kernel = parse_advection_kernel(advection_kernel);
+    for (const std::string& side : open) {
+      const std::string sides = dim == 3 ? "x-, x+, y-, y+, z-, z+" : "x-, x+, y-, y+";
+      const int user_axis = side.size() == 2 ? side[0] - 'x' : -1;
+      if (user_axis < 0 || user_axis >= dim || (side[1] != '-' && side[1] != '+'))
+        throw InvalidArgument("open: expected sides among " + sides + ", got '" + side + "'");
+      c.open[2 * internal_axis(dim, user_axis) + (side[1] == '+' ? 1 : 0)] = true;
+    }
     // Buoyancy acts against gravity, or along +y without it.
     const Scalar g = std::sqrt(c.gravity[0] * c.gravity[0] + c.gravity[1] * c.gravity[1] +
                                c.gravity[2] * c.gravity[2]);
@@ -130,6 +137,20 @@ struct PyFluid {
     const int dim = shape_.dim;
     const int axis = internal_axis(dim, user_axis);
     solver_->set_wall_velocity(2 * axis + side, to_internal(dim, velocity, "velocity"));
+  }
+
+  Index add_source(py::array_t<std::uint8_t, py::array::c_style | py::array::forcecast> mask, py::object density,
+                   py::object temperature, py::object velocity) {
+    const int dim = shape_.dim;
+    if (static_cast<Index>(mask.size()) != shape_.size())
+      throw InvalidArgument("region: expected a bool array of the grid's shape");
+    Vec3 vel{0, 0, 0};
+    if (!velocity.is_none()) vel = to_internal(dim, velocity.cast<std::vector<Scalar>>(), "velocity");
+    const std::uint8_t* m = mask.data();
+    const bool set_d = !density.is_none(), set_t = !temperature.is_none(), set_v = !velocity.is_none();
+    const Scalar d = set_d ? density.cast<Scalar>() : 0, t = set_t ? temperature.cast<Scalar>() : 0;
+    py::gil_scoped_release release;
+    return solver_->add_source(m, set_d, d, set_t, t, set_v, vel);
   }
 
   py::array_t<Scalar> divergence() {
@@ -170,15 +191,21 @@ void bind_grid(py::module_& m) {
   py::class_<PyFluid>(m, "Fluid")
       .def(py::init<const std::vector<Index>&, Scalar, const std::string&, int, const std::string&, Scalar,
                     Index, Scalar, const std::string&, const std::string&, const std::vector<Scalar>&, bool,
-                    bool, Scalar, Scalar, Scalar, const std::string&>(),
+                    bool, Scalar, Scalar, Scalar, const std::string&, const std::vector<std::string>&>(),
            py::arg("shape"), py::arg("h"), py::arg("advection"), py::arg("rk_order"), py::arg("projection"),
            py::arg("tol"), py::arg("max_iter"), py::arg("viscosity"), py::arg("boundary"), py::arg("walls"),
            py::arg("gravity"), py::arg("density"), py::arg("temperature"), py::arg("alpha"), py::arg("beta"),
-           py::arg("vorticity_confinement"), py::arg("advection_kernel"))
+           py::arg("vorticity_confinement"), py::arg("advection_kernel"), py::arg("open"))
       .def("step", &PyFluid::step, py::arg("dt"))
       .def("advance", &PyFluid::advance, py::arg("duration"), py::arg("cfl"))
       .def("set_wall_velocity", &PyFluid::set_wall_velocity, py::arg("axis"), py::arg("side"),
            py::arg("velocity"))
+      .def("add_source", &PyFluid::add_source, py::arg("mask"), py::arg("density"), py::arg("temperature"),
+           py::arg("velocity"))
+      .def("clear_sources", [](PyFluid& f) { f.solver_->clear_sources(); })
+      .def_property_readonly("source_count", [](const PyFluid& f) {
+        return static_cast<Index>(f.solver_->model().sources.size());
+      })
       .def("divergence", &PyFluid::divergence)
       .def("velocity_at", &PyFluid::velocity_at, py::arg("points"))
       .def("kinetic_energy", [](const PyFluid& f) { return f.solver_->kinetic_energy(); })

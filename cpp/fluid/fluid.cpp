@@ -78,6 +78,11 @@ FluidSolver::FluidSolver(const GridShape& shape, Scalar h, const FluidConfig& co
     throw InvalidArgument("rk_order: expected 1, 2 or 3, got " + std::to_string(config.rk_order));
   if (!(config.tol > 0)) throw InvalidArgument("tol: expected a tolerance > 0");
   if (!(config.viscosity >= 0)) throw InvalidArgument("viscosity: expected a value >= 0");
+  for (int w = 0; w < 6; ++w) {
+    if (!config.open[w]) continue;
+    if (config.periodic) throw InvalidArgument("open: a periodic domain has no open sides (boundary='periodic')");
+    if (!shape.active(w / 2)) throw InvalidArgument("open: a 2D domain has no z sides");
+  }
   model_.shape = shape;
   model_.h = h;
   model_.solid.assign(shape.size(), 0);
@@ -118,6 +123,9 @@ FluidSolver::FluidSolver(const GridShape& shape, Scalar h, const FluidConfig& co
     vorticity_norm_.assign(shape.size(), 0);
   }
   if (config.no_slip && !config.periodic) walls_.no_slip.fill(true);
+  // Open sides extend the nearest value, as free-slip walls do (zero normal gradient).
+  for (int w = 0; w < 6; ++w)
+    if (config.open[w]) walls_.no_slip[w] = false;
   check_kernel();
   refresh_solids();
 }
@@ -164,14 +172,16 @@ void FluidSolver::refresh_solids() {
       const bool first = idx[a] == 0, last = idx[a] == s.n[a];
       if (config_.periodic) {
         if (last) flag = 2;
-      } else if (first || last) {
+      } else if ((first && !config_.open[2 * a]) || (last && !config_.open[2 * a + 1])) {
         flag = 1;
       }
       if (flag != 1 && has_solid_) {
-        // the cells on either side: c - e_a (wrapping) and c
+        // the cells on either side: c - e_a (wrapping) and c; an open side's face has one
         std::array<Index, 3> lo = idx, hi = idx;
         lo[a] = first ? s.n[a] - 1 : idx[a] - 1;
         hi[a] = last ? 0 : idx[a];
+        if (!config_.periodic && first) lo = hi;
+        if (!config_.periodic && last) hi = lo;
         if (solid_used_[s.index(lo[0], lo[1], lo[2])] || solid_used_[s.index(hi[0], hi[1], hi[2])])
           flag = flag == 2 ? 2 : 1;
       }
@@ -191,8 +201,13 @@ void FluidSolver::refresh_solids() {
     for (int a = 0; a < 3; ++a)
       if (active_[a] && s.n[a] % 2 != 0) pc.method = PoissonMethod::CG;
   }
-  pressure_solver_ = std::make_unique<PoissonSolver>(s, model_.h, config_.periodic ? Boundary::Periodic : Boundary::Neumann,
-                                                     has_solid_ ? solid_used_.data() : nullptr, 0, pc);
+  // Closed walls are zero-flux (Neumann); open sides hold p = 0 (Dirichlet, ghost -p).
+  int open_walls = 0;
+  for (int w = 0; w < 6; ++w)
+    if (config_.open[w]) open_walls |= 1 << w;
+  pressure_solver_ = std::make_unique<PoissonSolver>(
+      s, model_.h, config_.periodic ? Boundary::Periodic : Boundary::Neumann,
+      has_solid_ ? solid_used_.data() : nullptr, 0, pc, open_walls);
   for (Index c = 0; c < s.size(); ++c)
     if (!fluid_cell(c)) state_.pressure[c] = 0;
   enforce_boundary();
@@ -203,6 +218,7 @@ void FluidSolver::set_wall_velocity(int wall, const Vec3& velocity) {
     throw InvalidArgument("side: a periodic domain has no walls (boundary='periodic')");
   const int axis = wall / 2;
   if (!active_[axis]) throw InvalidArgument("side: no such wall in a 2D domain");
+  if (config_.open[wall]) throw InvalidArgument("side: an open side is not a wall and cannot move");
   if (velocity[axis] != 0)
     throw InvalidArgument("velocity: a wall can only move tangentially (its normal component must be 0)");
   for (Scalar x : velocity)
@@ -218,6 +234,66 @@ void FluidSolver::set_wall_velocity(int wall, const Vec3& velocity) {
   walls_.velocity[wall] = velocity;
 }
 
+Index FluidSolver::add_source(const std::uint8_t* mask, bool set_density, Scalar density, bool set_temperature,
+                              Scalar temperature, bool set_velocity, const Vec3& velocity) {
+  if (set_density && state_.density.empty())
+    throw InvalidArgument("density: the fluid carries no density field (create it with density=True)");
+  if (set_temperature && state_.temperature.empty())
+    throw InvalidArgument("temperature: the fluid carries no temperature field (create it with temperature=True)");
+  if (!std::isfinite(density) || !std::isfinite(temperature))
+    throw InvalidArgument("source: expected finite density and temperature");
+  for (int a = 0; a < 3; ++a)
+    if (!std::isfinite(velocity[a])) throw InvalidArgument("velocity: expected finite values");
+  FluidModel::Source src;
+  src.set_density = set_density;
+  src.set_temperature = set_temperature;
+  src.density = density;
+  src.temperature = temperature;
+  src.set_velocity = set_velocity;
+  src.velocity = velocity;
+  std::array<std::vector<std::uint8_t>, 3> on;
+  for (int a = 0; a < 3; ++a)
+    if (active_[a]) on[a].assign(faces_[a].size(), 0);
+  const GridShape& s = model_.shape;
+  for (Index i = 0; i < s.n[0]; ++i)
+    for (Index j = 0; j < s.n[1]; ++j)
+      for (Index k = 0; k < s.n[2]; ++k) {
+        const Index c = s.index(i, j, k);
+        if (!mask[c]) continue;
+        src.cells.push_back(c);
+        for (int a = 0; a < 3; ++a) {
+          if (!active_[a]) continue;
+          std::array<Index, 3> idx{i, j, k};
+          on[a][faces_[a].index(idx[0], idx[1], idx[2])] = 1;
+          ++idx[a];
+          if (config_.periodic && idx[a] == s.n[a]) idx[a] = 0;  // the duplicate follows face 0
+          on[a][faces_[a].index(idx[0], idx[1], idx[2])] = 1;
+        }
+      }
+  for (int a = 0; a < 3; ++a)
+    for (Index f = 0; f < static_cast<Index>(on[a].size()); ++f)
+      if (on[a][f]) src.faces[a].push_back(f);
+  model_.sources.push_back(std::move(src));
+  return static_cast<Index>(model_.sources.size()) - 1;
+}
+
+void FluidSolver::apply_sources() {
+  for (const FluidModel::Source& src : model_.sources) {
+    for (Index c : src.cells) {
+      if (!fluid_cell(c)) continue;
+      if (src.set_density) state_.density[c] = src.density;
+      if (src.set_temperature) state_.temperature[c] = src.temperature;
+    }
+    if (!src.set_velocity) continue;
+    for (int a = 0; a < 3; ++a) {
+      if (!active_[a]) continue;
+      Scalar* u = state_.velocity[a].data();
+      for (Index f : src.faces[a])
+        if (fixed_[a][f] != 1) u[f] = src.velocity[a];
+    }
+  }
+}
+
 // ------------------------------------------------------------------------------------ step
 
 StepInfo FluidSolver::step(Scalar dt, Interrupt& interrupt) {
@@ -229,6 +305,7 @@ StepInfo FluidSolver::step(Scalar dt, Interrupt& interrupt) {
   info.cfl = max_speed() * dt / model_.h;
   if (!std::isfinite(info.cfl)) check(dt, state_.steps + 1);  // the caller wrote a NaN or Inf
   refresh_solids();
+  apply_sources();
   enforce_boundary();
 
   // 1. Advection of velocity and scalars (kernels.h; Stam 1999, Selle et al. 2008).
@@ -270,6 +347,9 @@ Index FluidSolver::advance(Scalar duration, Scalar cfl, Interrupt& interrupt, St
     if (!std::isfinite(speed)) check(0, state_.steps + 1);
     for (const Vec3& w : model_.wall_velocity)
       speed = std::max(speed, std::sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2]));
+    for (const FluidModel::Source& src : model_.sources)  // imposed before the step
+      if (src.set_velocity)
+        for (Scalar c : src.velocity) speed = std::max(speed, std::fabs(c));
     speed += std::sqrt(5 * model_.h * g);
     Scalar dt = speed > 0 ? cfl * model_.h / speed : remaining;
     // avoid a sliver of a last step: split what is left in two
@@ -318,6 +398,7 @@ void FluidSolver::advect(Scalar dt) {
     const Scalar* src = out[f];
     parallel_for(cells_.size(), [&](Index c) { dst[c] = has_solid_ && solid[c] ? 0 : src[c]; });
   }
+  if (count > 0 && any_open()) inflow_ambient(fields, count);
   // Velocity last: every component is traced through the old field.
   for (int a = 0; a < 3; ++a) {
     if (!active_[a]) continue;
@@ -335,6 +416,33 @@ void FluidSolver::advect(Scalar dt) {
   enforce_boundary();
 }
 
+// Where fluid enters through an open side it brings ambient air: the scalars of the cells whose
+// open face has an inward velocity become 0 (Dirichlet at inflow; outflow keeps the
+// zero-gradient extension of the clamped back-trace).
+void FluidSolver::inflow_ambient(Scalar* const* fields, int count) {
+  const GridShape& s = model_.shape;
+  for (int w = 0; w < 6; ++w) {
+    if (!config_.open[w]) continue;
+    const int a = w / 2, side = w % 2;
+    const Index layer = side ? s.n[a] - 1 : 0, face_layer = side ? s.n[a] : 0;
+    const FieldLayout& F = faces_[a];
+    const Scalar* u = state_.velocity[a].data();
+    const int b = (a + 1) % 3, c = (a + 2) % 3;
+    for (Index ib = 0; ib < s.n[b]; ++ib)
+      for (Index ic = 0; ic < s.n[c]; ++ic) {
+        std::array<Index, 3> idx{};
+        idx[a] = face_layer;
+        idx[b] = ib;
+        idx[c] = ic;
+        const Scalar un = u[F.index(idx[0], idx[1], idx[2])];
+        if (!(side ? un < 0 : un > 0)) continue;
+        idx[a] = layer;
+        const Index cell = s.index(idx[0], idx[1], idx[2]);
+        for (int f = 0; f < count; ++f) fields[f][cell] = 0;
+      }
+  }
+}
+
 // --------------------------------------------------------------------------------- forces
 
 void FluidSolver::add_cell_force(int axis, const Scalar* f, Scalar dt, Scalar du) {
@@ -343,11 +451,19 @@ void FluidSolver::add_cell_force(int axis, const Scalar* f, Scalar dt, Scalar du
   const std::vector<std::uint8_t>& fixed = fixed_[axis];
   const Index n_axis = model_.shape.n[axis];
   const Index stride = cells_.stride(axis);
+  const bool periodic = config_.periodic;
   for_each_node(L, [&](Index i, Index j, Index k, Index face) {
     if (fixed[face]) return;
-    // free faces are interior (or a periodic face 0), so cell (i, j, k) is the upper neighbour
+    const Index ia = axis == 0 ? i : axis == 1 ? j : k;
+    if (!periodic && (ia == 0 || ia == n_axis)) {  // a face of an open side: the one cell inside
+      std::array<Index, 3> c{i, j, k};
+      if (ia == n_axis) --c[axis];
+      u[face] += dt * f[cells_.index(c[0], c[1], c[2])] + du;
+      return;
+    }
+    // other free faces are interior (or a periodic face 0): cell (i, j, k) is the upper neighbour
     const Index hi = cells_.index(i, j, k);
-    const Index lo = (axis == 0 ? i : axis == 1 ? j : k) == 0 ? hi + (n_axis - 1) * stride : hi - stride;
+    const Index lo = ia == 0 ? hi + (n_axis - 1) * stride : hi - stride;
     u[face] += dt * 0.5 * (f[lo] + f[hi]) + du;
   });
 }
@@ -541,7 +657,7 @@ void FluidSolver::apply_viscosity_operator(int axis, Scalar c, const Scalar* x, 
         if (g >= 0) {
           diag += c;
           if (!fixed[g]) off += x[g];
-        } else if (config_.no_slip || model_.wall_moving[2 * b + side]) {
+        } else if (walls_.no_slip[2 * b + side]) {  // no slip or moving; not open
           diag += 2 * c;
         }
       }
@@ -572,7 +688,7 @@ Index FluidSolver::diffuse(Scalar dt, Interrupt& interrupt) {
           const int wall = 2 * bx + side;
           if (g >= 0) {
             if (fixed[g]) b[f] += c * u[g];
-          } else if (config_.no_slip || model_.wall_moving[wall]) {
+          } else if (walls_.no_slip[wall]) {
             b[f] += 2 * c * model_.wall_velocity[wall][a];
           }
         }
@@ -646,6 +762,7 @@ SolveInfo FluidSolver::project(Scalar dt, Interrupt& interrupt) {
                            std::to_string(state_.steps + 1));
   // u -= dt grad p on every free face.
   const Scalar scale = dt / model_.h;
+  const bool periodic = config_.periodic;
   for (int a = 0; a < 3; ++a) {
     if (!active_[a]) continue;
     const FieldLayout& F = faces_[a];
@@ -654,8 +771,17 @@ SolveInfo FluidSolver::project(Scalar dt, Interrupt& interrupt) {
     const Index n_axis = model_.shape.n[a], stride = cells_.stride(a);
     for_each_node(F, [&](Index i, Index j, Index k, Index f) {
       if (fixed[f]) return;
+      const Index ia = a == 0 ? i : a == 1 ? j : k;
+      if (!periodic && (ia == 0 || ia == n_axis)) {
+        // a face of an open side, p = 0 on it: the ghost cell beyond holds -p
+        std::array<Index, 3> c{i, j, k};
+        if (ia == n_axis) --c[a];
+        const Scalar pc = p[cells_.index(c[0], c[1], c[2])];
+        u[f] -= scale * (ia == 0 ? 2 * pc : -2 * pc);
+        return;
+      }
       const Index hi = cells_.index(i, j, k);
-      const Index lo = (a == 0 ? i : a == 1 ? j : k) == 0 ? hi + (n_axis - 1) * stride : hi - stride;
+      const Index lo = ia == 0 ? hi + (n_axis - 1) * stride : hi - stride;
       u[f] -= scale * (p[hi] - p[lo]);
     });
   }

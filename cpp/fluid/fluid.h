@@ -35,6 +35,9 @@ struct FluidConfig {
   Scalar viscosity = 0;             // kinematic viscosity nu [m^2/s]
   bool periodic = false;            // periodic on every axis (else closed walls)
   bool no_slip = false;             // closed walls: u = wall velocity (else free slip)
+  // Open (outflow) sides, wall 2*axis + side (internal axes): pressure p = 0 on the side and
+  // its normal velocity free, so fluid and smoke can leave (or enter) the domain there.
+  std::array<bool, 6> open{};
   Vec3 gravity{0, 0, 0};            // [m/s^2], internal axes
   bool density = false, temperature = false;
   Scalar alpha = 0, beta = 0;       // buoyancy (-alpha rho + beta T) up [m/s^2 per unit]
@@ -50,6 +53,16 @@ struct FluidModel {
   std::vector<std::uint8_t> solid;    // per cell, nonzero = solid (velocity 0 on its faces)
   std::array<Vec3, 6> wall_velocity{};  // wall 2*axis + side, tangential part only [m/s]
   std::array<bool, 6> wall_moving{};
+  // Sources: values imposed before every step (inflows, emitters), applied in order.
+  struct Source {
+    std::vector<Index> cells;                // flat cell indices
+    bool set_density = false, set_temperature = false;
+    Scalar density = 0, temperature = 0;
+    bool set_velocity = false;
+    Vec3 velocity{0, 0, 0};                  // internal axes [m/s]: every free face of the cells
+    std::array<std::vector<Index>, 3> faces; // the faces of the cells, per internal axis
+  };
+  std::vector<Source> sources;
 };
 
 // What evolves. Arrays are never reallocated, so views handed out stay valid.
@@ -80,6 +93,10 @@ class FluidSolver {
 
   // wall = 2*axis + side (internal axis); the velocity's normal component must be 0.
   void set_wall_velocity(int wall, const Vec3& velocity);
+  // Adds a source over the cells where mask != 0 (one byte per cell); returns its index.
+  Index add_source(const std::uint8_t* mask, bool set_density, Scalar density, bool set_temperature,
+                   Scalar temperature, bool set_velocity, const Vec3& velocity);
+  void clear_sources() { model_.sources.clear(); }
 
   void divergence(Scalar* out, Scalar scale = 1) const;  // scale * div u per cell [1/s]; 0 in solid cells
   Vec3 velocity_at(const Vec3& x) const;   // x in metres, internal axes
@@ -103,6 +120,9 @@ class FluidSolver {
   void check(Scalar dt, Index step) const;  // throws DivergenceError naming field and step
 
   void refresh_solids();            // rebuilds face flags and the pressure solver on change
+  void apply_sources();             // imposes the model's sources on the state
+  void inflow_ambient(Scalar* const* fields, int count);  // scalars 0 where open sides take fluid in
+  bool any_open() const { return config_.open != std::array<bool, 6>{}; }
   void enforce_boundary();          // fixed faces to their values, periodic copies in sync
   // u_a += dt * (face average of f) + du on the free faces
   void add_cell_force(int axis, const Scalar* f, Scalar dt, Scalar du);

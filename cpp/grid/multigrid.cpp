@@ -47,7 +47,6 @@ void prolongation_stencil(const PoissonOperator& fine, const PoissonOperator& co
     }
   }
   const Index parent_index = cs.index(parent[0], parent[1], parent[2]);
-  const Scalar ghost_sign = coarse.bc() == Boundary::Dirichlet ? -1 : 1;
   const bool periodic = coarse.bc() == Boundary::Periodic;
   for (int subset = 0; subset < 8; ++subset) {
     Index c[3];
@@ -66,8 +65,8 @@ void prolongation_stencil(const PoissonOperator& fine, const PoissonOperator& co
         if (periodic) {
           c[a] = c[a] < 0 ? c[a] + cs.n[a] : c[a] - cs.n[a];
         } else {
+          sign *= coarse.ghost_sign(2 * a + (c[a] < 0 ? 0 : 1));
           c[a] = parent[a];
-          sign *= ghost_sign;
         }
       }
     }
@@ -169,10 +168,17 @@ namespace {
 // an axis with nf fine and nc coarse cells: (1/4, 3/4, 3/4, 1/4), where a fine cell whose other
 // coarse neighbour lies across the domain boundary adds that neighbour's ghost value sigma*x_I
 // (sigma = -1 Dirichlet, +1 Neumann), and cells outside the fine grid weigh nothing.
-std::array<Scalar, 4> window_weights(Index nf, Index nc, Index I, Scalar sigma) {
+// Sigma is per wall: lower and upper end of the axis.
+struct Sigma {
+  Scalar lo = 1, hi = 1;
+};
+
+Sigma axis_sigma(const PoissonOperator& C, int axis) { return {C.ghost_sign(2 * axis), C.ghost_sign(2 * axis + 1)}; }
+
+std::array<Scalar, 4> window_weights(Index nf, Index nc, Index I, Sigma sigma) {
   std::array<Scalar, 4> w{0.25, 0.75, 0.75, 0.25};
-  if (I == 0) w[1] += 0.25 * sigma;         // fine 2I reaches coarse -1: reflected
-  if (I + 1 == nc) w[2] += 0.25 * sigma;    // fine 2I+1 reaches coarse nc: reflected
+  if (I == 0) w[1] += 0.25 * sigma.lo;         // fine 2I reaches coarse -1: reflected
+  if (I + 1 == nc) w[2] += 0.25 * sigma.hi;    // fine 2I+1 reaches coarse nc: reflected
   for (int c = 0; c < 4; ++c) {
     const Index f = 2 * I - 1 + c;
     if (f < 0 || f >= nf) w[c] = 0;
@@ -187,10 +193,11 @@ struct AxisTerm {
   Index parent, partner;
 };
 
-AxisTerm axis_term(Index f, Index nc, Scalar sigma) {
+AxisTerm axis_term(Index f, Index nc, Sigma sigma) {
   const Index parent = f / 2;
   const Index partner = (f & 1) ? parent + 1 : parent - 1;
-  if (partner < 0 || partner >= nc) return {0.75 + 0.25 * sigma, 0, parent, parent};
+  if (partner < 0) return {0.75 + 0.25 * sigma.lo, 0, parent, parent};
+  if (partner >= nc) return {0.75 + 0.25 * sigma.hi, 0, parent, parent};
   return {0.75, 0.25, parent, partner};
 }
 
@@ -203,7 +210,7 @@ void Multigrid::prolong_add(int l, const Scalar* coarse, Scalar* fine) const {
   const GridShape& cs = C.shape();
   const bool three_d = fs.dim == 3;
   const Index nf2 = fs.n[2], nc2 = cs.n[2];
-  const Scalar sigma = C.bc() == Boundary::Dirichlet ? -1 : 1;
+  const Sigma s0 = axis_sigma(C, 0), s1 = axis_sigma(C, 1), s2 = axis_sigma(C, 2);
   const bool periodic = C.bc() == Boundary::Periodic;  // wraps: the general stencil throughout
 #pragma omp parallel if (F.parallel())
   {
@@ -212,8 +219,8 @@ void Multigrid::prolong_add(int l, const Scalar* coarse, Scalar* fine) const {
     for (Index row = 0; row < fs.rows(); ++row) {
       const Index i = row / fs.n[1], j = row % fs.n[1];
       Scalar* out = fine + row * nf2;
-      const AxisTerm ti = three_d ? axis_term(i, cs.n[0], sigma) : AxisTerm{1, 0, 0, 0};
-      const AxisTerm tj = axis_term(j, cs.n[1], sigma);
+      const AxisTerm ti = three_d ? axis_term(i, cs.n[0], s0) : AxisTerm{1, 0, 0, 0};
+      const AxisTerm tj = axis_term(j, cs.n[1], s1);
       const Index prow = ti.parent * cs.n[1] + tj.parent;
       if (periodic || !(C.row_clear(prow) && F.row_fluid(row))) {
         for (Index k = 0; k < nf2; ++k) {
@@ -234,7 +241,7 @@ void Multigrid::prolong_add(int l, const Scalar* coarse, Scalar* fine) const {
 #pragma omp simd
       for (Index K = 0; K < nc2; ++K) m[K] = w00 * l00[K] + w01 * l01[K] + w10 * l10[K] + w11 * l11[K];
       for (Index k : {Index(0), nf2 - 1}) {
-        const AxisTerm tk = axis_term(k, nc2, sigma);
+        const AxisTerm tk = axis_term(k, nc2, s2);
         out[k] += tk.parent_weight * m[tk.parent] + tk.partner_weight * m[tk.partner];
       }
       for (Index k = 1; k + 1 < nf2; ++k) {
@@ -252,7 +259,7 @@ void Multigrid::restrict_residual(int l, const Scalar* fine, Scalar* coarse) con
   const GridShape& cs = C.shape();
   const bool three_d = fs.dim == 3;
   const Scalar scale = three_d ? 1.0 / 8 : 1.0 / 4;  // R = P^T / 2^d
-  const Scalar sigma = C.bc() == Boundary::Dirichlet ? -1 : 1;
+  const Sigma s0 = axis_sigma(C, 0), s1 = axis_sigma(C, 1), s2 = axis_sigma(C, 2);
   const Index nf2 = fs.n[2], nc2 = cs.n[2];
   const bool periodic = C.bc() == Boundary::Periodic;
 #pragma omp parallel if (F.parallel())
@@ -271,9 +278,9 @@ void Multigrid::restrict_residual(int l, const Scalar* fine, Scalar* coarse) con
         continue;
       }
       // Separable: the transpose of prolong_add's clear-row path.
-      const auto wi = three_d ? window_weights(fs.n[0], cs.n[0], I, sigma)
+      const auto wi = three_d ? window_weights(fs.n[0], cs.n[0], I, s0)
                               : std::array<Scalar, 4>{0, 1, 0, 0};
-      const auto wj = window_weights(fs.n[1], cs.n[1], J, sigma);
+      const auto wj = window_weights(fs.n[1], cs.n[1], J, s1);
       std::fill(t.begin(), t.end(), 0.0);
       for (int a = 0; a < 4; ++a) {
         if (wi[a] == 0) continue;
@@ -287,7 +294,7 @@ void Multigrid::restrict_residual(int l, const Scalar* fine, Scalar* coarse) con
         }
       }
       for (Index K : {Index(0), nc2 - 1}) {
-        const auto wk = window_weights(nf2, nc2, K, sigma);
+        const auto wk = window_weights(nf2, nc2, K, s2);
         Scalar sum = 0;
         for (int c = 0; c < 4; ++c)
           if (wk[c] != 0) sum += wk[c] * t[2 * K - 1 + c];
@@ -313,13 +320,12 @@ Scalar Multigrid::restrict_general(int l, const Scalar* fine, Index I, Index J, 
   if (!C.fluid(c)) return 0;
   const bool periodic = C.bc() == Boundary::Periodic;
   const Index centre[3] = {three_d ? I : 0, J, K};
-  const Scalar sigma = C.bc() == Boundary::Dirichlet ? -1 : 1;
   std::array<std::array<Scalar, 4>, 3> window{};
   window[0] = {0, 1, 0, 0};  // inactive axis 0 of a 2D grid: the one plane, a "child"
   for (int a = 0; a < 3; ++a)
     if (fs.active(a))
       window[a] = periodic ? std::array<Scalar, 4>{0.25, 0.75, 0.75, 0.25}
-                           : window_weights(fs.n[a], C.shape().n[a], centre[a], sigma);
+                           : window_weights(fs.n[a], C.shape().n[a], centre[a], axis_sigma(C, a));
   // fine index of window offset o along axis a, or -1 outside a closed grid
   auto fine_index = [&](int a, int o) -> Index {
     if (!fs.active(a)) return 0;

@@ -15,11 +15,17 @@
 namespace kinema {
 
 PoissonOperator::PoissonOperator(const GridShape& shape, Scalar h, Boundary bc,
-                                 const std::uint8_t* solid, Scalar shift)
+                                 const std::uint8_t* solid, Scalar shift, int dirichlet_walls)
     : shape_(shape), h_(h), inv_h2_(1 / (h * h)), shift_(shift),
       inv_plain_(1 / (shift + inv_h2_ * (shape.dim == 3 ? 6 : 4))), bc_(bc), avx2_(use_avx2()),
-      stream_stores_(avx2_ && shape.size() * static_cast<Index>(sizeof(Scalar)) >= kStreamBytes),
-      ends_plain_(bc != Boundary::Periodic) {
+      stream_stores_(avx2_ && shape.size() * static_cast<Index>(sizeof(Scalar)) >= kStreamBytes) {
+  int walls = bc == Boundary::Periodic ? 0 : dirichlet_walls >= 0 ? dirichlet_walls
+                                                                   : (bc == Boundary::Dirichlet ? kAllWalls : 0);
+  for (int axis = 0; axis < 3; ++axis)
+    if (!shape.active(axis)) walls &= ~(3 << (2 * axis));
+  dirichlet_ = static_cast<std::uint8_t>(walls);
+  // The end cells of plain rows share one diagonal when both walls of the row's axis agree.
+  ends_plain_ = bc != Boundary::Periodic && ((dirichlet_ >> 4) & 1) == ((dirichlet_ >> 5) & 1);
   if (!(h > 0)) throw InvalidArgument("h: expected a grid spacing > 0");
   if (!(shift >= 0)) throw InvalidArgument("shift: expected a diagonal shift >= 0");
   const Index n = shape_.size();
@@ -54,7 +60,7 @@ PoissonOperator::PoissonOperator(const GridShape& shape, Scalar h, Boundary bc,
               bits |= static_cast<std::uint8_t>(1u << (2 * axis + side));
               ++count;
             }
-          } else if (bc_ == Boundary::Dirichlet) {
+          } else if ((dirichlet_ >> (2 * axis + side)) & 1) {
             count += 2;  // ghost value -u_c: (u_c - (-u_c)) / h^2
           } else if (periodic && s[axis] > 1) {
             const Index nb = side == 0 ? c + (s[axis] - 1) * stride : c - (s[axis] - 1) * stride;
@@ -139,7 +145,7 @@ void PoissonOperator::label_components() {
   const Index n = size();
   if (fluid_count_ == n) {
     // Without solids the fluid is one component, singular exactly without Dirichlet faces.
-    if (bc_ != Boundary::Dirichlet && n > 0) {
+    if (dirichlet_ == 0 && n > 0) {
       component_.assign(n, 0);
       component_size_.push_back(n);
       singular_components_.push_back(0);
@@ -1007,7 +1013,7 @@ PoissonOperator PoissonOperator::coarsened() const {
       solid[coarse.index(I, J, K)] = !any;
     }
   });
-  return PoissonOperator(coarse, 2 * h_, bc_, solid.data(), shift_);
+  return PoissonOperator(coarse, 2 * h_, bc_, solid.data(), shift_, dirichlet_);
 }
 
 }  // namespace kinema

@@ -26,11 +26,16 @@ struct CsrArrays {
   std::vector<Scalar> values;
 };
 
+// Walls of a grid: bit 2*axis + side (internal axis, side 0 = lower).
+constexpr int kAllWalls = 0x3F;
+
 class PoissonOperator {
  public:
-  // `solid` (nullable) has one byte per cell, nonzero = solid.
+  // `solid` (nullable) has one byte per cell, nonzero = solid. `dirichlet_walls` (bits
+  // 2*axis + side) chooses per wall between Dirichlet and Neumann under bc = Neumann or
+  // Dirichlet; -1 takes them from bc (all Dirichlet or all Neumann).
   PoissonOperator(const GridShape& shape, Scalar h, Boundary bc, const std::uint8_t* solid,
-                  Scalar shift = 0);
+                  Scalar shift = 0, int dirichlet_walls = -1);
 
   // The operator of the grid coarsened by two per active axis (ceil), spacing 2h; a coarse
   // cell is fluid when any of its children is.
@@ -59,6 +64,9 @@ class PoissonOperator {
   Scalar h() const { return h_; }
   Scalar shift() const { return shift_; }
   Boundary bc() const { return bc_; }
+  // Sign of the ghost value beyond a boundary face of `wall`: -1 Dirichlet, +1 Neumann.
+  Scalar ghost_sign(int wall) const { return (dirichlet_ >> wall) & 1 ? -1 : 1; }
+  int dirichlet_walls() const { return dirichlet_; }
   bool fluid(Index c) const { return mask_[c] & kFluidBit; }
   // True when no cell of the row (i, j) has a solid cell in its 3^d neighbourhood, so that the
   // multigrid transfers there only meet domain boundaries and stay separable.
@@ -96,7 +104,7 @@ class PoissonOperator {
   // couplings, plus the ghost's 2 under Dirichlet. Computed as diagonal() computes it.
   template <bool ThreeD>
   Scalar end_diagonal() const {
-    const int count = (ThreeD ? 5 : 3) + (bc_ == Boundary::Dirichlet ? 2 : 0);
+    const int count = (ThreeD ? 5 : 3) + ((dirichlet_ >> 4) & 1 ? 2 : 0);  // both ends alike
     return shift_ + inv_h2_ * static_cast<std::uint8_t>(count);
   }
   Scalar wrapped_neighbour_sum(const Scalar* x, Index c) const;
@@ -118,6 +126,7 @@ class PoissonOperator {
   Scalar h_ = 1, inv_h2_ = 1, shift_ = 0;
   Scalar inv_plain_ = 1;                // 1 / A_cc of a plain cell, for the smoother
   Boundary bc_ = Boundary::Dirichlet;
+  std::uint8_t dirichlet_ = kAllWalls;  // Dirichlet walls (active axes only; none when periodic)
   bool avx2_ = false;                   // run the plain-stencil rows with AVX2 (core/simd.h)
   bool stream_stores_ = false;          // 3D apply: non-temporal stores of the result
   bool ends_plain_ = false;             // end cells of plain rows: no periodic wrap (end_diagonal)

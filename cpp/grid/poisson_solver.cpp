@@ -19,8 +19,9 @@ PoissonMethod parse_poisson_method(const std::string& name) {
 }
 
 PoissonSolver::PoissonSolver(const GridShape& shape, Scalar h, Boundary bc,
-                             const std::uint8_t* solid, Scalar shift, const PoissonConfig& config)
-    : op_(std::make_unique<PoissonOperator>(shape, h, bc, solid, shift)), config_(config) {
+                             const std::uint8_t* solid, Scalar shift, const PoissonConfig& config,
+                             int dirichlet_walls)
+    : op_(std::make_unique<PoissonOperator>(shape, h, bc, solid, shift, dirichlet_walls)), config_(config) {
   if (bc == Boundary::Periodic && config_.method != PoissonMethod::Jacobi && config_.method != PoissonMethod::CG)
     for (int a = 0; a < 3; ++a)
       if (shape.active(a) && shape.n[a] % 2 != 0)

@@ -29,8 +29,9 @@ struct PoissonConfig {
 
 class PoissonSolver {
  public:
+  // dirichlet_walls: see PoissonOperator (-1: from bc).
   PoissonSolver(const GridShape& shape, Scalar h, Boundary bc, const std::uint8_t* solid,
-                Scalar shift, const PoissonConfig& config);
+                Scalar shift, const PoissonConfig& config, int dirichlet_walls = -1);
 
   // Solves A x = b from the initial guess in x. For a singular operator the component of b in
   // the null space is ignored and x is returned with zero mean per singular component.

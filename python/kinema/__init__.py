@@ -7,7 +7,21 @@ The user guide and API reference: docs/ in the source repository (``bash scripts
 builds them into HTML), or each function's docstring (``help(km.sph.Fluid)``).
 """
 
-from kinema import _core
+import os as _os
+
+# OpenMP's waiting policy is read once, when the runtime starts (at the import of _core below).
+# libgomp's default lets an idle thread spin ~3 ms before it sleeps: on a machine where another
+# process keeps a core busy that spinning starves the thread it waits for, and a CG solve took
+# 60x longer. A short bounded spin keeps most of the quiet-machine speed and the loaded-machine
+# speed (bench/omp_wait_policy.py, bench/RESULTS.md). A user's own setting of either variable
+# wins; this has no effect when another library started the OpenMP runtime first.
+#: GOMP_SPINCOUNT kinema sets when the user set neither it nor OMP_WAIT_POLICY.
+DEFAULT_GOMP_SPINCOUNT = "1000"
+_OMP_USER = {k: _os.environ[k] for k in ("GOMP_SPINCOUNT", "OMP_WAIT_POLICY") if k in _os.environ}
+if not _OMP_USER:
+    _os.environ["GOMP_SPINCOUNT"] = DEFAULT_GOMP_SPINCOUNT
+
+from kinema import _core  # noqa: E402
 from kinema._info import SolveInfo
 from kinema.errors import (
     ConvergenceError,
@@ -17,6 +31,7 @@ from kinema.errors import (
     StabilityError,
 )
 from kinema import diffusion, fem, fmm, grid, massspring, poisson, render, sparse, sph, vortex
+from kinema import mesh
 from kinema.scenes import Scene, SceneError
 from kinema import io
 
@@ -41,6 +56,7 @@ __all__ = [
     "grid",
     "massspring",
     "fem",
+    "mesh",
     "sph",
     "render",
     "Scene",
@@ -65,4 +81,6 @@ def build_info() -> dict:
     """How this kinema was built: compiler, flags, OpenMP, Eigen, CHOLMOD and the BLAS in use."""
     info = dict(_core.build_info())
     info["threads"] = str(get_num_threads())
+    info["openmp_wait"] = (", ".join(f"{k}={v}" for k, v in _OMP_USER.items()) + " (set by the user)" if _OMP_USER
+                           else f"GOMP_SPINCOUNT={DEFAULT_GOMP_SPINCOUNT} (kinema default)")
     return info

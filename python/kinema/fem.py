@@ -31,6 +31,7 @@ import scipy.sparse as sp
 
 from kinema import _core
 from kinema._checks import as_float_array, choice, non_negative, positive, positive_int
+from kinema._state import state_property
 from kinema.massspring import _gravity, _indices
 
 __all__ = ["Body", "NewtonInfo", "MODELS", "lame", "psi", "piola", "piola_derivative",
@@ -123,6 +124,9 @@ class Body:
         oriented (degenerate or inverted rest elements raise ValueError naming the element).
     model: one of MODELS; youngs_modulus [Pa]; poisson_ratio in (-1, 0.5); density [kg/m^d].
     fixed: vertex indices held in place; gravity: (d,) [m/s^2] or None; damping: c [1/s].
+    orient: re-orient negatively oriented elements (by :func:`kinema.mesh.orient`) instead of
+        refusing them; ``flipped`` then lists the indices of the elements swapped. Flat
+        elements (slivers) are still refused: remove them with :func:`kinema.mesh.clean`.
 
     Attributes: x (n, d) [m] and v (n, d) [m/s] are writable zero-copy views of the body's
     state (valid as long as the body); rest (n, d) [m] is a copy of the rest shape;
@@ -130,7 +134,7 @@ class Body:
     """
 
     def __init__(self, vertices, elements, *, model="neohookean", youngs_modulus, poisson_ratio,
-                 density, fixed=(), gravity=None, damping=0.0):
+                 density, fixed=(), gravity=None, damping=0.0, orient=False):
         vertices = as_float_array(vertices, "vertices", ndim=2)
         n, d = vertices.shape
         if d not in (2, 3):
@@ -146,14 +150,28 @@ class Body:
         rho = positive(density, "density")
         fixed = _indices(np.asarray(fixed).ravel() if np.size(fixed) else np.zeros(0, np.int64),
                          "fixed", n)
-        self._core = _core.fem.Body(vertices, elements, model, E, nu, rho, fixed,
-                                    _gravity(gravity, d), non_negative(damping, "damping"))
+        self.flipped = np.zeros(0, np.int64)
+        if orient:
+            from kinema import mesh
+
+            elements, self.flipped = mesh.orient(vertices, elements)
+        try:
+            self._core = _core.fem.Body(vertices, elements, model, E, nu, rho, fixed,
+                                        _gravity(gravity, d), non_negative(damping, "damping"))
+        except ValueError as exc:
+            hint = {"inverted": "; or pass orient=True (km.mesh.orient) to re-orient such elements",
+                    "degenerate": "; km.mesh.clean(vertices, elements) removes flat elements (slivers) "
+                                  "and says which"}
+            for word, extra in hint.items():
+                if word in str(exc):
+                    raise type(exc)(f"{exc}{extra}") from None
+            raise
         self.elements = elements
         self.model = model
         self.fixed = fixed
 
-    x = property(lambda self: self._core.x)
-    v = property(lambda self: self._core.v)
+    x = state_property(lambda self: self._core.x, "x", "(n, d) positions [m] (assigning copies in)")
+    v = state_property(lambda self: self._core.v, "v", "(n, d) velocities [m/s] (assigning copies in)")
     rest = property(lambda self: self._core.rest)
     mass = property(lambda self: self._core.mass)
     time = property(lambda self: self._core.time, doc="Simulated time [s].")

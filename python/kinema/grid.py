@@ -23,6 +23,7 @@ import numpy as np
 from kinema import _core
 from kinema._checks import as_float_array, choice, grid_shape, non_negative, positive, positive_int
 from kinema._info import SolveInfo
+from kinema._state import assign
 
 __all__ = ["Fluid", "StepInfo", "advect", "SCHEMES", "ADVECTION_KERNELS"]
 
@@ -78,8 +79,16 @@ class Fluid:
     advection_kernel: which implementation advects, all with bitwise the same results: "auto"
     (the fastest that applies), "nodes" (node by node, every case), "rows" or "rows_avx2"
     (vectorised along rows, baseline ISA or AVX2; not with no-slip or moving walls).
+    open: sides ("x-", "x+", "y-", "y+", "z-", "z+", or a tuple of them) that are open instead of
+    walls: the pressure is 0 there (a Dirichlet condition of the projection) and the normal
+    velocity free, so fluid and smoke leave (or are drawn in) through them; scalars and
+    velocities extend the nearest value across them. Not with boundary="periodic".
 
-    State (writable views of the solver's memory, never reallocated):
+    Sources (inflows, emitters): :meth:`add_source` imposes density, temperature and/or velocity
+    in a region of cells before every step, in :meth:`step` and :meth:`advance` alike.
+
+    State (writable views of the solver's memory, never reallocated; assigning to an attribute,
+    ``sim.density = array``, copies into it after checking the shape):
       u, v[, w]: MAC velocities [m/s] (see the module docstring for shapes);
       pressure: (nx, ny[, nz]) kinematic pressure p/rho [m^2/s^2] of the last projection;
       solid: (nx, ny[, nz]) bool, obstacle cells (faces touching them have zero velocity;
@@ -90,7 +99,7 @@ class Fluid:
     def __init__(self, shape, h, *, advection="maccormack", rk_order=2, projection="mgpcg", tol=1e-6,
                  viscosity=0.0, boundary="closed", walls="free_slip", gravity=None, density=False,
                  temperature=False, buoyancy=(0.0, 0.0), vorticity_confinement=0.0, max_iter=None,
-                 advection_kernel="auto"):
+                 advection_kernel="auto", open=()):
         self.shape = grid_shape(shape, "shape")
         self.dim = len(self.shape)
         self.h = positive(h, "h")
@@ -123,10 +132,27 @@ class Fluid:
         self.vorticity_confinement = non_negative(vorticity_confinement, "vorticity_confinement")
         max_iter = positive_int(max_iter, "max_iter", allow_none=True) or 0
         self.advection_kernel = choice(advection_kernel, "advection_kernel", ADVECTION_KERNELS)
+        self.open = self._sides(open)
+        if self.open and self.boundary == "periodic":
+            raise ValueError("open: a periodic domain has no open sides (boundary='periodic')")
         self._core = _core.grid.Fluid(
             list(self.shape), self.h, self.advection, self.rk_order, self.projection, self.tol, max_iter,
             self.viscosity, self.boundary, self.walls, g, bool(density), bool(temperature), alpha, beta,
-            self.vorticity_confinement, self.advection_kernel)
+            self.vorticity_confinement, self.advection_kernel, list(self.open))
+
+    def _sides(self, sides):
+        names = tuple(s for s in _SIDES if self.dim == 3 or not s.startswith("z"))
+        if isinstance(sides, str):
+            sides = (sides,)
+        try:
+            sides = tuple(sides)
+        except TypeError:
+            raise ValueError(f"open: expected side names among {', '.join(names)}, got {sides!r}") from None
+        for side in sides:
+            choice(side, "open", names)
+        if len(set(sides)) != len(sides):
+            raise ValueError(f"open: a side is named twice in {sides}")
+        return tuple(sorted(sides, key=names.index))
 
     # ------------------------------------------------------------------ state views
     @property
@@ -134,10 +160,18 @@ class Fluid:
         """(nx+1, ny[, nz]) x-velocity on the faces normal to x [m/s]."""
         return self._core.velocity(0)
 
+    @u.setter
+    def u(self, value):
+        assign(self.u, value, "u")
+
     @property
     def v(self):
         """(nx, ny+1[, nz]) y-velocity on the faces normal to y [m/s]."""
         return self._core.velocity(1)
+
+    @v.setter
+    def v(self, value):
+        assign(self.v, value, "v")
 
     @property
     def w(self):
@@ -146,39 +180,105 @@ class Fluid:
             raise AttributeError("w: a 2D Fluid has no z-velocity (give a 3D shape)")
         return self._core.velocity(2)
 
+    @w.setter
+    def w(self, value):
+        assign(self.w, value, "w")
+
     @property
     def velocity(self):
-        """The MAC components (u, v[, w]) as a tuple of views."""
+        """The MAC components (u, v[, w]) as a tuple of views; assign a sequence of d arrays."""
         return tuple(self._core.velocity(c) for c in range(self.dim))
+
+    @velocity.setter
+    def velocity(self, value):
+        comps = list(value) if not isinstance(value, np.ndarray) or value.dtype == object else None
+        if comps is None or len(comps) != self.dim:
+            raise ValueError(f"velocity: expected a sequence of {self.dim} MAC components (u, v[, w])")
+        for c, (view, comp) in enumerate(zip(self.velocity, comps)):
+            assign(view, comp, "uvw"[c])
 
     @property
     def pressure(self):
+        """(nx, ny[, nz]) kinematic pressure [m^2/s^2] of the last projection (the next one
+        starts from it when that helps)."""
         return self._core.pressure
+
+    @pressure.setter
+    def pressure(self, value):
+        assign(self.pressure, value, "pressure")
 
     @property
     def solid(self):
+        """(nx, ny[, nz]) bool obstacle cells (changes take effect at the next step)."""
         return self._core.solid
 
     @solid.setter
     def solid(self, mask):
-        m = np.asarray(mask)
-        if m.shape != self.shape:
-            raise ValueError(f"solid: expected a bool array of shape {self.shape}, got shape {m.shape}")
-        self._core.solid[...] = m.astype(bool)
+        assign(self.solid, mask, "solid")
 
     @property
     def density(self):
+        """(nx, ny[, nz]) smoke density (when enabled)."""
         q = self._core.scalar("density")
         if q is None:
             raise AttributeError("density: disabled; create the Fluid with density=True")
         return q
 
+    @density.setter
+    def density(self, value):
+        assign(self.density, value, "density")
+
     @property
     def temperature(self):
+        """(nx, ny[, nz]) temperature (when enabled)."""
         q = self._core.scalar("temperature")
         if q is None:
             raise AttributeError("temperature: disabled; create the Fluid with temperature=True")
         return q
+
+    @temperature.setter
+    def temperature(self, value):
+        assign(self.temperature, value, "temperature")
+
+    def cell_centers(self) -> np.ndarray:
+        """(nx, ny[, nz], d) cell-centre coordinates [m], for building masks of regions:
+        ``inside = np.linalg.norm(sim.cell_centers() - c, axis=-1) < r``."""
+        axes = [(np.arange(n) + 0.5) * self.h for n in self.shape]
+        return np.stack(np.meshgrid(*axes, indexing="ij"), -1)
+
+    def add_source(self, region, *, density=None, temperature=None, velocity=None) -> int:
+        """Imposes values in ``region`` (a bool array of the grid's shape) before every step:
+        ``density`` / ``temperature`` in its cells (the fields must be enabled), and ``velocity``
+        (a d-vector [m/s]) on every face of its cells, each face taking the component normal to
+        it (faces of walls and solid cells keep their zero). Sources apply in the order added, in
+        :meth:`step` and in every sub-step of :meth:`advance`. An inflow: a source of velocity
+        next to a closed side with an open side opposite. Returns the source's index."""
+        m = np.asarray(region)
+        if m.shape != self.shape or m.dtype != np.bool_:
+            raise ValueError(f"region: expected a bool array of shape {self.shape}, got {m.dtype} {m.shape}")
+        if density is None and temperature is None and velocity is None:
+            raise ValueError("add_source: give at least one of density, temperature, velocity")
+        for value, name in ((density, "density"), (temperature, "temperature")):
+            if value is not None:
+                _finite(value, name)
+                if self._core.scalar(name) is None:
+                    raise ValueError(f"{name}: the fluid carries no {name} field; create it with {name}=True")
+        vel = None
+        if velocity is not None:
+            vel = as_float_array(velocity, "velocity", ndim=1)
+            if vel.shape != (self.dim,):
+                raise ValueError(f"velocity: expected {self.dim} components, got shape {vel.shape}")
+            vel = [float(x) for x in vel]
+        return self._core.add_source(m.astype(np.uint8), None if density is None else float(density),
+                                     None if temperature is None else float(temperature), vel)
+
+    def clear_sources(self) -> None:
+        """Removes every source added by :meth:`add_source`."""
+        self._core.clear_sources()
+
+    @property
+    def source_count(self) -> int:
+        return self._core.source_count
 
     @property
     def time(self) -> float:

@@ -28,6 +28,7 @@ import numpy as np
 
 from kinema import _core
 from kinema._checks import as_float_array, choice, non_negative, positive, positive_int
+from kinema._state import assign
 
 __all__ = ["System", "StepInfo", "cloth", "INTEGRATORS"]
 
@@ -135,11 +136,21 @@ class System:
 
     @property
     def x(self) -> np.ndarray:
+        """(n, d) positions [m] (writable view; assigning copies in, shape checked)."""
         return self._core.x
+
+    @x.setter
+    def x(self, value):
+        assign(self.x, value, "x")
 
     @property
     def v(self) -> np.ndarray:
+        """(n, d) velocities [m/s] (writable view; assigning copies in, shape checked)."""
         return self._core.v
+
+    @v.setter
+    def v(self, value):
+        assign(self.v, value, "v")
 
     @property
     def time(self) -> float:

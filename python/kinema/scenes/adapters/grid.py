@@ -13,7 +13,7 @@ import numpy as np
 import kinema as km
 from kinema.scenes import preview, regions
 from kinema.scenes.adapters.base import ArrayStateSimulation, GridData
-from kinema.scenes.schema import REGION, Bool, Field, Int, Real, Str, Table, Vec
+from kinema.scenes.schema import REGION, Bool, Field, Int, ListOf, Real, Str, Table, Vec
 
 SOLVER = Table({
     "resolution": Field(Vec(item=Int(ge=1), spatial=True), doc="cells per axis"),
@@ -25,6 +25,8 @@ SOLVER = Table({
     "viscosity": Field(Real(ge=0), 0.0, "kinematic viscosity [m^2/s]"),
     "boundary": Field(Str(("closed", "periodic")), "closed"),
     "walls": Field(Str(("free_slip", "no_slip")), "free_slip"),
+    "open": Field(ListOf(Str(("x-", "x+", "y-", "y+", "z-", "z+"))), [],
+                  "open (outflow) sides: p = 0 there, smoke leaves the box"),
     "gravity": Field(Vec(spatial=True), None, "[m/s^2]"),
     "density": Field(Bool(), False, "carry a smoke density field"),
     "temperature": Field(Bool(), False, "carry a temperature field"),
@@ -70,7 +72,8 @@ class GridSimulation(ArrayStateSimulation):
             shape, self.h, advection=o["advection"], rk_order=o["rk_order"], projection=o["projection"],
             tol=o["tol"], viscosity=o["viscosity"], boundary=o["boundary"], walls=o["walls"],
             gravity=o["gravity"], density=o["density"], temperature=o["temperature"],
-            buoyancy=tuple(o["buoyancy"]), vorticity_confinement=o["vorticity_confinement"])
+            buoyancy=tuple(o["buoyancy"]), vorticity_confinement=o["vorticity_confinement"],
+            open=tuple(o["open"]))
         centres = np.stack(np.meshgrid(*[(np.arange(n) + 0.5) * self.h for n in shape], indexing="ij"), -1)
         centres = centres.reshape(-1, self.dim)
         self.sources = []
