@@ -16,6 +16,7 @@ from kinema.errors import (
     StabilityError,
 )
 from kinema import diffusion, fem, fmm, grid, massspring, poisson, render, sparse, sph, vortex
+from kinema import mpm
 from kinema.scenes import Scene, SceneError
 
 __version__ = "0.1.0"
@@ -40,6 +41,7 @@ __all__ = [
     "massspring",
     "fem",
     "sph",
+    "mpm",
     "render",
     "Scene",
     "SceneError",
