@@ -37,21 +37,33 @@ struct Svd {
   Vec<D> sigma;
 };
 
-// 2D: F = R S by the closed-form polar decomposition, then S = W diag(s) W^T in closed form.
+// 2D: F = R S by the closed-form polar decomposition (R's cosine and sine are the normalised
+// (F00 + F11, F10 - F01)), then S = W diag(s) W^T by the closed-form eigenvectors of a symmetric
+// 2x2 matrix; no trigonometric calls.
 inline Svd<2> svd(const Mat<2>& F) {
-  const Scalar angle = std::atan2(F(1, 0) - F(0, 1), F(0, 0) + F(1, 1));
-  const Scalar cr = std::cos(angle), sr = std::sin(angle);
+  const Scalar a = F(0, 0) + F(1, 1), b = F(1, 0) - F(0, 1), r = std::hypot(a, b);
+  const Scalar cr = r > 0 ? a / r : 1, sr = r > 0 ? b / r : 0;
   Mat<2> R;
   R << cr, -sr, sr, cr;
   const Mat<2> S = R.transpose() * F;
-  const Scalar a = S(0, 0), b = 0.5 * (S(0, 1) + S(1, 0)), c = S(1, 1);
-  const Scalar theta = 0.5 * std::atan2(2 * b, a - c);
-  const Scalar ct = std::cos(theta), st = std::sin(theta);
-  Svd<2> r;
-  r.V << ct, -st, st, ct;
-  r.sigma << a * ct * ct + 2 * b * ct * st + c * st * st, a * st * st - 2 * b * ct * st + c * ct * ct;
-  r.U = R * r.V;
-  return r;
+  const Scalar p = S(0, 0), q = 0.5 * (S(0, 1) + S(1, 0)), t = S(1, 1);
+  const Scalar half = 0.5 * (p - t), root = std::hypot(half, q), mid = 0.5 * (p + t);
+  // Eigenvector of the larger eigenvalue mid + root: (half + root, q) or, without
+  // cancellation when half < 0, (q, root - half).
+  Scalar ex = half >= 0 ? half + root : q, ey = half >= 0 ? q : root - half;
+  const Scalar en = std::hypot(ex, ey);
+  if (en > 0) {
+    ex /= en;
+    ey /= en;
+  } else {
+    ex = 1;
+    ey = 0;
+  }
+  Svd<2> res;
+  res.V << ex, -ey, ey, ex;
+  res.sigma << mid + root, mid - root;
+  res.U = R * res.V;
+  return res;
 }
 
 // 3D: V from the closed-form eigenvectors of F^T F (Eigen's computeDirect), U by Gram-Schmidt

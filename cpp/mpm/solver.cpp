@@ -111,9 +111,13 @@ class SolverD final : public Solver::Impl {
   // Grid coordinates of x (in cells, ghost-shifted so that node I sits at I - 1).
   Vec<D> grid_coords(const Scalar* x) const {
     Vec<D> g;
-    for (int a = 0; a < D; ++a) g(a) = (x[a] - model_.origin[a]) / model_.h + 1;
+    for (int a = 0; a < D; ++a) g(a) = (x[a] - model_.origin[a]) * inv_h_ + 1;
     return g;
   }
+
+  // floor(g - 0.5) for a particle inside the domain (g >= 1), where truncation is the floor
+  // (std::floor is a library call without SSE4.1).
+  static Index base_node(Scalar g) { return static_cast<Index>(g - 0.5); }
 
   Index key_of(const std::array<Index, 3>& b) const { return (b[0] * blocks_[1] + b[1]) * blocks_[2] + b[2]; }
 
@@ -133,7 +137,7 @@ class SolverD final : public Solver::Impl {
       bool inside = true;
       for (int a = 0; a < D; ++a) {
         inside = inside && g(a) >= 1 && g(a) <= static_cast<Scalar>(model_.shape[a] + 1);
-        if (inside) b[a] = static_cast<Index>(std::floor(g(a) - 0.5)) / B;
+        if (inside) b[a] = base_node(g(a)) / B;
       }
       const Index code = state.material[static_cast<size_t>(p)];
       inside = inside && code >= 0 && code < static_cast<Index>(model_.materials.size());
@@ -253,10 +257,10 @@ class SolverD final : public Solver::Impl {
     const Vec<D> g = grid_coords(x);
     st.base = 0;
     for (int a = 0; a < D; ++a) {
-      const Scalar b = std::floor(g(a) - 0.5);
-      st.fx(a) = g(a) - b;
+      const Index b = base_node(g(a));
+      st.fx(a) = g(a) - static_cast<Scalar>(b);
       bspline_weights(st.fx(a), st.w[a]);
-      st.base = st.base * T + static_cast<int>(static_cast<Index>(b) - o[a]);
+      st.base = st.base * T + static_cast<int>(b - o[a]);
     }
     return st;
   }
@@ -525,6 +529,7 @@ class SolverD final : public Solver::Impl {
 
   Model model_;
   Config config_;
+  Scalar inv_h_ = 1 / model_.h;
   std::array<Index, 3> blocks_{};
   Index block_count_ = 0;
   std::vector<std::int32_t> table_;          // dense block key -> slot (or -1)
