@@ -31,7 +31,7 @@ from kinema.errors import (
     StabilityError,
 )
 from kinema import diffusion, fem, fmm, grid, massspring, poisson, render, sparse, sph, vortex
-from kinema import mesh
+from kinema import mesh, mpm
 from kinema.scenes import Scene, SceneError
 from kinema import io
 
@@ -58,6 +58,7 @@ __all__ = [
     "fem",
     "mesh",
     "sph",
+    "mpm",
     "render",
     "Scene",
     "SceneError",

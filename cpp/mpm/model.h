@@ -1,0 +1,84 @@
+// What an MPM step does not change: the background grid (shape, spacing h, origin), the domain
+// walls' boundary condition, the static colliders and the table of materials whose index is
+// each particle's material code. Built and validated by the make_* factories; a Solver copies
+// the Model it is built from.
+//
+// Grid convention (API.md): `shape` cells of spacing h span [origin, origin + shape h]; grid
+// nodes sit at origin + i h for i = 0..shape, plus one ghost layer on each side (i = -1 and
+// shape + 1) that the quadratic B-spline stencil of a particle on a wall reaches. The wall
+// conditions hold on the nodes at and beyond the walls (i <= 0, i >= shape).
+#pragma once
+
+#include <array>
+#include <string>
+#include <vector>
+
+#include "core/types.h"
+
+namespace kinema::mpm {
+
+// Velocity condition at a wall or collider with outward normal n (pointing into the material):
+// Sticky: v = 0; Slip: v.n = 0; Separate: v.n = max(v.n, 0) (the material may leave the wall).
+enum class Boundary { Sticky, Slip, Separate };
+
+Boundary parse_boundary(const std::string& name, const char* argument);
+
+enum class MaterialKind { Elastic, NeoHookean, Snow, Sand, Water };
+
+MaterialKind parse_material(const std::string& name);
+const char* material_name(MaterialKind kind);
+
+struct Material {
+  MaterialKind kind = MaterialKind::Elastic;
+  Scalar density = 0;         // rest density rho0 [kg/m^d]
+  Scalar youngs_modulus = 0;  // E [Pa] (water: the bulk modulus K)
+  Scalar poisson_ratio = 0;   // nu [-]
+  Scalar mu = 0, lambda = 0;  // Lame parameters [Pa]
+  // Snow (Stomakhin et al. 2013, Sec. 5): singular values clamped to [1 - theta_c, 1 + theta_s];
+  // the Lame parameters grow by exp(hardening (1 - Jp)).
+  Scalar theta_c = 2.5e-2, theta_s = 7.5e-3, hardening = 10;
+  // Sand (Klar et al. 2016, Sec. 7.3): alpha = sqrt(2/3) 2 sin(phi) / (3 - sin(phi)) from the
+  // friction angle phi; the cohesion c [Pa] moves the cone's apex to the tensile pressure
+  // c / tan(phi) (Mohr-Coulomb), i.e. to the log-strain trace `apex_trace` (0 without cohesion).
+  Scalar friction_angle = 0;  // [deg]
+  Scalar cohesion = 0;        // [Pa]
+  Scalar alpha = 0;
+  Scalar apex_trace = 0;
+  // Water: Tait pressure p = K / gamma (J^-gamma - 1).
+  Scalar gamma = 7;
+  Scalar wave_speed = 0;  // speed of the fastest elastic wave at rest [m/s]
+};
+
+// A validated material: `dim` fixes the Drucker-Prager constants of sand.
+Material make_material(int dim, MaterialKind kind, Scalar density, Scalar youngs_modulus,
+                       Scalar poisson_ratio, Scalar friction_angle, Scalar cohesion);
+
+struct Collider {
+  enum class Shape { Box, Sphere } shape = Shape::Box;
+  std::array<Scalar, 3> lower{}, upper{};  // box corners [m]
+  std::array<Scalar, 3> center{};          // sphere centre [m]
+  Scalar radius = 0;                       // sphere radius [m]
+  Boundary boundary = Boundary::Slip;
+  Scalar friction = 0;  // Coulomb coefficient mu of slip and separate contact [-]
+};
+
+struct Model {
+  int dim = 3;
+  std::array<Index, 3> shape{1, 1, 1};  // cells per axis
+  Scalar h = 0;                         // grid spacing [m]
+  std::array<Scalar, 3> origin{};       // lower corner of the domain [m]
+  Boundary boundary = Boundary::Slip;   // at the domain walls
+  Scalar wall_friction = 0;             // Coulomb coefficient of the walls (slip, separate) [-]
+  std::vector<Collider> colliders;
+  std::vector<Material> materials;      // indexed by the particles' material codes
+
+  Scalar upper(int axis) const { return origin[axis] + static_cast<Scalar>(shape[axis]) * h; }
+};
+
+Model make_model(int dim, const std::vector<Index>& shape, Scalar h, const std::vector<Scalar>& origin,
+                 Boundary boundary, Scalar wall_friction = 0);
+
+// Validates and appends a collider (its coordinates have dim entries).
+void add_collider(Model& model, const Collider& collider);
+
+}  // namespace kinema::mpm

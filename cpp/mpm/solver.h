@@ -1,0 +1,76 @@
+// The material point method solver: MLS-MPM (Hu et al. 2018) with APIC transfers (Jiang et al.
+// 2015) and quadratic B-spline weights, in 2D and 3D. One step, in the order of Hu et al.'s
+// Algorithm 1:
+//   1. sort the particles into grid blocks (Morton order) and activate the blocks they touch;
+//   2. P2G: m_i = sum w m_p,  (m v)_i = sum w [m_p v_p + (m_p C_p - 4 dt V_p / h^2 tau_p)(x_i - x_p)];
+//   3. grid update: v_i = (m v)_i / m_i + dt g, then the wall and collider conditions;
+//   4. G2P: v_p = sum w v_i,  C_p = 4 / h^2 sum w v_i (x_i - x_p)^T,  x_p += dt v_p,
+//      F_p <- (I + dt C_p) F_p and the material's plastic projection.
+// The grid is sparse: storage and work exist only for the blocks of nodes that particles reach.
+// P2G needs no atomics and is deterministic for any thread count: each block scatters into a
+// private tile of (B + 2)^d nodes and the tiles are added to the grid in 2^d colour phases
+// (blocks of one colour are two blocks apart, so their tiles never overlap), each node
+// receiving its contributions in a fixed order.
+#pragma once
+
+#include <memory>
+#include <vector>
+
+#include "core/interrupt.h"
+#include "core/types.h"
+#include "mpm/config.h"
+#include "mpm/model.h"
+#include "mpm/state.h"
+
+namespace kinema::mpm {
+
+struct StepStats {
+  Scalar dt = 0;
+  Scalar max_speed = 0;         // largest particle speed after the step [m/s]
+  Index particle_blocks = 0;    // grid blocks holding particles
+  Index active_blocks = 0;      // blocks the transfers touch (with their +1 neighbours)
+  Scalar sort_seconds = 0;      // binning into blocks and block activation
+  Scalar p2g_seconds = 0;       // stress and particle-to-grid transfer
+  Scalar grid_seconds = 0;      // grid velocity update and boundary conditions
+  Scalar g2p_seconds = 0;       // grid-to-particle transfer, advection and plasticity
+  Scalar seconds = 0;
+};
+
+class Solver {
+ public:
+  Solver(const Model& model, const Config& config);
+  ~Solver();
+  Solver(const Solver&) = delete;
+  Solver& operator=(const Solver&) = delete;
+
+  // Advances state by dt. Throws InvalidArgument for particles outside the domain or a bad
+  // dt, DivergenceError when a value turns non-finite or a particle crosses more than
+  // config.max_cells_per_step cells in one step.
+  StepStats step(State& state, Scalar dt, Interrupt& interrupt);
+
+  // min(cfl h / (v_max + c_max), sqrt(cfl h / |g|), max_dt): the CFL rule with the fastest
+  // elastic wave c_max = sqrt((lambda + 2 mu) / rho) (snow: with its hardening; water:
+  // sqrt(K / rho)) of the materials present.
+  Scalar stable_dt(const State& state, Scalar cfl) const;
+
+  // Translational kinetic energy sum m |v|^2 / 2 [J].
+  Scalar kinetic_energy(const State& state) const;
+  // sum m v (d entries) [kg m/s].
+  std::vector<Scalar> momentum(const State& state) const;
+  // The angular momentum about the origin that APIC conserves (Jiang et al. 2015, Sec. 5.3):
+  // sum m x x v plus the affine part m (h^2 / 4) eps : C^T of each particle; one entry in 2D
+  // (the z component), three in 3D.
+  std::vector<Scalar> angular_momentum(const State& state) const;
+
+  const Model& model() const { return model_; }
+  const Config& config() const { return config_; }
+
+  class Impl;
+
+ private:
+  Model model_;
+  Config config_;
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace kinema::mpm

@@ -1,0 +1,365 @@
+"""km.mpm: exact properties of the MLS-MPM/APIC transfers, references (Sulsky's disks, Martin and
+Moyce's dam break, granular column runout) and bad input, in 2D and 3D."""
+
+import numpy as np
+import pytest
+
+import kinema as km
+
+MATERIALS = ("elastic", "neohookean", "snow", "sand", "water")
+
+
+def _sim(d, n=32, gravity=None, boundary="slip"):
+    return km.mpm.Simulation((n,) * d, 1.0 / n, gravity=gravity, boundary=boundary)
+
+
+def _add(sim, x, material, **kw):
+    kw.setdefault("density", 1000.0)
+    if material == "sand":
+        kw.setdefault("friction_angle", 30.0)
+    return sim.add_particles(x, material, **kw)
+
+
+# ---------------------------------------------------------------- exact properties
+@pytest.mark.parametrize("d", [2, 3])
+def test_free_fall_follows_symplectic_euler_to_rounding(d):
+    # A stress-free block: every grid velocity is v + dt g exactly (partition of unity) and C
+    # stays 0 (linear reproduction), so each particle follows symplectic Euler:
+    # y_n = y_0 + g dt^2 n (n + 1) / 2 = y_0 + g t^2/2 + g t dt / 2.
+    sim = _sim(d, 32)
+    x0 = km.mpm.block([0.4] * d, [0.6] * d, 1 / 64)
+    _add(sim, x0, "elastic")
+    dt, n = 1e-3, 100
+    for _ in range(n):
+        sim.step(dt)
+    g = -9.81
+    expected = x0.copy()
+    expected[:, 1] += g * dt * dt * n * (n + 1) / 2
+    err = np.abs(sim.x - expected).max()
+    assert err < 1e-13, f"free fall: max |x - x_exact| = {err:.3g} (bound 1e-13 m)"
+    assert np.abs(sim.v[:, 1] - g * dt * n).max() < 1e-13
+    assert np.abs(sim.C).max() < 1e-10, np.abs(sim.C).max()
+    assert np.abs(sim.F - np.eye(d)).max() < 1e-12
+
+
+def _random_body(d, material, seed=1):
+    rng = np.random.default_rng(seed)
+    sim = _sim(d, 32, gravity=[0.0] * d)
+    x = km.mpm.sphere([0.5] * d, 0.15, 1 / 64)
+    _add(sim, x, material, velocity=rng.normal(0, 0.3, x.shape), youngs_modulus=1e4)
+    sim.C[...] = rng.normal(0, 0.5, sim.C.shape)
+    if material != "water":
+        sim.F[...] = np.eye(d) + rng.normal(0, 0.02, sim.F.shape)
+    return sim
+
+
+@pytest.mark.parametrize("d", [2, 3])
+@pytest.mark.parametrize("material", MATERIALS)
+def test_transfers_conserve_momentum_and_mass(d, material):
+    # P2G and G2P conserve linear momentum (Jiang et al. 2015) and the MLS force is a sum of
+    # pairs sum_i w (x_i - x_p) = 0, so without gravity and walls the total stays to rounding.
+    sim = _random_body(d, material)
+    p0, m0 = sim.momentum(), sim.mass.sum()
+    scale = np.abs(sim.mass[:, None] * sim.v).sum()
+    for _ in range(5):
+        sim.step(2e-4)
+    err = np.abs(sim.momentum() - p0).max()
+    assert err < 1e-13 * scale, f"{material} {d}D: momentum changed by {err:.3g} (scale {scale:.3g})"
+    assert sim.mass.sum() == m0
+
+
+@pytest.mark.parametrize("d", [2, 3])
+@pytest.mark.parametrize("material", ["elastic", "neohookean"])
+def test_spinning_disk_conserves_angular_momentum(d, material):
+    # APIC with a symmetric Kirchhoff stress conserves angular momentum exactly (Jiang et al.
+    # 2015, Sec. 5.3): the disk spins (and stretches) with L constant to rounding.
+    n = 32 if d == 2 else 16
+    sim = _sim(d, n, gravity=[0.0] * d)
+    c = np.full(d, 0.5)
+    x = km.mpm.sphere(c, 0.2, 0.5 / n)
+    r = x - c
+    omega = 3.0
+    v = np.zeros_like(x)
+    v[:, 0], v[:, 1] = -omega * r[:, 1], omega * r[:, 0]
+    _add(sim, x, material, velocity=v, youngs_modulus=2e4)
+    L0 = sim.angular_momentum()
+    for _ in range(200):
+        sim.step(5e-4)
+    L = sim.angular_momentum()
+    scale = np.abs(np.atleast_1d(L0)).max()
+    err = np.abs(np.atleast_1d(L) - np.atleast_1d(L0)).max()
+    assert err < 1e-11 * scale, f"{material} {d}D: |L - L0| = {err:.3g}, |L0| = {scale:.3g}"
+    assert sim.kinetic_energy() > 0.5 * 0.5 * (sim.mass * (omega * np.linalg.norm(r[:, :2], axis=1)) ** 2).sum()
+
+
+@pytest.mark.parametrize("d", [2, 3])
+@pytest.mark.parametrize("material", MATERIALS)
+def test_rest_stays_rest(d, material):
+    sim = _sim(d, 32, gravity=[0.0] * d)
+    _add(sim, km.mpm.block([0.3] * d, [0.6] * d, 1 / 64), material)
+    x0 = sim.x.copy()
+    for _ in range(20):
+        sim.step(1e-3)
+    assert np.array_equal(sim.x, x0)
+    assert not sim.v.any() and not sim.C.any()
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_bitwise_determinism_for_1_and_2_threads_and_checkpoints(d):
+    s = 1 / 160 if d == 2 else 1 / 48
+    def run(threads, checkpoint=False):
+        old = km.get_num_threads()
+        km.set_num_threads(threads)
+        try:
+            sim = _sim(d, 32, boundary="separate")
+            _add(sim, km.mpm.block([0.1] * d, [0.45] + [0.6] * (d - 1), s), "water", youngs_modulus=2e5)
+            _add(sim, km.mpm.block([0.55] + [0.1] * (d - 1), [0.9] * d, s), "sand")
+            _add(sim, km.mpm.sphere([0.5] + [0.8] * (d - 1), 0.08, s), "snow")
+            assert sim.count > 8192, "enough particles for the parallel paths"
+            for k in range(12):
+                if checkpoint and k == 6:
+                    saved = sim.state()
+                    sim2 = _sim(d, 32, boundary="separate")
+                    _add(sim2, km.mpm.block([0.1] * d, [0.45] + [0.6] * (d - 1), s), "water",
+                         youngs_modulus=2e5)
+                    _add(sim2, km.mpm.block([0.55] + [0.1] * (d - 1), [0.9] * d, s), "sand")
+                    _add(sim2, km.mpm.sphere([0.5] + [0.8] * (d - 1), 0.08, s), "snow")
+                    sim2.set_state(saved)
+                    sim = sim2
+                sim.step(1e-3)
+            return sim.state()
+        finally:
+            km.set_num_threads(old)
+
+    a, b, c = run(1), run(2), run(2, checkpoint=True)
+    for k in a:
+        assert np.array_equal(a[k], b[k]), f"{k} differs between 1 and 2 threads"
+        assert np.array_equal(a[k], c[k]), f"{k} differs after a checkpoint round trip"
+
+
+# ---------------------------------------------------------------- every material, 2D and 3D
+@pytest.mark.parametrize("d", [2, 3])
+@pytest.mark.parametrize("material", MATERIALS)
+def test_every_material_drops_settles_and_behaves(d, material):
+    n = 32 if d == 2 else 16
+    sim = km.mpm.Simulation((n,) * d, 1.0 / n, boundary="separate", friction=0.5 if material == "sand" else 0.0)
+    lo, hi = [0.35] + [0.05] * (d - 1), [0.65] + [0.35] * (d - 1)
+    if d == 3:
+        lo[2], hi[2] = 0.35, 0.65
+    _add(sim, km.mpm.block(lo, hi, 0.5 / n), material)
+    width0 = np.ptp(sim.x[:, 0])
+    sim.advance(0.4)
+    x = sim.x
+    assert np.isfinite(x).all() and np.isfinite(sim.F).all()
+    assert (x >= 0).all() and (x <= 1).all()
+    width = np.ptp(x[:, 0])
+    height = np.ptp(x[:, 1])
+    if material in ("elastic", "neohookean"):
+        # a 1e5 Pa jelly of 0.3 m sags under its weight by rho g H^2 / E ~ 1%, no more
+        assert abs(width - width0) < 0.1 * width0 and height > 0.2
+        assert np.abs(np.linalg.det(sim.F) - 1).max() < 0.2
+    elif material == "water":
+        assert width > 2 * width0, f"water spreads: width {width:.3f} from {width0:.3f}"
+    elif material == "sand":
+        # A square column (aspect ratio 2 for each half) slumps to a heap about Lube et al.'s
+        # 1 + 2 * 1.2 * 2 / 2 = 3.4 widths wide (their runout law, test_granular_column_runout)
+        # and keeps a summit; the water of the same test covers the whole floor.
+        assert width0 < width < 4.5 * width0 and height > 0.05, (width / width0, height)
+    elif material == "snow":
+        # the impact compacts the snow plastically (Jp < 1) and it does not bounce back
+        assert sim.Jp.min() < 1 - 1e-3 and height > 0.1, (sim.Jp.min(), height)
+
+
+def test_collider_stops_and_friction_holds():
+    # A block sliding onto a rough sphere and a box: particles never enter them.
+    sim = _sim(2, 64)
+    sim.add_collider({"shape": "sphere", "center": [0.5, 0.3], "radius": 0.1}, friction=0.5)
+    sim.add_collider({"shape": "box", "lower": [0.0, 0.0], "upper": [1.0, 0.1]}, boundary="sticky")
+    _add(sim, km.mpm.block([0.42, 0.5], [0.58, 0.6], 1 / 128), "elastic")
+    sim.advance(0.5)
+    x = sim.x
+    assert np.linalg.norm(x - [0.5, 0.3], axis=1).min() > 0.1 - 2 / 64
+    assert x[:, 1].min() > 0.1 - 2 / 64
+
+
+# ---------------------------------------------------------------- references
+def _strain_energy(sim):
+    """Fixed-corotated energy sum V0 [mu |Sigma - I|^2 + lambda/2 (J - 1)^2] of the particles."""
+    m = sim.materials[0]
+    s = np.linalg.svd(sim.F, compute_uv=False)
+    J = np.prod(s, axis=1)
+    psi = m["mu"] * ((s - 1) ** 2).sum(axis=1) + 0.5 * m["lambda"] * (J - 1) ** 2
+    return float((sim.volume * psi).sum())
+
+
+def _disks(n):
+    """Sulsky, Chen and Schreyer 1994, Sec. 5.1: two disks of radius 0.2 at (0.25, 0.25) and
+    (0.75, 0.75) approach at v = +-(0.1, 0.1), E = 1000, nu = 0.3, rho = 1000, no gravity, on an
+    n x n grid of the unit square; (kinetic, strain) energy every 0.1 s up to t = 3 s (before
+    the rebounding disks reach the walls), and the largest |momentum| seen."""
+    sim = km.mpm.Simulation((n, n), 1 / n, gravity=[0.0, 0.0])
+    for c, v in (((0.25, 0.25), 0.1), ((0.75, 0.75), -0.1)):
+        x = km.mpm.sphere(c, 0.2, 0.5 / n)
+        sim.add_particles(x, "elastic", density=1000, youngs_modulus=1000, poisson_ratio=0.3,
+                          velocity=np.full_like(x, v))
+    e0 = sim.kinetic_energy()
+    history, p_max = [(e0, 0.0)], 0.0
+    for _ in range(30):
+        sim.advance(0.1)
+        history.append((sim.kinetic_energy(), _strain_energy(sim)))
+        p_max = max(p_max, np.abs(sim.momentum()).max() / sim.mass.sum())
+    return np.array(history), p_max, sim
+
+
+def test_two_elastic_disks_collide_sulsky():
+    # The disks bounce: momentum stays 0 to rounding, kinetic energy turns into strain energy
+    # and back. APIC's dissipation is first order in h, so the energy lost by the end must
+    # shrink at least like h (fitted order >= 0.8) from 40 to 80 cells.
+    losses = []
+    for n in (40, 80):
+        history, p_max, sim = _disks(n)
+        e0 = history[0, 0]
+        ke, se = history.T
+        assert p_max < 1e-15, f"{n} cells: momentum per mass {p_max:.3g}"
+        assert ke.min() < 0.1 * e0, "the disks must collide (kinetic energy into strain energy)"
+        assert ke[-1] > 0.8 * e0, f"{n} cells: they rebound (kinetic energy {ke[-1] / e0:.3f} e0)"
+        assert sim.v[: sim.count // 2].mean(axis=0)[0] < 0, "the lower disk moves back down-left"
+        losses.append(1 - (ke[-1] + se[-1]) / e0)
+    order = np.log2(losses[0] / losses[1])
+    assert losses[1] < 0.1 and order > 0.8, f"energy lost {losses} at 40, 80 cells: order {order:.2f}"
+
+
+def _dam_break_front(h_cells, T_end=2.6, K=4e5):
+    """2D dam break of Martin and Moyce (1952): a water column of width a and height 2a
+    released against the wall x = 0; returns the front positions Z = z/a at times T."""
+    a = 0.1
+    n = int(round(6 * a * h_cells / a))
+    h = a / h_cells
+    sim = km.mpm.Simulation((n, int(3 * a / h)), h, boundary="slip")
+    sim.add_particles(km.mpm.block([0, 0], [a, 2 * a], h / 2), "water", density=1000, youngs_modulus=K)
+    scale = np.sqrt(2 * 9.81 / a)
+    T, Z = [], []
+    while sim.time * scale < T_end:
+        sim.advance(0.05 / scale, cfl=0.5)
+        T.append(sim.time * scale)
+        # the front: the largest x among particles within a cell of the floor
+        Z.append(sim.x[sim.x[:, 1] < 2 * h, 0].max() / a)
+    return np.array(T), np.array(Z)
+
+
+def test_dam_break_front_follows_martin_moyce():
+    # The surge front Z(T) against the experiment (km.sph.martin_moyce()); the experiment's
+    # gate opening delays the early front, so compare for T >= 1.2 where runs agree (about 10%).
+    T, Z = _dam_break_front(16)
+    ref = km.sph.martin_moyce()
+    ref = ref[(ref[:, 0] >= 1.2) & (ref[:, 0] <= T[-1])]
+    Zs = np.interp(ref[:, 0], T, Z)
+    rel = np.abs(Zs - ref[:, 1]) / ref[:, 1]
+    assert rel.max() < 0.15, f"front Z {Zs.round(3)} vs Martin-Moyce {ref[:, 1]} at T {ref[:, 0]}"
+
+
+def _column_runout(a, cells, friction_angle=30.0):
+    """A 2D sand column of width L0 = 0.1 m and height a L0 against the wall x = 0 collapses on
+    a rough floor (Coulomb 0.5); returns the normalised runout (L_inf - L0) / L0 of the deposit
+    (its farthest particle once everything has stopped)."""
+    L0, H, h = 0.1, a * 0.1, 0.1 / cells
+    nx = int(np.ceil(L0 * (2 + 4 * max(a, 1))) / h)
+    sim = km.mpm.Simulation((nx, int(np.ceil(H / h)) + 4), h, boundary="slip", friction=0.5)
+    sim.add_particles(km.mpm.block([0, 0], [L0, H], h / 2), "sand", density=1600, youngs_modulus=1e5,
+                      friction_angle=friction_angle)
+    sim.advance(3 * np.sqrt(H / 9.81) + 0.3)  # free fall of the column, spreading, arrest
+    assert np.linalg.norm(sim.v, axis=1).max() < 0.05, "the deposit has stopped"
+    return (sim.x[:, 0].max() - L0) / L0
+
+
+def test_granular_column_runout_low_aspect_ratio():
+    # Lube, Huppert, Sparks and Freundt 2005 (Phys. Rev. E 72, 041301, two-dimensional
+    # columns): (L_inf - L0) / L0 = 1.2 a for a below about 1.8, the linear regime Lajeunesse,
+    # Monnier and Homsy 2005 (Phys. Fluids 17, 103302) also find for 2D channels. Tolerance 20%:
+    # the experiments' prefactors vary by that much with the material (Balmforth and Kerswell 2005).
+    a = 0.5
+    runout = _column_runout(a, 16)
+    assert abs(runout - 1.2 * a) < 0.2 * 1.2 * a, f"runout {runout:.3f} vs Lube et al. {1.2 * a:.3f}"
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=True, reason="known gap: tall columns (a = 4) run out ~40% beyond Lube et "
+                   "al.'s 1.9 a^(2/3) with a constant-friction Drucker-Prager law (no mu(I) rheology)")
+def test_granular_column_runout_high_aspect_ratio():
+    # Lube et al. 2005: (L_inf - L0) / L0 = 1.9 a^(2/3) for a above about 2.8.
+    a = 4.0
+    runout = _column_runout(a, 8)
+    assert abs(runout - 1.9 * a ** (2 / 3)) < 0.2 * 1.9 * a ** (2 / 3), runout
+
+
+# ---------------------------------------------------------------- bad input and blow-up
+def test_bad_input_raises_value_errors_naming_the_argument():
+    with pytest.raises(ValueError, match="shape"):
+        km.mpm.Simulation((8,), 0.1)
+    with pytest.raises(ValueError, match="h"):
+        km.mpm.Simulation((8, 8), -1.0)
+    with pytest.raises(ValueError, match="boundary"):
+        km.mpm.Simulation((8, 8), 0.1, boundary="glue")
+    with pytest.raises(ValueError, match="gravity"):
+        km.mpm.Simulation((8, 8), 0.1, gravity=[0, 0, 0])
+    sim = km.mpm.Simulation((16, 16), 1 / 16)
+    x = km.mpm.block([0.2, 0.2], [0.4, 0.4], 1 / 32)
+    with pytest.raises(ValueError, match="material"):
+        sim.add_particles(x, "jelly", density=1000)
+    with pytest.raises(ValueError, match="friction_angle"):
+        sim.add_particles(x, "sand", density=1000)
+    with pytest.raises(ValueError, match="density"):
+        sim.add_particles(x, "water", density=0)
+    with pytest.raises(ValueError, match="poisson_ratio"):
+        sim.add_particles(x, "elastic", density=1000, poisson_ratio=0.5)
+    with pytest.raises(ValueError, match="positions"):
+        sim.add_particles(x + 2, "elastic", density=1000)
+    with pytest.raises(ValueError, match="positions"):
+        sim.add_particles(np.zeros((3, 3)), "elastic", density=1000)
+    with pytest.raises(ValueError, match="velocity"):
+        sim.add_particles(x, "elastic", density=1000, velocity=np.zeros((2, 2)))
+    with pytest.raises(ValueError, match="region"):
+        sim.add_collider({"shape": "cone"})
+    with pytest.raises(ValueError, match="radius"):
+        sim.add_collider({"shape": "sphere", "center": [0.5, 0.5], "radius": -1})
+    sim.add_particles(x, "elastic", density=1000)
+    with pytest.raises(ValueError, match="dt"):
+        sim.step(0.0)
+    with pytest.raises(ValueError, match="cfl"):
+        sim.stable_dt(-1)
+    sim.x[0] = [5.0, 5.0]  # written through the view: caught where the step reads it
+    with pytest.raises(ValueError, match="x: particle 0"):
+        sim.step(1e-3)
+    sim.x[0] = [0.3, 0.3]
+    sim.material[0] = 7
+    with pytest.raises(ValueError, match="material"):
+        sim.step(1e-3)
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_too_large_step_raises_divergence_not_nan(d):
+    sim = _sim(d, 16)
+    _add(sim, km.mpm.block([0.3] * d, [0.6] * d, 1 / 32), "elastic", youngs_modulus=1e7,
+         velocity=np.array([3.0] + [0.0] * (d - 1)))
+    dt = 50 * sim.stable_dt()
+    with pytest.raises(km.DivergenceError, match="stable_dt"):
+        for _ in range(200):
+            sim.step(dt)
+
+
+def test_views_are_zero_copy_and_state_roundtrips():
+    sim = _sim(2, 16)
+    rows = _add(sim, km.mpm.block([0.2, 0.2], [0.4, 0.4], 1 / 32), "elastic")
+    assert rows == slice(0, 36)
+    sim.v[:, 0] = 1.0
+    assert sim.momentum()[0] == pytest.approx(sim.mass.sum())
+    rows2 = _add(sim, km.mpm.block([0.6, 0.2], [0.8, 0.4], 1 / 32), "water")
+    assert rows2 == slice(36, 72) and sim.count == 72
+    assert (sim.v[rows, 0] == 1.0).all() and (sim.material[rows2] == 1).all()
+    s = sim.state()
+    sim.step(1e-3)
+    sim.set_state(s)
+    assert np.array_equal(sim.x, s["x"]) and sim.time == 0.0
+    assert sim.parameters == ()
+    with pytest.raises(ValueError, match="state"):
+        sim.set_state({k: v[:3] if np.ndim(v) else v for k, v in s.items()})
