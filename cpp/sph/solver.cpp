@@ -275,8 +275,14 @@ class SolverD final : public Solver {
       parallel_for(n, [&](Index i) { aux_[i] = s.density[i] + dt * density_rate(f, s.v.data(), i) - rho0; });
       return parallel_sum(n, [&](Index i) { return std::max<Scalar>(aux_[i], 0); }) / std::max<Index>(n, 1) / rho0;
     };
+    // Warm start: k_i = p_i / rho_i^2 holds up a fluid at rest whatever dt, but the part that
+    // corrected last step's density errors scales as 1 / dt^2: after a step 50x shorter (a run
+    // started with small fixed steps) it is 2500x too large, so a longer step takes the last
+    // stiffnesses times (last dt / dt)^2, as SPlisHSPlasH carries kappa dt^2, and a shorter one
+    // takes them as they are.
+    const Scalar ratio = last_dt_ > 0 ? std::min<Scalar>(1, last_dt_ / dt) : 1;
     return projected_jacobi(s, dt, dt * dt, kappa_density_, config_.tol, 2, residual, stats.density_error,
-                            interrupt, 1, kExpansionWeight);
+                            interrupt, ratio * ratio, kExpansionWeight);
   }
 
   // ------------------------------------------------------------------ shared passes
