@@ -8,6 +8,10 @@ side by side with SPlisHSPlasH (pysplishsplash, WCSPH and DFSPH) and a Taichi CP
     python bench/sph_bench.py --side-by-side  # the issue's comparison: ~150k particles, all five
                                               # codes in one run, with the ratios
     python bench/sph_bench.py --side-by-side --splishsplash-only   # rerun SPlisHSPlasH alone
+    python bench/sph_bench.py --work-precision  # DFSPH seconds per simulated second against the
+                                              # measured mean density error, sweeping kinema's
+                                              # tol and SPlisHSPlasH's maxError (both wall
+                                              # models), ~150k particles, one run
 
 Scene (sph_bench.scene): a water column [0, a] x [0, 2a] x [0, a] (a = 0.5 m) in the closed box
 [0, 4a] x [0, 3a] x [0, a], released at rest; the spacing sets the particle count. Every code
@@ -272,6 +276,94 @@ def bench_splishsplash(sizes, rec, dts, tol, threads, results, boundaries=("akin
                       f"(other load {load:.2f})")
 
 
+# ------------------------------------------------------------------ work-precision (DFSPH)
+
+WP_TOLS = (3e-3, 1e-3, 3e-4, 1e-4, 3e-5)
+
+
+def bench_work_precision(n, tols, rec, threads, boundaries=("akinci", "volume-map")):
+    """Seconds per simulated second against the measured mean density error, one point per
+    solver tolerance, kinema DFSPH and SPlisHSPlasH DFSPH (each wall model) on the same scene,
+    dt and start-up. The error on the x axis is measured (kinema: density_error() after the
+    timed steps; SPlisHSPlasH: the same mean compression of its densities), not the tolerance
+    asked for. Returns {code: [(error, s_per_sim_s), ...]}."""
+    dt, s, c = timed_dt(n, "dfsph", tols[0])  # one dt for every point: the same work per step
+    curves = {}
+    for tol in tols:
+        fluid = started_fluid(n, "dfsph", tol, dt)
+        iterations = []
+
+        def run():
+            iterations.clear()
+            for _ in range(STEPS):
+                st = fluid.step(dt)
+                iterations.append(st["iterations"] + st["divergence_iterations"])
+            return fluid.density_error()
+
+        m = harness.measure(run, min_of=1, **MEASURE)
+        err = m.value
+        check("kinema-dfsph", np.isfinite(fluid.x).all(), "non-finite positions")
+        per_sim = m.seconds / STEPS / dt
+        curves.setdefault("kinema-dfsph", []).append((err, per_sim))
+        rec.record("kinema-dfsph", fluid.n, per_sim, error=err, measurement=m, iterations=float(np.mean(iterations)),
+                   notes={"tol": tol, "dt": f"{dt:.3g}", "unit": "s per simulated s"})
+        print(f"  kinema-dfsph              tol={tol:7.1e} n={fluid.n:7d} density error {err:8.2e} "
+              f"{per_sim:8.1f} s/sim s, {np.mean(iterations):5.1f} iterations/step (other load {m.other_load:.2f})",
+              flush=True)
+        del fluid
+    for boundary in boundaries:
+        name = "splishsplash-dfsph" + ("" if boundary == "akinci" else f"-{boundary}")
+        for tol in tols:
+            res = run_splishsplash("dfsph", boundary, s, dt, tol, 1000.0 * c * c / 7.0, max(1, round(START / dt)),
+                                   threads)
+            if res is None:
+                continue
+            per_step = float(np.median(res["per_step"]))
+            err = res["density_error"]
+            ok = np.isfinite(per_step) and res["outside_box"] == 0 and res["max_speed"] < c
+            if not ok:
+                print(f"  {name}: maxError {100 * tol:g}%: result check failed ({res['outside_box']} particles out "
+                      f"of the box, top speed {res['max_speed']:.3g} m/s); not recording")
+                continue
+            per_sim = per_step / dt
+            its = float(np.mean(res["iterations_per_step"]))
+            curves.setdefault(name, []).append((err, per_sim))
+            m = harness.Measurement(seconds=per_sim, wall=sum(res["per_step"]), other_load=res["other_load"],
+                                    repeats=1, disturbed=res["other_load"] > harness.DEFAULT_MAX_LOAD, value=None,
+                                    runs=())
+            rec.record(name, res["particles"], per_sim, error=err, iterations=its, measurement=m,
+                       notes={"tol": tol, "dt": f"{dt:.3g}", "unit": "s per simulated s", "boundary": boundary,
+                              **res["applied"]})
+            print(f"  {name:25s} tol={tol:7.1e} n={res['particles']:7d} density error {err:8.2e} "
+                  f"{per_sim:8.1f} s/sim s, {its:5.1f} iterations/step (other load {res['other_load']:.2f})",
+                  flush=True)
+    return curves
+
+
+def equal_accuracy_ratios(curves, errors=(1e-3, 5e-4, 2e-4, 1e-4)):
+    """Peer / kinema seconds per simulated second at equal measured density error: each curve
+    interpolated log-log between its measured points (no extrapolation), the peer at its fastest
+    wall model at that error. Returns [(error, ratio or None, peer name)]."""
+    def at(points, e):
+        pts = sorted(points)
+        for (e0, t0), (e1, t1) in zip(pts, pts[1:]):
+            if e0 <= e <= e1 and e1 > e0:
+                f = np.log(e / e0) / np.log(e1 / e0)
+                return float(np.exp(np.log(t0) + f * (np.log(t1) - np.log(t0))))
+        return None
+    out = []
+    for e in errors:
+        k = at(curves.get("kinema-dfsph", []), e)
+        peers = [(at(v, e), name) for name, v in curves.items() if name.startswith("splishsplash")]
+        peers = [(t, name) for t, name in peers if t is not None]
+        if k is None or not peers:
+            out.append((e, None, None))
+            continue
+        t, name = min(peers)
+        out.append((e, t / k, name))
+    return out
+
+
 def print_ratios(sizes, results):
     """The issue's targets as ratios of figures from this one run."""
     for n in sizes:
@@ -313,6 +405,9 @@ def main(argv=None) -> int:
                    help="time only SPlisHSPlasH (kinema's start-up still runs, untimed, to give the dts)")
     p.add_argument("--splishsplash-boundary", choices=("akinci", "volume-map", "both"), default="akinci",
                    help="SPlisHSPlasH's wall model: Akinci samples as kinema (default), its volume maps, or both")
+    p.add_argument("--work-precision", action="store_true",
+                   help="DFSPH work-precision: kinema's tol and SPlisHSPlasH's maxError swept, both wall models")
+    p.add_argument("--tols", type=float, nargs="+", help="tolerances of --work-precision (default %s)" % (WP_TOLS,))
     p.add_argument("--loaded", action="store_true",
                    help="on a busy machine: keep the best of 2 tries instead of waiting for quiet")
     args = p.parse_args(argv)
@@ -323,9 +418,21 @@ def main(argv=None) -> int:
     km.set_num_threads(args.threads)
     os.environ.setdefault("OMP_NUM_THREADS", str(args.threads))
     sizes = args.sizes or [10_000, 40_000] + ([100_000, 190_000] if args.full else [])
-    if args.side_by_side:
+    if args.side_by_side or args.work_precision:
         sizes = args.sizes or [150_000]
     OUT.mkdir(exist_ok=True)
+    if args.work_precision:
+        csv_wp = OUT / "sph_dfsph_work_precision.csv"
+        rec = harness.Recorder(csv_wp, "sph_dambreak3d_dfsph_work_precision", threads=args.threads)
+        print(f"threads {args.threads}, commit {harness.git_commit()}")
+        print(f"DFSPH work-precision, 3D dam break, ~{sizes[0]} particles:")
+        curves = bench_work_precision(sizes[0], tuple(args.tols or WP_TOLS), rec, args.threads)
+        print("equal measured density error: SPlisHSPlasH (fastest wall model) / kinema, s per simulated s "
+              "(target >= 1.5):")
+        for e, ratio, name in equal_accuracy_ratios(curves):
+            print(f"  error {e:7.1e}: " + (f"{ratio:.2f}x ({name})" if ratio else "n/a (outside a measured curve)"))
+        plot_and_report(csv_wp, "sph_dfsph_work_precision.png", "sph_dambreak3d_dfsph_work_precision")
+        return 0
     csv_path = OUT / "sph.csv"
     print(f"threads {args.threads}, commit {harness.git_commit()}")
     if not (args.side_by_side or args.splishsplash_only):

@@ -157,12 +157,11 @@ def test_akinci_volumes_of_a_single_layer_wall():
 def test_hydrostatic_tank(method):
     s, H, L = 0.01, 0.2, 0.3
     x = km.sph.block([0, 0], [L, H], s)
-    # WCSPH needs viscosity to damp its acoustic ringing. DFSPH runs inviscid at its 5 ms steps
-    # (nu = 0.01 would cap dt at 0.125 s^2 / nu = 1.25 ms; there the settled particles lose
-    # their lattice order, the SPH gradient normalisation sum_j V_j x_ji (x) grad W_ij drops to
-    # about 0.6 and the pressure holding the column rises accordingly: measured 1.75 rho g).
-    nu = 0.01 if method == "wcsph" else 0.0
-    fluid = km.sph.Fluid(x, s, method=method, domain=([0, 0], [L, 0.4]), viscosity=nu)
+    # Viscous for both methods (issue 15: DFSPH ran inviscid here because with nu = 0.01 its
+    # column kept moving and its pressure rose to 1.75 rho g; the viscous step bound then sat
+    # past forward Euler's limit for settled particles and DFSPH's warm start could not give
+    # pressure back). nu = 0.01 caps DFSPH's dt at 0.05 s^2 / nu = 0.5 ms.
+    fluid = km.sph.Fluid(x, s, method=method, domain=([0, 0], [L, 0.4]), viscosity=0.01)
     fluid.advance(1.0)
     err = fluid.density_error()
     # WCSPH's column rings acoustically (period 4H/c ~ 0.04 s, amplitude rho c v ~ 10% of
@@ -180,14 +179,96 @@ def test_hydrostatic_tank(method):
     assert err < bound, f"{method}: mean compression {err:.2e}, bound {bound}"
     assert fluid.kinetic_energy() < 1e-2 * 1000 * L * H * G * H
     # Pressure against rho g (H - y) away from the surface and bottom rows (DFSPH: p_i =
-    # kappa_i rho_i of its constant-density solve). 10% on the slope: the SPH pressure gradient
-    # of the settled (no longer lattice) arrangement is normalised only to a few percent
-    # (measured: WCSPH 7.6%, DFSPH 3.2%); the p = 0 level within the 3 spacings of the kernel
-    # support's surface deficiency.
+    # rho_i^2 (k_i + k^v_i) of both its solves, the pressure whose force they applied). 10% on
+    # the slope: the SPH pressure gradient of the settled (no longer lattice) arrangement is
+    # normalised only to a few percent (measured: WCSPH 7.6%, DFSPH 6.4%); the p = 0 level
+    # within the 3 spacings of the kernel support's surface deficiency.
     mask = (y > 3 * s) & (y < top - 5 * s)
     slope, intercept = np.polyfit(y[mask], p[mask], 1)
     assert slope == pytest.approx(-1000 * G, rel=0.1), f"{method}: dp/dy = {slope:.0f}, expected {-1000 * G:.0f}"
     assert -intercept / slope == pytest.approx(top, abs=3 * s), f"{method}: p = 0 at {-intercept / slope:.3f}"
+
+
+# The viscous column at rest of issue 15, both methods in 2D and 3D: a column of depth H (25 and
+# 20 particle rows) in a closed tank, settled for SETTLE s by zeroing the velocities every 0.02 s
+# (the lattice rearranges), then FREE s on its own with nu = 0.01 at the steps advance() takes.
+REST = {2: dict(s=0.02, size=[1.0, 0.5]), 3: dict(s=0.025, size=[0.3, 0.5, 0.15])}
+SETTLE, FREE = 0.5, 0.5
+
+
+def column_at_rest(method, d, tol=1e-3):
+    s, size = REST[d]["s"], REST[d]["size"]
+    H = size[1]
+    box = list(size)
+    box[1] = 2 * H
+    fluid = km.sph.Fluid(km.sph.block([0] * d, size, s), s, method=method, domain=([0] * d, box),
+                         viscosity=0.01, tol=tol)
+    while fluid.time < SETTLE - 1e-9:
+        fluid.advance(0.02)
+        fluid.v[:] = 0
+    iterations, energies, ys, ps = [], [], [], []
+    end = fluid.time + FREE
+    while fluid.time < end - 1e-12:
+        st = fluid.step(min(fluid.stable_dt(), end - fluid.time))
+        iterations.append(st["iterations"])
+        energies.append(fluid.kinetic_energy())
+        if fluid.time > end - 0.1:  # the last 0.1 s: 2.5 periods of WCSPH's acoustic ringing
+            ys.append(fluid.x[:, 1].copy())
+            ps.append(fluid.pressure.copy())
+    mass = fluid.mass * fluid.n
+    v_rms = np.sqrt(2 * max(energies[len(energies) // 2:]) / mass)
+    top = np.percentile(fluid.x[:, 1], 99.5) + s / 2
+    y, p = np.concatenate(ys), np.concatenate(ps)
+    mask = (y > 2 * s) & (y < top - 3 * s)
+    slope, intercept = np.polyfit(y[mask], p[mask], 1)
+    return dict(H=H, s=s, v_rms=v_rms, slope=slope / (-1000 * G), p0=-intercept / slope, top=top,
+                iterations=np.array(iterations))
+
+
+# Bounds. Velocity: the rms speed of the free second half, at most 2% of sqrt(2 g H) (the speed
+# of a particle falling the column's height, 0.063 m/s at H = 0.5 m). WCSPH measured 0.027 (2D)
+# and 0.048 (3D) m/s: what is left of the settling. Issue 15's DFSPH had 0.09 m/s rms (2 J)
+# with peaks of 1 m/s. Pressure: the least-squares slope of p against y over the last 0.1 s,
+# within 10% of rho0 g (the settled arrangement's SPH gradient is normalised to a few percent;
+# measured 2D: WCSPH 1.02-1.03, DFSPH 0.96-1.05), and p = 0 within 3 spacings of the surface.
+# DFSPH iterations (constant-density solve) per step: mean at most 10 and none above 60 at
+# tol = 1e-3 (the issue saw 50-100 per step; measured mean 7-8, peaks 38-42).
+REST_CASES = [
+    pytest.param("wcsph", 2, id="wcsph-2d"),
+    pytest.param("dfsph", 2, id="dfsph-2d", marks=pytest.mark.xfail(strict=True, reason=(
+        "issue 15, open: at tol = 1e-3 the mean-compression criterion lets the 25-row column sag "
+        "until its bottom rows reach the tolerance, then a burst of iterations bounces it "
+        "(measured v_rms 0.063-0.082 m/s; 0.020 at tol = 1e-4, test_dfsph_column_at_rest_tight_tol)"))),
+    pytest.param("wcsph", 3, id="wcsph-3d"),
+    pytest.param("dfsph", 3, id="dfsph-3d", marks=pytest.mark.xfail(strict=True, reason=(
+        "issue 15, open: the 3D DFSPH pressure slope is 1.24-1.29 rho0 g (velocities and "
+        "iterations within their bounds)"))),
+]
+
+
+@pytest.mark.parametrize("method, d", REST_CASES)
+def test_viscous_column_at_rest(method, d):
+    r = column_at_rest(method, d)
+    H, s = r["H"], r["s"]
+    assert r["v_rms"] < 0.02 * np.sqrt(2 * G * H), f"{method} {d}D: rms speed {r['v_rms']:.3f} m/s"
+    assert r["slope"] == pytest.approx(1, abs=0.1), f"{method} {d}D: dp/dy = {r['slope']:.3f} rho0 g"
+    assert r["p0"] == pytest.approx(r["top"], abs=3 * s), f"{method} {d}D: p = 0 at {r['p0']:.3f} m"
+    if method == "dfsph":
+        its = r["iterations"]
+        assert its.mean() <= 10 and its.max() <= 60, f"{d}D: iterations per step mean {its.mean():.1f}, max {its.max()}"
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("d", [2, 3])
+def test_dfsph_column_at_rest_tight_tol(d):
+    # At tol = 1e-4 DFSPH's column holds in both dimensions (measured v_rms 0.020 m/s in 2D,
+    # 0.023 in 3D, at 53-56 iterations per step); the pressure slope is checked in 2D only
+    # (3D: 1.24, see the xfail above).
+    r = column_at_rest("dfsph", d, tol=1e-4)
+    assert r["v_rms"] < 0.02 * np.sqrt(2 * G * r["H"]), f"{d}D: rms speed {r['v_rms']:.3f} m/s"
+    if d == 2:
+        assert r["slope"] == pytest.approx(1, abs=0.1), f"dp/dy = {r['slope']:.3f} rho0 g"
+    assert r["iterations"].max() <= 100
 
 
 def test_dfsph_warm_start_saves_iterations():
@@ -251,15 +332,60 @@ def dam_break_front(method, spacing_ratio, a=0.1, points=MARTIN_MOYCE):
     return np.array(Z)
 
 
-@pytest.mark.parametrize("method", ["wcsph", "dfsph"])
-def test_dam_break_front_smoke(method):
-    # Coarse (10 particles across the column): the front must follow the experiment within
-    # 15% (measured: within 10%; SPH fronts lead the experiment, whose gate took time to lift
-    # and whose floor was not free-slip).
-    Z = dam_break_front(method, 10, points=MARTIN_MOYCE[:5])
-    rel = Z / MARTIN_MOYCE[:5, 1] - 1
-    assert np.all(np.abs(rel) < 0.15), f"{method}: relative front errors {np.round(rel, 3)}"
+def dam_break_fronts(method, d, ratio, a=0.1, points=MARTIN_MOYCE[:4], viscosity=0.0, start_steps=0):
+    """Front Z = z/a at the experiment's times T: the column a x 2a (x a/2 deep in 3D) of
+    `ratio` particles across in the tank 5a x 3a; the front is the x of the (ratio/4)-th
+    farthest particle (at least the 3rd) + s/2. start_steps fixed steps of 5e-5 s come first
+    (issue 15's set-up: the DFSPH warm start then met a 50x longer step)."""
+    s = a / ratio
+    size, box = [a, 2 * a] + [a / 2] * (d - 2), [5 * a, 3 * a] + [a / 2] * (d - 2)
+    fluid = km.sph.Fluid(km.sph.block([0] * d, size, s), s, method=method, domain=([0] * d, box),
+                         viscosity=viscosity)
+    for _ in range(start_steps):
+        fluid.step(5e-5)
+    Z = []
+    for T, _ in points:
+        fluid.advance(T / np.sqrt(2 * G / a) - fluid.time)
+        Z.append((np.sort(fluid.x[:, 0])[-max(3, ratio // 4)] + s / 2) / a)
+    return np.array(Z)
+
+
+# Dam-break fronts against Martin and Moyce (1952) to T = 2.5 (Z ~ 3), both methods, 2D (20
+# particles across) and 3D (8 across). The SPH fronts lead the experiment (its gate took time to
+# lift, its floor was not free-slip), by more as the resolution rises: measured 2D at 10 / 20
+# across 7% / 14% (WCSPH) and 10% / 14% (DFSPH), 3D at 8 across 14% (WCSPH) and 12% (DFSPH), so
+# 20% bounds the lead. The two methods solve the same equations and must agree to within the
+# resolution error: twice the largest change of WCSPH's 2D front from 10 to 20 across (measured
+# 0.07-0.19, 6-9%), i.e. ~0.15 relative; issue 15's DFSPH front was 67% ahead of WCSPH's.
+@pytest.fixture(scope="module")
+def wcsph_fronts():
+    return {(2, 10): dam_break_fronts("wcsph", 2, 10), (2, 20): dam_break_fronts("wcsph", 2, 20),
+            (3, 8): dam_break_fronts("wcsph", 3, 8)}
+
+
+@pytest.mark.parametrize("method, d, ratio", [("wcsph", 2, 20), ("dfsph", 2, 20), ("wcsph", 3, 8), ("dfsph", 3, 8)])
+def test_dam_break_front_against_experiment_and_wcsph(method, d, ratio, wcsph_fronts):
+    ref = MARTIN_MOYCE[:4, 1]
+    Z = wcsph_fronts[(d, ratio)] if method == "wcsph" else dam_break_fronts(method, d, ratio)
+    rel = Z / ref - 1
+    assert np.all(np.abs(rel) < 0.2), f"{method} {d}D: relative front errors {np.round(rel, 3)}"
     assert np.all(np.diff(Z) > 0)
+    w10, w20 = wcsph_fronts[(2, 10)], wcsph_fronts[(2, 20)]
+    resolution = 2 * np.max(np.abs(w20 - w10) / w20)
+    gap = np.abs(Z / wcsph_fronts[(d, ratio)] - 1)
+    assert np.all(gap <= resolution), f"{method} {d}D: front differs from WCSPH by {np.round(gap, 3)} > {resolution:.3f}"
+
+
+def test_dam_break_dfsph_after_small_fixed_steps(wcsph_fronts):
+    # Issue 15's start: 10 steps of 5e-5 s, then advance() (first CFL step ~50x longer), with
+    # nu = 1e-4. DFSPH's warm start carried the tiny steps' stiffnesses unscaled: its front was
+    # at Z = 2.0 at T = 0.83 (experiment 1.22). Now within the bounds above.
+    Z = dam_break_fronts("dfsph", 2, 20, viscosity=1e-4, start_steps=10)
+    rel = Z / MARTIN_MOYCE[:4, 1] - 1
+    assert np.all(np.abs(rel) < 0.2), f"relative front errors {np.round(rel, 3)}"
+    w10, w20 = wcsph_fronts[(2, 10)], wcsph_fronts[(2, 20)]
+    resolution = 2 * np.max(np.abs(w20 - w10) / w20)
+    assert np.all(np.abs(Z / w20 - 1) <= resolution), f"front {np.round(Z, 3)} vs WCSPH {np.round(w20, 3)}"
 
 
 @pytest.mark.slow

@@ -35,6 +35,7 @@ class SolverD final : public Solver {
     accel_.assign(n * D, 0);
     aux_.assign(n, 0);
     kappa_.assign(n, 0);
+    warm_left_.assign(n, 0);
     kappa_density_.assign(n, 0);
     kappa_divergence_.assign(n, 0);
     factor_.assign(n, 0);
@@ -65,12 +66,20 @@ class SolverD final : public Solver {
     const Scalar signal = config_.method == Method::WCSPH ? c_ + vmax : vmax;
     Scalar dt = kMaxDt;
     if (signal > 0) dt = std::min(dt, cfl * model_.spacing / signal);
-    // Explicit viscosity: dt <= 0.125 spacing^2 / nu (Morris et al. 1997, eq. 24 with the
-    // particle spacing; the support radius there would leave the step at the edge of stability).
-    if (config_.viscosity > 0) dt = std::min(dt, 0.125 * model_.spacing * model_.spacing / config_.viscosity);
-    // At rest the fluid first accelerates under gravity: keep g dt^2 below cfl * spacing.
+    // Explicit viscosity: dt <= kViscousDt spacing^2 / nu. The viscosity term's largest
+    // eigenvalue is 13.1 nu / spacing^2 on a 2D lattice (14.2 in 3D) and 19.3 (21.4) once the
+    // particles are displaced by 0.2 spacing at random, as settled fluid is (computed by
+    // bench/sph_issue15.py --viscous-spectrum), so forward Euler's bound 2 / lambda falls from
+    // 0.15 to 0.10 spacing^2 / nu. The 0.125 used before (Morris et al. 1997, eq. 24) was past
+    // it: a viscous column at rest at that step kept ~2 J of noise (issue 15). 0.05 keeps
+    // dt lambda <= 1, where no mode changes sign.
+    if (config_.viscosity > 0) dt = std::min(dt, kViscousDt * model_.spacing * model_.spacing / config_.viscosity);
+    // At rest the fluid first accelerates under gravity: keep g dt^2 below 0.1 cfl * spacing.
+    // (cfl * spacing before: a column of 2.5 mm spacing released at 5 ms steps threw particles
+    // out at 2 m/s, 15 m/s once DFSPH could give back warm-started pressure; tests/test_sph.py
+    // test_coarse_and_fine_spacing.)
     const Scalar g = g_.norm();
-    if (g > 0) dt = std::min(dt, std::sqrt(cfl * model_.spacing / g));
+    if (g > 0) dt = std::min(dt, std::sqrt(0.1 * cfl * model_.spacing / g));
     return dt;
   }
 
@@ -123,11 +132,13 @@ class SolverD final : public Solver {
     // Positions: x += dt v*.
     parallel_for(n, [&](Index i) { Map(s.x.data() + i * D) += dt * CMap(s.v.data() + i * D); });
     enforce_domain(s);
-    // Pressure of the constant-density solver: its velocity change is that of the force
-    // -(m_i / rho_i) grad p_i with p_i = kappa_i rho_i (Bender and Koschier 2017, eqs. 5-6),
-    // and kappa_density_ holds kappa_i / rho_i summed over the step's iterations.
+    // The step's pressure: both solvers change velocities as the force -(m_i / rho_i) grad p_i
+    // with p_i = kappa_i rho_i would over dt (Bender and Koschier 2017, eqs. 5-6), at the same
+    // positions, and kappa_density_ and kappa_divergence_ hold their kappa_i / rho_i (warm start
+    // and iterations). Both count: in a column at rest the divergence solve's warm start carries
+    // part of the weight, and the density solve's share alone read 0.2-1.5 rho0 g (H - y).
     parallel_for(n, [&](Index i) {
-      s.pressure[i] = s.density[i] * s.density[i] * kappa_density_[i];
+      s.pressure[i] = s.density[i] * s.density[i] * (kappa_density_[i] + kappa_divergence_[i]);
     });
     warm_ = true;
   }
@@ -179,32 +190,48 @@ class SolverD final : public Solver {
   }
 
   // Algorithms 2 and 3 as one Jacobi iteration on the stiffnesses k_i = kappa_i / rho_i (stored
-  // in k): each iteration adds max(residual_i, 0) alpha_i / (scale rho_i) (eqs. 6 and 12: the
-  // residual is rho*_i - rho0 with scale dt^2, or D rho_i / Dt with scale dt) and applies the
-  // velocity change of the increments. Only compression is corrected, as in the paper and
-  // SPlisHSPlasH: letting expanded particles take pressure back (a projected Jacobi) made the
-  // iteration diverge, since alpha_i only approximates the inverse diagonal.
+  // in k): each iteration adds residual_i alpha_i / (scale rho_i) (eqs. 6 and 12: the residual
+  // is rho*_i - rho0 with scale dt^2, or D rho_i / Dt with scale dt) and applies the velocity
+  // change of the increments. A compressed particle (residual > 0) takes the full increment, as
+  // in the paper and SPlisHSPlasH. In the density solve an expanded one gives back stiffness at
+  // expansion_weight x the rate, but only what the warm start gave it (warm_left_): the warm
+  // start can start a particle above the pressure it needs (a free-surface particle, a splash),
+  // and with increments >= 0 only, as before, that excess stayed for the whole step and pushed
+  // the fluid apart (issue 15: a 2D dam break's surge front 60% ahead of Martin and Moyce at
+  // T = 0.83, within 5% after). From a cold start the iteration is the paper's: monotone. An
+  // unlimited give-back (k_i down to 0) or the full rate made Jacobi diverge: alpha_i only
+  // approximates the inverse diagonal (the iteration matrix's eigenvalues reach 2.1 on a 2D
+  // lattice, 2.8 in 3D, more once disordered). The divergence solve gives nothing back
+  // (expansion_weight 0): its give-back made a collapsing column's divergence solve diverge.
   // Warm start (Bender and Koschier 2017, sec. 4.5): the solve begins from warm_start x the
-  // stiffnesses of the last step. k_i is a pressure over rho_i^2, which does not scale with dt,
-  // so it is reused as is when dt changes. residual() fills aux_ and returns the solver's error;
-  // iterations continue until it is below tol.
+  // stiffnesses of the last step, times warm_scale. The density solve's k_i is a pressure over
+  // rho_i^2, which does not scale with dt (warm_scale 1); the divergence solve's corrects a
+  // velocity divergence in one step, so its dt k^v_i carries over (warm_scale = last dt / dt,
+  // as SPlisHSPlasH does): reused as is, a step 20x longer than the last one started 20x above
+  // its stiffness. residual() fills aux_ and returns the solver's error; iterations continue
+  // until it is below tol.
   template <class Residual>
   int projected_jacobi(State& s, Scalar dt, Scalar scale, std::vector<Scalar>& k, Scalar tol, int min_iter,
-                       Residual&& residual, Scalar& error, Interrupt& interrupt) {
+                       Residual&& residual, Scalar& error, Interrupt& interrupt, Scalar warm_scale,
+                       Scalar expansion_weight) {
     const Index n = s.n;
-    const Scalar w = warm_ ? config_.warm_start : 0;
+    const Scalar w = warm_ ? config_.warm_start * warm_scale : 0;
     if (w > 0) {
-      parallel_for(n, [&](Index i) { k[i] = kappa_[i] = w * k[i]; });
+      parallel_for(n, [&](Index i) { k[i] = kappa_[i] = warm_left_[i] = w * k[i]; });
       apply_kappa(s, dt);
     } else {
       std::fill(k.begin(), k.end(), 0);
+      std::fill(warm_left_.begin(), warm_left_.end(), 0);
     }
     error = residual();
     int it = 0;
     while ((error > tol || it < min_iter) && it < config_.max_iter) {
       interrupt.check();
       parallel_for(n, [&](Index i) {
-        kappa_[i] = s.density[i] > 0 ? std::max<Scalar>(aux_[i], 0) * factor_[i] / (scale * s.density[i]) : 0;
+        const Scalar r = aux_[i] > 0 ? aux_[i] : expansion_weight * aux_[i];
+        const Scalar increment = s.density[i] > 0 ? r * factor_[i] / (scale * s.density[i]) : 0;
+        kappa_[i] = std::max(increment, -warm_left_[i]);
+        if (kappa_[i] < 0) warm_left_[i] += kappa_[i];
         k[i] += kappa_[i];
       });
       apply_kappa(s, dt);
@@ -213,6 +240,9 @@ class SolverD final : public Solver {
     }
     return it;
   }
+
+  static constexpr Scalar kExpansionWeight = 0.5;
+  static constexpr Scalar kViscousDt = 0.05;
 
   // Algorithm 2 on D rho_i / Dt. The error is the mean compression rate (D rho/Dt clamped to
   // >= 0) times dt / rho0. Particles with fewer neighbours than a filled kernel support (free
@@ -231,7 +261,7 @@ class SolverD final : public Solver {
              config_.rho0;
     };
     const int it = projected_jacobi(s, dt, dt, kappa_divergence_, config_.divergence_tol, 1, residual,
-                                    stats.divergence_error, interrupt);
+                                    stats.divergence_error, interrupt, last_dt_ > 0 ? last_dt_ / dt : 1, 0);
     return it;
   }
 
@@ -245,8 +275,14 @@ class SolverD final : public Solver {
       parallel_for(n, [&](Index i) { aux_[i] = s.density[i] + dt * density_rate(f, s.v.data(), i) - rho0; });
       return parallel_sum(n, [&](Index i) { return std::max<Scalar>(aux_[i], 0); }) / std::max<Index>(n, 1) / rho0;
     };
+    // Warm start: k_i = p_i / rho_i^2 holds up a fluid at rest whatever dt, but the part that
+    // corrected last step's density errors scales as 1 / dt^2: after a step 50x shorter (a run
+    // started with small fixed steps) it is 2500x too large, so a longer step takes the last
+    // stiffnesses times (last dt / dt)^2, as SPlisHSPlasH carries kappa dt^2, and a shorter one
+    // takes them as they are.
+    const Scalar ratio = last_dt_ > 0 ? std::min<Scalar>(1, last_dt_ / dt) : 1;
     return projected_jacobi(s, dt, dt * dt, kappa_density_, config_.tol, 2, residual, stats.density_error,
-                            interrupt);
+                            interrupt, ratio * ratio, kExpansionWeight);
   }
 
   // ------------------------------------------------------------------ shared passes
@@ -628,6 +664,7 @@ class SolverD final : public Solver {
   Scalar last_dt_ = 0;                          // the previous step's dt [s]
   std::vector<Scalar> accel_;      // (n, d) accelerations
   std::vector<Scalar> aux_;        // DFSPH: predicted densities or density rates; WCSPH: p_i / rho_i^2
+  std::vector<Scalar> warm_left_;         // DFSPH: warm-start stiffness a solve may still give back
   std::vector<Scalar> kappa_;             // DFSPH: increment of kappa_i / rho_i in the current iteration
   std::vector<Scalar> kappa_density_;     // DFSPH: kappa_i / rho_i of the constant-density solve
   std::vector<Scalar> kappa_divergence_;  // DFSPH: kappa^v_i / rho_i of the divergence-free solve
