@@ -16,6 +16,7 @@ from kinema.errors import (
     StabilityError,
 )
 from kinema import diffusion, fem, fmm, grid, massspring, poisson, render, sparse, sph, vortex
+from kinema import nbody
 from kinema.scenes import Scene, SceneError
 
 __version__ = "0.1.0"
@@ -36,6 +37,7 @@ __all__ = [
     "diffusion",
     "fmm",
     "vortex",
+    "nbody",
     "grid",
     "massspring",
     "fem",
