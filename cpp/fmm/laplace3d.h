@@ -34,7 +34,7 @@ struct Fmm3dStats {
          seconds_leaves = 0;
 };
 
-constexpr int kMaxOrder3d = 24;
+constexpr int kMaxOrder3d = 40;
 
 // Expansion order that meets eps (measured over uniform and clustered distributions).
 int order_for(Scalar eps);

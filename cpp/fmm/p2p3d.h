@@ -48,30 +48,36 @@ inline Radial radial(NearKernel kernel, Scalar r2, Scalar a) {
   return {f, g, (d2 - g) * inv_r2};
 }
 
-// Adds to out (phi, grad[3], hess[6] = xx xy xz yy yz zz; the first `width` of them, width 1, 4
-// or 10) the sum over sources [0, n) with charges q[j * stride].
+// Adds to out[c * width + ...] (phi, grad[3], hess[6] = xx xy xz yy yz zz; the first `width`
+// of them, width 1, 4 or 10) the sum over sources [0, n) with charge components
+// q[j * components + c], c < components (the kernel evaluated once per pair).
 inline void p2p_generic(NearKernel kernel, Scalar a, int width, Scalar x, Scalar y, Scalar z,
                         const Scalar* sx, const Scalar* sy, const Scalar* sz, const Scalar* q,
-                        Index stride, Index n, Scalar* out) {
-  Scalar acc[10] = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0};
+                        int components, Index n, Scalar* out) {
+  constexpr int kMaxComponents = 4;
+  Scalar acc[kMaxComponents][10] = {};
   for (Index j = 0; j < n; ++j) {
     const Scalar dx = x - sx[j], dy = y - sy[j], dz = z - sz[j];
     const Scalar r2 = dx * dx + dy * dy + dz * dz;
     if (r2 == 0) continue;
     const Radial k = radial(kernel, r2, a);
-    const Scalar w = q[j * stride];
-    acc[0] += w * k.f;
-    if (width > 1) {
-      const Scalar wg = w * k.g;
-      acc[1] += wg * dx, acc[2] += wg * dy, acc[3] += wg * dz;
-    }
-    if (width > 4) {
-      const Scalar wg = w * k.g, wh = w * k.h;
-      acc[4] += wg + wh * dx * dx, acc[5] += wh * dx * dy, acc[6] += wh * dx * dz;
-      acc[7] += wg + wh * dy * dy, acc[8] += wh * dy * dz, acc[9] += wg + wh * dz * dz;
+    const Scalar* w = q + j * components;
+    for (int c = 0; c < components; ++c) {
+      Scalar* o = acc[c];
+      o[0] += w[c] * k.f;
+      if (width > 1) {
+        const Scalar wg = w[c] * k.g;
+        o[1] += wg * dx, o[2] += wg * dy, o[3] += wg * dz;
+      }
+      if (width > 4) {
+        const Scalar wg = w[c] * k.g, wh = w[c] * k.h;
+        o[4] += wg + wh * dx * dx, o[5] += wh * dx * dy, o[6] += wh * dx * dz;
+        o[7] += wg + wh * dy * dy, o[8] += wh * dy * dz, o[9] += wg + wh * dz * dz;
+      }
     }
   }
-  for (int i = 0; i < width; ++i) out[i] += acc[i];
+  for (int c = 0; c < components; ++c)
+    for (int i = 0; i < width; ++i) out[c * width + i] += acc[c][i];
 }
 
 // The Laplace (softening a = 0) or Plummer potential and gradient of sources [0, n) with unit

@@ -163,7 +163,7 @@ def laplace3d(sources, charges, targets=None, *, eps=1e-10, gradient=False, orde
     eps: relative 2-norm error of phi to meet, 1e-15 <= eps < 1 (tested from 1e-3 to 1e-12;
     the gradient's relative error is of the same size).
     gradient: also return grad phi = -sum_j q_j (x - y_j) / |x - y_j|^3.
-    order, leaf_size: override the expansion order p (1..30) and the leaf capacity, otherwise
+    order, leaf_size: override the expansion order p (1..40) and the leaf capacity, otherwise
     chosen from eps (for benchmarks and studies; eps is then not guaranteed).
 
     Problems of fewer than about 2e6 source-target pairs are summed directly (exact, and
@@ -173,8 +173,8 @@ def laplace3d(sources, charges, targets=None, *, eps=1e-10, gradient=False, orde
     src, q, tgt = _inputs3(sources, charges, targets)
     e = _eps(eps)
     p = _count(order, "order")
-    if p > 30:
-        raise ValueError(f"order: expected an integer in 1..30, got {order}")
+    if p > 40:
+        raise ValueError(f"order: expected an integer in 1..40, got {order}")
     m = src.shape[0] if tgt is None else tgt.shape[0]
     direct = order is None and leaf_size is None and src.shape[0] * m <= _DIRECT_PAIRS_3D
     out, info = _eval3d(src, q, tgt, eps=e, derivatives=1 if gradient else 0, order=p,

@@ -23,7 +23,7 @@ import numpy as np
 from kinema import fmm
 from kinema._checks import as_float_array, positive
 
-__all__ = ["VortexParticles", "merging_patches", "VortexParticles3D", "ring", "saffman_speed"]
+__all__ = ["VortexParticles", "merging_patches", "VortexParticles3D", "ring", "thick_ring", "saffman_speed"]
 
 # Beyond this many core radii exp(-r^2/delta^2) < 1e-15: the core correction is dropped.
 _CORE_CUTOFF = 6.0
@@ -294,6 +294,46 @@ def ring(radius, core, circulation, n, *, center=(0.0, 0.0, 0.0), axis=(0.0, 0.0
     tangent = -np.sin(theta)[:, None] * ex + np.cos(theta)[:, None] * ey
     strength = circulation * (2 * np.pi * radius / n) * tangent
     return x, strength
+
+
+def thick_ring(radius, core, circulation, n, *, layers=3, center=(0.0, 0.0, 0.0),
+               axis=(0.0, 0.0, 1.0)):
+    """A vortex ring whose Gaussian core exp(-r^2/core^2) is resolved by particles.
+
+    The cross-section holds `layers` circles of 6, 12, ... particles around a central one,
+    spacing h = 2 core / layers; each particle's own core is h (overlapping), and the circulation
+    is spread with weights exp(-rho^2/(core^2 - h^2)) so that the sum of the Gaussian blobs is a
+    Gaussian of width `core` (Gaussians of widths a and b convolve to sqrt(a^2 + b^2)).
+    n particles per circle along the ring. Returns (x, strength, particle_core).
+    """
+    radius = positive(radius, "radius")
+    core = positive(core, "core")
+    if isinstance(layers, bool) or not isinstance(layers, (int, np.integer)) or layers < 1:
+        raise ValueError(f"layers: expected an integer >= 1, got {layers!r}")
+    h = 2.0 * core / layers
+    width2 = core**2 - h**2
+    if width2 <= 0:
+        raise ValueError("layers: expected at least 3 (the particle cores must be narrower than core)")
+    rho, phi, area = [0.0], [0.0], [np.pi * (h / 2) ** 2]
+    for i in range(1, layers + 1):
+        k = 6 * i
+        rho += [i * h] * k
+        phi += list(2 * np.pi * (np.arange(k) + 0.5 * (i % 2)) / k)
+        area += [2 * np.pi * i * h * h / k] * k
+    rho, phi, area = map(np.asarray, (rho, phi, area))
+    weights = np.exp(-rho**2 / width2) * area
+    weights *= float(circulation) / weights.sum()
+    x0, a0 = ring(radius, core, 1.0, n, center=(0.0, 0.0, 0.0), axis=axis)
+    ez = np.asarray(axis, float) / np.linalg.norm(axis)
+    radial_dir = x0 / radius
+    xs, alphas = [], []
+    for r_, p_, w_ in zip(rho, phi, weights):
+        offset = r_ * (np.cos(p_) * radial_dir + np.sin(p_) * ez)
+        scale = (radius + r_ * np.cos(p_)) / radius  # the line element at that radius
+        xs.append(x0 + offset)
+        alphas.append(a0 * w_ * scale)
+    c = as_float_array(center, "center", ndim=1)
+    return np.concatenate(xs) + c, np.concatenate(alphas), h
 
 
 def saffman_speed(radius, core, circulation):
