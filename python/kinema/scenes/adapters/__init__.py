@@ -22,6 +22,7 @@ ADAPTERS = {
     "massspring": "kinema.scenes.adapters.massspring",
     "fem": "kinema.scenes.adapters.fem",
     "vortex": "kinema.scenes.adapters.vortex",
+    "nbody": "kinema.scenes.adapters.nbody",
 }
 
 
