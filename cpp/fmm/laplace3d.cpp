@@ -14,6 +14,7 @@
 #include "core/errors.h"
 #include "core/timer.h"
 #include "fmm/kernels3d.h"
+#include "fmm/m2l_product.h"
 #include "fmm/octree.h"
 
 namespace kinema::fmm3 {
@@ -23,7 +24,6 @@ namespace {
 using fmm::Box3;
 using fmm::Lists3;
 using fmm::Octree;
-using RowMatrix = Eigen::Matrix<Scalar, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>;
 using ColMatrix = Eigen::Matrix<Scalar, Eigen::Dynamic, Eigen::Dynamic>;
 
 constexpr int kOffsets = 343;  // the 7^3 cube of same-level offsets, (dx+3)*49 + (dy+3)*7 + dz+3
@@ -137,7 +137,7 @@ struct Engine {
       const auto& list = pairs[static_cast<size_t>(o)];
       if (list.empty()) continue;
       interrupt.check();
-      const Eigen::Map<const RowMatrix> a(ops.matrix(o), n, n);
+      const Scalar* a = ops.matrix(o);
       const int pattern = M2lOperators::pattern(o);
       const Scalar* sign = ops.signs[static_cast<size_t>(pattern)].data();
       const bool flip = pattern != 0;
@@ -146,7 +146,7 @@ struct Engine {
 #pragma omp parallel for schedule(dynamic, 1) if (chunks > 1)
       for (Index ck = 0; ck < chunks; ++ck) {
         const Index begin = ck * kChunk, end = std::min(count, begin + kChunk);
-        ColMatrix b(n, (end - begin) * nc), result;
+        ColMatrix b(n, (end - begin) * nc), result(n, (end - begin) * nc);
         for (Index i = begin; i < end; ++i)
           for (int c = 0; c < nc; ++c) {
             const Scalar* m = mul(list[static_cast<size_t>(i)].second, c);
@@ -154,7 +154,7 @@ struct Engine {
             if (flip) for (int k = 0; k < n; ++k) col[k] = sign[k] * m[k];
             else std::copy(m, m + n, col);
           }
-        result.noalias() = a * b;
+        m2l_product(a, n, b.data(), static_cast<int>(b.cols()), result.data());
         for (Index i = begin; i < end; ++i)
           for (int c = 0; c < nc; ++c) {
             Scalar* l = loc(list[static_cast<size_t>(i)].first, c);
