@@ -54,23 +54,22 @@ def test_leapfrog_is_second_order():
 
 
 def test_plummer_sphere_stays_in_virial_equilibrium():
-    x, v, m = km.nbody.plummer(2000, seed=1)
-    s = km.nbody.System(x, v, m, softening=0.01, eps=1e-6)
-    q0 = s.virial_ratio()
-    # finite-N sampling noise of 2K/|W| is ~ 1/sqrt(N) ~ 0.02
-    assert q0 == pytest.approx(1.0, abs=0.06)
+    x, v, m = km.nbody.plummer(1000, seed=1)
+    s = km.nbody.System(x, v, m, softening=0.02)
+    # finite-N sampling noise of 2K/|W| is ~ 2/sqrt(N) ~ 0.06
+    assert s.virial_ratio() == pytest.approx(1.0, abs=0.1)
     e0 = s.energy()
-    # Plummer crossing time t_cr ~ 2.2 in these units; run ~2 crossing times
-    radii = []
-    s.advance(4.0, 0.01, callback=lambda sy: radii.append(np.median(np.linalg.norm(sy.x, axis=1))))
-    assert s.virial_ratio() == pytest.approx(1.0, abs=0.08)
-    # the half-mass radius of a Plummer sphere is 1.305 a
-    assert np.median(np.linalg.norm(s.x, axis=1)) == pytest.approx(1.305, rel=0.08)
+    # two crossing times (t_cr = 2 sqrt(2) ~ 2.8 in units G = M = a = 1)
+    ratios = []
+    s.advance(5.6, 0.02, callback=lambda sy: ratios.append(sy.virial_ratio()) if sy.steps % 20 == 0 else None)
+    assert np.abs(np.array(ratios) - 1).max() < 0.15, ratios
+    # the half-mass radius of a Plummer sphere is 1.305 a (sampling noise ~ 4 % at N = 1000)
+    assert np.median(np.linalg.norm(s.x, axis=1)) == pytest.approx(1.305, rel=0.1)
     assert abs(s.energy() / e0 - 1) < 2e-3
 
 
 def test_momentum_conserved_to_fmm_eps():
-    x, v, m = km.nbody.plummer(20000, seed=3)
+    x, v, m = km.nbody.plummer(10000, seed=3)
     for eps in (1e-4, 1e-8):
         s = km.nbody.System(x, v, m, eps=eps, softening=0.0)
         a = s.accelerations()
@@ -78,8 +77,9 @@ def test_momentum_conserved_to_fmm_eps():
         net = np.linalg.norm(m @ a) / np.sum(m * np.linalg.norm(a, axis=1))
         assert net < eps, f"eps {eps:g}: net force {net:.2e}"
         p0 = s.momentum()
-        s.advance(0.05, 0.01)
-        assert np.linalg.norm(s.momentum() - p0) < 0.05 * eps * np.sum(m * np.linalg.norm(a, axis=1)) * 1.5 + 1e-15
+        s.advance(0.02, 0.01)
+        # |dp| <= t * |sum m a| per step, with |sum m a| < eps sum m |a| as just checked
+        assert np.linalg.norm(s.momentum() - p0) < 0.02 * eps * np.sum(m * np.linalg.norm(a, axis=1))
 
 
 def test_softened_forces_against_exact_softened_sum():
@@ -150,3 +150,18 @@ def test_bad_step_and_blow_up():
         s.advance(1.0, 0.5)
     with pytest.raises(ValueError, match="n"):
         km.nbody.plummer(1)
+
+
+def test_galaxy_collision_example_runs(tmp_path):
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parent.parent / "examples" / "galaxy_collision.py"
+    spec = importlib.util.spec_from_file_location("galaxy_collision", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    worst = module.main(["--out", str(tmp_path), "--particles", "300", "--duration", "0.4",
+                         "--dt", "0.05", "--frames", "2"])
+    assert len(list((tmp_path / "frames").glob("*.png"))) == 3
+    assert (tmp_path / "energy_error.png").exists()
+    assert worst < 1e-2

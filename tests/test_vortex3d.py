@@ -51,11 +51,27 @@ def test_thin_ring_speed_against_saffman():
     sim = km.vortex.VortexParticles3D(x, a, core, eps=1e-6)
     w = np.linalg.norm(a, axis=1)
     z0 = w @ sim.x[:, 2] / w.sum()
-    sim.advance(0.6, 0.1)
+    sim.advance(0.2, 0.1)
     w = np.linalg.norm(sim.strength, axis=1)
-    speed = (w @ sim.x[:, 2] / w.sum() - z0) / 0.6
+    speed = (w @ sim.x[:, 2] / w.sum() - z0) / 0.2
     expected = km.vortex.saffman_speed(R, delta, gamma)
-    assert speed == pytest.approx(expected, rel=0.03), f"speed {speed:.4f}, Saffman {expected:.4f}"
+    # Saffman's formula is the leading order in delta/R = 0.1; measured here -0.7 % (-0.6 % at
+    # t = 0.6). The bound 1.5 % separates it from the unresolved (one-circle) ring, which moves
+    # at its centreline velocity, 4 % slower (see test_thin_ring_centreline_speed).
+    assert speed == pytest.approx(expected, rel=0.015), f"speed {speed:.4f}, Saffman {expected:.4f}"
+
+
+def test_thin_ring_centreline_speed():
+    """One circle of blobs: every particle moves along the axis at the same speed, converged
+    in the particle count, 4 % below Saffman's speed (the centreline velocity of the core)."""
+    speeds = []
+    for n in (100, 200):
+        x, a = km.vortex.ring(1.0, 0.1, 1.0, n)
+        u = km.vortex.VortexParticles3D(x, a, 0.1).velocity()
+        assert np.abs(u[:, :2]).max() < 1e-12 and np.ptp(u[:, 2]) < 1e-12
+        speeds.append(u[0, 2])
+    assert speeds[0] == pytest.approx(speeds[1], rel=1e-9)
+    assert speeds[1] / km.vortex.saffman_speed(1.0, 0.1, 1.0) == pytest.approx(0.96, abs=0.005)
 
 
 def test_ring_radius_and_impulse_conserved():
@@ -112,3 +128,16 @@ def test_resume_is_bitwise_and_bad_input():
     blow = km.vortex.VortexParticles3D(x, a * 1e300, 0.2)
     with pytest.raises(km.DivergenceError):
         blow.step(1.0)
+
+
+def test_vortex_rings_example_runs(tmp_path):
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parent.parent / "examples" / "vortex_rings.py"
+    spec = importlib.util.spec_from_file_location("vortex_rings", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    module.main(["--out", str(tmp_path), "--steps", "2", "--particles", "24", "--no-saffman"])
+    assert len(list((tmp_path / "frames").glob("*.png"))) == 3
+    assert (tmp_path / "leapfrog.png").exists()

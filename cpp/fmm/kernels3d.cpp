@@ -135,10 +135,15 @@ void p2l(int p, const Scalar* c, Scalar h, const Scalar* const xyz[3], const Sca
 void m2l_matrix(int p, const int offset[3], Scalar* matrix) {
   // L_jk = (-1)^j sum_lm M_lm I_{l+j, m+k}(2 d); with M_{l,-m} = (-1)^m conj(M_lm), the
   // m > 0 terms M I1 + (-1)^m conj(M) I2 = a (I1 + s I2) + i b (I1 - s I2), M = a + i b.
-  std::vector<Complex> ir(static_cast<size_t>(complex_count(2 * p)));
-  irregular(2.0 * offset[0], 2.0 * offset[1], 2.0 * offset[2], 2 * p, ir.data());
+  const int q = 2 * p;
+  std::vector<Complex> ir(static_cast<size_t>(complex_count(q)));
+  irregular(2.0 * offset[0], 2.0 * offset[1], 2.0 * offset[2], q, ir.data());
+  // I_{n,m} for all -n <= m <= n as a dense table (row n, column m + q), zero outside.
+  const int w = 2 * q + 1;
+  std::vector<Complex> table(static_cast<size_t>((q + 1) * w), Complex(0));
+  for (int nn = 0; nn <= q; ++nn)
+    for (int m = -nn; m <= nn; ++m) table[static_cast<size_t>(nn * w + m + q)] = coefficient(ir.data(), q, nn, m);
   const int n = coefficient_count(p);
-  auto irr = [&](int l, int m) { return coefficient(ir.data(), 2 * p, l, m); };
   for (int j = 0; j <= p; ++j)
     for (int k = 0; k <= j; ++k) {
       const Scalar sj = (j & 1) ? -1.0 : 1.0;
@@ -146,19 +151,21 @@ void m2l_matrix(int p, const int offset[3], Scalar* matrix) {
       Scalar* re = matrix + static_cast<size_t>(row_re) * n;
       Scalar* im = k > 0 ? re + n : nullptr;
       for (int l = 0; l <= p; ++l) {
-        const Complex d0 = sj * irr(l + j, k);
+        const Complex* row = &table[static_cast<size_t>((l + j) * w + q)];
+        const Complex d0 = sj * row[k];
         re[l * l] = d0.real();
         if (im) im[l * l] = d0.imag();
         for (int m = 1; m <= l; ++m) {
-          const Complex i1 = irr(l + j, m + k), i2 = irr(l + j, k - m);
-          const Scalar s = (m & 1) ? -1.0 : 1.0;
-          const Complex da = sj * (i1 + s * i2);
-          const Complex db = sj * Complex(0, 1) * (i1 - s * i2);
+          const Complex i1 = row[m + k], i2 = row[k - m];
+          const Scalar s = (m & 1) ? -sj : sj;
+          // da = sj (i1 + s' i2), db = i sj (i1 - s' i2) with s' = (-1)^m
+          const Complex da = sj * i1 + s * i2;
+          const Complex dif = sj * i1 - s * i2;
           re[l * l + 2 * m - 1] = da.real();
-          re[l * l + 2 * m] = db.real();
+          re[l * l + 2 * m] = -dif.imag();
           if (im) {
             im[l * l + 2 * m - 1] = da.imag();
-            im[l * l + 2 * m] = db.imag();
+            im[l * l + 2 * m] = dif.real();
           }
         }
       }
