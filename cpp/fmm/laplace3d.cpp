@@ -295,11 +295,11 @@ struct Engine {
 }  // namespace
 
 int order_for(Scalar eps) {
-  // Measured at N = 6e3..2e4 (uniform with random-sign charges, the hardest case for phi;
-  // Plummer spheres, thin shells and tori do better): phi's relative error falls from 5e-4
-  // at p = 4 by about 0.33 decades per order up to p = 14, and ~0.25 beyond.
+  // Measured at N = 6e3..2e4 with random-sign charges (the hardest case for phi): phi's
+  // relative error is ~1.2e-3 at p = 4 (Plummer sphere) and falls by about 0.33 decades per
+  // order up to p = 14, ~0.25 beyond.
   const Scalar digits = -std::log10(std::clamp(eps, 1e-15, 0.5));
-  const Scalar p = digits <= 6 ? 4 + 3.1 * std::max(0.0, digits - 3) : 14 + 3.9 * (digits - 6);
+  const Scalar p = digits <= 6 ? 5 + 3 * std::max(0.0, digits - 3) : 14 + 3.9 * (digits - 6);
   return std::clamp(static_cast<int>(std::ceil(p)), 3, kMaxOrder3d);
 }
 

@@ -131,8 +131,8 @@ def _inputs3(sources, charges, targets):
     if np.iscomplexobj(charges):
         raise ValueError("charges: expected real charges, got complex numbers")
     q = as_float_array(charges, "charges")
-    if q.ndim == 0:
-        q = np.full(src.shape[0], float(q))
+    if np.ndim(charges) == 0:  # as_float_array makes a scalar a 1-element array
+        q = np.full(src.shape[0], float(q[0]))
     if q.shape != (src.shape[0],):
         raise ValueError(f"charges: expected shape ({src.shape[0]},) (one per source), got {q.shape}")
     tgt = None if targets is None else _points3(targets, "targets")
@@ -146,7 +146,7 @@ def _eval3d(src, q, tgt, *, eps, derivatives, kernel="laplace", length=0.0, min_
     q: (N, C) charge components. Returns (out (M, C, width), info); width 1 (phi), 4 (phi,
     grad) or 10 (phi, grad, hessian xx xy xz yy yz zz).
     """
-    q2 = np.ascontiguousarray(q.reshape(src.shape[0], -1), dtype=np.float64)
+    q2 = np.ascontiguousarray(q[:, None] if q.ndim == 1 else q, dtype=np.float64)
     out, info = _core.fmm.eval3d(src, q2, tgt, float(eps), int(derivatives), _NEAR_KERNELS[kernel],
                                  float(length), float(min_width), int(order), int(leaf_size),
                                  bool(direct))

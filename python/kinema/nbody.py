@@ -50,8 +50,8 @@ class System:
         if v.shape != x.shape:
             raise ValueError(f"v: expected shape {x.shape} (as x), got {v.shape}")
         m = as_float_array(mass, "mass")
-        if m.ndim == 0:
-            m = np.full(len(x), float(m))
+        if np.ndim(mass) == 0:  # as_float_array makes a scalar a 1-element array
+            m = np.full(len(x), float(m[0]))
         if m.shape != (len(x),):
             raise ValueError(f"mass: expected a scalar or shape ({len(x)},), got {m.shape}")
         if (m < 0).any():
