@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kinema import fmm
+from kinema import _stepping, fmm
 from kinema._checks import as_float_array, non_negative, positive
 from kinema.errors import DivergenceError
 
@@ -129,17 +129,7 @@ class System:
         """Steps of dt up to `duration` [s], the last one shortened to land on it.
 
         callback(system), if given, runs after every step (progress output, recording)."""
-        duration = non_negative(duration, "duration")
-        dt = positive(dt, "dt")
-        end = self.time + duration
-        while self.time < end:
-            h = min(dt, end - self.time)
-            if h <= 1e-14 * max(1.0, abs(end)):
-                break
-            self.step(h)
-            if callback is not None:
-                callback(self)
-        return self
+        return _stepping.advance(self, duration, dt, callback)
 
     # ------------------------------------------------------------------ checkpoints
     def state(self) -> dict:

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kinema import fmm
+from kinema import _stepping, fmm
 from kinema._checks import as_float_array, positive
 
 __all__ = ["VortexParticles", "merging_patches", "VortexParticles3D", "ring", "thick_ring", "saffman_speed"]
@@ -224,19 +224,7 @@ class VortexParticles3D:
 
     def advance(self, duration, dt, *, callback=None):
         """Steps of dt up to `duration` [s], the last one shortened to land on it."""
-        from kinema._checks import non_negative
-
-        duration = non_negative(duration, "duration")
-        dt = positive(dt, "dt")
-        end = self.time + duration
-        while self.time < end:
-            h = min(dt, end - self.time)
-            if h <= 1e-14 * max(1.0, abs(end)):
-                break
-            self.step(h)
-            if callback is not None:
-                callback(self)
-        return self
+        return _stepping.advance(self, duration, dt, callback)
 
     def linear_impulse(self) -> np.ndarray:
         """I = 1/2 sum_j x_j x alpha_j (3,) [m^4/s] (per unit density)."""
