@@ -183,6 +183,10 @@ class Vortex3DSimulation(BaseSimulation):
         return [PointData("vortices", self.sim.x.copy(), point_data={"strength": self.sim.strength.copy()})]
 
 
-def Simulation(scene):  # noqa: N802 (the adapter protocol's name)
-    """The 2D or the 3D simulation, as the scene's objects ask."""
-    return Vortex3DSimulation(scene) if scene.dim == 3 else VortexSimulation(scene)
+class Simulation(BaseSimulation):
+    """The 2D or the 3D simulation, as the scene's objects ask (a scene with rings is 3D)."""
+
+    DIAGNOSTICS = VortexSimulation.DIAGNOSTICS
+
+    def __new__(cls, scene):
+        return Vortex3DSimulation(scene) if scene.dim == 3 else VortexSimulation(scene)
