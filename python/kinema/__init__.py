@@ -31,7 +31,7 @@ from kinema.errors import (
     StabilityError,
 )
 from kinema import diffusion, fem, fmm, grid, massspring, poisson, render, sparse, sph, vortex
-from kinema import mesh, mpm
+from kinema import mesh, mpm, nbody
 from kinema.scenes import Scene, SceneError
 from kinema import io
 
@@ -53,6 +53,7 @@ __all__ = [
     "diffusion",
     "fmm",
     "vortex",
+    "nbody",
     "grid",
     "massspring",
     "fem",

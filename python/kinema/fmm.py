@@ -21,7 +21,7 @@ import numpy as np
 from kinema import _core
 from kinema._checks import as_float_array
 
-__all__ = ["laplace2d", "direct2d", "last_info"]
+__all__ = ["laplace2d", "direct2d", "laplace3d", "direct3d", "last_info"]
 
 _last_info: dict = {}
 
@@ -106,3 +106,91 @@ def direct2d(sources, charges, targets=None, *, eps=None, gradient=False):
 def last_info() -> dict:
     """Statistics of the last :func:`laplace2d` call: order, leaf_size, boxes, depth, seconds_*."""
     return dict(_last_info)
+
+
+# ---------------------------------------------------------------------------------------- 3D
+
+_NEAR_KERNELS = {"laplace": 0, "plummer": 1, "gaussian": 2}
+
+# Below this many source-target pairs the direct sum is as fast as the FMM (bench/fmm3d_bench.py
+# measures the crossover); laplace3d then sums directly, which is exact.
+_DIRECT_PAIRS_3D = 2_000_000
+
+
+def _points3(x, name):
+    if np.iscomplexobj(x):
+        raise ValueError(f"{name}: expected real (x, y, z) coordinates, got complex numbers")
+    a = as_float_array(x, name, ndim=2)
+    if a.shape[1] != 3:
+        raise ValueError(f"{name}: expected shape (n, 3), got {a.shape}")
+    return a
+
+
+def _inputs3(sources, charges, targets):
+    src = _points3(sources, "sources")
+    if np.iscomplexobj(charges):
+        raise ValueError("charges: expected real charges, got complex numbers")
+    q = as_float_array(charges, "charges")
+    if np.ndim(charges) == 0:  # as_float_array makes a scalar a 1-element array
+        q = np.full(src.shape[0], float(q[0]))
+    if q.shape != (src.shape[0],):
+        raise ValueError(f"charges: expected shape ({src.shape[0]},) (one per source), got {q.shape}")
+    tgt = None if targets is None else _points3(targets, "targets")
+    return src, q, tgt
+
+
+def _eval3d(src, q, tgt, *, eps, derivatives, kernel="laplace", length=0.0, min_width=0.0,
+            order=0, leaf_size=0, direct=False):
+    """The 3D engine shared by laplace3d, km.nbody and km.vortex (checked inputs).
+
+    q: (N, C) charge components. Returns (out (M, C, width), info); width 1 (phi), 4 (phi,
+    grad) or 10 (phi, grad, hessian xx xy xz yy yz zz).
+    """
+    q2 = np.ascontiguousarray(q[:, None] if q.ndim == 1 else q, dtype=np.float64)
+    out, info = _core.fmm.eval3d(src, q2, tgt, float(eps), int(derivatives), _NEAR_KERNELS[kernel],
+                                 float(length), float(min_width), int(order), int(leaf_size),
+                                 bool(direct))
+    return out, info
+
+
+def laplace3d(sources, charges, targets=None, *, eps=1e-10, gradient=False, order=None,
+              leaf_size=None):
+    """phi(x) = sum_j q_j / |x - y_j| (and its gradient) by the fast multipole method.
+
+    sources: (N, 3) source positions [m]. charges: (N,) charges q_j (or a scalar for all).
+    targets: (M, 3) evaluation points, or None for the sources themselves (the self term and
+    any pair at distance zero left out).
+    eps: relative 2-norm error of phi to meet, 1e-15 <= eps < 1 (tested from 1e-3 to 1e-12;
+    the gradient's relative error is of the same size).
+    gradient: also return grad phi = -sum_j q_j (x - y_j) / |x - y_j|^3.
+    order, leaf_size: override the expansion order p (1..40) and the leaf capacity, otherwise
+    chosen from eps (for benchmarks and studies; eps is then not guaranteed).
+
+    Problems of fewer than about 2e6 source-target pairs are summed directly (exact, and
+    faster there). Returns phi (M,), or (phi, grad) with grad of shape (M, 3). Statistics of
+    the last call are in :func:`last_info`.
+    """
+    src, q, tgt = _inputs3(sources, charges, targets)
+    e = _eps(eps)
+    p = _count(order, "order")
+    if p > 40:
+        raise ValueError(f"order: expected an integer in 1..40, got {order}")
+    m = src.shape[0] if tgt is None else tgt.shape[0]
+    direct = order is None and leaf_size is None and src.shape[0] * m <= _DIRECT_PAIRS_3D
+    out, info = _eval3d(src, q, tgt, eps=e, derivatives=1 if gradient else 0, order=p,
+                        leaf_size=_count(leaf_size, "leaf_size"), direct=direct)
+    info["direct"] = direct
+    _last_info.clear()
+    _last_info.update(info)
+    phi = out[:, 0, 0].copy()
+    return (phi, out[:, 0, 1:4].copy()) if gradient else phi
+
+
+def direct3d(sources, charges, targets=None, *, eps=None, gradient=False):
+    """The exact O(N M) sum of :func:`laplace3d`, in parallel; same arguments (eps is ignored)."""
+    src, q, tgt = _inputs3(sources, charges, targets)
+    if eps is not None:
+        _eps(eps)
+    out, _ = _eval3d(src, q, tgt, eps=1e-15, derivatives=1 if gradient else 0, direct=True)
+    phi = out[:, 0, 0].copy()
+    return (phi, out[:, 0, 1:4].copy()) if gradient else phi

@@ -23,6 +23,7 @@ ADAPTERS = {
     "fem": "kinema.scenes.adapters.fem",
     "vortex": "kinema.scenes.adapters.vortex",
     "mpm": "kinema.scenes.adapters.mpm",
+    "nbody": "kinema.scenes.adapters.nbody",
 }
 
 

@@ -4,6 +4,8 @@ Objects: ``patch`` (a Gaussian vortex patch, km.vortex.merging_patches' disc) an
 (a flat vortex sheet with the elliptic circulation Gamma(s) = Gamma0 sqrt(1 - s^2) of a loaded
 wing, which rolls up at its tips: Krasny 1987, "Computation of vortex sheet roll-up in the
 Trefftz plane", J. Fluid Mech. 184). Steps: ``substeps`` equal RK4 steps per frame.
+In 3D (km.vortex.VortexParticles3D): ``ring`` (a vortex ring, km.vortex.ring); a scene with
+rings is a 3D scene and takes no 2D objects.
 """
 
 from __future__ import annotations
@@ -12,7 +14,8 @@ import numpy as np
 
 import kinema as km
 from kinema.scenes import preview
-from kinema.scenes.adapters.base import PointData, Simulation, restore, view_camera
+from kinema.scenes.adapters.base import PointData, restore, view_camera
+from kinema.scenes.adapters.base import Simulation as BaseSimulation
 from kinema.scenes.schema import Field, Int, Real, Table, Vec
 
 SOLVER = Table({
@@ -35,11 +38,18 @@ OBJECTS = {
         "particles": Field(Int(ge=4), 200),
         "circulation": Field(Real(), 1.0, "Gamma0, the circulation at the middle [m^2/s]"),
     }, "an elliptically loaded vortex sheet along x"),
+    "ring": Table({
+        "center": Field(Vec(spatial=True)),
+        "axis": Field(Vec(3), [0.0, 0.0, 1.0], "direction of travel (for positive circulation)"),
+        "radius": Field(Real(gt=0), 1.0, "[m]"),
+        "particles": Field(Int(ge=8), 100),
+        "circulation": Field(Real(), 1.0, "[m^2/s]"),
+    }, "a 3D vortex ring (core radius: solver.core, default 0.1 radius)"),
 }
 
 
 def dimension(solver, objects):
-    return 2
+    return 3 if any(o["type"] == "ring" for o in objects) else 2
 
 
 def _sheet(obj):
@@ -54,7 +64,7 @@ def _sheet(obj):
     return x, gamma[:-1] - gamma[1:], 0.05 * obj["half_span"]
 
 
-class VortexSimulation(Simulation):
+class VortexSimulation(BaseSimulation):
     DIAGNOSTICS = ("circulation_drift", "impulse_drift")
 
     def __init__(self, scene):
@@ -120,4 +130,63 @@ class VortexSimulation(Simulation):
         return [PointData("vortices", self.sim.x.copy(), point_data={"circulation": self.sim.circulation})]
 
 
-Simulation = VortexSimulation
+class Vortex3DSimulation(BaseSimulation):
+    DIAGNOSTICS = ("impulse_drift",)
+
+    def __init__(self, scene):
+        super().__init__(scene)
+        self.dim = 3
+        o = scene.config["solver"]
+        self.substeps = o["substeps"]
+        objects = scene.config["objects"]
+        if any(obj["type"] != "ring" for obj in objects):
+            raise scene.error("objects", 'a 3D vortex scene (with rings) takes only objects of type "ring"')
+        core = o["core"] or 0.1 * min(obj["radius"] for obj in objects)
+        xs, alphas = zip(*(km.vortex.ring(obj["radius"], core, obj["circulation"], obj["particles"],
+                                          center=obj["center"], axis=obj["axis"]) for obj in objects))
+        self.sim = km.vortex.VortexParticles3D(np.concatenate(xs), np.concatenate(alphas), core, eps=o["eps"])
+        self.impulse0 = self.sim.linear_impulse()
+        x0 = self.sim.x
+        lo, hi = x0.min(axis=0), x0.max(axis=0)
+        grow = 0.6 * (hi - lo).max()
+        self.view = (lo - grow, hi + grow)
+
+    @property
+    def time(self):
+        return self.sim.time
+
+    def advance_to(self, t_end):
+        dt = (t_end - self.sim.time) / self.substeps
+        for _ in range(self.substeps):
+            self.sim.step(dt)
+        self.steps += self.substeps
+        return self.substeps
+
+    def get_state(self):
+        return self.sim.state() | {"scene_steps": np.int64(self.steps)}
+
+    def set_state(self, state):
+        self.sim.set_state(state)
+        self.steps = int(state["scene_steps"])
+
+    def diagnostics(self):
+        return {"impulse_drift": float(np.linalg.norm(self.sim.linear_impulse() - self.impulse0))}
+
+    def image(self, output):
+        cam = view_camera(output, 3, *self.view, (0, 2))
+        w = np.linalg.norm(self.sim.strength, axis=1)
+        lo, hi = output["range"] or (0.0, float(w.max()) or 1.0)
+        colors = preview.colormap(w, output["colormap"], lo, hi).astype(float)
+        return preview.splat(cam, self.sim.x, colors, 1.5)
+
+    def data(self):
+        return [PointData("vortices", self.sim.x.copy(), point_data={"strength": self.sim.strength.copy()})]
+
+
+class Simulation(BaseSimulation):
+    """The 2D or the 3D simulation, as the scene's objects ask (a scene with rings is 3D)."""
+
+    DIAGNOSTICS = VortexSimulation.DIAGNOSTICS
+
+    def __new__(cls, scene):
+        return Vortex3DSimulation(scene) if scene.dim == 3 else VortexSimulation(scene)

@@ -1,0 +1,411 @@
+// The FMM passes over the adaptive octree: upward (P2M, M2M), downward (M2L from the V list
+// as dense matrix products batched by offset, P2L from the X list, L2L), then per leaf L2P +
+// M2P (W list) + P2P (U list). Every output is written by one loop iteration, and each
+// expansion receives its terms in a fixed order, so results are bitwise identical run to run
+// and for any thread count.
+#include "fmm/laplace3d.h"
+
+#include <Eigen/Core>
+#include <algorithm>
+#include <cmath>
+#include <string>
+#include <vector>
+
+#include "core/errors.h"
+#include "core/timer.h"
+#include "fmm/kernels3d.h"
+#include "fmm/m2l_product.h"
+#include "fmm/octree.h"
+
+namespace kinema::fmm3 {
+
+namespace {
+
+using fmm::Box3;
+using fmm::Lists3;
+using fmm::Octree;
+using ColMatrix = Eigen::Matrix<Scalar, Eigen::Dynamic, Eigen::Dynamic>;
+
+constexpr int kOffsets = 343;  // the 7^3 cube of same-level offsets, (dx+3)*49 + (dy+3)*7 + dz+3
+
+// M2L matrices for the offsets with dx, dy, dz >= 0 only (56 of the 316): a reflection of the
+// offset is a diagonal +-1 map on both expansions, A(d) = T A(|d|) T (Helgaker's harmonics:
+// x -> -x maps I_lm to (-1)^m conj(I_lm), y -> -y to conj(I_lm), z -> -z to (-1)^(l+m) I_lm).
+struct M2lOperators {
+  M2lOperators(int p_, const std::vector<char>& used) : p(p_), n(coefficient_count(p_)), index(64, -1) {
+    std::vector<int> wanted;
+    for (int o = 0; o < kOffsets; ++o) {
+      if (!used[static_cast<size_t>(o)]) continue;
+      const int base = canonical(o);
+      if (index[static_cast<size_t>(base)] < 0) {
+        index[static_cast<size_t>(base)] = static_cast<int>(wanted.size());
+        wanted.push_back(base);
+      }
+    }
+    matrices.resize(wanted.size() * static_cast<size_t>(n) * static_cast<size_t>(n));
+    const int count = static_cast<int>(wanted.size());
+#pragma omp parallel for schedule(dynamic, 1)
+    for (int i = 0; i < count; ++i) {
+      const int b = wanted[static_cast<size_t>(i)];
+      const int d[3] = {b / 16, (b / 4) % 4, b % 4};
+      m2l_matrix(p, d, &matrices[static_cast<size_t>(i) * n * n]);
+    }
+    // signs[pattern][k]: pattern bit 0/1/2 set when dx/dy/dz < 0.
+    signs.assign(8, std::vector<Scalar>(static_cast<size_t>(n), 1.0));
+    for (int pattern = 0; pattern < 8; ++pattern)
+      for (int l = 0; l <= p; ++l)
+        for (int m = 0; m <= l; ++m)
+          for (int part = 0; part < (m == 0 ? 1 : 2); ++part) {  // part 1: imaginary
+            Scalar s = 1;
+            if (pattern & 1) s *= ((m & 1) ? -1 : 1) * (part ? -1 : 1);
+            if (pattern & 2) s *= part ? -1 : 1;
+            if (pattern & 4) s *= ((l + m) & 1) ? -1 : 1;
+            const int k = l * l + (m == 0 ? 0 : 2 * m - 1 + part);
+            signs[static_cast<size_t>(pattern)][static_cast<size_t>(k)] = s;
+          }
+  }
+  static int canonical(int o) {
+    const int dx = o / 49 - 3, dy = (o / 7) % 7 - 3, dz = o % 7 - 3;
+    return std::abs(dx) * 16 + std::abs(dy) * 4 + std::abs(dz);
+  }
+  static int pattern(int o) {
+    return (o / 49 - 3 < 0) + 2 * ((o / 7) % 7 - 3 < 0) + 4 * (o % 7 - 3 < 0);
+  }
+  const Scalar* matrix(int offset) const {
+    return &matrices[static_cast<size_t>(index[static_cast<size_t>(canonical(offset))]) * n * n];
+  }
+  int p, n;
+  std::vector<int> index;
+  std::vector<Scalar> matrices;
+  std::vector<std::vector<Scalar>> signs;
+};
+
+struct Engine {
+  const Octree& tree;
+  const Fmm3dConfig& config;
+  int p, n, nc, width;
+  const std::vector<Scalar>& q;  // tree order, n_sources x nc
+  std::vector<Scalar> multipole, local;
+  Scalar* mul(Index box, int c) { return &multipole[(static_cast<size_t>(box) * nc + c) * n]; }
+  Scalar* loc(Index box, int c) { return &local[(static_cast<size_t>(box) * nc + c) * n]; }
+  const Scalar* src[3];
+
+  Engine(const Octree& t, const Fmm3dConfig& cfg, int order, int components, const std::vector<Scalar>& charges)
+      : tree(t), config(cfg), p(order), n(coefficient_count(order)), nc(components),
+        width(output_width(cfg.derivatives)), q(charges) {
+    multipole.assign(tree.boxes.size() * static_cast<size_t>(nc * n), 0.0);
+    local.assign(multipole.size(), 0.0);
+    for (int d = 0; d < 3; ++d) src[d] = tree.s[d].data();
+  }
+
+  void upward(Interrupt& interrupt) {
+    for (size_t level = tree.levels.size(); level-- > 0;) {
+      interrupt.check();
+      const std::vector<Index>& ids = tree.levels[level];
+      const Index count = static_cast<Index>(ids.size());
+#pragma omp parallel for schedule(dynamic, 4)
+      for (Index i = 0; i < count; ++i) {
+        const Index id = ids[static_cast<size_t>(i)];
+        const Box3& box = tree.boxes[static_cast<size_t>(id)];
+        if (box.source_count() == 0) continue;
+        for (int c = 0; c < nc; ++c) {
+          if (box.leaf) {
+            const Scalar* xyz[3] = {src[0] + box.src_begin, src[1] + box.src_begin, src[2] + box.src_begin};
+            p2m(p, box.c, box.h, xyz, &q[static_cast<size_t>(box.src_begin) * nc + c],
+                box.source_count(), nc, mul(id, c));
+            continue;
+          }
+          for (Index ch : box.child) {
+            if (ch < 0 || tree.boxes[static_cast<size_t>(ch)].source_count() == 0) continue;
+            m2m(p, mul(ch, c), tree.boxes[static_cast<size_t>(ch)].c, box.c, box.h, mul(id, c));
+          }
+        }
+      }
+    }
+  }
+
+  // All V-list interactions of one level, one offset at a time: C = A [M_s1 M_s2 ...] as a
+  // matrix product, added to the targets' locals (each target has one source per offset).
+  void m2l_level(const std::vector<Index>& ids, const M2lOperators& ops, Interrupt& interrupt) {
+    std::vector<std::vector<std::pair<Index, Index>>> pairs(kOffsets);
+    for (Index id : ids)
+      for (const fmm::M2lEntry& e : tree.lists[static_cast<size_t>(id)].m2l)
+        pairs[static_cast<size_t>(e.offset)].push_back({id, e.source});
+    const Scalar inv_h = 1 / tree.boxes[static_cast<size_t>(ids.front())].h;
+    constexpr Index kChunk = 32;
+    for (int o = 0; o < kOffsets; ++o) {
+      const auto& list = pairs[static_cast<size_t>(o)];
+      if (list.empty()) continue;
+      interrupt.check();
+      const Scalar* a = ops.matrix(o);
+      const int pattern = M2lOperators::pattern(o);
+      const Scalar* sign = ops.signs[static_cast<size_t>(pattern)].data();
+      const bool flip = pattern != 0;
+      const Index count = static_cast<Index>(list.size());
+      const Index chunks = (count + kChunk - 1) / kChunk;
+#pragma omp parallel for schedule(dynamic, 1) if (chunks > 1)
+      for (Index ck = 0; ck < chunks; ++ck) {
+        const Index begin = ck * kChunk, end = std::min(count, begin + kChunk);
+        ColMatrix b(n, (end - begin) * nc), result(n, (end - begin) * nc);
+        for (Index i = begin; i < end; ++i)
+          for (int c = 0; c < nc; ++c) {
+            const Scalar* m = mul(list[static_cast<size_t>(i)].second, c);
+            Scalar* col = b.col((i - begin) * nc + c).data();
+            if (flip) for (int k = 0; k < n; ++k) col[k] = sign[k] * m[k];
+            else std::copy(m, m + n, col);
+          }
+        m2l_product(a, n, b.data(), static_cast<int>(b.cols()), result.data());
+        for (Index i = begin; i < end; ++i)
+          for (int c = 0; c < nc; ++c) {
+            Scalar* l = loc(list[static_cast<size_t>(i)].first, c);
+            const Scalar* r = result.col((i - begin) * nc + c).data();
+            if (flip) for (int k = 0; k < n; ++k) l[k] += sign[k] * inv_h * r[k];
+            else for (int k = 0; k < n; ++k) l[k] += inv_h * r[k];
+          }
+      }
+    }
+  }
+
+  void downward(const M2lOperators& ops, Fmm3dStats& stats, Interrupt& interrupt) {
+    for (size_t level = 1; level < tree.levels.size(); ++level) {
+      interrupt.check();
+      const std::vector<Index>& ids = tree.levels[level];
+      const Index count = static_cast<Index>(ids.size());
+      Stopwatch watch;
+      m2l_level(ids, ops, interrupt);
+      stats.seconds_m2l += watch.seconds();
+#pragma omp parallel for schedule(dynamic, 8)
+      for (Index i = 0; i < count; ++i) {
+        const Index id = ids[static_cast<size_t>(i)];
+        const Box3& box = tree.boxes[static_cast<size_t>(id)];
+        if (box.target_count() == 0) continue;
+        const Box3& parent = tree.boxes[static_cast<size_t>(box.parent)];
+        const Lists3& lists = tree.lists[static_cast<size_t>(id)];
+        for (int c = 0; c < nc; ++c) {
+          if (box.parent > 0) l2l(p, loc(box.parent, c), parent.c, parent.h, box.c, loc(id, c));
+          for (Index s : lists.p2l) {
+            const Box3& sb = tree.boxes[static_cast<size_t>(s)];
+            const Scalar* xyz[3] = {src[0] + sb.src_begin, src[1] + sb.src_begin, src[2] + sb.src_begin};
+            p2l(p, box.c, box.h, xyz, &q[static_cast<size_t>(sb.src_begin) * nc + c],
+                sb.source_count(), nc, loc(id, c));
+          }
+        }
+      }
+    }
+  }
+
+  // Derivative expansions of one expansion: index 0 the expansion itself, then d/dx, d/dy,
+  // d/dz, then xx xy xz yy yz zz (orders shifted by one per derivative).
+  template <bool Local>
+  void derived(const Complex* base, std::vector<std::vector<Complex>>& out) const {
+    out.resize(static_cast<size_t>(width));
+    const int step = Local ? -1 : 1;
+    out[0].assign(base, base + complex_count(p));
+    if (width == 1) return;
+    for (int a = 0; a < 3; ++a) {
+      out[static_cast<size_t>(1 + a)].resize(static_cast<size_t>(complex_count(p + step)));
+      if (Local) local_derivative(base, p, a, out[static_cast<size_t>(1 + a)].data());
+      else multipole_derivative(base, p, a, out[static_cast<size_t>(1 + a)].data());
+    }
+    if (width == 4) return;
+    const int first[6] = {0, 0, 0, 1, 1, 2}, second[6] = {0, 1, 2, 1, 2, 2};
+    for (int k = 0; k < 6; ++k) {
+      std::vector<Complex>& dst = out[static_cast<size_t>(4 + k)];
+      dst.resize(static_cast<size_t>(complex_count(std::max(0, p + 2 * step))));
+      const Complex* d1 = out[static_cast<size_t>(1 + first[k])].data();
+      if (Local) {
+        if (p >= 2) local_derivative(d1, p - 1, second[k], dst.data());
+        else std::fill(dst.begin(), dst.end(), Complex(0));
+      } else {
+        multipole_derivative(d1, p + 1, second[k], dst.data());
+      }
+    }
+  }
+
+  void leaves(std::vector<Scalar>& result, Interrupt& interrupt) {
+    const Index leaf_count = static_cast<Index>(tree.leaves.size());
+    const bool fast = config.kernel != NearKernel::Gaussian && nc == 1 && width <= 4;
+    const Scalar softening = config.kernel == NearKernel::Plummer ? config.length : 0.0;
+    const int newton = config.eps < 1e-9 ? 3 : 2;
+    const Scalar* tgt[3] = {tree.t[0].data(), tree.t[1].data(), tree.t[2].data()};
+    constexpr Index kBlock = 256;
+    for (Index start = 0; start < leaf_count; start += kBlock) {
+      interrupt.check();
+      const Index stop = std::min(leaf_count, start + kBlock);
+#pragma omp parallel for schedule(dynamic, 1)
+      for (Index i = start; i < stop; ++i) {
+        const Index id = tree.leaves[static_cast<size_t>(i)];
+        const Box3& box = tree.boxes[static_cast<size_t>(id)];
+        const Lists3& lists = tree.lists[static_cast<size_t>(id)];
+        const int extra = width == 1 ? 0 : width == 4 ? 1 : 2;
+        std::vector<Complex> coeffs(static_cast<size_t>(complex_count(p)));
+        std::vector<Complex> values(static_cast<size_t>(complex_count(p + extra)));
+        std::vector<std::vector<std::vector<Complex>>> local_d(static_cast<size_t>(nc));
+        for (int c = 0; c < nc; ++c) {
+          to_complex(loc(id, c), p, coeffs.data());
+          derived<true>(coeffs.data(), local_d[static_cast<size_t>(c)]);
+        }
+        // W list: derivative multipoles of each box, per component.
+        std::vector<std::vector<std::vector<Complex>>> far_d(lists.m2p.size() * static_cast<size_t>(nc));
+        for (size_t w = 0; w < lists.m2p.size(); ++w)
+          for (int c = 0; c < nc; ++c) {
+            to_complex(mul(lists.m2p[w], c), p, coeffs.data());
+            derived<false>(coeffs.data(), far_d[w * nc + c]);
+          }
+        const Scalar inv_h = 1 / box.h;
+        for (Index t = box.tgt_begin; t < box.tgt_end; ++t) {
+          const Scalar x = tgt[0][t], y = tgt[1][t], z = tgt[2][t];
+          Scalar* out = &result[static_cast<size_t>(t) * nc * width];
+          std::fill(out, out + nc * width, 0.0);
+          // L2P: derivative k of order d scales as h^-d.
+          regular((x - box.c[0]) * inv_h, (y - box.c[1]) * inv_h, (z - box.c[2]) * inv_h, p, values.data());
+          for (int c = 0; c < nc; ++c)
+            for (int k = 0; k < width; ++k) {
+              const int d = k == 0 ? 0 : k < 4 ? 1 : 2;
+              const Scalar scale = d == 0 ? 1 : d == 1 ? inv_h : inv_h * inv_h;
+              out[c * width + k] += scale * local_sum(local_d[static_cast<size_t>(c)][static_cast<size_t>(k)].data(), values.data(), p - d);
+            }
+          // M2P: (1/h) sum M I((x - c)/h), derivative of order d scales as h^-(d+1).
+          for (size_t w = 0; w < lists.m2p.size(); ++w) {
+            const Box3& sb = tree.boxes[static_cast<size_t>(lists.m2p[w])];
+            const Scalar ih = 1 / sb.h;
+            irregular((x - sb.c[0]) * ih, (y - sb.c[1]) * ih, (z - sb.c[2]) * ih, p + extra, values.data());
+            for (int c = 0; c < nc; ++c)
+              for (int k = 0; k < width; ++k) {
+                const int d = k == 0 ? 0 : k < 4 ? 1 : 2;
+                const Scalar scale = d == 0 ? ih : d == 1 ? ih * ih : ih * ih * ih;
+                out[c * width + k] += scale * multipole_sum(far_d[w * nc + c][static_cast<size_t>(k)].data(), values.data(), p + d);
+              }
+          }
+          // P2P: the near field with the near kernel.
+          for (size_t r = 0; r < lists.p2p_ranges.size(); r += 2) {
+            const Index b = lists.p2p_ranges[r], e = lists.p2p_ranges[r + 1];
+            if (fast && p2p_fast(width == 4, newton, softening, x, y, z, src[0] + b, src[1] + b,
+                                 src[2] + b, &q[static_cast<size_t>(b)], e - b, out))
+              continue;
+            p2p_generic(config.kernel, config.length, width, x, y, z, src[0] + b, src[1] + b,
+                        src[2] + b, &q[static_cast<size_t>(b) * nc], nc, e - b, out);
+          }
+        }
+      }
+    }
+  }
+};
+
+}  // namespace
+
+int order_for(Scalar eps) {
+  // Measured at N = 6e3..2e4 with random-sign charges (the hardest case for phi): phi's
+  // relative error is ~1.2e-3 at p = 4 (Plummer sphere) and falls by about 0.33 decades per
+  // order up to p = 14, ~0.25 beyond.
+  const Scalar digits = -std::log10(std::clamp(eps, 1e-15, 0.5));
+  const Scalar p = digits <= 6 ? 5 + 3 * std::max(0.0, digits - 3) : 14 + 3.9 * (digits - 6);
+  return std::clamp(static_cast<int>(std::ceil(p)), 3, kMaxOrder3d);
+}
+
+// Near-field pairs per target ~27 x leaf against ~189 M2L of (p+1)^4 per box.
+Index leaf_size_for(int order) { return std::clamp<Index>(24 * order, 96, 512); }
+
+Fmm3dStats fmm3d(const Scalar* sources, Index n, const Scalar* charges, int components,
+                 const Scalar* targets, Index m, const Fmm3dConfig& config, Scalar* out,
+                 Interrupt& interrupt) {
+  if (!(config.eps > 0 && config.eps < 1))
+    throw InvalidArgument("eps: expected a number in (0, 1), got " + format_real(config.eps));
+  if (config.order < 0 || config.order > kMaxOrder3d)
+    throw InvalidArgument("order: expected 0 (automatic) or 1.." + std::to_string(kMaxOrder3d) +
+                          ", got " + std::to_string(config.order));
+  if (config.leaf_size < 0) throw InvalidArgument("leaf_size: expected 0 (automatic) or a positive count");
+  if (config.derivatives < 0 || config.derivatives > 2)
+    throw InvalidArgument("derivatives: expected 0, 1 or 2");
+  if (components < 1 || components > 4)
+    throw InvalidArgument("charges: expected 1 to 4 components, got " + std::to_string(components));
+  if (config.kernel != NearKernel::Laplace && !(config.length > 0 && std::isfinite(config.length)))
+    throw InvalidArgument("length: expected a positive softening or core length, got " + format_real(config.length));
+  const bool self = targets == nullptr;
+  if (self) {
+    targets = sources;
+    m = n;
+  }
+  Fmm3dStats stats;
+  stats.order = config.order > 0 ? config.order : order_for(config.eps);
+  stats.leaf_size = config.leaf_size > 0 ? config.leaf_size : leaf_size_for(stats.order);
+  const int width = output_width(config.derivatives);
+  if (m == 0) return stats;
+  if (n == 0) {
+    std::fill(out, out + m * components * width, 0.0);
+    return stats;
+  }
+
+  Stopwatch watch;
+  std::vector<Scalar> sxyz[3], txyz[3];
+  for (int d = 0; d < 3; ++d) {
+    sxyz[d].resize(static_cast<size_t>(n));
+    txyz[d].resize(static_cast<size_t>(m));
+    for (Index i = 0; i < n; ++i) sxyz[d][static_cast<size_t>(i)] = sources[3 * i + d];
+    for (Index i = 0; i < m; ++i) txyz[d][static_cast<size_t>(i)] = targets[3 * i + d];
+  }
+  const Scalar* sp[3] = {sxyz[0].data(), sxyz[1].data(), sxyz[2].data()};
+  const Scalar* tp[3] = {txyz[0].data(), txyz[1].data(), txyz[2].data()};
+  const int p = stats.order;
+  const Octree tree(sp, n, tp, m, stats.leaf_size, config.min_width,
+                    static_cast<Index>(coefficient_count(p)) / 2, interrupt);
+  std::vector<Scalar> q(static_cast<size_t>(n) * components);
+  for (Index i = 0; i < n; ++i)
+    for (int c = 0; c < components; ++c)
+      q[static_cast<size_t>(i * components + c)] = charges[tree.src_perm[static_cast<size_t>(i)] * components + c];
+  stats.box_count = static_cast<Index>(tree.boxes.size());
+  stats.depth = static_cast<int>(tree.levels.size()) - 1;
+  std::vector<char> used(kOffsets, 0);
+  for (const Lists3& l : tree.lists)
+    for (const fmm::M2lEntry& e : l.m2l) used[static_cast<size_t>(e.offset)] = 1;
+  const M2lOperators ops(p, used);
+  stats.seconds_tree = watch.seconds();
+
+  Engine engine(tree, config, p, components, q);
+  watch.restart();
+  engine.upward(interrupt);
+  stats.seconds_upward = watch.seconds();
+  watch.restart();
+  engine.downward(ops, stats, interrupt);
+  stats.seconds_downward = watch.seconds() - stats.seconds_m2l;
+  watch.restart();
+  std::vector<Scalar> result(static_cast<size_t>(m) * components * width);
+  engine.leaves(result, interrupt);
+  stats.seconds_leaves = watch.seconds();
+
+  const size_t row = static_cast<size_t>(components * width);
+  for (Index t = 0; t < m; ++t)
+    std::copy(&result[static_cast<size_t>(t) * row], &result[static_cast<size_t>(t) * row] + row,
+              out + static_cast<size_t>(tree.tgt_perm[static_cast<size_t>(t)]) * row);
+  return stats;
+}
+
+void direct3d(const Scalar* sources, Index n, const Scalar* charges, int components,
+              const Scalar* targets, Index m, const Fmm3dConfig& config, Scalar* out,
+              Interrupt& interrupt) {
+  if (targets == nullptr) {
+    targets = sources;
+    m = n;
+  }
+  const int width = output_width(config.derivatives);
+  std::vector<Scalar> xyz[3];
+  for (int d = 0; d < 3; ++d) {
+    xyz[d].resize(static_cast<size_t>(n));
+    for (Index i = 0; i < n; ++i) xyz[d][static_cast<size_t>(i)] = sources[3 * i + d];
+  }
+  const Index block = std::max<Index>(16, (Index{1} << 22) / std::max<Index>(n, 1));
+  for (Index start = 0; start < m; start += block) {
+    interrupt.check();
+    const Index stop = std::min(m, start + block);
+#pragma omp parallel for schedule(static)
+    for (Index t = start; t < stop; ++t) {
+      Scalar* o = out + static_cast<size_t>(t) * components * width;
+      std::fill(o, o + components * width, 0.0);
+      p2p_generic(config.kernel, config.length, width, targets[3 * t], targets[3 * t + 1],
+                  targets[3 * t + 2], xyz[0].data(), xyz[1].data(), xyz[2].data(), charges,
+                  components, n, o);
+    }
+  }
+}
+
+}  // namespace kinema::fmm3

@@ -1,0 +1,59 @@
+// The 3D Laplace (gravitational) potential of point charges and its derivatives,
+//   phi(x) = sum_j q_j / |x - y_j|,   grad phi(x) = -sum_j q_j (x - y_j) / |x - y_j|^3,
+// by the adaptive fast multipole method (Greengard & Rokhlin 1997; Cheng, Greengard & Rokhlin
+// 1999) with solid-harmonic expansions and precomputed dense M2L operators applied as matrix
+// products, in O(N + M) work, or by the direct O(N M) sum. Pairs at distance zero (the self
+// term when the targets are the sources, and coincident points) are left out of both.
+// The near field (adjacent leaves) can use a softened or regularised kernel instead of 1/r
+// (Plummer softening for N-body, a Gaussian blob for vortex particles): every pair in
+// non-adjacent boxes is at least `Fmm3dConfig::min_width` apart and sees 1/r.
+#pragma once
+
+#include "core/interrupt.h"
+#include "core/types.h"
+#include "fmm/p2p3d.h"
+
+namespace kinema::fmm3 {
+
+struct Fmm3dConfig {
+  Scalar eps = 1e-10;   // relative 2-norm error asked for phi
+  int derivatives = 0;  // 0: phi; 1: phi and gradient; 2: also the Hessian
+  int order = 0;        // expansion order p; 0: chosen from eps
+  Index leaf_size = 0;  // most sources or targets in a leaf; 0: chosen from the order
+  NearKernel kernel = NearKernel::Laplace;  // kernel of the near field
+  Scalar length = 0;    // softening / core length of the near-field kernel [m]
+  Scalar min_width = 0; // leaves are not split below this width [m]
+};
+
+struct Fmm3dStats {
+  int order = 0;
+  Index leaf_size = 0;
+  Index box_count = 0;
+  int depth = 0;
+  double seconds_tree = 0, seconds_upward = 0, seconds_m2l = 0, seconds_downward = 0,
+         seconds_leaves = 0;
+};
+
+constexpr int kMaxOrder3d = 40;
+
+// Expansion order that meets eps (measured over uniform and clustered distributions).
+int order_for(Scalar eps);
+// Leaf size that balances the near-field sums against the translations for order p.
+Index leaf_size_for(int order);
+
+// Output width per target and charge component: 1 (phi), 4 (phi, grad) or 10 (phi, grad,
+// hess xx xy xz yy yz zz).
+inline int output_width(int derivatives) { return derivatives == 0 ? 1 : derivatives == 1 ? 4 : 10; }
+
+// sources: n x 3 row-major; charges: n x components row-major; targets: m x 3, or nullptr for
+// the sources themselves (m must then equal n). out: m x components x output_width.
+Fmm3dStats fmm3d(const Scalar* sources, Index n, const Scalar* charges, int components,
+                 const Scalar* targets, Index m, const Fmm3dConfig& config, Scalar* out,
+                 Interrupt& interrupt);
+
+// The same sums directly (the exact reference), parallel over targets.
+void direct3d(const Scalar* sources, Index n, const Scalar* charges, int components,
+              const Scalar* targets, Index m, const Fmm3dConfig& config, Scalar* out,
+              Interrupt& interrupt);
+
+}  // namespace kinema::fmm3

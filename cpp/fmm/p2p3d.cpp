@@ -1,0 +1,108 @@
+// The vectorised Laplace/Plummer P2P: an AVX2 version (behind a run-time CPU check, as
+// core/simd.h describes) and a portable one with an exact square root.
+#include "fmm/p2p3d.h"
+
+#include "core/simd.h"
+
+#if KINEMA_HAVE_AVX2_CLONES
+#include <immintrin.h>
+#endif
+
+namespace kinema::fmm3 {
+
+namespace {
+
+#if KINEMA_HAVE_AVX2_CLONES
+#define KINEMA_AVX2_FMA __attribute__((target("avx2,fma")))
+
+struct Sums {
+  __m256d phi, gx, gy, gz, bad;
+};
+
+// One vector of four sources: the inverse distance by a float estimate and Newton steps
+// y <- y (3/2 - s^2 y^2 / 2); pairs at distance 0 masked out, r^2 + a^2 outside float's
+// normal range flagged.
+template <bool Gradient>
+KINEMA_AVX2_FMA inline void p2p_vector(__m256d dx, __m256d dy, __m256d dz, __m256d w, __m256d a2,
+                                       int newton_steps, Sums& acc) {
+  const __m256d zero = _mm256_setzero_pd();
+  const __m256d r2 = _mm256_fmadd_pd(dx, dx, _mm256_fmadd_pd(dy, dy, _mm256_mul_pd(dz, dz)));
+  const __m256d live = _mm256_cmp_pd(r2, zero, _CMP_GT_OQ);
+  const __m256d s2 = _mm256_add_pd(r2, a2);
+  const __m256d out_of_range = _mm256_or_pd(_mm256_cmp_pd(s2, _mm256_set1_pd(1e-36), _CMP_LT_OQ),
+                                            _mm256_cmp_pd(s2, _mm256_set1_pd(1e36), _CMP_GT_OQ));
+  acc.bad = _mm256_or_pd(acc.bad, _mm256_and_pd(live, out_of_range));
+  const __m256d safe = _mm256_blendv_pd(_mm256_set1_pd(1.0), s2, live);
+  __m256d inv = _mm256_cvtps_pd(_mm_rsqrt_ps(_mm256_cvtpd_ps(safe)));
+  const __m256d hs = _mm256_mul_pd(_mm256_set1_pd(0.5), safe);
+  for (int k = 0; k < newton_steps; ++k)
+    inv = _mm256_mul_pd(inv, _mm256_fnmadd_pd(hs, _mm256_mul_pd(inv, inv), _mm256_set1_pd(1.5)));
+  const __m256d wi = _mm256_and_pd(live, _mm256_mul_pd(w, inv));
+  acc.phi = _mm256_add_pd(acc.phi, wi);
+  if constexpr (Gradient) {
+    const __m256d wi3 = _mm256_mul_pd(wi, _mm256_mul_pd(inv, inv));
+    acc.gx = _mm256_fnmadd_pd(wi3, dx, acc.gx);
+    acc.gy = _mm256_fnmadd_pd(wi3, dy, acc.gy);
+    acc.gz = _mm256_fnmadd_pd(wi3, dz, acc.gz);
+  }
+}
+
+KINEMA_AVX2_FMA inline Scalar horizontal_sum(__m256d v) {
+  alignas(32) Scalar t[4];
+  _mm256_store_pd(t, v);
+  return (t[0] + t[1]) + (t[2] + t[3]);
+}
+
+template <bool Gradient>
+KINEMA_AVX2_FMA bool p2p_avx2(int newton_steps, Scalar a, Scalar x, Scalar y, Scalar z,
+                              const Scalar* sx, const Scalar* sy, const Scalar* sz,
+                              const Scalar* q, Index n, Scalar* out) {
+  const __m256d vx = _mm256_set1_pd(x), vy = _mm256_set1_pd(y), vz = _mm256_set1_pd(z);
+  const __m256d a2 = _mm256_set1_pd(a * a);
+  Sums acc{_mm256_setzero_pd(), _mm256_setzero_pd(), _mm256_setzero_pd(), _mm256_setzero_pd(),
+           _mm256_setzero_pd()};
+  Index j = 0;
+  for (; j + 4 <= n; j += 4) {
+    p2p_vector<Gradient>(_mm256_sub_pd(vx, _mm256_loadu_pd(sx + j)),
+                         _mm256_sub_pd(vy, _mm256_loadu_pd(sy + j)),
+                         _mm256_sub_pd(vz, _mm256_loadu_pd(sz + j)), _mm256_loadu_pd(q + j), a2,
+                         newton_steps, acc);
+  }
+  if (j < n) {
+    // The tail padded with copies of the target (distance 0: masked out) and zero charges.
+    alignas(32) Scalar bx[4] = {x, x, x, x}, by[4] = {y, y, y, y}, bz[4] = {z, z, z, z},
+                       bq[4] = {0, 0, 0, 0};
+    for (Index k = 0; j + k < n; ++k) bx[k] = sx[j + k], by[k] = sy[j + k], bz[k] = sz[j + k], bq[k] = q[j + k];
+    p2p_vector<Gradient>(_mm256_sub_pd(vx, _mm256_load_pd(bx)), _mm256_sub_pd(vy, _mm256_load_pd(by)),
+                         _mm256_sub_pd(vz, _mm256_load_pd(bz)), _mm256_load_pd(bq), a2,
+                         newton_steps, acc);
+  }
+  if (_mm256_movemask_pd(acc.bad) != 0) return false;
+  out[0] += horizontal_sum(acc.phi);
+  if constexpr (Gradient) {
+    out[1] += horizontal_sum(acc.gx);
+    out[2] += horizontal_sum(acc.gy);
+    out[3] += horizontal_sum(acc.gz);
+  }
+  return true;
+}
+#endif
+
+}  // namespace
+
+bool p2p_fast(bool gradient, int newton_steps, Scalar a, Scalar x, Scalar y, Scalar z,
+              const Scalar* sx, const Scalar* sy, const Scalar* sz, const Scalar* q, Index n,
+              Scalar* out) {
+#if KINEMA_HAVE_AVX2_CLONES
+  static const bool avx2 = use_avx2();
+  if (avx2) {
+    return gradient ? p2p_avx2<true>(newton_steps, a, x, y, z, sx, sy, sz, q, n, out)
+                    : p2p_avx2<false>(newton_steps, a, x, y, z, sx, sy, sz, q, n, out);
+  }
+#endif
+  p2p_generic(a > 0 ? NearKernel::Plummer : NearKernel::Laplace, a, gradient ? 4 : 1, x, y, z, sx,
+              sy, sz, q, 1, n, out);
+  return true;
+}
+
+}  // namespace kinema::fmm3

@@ -1,0 +1,92 @@
+// Direct (P2P) sums of the 3D kernels, near field of the FMM and the exact reference:
+//   phi(x) = sum_j q_j f(|x - y_j|),  grad phi = sum_j q_j f'(r)/r (x - y_j),
+//   hess phi = sum_j q_j [f'/r I + (f'' - f'/r)/r^2 (x - y_j)(x - y_j)^T],
+// for f = 1/r (Laplace), 1/sqrt(r^2 + a^2) (Plummer softening) and erf(r/a)/r (the potential
+// of a Gaussian blob exp(-r^2/a^2)/(pi^{3/2} a^3), Beale & Majda 1985). Pairs at distance 0
+// are left out. The Laplace potential and gradient also have a vectorised path.
+#pragma once
+
+#include <cmath>
+
+#include "core/types.h"
+
+namespace kinema::fmm3 {
+
+enum class NearKernel { Laplace = 0, Plummer = 1, Gaussian = 2 };
+
+// f, f'/r and (f'' - f'/r)/r^2 of the kernel at r^2 > 0, for a length a.
+struct Radial {
+  Scalar f, g, h;
+};
+
+inline Radial radial(NearKernel kernel, Scalar r2, Scalar a) {
+  if (kernel == NearKernel::Laplace) {
+    const Scalar inv = 1 / std::sqrt(r2), inv2 = inv * inv;
+    return {inv, -inv * inv2, 3 * inv * inv2 * inv2};
+  }
+  if (kernel == NearKernel::Plummer) {
+    const Scalar s2 = r2 + a * a, inv = 1 / std::sqrt(s2), inv2 = inv * inv;
+    return {inv, -inv * inv2, 3 * inv * inv2 * inv2};
+  }
+  // Gaussian blob: erf(rho)/r, rho = r/a; its series below rho = 0.02 (next term < 2e-16).
+  constexpr Scalar two_over_sqrt_pi = 1.1283791670955126;
+  const Scalar inv_a = 1 / a, a2 = 1 / (inv_a * inv_a);
+  const Scalar rho2 = r2 * inv_a * inv_a;
+  const Scalar c = two_over_sqrt_pi * inv_a;
+  if (rho2 < 4e-4) {
+    const Scalar f = c * (1 - rho2 / 3 + rho2 * rho2 / 10 - rho2 * rho2 * rho2 / 42);
+    const Scalar g = c / a2 * (-2.0 / 3 + 0.4 * rho2 - rho2 * rho2 / 7);
+    const Scalar h = c / (a2 * a2) * (0.8 - rho2 * 4.0 / 7);
+    return {f, g, h};
+  }
+  const Scalar r = std::sqrt(r2), inv_r = 1 / r, inv_r2 = inv_r * inv_r;
+  const Scalar e = std::erf(r * inv_a), gauss = c * std::exp(-rho2);
+  const Scalar f = e * inv_r;
+  const Scalar d1 = gauss * inv_r - e * inv_r2;                        // f'
+  const Scalar d2 = -2 * gauss / a2 - 2 * gauss * inv_r2 + 2 * e * inv_r2 * inv_r;  // f''
+  const Scalar g = d1 * inv_r;
+  return {f, g, (d2 - g) * inv_r2};
+}
+
+// Adds to out[c * width + ...] (phi, grad[3], hess[6] = xx xy xz yy yz zz; the first `width`
+// of them, width 1, 4 or 10) the sum over sources [0, n) with charge components
+// q[j * components + c], c < components (the kernel evaluated once per pair).
+inline void p2p_generic(NearKernel kernel, Scalar a, int width, Scalar x, Scalar y, Scalar z,
+                        const Scalar* sx, const Scalar* sy, const Scalar* sz, const Scalar* q,
+                        int components, Index n, Scalar* out) {
+  constexpr int kMaxComponents = 4;
+  Scalar acc[kMaxComponents][10] = {};
+  for (Index j = 0; j < n; ++j) {
+    const Scalar dx = x - sx[j], dy = y - sy[j], dz = z - sz[j];
+    const Scalar r2 = dx * dx + dy * dy + dz * dz;
+    if (r2 == 0) continue;
+    const Radial k = radial(kernel, r2, a);
+    const Scalar* w = q + j * components;
+    for (int c = 0; c < components; ++c) {
+      Scalar* o = acc[c];
+      o[0] += w[c] * k.f;
+      if (width > 1) {
+        const Scalar wg = w[c] * k.g;
+        o[1] += wg * dx, o[2] += wg * dy, o[3] += wg * dz;
+      }
+      if (width > 4) {
+        const Scalar wg = w[c] * k.g, wh = w[c] * k.h;
+        o[4] += wg + wh * dx * dx, o[5] += wh * dx * dy, o[6] += wh * dx * dz;
+        o[7] += wg + wh * dy * dy, o[8] += wh * dy * dz, o[9] += wg + wh * dz * dz;
+      }
+    }
+  }
+  for (int c = 0; c < components; ++c)
+    for (int i = 0; i < width; ++i) out[c * width + i] += acc[c][i];
+}
+
+// The Laplace (softening a = 0) or Plummer potential and gradient of sources [0, n) with unit
+// stride charges, AVX2 where the CPU has it (a float reciprocal square root refined by Newton
+// steps: two give a relative error below 1e-13, three reach rounding). Adds to out[0..3].
+// Returns false, leaving out untouched, when a pair's r^2 is outside the range where the float
+// estimate is valid; the caller then uses p2p_generic.
+bool p2p_fast(bool gradient, int newton_steps, Scalar a, Scalar x, Scalar y, Scalar z,
+              const Scalar* sx, const Scalar* sy, const Scalar* sz, const Scalar* q, Index n,
+              Scalar* out);
+
+}  // namespace kinema::fmm3

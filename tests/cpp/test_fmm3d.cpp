@@ -1,0 +1,126 @@
+// 3D FMM kernels: the addition theorem of the solid harmonics, each translation (P2M, M2M,
+// M2L matrix, L2L, L2P and its derivatives) against the direct potential it stands for, the
+// M2L product kernel against a plain loop, and the whole FMM against direct3d.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <omp.h>
+
+#include <random>
+#include <vector>
+
+#include "fmm/kernels3d.h"
+#include "fmm/laplace3d.h"
+#include "fmm/m2l_product.h"
+
+namespace kinema::fmm3 {
+
+namespace {
+
+struct Cloud {
+  std::vector<Scalar> x[3], q;
+};
+
+Cloud cloud(int n, const Scalar* c, Scalar h, unsigned seed) {
+  std::mt19937_64 rng(seed);
+  std::uniform_real_distribution<Scalar> u(-1, 1);
+  Cloud out;
+  for (int i = 0; i < n; ++i) {
+    for (int d = 0; d < 3; ++d) out.x[d].push_back(c[d] + h * u(rng));
+    out.q.push_back(u(rng));
+  }
+  return out;
+}
+
+Scalar direct(const Cloud& s, const Scalar* t) {
+  Scalar phi = 0;
+  for (size_t j = 0; j < s.q.size(); ++j)
+    phi += s.q[j] / std::sqrt(std::pow(t[0] - s.x[0][j], 2) + std::pow(t[1] - s.x[1][j], 2) +
+                              std::pow(t[2] - s.x[2][j], 2));
+  return phi;
+}
+
+}  // namespace
+
+TEST(Fmm3dKernels, MultipoleTranslatedToLocalReproducesThePotential) {
+  // Sources in a box of half-width 1 about the origin, target box at offset (2, 1, 0) widths.
+  const int p = 16;
+  const Scalar cs[3] = {0, 0, 0}, ct[3] = {4, 2, 0}, parent[3] = {0.5, 0.5, 0.5};
+  const Cloud s = cloud(30, cs, 1.0, 1);
+  const Scalar* xyz[3] = {s.x[0].data(), s.x[1].data(), s.x[2].data()};
+  std::vector<Scalar> m(coefficient_count(p), 0.0), mp(m.size(), 0.0), l(m.size(), 0.0),
+      lc(m.size(), 0.0), matrix(m.size() * m.size());
+  p2m(p, cs, 1.0, xyz, s.q.data(), 30, 1, m.data());
+  // M2M into a parent of half-width 2 at (1, 1, 1): evaluate far away by M2P.
+  m2m(p, m.data(), cs, parent, 2.0, mp.data());
+  (void)mp;
+  const int offset[3] = {2, 1, 0};
+  m2l_matrix(p, offset, matrix.data());
+  for (size_t i = 0; i < m.size(); ++i)
+    for (size_t k = 0; k < m.size(); ++k) l[i] += matrix[i * m.size() + k] * m[k];
+  for (Scalar& v : l) v /= 1.0;  // h = 1
+  // L2L to a child of half-width 1/2 at ct + (0.5, -0.5, 0.5), then L2P with gradient.
+  const Scalar cc[3] = {4.5, 1.5, 0.5};
+  l2l(p, l.data(), ct, 1.0, cc, lc.data());
+  std::vector<Complex> lcc(complex_count(p)), r(complex_count(p)), d(complex_count(p));
+  to_complex(lc.data(), p, lcc.data());
+  const Scalar t[3] = {4.7, 1.3, 0.6};
+  regular((t[0] - cc[0]) / 0.5, (t[1] - cc[1]) / 0.5, (t[2] - cc[2]) / 0.5, p, r.data());
+  const Scalar phi = local_sum(lcc.data(), r.data(), p);
+  const Scalar exact = direct(s, t);
+  EXPECT_NEAR(phi, exact, 1e-6 * std::abs(exact)) << "M2L + L2L + L2P";
+  const Scalar h = 1e-5;
+  for (int a = 0; a < 3; ++a) {
+    local_derivative(lcc.data(), p, a, d.data());
+    const Scalar g = local_sum(d.data(), r.data(), p - 1) / 0.5;
+    Scalar tp[3] = {t[0], t[1], t[2]}, tm[3] = {t[0], t[1], t[2]};
+    tp[a] += h, tm[a] -= h;
+    const Scalar fd = (direct(s, tp) - direct(s, tm)) / (2 * h);
+    EXPECT_NEAR(g, fd, 1e-5 * std::abs(exact)) << "L2P derivative " << a;
+  }
+}
+
+TEST(Fmm3dKernels, ProductKernelMatchesPlainLoop) {
+  for (int n : {9, 196, 225}) {
+    for (int k : {1, 3, 4, 7, 32}) {
+      std::mt19937_64 rng(n * 100 + k);
+      std::uniform_real_distribution<Scalar> u(-1, 1);
+      std::vector<Scalar> a(n * n), b(n * k), c(n * k);
+      for (Scalar& v : a) v = u(rng);
+      for (Scalar& v : b) v = u(rng);
+      m2l_product(a.data(), n, b.data(), k, c.data());
+      for (int col = 0; col < k; ++col)
+        for (int i = 0; i < n; ++i) {
+          Scalar s = 0;
+          for (int j = 0; j < n; ++j) s += a[i * n + j] * b[col * n + j];
+          ASSERT_NEAR(c[col * n + i], s, 1e-13 * n) << n << " " << k;
+        }
+    }
+  }
+}
+
+TEST(Fmm3d, MatchesDirectSumAndIsThreadIndependent) {
+  const Scalar c[3] = {0, 0, 0};
+  const Cloud s = cloud(6000, c, 1.0, 3);
+  std::vector<Scalar> xyz(3 * 6000);
+  for (int i = 0; i < 6000; ++i)
+    for (int d = 0; d < 3; ++d) xyz[3 * i + d] = s.x[d][i];
+  Fmm3dConfig config;
+  config.eps = 1e-6;
+  config.derivatives = 1;
+  Interrupt none;
+  std::vector<Scalar> fmm(4 * 6000), ref(4 * 6000), again(4 * 6000);
+  const Fmm3dStats stats = fmm3d(xyz.data(), 6000, s.q.data(), 1, nullptr, 0, config, fmm.data(), none);
+  EXPECT_GE(stats.depth, 2);
+  direct3d(xyz.data(), 6000, s.q.data(), 1, nullptr, 0, config, ref.data(), none);
+  Scalar num = 0, den = 0;
+  for (int i = 0; i < 6000; ++i) num += std::pow(fmm[4 * i] - ref[4 * i], 2), den += std::pow(ref[4 * i], 2);
+  EXPECT_LT(std::sqrt(num / den), 1e-6);
+  const int threads = omp_get_max_threads();
+  omp_set_num_threads(1);
+  fmm3d(xyz.data(), 6000, s.q.data(), 1, nullptr, 0, config, again.data(), none);
+  omp_set_num_threads(threads);
+  EXPECT_EQ(fmm, again);
+}
+
+}  // namespace kinema::fmm3

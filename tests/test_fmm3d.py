@@ -1,0 +1,168 @@
+"""km.fmm.laplace3d: the 3D FMM against the exact sum for eps from 1e-3 to 1e-12 on uniform and
+clustered points (Plummer sphere, thin shell, torus surface), gradients against central finite
+differences, separate targets, degenerate input, determinism across thread counts, Ctrl-C, bad
+input, and (slow) the O(N) scaling fitted over 1e4..1e6."""
+
+import time
+
+import numpy as np
+import pytest
+
+import kinema as km
+
+
+def distribution(name, n, seed=0):
+    rng = np.random.default_rng(seed)
+    if name == "uniform":
+        return rng.random((n, 3))
+    if name == "plummer":
+        x, _, _ = km.nbody.plummer(n, seed=seed)
+        return x
+    if name == "shell":  # a sphere of radius 1 and thickness 1e-3
+        d = rng.standard_normal((n, 3))
+        d /= np.linalg.norm(d, axis=1)[:, None]
+        return d * (1 + 1e-3 * rng.random(n))[:, None]
+    if name == "torus":  # points on a surface
+        u, v = rng.uniform(0, 2 * np.pi, (2, n))
+        return np.c_[(1 + 0.3 * np.cos(v)) * np.cos(u), (1 + 0.3 * np.cos(v)) * np.sin(u), 0.3 * np.sin(v)]
+    raise ValueError(name)
+
+
+def rel(a, b):
+    return np.linalg.norm(a - b) / np.linalg.norm(b)
+
+
+# Sizes above the direct-sum crossover (so the FMM runs) with trees 3-9 levels deep.
+N = 6000
+
+
+@pytest.mark.parametrize("eps", [1e-3, 1e-6, 1e-9, pytest.param(1e-12, marks=pytest.mark.slow)])
+@pytest.mark.parametrize("dist", ["uniform", "plummer", "shell", "torus"])
+def test_self_interaction_matches_direct(dist, eps):
+    x = distribution(dist, N)
+    q = np.random.default_rng(1).uniform(-1, 1, N)  # mixed signs: cancellation makes phi small
+    phi, grad = km.fmm.laplace3d(x, q, eps=eps, gradient=True)
+    info = km.fmm.last_info()
+    assert not info["direct"] and info["depth"] >= 2, info
+    phi_ref, grad_ref = km.fmm.direct3d(x, q, gradient=True)
+    e_phi, e_grad = rel(phi, phi_ref), rel(grad, grad_ref)
+    assert e_phi < eps, f"{dist}: phi relative error {e_phi:.3e} above eps {eps:g} (order {info['order']})"
+    # The contract bounds phi; the gradient (one derivative more) is documented within 20 eps.
+    assert e_grad < 20 * eps, f"{dist}: gradient relative error {e_grad:.3e} above 20 eps"
+
+
+@pytest.mark.parametrize("eps", [1e-4, 1e-8])
+def test_separate_targets_match_direct(eps):
+    x = distribution("plummer", 5000, seed=2)
+    y = distribution("uniform", 3000, seed=3) * 4 - 2
+    q = np.random.default_rng(4).uniform(0, 1, len(x))
+    phi, grad = km.fmm.laplace3d(x, q, y, eps=eps, gradient=True)
+    phi_ref, grad_ref = km.fmm.direct3d(x, q, y, gradient=True)
+    assert rel(phi, phi_ref) < eps
+    assert rel(grad, grad_ref) < 20 * eps
+
+
+def test_direct_sum_is_exact_and_leaves_out_zero_distance_pairs():
+    x = np.array([[0.0, 0, 0], [1.0, 0, 0], [0.0, 2, 0], [1.0, 0, 0]])  # a duplicate point
+    q = np.array([1.0, 2.0, 3.0, 4.0])
+    phi, grad = km.fmm.direct3d(x, q, gradient=True)
+    # by hand: phi_0 = 2/1 + 3/2 + 4/1; point 1 and 3 do not see each other
+    assert phi[0] == pytest.approx(7.5, rel=1e-15)
+    assert phi[1] == pytest.approx(1 + 3 / np.sqrt(5), rel=1e-15)
+    assert grad[0] == pytest.approx([6.0, 0.75, 0.0], rel=1e-15)  # -q (x - y)/r^3 summed
+
+
+def test_gradient_against_central_differences():
+    x = distribution("torus", 8000, seed=5)  # the surface stays >= 0.4 from the targets
+    q = np.random.default_rng(6).uniform(0.5, 1, len(x))
+    rng = np.random.default_rng(7)
+    y = np.c_[rng.uniform(-0.3, 0.3, (20, 2)) / np.sqrt(2), rng.uniform(-0.5, 0.5, 20)]
+    _, grad = km.fmm.laplace3d(x, q, y, eps=1e-10, gradient=True)
+    # central differences: error ~ h^2 |phi"'| / 6 ~ h^2 / r^2 |grad| < 1e-7 |grad| for r >= 0.4
+    h = 1e-4
+    for k in range(3):
+        e = np.zeros(3)
+        e[k] = h
+        fd = (km.fmm.laplace3d(x, q, y + e, eps=1e-10) - km.fmm.laplace3d(x, q, y - e, eps=1e-10)) / (2 * h)
+        err = np.abs(fd - grad[:, k]).max() / np.abs(grad).max()
+        assert err < 1e-6, f"d/dx{k}: finite-difference mismatch {err:.2e}"
+
+
+def test_translation_and_scaling_invariance():
+    x = distribution("shell", 6000)
+    q = np.random.default_rng(8).standard_normal(len(x))
+    phi = km.fmm.laplace3d(x, q, eps=1e-8)
+    # phi scales as 1/L; the shift is small enough that rounding the shifted coordinates moves
+    # the closest pairs (~1e-7 apart after scaling) by < 1e-11 relative
+    moved = km.fmm.laplace3d(x * 1e-3 + [5e-3, -7e-3, 1e-3], q, eps=1e-8) * 1e-3
+    assert rel(moved, phi) < 2e-8  # both within eps of the same exact sum
+
+
+def test_deterministic_for_any_thread_count():
+    x = distribution("plummer", 20000)
+    q = np.random.default_rng(9).uniform(-1, 1, len(x))
+    before = km.get_num_threads()
+    try:
+        km.set_num_threads(1)
+        a = km.fmm.laplace3d(x, q, eps=1e-6, gradient=True)
+        km.set_num_threads(2)
+        b = km.fmm.laplace3d(x, q, eps=1e-6, gradient=True)
+        c = km.fmm.laplace3d(x, q, eps=1e-6, gradient=True)
+    finally:
+        km.set_num_threads(before)
+    for u, v in ((a, b), (b, c)):
+        assert np.array_equal(u[0], v[0]) and np.array_equal(u[1], v[1])
+
+
+def test_degenerate_inputs():
+    assert km.fmm.laplace3d(np.zeros((0, 3)), np.zeros(0)).shape == (0,)
+    phi = km.fmm.laplace3d(np.zeros((0, 3)), np.zeros(0), np.ones((4, 3)))
+    assert np.array_equal(phi, np.zeros(4))
+    # many coincident points (cannot be split by the tree) and a far one
+    x = np.r_[np.zeros((3000, 3)), [[1.0, 1.0, 1.0]]]
+    q = np.ones(len(x))
+    phi = km.fmm.laplace3d(x, q, eps=1e-8, order=8)
+    assert phi[0] == pytest.approx(1 / np.sqrt(3), rel=1e-12)
+    assert phi[-1] == pytest.approx(3000 / np.sqrt(3), rel=1e-8)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(sources=np.zeros((4, 2)), charges=np.ones(4)), "sources"),
+    (dict(sources=np.zeros((4, 3)), charges=np.ones(3)), "charges"),
+    (dict(sources=np.zeros((4, 3)), charges=np.ones(4), targets=np.zeros(3)), "targets"),
+    (dict(sources=np.full((4, 3), np.nan), charges=np.ones(4)), "sources"),
+    (dict(sources=np.zeros((4, 3)), charges=[1, 2, np.inf, 4]), "charges"),
+    (dict(sources=np.zeros((4, 3)), charges=np.ones(4), eps=0), "eps"),
+    (dict(sources=np.zeros((4, 3)), charges=np.ones(4), eps="x"), "eps"),
+    (dict(sources=np.zeros((4, 3)), charges=np.ones(4), order=41), "order"),
+    (dict(sources=np.zeros((4, 3)), charges=np.ones(4), leaf_size=0), "leaf_size"),
+    (dict(sources=np.zeros((4, 3), complex), charges=np.ones(4)), "sources"),
+])
+def test_bad_input_raises_value_error(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        km.fmm.laplace3d(**kwargs)
+
+
+def test_ctrl_c_stops_a_long_call(ctrl_c_delay):
+    x = np.random.default_rng(0).random((1_000_000, 3))
+    q = np.ones(len(x))
+    delay = ctrl_c_delay(lambda: km.fmm.laplace3d(x, q, eps=1e-9), after=0.5)
+    assert delay < 2.0, f"stopped {delay:.2f} s after Ctrl-C"
+
+
+@pytest.mark.slow
+def test_linear_scaling():
+    """Wall time over N = 1e4..1e6 (uniform, eps 1e-6) fitted as N^k: k within 0.2 of 1."""
+    ns = [10_000, 40_000, 160_000, 640_000, 1_000_000]
+    times = []
+    for n in ns:
+        x = np.random.default_rng(n).random((n, 3))
+        q = np.ones(n)
+        best = np.inf
+        for _ in range(2):
+            t = time.perf_counter()
+            km.fmm.laplace3d(x, q, eps=1e-6, leaf_size=None if n > 5000 else 64)
+            best = min(best, time.perf_counter() - t)
+        times.append(best)
+    k = np.polyfit(np.log(ns), np.log(times), 1)[0]
+    assert abs(k - 1) < 0.2, f"fitted exponent {k:.2f} (times {times})"

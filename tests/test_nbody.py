@@ -1,0 +1,167 @@
+"""km.nbody: a Kepler orbit's period and the leapfrog's bounded energy error and second order,
+a Plummer sphere staying in virial equilibrium, momentum conservation to the FMM's eps,
+softened forces against the exact softened sum, exact resume from state(), bad input and
+blow-ups."""
+
+import numpy as np
+import pytest
+
+import kinema as km
+
+
+def kepler(e=0.5, a=1.0, G=1.0, m=(1.0, 1e-3)):
+    """Two bodies at pericentre of an orbit of eccentricity e, semi-major axis a."""
+    M = m[0] + m[1]
+    rp = a * (1 - e)
+    vp = np.sqrt(G * M * (1 + e) / rp)
+    x = np.array([[-m[1] / M * rp, 0, 0], [m[0] / M * rp, 0, 0]])
+    v = np.array([[0, -m[1] / M * vp, 0], [0, m[0] / M * vp, 0]])
+    return x, v, np.array(m)
+
+
+def test_kepler_period_and_bounded_energy_error():
+    G, a = 1.0, 1.0
+    x, v, m = kepler(e=0.5, a=a, G=G)
+    period = 2 * np.pi * np.sqrt(a**3 / (G * m.sum()))
+    s = km.nbody.System(x, v, m, G=G)
+    e0 = s.energy()
+    dt = period / 2000
+    energies, seps = [], []
+    for _ in range(3):  # three orbits
+        s.advance(period, dt, callback=lambda sy: (energies.append(sy.energy()),
+                                                   seps.append(np.linalg.norm(sy.x[1] - sy.x[0]))))
+    # back at pericentre after each period: the separation returns to a (1 - e)
+    r = np.linalg.norm(s.x[1] - s.x[0])
+    assert r == pytest.approx(a * 0.5, rel=2e-4), f"separation after 3 periods {r}"
+    drift = np.abs(np.array(energies) / e0 - 1)
+    # leapfrog: the error oscillates with the orbit and does not grow from orbit to orbit
+    n = len(drift) // 3
+    assert drift.max() < 1e-3
+    assert drift[2 * n:].max() < 1.2 * drift[:n].max(), "energy error grows"
+
+
+def test_leapfrog_is_second_order():
+    x, v, m = kepler(e=0.3)
+    errors = []
+    ref = km.nbody.System(x, v, m)
+    ref.advance(1.0, 1e-4)
+    for dt in (0.02, 0.01, 0.005):
+        s = km.nbody.System(x, v, m)
+        s.advance(1.0, dt)
+        errors.append(np.abs(s.x - ref.x).max())
+    slope = np.polyfit(np.log([0.02, 0.01, 0.005]), np.log(errors), 1)[0]
+    assert abs(slope - 2) < 0.2, f"convergence order {slope:.2f}"
+
+
+def test_plummer_sphere_stays_in_virial_equilibrium():
+    x, v, m = km.nbody.plummer(1000, seed=1)
+    s = km.nbody.System(x, v, m, softening=0.02)
+    # finite-N sampling noise of 2K/|W| is ~ 2/sqrt(N) ~ 0.06
+    assert s.virial_ratio() == pytest.approx(1.0, abs=0.1)
+    e0 = s.energy()
+    # two crossing times (t_cr = 2 sqrt(2) ~ 2.8 in units G = M = a = 1)
+    ratios = []
+    s.advance(5.6, 0.02, callback=lambda sy: ratios.append(sy.virial_ratio()) if sy.steps % 20 == 0 else None)
+    assert np.abs(np.array(ratios) - 1).max() < 0.15, ratios
+    # the half-mass radius of a Plummer sphere is 1.305 a (sampling noise ~ 4 % at N = 1000)
+    assert np.median(np.linalg.norm(s.x, axis=1)) == pytest.approx(1.305, rel=0.1)
+    assert abs(s.energy() / e0 - 1) < 2e-3
+
+
+def test_momentum_conserved_to_fmm_eps():
+    x, v, m = km.nbody.plummer(10000, seed=3)
+    for eps in (1e-4, 1e-8):
+        s = km.nbody.System(x, v, m, eps=eps, softening=0.0)
+        a = s.accelerations()
+        # sum m a = 0 exactly for the exact sum; the FMM's error is ~ eps |m a|
+        net = np.linalg.norm(m @ a) / np.sum(m * np.linalg.norm(a, axis=1))
+        assert net < eps, f"eps {eps:g}: net force {net:.2e}"
+        p0 = s.momentum()
+        s.advance(0.02, 0.01)
+        # |dp| <= t * |sum m a| per step, with |sum m a| < eps sum m |a| as just checked
+        assert np.linalg.norm(s.momentum() - p0) < 0.02 * eps * np.sum(m * np.linalg.norm(a, axis=1))
+
+
+def test_softened_forces_against_exact_softened_sum():
+    x, v, m = km.nbody.plummer(20000, seed=4)
+    soft = 0.02
+    s = km.nbody.System(x, v, m, softening=soft, eps=1e-8)
+    a = s.accelerations()
+    d = x[:300, None, :] - x[None, :, :]
+    r2 = np.einsum("ijk,ijk->ij", d, d) + soft**2
+    r2[np.arange(300), np.arange(300)] = np.inf
+    ref = -np.einsum("ij,ijk->ik", m[None, :] / r2**1.5, d)
+    err = np.linalg.norm(a[:300] - ref) / np.linalg.norm(ref)
+    # far pairs (> 20 s apart) see 1/r: the relative force change there is < 3 s^2/(2 r^2)
+    assert err < 1e-3, f"softened force error {err:.2e}"
+
+
+def test_resume_from_state_is_bitwise():
+    x, v, m = km.nbody.plummer(3000, seed=5)
+    a = km.nbody.System(x, v, m, softening=0.05, eps=1e-6)
+    a.advance(0.05, 0.01)
+    saved = a.state()
+    a.advance(0.05, 0.01)
+    b = km.nbody.System(x, v, m, softening=0.05, eps=1e-6)
+    b.set_state(saved)
+    b.advance(0.05, 0.01)
+    assert np.array_equal(a.x, b.x) and np.array_equal(a.v, b.v) and a.time == b.time
+
+
+def test_plummer_sampler():
+    x, v, m = km.nbody.plummer(20000, seed=0, total_mass=2.0, scale=3.0, G=1.0)
+    assert m.sum() == pytest.approx(2.0)
+    assert np.abs(m @ x).max() < 1e-12 and np.abs(m @ v).max() < 1e-12
+    assert np.median(np.linalg.norm(x, axis=1)) == pytest.approx(1.305 * 3.0, rel=0.03)
+
+
+def test_views_are_the_state():
+    x, v, m = km.nbody.plummer(100)
+    s = km.nbody.System(x, v, m)
+    s.x[0] += 1.0
+    assert s.state()["x"][0, 0] == s.x[0, 0]
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(x=np.zeros((3, 2)), v=np.zeros((3, 2)), mass=1.0), "x"),
+    (dict(x=np.zeros((3, 3)), v=np.zeros((2, 3)), mass=1.0), "v"),
+    (dict(x=np.zeros((3, 3)), v=np.zeros((3, 3)), mass=[1.0, 2.0]), "mass"),
+    (dict(x=np.zeros((3, 3)), v=np.zeros((3, 3)), mass=-1.0), "mass"),
+    (dict(x=np.zeros((3, 3)), v=np.zeros((3, 3)), mass=1.0, softening=-1), "softening"),
+    (dict(x=np.zeros((3, 3)), v=np.zeros((3, 3)), mass=1.0, G=0), "G"),
+    (dict(x=np.zeros((3, 3)), v=np.zeros((3, 3)), mass=1.0, eps=2), "eps"),
+    (dict(x=np.full((3, 3), np.nan), v=np.zeros((3, 3)), mass=1.0), "x"),
+])
+def test_bad_input(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        km.nbody.System(**kwargs)
+
+
+def test_bad_step_and_blow_up():
+    x, v, m = kepler()
+    s = km.nbody.System(x, v, m)
+    with pytest.raises(ValueError, match="dt"):
+        s.step(0)
+    with pytest.raises(ValueError, match="dt"):
+        s.advance(1.0, -1)
+    # a force beyond the floating-point range is reported, not propagated as inf/NaN
+    s = km.nbody.System([[0, 0, 0], [1e-8, 0, 0]], [[0, 0, 0], [0, 0, 0]], 1e300)
+    with pytest.raises(km.DivergenceError, match="non-finite"):
+        s.advance(1.0, 0.5)
+    with pytest.raises(ValueError, match="n"):
+        km.nbody.plummer(1)
+
+
+def test_galaxy_collision_example_runs(tmp_path):
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parent.parent / "examples" / "galaxy_collision.py"
+    spec = importlib.util.spec_from_file_location("galaxy_collision", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    worst = module.main(["--out", str(tmp_path), "--particles", "300", "--duration", "0.4",
+                         "--dt", "0.05", "--frames", "2"])
+    assert len(list((tmp_path / "frames").glob("*.png"))) == 3
+    assert (tmp_path / "energy_error.png").exists()
+    assert worst < 1e-2
