@@ -17,6 +17,8 @@ from kinema.errors import (
 )
 from kinema import diffusion, fem, fmm, grid, massspring, poisson, render, sparse, sph, vortex
 from kinema.scenes import Scene, SceneError
+from kinema import surface, viewer
+from kinema.notebook import show
 
 __version__ = "0.1.0"
 
@@ -43,6 +45,9 @@ __all__ = [
     "render",
     "Scene",
     "SceneError",
+    "surface",
+    "viewer",
+    "show",
 ]
 
 
