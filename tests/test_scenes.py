@@ -294,9 +294,11 @@ def test_pathtrace_frames_are_deterministic_and_follow_the_camera(tmp_path):
     top = base + [("output.camera", {"look_from": [0.5, 3.0, 0.3], "look_at": [0.5, 0.0, 0.3],
                                      "up": [0.0, 0.0, -1.0], "vfov": 14.0})]
     km.Scene.load(write(tmp_path, SPH_SCENE), overrides=top).run(tmp_path / "top", 1, progress=False)
-    water = _is_water(_png(tmp_path / "top" / "frames" / "frame_00000.png"))
-    left, right = water[:, :20].mean(), water[:, 40:].mean()
-    assert left > 0.5 and right < 0.05, (left, right)
+    # The water is a clear absorbing dielectric: at 2 samples a pixel some of its pixels are dark
+    # (paths caught by total internal reflection), so the left part's mean colour is tested.
+    img = _png(tmp_path / "top" / "frames" / "frame_00000.png")
+    left, right = _is_water(img[:, :20].mean(axis=(0, 1))), _is_water(img)[:, 40:].mean()
+    assert left and right < 0.05, (img[:, :20].mean(axis=(0, 1)), right)
 
 
 def test_a_camera_that_cannot_be_built_names_the_key(tmp_path):

@@ -53,7 +53,7 @@ void bind_render(py::module_& m) {
       .def(
           "add_material",
           [](render::Scene& s, const std::string& kind, const Triple& albedo, Scalar fuzz, Scalar ior,
-             const Triple& emission) {
+             const Triple& emission, const Triple& absorption) {
             render::Material mat;
             if (kind == "lambertian") {
               mat.kind = render::MaterialKind::lambertian;
@@ -68,9 +68,11 @@ void bind_render(py::module_& m) {
             mat.fuzz = fuzz;
             mat.ior = ior;
             mat.emission = color(emission);
+            mat.absorption = color(absorption);
             return s.add_material(mat);
           },
-          py::arg("kind"), py::arg("albedo"), py::arg("fuzz"), py::arg("ior"), py::arg("emission"))
+          py::arg("kind"), py::arg("albedo"), py::arg("fuzz"), py::arg("ior"), py::arg("emission"),
+          py::arg("absorption") = Triple{0, 0, 0})
       .def(
           "add_spheres",
           [](render::Scene& s, py::array centers, py::array radii, Index material) {

@@ -79,7 +79,8 @@ class Material:
 
     kind: "lambertian", "metal" or "dielectric". albedo: RGB reflectance in [0, 1].
     fuzz: metal roughness in [0, 1]. ior: index of refraction (> 0) of a dielectric.
-    emission: RGB radiance emitted from both faces (>= 0).
+    emission: RGB radiance emitted from both faces (>= 0). absorption: a dielectric's RGB
+    Beer-Lambert coefficient [1/length] (>= 0; light crossing a length t inside keeps exp(-a t)).
     """
 
     kind: str
@@ -87,6 +88,7 @@ class Material:
     fuzz: float = 0.0
     ior: float = 1.5
     emission: tuple = (0.0, 0.0, 0.0)
+    absorption: tuple = (0.0, 0.0, 0.0)
 
 
 def lambertian(albedo=0.5, *, emission=0.0) -> Material:
@@ -105,11 +107,13 @@ def metal(albedo=0.9, fuzz=0.0) -> Material:
     return Material("metal", _rgb(albedo, "albedo", upper=1.0), fuzz=f)
 
 
-def dielectric(ior=1.5) -> Material:
+def dielectric(ior=1.5, *, absorption=0.0) -> Material:
     """Clear glass of refractive index ``ior`` (> 0) in vacuum: reflects with the Fresnel-Schlick
-    probability R, refracts by Snell's law with 1 - R, reflects totally beyond the critical angle;
-    no absorption (R + T = 1)."""
-    return Material("dielectric", (1.0, 1.0, 1.0), ior=positive(ior, "ior"))
+    probability R, refracts by Snell's law with 1 - R, reflects totally beyond the critical angle
+    (R + T = 1 at the interface). absorption: RGB (or scalar) Beer-Lambert coefficient
+    [1/length] >= 0 inside (0: clear; water's blue-green: larger in red than in blue)."""
+    return Material("dielectric", (1.0, 1.0, 1.0), ior=positive(ior, "ior"),
+                    absorption=_rgb(absorption, "absorption"))
 
 
 def emissive(radiance) -> Material:
@@ -186,7 +190,8 @@ class Scene:
                              f"dielectric or emissive), got {material!r}")
         if material not in self._materials:
             self._materials[material] = self._scene.add_material(
-                material.kind, material.albedo, material.fuzz, material.ior, material.emission)
+                material.kind, material.albedo, material.fuzz, material.ior, material.emission,
+                material.absorption)
         return self._materials[material]
 
     @property

@@ -17,7 +17,10 @@ Two methods (``pip install kinema[surface]``):
   layer of particles, so that the enclosed volume is the particles' volume), and the 1/2 level set
   taken by scikit-image's marching cubes (Lewiner et al. 2003; closed, consistently oriented).
 
-Both give a closed mesh (Euler characteristic 2 per blob without handles) oriented outwards.
+Both give a closed mesh (Euler characteristic 2 per blob without handles) oriented outwards,
+in a canonical order (sorted vertices and triangles). marching_cubes is bitwise reproducible;
+splashsurf's threaded sums may differ in the last bits from run to run (use marching_cubes
+where frames must be identical, e.g. a resumed scene run).
 Units: those of the points.
 """
 
@@ -100,9 +103,21 @@ class Mesh:
 
 
 def _outward(vertices, triangles):
-    mesh = Mesh(np.ascontiguousarray(vertices, np.float64), np.ascontiguousarray(triangles, np.int64))
+    """The mesh oriented outwards, in a canonical order (vertices sorted by coordinates,
+    triangles starting at their smallest index, sorted): the same surface gives the same
+    arrays whatever order a threaded reconstruction emitted them in."""
+    v = np.asarray(vertices, np.float64)
+    t = np.asarray(triangles, np.int64)
+    order = np.lexsort(v.T[::-1])
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    v, t = v[order], rank[t]
+    first = np.argmin(t, axis=1)
+    t = np.take_along_axis(t, (first[:, None] + np.arange(3)) % 3, axis=1)  # rotations keep orientation
+    t = t[np.lexsort(t.T[::-1])]
+    mesh = Mesh(np.ascontiguousarray(v), np.ascontiguousarray(t))
     if len(mesh.triangles) and mesh.volume() < 0:
-        mesh.triangles = np.ascontiguousarray(mesh.triangles[:, ::-1])
+        mesh.triangles = np.ascontiguousarray(mesh.triangles[:, [0, 2, 1]])
     return mesh
 
 
