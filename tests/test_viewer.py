@@ -167,7 +167,8 @@ def test_finished_run_scrubbed_from_its_files(display, tmp_path):
     try:
         assert v.paused and v.frame == 0
         names = {i.name for i in v._items}
-        assert names == {"fluid", "obstacles"}
+        assert names == {"fluid", "obstacles", "surface"}
+        assert not v._structures["surface"][1].is_enabled()  # the particles show, the surface on demand
         v.step()
         assert v.frame == 1 and v.time == pytest.approx(1 / scene.fps)
         x1 = next(i for i in v._items if i.name == "fluid").points

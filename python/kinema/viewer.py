@@ -80,7 +80,7 @@ def _init(ps, width, height, title):
         ps.set_max_fps(-1)
         ps.set_automatically_compute_scene_extents(False)
         ps.set_build_default_gui_panels(False)
-        ps.set_print_prefs(False) if hasattr(ps, "set_print_prefs") else None
+        ps.set_use_prefs_file(False)  # no .polyscope.ini in the working folder
         try:
             ps.init("openGL3_glfw")
         except Exception as exc:  # GLFW/GL errors surface as RuntimeError with Polyscope's text
@@ -563,8 +563,10 @@ class Viewer:
             mesh = entry[1]
             mesh.update_vertex_positions(pts)
         else:
-            mesh = ps.register_surface_mesh(item.name, pts, np.asarray(item.surface), color=(0.85, 0.4, 0.3),
-                                            edge_width=1.0, smooth_shade=True)
+            liquid = item.name == "surface"  # a liquid's free surface over its particles: hidden at first
+            mesh = ps.register_surface_mesh(item.name, pts, np.asarray(item.surface),
+                                            color=(0.3, 0.55, 0.85) if liquid else (0.85, 0.4, 0.3),
+                                            edge_width=0.0 if liquid else 1.0, smooth_shade=True, enabled=not liquid)
             self._structures[item.name] = ("surface_mesh", mesh)
         self._colour(mesh, item.point_data, "vertices")
 
@@ -660,6 +662,10 @@ class Viewer:
         psim.Text(f"t = {self.time:.4g} s   frame {self.frame}")
         psim.Text(f"{self.steps_per_second:.1f} steps/s   {self.frames_per_second:.1f} fps")
         psim.Text("space: run/pause   N: step   R: reset")
+        for name, (_, structure) in self._structures.items():
+            changed, on = psim.Checkbox(name, structure.is_enabled())
+            if changed:
+                structure.set_enabled(on)
         psim.End()
         io = psim.GetIO()
         if not io.WantCaptureKeyboard:
