@@ -540,3 +540,31 @@ def test_show_image_and_run_inline(tmp_path):
     assert isinstance(run, km.notebook.Image) and run.pixels.ndim == 3
     with pytest.raises(ValueError, match="source"):
         km.show(42)
+
+
+def test_smoke_ray_march_shows_the_density_where_it_projects():
+    # A ball of smoke in a 24^3 box: its pixels differ from the empty box's frame, pixels whose
+    # rays miss the ball's bounding sphere are exactly the empty frame, and the ball's lit top
+    # is brighter than its self-shadowed bottom (the light comes from above).
+    from kinema.scenes import render3d
+
+    n, h = 24, 1.0 / 24
+    c = (np.arange(n) + 0.5) * h
+    X, Y, Z = np.meshgrid(c, c, c, indexing="ij")
+    centre, radius = np.array([0.5, 0.5, 0.5]), 0.2
+    rho = ((X - 0.5) ** 2 + (Y - 0.5) ** 2 + (Z - 0.5) ** 2 < radius**2).astype(float)
+    output = {"camera": None, "width": 96, "height": None, "view": None}
+    img = render3d.smoke_image(rho, h, output).astype(int)
+    empty = render3d.smoke_image(np.zeros_like(rho), h, output).astype(int)
+    cam = render3d.camera(output, render3d.Geometry(np.zeros(3), np.ones(3)), (0, 1), None)
+    d = render3d.camera_rays(cam)
+    to_c = centre - np.asarray(cam.look_from)
+    along = d @ to_c
+    miss = np.linalg.norm(to_c) ** 2 - along**2 > (radius + 1.5 * h) ** 2  # ray passes outside the ball
+    changed = np.abs(img - empty).sum(axis=2) > 0
+    assert not changed[miss].any()
+    assert changed[~miss].mean() > 0.8
+    rows = np.flatnonzero((~miss).any(axis=1))
+    col = img.shape[1] // 2
+    top, bottom = img[rows[2], col].sum(), img[rows[-3], col].sum()
+    assert top > bottom, (top, bottom)

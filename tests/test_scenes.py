@@ -407,4 +407,5 @@ def test_3d_grid_scene(tmp_path):
     scene.run(tmp_path / "out", 2, progress=False)
     fields, _, _ = output.read_vti(tmp_path / "out" / "grid" / "grid_00001.vti")
     assert fields["pressure"].shape == (8, 8, 6) and fields["velocity"].shape == (8, 8, 6, 3)
-    assert _png(tmp_path / "out" / "frames" / "frame_00001.png").shape[:2] == (8 * 80, 8 * 80)
+    # 3D grids are ray-marched (render3d.smoke_image): output.width wide, 3/4 as high.
+    assert _png(tmp_path / "out" / "frames" / "frame_00001.png").shape[:2] == (480, 640)
