@@ -8,7 +8,8 @@ cd "$(dirname "$0")/.."
 root=$(pwd)
 venv="$root/.venv"
 
-apt_packages=(cmake g++ libeigen3-dev libsuitesparse-dev libopenblas-dev libgtest-dev libbenchmark-dev ffmpeg)
+apt_packages=(cmake g++ libeigen3-dev libsuitesparse-dev libopenblas-dev libgtest-dev libbenchmark-dev ffmpeg
+  xvfb xauth libgl1-mesa-dri libegl1 libglx-mesa0)  # the viewer's tests: a virtual display, Mesa's OpenGL
 missing=()
 for p in "${apt_packages[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
@@ -27,7 +28,7 @@ if [ ! -x "$venv/bin/python" ]; then
 fi
 py="$venv/bin/python"
 
-extras="test,demo,sweep,docs${1:+,$1}"
+extras="test,demo,sweep,docs,viewer,surface${1:+,$1}"
 dep_stamp="$venv/.kinema-deps-$(echo "$extras" | tr ',' '-')"
 dep_hash=$(sha1sum pyproject.toml | cut -d' ' -f1)
 if [ ! -f "$dep_stamp" ] || [ "$(cat "$dep_stamp")" != "$dep_hash" ]; then

@@ -443,3 +443,128 @@ def test_render_stops_on_ctrl_c(ctrl_c_delay):
     cam = R.Camera((0, 0, 3), (0, 0, 0), width=200, height=150)
     seconds = ctrl_c_delay(lambda: scene.render(cam, spp=100_000))
     assert seconds < 2.0, f"render took {seconds:.2f} s to honour Ctrl-C"
+
+
+# ------------------------------------------------------------------ Blinn-Phong and shadows
+
+
+def test_preview_blinn_phong_against_the_analytic_shading():
+    # A plane y = 0 seen from (0.7, 2, 3): every floor pixel's shade is known in closed form,
+    # albedo (ambient + (1 - ambient) n.l) + k_s (n.h)^s with h the half vector of l and the
+    # direction from the hit point to the eye.
+    albedo, ambient, ks, shininess = 0.4, 0.2, 0.5, 24.0
+    light = np.array([0.3, 1.0, -0.2])
+    scene = R.Scene()
+    scene.add_plane((0, 0, 0), (0, 1, 0), R.lambertian(albedo))
+    cam = R.Camera((0.7, 2.0, 3.0), (0, 0, 0), width=61, height=45)
+    img, ids, depth = scene.preview(cam, light=light, ambient=ambient, specular=ks, shininess=shininess,
+                                    return_ids=True)
+    d = camera_rays(cam, 0.5, 0.5)
+    hit = ids == 0
+    p = np.asarray(cam.look_from) + depth[..., None] * d
+    l = light / np.linalg.norm(light)
+    v = np.asarray(cam.look_from) - p
+    v /= np.linalg.norm(v, axis=-1, keepdims=True)
+    h = l + v
+    h /= np.linalg.norm(h, axis=-1, keepdims=True)
+    n_dot_h = np.clip(h[..., 1], 0, None)
+    expected = albedo * (ambient + (1 - ambient) * l[1]) + ks * n_dot_h**shininess
+    assert hit.mean() > 0.5
+    np.testing.assert_allclose(img[hit][:, 0], expected[hit], rtol=1e-9, atol=1e-12)
+    # The highlight is where n.h is largest (the mirror point of the light), and it is specular:
+    # Lambert alone (k_s = 0) is flat over the plane.
+    peak = np.unravel_index(np.argmax(np.where(hit, img[..., 0], -1)), hit.shape)
+    assert n_dot_h[peak] == pytest.approx(n_dot_h[hit].max(), rel=1e-6)
+    flat = scene.preview(cam, light=light, ambient=ambient)
+    np.testing.assert_allclose(flat[hit][:, 0], albedo * (ambient + (1 - ambient) * l[1]), rtol=1e-12)
+
+
+def test_preview_soft_shadow_umbra_penumbra_and_light():
+    # A ball of radius r at height H over the floor, the light straight up with angular radius
+    # alpha. From a floor point the ball's centre is theta off the vertical and subtends beta =
+    # asin(r / dist): the point is in the umbra if theta + alpha <= beta (V = 0), fully lit if
+    # theta >= alpha + beta (V = 1), in between in the penumbra (0 <= V <= 1).
+    r, H, alpha, albedo, ambient = 0.3, 1.0, 0.15, 0.5, 0.1
+    scene = R.Scene()
+    scene.add_plane((0, 0, 0), (0, 1, 0), R.lambertian(albedo))
+    scene.add_spheres([[0, H, 0]], r, R.lambertian(0.8))
+    cam = R.Camera((0, 4.0, 2.0), (0, 0, 0), width=81, height=61)
+    img, ids, depth = scene.preview(cam, light=(0, 1, 0), ambient=ambient, shadows=64, light_radius=alpha,
+                                    return_ids=True)
+    p = np.asarray(cam.look_from) + depth[..., None] * camera_rays(cam, 0.5, 0.5)
+    floor = ids == 1
+    to_ball = np.array([0, H, 0]) - p
+    dist = np.linalg.norm(to_ball, axis=-1)
+    theta = np.arccos(np.clip(to_ball[..., 1] / dist, -1, 1))
+    beta = np.arcsin(np.clip(r / dist, 0, 1))
+    umbra = floor & (theta + alpha <= beta - 1e-3)
+    lit = floor & (theta >= alpha + beta + 1e-3)
+    penumbra = floor & ~umbra & ~lit
+    shade = img[..., 0] / albedo
+    assert umbra.sum() > 20 and lit.sum() > 100 and penumbra.sum() > 20
+    np.testing.assert_allclose(shade[umbra], ambient, rtol=1e-12)
+    np.testing.assert_allclose(shade[lit], 1.0, rtol=1e-12)
+    assert np.all((shade[penumbra] >= ambient - 1e-12) & (shade[penumbra] <= 1 + 1e-12))
+    # The penumbra is a gradient, not a hard edge: many distinct visible fractions.
+    assert len(np.unique(np.round(shade[penumbra], 6))) > 10
+    # Shadows off: the floor under the ball is lit.
+    plain = scene.preview(cam, light=(0, 1, 0), ambient=ambient)
+    np.testing.assert_allclose(plain[umbra][:, 0] / albedo, 1.0, rtol=1e-12)
+
+
+@pytest.mark.parametrize("kwargs, name", [({"specular": -1}, "specular"), ({"shininess": 0}, "shininess"),
+                                          ({"shadows": -2}, "shadows"), ({"shadows": 1.5}, "shadows"),
+                                          ({"light_radius": 2.0}, "light_radius")])
+def test_preview_shading_arguments_checked(kwargs, name):
+    scene = R.Scene()
+    scene.add_spheres([[0, 0, 0]], 1.0, R.lambertian(0.5))
+    with pytest.raises(ValueError, match=name):
+        scene.preview(R.Camera((0, 0, 3), (0, 0, 0), width=8, height=6), **kwargs)
+
+
+# ------------------------------------------------------------------ notebooks
+
+
+def test_show_image_and_run_inline(tmp_path):
+    img = np.zeros((6, 8, 3), np.uint8)
+    img[:, :4] = (255, 0, 0)
+    shown = km.show(img)
+    png = shown._repr_png_()
+    assert png.startswith(b"\x89PNG")
+    from matplotlib import image as mpl_image
+
+    path = shown.save(tmp_path / "x.png")
+    np.testing.assert_array_equal((mpl_image.imread(path)[..., :3] * 255).round().astype(np.uint8), img)
+    run = km.show("vortex_merge", quick=True, frames=3, out=tmp_path / "run",
+                  overrides=[("output.mp4", False)])
+    assert isinstance(run, km.notebook.Image) and run.pixels.ndim == 3
+    with pytest.raises(ValueError, match="source"):
+        km.show(42)
+
+
+def test_smoke_ray_march_shows_the_density_where_it_projects():
+    # A ball of smoke in a 24^3 box: its pixels differ from the empty box's frame, pixels whose
+    # rays miss the ball's bounding sphere are exactly the empty frame, and the ball's lit top
+    # is brighter than its self-shadowed bottom (the light comes from above).
+    from kinema.scenes import render3d
+
+    n, h = 24, 1.0 / 24
+    c = (np.arange(n) + 0.5) * h
+    X, Y, Z = np.meshgrid(c, c, c, indexing="ij")
+    centre, radius = np.array([0.5, 0.5, 0.5]), 0.2
+    rho = ((X - 0.5) ** 2 + (Y - 0.5) ** 2 + (Z - 0.5) ** 2 < radius**2).astype(float)
+    output = {"camera": None, "width": 96, "height": None, "view": None}
+    img = render3d.smoke_image(rho, h, output).astype(int)
+    empty = render3d.smoke_image(np.zeros_like(rho), h, output).astype(int)
+    cam = render3d.camera(output, render3d.Geometry(np.zeros(3), np.ones(3)), (0, 1), None)
+    d = render3d.camera_rays(cam)
+    to_c = centre - np.asarray(cam.look_from)
+    along = d @ to_c
+    miss = np.linalg.norm(to_c) ** 2 - along**2 > (radius + 1.5 * h) ** 2  # ray passes outside the ball
+    changed = np.abs(img - empty).sum(axis=2) > 0
+    assert not changed[miss].any()
+    assert changed[~miss].mean() > 0.8
+    rows = np.flatnonzero((~miss).any(axis=1))
+    col = img.shape[1] // 2
+    top, bottom = img[rows[2], col].sum(), img[rows[-3], col].sum()
+    assert top > bottom, (top, bottom)

@@ -53,7 +53,7 @@ void bind_render(py::module_& m) {
       .def(
           "add_material",
           [](render::Scene& s, const std::string& kind, const Triple& albedo, Scalar fuzz, Scalar ior,
-             const Triple& emission) {
+             const Triple& emission, const Triple& absorption) {
             render::Material mat;
             if (kind == "lambertian") {
               mat.kind = render::MaterialKind::lambertian;
@@ -68,9 +68,11 @@ void bind_render(py::module_& m) {
             mat.fuzz = fuzz;
             mat.ior = ior;
             mat.emission = color(emission);
+            mat.absorption = color(absorption);
             return s.add_material(mat);
           },
-          py::arg("kind"), py::arg("albedo"), py::arg("fuzz"), py::arg("ior"), py::arg("emission"))
+          py::arg("kind"), py::arg("albedo"), py::arg("fuzz"), py::arg("ior"), py::arg("emission"),
+          py::arg("absorption") = Triple{0, 0, 0})
       .def(
           "add_spheres",
           [](render::Scene& s, py::array centers, py::array radii, Index material) {
@@ -131,17 +133,23 @@ void bind_render(py::module_& m) {
           py::arg("max_depth"), py::arg("roulette_depth"), py::arg("seed"), py::arg("variance"))
       .def(
           "preview",
-          [](const render::Scene& s, const Triple& look_from, const Triple& look_at, const Triple& up,
+          [](render::Scene& s, const Triple& look_from, const Triple& look_at, const Triple& up,
              Scalar vfov, Index width, Index height, const Triple& sky_bottom, const Triple& sky_top,
-             const Triple& light, Scalar ambient) {
+             const Triple& light, Scalar ambient, Scalar specular, Scalar shininess, Index shadow_samples,
+             Scalar light_radius) {
             const render::Camera cam = camera(look_from, look_at, up, vfov, width, height);
             render::PreviewConfig config;
             config.light = vec(light);
             config.ambient = ambient;
+            config.specular = specular;
+            config.shininess = shininess;
+            config.shadow_samples = shadow_samples;
+            config.light_radius = light_radius;
             render::PreviewResult r;
             {
               Interrupt interrupt = python_interrupt();
               py::gil_scoped_release release;
+              if (shadow_samples > 0) s.prepare();  // shadow rays go through the BVH
               r = render::preview(s, cam, sky(sky_bottom, sky_top), config, interrupt);
             }
             return py::make_tuple(to_numpy(std::move(r.image), {height, width, 3}),
@@ -150,7 +158,8 @@ void bind_render(py::module_& m) {
           },
           py::arg("look_from"), py::arg("look_at"), py::arg("up"), py::arg("vfov"), py::arg("width"),
           py::arg("height"), py::arg("sky_bottom"), py::arg("sky_top"), py::arg("light"),
-          py::arg("ambient"))
+          py::arg("ambient"), py::arg("specular") = 0.0, py::arg("shininess") = 32.0,
+          py::arg("shadow_samples") = 0, py::arg("light_radius") = 0.05)
       .def(
           "primary_hits",
           [](render::Scene& s, const Triple& look_from, const Triple& look_at, const Triple& up,

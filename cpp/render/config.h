@@ -38,9 +38,17 @@ struct RenderConfig {
   bool variance = false;  // also estimate the variance of each pixel's mean
 };
 
+// Blinn-Phong shading (Blinn 1977) under a distant light of angular radius light_radius:
+//   colour = albedo (ambient + (1 - ambient) V max(0, n . l)) + specular V max(0, n . h)^shininess
+// with h = (l + v) / |l + v| (v towards the eye) and V the light's visible fraction, estimated
+// with shadow_samples rays to points of its disc (0: no shadows, V = 1).
 struct PreviewConfig {
   Vec3 light = Vec3(0.3, 1, 0.5);  // direction towards a distant light (need not be unit)
-  Scalar ambient = 0.25;           // shade = albedo (ambient + (1 - ambient) max(0, n . l))
+  Scalar ambient = 0.25;
+  Scalar specular = 0;              // Blinn-Phong's k_s (0: Lambert alone)
+  Scalar shininess = 32;            // Blinn-Phong's exponent (> 0)
+  Index shadow_samples = 0;         // rays per pixel towards the light (0: no shadows)
+  Scalar light_radius = 0.05;       // angular radius of the light [rad]: soft shadows' penumbra
 };
 
 // Checks a camera (finite, look_from != look_at, up not along the view, 0 < vfov < 180,

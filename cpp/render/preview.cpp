@@ -3,6 +3,8 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
+#include <string>
 
 #include "core/errors.h"
 #include "render/camera.h"
@@ -103,6 +105,28 @@ PixelBox triangle_box(const Projector& p, const Scene::Triangle& t, Scalar scale
   return p.box(x_lo - pad, x_hi + pad, y_lo - pad, y_hi + pad);
 }
 
+// Fraction of the light's disc (angular radius `radius` around the unit direction l) seen from
+// p: `samples` rays to a Fibonacci spiral of points on the disc (Vogel 1979: even coverage for
+// any count), turned by an angle hashed from the pixel so that the sampling pattern does not
+// band; deterministic for any thread count.
+Scalar light_visibility(const Scene& scene, const Vec3& p, const Vec3& l, Scalar radius, Index samples,
+                        Scalar t_min, std::uint64_t pixel) {
+  if (samples <= 0) return 1;
+  const Vec3 a = std::abs(l.x()) < 0.9 ? Vec3(1, 0, 0) : Vec3(0, 1, 0);
+  const Vec3 u = l.cross(a).normalized(), w = l.cross(u);
+  const Scalar spread = std::tan(radius);
+  const Scalar turn = static_cast<Scalar>(splitmix64(pixel) >> 11) * 0x1.0p-53 * 2 * kPi;
+  constexpr Scalar golden = 2.39996322972865332;  // pi (3 - sqrt 5)
+  Index seen = 0;
+  for (Index k = 0; k < samples; ++k) {
+    const Scalar rho = spread * std::sqrt((static_cast<Scalar>(k) + 0.5) / static_cast<Scalar>(samples));
+    const Scalar phi = turn + golden * static_cast<Scalar>(k);
+    const Vec3 d = (l + rho * (std::cos(phi) * u + std::sin(phi) * w)).normalized();
+    if (scene.intersect(Ray{p, d}, t_min, kInfinity).primitive < 0) ++seen;
+  }
+  return static_cast<Scalar>(seen) / static_cast<Scalar>(samples);
+}
+
 }  // namespace
 
 PreviewResult preview(const Scene& scene, const Camera& camera, const Sky& sky,
@@ -112,6 +136,14 @@ PreviewResult preview(const Scene& scene, const Camera& camera, const Sky& sky,
     throw InvalidArgument("light: expected a finite non-zero direction");
   if (!(config.ambient >= 0 && config.ambient <= 1))
     throw InvalidArgument("ambient: expected a number in [0, 1], got " + format_real(config.ambient));
+  if (!(config.specular >= 0 && std::isfinite(config.specular)))
+    throw InvalidArgument("specular: expected a finite number >= 0, got " + format_real(config.specular));
+  if (!(config.shininess > 0 && std::isfinite(config.shininess)))
+    throw InvalidArgument("shininess: expected a finite number > 0, got " + format_real(config.shininess));
+  if (config.shadow_samples < 0)
+    throw InvalidArgument("shadow_samples: expected an integer >= 0, got " + std::to_string(config.shadow_samples));
+  if (!(config.light_radius >= 0 && config.light_radius < 1.5))
+    throw InvalidArgument("light_radius: expected an angle in [0, 1.5) rad, got " + format_real(config.light_radius));
   const CameraFrame frame(camera);
   const Projector projector(frame);
   const Index width = camera.width, height = camera.height;
@@ -200,9 +232,27 @@ PreviewResult preview(const Scene& scene, const Camera& camera, const Sky& sky,
           hit.primitive = out.ids[px];
           scene.finish_hit(ray, hit);
           const Material& mat = scene.material(hit.material);
-          const Color albedo = mat.kind == MaterialKind::dielectric ? Color::Constant(0.9) : mat.albedo;
+          const Vec3 to_eye = -ray.direction;
           const Scalar lambert = std::max(Scalar(0), hit.normal.dot(light));
-          c = albedo * (config.ambient + (1 - config.ambient) * lambert) + mat.emission;
+          Scalar visible = 1;
+          if (config.shadow_samples > 0 && lambert > 0)
+            visible = light_visibility(scene, ray.origin + hit.t * ray.direction, light, config.light_radius,
+                                       config.shadow_samples, t_min, static_cast<std::uint64_t>(px));
+          const Vec3 half = (light + to_eye).normalized();
+          const Scalar spec = config.specular > 0 && lambert > 0
+                                  ? config.specular * std::pow(std::max(Scalar(0), hit.normal.dot(half)), config.shininess)
+                                  : 0;
+          if (mat.kind == MaterialKind::dielectric) {
+            // Water: its body colour, lit, mixed with the sky it mirrors by Schlick's Fresnel factor.
+            const Scalar cos_i = std::min(Scalar(1), std::abs(to_eye.dot(hit.normal)));
+            const Scalar fresnel = schlick(cos_i, cos_i, 1, mat.ior);
+            const Color body = Color(0.12, 0.38, 0.62) * (config.ambient + (1 - config.ambient) * visible * lambert);
+            c = (1 - fresnel) * body + fresnel * sky.radiance(reflect(ray.direction, hit.normal)) +
+                Color::Constant(visible * spec) + mat.emission;
+          } else {
+            c = mat.albedo * (config.ambient + (1 - config.ambient) * visible * lambert) +
+                Color::Constant(visible * spec) + mat.emission;
+          }
         }
         for (int ch = 0; ch < 3; ++ch) out.image[3 * px + static_cast<size_t>(ch)] = c[ch];
       }

@@ -1,7 +1,9 @@
 // A fast preview for the frames of long simulations: a z-buffered splatter of the spheres and a
-// rasteriser of the triangles, shaded by a distant light (Lambert's cosine law),
-//   colour = albedo (ambient + (1 - ambient) max(0, n . l)) + emission,
-// and the sky where nothing is hit. Each primitive is projected to the pixel box of its image
+// rasteriser of the triangles, shaded by a distant light (Blinn-Phong, config.h),
+//   colour = albedo (ambient + (1 - ambient) V max(0, n . l)) + specular V max(0, n . h)^shininess + emission,
+// with soft shadows V from rays towards the light's disc (through the BVH: prepare() the scene
+// first when shadow_samples > 0), glass drawn as water (a blue-green body colour mixed with the
+// sky it reflects by Schlick's Fresnel factor), and the sky where nothing is hit. Each primitive is projected to the pixel box of its image
 // (tangent cones for spheres, projected vertices for triangles), and the pixel centres inside
 // are tested with the same ray/primitive intersection as the path tracer, so the preview's
 // visible primitive equals the tracer's primary hit at every pixel centre. OpenMP over bands

@@ -21,13 +21,16 @@ enum class MaterialKind { lambertian, metal, dielectric };
 // Lambertian: f = albedo / pi. Metal: mirror reflection perturbed by fuzz * (a point of the unit
 // ball), times albedo; directions pushed below the surface are absorbed (Shirley). Dielectric:
 // clear glass of index ior in vacuum, Fresnel-Schlick reflection, Snell refraction, no
-// absorption. Any material may also emit (two-sided) radiance `emission`.
+// absorption unless `absorption` is set: Beer-Lambert attenuation exp(-absorption t) over the
+// length t a path travels inside (coloured glass, water). Any material may also emit (two-sided)
+// radiance `emission`.
 struct Material {
   MaterialKind kind = MaterialKind::lambertian;
   Color albedo = Color::Constant(0.5);
   Scalar fuzz = 0;
   Scalar ior = 1.5;
   Color emission = Color::Zero();
+  Color absorption = Color::Zero();  // [1/length], dielectrics only
 };
 
 // The closest hit along a ray: t, the primitive, its material, and the unit geometric normal

@@ -76,6 +76,8 @@ Color trace_path(const Scene& scene, const Sky& sky, const RenderConfig& config,
         break;
       }
       case MaterialKind::dielectric: {  // choose R or T with their probabilities: weight 1
+        // A back-face hit ends a segment inside the medium: Beer-Lambert over its length.
+        if (!hit.front_face) beta *= (-m.absorption * hit.t).exp();
         const Scalar eta_i = hit.front_face ? 1 : m.ior, eta_t = hit.front_face ? m.ior : 1;
         const Scalar cos_i = std::min(Scalar(1), -d.dot(n));
         Vec3 transmitted;

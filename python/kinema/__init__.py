@@ -34,6 +34,8 @@ from kinema import diffusion, fem, fmm, grid, massspring, poisson, render, spars
 from kinema import mesh, mpm, nbody
 from kinema.scenes import Scene, SceneError
 from kinema import io
+from kinema import surface, viewer
+from kinema.notebook import show
 
 __version__ = "0.1.0"
 
@@ -64,6 +66,9 @@ __all__ = [
     "Scene",
     "SceneError",
     "io",
+    "surface",
+    "viewer",
+    "show",
 ]
 
 

@@ -2,6 +2,7 @@
 
     kinema run SCENE.toml --out DIR [--frames N] [--resume] [--set KEY=VALUE ...] [--quick]
     kinema sweep SCENE.toml --param solver.dt=1e-3,5e-4 [--param ...] --out DIR [--scheduler ADDR]
+    kinema view OUT_DIR
     kinema list [--keys]
     kinema show NAME
     kinema info
@@ -86,6 +87,8 @@ def _parser():
     r.add_argument("--out", default=None, help="output folder (default: out/<scene file name>)")
     r.add_argument("--resume", action="store_true", help="continue from OUT/checkpoint.npz")
     r.add_argument("--no-progress", action="store_true", help="no progress bar (the final line is still printed)")
+    r.add_argument("--view", action="store_true", help="show the simulation live in a window instead "
+                   "(kinema[viewer]; writes no files)")
 
     s = sub.add_parser("sweep", help="run a scene for every combination of parameter values (Dask)")
     scene_args(s)
@@ -95,6 +98,9 @@ def _parser():
     s.add_argument("--out", default="sweep_output", help="output folder (sweep.csv, sweep.png, run_NNN/)")
     s.add_argument("--scheduler", default=None, help="address of a Dask scheduler (default: a local cluster)")
     s.add_argument("--workers", type=_count(1, 256, ">= 1"), default=2, help="workers of the local cluster")
+
+    v = sub.add_parser("view", help="scrub through a finished run's VTU/PLY/VTI files in a window (kinema[viewer])")
+    v.add_argument("out", help="the run's output folder")
 
     lst = sub.add_parser("list", help="list the example scenes shipped with kinema")
     lst.add_argument("--keys", action="store_true", help="also list every solver's options and object types")
@@ -148,6 +154,10 @@ def main(argv=None):
     if args.command == "list":
         _list(args.keys)
         return 0
+    if args.command == "view":
+        from kinema.viewer import cli_view
+
+        return cli_view(args.out)
     try:
         if args.command == "show":
             path = resolve(args.name)
@@ -165,6 +175,10 @@ def main(argv=None):
                   scheduler=args.scheduler, workers=args.workers, log=lambda m: print(m, file=sys.stderr))
             return 0
         scene = km.Scene.load(path, overrides=overrides, quick=args.quick)
+        if args.view:
+            from kinema.viewer import cli_view
+
+            return cli_view(scene)
         out = args.out or f"out/{path.stem}"
         result = scene.run(out, args.frames, resume=args.resume, progress=not args.no_progress)
         if args.no_progress:

@@ -17,7 +17,7 @@ bounding volume hierarchy (binned SAH); planes are infinite. Images are bitwise 
 any thread count (each sample of each pixel has its own random stream from ``seed``).
 
 :meth:`Scene.preview` (and :func:`preview`) is a z-buffered sphere splatter and triangle
-rasteriser with Lambert shading for the frames of long simulations (milliseconds at 100k
+rasteriser with Blinn-Phong shading and optional soft shadows for the frames of long simulations (milliseconds at 100k
 particles); it sees exactly what the path tracer's primary rays through the pixel centres see.
 
 Units: lengths in the scene's unit; radiance in any linear unit (the image is in the sky's and
@@ -79,7 +79,8 @@ class Material:
 
     kind: "lambertian", "metal" or "dielectric". albedo: RGB reflectance in [0, 1].
     fuzz: metal roughness in [0, 1]. ior: index of refraction (> 0) of a dielectric.
-    emission: RGB radiance emitted from both faces (>= 0).
+    emission: RGB radiance emitted from both faces (>= 0). absorption: a dielectric's RGB
+    Beer-Lambert coefficient [1/length] (>= 0; light crossing a length t inside keeps exp(-a t)).
     """
 
     kind: str
@@ -87,6 +88,7 @@ class Material:
     fuzz: float = 0.0
     ior: float = 1.5
     emission: tuple = (0.0, 0.0, 0.0)
+    absorption: tuple = (0.0, 0.0, 0.0)
 
 
 def lambertian(albedo=0.5, *, emission=0.0) -> Material:
@@ -105,11 +107,13 @@ def metal(albedo=0.9, fuzz=0.0) -> Material:
     return Material("metal", _rgb(albedo, "albedo", upper=1.0), fuzz=f)
 
 
-def dielectric(ior=1.5) -> Material:
+def dielectric(ior=1.5, *, absorption=0.0) -> Material:
     """Clear glass of refractive index ``ior`` (> 0) in vacuum: reflects with the Fresnel-Schlick
-    probability R, refracts by Snell's law with 1 - R, reflects totally beyond the critical angle;
-    no absorption (R + T = 1)."""
-    return Material("dielectric", (1.0, 1.0, 1.0), ior=positive(ior, "ior"))
+    probability R, refracts by Snell's law with 1 - R, reflects totally beyond the critical angle
+    (R + T = 1 at the interface). absorption: RGB (or scalar) Beer-Lambert coefficient
+    [1/length] >= 0 inside (0: clear; water's blue-green: larger in red than in blue)."""
+    return Material("dielectric", (1.0, 1.0, 1.0), ior=positive(ior, "ior"),
+                    absorption=_rgb(absorption, "absorption"))
 
 
 def emissive(radiance) -> Material:
@@ -186,7 +190,8 @@ class Scene:
                              f"dielectric or emissive), got {material!r}")
         if material not in self._materials:
             self._materials[material] = self._scene.add_material(
-                material.kind, material.albedo, material.fuzz, material.ior, material.emission)
+                material.kind, material.albedo, material.fuzz, material.ior, material.emission,
+                material.absorption)
         return self._materials[material]
 
     @property
@@ -270,11 +275,20 @@ class Scene:
         return (image, var) if return_variance else image
 
     def preview(self, camera, *, sky=DEFAULT_SKY, light=(0.3, 1.0, 0.5), ambient=0.25,
-                return_ids=False):
-        """Fast shaded view: (height, width, 3) float64, albedo (ambient + (1 - ambient)
-        max(0, n . l)) + emission on surfaces (glass drawn as albedo 0.9), the sky elsewhere.
+                specular=0.0, shininess=32.0, shadows=0, light_radius=0.05, return_ids=False):
+        """Fast shaded view: (height, width, 3) float64 linear radiance, Blinn-Phong shading
+        (Blinn 1977) under a distant light on surfaces, the sky elsewhere:
 
-        light: direction towards a distant light. ambient: in [0, 1].
+            albedo (ambient + (1 - ambient) V max(0, n . l)) + specular V max(0, n . h)^shininess + emission
+
+        with h the unit half vector of l and the direction to the eye, and V the visible
+        fraction of the light (1 without shadows). Glass is drawn as water: a blue-green body
+        colour so lit, mixed with the sky it reflects by Schlick's Fresnel factor.
+
+        light: direction towards a distant light. ambient: in [0, 1]. specular: k_s >= 0 (0, the
+        default, is Lambert's law alone). shininess: the exponent (> 0). shadows: rays per pixel
+        towards the light (0: none); light_radius: the light's angular radius [rad] in [0, 1.5),
+        the softness of the shadows' edges.
         return_ids: also return the (height, width) int64 ids of the visible primitives (-1 for
         the sky) and the (height, width) distances along the pixel-centre rays (inf on a miss).
         """
@@ -286,7 +300,11 @@ class Scene:
         a = non_negative(ambient, "ambient")
         if a > 1:
             raise ValueError(f"ambient: expected a number in [0, 1], got {a}")
-        image, ids, depth = self._scene.preview(*cam._args(), bottom, top, lv, a)
+        if isinstance(shadows, bool) or not isinstance(shadows, (int, np.integer)) or shadows < 0:
+            raise ValueError(f"shadows: expected an integer >= 0 (rays per pixel), got {shadows!r}")
+        image, ids, depth = self._scene.preview(*cam._args(), bottom, top, lv, a, non_negative(specular, "specular"),
+                                                positive(shininess, "shininess"), int(shadows),
+                                                non_negative(light_radius, "light_radius"))
         return (image, ids, depth) if return_ids else image
 
     def primary_hits(self, camera):

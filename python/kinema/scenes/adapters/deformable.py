@@ -49,8 +49,8 @@ def fixed_vertices(x, fixed):
 
 class DeformableSimulation(ArrayStateSimulation):
     """Subclasses set self.body (x, v views and a _core with time/step_count),
-    self.surface (triangles for preview and PLY), self.cells (meshio cells), self.rest_box
-    (bounding box of the initial vertices) and ``_step(dt)``."""
+    self.surface (triangles for preview and PLY), self.cells (meshio cells), self.rest (the
+    initial vertices), self.rest_box (their bounding box) and ``_step(dt)``."""
 
     STEP_ATTR = "step_count"
 
@@ -81,7 +81,8 @@ class DeformableSimulation(ArrayStateSimulation):
     def _core(self):
         return self.body._core
 
-    MATERIAL = km.render.lambertian((0.8, 0.35, 0.25))
+    MATERIAL = km.render.lambertian((0.85, 0.4, 0.25))
+    CHECKER = km.render.lambertian((0.95, 0.85, 0.7))
 
     def geometry(self, axes):
         """The surface triangles in a box fixed by the initial shape, with room below for the
@@ -90,20 +91,23 @@ class DeformableSimulation(ArrayStateSimulation):
         reach = (hi - lo).max()
         lo, hi = lo - 0.15 * reach, hi + 0.15 * reach
         lo[axes[1]] = self.rest_box[0][axes[1]] - 1.1 * reach
-        return render3d.Geometry(lo, hi, meshes=[(self.body.x, self.surface, self.MATERIAL)])
+        # A checker fixed to the material, so that stretching and folds show.
+        odd = render3d.checker_split(self.rest, self.surface)
+        return render3d.Geometry(lo, hi, meshes=[(self.body.x, self.surface[~odd], self.MATERIAL),
+                                                 (self.body.x, self.surface[odd], self.CHECKER)])
 
     def image(self, output):
         if output["render"] != "flat":
-            axes = output["view"] or (0, 2)
+            axes = output["view"] or (0, 1)
             return render3d.image(self.geometry(axes), output, axes, self.scene.error)
         # The view is fixed by the initial shape (built before a checkpoint is restored), with
         # room below for the body to hang and swing by its own size.
         lo, hi = self.rest_box
         reach = (hi - lo).max()
         lo, hi = lo - 0.6 * reach, hi + 0.6 * reach
-        up = (output["view"] or (0, 2))[1]
+        up = (output["view"] or (0, 1))[1]
         lo[up], hi[up] = self.rest_box[0][up] - 1.1 * reach, self.rest_box[1][up] + 0.3 * reach
-        cam = view_camera(output, 3, lo, hi, (0, 2))
+        cam = view_camera(output, 3, lo, hi, (0, 1))
         return preview.triangles(cam, self.body.x, self.surface)
 
     def data(self):

@@ -71,6 +71,7 @@ class FEMSimulation(DeformableSimulation):
             raise scene.error("objects[0]", str(exc)) from None
         self.surface = boundary_faces(T)
         self.cells = [("tetra", T)]
+        self.rest = np.array(V, float)
         self.rest_box = (V.min(axis=0), V.max(axis=0))
         self.newton = 0
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 import kinema as km
-from kinema.scenes import preview, regions
+from kinema.scenes import preview, regions, render3d
 from kinema.scenes.adapters.base import ArrayStateSimulation, GridData
 from kinema.scenes.schema import REGION, Bool, Field, Int, ListOf, Real, Str, Table, Vec
 
@@ -180,8 +180,9 @@ class GridSimulation(ArrayStateSimulation):
                                    f"got {name!r}")
         q = self.field(name)
         solid = self.fluid.solid
-        if self.dim == 3:  # the mean along z, as a shadowgraph
-            q, solid = q.mean(axis=2), solid.all(axis=2)
+        if self.dim == 3:  # ray-marched (render3d.smoke_image), over the floor and the solids
+            obstacles = [o["region"] for o in self.scene.config["objects"] if o["type"] == "obstacle"]
+            return render3d.smoke_image(q, self.h, output, obstacles, self.scene.error)
         lo, hi = output["range"] or (None, None)
         return preview.field_image(q, cmap=output["colormap"], vmin=lo, vmax=hi, mask=solid,
                                    width=output["width"])

@@ -110,6 +110,7 @@ class MassSpringSimulation(DeformableSimulation):
                                          fixed=np.concatenate(fixed), gravity=o["gravity"])
         self.surface = np.concatenate(tris)
         self.cells = [("triangle", self.surface)]
+        self.rest = x.copy()
         self.rest_box = (x.min(axis=0), x.max(axis=0))
 
     def _step(self, dt):

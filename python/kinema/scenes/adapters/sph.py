@@ -135,10 +135,16 @@ class SPHSimulation(ArrayStateSimulation):
     SOLID = km.render.lambertian(0.6)
 
     def geometry(self, axes):
-        """Particles as spheres of radius spacing/2 (touching on the lattice) in the tank."""
-        r = 0.5 * self.spacing
-        return render3d.Geometry(self.lower, self.upper,
-                                 spheres=[(self.fluid.x, r, self.WATER), (self.obstacles, r, self.SOLID)])
+        """The water's free surface (km.surface) in the tank's frame, the obstacles as solids."""
+        boxes, balls = [], []
+        for obj in self.scene.config["objects"]:
+            region = obj["region"]
+            if obj["type"] == "obstacle" and region["shape"] == "box":
+                boxes.append((region["lower"], region["upper"], self.SOLID))
+            elif obj["type"] == "obstacle":
+                balls.append((np.atleast_2d(region["center"]), region["radius"], self.SOLID))
+        return render3d.Geometry(self.lower, self.upper, spheres=balls, boxes=boxes,
+                                 liquids=[(self.fluid.x, self.spacing)], tank=True)
 
     def image(self, output):
         if output["render"] != "flat":
@@ -160,6 +166,10 @@ class SPHSimulation(ArrayStateSimulation):
                            ids=f.ids.copy())]
         if self.steps == 0 and len(self.obstacles):
             items.append(PointData("obstacles", self.obstacles))
+        if self.dim == 3:  # the free surface beside the particles (a PLY of triangles)
+            mesh = render3d.liquid_surface(f.x, self.spacing)
+            if mesh is not None:
+                items.append(PointData("surface", mesh.vertices, [("triangle", mesh.triangles)], surface=mesh.triangles))
         return items
 
 
