@@ -113,7 +113,7 @@ void bind_render(py::module_& m) {
             render::RenderResult r;
             {
               Interrupt interrupt = python_interrupt();
-              py::gil_scoped_release release;
+              ReleaseGil release;
               r = render::render(s, cam, sky(sky_bottom, sky_top), config, interrupt);
             }
             py::dict stats;
@@ -141,7 +141,7 @@ void bind_render(py::module_& m) {
             render::PreviewResult r;
             {
               Interrupt interrupt = python_interrupt();
-              py::gil_scoped_release release;
+              ReleaseGil release;
               r = render::preview(s, cam, sky(sky_bottom, sky_top), config, interrupt);
             }
             return py::make_tuple(to_numpy(std::move(r.image), {height, width, 3}),
@@ -158,7 +158,7 @@ void bind_render(py::module_& m) {
             const render::Camera cam = camera(look_from, look_at, up, vfov, width, height);
             std::vector<Index> ids;
             {
-              py::gil_scoped_release release;
+              ReleaseGil release;
               ids = render::primary_hits(s, cam);
             }
             return to_numpy(std::move(ids), {height, width});
@@ -174,7 +174,7 @@ void bind_render(py::module_& m) {
             std::vector<Scalar> t(static_cast<size_t>(n));
             std::vector<Index> ids(static_cast<size_t>(n));
             {
-              py::gil_scoped_release release;
+              ReleaseGil release;
               s.prepare();
 #pragma omp parallel for schedule(static)
               for (Index i = 0; i < n; ++i) {

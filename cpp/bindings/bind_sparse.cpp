@@ -67,7 +67,7 @@ void bind_factor_arrays(py::class_<CholmodFactor>& factor) {
                        const std::string& ordering) {
              const auto A = csc_view(n, indptr, indices, data);
              const CholmodOrdering order = parse_ordering(ordering);
-             py::gil_scoped_release release;
+             ReleaseGil release;
              return std::make_unique<CholmodFactor>(A, order);
            }),
            py::arg("n"), py::arg("indptr"), py::arg("indices"), py::arg("data"),
@@ -77,7 +77,7 @@ void bind_factor_arrays(py::class_<CholmodFactor>& factor) {
           [](CholmodFactor& f, Index n, const Indices& indptr, const Indices& indices,
              const ScalarArray& data) {
             const auto A = csc_view(n, indptr, indices, data);
-            py::gil_scoped_release release;
+            ReleaseGil release;
             f.refactor(A);
           },
           py::arg("n"), py::arg("indptr"), py::arg("indices"), py::arg("data"));
@@ -90,7 +90,7 @@ py::tuple asymmetry_of(Index n, const Indices& indptr, const Indices& indices, c
   const BasicCsrView<I> A{n, n, indptr.data(), indices.data(), data.data()};
   Asymmetry a;
   {
-    py::gil_scoped_release release;
+    ReleaseGil release;
     a = asymmetry(A);
   }
   return py::make_tuple(a.value, a.row, a.col);
@@ -120,7 +120,7 @@ void bind_sparse(py::module_& m) {
             const Scalar* bp = b.data();
             Scalar* xp = x.mutable_data();
             {
-              py::gil_scoped_release release;
+              ReleaseGil release;
               f.solve(bp, xp, nrhs);
             }
             return x;
@@ -162,7 +162,7 @@ void bind_sparse(py::module_& m) {
         Interrupt interrupt = python_interrupt();
         SolveInfo info;
         {
-          py::gil_scoped_release release;
+          ReleaseGil release;
           info = cg_csr(A, bp, xp, jacobi, options, interrupt);
         }
         return to_python(info);

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from kinema import _core
-from kinema._checks import as_float_array, choice, non_negative, positive, positive_int
+from kinema._checks import as_float_array, choice, non_negative, positive, positive_int, simulation_object, finite_result
 
 __all__ = ["System", "StepInfo", "cloth", "INTEGRATORS"]
 
@@ -95,6 +95,7 @@ def _gravity(gravity, d):
     return [float(c) for c in g]
 
 
+@simulation_object
 class System:
     """A mass-spring system.
 
@@ -165,17 +166,17 @@ class System:
     def energy(self) -> float:
         """Kinetic + spring + gravitational energy [J] (gravity potential -m g . x)."""
         c = self._core
-        return c.kinetic_energy() + c.spring_energy() + c.gravity_energy()
+        return finite_result(c.kinetic_energy() + c.spring_energy() + c.gravity_energy(), "energy")
 
     def kinetic_energy(self) -> float:
-        return self._core.kinetic_energy()
+        return finite_result(self._core.kinetic_energy(), "kinetic_energy")
 
     def spring_energy(self) -> float:
-        return self._core.spring_energy()
+        return finite_result(self._core.spring_energy(), "spring_energy")
 
     def forces(self) -> np.ndarray:
         """(n, d) total force [N] at the current state: springs, damping and gravity."""
-        return self._core.forces()
+        return finite_result(self._core.forces(), "forces")
 
 
 def cloth(nx, ny, size, *, dim=3, return_kinds=False):
@@ -191,6 +192,8 @@ def cloth(nx, ny, size, *, dim=3, return_kinds=False):
     ny = positive_int(ny, "ny")
     if nx < 2 or ny < 2:
         raise ValueError(f"nx, ny: expected at least 2 vertices per side, got ({nx}, {ny})")
+    if nx * ny > 2**26:
+        raise ValueError(f"nx, ny: {nx} x {ny} vertices is more than the 2^26 a generated cloth supports")
     if dim not in (2, 3):
         raise ValueError(f"dim: expected 2 or 3, got {dim!r}")
     s = as_float_array(size, "size", ndim=(0, 1))

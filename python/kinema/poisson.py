@@ -25,7 +25,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from kinema import _core
-from kinema._checks import as_float_array, choice, grid_shape, positive, positive_int
+from kinema._checks import as_float_array, choice, grid_shape, positive, positive_int, simulation_object, spacing, representable, integer, real
 from kinema._info import SolveInfo
 from kinema.errors import ConvergenceError
 
@@ -51,6 +51,7 @@ def _solid_mask(solid, shape):
     return np.ascontiguousarray(mask, dtype=np.uint8)
 
 
+@simulation_object
 class Solver:
     """A reusable solver for ``(shift*I - lap) u = f`` on one grid, boundary and solid mask.
 
@@ -66,17 +67,18 @@ class Solver:
     def __init__(self, shape, h, bc="dirichlet", *, method="mgpcg", solid=None, shift=0.0,
                  pre_smooth=2, post_smooth=2):
         self.shape = grid_shape(shape, "shape")
-        self.h = positive(h, "h")
+        self.h = spacing(h, "h")
         self.bc = choice(bc, "bc", _BCS)
         self.method = choice(method, "method", METHODS)
-        shift = float(shift)
+        shift = real(shift, "shift")
         if not np.isfinite(shift) or shift < 0:
             raise ValueError(f"shift: expected a finite number >= 0, got {shift}")
         self.shift = shift
         mask = _solid_mask(solid, self.shape)
         core_method = "cg" if method == "cholmod" else method
         self._core = _core.poisson.Solver(list(self.shape), self.h, bc, mask, shift, core_method,
-                                          int(pre_smooth), int(post_smooth))
+                                          integer(pre_smooth, "pre_smooth", low=0, high=64),
+                                          integer(post_smooth, "post_smooth", low=0, high=64))
         self._factor = None
         self._free = None
         if method == "cholmod":
@@ -101,7 +103,7 @@ class Solver:
     def apply(self, u) -> np.ndarray:
         """A u for a cell array ``u`` of ``shape``."""
         u = self._cell_array(u, "u")
-        return self._core.apply(u)
+        return representable(self._core.apply(u), "u", "A u")
 
     def _cell_array(self, a, name):
         a = as_float_array(a, name)

@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from kinema import fmm
-from kinema._checks import as_float_array, positive
+from kinema._checks import as_float_array, positive, simulation_object
 
 __all__ = ["VortexParticles", "merging_patches"]
 
@@ -29,6 +29,7 @@ __all__ = ["VortexParticles", "merging_patches"]
 _CORE_CUTOFF = 6.0
 
 
+@simulation_object
 class VortexParticles:
     """Point vortices with Gaussian cores, advanced by RK4 with FMM velocities.
 
