@@ -22,8 +22,8 @@ constexpr Index kMinCellBudget = 1 << 12;
 
 template <int D>
 void NeighborGrid<D>::build(const Scalar* x, Index n, Scalar radius, int subdivision) {
-  if (!(radius > 0) || !std::isfinite(radius))
-    throw InvalidArgument("radius: expected a finite number > 0, got " + std::to_string(radius));
+  if (!(radius > 0) || !std::isfinite(radius) || !std::isfinite(1 / radius))
+    throw InvalidArgument("radius: expected a finite number > 0 with a finite inverse, got " + format_real(radius));
   if (subdivision < 1 || subdivision > kMaxSubdivision)
     throw InvalidArgument("subdivision: expected 1 to " + std::to_string(kMaxSubdivision) + ", got " +
                           std::to_string(subdivision));

@@ -261,6 +261,7 @@ def _cells(n, d, name):
     return n
 
 
+_MAX_COORDINATE = 1e100
 # 2^26 cells: up to 4e8 tetrahedra, far beyond what one Body can step, within int32 vertex ids.
 _MAX_MESH_CELLS = 2**26
 
@@ -272,8 +273,9 @@ def _corners(lower, upper, d):
         raise ValueError(f"lower, upper: expected {d} coordinates each, got {lo.shape}, {hi.shape}")
     if not (hi > lo).all():
         raise ValueError(f"upper: expected upper > lower componentwise, got {hi} and {lo}")
-    if not np.isfinite(hi - lo).all():
-        raise ValueError(f"upper: upper - lower overflows float64 ({hi} - {lo})")
+    if max(np.abs(lo).max(), np.abs(hi).max()) > _MAX_COORDINATE:
+        raise ValueError(f"lower, upper: coordinates beyond {_MAX_COORDINATE:g} ({lo}, {hi}); element "
+                         "volumes (d-th powers of lengths) would overflow: choose other units")
     return lo, hi
 
 

@@ -149,7 +149,8 @@ class System:
 
     @property
     def explicit_dt_limit(self) -> float:
-        """Gershgorin bound 2 / omega_max [s] on the explicit and symplectic steps."""
+        """Gershgorin bound 2 / omega_max [s] on the explicit and symplectic steps; ``inf`` when
+        no spring has stiffness (nothing limits the step)."""
         return self._core.explicit_dt_limit
 
     def step(self, dt, integrator="implicit", beta=1.0, *, linear_solver="cholmod",

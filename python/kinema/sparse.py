@@ -19,7 +19,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from kinema import _core
-from kinema._checks import as_float_array, positive, positive_int, simulation_object
+from kinema._checks import as_float_array, positive, positive_int
 from kinema._info import SolveInfo
 from kinema.errors import ConvergenceError
 
@@ -93,7 +93,6 @@ def _renamed(exc, name):
     return new
 
 
-@simulation_object
 class Factor:
     """Cholesky factorisation P A P^T = L L^T of a sparse SPD matrix, from :func:`cholesky`.
 

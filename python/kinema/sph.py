@@ -63,7 +63,7 @@ def neighbor_pairs(points, radius) -> np.ndarray:
     points: (N, d) [m], d = 2 or 3. radius: > 0 [m].
     """
     x = _points(points, "points")
-    r = positive(radius, "radius")
+    r = _spacing(radius, "radius")
     return _core.sph.neighbor_pairs(x, r)
 
 
