@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kinema._checks import as_float_array, choice, positive, positive_int, spacing, representable
+from kinema._checks import as_float_array, choice, positive, positive_int, representable, spacing
 from kinema.errors import DivergenceError, StabilityError
 from kinema.poisson import Solver
 

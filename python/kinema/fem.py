@@ -31,7 +31,9 @@ import numpy as np
 import scipy.sparse as sp
 
 from kinema import _core
-from kinema._checks import as_float_array, choice, non_negative, positive, positive_int, simulation_object, finite_result, finite
+from kinema._checks import (
+    as_float_array, choice, finite, finite_result, non_negative, positive, positive_int,
+    simulation_object)
 from kinema.massspring import _gravity, _indices
 
 __all__ = ["Body", "NewtonInfo", "MODELS", "lame", "psi", "piola", "piola_derivative",

@@ -21,7 +21,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from kinema import _core
-from kinema._checks import as_float_array, choice, grid_shape, non_negative, positive, positive_int, simulation_object, finite_result, spacing, finite
+from kinema._checks import (
+    as_float_array, choice, finite, finite_result, grid_shape, non_negative, positive,
+    positive_int, simulation_object, spacing)
 from kinema._info import SolveInfo
 
 __all__ = ["Fluid", "StepInfo", "advect", "SCHEMES", "ADVECTION_KERNELS"]

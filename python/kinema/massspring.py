@@ -27,7 +27,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from kinema import _core
-from kinema._checks import as_float_array, choice, non_negative, positive, positive_int, simulation_object, finite_result
+from kinema._checks import (
+    as_float_array, choice, finite_result, non_negative, positive, positive_int, simulation_object,
+    spacing)
 
 __all__ = ["System", "StepInfo", "cloth", "INTEGRATORS"]
 
@@ -204,8 +206,8 @@ def cloth(nx, ny, size, *, dim=3, return_kinds=False):
         sx, sy = float(s[0]), float(s[1])
     else:
         raise ValueError(f"size: expected a scalar or (sx, sy), got shape {s.shape}")
-    positive(sx, "size")
-    positive(sy, "size")
+    spacing(sx, "size")
+    spacing(sy, "size")
     I, J = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
     x = np.zeros((nx * ny, dim))
     x[:, 0] = (I * sx / (nx - 1)).ravel()

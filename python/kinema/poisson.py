@@ -25,7 +25,9 @@ import numpy as np
 import scipy.sparse as sp
 
 from kinema import _core
-from kinema._checks import as_float_array, choice, grid_shape, positive, positive_int, simulation_object, spacing, representable, integer, real
+from kinema._checks import (
+    as_float_array, choice, grid_shape, integer, positive, positive_int, real, representable,
+    simulation_object, spacing)
 from kinema._info import SolveInfo
 from kinema.errors import ConvergenceError
 

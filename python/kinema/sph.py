@@ -21,7 +21,9 @@ from __future__ import annotations
 import numpy as np
 
 from kinema import _core
-from kinema._checks import as_float_array, choice, non_negative, positive, positive_int, simulation_object, finite_result, spacing as _spacing
+from kinema._checks import (
+    as_float_array, choice, finite_result, non_negative, positive, positive_int, simulation_object,
+    spacing as _spacing)
 
 __all__ = ["Fluid", "neighbor_pairs", "kernel", "block", "box_boundary", "martin_moyce", "METHODS"]
 
