@@ -250,3 +250,14 @@ def test_copying_a_simulation_object_is_a_clear_error(make):
     for how in (copy.copy, copy.deepcopy, pickle.dumps):
         with pytest.raises(TypeError, match="cannot be copied"):
             how(obj)
+
+
+# ------------------------------------------------------------------ Ctrl-C
+def test_a_large_cholesky_answers_ctrl_c(ctrl_c_delay):
+    # a 48^3 Poisson matrix takes seconds to factorise; CHOLMOD runs on its own thread and the
+    # caller answers Ctrl-C within the 0.1 s poll (1 s allowed on a loaded machine)
+    A = km.poisson.matrix((48, 48, 48), 1 / 48)
+    assert ctrl_c_delay(lambda: km.sparse.cholesky(A), after=0.3) < 1.0
+    # the abandoned factorisation does not disturb the next one
+    F = km.sparse.cholesky(km.poisson.matrix((6, 6), 0.1))
+    assert np.isfinite(F.solve(np.ones(36))).all()
