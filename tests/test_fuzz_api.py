@@ -11,7 +11,7 @@ import sys
 import pytest
 
 RUNNER = os.path.join(os.path.dirname(__file__), "fuzz", "runner.py")
-BAD = ("raw", "nonfinite", "crash", "hang", "invalid_case")
+BAD = ("raw", "nonfinite", "wrong", "crash", "hang", "invalid_case")
 
 
 def _run(tmp_path, *args):

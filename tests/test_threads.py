@@ -93,6 +93,26 @@ SCENARIOS = {
             stop.set(); w.join()
         print("diverged", diverged)
     """,
+    "sph_nan_writer": """
+        x = km.sph.block([0, 0], [0.2, 0.2], 0.01) + 0.005
+        a = km.sph.Fluid(x, 0.01, gravity=[0, -9.8], domain=([0, 0], [0.4, 0.4]))
+        xv, vv = a.x, a.v
+        stop = threading.Event()
+        def writer():
+            rng = np.random.default_rng(0)
+            while not stop.is_set():
+                i = rng.integers(0, len(xv), 20)
+                old = xv[i].copy(); xv[i] = np.nan; vv[i] = 1e300; xv[i] = old; vv[i] = 0
+        w = threading.Thread(target=writer); w.start()
+        try:
+            for _ in range(30):
+                try:
+                    a.step(1e-4)
+                except (km.DivergenceError, ValueError):
+                    pass
+        finally:
+            stop.set(); w.join()
+    """,
     "render": """
         sc = km.render.Scene()
         sc.add_spheres([[0, 0, 0]], [1.0], km.render.lambertian())

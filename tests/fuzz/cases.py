@@ -40,7 +40,8 @@ SETUP = """
 import numpy as np
 import kinema as km
 rng = np.random.default_rng(0)
-SPD = __import__('scipy.sparse', fromlist=['x']).diags([-np.ones(15), 2.5 * np.ones(16), -np.ones(15)], [-1, 0, 1]).tocsr()
+SP = __import__('scipy.sparse', fromlist=['x'])
+SPD = SP.diags([-np.ones(15), 2.5 * np.ones(16), -np.ones(15)], [-1, 0, 1]).tocsr()
 MS_X = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
 FEM_V, FEM_E = km.fem.rectangle_mesh([0, 0], [1, 1], (2, 2))
 SPH_X = km.sph.block([0, 0], [0.1, 0.1], 0.02)
@@ -58,7 +59,7 @@ ENTRIES = {
                        {"shape": ("vector", "(8, 8)"), "h": ("real", "0.1")}),
     "poisson.Solver": ("km.poisson.Solver({shape}, {h}, shift={shift}).solve(np.ones((8, 8)))",
                        {"shape": ("vector", "(8, 8)"), "h": ("real", "0.1"), "shift": ("real", "0.0")}),
-    "sparse.cholesky": ("km.sparse.cholesky({A}).solve({b})",
+    "sparse.cholesky": ("km.sparse.cholesky(SP.csr_matrix({A})).solve({b})",
                         {"A": ("array", "SPD.toarray()"), "b": ("array", "np.ones(16)")}),
     "sparse.cg": ("km.sparse.cg(SPD, {b}, tol={tol}, max_iter={max_iter})",
                   {"b": ("array", "np.ones(16)"), "tol": ("real", "1e-8"), "max_iter": ("count", "100")}),

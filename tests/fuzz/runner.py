@@ -3,7 +3,8 @@
 Outcomes: ok (returned, every number finite), clean (ValueError or km.KinemaError, or a
 TypeError from copying a simulation object), interrupted (a case sent SIGINT answered with
 KeyboardInterrupt), raw (any other exception type: a traceback a user should not see),
-nonfinite (returned a NaN or Inf without an error), crash (the process died: signal or abort),
+nonfinite (returned a NaN or Inf without an error), wrong (a scenario's own check of the
+answer failed), crash (the process died: signal or abort),
 hang (no answer to the SIGINT sent at the case's interrupt time or at the time limit),
 invalid_case (the case's own code failed before it reached kinema: a defect of the case).
 
@@ -27,7 +28,7 @@ import traceback
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import cases as fuzz_cases  # noqa: E402
 
-OUTCOMES = ("ok", "clean", "interrupted", "raw", "nonfinite", "crash", "hang", "invalid_case")
+OUTCOMES = ("ok", "clean", "interrupted", "raw", "nonfinite", "wrong", "crash", "hang", "invalid_case")
 
 
 def _nonfinite(value, depth=0):
@@ -75,8 +76,11 @@ def _run_child(case, fd):
         if isinstance(exc, AssertionError):
             clean = False
         frames = traceback.extract_tb(exc.__traceback__)
-        inside = any(f"{os.sep}kinema{os.sep}" in f.filename for f in frames)
-        outcome = "clean" if clean else "raw" if inside else "invalid_case"
+        inside = any(f"{os.sep}kinema{os.sep}" in f.filename for f in frames) or "kinema" in str(exc)
+        if isinstance(exc, AssertionError):
+            outcome = "wrong"  # a scenario's check of kinema's answer failed
+        else:
+            outcome = "clean" if clean else "raw" if inside else "invalid_case"
         result.update(outcome=outcome, type=name, message=str(exc)[:300])
         if not clean:
             result["traceback"] = traceback.format_exc()[-1500:]
