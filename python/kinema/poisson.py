@@ -29,7 +29,7 @@ from kinema._checks import (
     as_float_array, choice, grid_shape, integer, positive, positive_int, real, representable,
     simulation_object, spacing)
 from kinema._info import SolveInfo
-from kinema.errors import ConvergenceError
+from kinema.errors import ConvergenceError, DivergenceError
 
 __all__ = ["solve", "laplacian", "matrix", "Solver", "METHODS"]
 
@@ -150,10 +150,16 @@ class Solver:
             u = np.zeros(self.shape)
         else:
             u = self._cell_array(x0, "x0").copy()
-        if self.method == "cholmod":
-            info = self._solve_direct(f, u, tol)
-        else:
-            info = self._core.solve(f, u, tol, max_iter)
+        try:
+            if self.method == "cholmod":
+                info = self._solve_direct(f, u, tol)
+            else:
+                info = self._core.solve(f, u, tol, max_iter)
+        except DivergenceError:
+            # f and x0 are finite and the operator is definite: only overflow makes u non-finite
+            raise ValueError(f"f: the solution overflows float64 (max |f| = {np.abs(f).max():.3g}, "
+                             f"h = {self.h:g}); scale f into a smaller range") from None
+        representable(u, "f", "the solution")
         if not info.converged and raise_on_failure:
             err = ConvergenceError(
                 f"poisson ({self.method}): residual {info.residual:.3e} after {info.iterations} "
