@@ -90,7 +90,7 @@ void bind_fem(py::module_& m) {
              config.density = rho;
              config.damping = damping;
              config.gravity = std::move(gravity);
-             py::gil_scoped_release release;
+             ReleaseGil release;
              fem::BodyModel model =
                  fem::make_model(d, vertices.data(), vertices.shape(0), elements.data(),
                                  elements.shape(0), config, fixed.data(), fixed.size());
@@ -138,8 +138,8 @@ void bind_fem(py::module_& m) {
              Interrupt interrupt = python_interrupt();
              fem::NewtonStats stats;
              {
-               py::gil_scoped_release release;
-               stats = b.step_implicit(dt, options, interrupt);
+               ReleaseGil release;
+               stats = with_rollback(b.state(), [&] { return b.step_implicit(dt, options, interrupt); });
              }
              return stats_dict(stats);
            },
@@ -148,10 +148,10 @@ void bind_fem(py::module_& m) {
       .def("step_symplectic",
            [](Body& b, Scalar dt, Index steps) {
              Interrupt interrupt = python_interrupt();
-             py::gil_scoped_release release;
+             ReleaseGil release;
              for (Index s = 0; s < steps; ++s) {
                interrupt.check();
-               b.step_symplectic(dt);
+               with_rollback(b.state(), [&] { b.step_symplectic(dt); });
              }
            },
            py::arg("dt"), py::arg("steps"))
@@ -166,8 +166,8 @@ void bind_fem(py::module_& m) {
              Interrupt interrupt = python_interrupt();
              fem::NewtonStats stats;
              {
-               py::gil_scoped_release release;
-               stats = b.solve_static(options, load_steps, interrupt);
+               ReleaseGil release;
+               stats = with_rollback(b.state(), [&] { return b.solve_static(options, load_steps, interrupt); });
              }
              return stats_dict(stats);
            },
@@ -179,7 +179,7 @@ void bind_fem(py::module_& m) {
       .def("forces", [](Body& b) {
         std::vector<Scalar> f(b.state().x.size());
         {
-          py::gil_scoped_release release;
+          ReleaseGil release;
           b.forces(b.state().x.data(), f.data());
         }
         const Index d = b.model().dim;
@@ -190,7 +190,7 @@ void bind_fem(py::module_& m) {
         const ElementAssembly& p = b.pattern();
         std::vector<Scalar> values(p.nonzeros());
         {
-          py::gil_scoped_release release;
+          ReleaseGil release;
           b.projected_hessian(b.state().x.data(), project, values.data());
         }
         std::vector<Index> row_ptr = p.row_ptr(), col = p.col_index();
@@ -218,7 +218,7 @@ void bind_fem(py::module_& m) {
     std::vector<Scalar> out(count * out_size);
     const Scalar* Fp = F.data();
     {
-      py::gil_scoped_release release;
+      ReleaseGil release;
       auto run = [&](auto dim_tag) {
         constexpr int D = decltype(dim_tag)::value;
         pointwise<D>(Fp, count, out.data(), out_size, [&](const fem::Mat<D>& Fk, Scalar* o) {

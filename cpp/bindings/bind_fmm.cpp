@@ -58,7 +58,7 @@ void bind_fmm(py::module_& m) {
         fmm::Laplace2dStats stats;
         {
           Interrupt interrupt = python_interrupt();
-          py::gil_scoped_release release;
+          ReleaseGil release;
           stats = fmm::laplace2d(in.sources, in.charges, in.n, in.targets, in.m, config, phi.data(),
                                  grad.data(), interrupt);
         }
@@ -84,7 +84,7 @@ void bind_fmm(py::module_& m) {
         std::vector<Scalar> grad(gradient ? static_cast<size_t>(2 * in.m) : 0);
         {
           Interrupt interrupt = python_interrupt();
-          py::gil_scoped_release release;
+          ReleaseGil release;
           fmm::direct2d(in.sources, in.charges, in.n, in.targets, in.m, gradient, phi.data(),
                         grad.data(), interrupt);
         }

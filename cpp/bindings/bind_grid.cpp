@@ -108,7 +108,7 @@ struct PyFluid {
                                c.gravity[2] * c.gravity[2]);
     if (g > 0) c.up = Vec3{-c.gravity[0] / g, -c.gravity[1] / g, -c.gravity[2] / g};
     else c.up[internal_axis(dim, 1)] = 1;
-    py::gil_scoped_release release;
+    ReleaseGil release;
     solver_ = std::make_unique<FluidSolver>(shape_, h, c);
   }
 
@@ -116,7 +116,7 @@ struct PyFluid {
     fluid::StepInfo info;
     {
       Interrupt interrupt = python_interrupt();
-      py::gil_scoped_release release;
+      ReleaseGil release;
       info = solver_->step(dt, interrupt);
     }
     return to_python(info);
@@ -127,7 +127,7 @@ struct PyFluid {
     Index steps = 0;
     {
       Interrupt interrupt = python_interrupt();
-      py::gil_scoped_release release;
+      ReleaseGil release;
       steps = solver_->advance(duration, cfl, interrupt, &info);
     }
     return py::make_tuple(steps, steps > 0 ? py::object(to_python(info)) : py::object(py::none()));
@@ -156,7 +156,7 @@ struct PyFluid {
   py::array_t<Scalar> divergence() {
     std::vector<Scalar> out(shape_.size());
     {
-      py::gil_scoped_release release;
+      ReleaseGil release;
       solver_->divergence(out.data());
     }
     return to_numpy(std::move(out), shape_.user_shape());
@@ -170,7 +170,7 @@ struct PyFluid {
     const Scalar* x = checked_data(points, "points", m * dim, false);
     std::vector<Scalar> out(m * dim);
     {
-      py::gil_scoped_release release;
+      ReleaseGil release;
       parallel_for(m, [&](Index p) {
         Vec3 q{0, 0, 0};
         for (int c = 0; c < dim; ++c) q[internal_axis(dim, c)] = x[p * dim + c];
@@ -263,7 +263,7 @@ void bind_grid(py::module_& m) {
     const Scalar* qp = checked_data(q, "q", shape.size(), false);
     std::vector<Scalar> out(shape.size());
     {
-      py::gil_scoped_release release;
+      ReleaseGil release;
       fluid::AdvectionScratch scratch;
       fluid::advect(s, u, fluid::cell_layout(shape, periodic), qp, out.data(), dt / h, rk_order, scratch);
     }

@@ -52,7 +52,7 @@ void bind_massspring(py::module_& m) {
                throw InvalidArgument("stiffness, rest_length, damping: expected one per spring");
              if (mass.size() != n) throw InvalidArgument("mass: expected one per vertex");
              const int d = static_cast<int>(x.shape(1));
-             py::gil_scoped_release release;
+             ReleaseGil release;
              massspring::SystemModel model = massspring::make_system(
                  d, n, springs.data(), count, stiffness.data(), rest_length.data(),
                  damping.data(), mass.data(), fixed.data(), fixed.size(), gravity);
@@ -82,10 +82,10 @@ void bind_massspring(py::module_& m) {
              Interrupt interrupt = python_interrupt();
              massspring::StepStats stats, last;
              {
-               py::gil_scoped_release release;
+               ReleaseGil release;
                for (Index k = 0; k < steps; ++k) {
                  interrupt.check();
-                 last = s.step(dt, kind, beta, lin, cg_tol, interrupt);
+                 last = with_rollback(s.state(), [&] { return s.step(dt, kind, beta, lin, cg_tol, interrupt); });
                  stats.clamped = stats.clamped || last.clamped;
                  stats.refactored = stats.refactored || last.refactored;
                  stats.cg_iterations += last.cg_iterations;

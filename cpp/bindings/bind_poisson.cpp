@@ -35,7 +35,7 @@ struct PySolver {
         throw InvalidArgument("solid: expected one flag per cell");
       mask = solid->data();
     }
-    py::gil_scoped_release release;
+    ReleaseGil release;
     solver_ = std::make_unique<PoissonSolver>(shape_, h, parse_bc(bc), mask, shift, config);
   }
 
@@ -47,7 +47,7 @@ struct PySolver {
     SolveInfo info;
     {
       Interrupt interrupt = python_interrupt();
-      py::gil_scoped_release release;
+      ReleaseGil release;
       info = solver_->solve(bp, xp, options, interrupt);
     }
     return to_python(info);
@@ -59,7 +59,7 @@ struct PySolver {
     const Scalar* bp = b ? checked_data(*b, "b", n, false) : nullptr;
     std::vector<Scalar> y(n);
     {
-      py::gil_scoped_release release;
+      ReleaseGil release;
       if (bp) solver_->op().residual(bp, xp, y.data());
       else solver_->op().apply(xp, y.data());
     }
@@ -73,7 +73,7 @@ struct PySolver {
     const Scalar* bp = checked_data(b, "b", n, false);
     std::vector<Scalar> x(n);
     {
-      py::gil_scoped_release release;
+      ReleaseGil release;
       mg->vcycle(bp, x.data());
     }
     return to_numpy(std::move(x), user_shape_);
@@ -85,7 +85,7 @@ struct PySolver {
     Scalar* t = checked_data(T, "T", n, true);
     std::vector<Scalar> at(n);
     Interrupt interrupt = python_interrupt();
-    py::gil_scoped_release release;
+    ReleaseGil release;
     for (Index s = 0; s < steps; ++s) {
       interrupt.check();
       solver_->op().apply(t, at.data());
@@ -109,20 +109,20 @@ struct PySolver {
 
   void project(py::array x) {
     Scalar* xp = checked_data(x, "x", shape_.size(), true);
-    py::gil_scoped_release release;
+    ReleaseGil release;
     solver_->op().project(xp);
   }
 
   Scalar incompatibility(py::array b) {
     const Scalar* bp = checked_data(b, "f", shape_.size(), false);
-    py::gil_scoped_release release;
+    ReleaseGil release;
     return solver_->incompatibility(bp);
   }
 
   py::tuple assemble() {
     CsrArrays A;
     {
-      py::gil_scoped_release release;
+      ReleaseGil release;
       A = solver_->op().assemble();
     }
     const Index nnz = static_cast<Index>(A.values.size());

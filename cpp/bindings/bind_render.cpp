@@ -115,7 +115,7 @@ void bind_render(py::module_& m) {
             render::RenderResult r;
             {
               Interrupt interrupt = python_interrupt();
-              py::gil_scoped_release release;
+              ReleaseGil release;
               r = render::render(s, cam, sky(sky_bottom, sky_top), config, interrupt);
             }
             py::dict stats;
@@ -148,7 +148,7 @@ void bind_render(py::module_& m) {
             render::PreviewResult r;
             {
               Interrupt interrupt = python_interrupt();
-              py::gil_scoped_release release;
+              ReleaseGil release;
               if (shadow_samples > 0) s.prepare();  // shadow rays go through the BVH
               r = render::preview(s, cam, sky(sky_bottom, sky_top), config, interrupt);
             }
@@ -167,7 +167,7 @@ void bind_render(py::module_& m) {
             const render::Camera cam = camera(look_from, look_at, up, vfov, width, height);
             std::vector<Index> ids;
             {
-              py::gil_scoped_release release;
+              ReleaseGil release;
               ids = render::primary_hits(s, cam);
             }
             return to_numpy(std::move(ids), {height, width});
@@ -183,7 +183,7 @@ void bind_render(py::module_& m) {
             std::vector<Scalar> t(static_cast<size_t>(n));
             std::vector<Index> ids(static_cast<size_t>(n));
             {
-              py::gil_scoped_release release;
+              ReleaseGil release;
               s.prepare();
 #pragma omp parallel for schedule(static)
               for (Index i = 0; i < n; ++i) {

@@ -1,8 +1,14 @@
 // kinema._core.sparse: CHOLMOD factor and CG on scipy's CSR arrays (zero-copy). The Python
 // layer (kinema/sparse.py) converts and checks the matrix; here only the array lengths are
 // checked, the C++ core checks the pattern itself.
+#include <chrono>
+#include <condition_variable>
+#include <exception>
 #include <memory>
+#include <mutex>
 #include <string>
+#include <thread>
+#include <vector>
 
 #include "bindings/common.h"
 #include "core/errors.h"
@@ -51,6 +57,53 @@ auto csc_view(Index n, const Indices& indptr, const Indices& indices, const Scal
   return BasicCscView<I>{n, n, indptr.data(), indices.data(), data.data()};
 }
 
+// CHOLMOD cannot stop midway through a factorisation (a large one takes seconds), so it runs
+// on a thread of its own while the caller answers Ctrl-C. On Ctrl-C the caller returns at once;
+// the thread finishes on its own copy of the matrix and frees the abandoned factor.
+template <class I>
+std::unique_ptr<CholmodFactor> factor_interruptibly(const BasicCscView<I>& A, CholmodOrdering order) {
+  struct Job {
+    std::vector<I> col_ptr, row_index;
+    std::vector<Scalar> values;
+    std::mutex mutex;
+    std::condition_variable finished;
+    bool done = false;
+    std::unique_ptr<CholmodFactor> factor;
+    std::exception_ptr error;
+  };
+  auto job = std::make_shared<Job>();
+  const auto nnz = static_cast<size_t>(A.col_ptr[A.cols]);
+  job->col_ptr.assign(A.col_ptr, A.col_ptr + A.cols + 1);
+  job->row_index.assign(A.row_index, A.row_index + nnz);
+  job->values.assign(A.values, A.values + nnz);
+  const Index rows = A.rows, cols = A.cols;
+  std::thread([job, rows, cols, order] {
+    use_thread_count_setting();
+    std::unique_ptr<CholmodFactor> factor;
+    std::exception_ptr error;
+    try {
+      const BasicCscView<I> copy{rows, cols, job->col_ptr.data(), job->row_index.data(), job->values.data()};
+      factor = std::make_unique<CholmodFactor>(copy, order);
+    } catch (...) {
+      error = std::current_exception();
+    }
+    std::lock_guard<std::mutex> lock(job->mutex);
+    job->factor = std::move(factor);
+    job->error = error;
+    job->done = true;
+    job->finished.notify_all();
+  }).detach();
+  Interrupt interrupt = python_interrupt();
+  std::unique_lock<std::mutex> lock(job->mutex);
+  while (!job->finished.wait_for(lock, std::chrono::milliseconds(20), [&] { return job->done; })) {
+    lock.unlock();
+    interrupt.check();
+    lock.lock();
+  }
+  if (job->error) std::rethrow_exception(job->error);
+  return std::move(job->factor);
+}
+
 CholmodOrdering parse_ordering(const std::string& name) {
   if (name == "default") return CholmodOrdering::Default;
   if (name == "amd") return CholmodOrdering::Amd;
@@ -67,8 +120,8 @@ void bind_factor_arrays(py::class_<CholmodFactor>& factor) {
                        const std::string& ordering) {
              const auto A = csc_view(n, indptr, indices, data);
              const CholmodOrdering order = parse_ordering(ordering);
-             py::gil_scoped_release release;
-             return std::make_unique<CholmodFactor>(A, order);
+             ReleaseGil release;
+             return factor_interruptibly(A, order);
            }),
            py::arg("n"), py::arg("indptr"), py::arg("indices"), py::arg("data"),
            py::arg("ordering") = "default")
@@ -77,7 +130,7 @@ void bind_factor_arrays(py::class_<CholmodFactor>& factor) {
           [](CholmodFactor& f, Index n, const Indices& indptr, const Indices& indices,
              const ScalarArray& data) {
             const auto A = csc_view(n, indptr, indices, data);
-            py::gil_scoped_release release;
+            ReleaseGil release;
             f.refactor(A);
           },
           py::arg("n"), py::arg("indptr"), py::arg("indices"), py::arg("data"));
@@ -90,7 +143,7 @@ py::tuple asymmetry_of(Index n, const Indices& indptr, const Indices& indices, c
   const BasicCsrView<I> A{n, n, indptr.data(), indices.data(), data.data()};
   Asymmetry a;
   {
-    py::gil_scoped_release release;
+    ReleaseGil release;
     a = asymmetry(A);
   }
   return py::make_tuple(a.value, a.row, a.col);
@@ -120,7 +173,7 @@ void bind_sparse(py::module_& m) {
             const Scalar* bp = b.data();
             Scalar* xp = x.mutable_data();
             {
-              py::gil_scoped_release release;
+              ReleaseGil release;
               f.solve(bp, xp, nrhs);
             }
             return x;
@@ -162,7 +215,7 @@ void bind_sparse(py::module_& m) {
         Interrupt interrupt = python_interrupt();
         SolveInfo info;
         {
-          py::gil_scoped_release release;
+          ReleaseGil release;
           info = cg_csr(A, bp, xp, jacobi, options, interrupt);
         }
         return to_python(info);

@@ -55,7 +55,7 @@ struct PyFluid {
     config.reorder_every = reorder_every;
     config.neighbor_skin = neighbor_skin;
     config.warm_start = warm_start;
-    py::gil_scoped_release release;
+    ReleaseGil release;
     const sph::Model model = sph::make_model(d, spacing, rho0, std::move(xb),
                                              lower ? lower->data() : nullptr,
                                              upper ? upper->data() : nullptr);
@@ -66,10 +66,21 @@ struct PyFluid {
     sph::StepStats stats;
     {
       Interrupt interrupt = python_interrupt();
-      py::gil_scoped_release release;
-      stats = solver->step(state, dt, interrupt);
+      ReleaseGil release;
+      stats = step_or_rollback(dt, interrupt);
     }
     return to_dict(stats);
+  }
+
+  // One step; a failing step leaves the state as it was and drops the caches it built.
+  sph::StepStats step_or_rollback(Scalar dt, Interrupt& interrupt) {
+    check_ids();
+    try {
+      return with_rollback(state, [&] { return solver->step(state, dt, interrupt); });
+    } catch (...) {
+      solver->reset_caches();
+      throw;
+    }
   }
 
   // Steps of CFL-limited dt until `duration` has passed; Ctrl-C is checked between steps.
@@ -78,7 +89,7 @@ struct PyFluid {
     sph::StepStats last;
     {
       Interrupt interrupt = python_interrupt();
-      py::gil_scoped_release release;
+      ReleaseGil release;
       const Scalar end = state.time + duration;
       while (state.time < end) {
         interrupt.check();
@@ -86,12 +97,26 @@ struct PyFluid {
         const Scalar remaining = end - state.time;
         // Stretch the last step a little rather than leave a sliver.
         if (dt >= remaining || remaining - dt < 0.1 * dt) dt = remaining;
-        last = solver->step(state, dt, interrupt);
+        last = step_or_rollback(dt, interrupt);
         ++steps;
         if (dt == remaining) state.time = end;
       }
     }
     return py::make_tuple(steps, to_dict(last));
+  }
+
+  // The ids view is writable (checkpoints restore it), so a step first checks that it still
+  // is a permutation of 0..n-1: the ids label the particles the step moves and reorders.
+  void check_ids() const {
+    std::vector<char> seen(static_cast<size_t>(state.n), 0);
+    for (Index k = 0; k < state.n; ++k) {
+      const Index id = state.ids[k];
+      if (id < 0 || id >= state.n || seen[id])
+        throw InvalidArgument("ids: row " + std::to_string(k) + " holds " + std::to_string(id) +
+                              ", which is out of range or repeated; ids must be a permutation of 0.." +
+                              std::to_string(state.n - 1));
+      seen[id] = 1;
+    }
   }
 
   static py::dict to_dict(const sph::StepStats& s) {
@@ -138,14 +163,14 @@ void bind_sph(py::module_& m) {
            py::arg("cfl"))
       .def("reset_caches", [](PyFluid& f) { f.solver->reset_caches(); })
       .def("density_error", [](PyFluid& f) {
-        py::gil_scoped_release release;
+        ReleaseGil release;
         return f.solver->density_error(f.state);
       })
       // (fluid pairs (P, 2), (fluid, boundary sample) pairs (Q, 2)) that the next step will use.
       .def("neighbor_pairs_in_use", [](PyFluid& f) {
         std::vector<Index> pairs, boundary_pairs;
         {
-          py::gil_scoped_release release;
+          ReleaseGil release;
           pairs = f.solver->neighbor_pairs_in_use(f.state, boundary_pairs);
         }
         const Index p = static_cast<Index>(pairs.size()) / 2, q = static_cast<Index>(boundary_pairs.size()) / 2;
@@ -192,7 +217,7 @@ void bind_sph(py::module_& m) {
     const Scalar* x = checked_data(points, "points", n * d, false);
     std::vector<Index> pairs;
     {
-      py::gil_scoped_release release;
+      ReleaseGil release;
       pairs = d == 2 ? neighbor_pairs<2>(x, n, radius) : neighbor_pairs<3>(x, n, radius);
     }
     const Index count = static_cast<Index>(pairs.size()) / 2;

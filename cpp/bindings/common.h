@@ -11,6 +11,8 @@
 #include <vector>
 
 #include "core/interrupt.h"
+#include "core/parallel.h"
+#include "core/rollback.h"
 #include "core/types.h"
 #include "linalg/solve_info.h"
 
@@ -29,6 +31,13 @@ inline Interrupt python_interrupt() {
     return PyErr_CheckSignals() != 0;
   });
 }
+
+// Releases the GIL for a long call, which then runs with kinema's process-wide thread count
+// (km.set_num_threads) whichever Python thread makes it.
+struct ReleaseGil {
+  ReleaseGil() { use_thread_count_setting(); }
+  py::gil_scoped_release release;
+};
 
 // The Python-side SolveInfo class lives in kinema/_info.py; build one from the C++ record.
 inline py::object to_python(const SolveInfo& info) {

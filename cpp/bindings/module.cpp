@@ -83,11 +83,14 @@ PYBIND11_MODULE(_core, m) {
   m.doc() = "kinema's compiled core; use the kinema package, not this module.";
   bind::translate_exceptions();
 
-  m.def("set_num_threads", [](int n) {
-    if (n < 1) throw InvalidArgument("n: expected a thread count >= 1, got " + std::to_string(n));
-    set_num_threads(n);
+  m.def("set_num_threads", [](long long n) {
+    if (n < 1 || n > max_thread_count())
+      throw InvalidArgument("n: expected a thread count in [1, " + std::to_string(max_thread_count()) + "], got " +
+                            std::to_string(n));
+    set_num_threads(static_cast<int>(n));
   });
-  m.def("get_num_threads", &num_threads);
+  m.def("get_num_threads", &configured_num_threads);
+  m.def("max_num_threads", &max_thread_count);
   m.def("build_info", &build_info);
 
   auto sparse = m.def_submodule("sparse");

@@ -6,14 +6,43 @@
 #include <omp.h>
 
 #include <algorithm>
+#include <atomic>
 #include <vector>
 
 #include "core/types.h"
 
 namespace kinema {
 
+// The number of threads a parallel region started on the calling thread will use.
 inline int num_threads() { return omp_get_max_threads(); }
-inline void set_num_threads(int n) { omp_set_num_threads(n); }
+
+// kinema's thread count (km.set_num_threads) is one setting for the whole process, whereas
+// OpenMP's omp_set_num_threads only changes the calling thread's count (a Python worker thread
+// would keep the default). The setting lives here, 0 meaning OpenMP's default; the bindings
+// apply it to the calling thread on entry to every long call (use_thread_count_setting).
+inline std::atomic<int>& thread_count_setting() {
+  static std::atomic<int> count{0};
+  return count;
+}
+
+// Far more threads than cores only adds overhead, and OpenMP aborts when it cannot create them.
+inline int max_thread_count() { return std::max(64, 4 * omp_get_num_procs()); }
+
+inline void set_num_threads(int n) {
+  thread_count_setting() = n;
+  omp_set_num_threads(n);
+}
+
+// The process-wide count, or OpenMP's default when none was set.
+inline int configured_num_threads() {
+  const int n = thread_count_setting();
+  return n > 0 ? n : omp_get_max_threads();
+}
+
+inline void use_thread_count_setting() {
+  const int n = thread_count_setting();
+  if (n > 0 && omp_get_max_threads() != n) omp_set_num_threads(n);
+}
 
 // Below this many items a loop is not worth waking the thread team for.
 constexpr Index kParallelGrain = 4096;

@@ -59,6 +59,7 @@ template <bool Periodic>
     for (Index k = 0; k < n; ++k) {
       Scalar s = x[k] - offset;
       s -= p * std::floor(s / p);
+      s = (s > -1 && s <= p) ? s : 0;  // NaN or garbage (see bracket in kernels.h)
       int i = static_cast<int>(s);
       i = i > period - 1 ? period - 1 : (i < 0 ? 0 : i);  // s rounded up to p (or garbage in)
       w[k] = s - static_cast<Scalar>(i);
@@ -71,6 +72,7 @@ template <bool Periodic>
     for (Index k = 0; k < n; ++k) {
       Scalar s = x[k] - offset;
       s = s < 0 ? 0 : (s > hi ? hi : s);
+      s = s == s ? s : 0;
       int i = static_cast<int>(s);
       i = i > top ? top : i;
       w[k] = s - static_cast<Scalar>(i);

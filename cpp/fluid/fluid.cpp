@@ -8,6 +8,7 @@
 
 #include "core/errors.h"
 #include "core/parallel.h"
+#include "core/rollback.h"
 #include "core/simd.h"
 #include "core/timer.h"
 #include "fluid/advect_rows.h"
@@ -298,6 +299,10 @@ void FluidSolver::apply_sources() {
 
 StepInfo FluidSolver::step(Scalar dt, Interrupt& interrupt) {
   if (!(dt > 0) || !std::isfinite(dt)) throw InvalidArgument("dt: expected a finite time step > 0");
+  return with_rollback(state_, [&] { return step_phases(dt, interrupt); });
+}
+
+StepInfo FluidSolver::step_phases(Scalar dt, Interrupt& interrupt) {
   SerialBelow serial(cells_.size());
   Stopwatch total, clock;
   StepInfo info;
@@ -503,7 +508,9 @@ void FluidSolver::add_forces(Scalar dt) {
       });
     }
   }
-  // Prescribed faces and periodic duplicates are never written above: no boundary pass needed.
+  // Prescribed and duplicate faces were skipped above; a periodic duplicate must follow its face
+  // 0, or the seam carries a spurious divergence that the projection cannot remove.
+  if (config_.periodic) enforce_boundary();
 }
 
 void FluidSolver::confinement_force(bool buoyant) {

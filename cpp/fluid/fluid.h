@@ -85,7 +85,7 @@ class FluidSolver {
  public:
   FluidSolver(const GridShape& shape, Scalar h, const FluidConfig& config);
 
-  // One splitting step of size dt [s].
+  // One splitting step of size dt [s]. When it throws, the state is as it was before.
   StepInfo step(Scalar dt, Interrupt& interrupt);
   // Steps of dt = cfl h / u_max (u_max includes sqrt(5 h |g|), Bridson Sec. 3.2) until
   // `duration` has passed; returns the number of steps.
@@ -112,6 +112,7 @@ class FluidSolver {
   const FieldLayout& cells() const { return cells_; }
 
  private:
+  StepInfo step_phases(Scalar dt, Interrupt& interrupt);  // step() without the rollback
   // The five phases of a step, in order.
   void advect(Scalar dt);
   void add_forces(Scalar dt);

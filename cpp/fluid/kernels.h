@@ -51,11 +51,15 @@ struct Bracket {
   Scalar w = 0;  // weight of i1
 };
 
+// A NaN coordinate (a NaN velocity written into a state view while a step runs), or one whose
+// periodic wrap lost every digit (a huge dt), is read as 0: converting it to an integer would be
+// undefined and index out of bounds. The step's blow-up check then reports any NaN.
 inline Bracket bracket(Scalar s, Index n, Index period) {
   Bracket b;
   if (period > 0) {
     const Scalar p = static_cast<Scalar>(period);
     s -= p * std::floor(s / p);
+    if (!(s > -1 && s <= p)) s = 0;  // NaN, or the rounding garbage of a huge s (dt far too large)
     b.i0 = static_cast<Index>(s);
     if (b.i0 >= period) b.i0 = period - 1;  // s rounded up to p
     b.w = s - static_cast<Scalar>(b.i0);
@@ -66,6 +70,7 @@ inline Bracket bracket(Scalar s, Index n, Index period) {
   if (n == 1) return b;
   const Scalar hi = static_cast<Scalar>(n - 1);
   s = s < 0 ? 0 : (s > hi ? hi : s);
+  if (s != s) s = 0;
   b.i0 = static_cast<Index>(s);
   if (b.i0 > n - 2) b.i0 = n - 2;
   b.w = s - static_cast<Scalar>(b.i0);

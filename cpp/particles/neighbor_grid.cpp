@@ -22,8 +22,8 @@ constexpr Index kMinCellBudget = 1 << 12;
 
 template <int D>
 void NeighborGrid<D>::build(const Scalar* x, Index n, Scalar radius, int subdivision) {
-  if (!(radius > 0) || !std::isfinite(radius))
-    throw InvalidArgument("radius: expected a finite number > 0, got " + std::to_string(radius));
+  if (!(radius > 0) || !std::isfinite(radius) || !std::isfinite(1 / radius))
+    throw InvalidArgument("radius: expected a finite number > 0 with a finite inverse, got " + format_real(radius));
   if (subdivision < 1 || subdivision > kMaxSubdivision)
     throw InvalidArgument("subdivision: expected 1 to " + std::to_string(kMaxSubdivision) + ", got " +
                           std::to_string(subdivision));
@@ -39,6 +39,10 @@ void NeighborGrid<D>::build(const Scalar* x, Index n, Scalar radius, int subdivi
     }
     if (!lo.allFinite() || !hi.allFinite())
       throw InvalidArgument("points: coordinates must be finite");
+    if (!(hi - lo).allFinite())
+      throw InvalidArgument("points: the coordinates span more than the largest float64 (from " +
+                            format_real(lo.minCoeff()) + " to " + format_real(hi.maxCoeff()) +
+                            "); shift or scale them");
   }
   // Cell edge: radius / subdivision, enlarged until the bounding box needs at most `budget`
   // cells; the reach then shrinks to the cells the radius still spans.
@@ -48,7 +52,9 @@ void NeighborGrid<D>::build(const Scalar* x, Index n, Scalar radius, int subdivi
   for (;;) {
     Scalar cells = 1;
     for (int a = 0; a < D; ++a) cells *= std::floor((hi[a] - lo[a]) / cell_) + 1;
-    if (cells <= budget) break;
+    // cell_ grows by at least 1.25 per pass; an infinite cell (a denormal radius over a wide
+    // box) holds every point
+    if (cells <= budget || !std::isfinite(cell_)) break;
     cell_ *= std::max<Scalar>(1.25, std::pow(cells / budget, 1.0 / D));
     reach_ = std::max<Index>(1, static_cast<Index>(std::ceil(radius / cell_)));
   }

@@ -73,14 +73,16 @@ __all__ = [
 
 
 def set_num_threads(n: int) -> None:
-    """Sets the number of OpenMP threads kinema's kernels use (n >= 1)."""
-    if isinstance(n, bool) or not isinstance(n, int):
-        raise ValueError(f"n: expected an integer thread count >= 1, got {n!r}")
-    _core.set_num_threads(n)
+    """Sets the number of OpenMP threads kinema's kernels use, for the whole process: a call
+    made from any Python thread (a worker of a thread pool included) uses this count.
+    n: an integer in [1, max(64, 4 x the number of processors)]; more raises ValueError."""
+    from kinema._checks import integer
+    _core.set_num_threads(integer(n, "n", low=1, high=_core.max_num_threads()))
 
 
 def get_num_threads() -> int:
-    """The number of OpenMP threads kinema's kernels use."""
+    """The number of OpenMP threads kinema's kernels use (the last set_num_threads, else
+    OpenMP's default: OMP_NUM_THREADS or the number of processors)."""
     return _core.get_num_threads()
 
 

@@ -11,10 +11,19 @@ MAX_CELLS = 2**31
 
 
 def as_float_array(x, name, *, ndim=None, finite=True):
-    """``x`` as a C-contiguous float64 array, checked for dimension and finiteness."""
+    """``x`` as a C-contiguous float64 array, checked for dimension and finiteness.
+    Complex input is refused (its imaginary part would be lost), as are values beyond float64."""
+    kind = getattr(getattr(x, "dtype", None), "kind", None)
+    if kind is None and not isinstance(x, (int, float, np.number)):
+        try:
+            kind = np.asarray(x).dtype.kind
+        except (TypeError, ValueError, OverflowError):
+            kind = None
+    if kind == "c" or isinstance(x, complex):
+        raise ValueError(f"{name}: expected real numbers, got complex values")
     try:
         a = np.ascontiguousarray(x, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
+    except (TypeError, ValueError, OverflowError) as exc:
         raise ValueError(f"{name}: expected an array of real numbers ({exc})") from None
     if ndim is not None and a.ndim not in np.atleast_1d(ndim):
         want = " or ".join(str(d) for d in np.atleast_1d(ndim))
@@ -28,22 +37,60 @@ def as_float_array(x, name, *, ndim=None, finite=True):
 def positive(x, name):
     """``x`` as a float, which must be finite and > 0."""
     try:
-        v = float(x)
-    except (TypeError, ValueError):
+        v = real(x, name)
+    except ValueError:
         raise ValueError(f"{name}: expected a positive number, got {x!r}") from None
     if not math.isfinite(v) or v <= 0:
         raise ValueError(f"{name}: expected a finite number > 0, got {v}")
     return v
 
 
+# Grid and particle spacings: a solver divides by h^2 and multiplies by h^3 (cell volumes,
+# particle masses); outside this range one of them overflows or underflows.
+SPACING_RANGE = (1e-100, 1e100)
+
+
+def spacing(x, name):
+    """``x`` as a positive float within SPACING_RANGE."""
+    v = positive(x, name)
+    lo, hi = SPACING_RANGE
+    if not lo <= v <= hi:
+        raise ValueError(f"{name}: {v} is outside [{lo:g}, {hi:g}]: the solver's 1/{name}^2 or "
+                         f"{name}^3 would not be representable; choose other units")
+    return v
+
+
 def non_negative(x, name):
     """``x`` as a float, which must be finite and >= 0."""
     try:
-        v = float(x)
-    except (TypeError, ValueError):
+        v = real(x, name)
+    except ValueError:
         raise ValueError(f"{name}: expected a number >= 0, got {x!r}") from None
     if not math.isfinite(v) or v < 0:
         raise ValueError(f"{name}: expected a finite number >= 0, got {v}")
+    return v
+
+
+def real(x, name):
+    """``x`` as a Python float: a real number (not bool, not complex) within float64's range.
+    Not checked for finiteness (see :func:`finite`)."""
+    if isinstance(x, (bool, np.bool_, complex, np.complexfloating, str, bytes)):
+        raise ValueError(f"{name}: expected a real number, got {x!r}")
+    if isinstance(x, np.ndarray) and x.ndim == 0:
+        x = x[()]
+    try:
+        return float(x)
+    except OverflowError:
+        raise ValueError(f"{name}: {x!r} is beyond the range of a float64") from None
+    except (TypeError, ValueError):
+        raise ValueError(f"{name}: expected a real number, got {x!r}") from None
+
+
+def finite(x, name):
+    """``x`` as a finite float."""
+    v = real(x, name)
+    if not math.isfinite(v):
+        raise ValueError(f"{name}: expected a finite number, got {v}")
     return v
 
 
@@ -54,19 +101,59 @@ def choice(value, name, options):
     return value
 
 
-def positive_int(x, name, *, allow_none=False):
-    """``x`` as an int >= 1 (or None when allowed)."""
+# Counts and iteration limits cross into C++ as int64; counts of loops the user waits for are
+# further limited by the callers (e.g. MAX_STEPS).
+INDEX_MAX = 2**63 - 1
+INT_MAX = 2**31 - 1
+
+
+def integer(x, name, *, low=None, high=INDEX_MAX, allow_none=False):
+    """``x`` as a Python int in [low, high] (None passes through when allowed). Floats, bools
+    and strings are refused, so that 2.5 never silently becomes 2."""
     if x is None and allow_none:
         return None
-    if isinstance(x, bool) or not isinstance(x, (int, np.integer)) or x < 1:
+    if isinstance(x, (bool, np.bool_)) or not isinstance(x, (int, np.integer)):
+        raise ValueError(f"{name}: expected an integer, got {x!r}")
+    v = int(x)
+    if low is not None and v < low:
+        raise ValueError(f"{name}: expected an integer >= {low}, got {v}")
+    if high is not None and v > high:
+        raise ValueError(f"{name}: expected an integer <= {high}, got {v}")
+    return v
+
+
+def positive_int(x, name, *, allow_none=False, high=INDEX_MAX):
+    """``x`` as an int in [1, high] (or None when allowed)."""
+    if x is None and allow_none:
+        return None
+    if isinstance(x, (bool, np.bool_)) or not isinstance(x, (int, np.integer)) or x < 1:
         raise ValueError(f"{name}: expected an integer >= 1, got {x!r}")
-    return int(x)
+    return integer(x, name, low=1, high=high)
+
+
+def representable(value, names, what="the result"):
+    """``value`` (computed from the arguments ``names``) when finite; otherwise a ValueError
+    naming them: finite input whose result overflows float64 is a bad argument."""
+    if np.isfinite(value).all():
+        return value
+    raise ValueError(f"{names}: {what} overflows float64 for these values (scale the input "
+                     "into a smaller range)")
+
+
+def finite_result(value, what):
+    """``value`` (a float or array computed from a state) when finite; otherwise raises
+    km.DivergenceError, as a step does on the same state."""
+    if np.isfinite(value).all():
+        return value
+    from kinema.errors import DivergenceError
+    raise DivergenceError(f"{what}: non-finite result; the state holds a NaN or Inf "
+                          "(written into a state view, or left by a diverged run)")
 
 
 def grid_shape(shape, name):
     """A 2D or 3D grid shape of positive ints, within MAX_CELLS."""
     try:
-        s = tuple(int(n) for n in shape)
+        s = tuple(integer(n, name) for n in shape)
     except TypeError:
         raise ValueError(f"{name}: expected a tuple (nx, ny[, nz]), got {shape!r}") from None
     if len(s) not in (2, 3):
@@ -76,3 +163,55 @@ def grid_shape(shape, name):
     if math.prod(s) > MAX_CELLS:
         raise ValueError(f"{name}: {s} has {math.prod(s)} cells, more than the {MAX_CELLS} supported")
     return s
+
+
+# ---------------------------------------------------------------------------- simulation objects
+def simulation_object(cls):
+    """Class decorator for the classes that own C++ state (km.grid.Fluid, km.sph.Fluid, ...).
+
+    Thread safety: every method and property of one object runs under that object's re-entrant
+    lock, so calls from several threads are serialised (a thread waiting for the lock releases
+    the GIL and answers Ctrl-C). The C++ core releases the GIL in long calls; without the lock,
+    two threads could step one object at once. Distinct objects do not share a lock and run in
+    parallel. Arrays already handed out (the zero-copy state views) are not covered: writing
+    into one while another thread steps is a data race on numbers (the C++ core clamps every
+    position it turns into an index, so it cannot crash), not a supported way to share state.
+
+    Copying: ``copy.copy``, ``copy.deepcopy`` and pickling raise a TypeError that says so; a
+    shallow copy would share the C++ state (stepping one would advance both).
+    """
+    import functools
+    import threading
+
+    def lock_of(self):
+        lock = self.__dict__.get("_kinema_lock")
+        if lock is None:  # __init__ creates it; objects built without __init__ get one here
+            lock = self.__dict__.setdefault("_kinema_lock", threading.RLock())
+        return lock
+
+    def locked(fn):
+        @functools.wraps(fn)
+        def wrapper(self, *args, **kwargs):
+            with lock_of(self):
+                return fn(self, *args, **kwargs)
+        return wrapper
+
+    for key, value in list(vars(cls).items()):
+        if isinstance(value, property):
+            setattr(cls, key, property(value.fget and locked(value.fget), value.fset and locked(value.fset),
+                                       value.fdel and locked(value.fdel), value.__doc__))
+        elif callable(value) and not isinstance(value, (staticmethod, classmethod, type)) and (
+                key == "__init__" or not key.startswith("__")):
+            setattr(cls, key, locked(value))
+
+    name = f"km.{cls.__module__.removeprefix('kinema.')}.{cls.__qualname__}"
+
+    def refuse_copy(self, *args):
+        raise TypeError(f"{name} cannot be copied or pickled: it owns C++ solver state that a copy "
+                        "would share; build a new object from the state arrays (copy those with "
+                        "numpy), or save a checkpoint with km.Scene")
+
+    cls.__copy__ = refuse_copy
+    cls.__deepcopy__ = refuse_copy
+    cls.__reduce_ex__ = refuse_copy
+    return cls

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kinema._checks import as_float_array, choice, positive, positive_int
+from kinema._checks import as_float_array, choice, positive, positive_int, representable, spacing
 from kinema.errors import DivergenceError, StabilityError
 from kinema.poisson import Solver
 
@@ -29,7 +29,9 @@ SCHEMES = ("ftcs", "implicit", "crank_nicolson")
 
 def stable_dt(h, kappa, d) -> float:
     """Largest FTCS step: dt = h^2 / (2 d kappa) [s]."""
-    return positive(h, "h") ** 2 / (2 * d * positive(kappa, "kappa"))
+    if isinstance(d, bool) or d not in (2, 3):
+        raise ValueError(f"d: expected 2 or 3, got {d!r}")
+    return float(representable(spacing(h, "h") ** 2 / (2 * d * positive(kappa, "kappa")), "h, kappa", "h^2 / kappa"))
 
 
 class Stepper:
@@ -43,11 +45,14 @@ class Stepper:
                  tol=1e-10, solid=None):
         self.kappa = positive(kappa, "kappa")
         self.dt = positive(dt, "dt")
-        self.h = positive(h, "h")
+        self.h = spacing(h, "h")
         self.scheme = choice(scheme, "scheme", SCHEMES)
         self.tol = positive(tol, "tol")
         d = len(shape)
         self._c = self.kappa * self.dt
+        if not (np.isfinite(self._c) and np.isfinite(1 / self._c) if self._c > 0 else False):
+            raise ValueError(f"kappa, dt: kappa*dt = {self.kappa}*{self.dt} is not representable as a "
+                             "positive float64 with a finite inverse; choose other units")
         if scheme == "ftcs":
             ratio = self._c / self.h**2
             if check and ratio > 1 / (2 * d):
@@ -65,7 +70,7 @@ class Stepper:
         T = as_float_array(T, "T")
         if T.shape != self.shape:
             raise ValueError(f"T: expected shape {self.shape}, got {T.shape}")
-        steps = positive_int(steps, "steps")
+        steps = positive_int(steps, "steps")  # a long run answers Ctrl-C between steps
         out = T.copy()
         if self.scheme == "ftcs":
             self._solver._core.explicit_steps(out, self._c, steps)

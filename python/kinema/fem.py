@@ -24,13 +24,16 @@ path (no Hessian is assembled). The damping c [1/s] is mass-proportional.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
 
 from kinema import _core
-from kinema._checks import as_float_array, choice, non_negative, positive, positive_int
+from kinema._checks import (
+    as_float_array, choice, finite, finite_result, non_negative, positive, positive_int,
+    simulation_object)
 from kinema._state import state_property
 from kinema.massspring import _gravity, _indices
 
@@ -78,7 +81,7 @@ class NewtonInfo:
 def lame(E, nu):
     """(mu, lam) [Pa] from Young's modulus E [Pa] and Poisson's ratio nu in (-1, 0.5)."""
     E = positive(E, "E")
-    nu = float(nu)
+    nu = finite(nu, "nu")
     if not -1 < nu < 0.5:
         raise ValueError(f"nu: expected a Poisson ratio in (-1, 0.5), got {nu}")
     return _core.fem.lame(E, nu)
@@ -95,9 +98,14 @@ def _F_batch(F):
 def _pointwise(F, what, model, mu, lam, project=False):
     choice(model, "model", MODELS)
     mu = positive(mu, "mu")
-    lam = float(lam)
+    lam = finite(lam, "lam")
     batch, lead, d = _F_batch(F)
     out = _core.fem.pointwise(batch, what, model, mu, lam, project)
+    if not np.isfinite(out).all():
+        bad = int(np.count_nonzero(~np.isfinite(out).reshape(len(batch), -1).all(axis=1)))
+        raise ValueError(f"F: {what} is not finite for {bad} of the {len(batch)} deformation gradients "
+                         "(an inverted element, det F <= 0, for a model with log J; or values so large "
+                         "that the energy overflows)")
     return out.reshape(lead + out.shape[1:])
 
 
@@ -117,6 +125,7 @@ def piola_derivative(F, model, mu, lam, *, project=False):
     return _pointwise(F, "dpdf", model, mu, lam, project)
 
 
+@simulation_object
 class Body:
     """An elastic body of linear triangles (2D, plane strain) or tetrahedra (3D).
 
@@ -144,7 +153,7 @@ class Body:
             raise ValueError("elements: expected at least one element")
         choice(model, "model", MODELS)
         E = positive(youngs_modulus, "youngs_modulus")
-        nu = float(poisson_ratio)
+        nu = finite(poisson_ratio, "poisson_ratio")
         if not -1 < nu < 0.5:
             raise ValueError(f"poisson_ratio: expected a value in (-1, 0.5), got {nu}")
         rho = positive(density, "density")
@@ -235,17 +244,17 @@ class Body:
     def energy(self) -> float:
         """Kinetic + elastic + gravitational energy [J] (per unit thickness in 2D)."""
         c = self._core
-        return c.kinetic_energy() + c.elastic_energy() + c.gravity_energy()
+        return finite_result(c.kinetic_energy() + c.elastic_energy() + c.gravity_energy(), "energy")
 
     def elastic_energy(self) -> float:
-        return self._core.elastic_energy()
+        return finite_result(self._core.elastic_energy(), "elastic_energy")
 
     def kinetic_energy(self) -> float:
-        return self._core.kinetic_energy()
+        return finite_result(self._core.kinetic_energy(), "kinetic_energy")
 
     def forces(self) -> np.ndarray:
         """(n, d) forces [N] = -d(elastic + gravity potential)/dx at x, fixed vertices included."""
-        return self._core.forces()
+        return finite_result(self._core.forces(), "forces")
 
     def hessian(self, project=False) -> sp.csr_matrix:
         """d^2 E_elastic/dx^2 at x as a (n d, n d) CSR matrix (dof i*d + r); ``project`` applies
@@ -258,10 +267,23 @@ class Body:
 def _cells(n, d, name):
     if np.ndim(n) == 0:
         n = (n,) * d
-    n = tuple(positive_int(int(v) if isinstance(v, (int, np.integer)) else v, name) for v in n)
+    try:
+        n = tuple(positive_int(v, name) for v in n)
+    except TypeError:
+        raise ValueError(f"{name}: expected an int or {d} ints, got {n!r}") from None
     if len(n) != d:
         raise ValueError(f"{name}: expected an int or {d} ints, got {n}")
+    cells = math.prod(n)
+    if cells > _MAX_MESH_CELLS:
+        raise ValueError(f"{name}: {n} is {cells} cells, more than the {_MAX_MESH_CELLS} a generated mesh "
+                         "supports (its int64 element array alone would need "
+                         f"{cells * 6 * (d + 1) * 8 / 2**30:.3g} GiB)")
     return n
+
+
+_MAX_COORDINATE = 1e100
+# 2^26 cells: up to 4e8 tetrahedra, far beyond what one Body can step, within int32 vertex ids.
+_MAX_MESH_CELLS = 2**26
 
 
 def _corners(lower, upper, d):
@@ -271,6 +293,9 @@ def _corners(lower, upper, d):
         raise ValueError(f"lower, upper: expected {d} coordinates each, got {lo.shape}, {hi.shape}")
     if not (hi > lo).all():
         raise ValueError(f"upper: expected upper > lower componentwise, got {hi} and {lo}")
+    if max(np.abs(lo).max(), np.abs(hi).max()) > _MAX_COORDINATE:
+        raise ValueError(f"lower, upper: coordinates beyond {_MAX_COORDINATE:g} ({lo}, {hi}); element "
+                         "volumes (d-th powers of lengths) would overflow: choose other units")
     return lo, hi
 
 

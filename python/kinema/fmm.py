@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from kinema import _core
-from kinema._checks import as_float_array
+from kinema._checks import as_float_array, positive_int, real, representable
 
 __all__ = ["laplace2d", "direct2d", "laplace3d", "direct3d", "last_info"]
 
@@ -39,9 +39,9 @@ def _inputs(sources, charges, targets):
     if np.iscomplexobj(charges):
         raise ValueError("charges: expected real charges, got complex numbers")
     src = _points(sources, "sources")
-    q = as_float_array(charges, "charges")
-    if q.ndim == 0:
-        q = np.full(src.shape[0], float(q))
+    q = as_float_array(charges, "charges", ndim=(0, 1))
+    if np.ndim(charges) == 0:  # one charge for all (as_float_array returns it with shape (1,))
+        q = np.full(src.shape[0], float(q[0]))
     if q.shape != (src.shape[0],):
         raise ValueError(f"charges: expected shape ({src.shape[0]},) (one per source), got {q.shape}")
     tgt = None if targets is None else _points(targets, "targets")
@@ -49,10 +49,7 @@ def _inputs(sources, charges, targets):
 
 
 def _eps(eps):
-    try:
-        v = float(eps)
-    except (TypeError, ValueError):
-        raise ValueError(f"eps: expected a number in [1e-15, 1), got {eps!r}") from None
+    v = real(eps, "eps")
     if not (1e-15 <= v < 1):
         raise ValueError(f"eps: expected a number in [1e-15, 1) (double precision cannot do "
                          f"better than ~1e-15), got {v}")
@@ -62,9 +59,7 @@ def _eps(eps):
 def _count(x, name):
     if x is None:
         return 0
-    if isinstance(x, bool) or not isinstance(x, (int, np.integer)) or x < 1:
-        raise ValueError(f"{name}: expected None (automatic) or an integer >= 1, got {x!r}")
-    return int(x)
+    return positive_int(x, name)
 
 
 def laplace2d(sources, charges, targets=None, *, eps=1e-10, gradient=False, order=None,
@@ -89,6 +84,9 @@ def laplace2d(sources, charges, targets=None, *, eps=1e-10, gradient=False, orde
         raise ValueError(f"order: expected an integer in 1..100, got {order}")
     phi, grad, info = _core.fmm.laplace2d(src, q, tgt, e, bool(gradient), p,
                                           _count(leaf_size, "leaf_size"))
+    representable(phi, "sources, charges", "the potential")
+    if gradient:
+        representable(grad, "sources, charges", "the gradient")
     _last_info.clear()
     _last_info.update(info)
     return (phi, grad) if gradient else phi
@@ -100,6 +98,9 @@ def direct2d(sources, charges, targets=None, *, eps=None, gradient=False):
     if eps is not None:
         _eps(eps)
     phi, grad = _core.fmm.direct2d(src, q, tgt, bool(gradient))
+    representable(phi, "sources, charges", "the potential")
+    if gradient:
+        representable(grad, "sources, charges", "the gradient")
     return (phi, grad) if gradient else phi
 
 

@@ -21,7 +21,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from kinema import _core
-from kinema._checks import as_float_array, choice, grid_shape, non_negative, positive, positive_int
+from kinema._checks import (
+    as_float_array, choice, finite, finite_result, grid_shape, non_negative, positive,
+    positive_int, simulation_object, spacing)
 from kinema._info import SolveInfo
 from kinema._state import assign
 
@@ -56,16 +58,9 @@ def _rk(rk_order):
     return int(rk_order)
 
 
-def _finite(x, name):
-    try:
-        v = float(x)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name}: expected a real number, got {x!r}") from None
-    if not np.isfinite(v):
-        raise ValueError(f"{name}: expected a finite number, got {v}")
-    return v
 
 
+@simulation_object
 class Fluid:
     """An incompressible fluid on a MAC grid of ``shape`` cells of size ``h`` [m].
 
@@ -102,7 +97,7 @@ class Fluid:
                  advection_kernel="auto", open=()):
         self.shape = grid_shape(shape, "shape")
         self.dim = len(self.shape)
-        self.h = positive(h, "h")
+        self.h = spacing(h, "h")
         self.advection = choice(advection, "advection", SCHEMES)
         self.rk_order = _rk(rk_order)
         self.projection = choice(projection, "projection", _PROJECTIONS)
@@ -127,7 +122,7 @@ class Fluid:
             alpha, beta = buoyancy
         except (TypeError, ValueError):
             raise ValueError(f"buoyancy: expected a pair (alpha, beta), got {buoyancy!r}") from None
-        alpha, beta = _finite(alpha, "buoyancy"), _finite(beta, "buoyancy")
+        alpha, beta = finite(alpha, "buoyancy"), finite(beta, "buoyancy")
         self.buoyancy = (alpha, beta)
         self.vorticity_confinement = non_negative(vorticity_confinement, "vorticity_confinement")
         max_iter = positive_int(max_iter, "max_iter", allow_none=True) or 0
@@ -318,21 +313,21 @@ class Fluid:
     # ------------------------------------------------------------------ diagnostics
     def divergence(self):
         """(nx, ny[, nz]) discrete divergence of the MAC velocity [1/s] (0 in solid cells)."""
-        return self._core.divergence()
+        return finite_result(self._core.divergence(), "divergence")
 
     def velocity_at(self, points):
         """(M, d) velocity [m/s] at (M, d) points [m], interpolated (clamped to the domain)."""
         p = as_float_array(points, "points", ndim=2)
         if p.shape[1] != self.dim:
             raise ValueError(f"points: expected shape (M, {self.dim}), got {p.shape}")
-        return self._core.velocity_at(p)
+        return finite_result(self._core.velocity_at(p), "velocity_at")
 
     def kinetic_energy(self) -> float:
         """0.5 * integral of |u|^2 over the domain (density 1) [m^(d+2)/s^2]."""
-        return self._core.kinetic_energy()
+        return finite_result(self._core.kinetic_energy(), "kinetic_energy")
 
     def max_speed(self) -> float:
-        return self._core.max_speed()
+        return finite_result(self._core.max_speed(), "max_speed")
 
 
 def advect(q, velocity, dt, h, scheme="maccormack", rk_order=2, *, periodic=False):
@@ -350,6 +345,6 @@ def advect(q, velocity, dt, h, scheme="maccormack", rk_order=2, *, periodic=Fals
         if a.shape != want:
             raise ValueError(f"velocity[{c}]: expected shape {want}, got {a.shape}")
         comps.append(a)
-    dt = _finite(dt, "dt")
-    return _core.grid.advect(qa, comps, dt, positive(h, "h"), choice(scheme, "scheme", SCHEMES),
+    dt = finite(dt, "dt")
+    return _core.grid.advect(qa, comps, dt, spacing(h, "h"), choice(scheme, "scheme", SCHEMES),
                              _rk(rk_order), bool(periodic))

@@ -27,7 +27,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from kinema import _core
-from kinema._checks import as_float_array, choice, non_negative, positive, positive_int
+from kinema._checks import (
+    as_float_array, choice, finite_result, non_negative, positive, positive_int, simulation_object,
+    spacing)
 from kinema._state import assign
 
 __all__ = ["System", "StepInfo", "cloth", "INTEGRATORS"]
@@ -96,6 +98,7 @@ def _gravity(gravity, d):
     return [float(c) for c in g]
 
 
+@simulation_object
 class System:
     """A mass-spring system.
 
@@ -159,7 +162,8 @@ class System:
 
     @property
     def explicit_dt_limit(self) -> float:
-        """Gershgorin bound 2 / omega_max [s] on the explicit and symplectic steps."""
+        """Gershgorin bound 2 / omega_max [s] on the explicit and symplectic steps; ``inf`` when
+        no spring has stiffness (nothing limits the step)."""
         return self._core.explicit_dt_limit
 
     def step(self, dt, integrator="implicit", beta=1.0, *, linear_solver="cholmod",
@@ -176,17 +180,17 @@ class System:
     def energy(self) -> float:
         """Kinetic + spring + gravitational energy [J] (gravity potential -m g . x)."""
         c = self._core
-        return c.kinetic_energy() + c.spring_energy() + c.gravity_energy()
+        return finite_result(c.kinetic_energy() + c.spring_energy() + c.gravity_energy(), "energy")
 
     def kinetic_energy(self) -> float:
-        return self._core.kinetic_energy()
+        return finite_result(self._core.kinetic_energy(), "kinetic_energy")
 
     def spring_energy(self) -> float:
-        return self._core.spring_energy()
+        return finite_result(self._core.spring_energy(), "spring_energy")
 
     def forces(self) -> np.ndarray:
         """(n, d) total force [N] at the current state: springs, damping and gravity."""
-        return self._core.forces()
+        return finite_result(self._core.forces(), "forces")
 
 
 class ClothMesh(tuple):
@@ -223,6 +227,8 @@ def cloth(nx, ny, size, *, dim=3, plane="xy", origin=None, return_kinds=False):
     ny = positive_int(ny, "ny")
     if nx < 2 or ny < 2:
         raise ValueError(f"nx, ny: expected at least 2 vertices per side, got ({nx}, {ny})")
+    if nx * ny > 2**26:
+        raise ValueError(f"nx, ny: {nx} x {ny} vertices is more than the 2^26 a generated cloth supports")
     if dim not in (2, 3):
         raise ValueError(f"dim: expected 2 or 3, got {dim!r}")
     if plane not in _PLANES or (dim == 2 and plane != "xy"):
@@ -235,8 +241,8 @@ def cloth(nx, ny, size, *, dim=3, plane="xy", origin=None, return_kinds=False):
         sx, sy = float(s[0]), float(s[1])
     else:
         raise ValueError(f"size: expected a scalar or (sx, sy), got shape {s.shape}")
-    positive(sx, "size")
-    positive(sy, "size")
+    spacing(sx, "size")
+    spacing(sy, "size")
     I, J = np.meshgrid(np.arange(nx), np.arange(ny), indexing="ij")
     x = np.zeros((nx * ny, dim))
     if origin is not None:

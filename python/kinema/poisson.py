@@ -25,9 +25,11 @@ import numpy as np
 import scipy.sparse as sp
 
 from kinema import _core
-from kinema._checks import as_float_array, choice, grid_shape, positive, positive_int
+from kinema._checks import (
+    as_float_array, choice, grid_shape, integer, positive, positive_int, real, representable,
+    simulation_object, spacing)
 from kinema._info import SolveInfo
-from kinema.errors import ConvergenceError
+from kinema.errors import ConvergenceError, DivergenceError
 
 __all__ = ["solve", "laplacian", "matrix", "Solver", "METHODS"]
 
@@ -51,6 +53,7 @@ def _solid_mask(solid, shape):
     return np.ascontiguousarray(mask, dtype=np.uint8)
 
 
+@simulation_object
 class Solver:
     """A reusable solver for ``(shift*I - lap) u = f`` on one grid, boundary and solid mask.
 
@@ -66,17 +69,18 @@ class Solver:
     def __init__(self, shape, h, bc="dirichlet", *, method="mgpcg", solid=None, shift=0.0,
                  pre_smooth=2, post_smooth=2):
         self.shape = grid_shape(shape, "shape")
-        self.h = positive(h, "h")
+        self.h = spacing(h, "h")
         self.bc = choice(bc, "bc", _BCS)
         self.method = choice(method, "method", METHODS)
-        shift = float(shift)
+        shift = real(shift, "shift")
         if not np.isfinite(shift) or shift < 0:
             raise ValueError(f"shift: expected a finite number >= 0, got {shift}")
         self.shift = shift
         mask = _solid_mask(solid, self.shape)
         core_method = "cg" if method == "cholmod" else method
         self._core = _core.poisson.Solver(list(self.shape), self.h, bc, mask, shift, core_method,
-                                          int(pre_smooth), int(post_smooth))
+                                          integer(pre_smooth, "pre_smooth", low=0, high=64),
+                                          integer(post_smooth, "post_smooth", low=0, high=64))
         self._factor = None
         self._free = None
         if method == "cholmod":
@@ -101,7 +105,7 @@ class Solver:
     def apply(self, u) -> np.ndarray:
         """A u for a cell array ``u`` of ``shape``."""
         u = self._cell_array(u, "u")
-        return self._core.apply(u)
+        return representable(self._core.apply(u), "u", "A u")
 
     def _cell_array(self, a, name):
         a = as_float_array(a, name)
@@ -146,10 +150,16 @@ class Solver:
             u = np.zeros(self.shape)
         else:
             u = self._cell_array(x0, "x0").copy()
-        if self.method == "cholmod":
-            info = self._solve_direct(f, u, tol)
-        else:
-            info = self._core.solve(f, u, tol, max_iter)
+        try:
+            if self.method == "cholmod":
+                info = self._solve_direct(f, u, tol)
+            else:
+                info = self._core.solve(f, u, tol, max_iter)
+        except DivergenceError:
+            # f and x0 are finite and the operator is definite: only overflow makes u non-finite
+            raise ValueError(f"f: the solution overflows float64 (max |f| = {np.abs(f).max():.3g}, "
+                             f"h = {self.h:g}); scale f into a smaller range") from None
+        representable(u, "f", "the solution")
         if not info.converged and raise_on_failure:
             err = ConvergenceError(
                 f"poisson ({self.method}): residual {info.residual:.3e} after {info.iterations} "

@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from kinema import _core
-from kinema._checks import as_float_array, non_negative, positive, positive_int
+from kinema._checks import as_float_array, non_negative, positive, positive_int, simulation_object
 
 __all__ = [
     "Material",
@@ -124,6 +124,11 @@ def emissive(radiance) -> Material:
 # ------------------------------------------------------------------ camera
 
 
+# Images up to 2^27 pixels (3 GiB of float64 RGB) and 2^16 pixels a side; up to 2^20 samples per
+# pixel and 2^16 bounces (beyond, a render would not end in any useful time).
+MAX_SIDE, MAX_PIXELS, MAX_SPP, MAX_DEPTH = 2**16, 2**27, 2**20, 2**16
+
+
 class Camera:
     """Pinhole camera at ``look_from`` looking at ``look_at``.
 
@@ -138,8 +143,11 @@ class Camera:
         self.vfov = positive(vfov, "vfov")
         if self.vfov >= 180:
             raise ValueError(f"vfov: expected degrees in (0, 180), got {self.vfov}")
-        self.width = positive_int(width, "width")
-        self.height = positive_int(height, "height")
+        self.width = positive_int(width, "width", high=MAX_SIDE)
+        self.height = positive_int(height, "height", high=MAX_SIDE)
+        if self.width * self.height > MAX_PIXELS:
+            raise ValueError(f"width, height: {self.width} x {self.height} is more than the {MAX_PIXELS} "
+                             f"pixels supported ({self.width * self.height * 24 / 2**30:.1f} GiB of float64 RGB)")
         view = np.subtract(self.look_at, self.look_from)
         if not np.any(view):
             raise ValueError("look_at: must differ from look_from")
@@ -170,6 +178,7 @@ def _sky(sky):
 # ------------------------------------------------------------------ scene
 
 
+@simulation_object
 class Scene:
     """Spheres, triangle meshes and infinite planes with their materials.
 
@@ -259,9 +268,9 @@ class Scene:
         for error bars: (image, variance), both (height, width, 3).
         """
         cam = _camera(camera)
-        spp = positive_int(spp, "spp")
-        max_depth = positive_int(max_depth, "max_depth")
-        roulette_depth = positive_int(roulette_depth, "roulette_depth")
+        spp = positive_int(spp, "spp", high=MAX_SPP)
+        max_depth = positive_int(max_depth, "max_depth", high=MAX_DEPTH)
+        roulette_depth = positive_int(roulette_depth, "roulette_depth", high=MAX_DEPTH)
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or not 0 <= seed < 2**64:
             raise ValueError(f"seed: expected an integer in [0, 2**64), got {seed!r}")
         if return_variance and spp < 2:

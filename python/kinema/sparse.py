@@ -19,9 +19,9 @@ import numpy as np
 import scipy.sparse as sp
 
 from kinema import _core
-from kinema._checks import as_float_array, positive, positive_int
+from kinema._checks import as_float_array, positive, positive_int, representable
 from kinema._info import SolveInfo
-from kinema.errors import ConvergenceError
+from kinema.errors import ConvergenceError, DivergenceError
 
 __all__ = ["Factor", "cholesky", "cg", "SYMMETRY_RTOL"]
 
@@ -149,9 +149,9 @@ class Factor:
         if b.shape[0] != n:
             raise ValueError(f"b: expected shape ({n},) or ({n}, k), got {b.shape}")
         if b.ndim == 1:
-            return self._core.solve(b)
+            return representable(self._core.solve(b), "b", "A^-1 b")
         # CHOLMOD takes right-hand sides column-major: the (k, n) C-ordered transpose.
-        return self._core.solve(np.ascontiguousarray(b.T)).T
+        return representable(self._core.solve(np.ascontiguousarray(b.T)).T, "b", "A^-1 b")
 
     def refactor(self, A2, *, check_symmetry: bool = True) -> None:
         """Re-factorises new values with the same sparsity pattern, reusing the analysis.
@@ -221,8 +221,13 @@ def cg(A, b, x0=None, tol=1e-8, max_iter=None, precond="jacobi", *,
     max_iter = positive_int(max_iter, "max_iter", allow_none=True) or 0
     if precond is not None and not (isinstance(precond, str) and precond == "jacobi"):
         raise ValueError(f"precond: expected None or 'jacobi', got {precond!r}")
-    info: SolveInfo = _core.sparse.cg(n, indptr, indices, data, b, x, precond == "jacobi", tol,
-                                      max_iter)
+    try:
+        info: SolveInfo = _core.sparse.cg(n, indptr, indices, data, b, x, precond == "jacobi", tol,
+                                          max_iter)
+    except DivergenceError as exc:
+        # A, b and x0 are finite: the iterates overflowed, or A is not positive definite
+        raise ValueError(f"A, b: {exc} (A not positive definite, or values that overflow float64: "
+                         "scale A or b into a smaller range)") from None
     if not info.converged and raise_on_failure:
         err = ConvergenceError(
             f"cg: no convergence in {info.iterations} iterations: relative residual "

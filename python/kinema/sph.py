@@ -21,7 +21,9 @@ from __future__ import annotations
 import numpy as np
 
 from kinema import _core
-from kinema._checks import as_float_array, choice, non_negative, positive, positive_int
+from kinema._checks import (
+    as_float_array, choice, finite_result, non_negative, positive, positive_int, simulation_object,
+    spacing as _spacing)
 from kinema._state import assign
 
 __all__ = ["Fluid", "neighbor_pairs", "kernel", "block", "box_boundary", "martin_moyce", "METHODS"]
@@ -64,7 +66,7 @@ def neighbor_pairs(points, radius) -> np.ndarray:
     points: (N, d) [m], d = 2 or 3. radius: > 0 [m].
     """
     x = _points(points, "points")
-    r = positive(radius, "radius")
+    r = _spacing(radius, "radius")
     return _core.sph.neighbor_pairs(x, r)
 
 
@@ -79,8 +81,8 @@ def kernel(r, h, d, derivative=0):
     ra = as_float_array(np.atleast_1d(r), "r")
     if (ra < 0).any():
         raise ValueError("r: expected distances >= 0")
-    h = positive(h, "h")
-    if d not in (2, 3) or isinstance(d, bool):
+    h = _spacing(h, "h")
+    if isinstance(d, bool) or not isinstance(d, (int, np.integer)) or d not in (2, 3):
         raise ValueError(f"d: expected 2 or 3, got {d!r}")
     choice(derivative, "derivative", (0, 1, 2))
     out = _core.sph.kernel(ra, h, int(d), int(derivative))
@@ -93,7 +95,7 @@ def block(lower, upper, spacing) -> np.ndarray:
     Returns (n, d) positions: every lattice point whose centre lies in the box.
     """
     lo, hi = _box(lower, upper)
-    s = positive(spacing, "spacing")
+    s = _spacing(spacing, "spacing")
     if np.prod(np.floor((hi - lo) / s + 0.5)) > 2**31:
         raise ValueError(f"spacing: {s} gives more than 2^31 particles for this box")
     return _core.sph.block(lo.tolist(), hi.tolist(), s)
@@ -106,13 +108,14 @@ def box_boundary(lower, upper, spacing, layers=2) -> np.ndarray:
     Two layers cover the support (2 * spacing) of a fluid particle at the wall.
     """
     lo, hi = _box(lower, upper)
-    s = positive(spacing, "spacing")
+    s = _spacing(spacing, "spacing")
     layers = positive_int(layers, "layers")
     if np.prod((hi - lo) / s + 2 * layers + 1) > 2**31:
         raise ValueError(f"spacing: {s} gives more than 2^31 boundary samples for this box")
     return _core.sph.box_boundary(lo.tolist(), hi.tolist(), s, layers)
 
 
+@simulation_object
 class Fluid:
     """An SPH liquid (2D or 3D) of particles of equal mass rho0 * spacing^d.
 
@@ -150,7 +153,7 @@ class Fluid:
         n, d = x.shape
         self.dim = d
         self.method = choice(method, "method", METHODS)
-        self.spacing = positive(spacing, "spacing")
+        self.spacing = _spacing(spacing, "spacing")
         self.rho0 = positive(rho0, "rho0")
         self.viscosity = non_negative(viscosity, "viscosity")
         if gravity is None:
@@ -306,7 +309,7 @@ class Fluid:
     def kinetic_energy(self) -> float:
         """0.5 * m * sum |v|^2 [J] (2D: per unit depth)."""
         v = self.v
-        return 0.5 * self.mass * float(np.einsum("ij,ij->", v, v))
+        return finite_result(0.5 * self.mass * float(np.einsum("ij,ij->", v, v)), "kinetic_energy")
 
     def reset_caches(self) -> None:
         """Forgets what the solver carries between steps besides the state arrays and time.
@@ -329,7 +332,7 @@ class Fluid:
     def density_error(self) -> float:
         """Mean over particles of max(rho/rho0 - 1, 0) at the current positions (refreshes
         ``density``, and for WCSPH ``pressure``)."""
-        return self._core.density_error()
+        return finite_result(self._core.density_error(), "density_error")
 
 
 # ---------------------------------------------------------------------- obstacle sampling

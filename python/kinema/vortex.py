@@ -21,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from kinema import _stepping, fmm
-from kinema._checks import as_float_array, positive
+from kinema._checks import as_float_array, positive, simulation_object, spacing
 
 __all__ = ["VortexParticles", "merging_patches", "VortexParticles3D", "ring", "thick_ring", "saffman_speed"]
 
@@ -29,6 +29,7 @@ __all__ = ["VortexParticles", "merging_patches", "VortexParticles3D", "ring", "t
 _CORE_CUTOFF = 6.0
 
 
+@simulation_object
 class VortexParticles:
     """Point vortices with Gaussian cores, advanced by RK4 with FMM velocities.
 
@@ -43,7 +44,7 @@ class VortexParticles:
         self.circulation = as_float_array(circulation, "circulation", ndim=1).copy()
         if self.circulation.shape != (len(self.x),):
             raise ValueError(f"circulation: expected shape ({len(self.x)},), got {self.circulation.shape}")
-        self.core = positive(core, "core")
+        self.core = spacing(core, "core")
         self.eps = fmm._eps(eps)
         self.time = 0.0
 
