@@ -94,7 +94,8 @@ class Solver {
   // Advances state by dt. Throws DivergenceError on non-finite values or runaway speeds.
   virtual StepStats step(State& state, Scalar dt, Interrupt& interrupt) = 0;
   // The CFL time step cfl * spacing / (c + v_max) (WCSPH) or cfl * spacing / v_max (DFSPH),
-  // also bounded by the viscous limit and max_dt.
+  // also bounded by the viscous limit 0.05 spacing^2 / nu, sqrt(0.1 cfl spacing / |g|) and
+  // kMaxDt.
   virtual Scalar stable_dt(const State& state, Scalar cfl) const = 0;
   // Recomputes the densities of the current positions into state.density and returns the
   // mean over particles of max(rho/rho0 - 1, 0).

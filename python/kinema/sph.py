@@ -130,9 +130,10 @@ class Fluid:
     reorder_every (least steps between Morton reorderings, 16; 0 keeps the input order),
     neighbor_skin (Verlet skin of the neighbour lists as a fraction of h, 0.2: the cell-grid
     search reruns only when a particle has moved half the skin; 0 searches every step),
-    warm_start (DFSPH: share of the last step's stiffnesses each solve starts from, 0.5; it
-    halved the density iterations of a collapsing column, while 1.0 overshot and diverged:
-    the solver only adds pressure, so an over-pressured start cannot be taken back).
+    warm_start (DFSPH: share of the last step's stiffnesses each solve starts from, 0.5,
+    scaled for a change of dt; it halved the density iterations of a collapsing column, while
+    1.0 overshot and diverged: the density solve gives back only what the warm start gave, at
+    half the rate).
 
     State (writable zero-copy views of the solver's memory; they stay valid for the life of
     the Fluid, but Morton reordering permutes rows in place, so row k of ``x`` is the particle
@@ -141,7 +142,7 @@ class Fluid:
     * x: (n, d) positions [m]; v: (n, d) velocities [m/s]
     * density: (n,) [kg/m^d] at the start of the last step (``density_error()`` refreshes it)
     * pressure: (n,) [Pa] of the last step (DFSPH: p_i = kappa_i rho_i of its constant-density
-      solve, the pressure whose force that solve applied)
+      and divergence-free solves together, the pressure whose force they applied)
     * ids: (n,) int64 original index of each row; time [s]
     """
 
@@ -303,7 +304,8 @@ class Fluid:
 
     def stable_dt(self, cfl=0.4) -> float:
         """The CFL step cfl * spacing / (c + v_max) (WCSPH) or cfl * spacing / v_max (DFSPH),
-        also bounded by the viscous limit 0.125 h^2 / nu, sqrt(cfl spacing / |g|) and 5 ms."""
+        also bounded by the viscous limit 0.05 spacing^2 / nu, sqrt(0.1 cfl spacing / |g|) and
+        5 ms."""
         return self._core.stable_dt(positive(cfl, "cfl"))
 
     def kinetic_energy(self) -> float:
