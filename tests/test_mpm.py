@@ -363,3 +363,22 @@ def test_views_are_zero_copy_and_state_roundtrips():
     assert sim.parameters == ()
     with pytest.raises(ValueError, match="state"):
         sim.set_state({k: v[:3] if np.ndim(v) else v for k, v in s.items()})
+
+
+def test_scene_mesh_filling_matches_the_shape():
+    # The scene adapter's `mesh` object: lattice points inside a closed surface (winding number
+    # in 3D, crossing number in 2D) are exactly those inside the box the surface bounds.
+    from kinema.scenes.adapters.mpm import inside_mesh
+    from kinema.scenes.preview import boundary_faces
+
+    rng = np.random.default_rng(2)
+    v, tets = km.fem.box_mesh([0.2, 0.3, 0.1], [0.7, 0.6, 0.5], 3)
+    faces = boundary_faces(tets)
+    p = rng.random((2000, 3))
+    box = np.all((p > [0.2, 0.3, 0.1]) & (p < [0.7, 0.6, 0.5]), axis=1)
+    assert np.array_equal(inside_mesh(p, v, faces), box)
+    square = np.array([[0.2, 0.3], [0.7, 0.3], [0.7, 0.6], [0.2, 0.6]])
+    edges = np.array([[0, 1], [1, 2], [2, 3], [3, 0]])
+    q = rng.random((2000, 2))
+    assert np.array_equal(inside_mesh(q, square, edges),
+                          np.all((q > [0.2, 0.3]) & (q < [0.7, 0.6]), axis=1))
