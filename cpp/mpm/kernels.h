@@ -39,19 +39,19 @@ struct Svd {
 
 // 2D: F = R S by the closed-form polar decomposition (R's cosine and sine are the normalised
 // (F00 + F11, F10 - F01)), then S = W diag(s) W^T by the closed-form eigenvectors of a symmetric
-// 2x2 matrix; no trigonometric calls.
+// 2x2 matrix; no trigonometric calls (and sqrt, not hypot: deformation gradients are O(1)).
 inline Svd<2> svd(const Mat<2>& F) {
-  const Scalar a = F(0, 0) + F(1, 1), b = F(1, 0) - F(0, 1), r = std::hypot(a, b);
+  const Scalar a = F(0, 0) + F(1, 1), b = F(1, 0) - F(0, 1), r = std::sqrt(a * a + b * b);
   const Scalar cr = r > 0 ? a / r : 1, sr = r > 0 ? b / r : 0;
   Mat<2> R;
   R << cr, -sr, sr, cr;
   const Mat<2> S = R.transpose() * F;
   const Scalar p = S(0, 0), q = 0.5 * (S(0, 1) + S(1, 0)), t = S(1, 1);
-  const Scalar half = 0.5 * (p - t), root = std::hypot(half, q), mid = 0.5 * (p + t);
+  const Scalar half = 0.5 * (p - t), root = std::sqrt(half * half + q * q), mid = 0.5 * (p + t);
   // Eigenvector of the larger eigenvalue mid + root: (half + root, q) or, without
   // cancellation when half < 0, (q, root - half).
   Scalar ex = half >= 0 ? half + root : q, ey = half >= 0 ? q : root - half;
-  const Scalar en = std::hypot(ex, ey);
+  const Scalar en = std::sqrt(ex * ex + ey * ey);
   if (en > 0) {
     ex /= en;
     ey /= en;
