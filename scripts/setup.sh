@@ -9,7 +9,8 @@ root=$(pwd)
 venv="$root/.venv"
 
 apt_packages=(cmake g++ libeigen3-dev libsuitesparse-dev libopenblas-dev libgtest-dev libbenchmark-dev ffmpeg
-  xvfb xauth libgl1-mesa-dri libegl1 libglx-mesa0)  # the viewer's tests: a virtual display, Mesa's OpenGL
+  xvfb xauth libgl1 libgl1-mesa-dri libegl1 libglx-mesa0 libx11-6 libxcursor1 libxi6 libxinerama1 libxrandr2
+  libxrender1)  # the viewer and its tests: a virtual display, Mesa's OpenGL, the X libraries GLFW opens
 missing=()
 for p in "${apt_packages[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")

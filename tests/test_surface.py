@@ -77,3 +77,17 @@ def test_bad_input_names_the_argument():
     with pytest.raises(ValueError, match="path"):
         km.surface.Mesh(np.zeros((3, 3)), np.array([[0, 1, 2]])).write("x.stl")
     assert len(km.surface.reconstruct(np.zeros((0, 3)), S).triangles) == 0
+
+
+def test_example_water_surface_runs(tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    example = Path(__file__).resolve().parents[1] / "examples" / "water_surface.py"
+    subprocess.run([sys.executable, str(example), "--out", str(tmp_path), "--frames", "2", "--spacing", "0.04",
+                    "--spp", "1", "--width", "32"], check=True, timeout=300)
+    assert (tmp_path / "water.png").stat().st_size > 100
+    meshio = pytest.importorskip("meshio")
+    mesh = meshio.read(tmp_path / "surface_002.ply")
+    assert len(mesh.cells_dict["triangle"]) > 100

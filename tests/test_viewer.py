@@ -204,3 +204,24 @@ def test_bad_sources_are_named():
         kv._source(42, False, ())
     with pytest.raises(FileNotFoundError, match="no such folder"):
         kv.RunSource("/nonexistent/run")
+
+
+def test_3d_grid_run_drawn_as_a_volume_with_a_slice(display, tmp_path):
+    scene = km.Scene.load(km.scenes.resolve("smoke_plume_3d"), quick=True,
+                          overrides=[("output.every", 1), ("output.png", False), ("output.mp4", False)])
+    scene.run(tmp_path, 3, progress=False)
+    v = kv.Viewer.for_run(tmp_path, width=320, height=240, quantity="density")
+    try:
+        v.seek(2)
+        kind, grid = v._structures["grid"]
+        assert kind == "volume_grid"
+        img = v.screenshot()
+        shape = next(f for f in v._items[0].fields.values() if f.ndim == 3).shape
+        corners = np.array([[a, b, c] for a in (0, 1) for b in (0, 1) for c in (0, 1)], float) * shape * v._items[0].h
+        col, row = v.project(corners)
+        inside = img[int(row.min()) + 3:int(row.max()) - 3, int(col.min()) + 3:int(col.max()) - 3].astype(int)
+        background = img[2, 2].astype(int)
+        # The slice through the middle of the box shows the density's colours over the box.
+        assert (np.abs(inside - background).sum(axis=2) > 30).mean() > 0.3
+    finally:
+        v.close()

@@ -39,6 +39,8 @@ BACKGROUND = (0.1, 0.1, 0.12)
 FLUID_COLOR = (0.2, 0.45, 0.9)
 SOLID_COLOR = (0.6, 0.6, 0.6)
 NONE = "(none)"
+#: Particle counts above which points are drawn as flat quads (not sphere impostors).
+QUAD_ABOVE = 20_000
 
 
 class ViewerUnavailable(KinemaError):
@@ -545,8 +547,13 @@ class Viewer:
                 sim = getattr(self.source, "sim", None)
                 spacing = getattr(sim, "spacing", None)
                 radius = 0.5 * spacing if spacing else 0.004 * self._lengths()
+            # Shaded sphere impostors cost llvmpipe ~5x the flat quads (measured: bench/RESULTS.md);
+            # beyond QUAD_ABOVE particles the quads and no ground shadow keep the window usable.
+            big = len(pts) > QUAD_ABOVE
             pc = ps.register_point_cloud(item.name, pts, color=SOLID_COLOR if solid else FLUID_COLOR,
-                                         point_render_mode="quad" if len(pts) > 200_000 else "sphere")
+                                         point_render_mode="quad" if big else "sphere")
+            if big:
+                ps.set_ground_plane_mode("none")
             pc.set_radius(radius, relative=False)
             self._structures[item.name] = ("point_cloud", pc)
         self._colour(pc, item.point_data)
