@@ -37,6 +37,36 @@ Scalar dot(const std::vector<Scalar>& a, const std::vector<Scalar>& b) {
   return s;
 }
 
+// 2^d <R f, c> = <f, P c> on the first two levels of op's hierarchy (fluid entries of f only).
+void expect_restriction_is_scaled_transpose(const PoissonOperator& op, unsigned seed) {
+  Multigrid mg(op, MultigridOptions{2, 2, 64});
+  ASSERT_GE(mg.levels(), 2);
+  auto fine = random_vector(op.size(), seed);
+  for (Index c = 0; c < op.size(); ++c)
+    if (!op.fluid(c)) fine[c] = 0;
+  const Index nc = mg.level(1).size();
+  const auto coarse = random_vector(nc, seed + 1);
+  std::vector<Scalar> Rf(nc), Pc(op.size(), 0);
+  mg.restrict_residual(0, fine.data(), Rf.data());
+  mg.prolong_add(0, coarse.data(), Pc.data());
+  const Scalar scale = op.shape().dim == 3 ? 8 : 4;
+  const Scalar lhs = scale * dot(Rf, coarse), rhs = dot(fine, Pc);
+  EXPECT_NEAR(lhs, rhs, 1e-12 * std::abs(rhs));
+}
+
+// <V a, b> = <a, V b> and <V a, a> > 0 for the V-cycle V of op (on the range of A).
+void expect_vcycle_symmetric(const PoissonOperator& op, unsigned seed) {
+  Multigrid mg(op, MultigridOptions{2, 2, 64});
+  auto a = random_vector(op.size(), seed), b = random_vector(op.size(), seed + 1);
+  op.project(a.data());
+  op.project(b.data());
+  std::vector<Scalar> Va(op.size()), Vb(op.size());
+  mg.vcycle(a.data(), Va.data());
+  mg.vcycle(b.data(), Vb.data());
+  EXPECT_NEAR(dot(Va, b), dot(a, Vb), 1e-12 * std::abs(dot(Va, b)));
+  EXPECT_GT(dot(Va, a), 0);
+}
+
 class PoissonShapes : public ::testing::TestWithParam<std::tuple<std::vector<Index>, Boundary>> {};
 
 TEST_P(PoissonShapes, MatrixFreeEqualsAssembled) {
@@ -59,36 +89,14 @@ TEST_P(PoissonShapes, RestrictionIsScaledTransposeOfProlongation) {
   const auto& [dims, bc] = GetParam();
   const GridShape shape(dims);
   const auto solid = random_solid(shape.size(), 0.1, 3);
-  const PoissonOperator op(shape, 0.3, bc, solid.data());
-  Multigrid mg(op, MultigridOptions{2, 2, 64});
-  ASSERT_GE(mg.levels(), 2);
-  auto fine = random_vector(op.size(), 4);
-  for (Index c = 0; c < op.size(); ++c)
-    if (!op.fluid(c)) fine[c] = 0;
-  const Index nc = mg.level(1).size();
-  const auto coarse = random_vector(nc, 5);
-  std::vector<Scalar> Rf(nc), Pc(op.size(), 0);
-  mg.restrict_residual(0, fine.data(), Rf.data());
-  mg.prolong_add(0, coarse.data(), Pc.data());
-  const Scalar scale = shape.dim == 3 ? 8 : 4;
-  const Scalar lhs = scale * dot(Rf, coarse), rhs = dot(fine, Pc);
-  EXPECT_NEAR(lhs, rhs, 1e-12 * std::abs(rhs));
+  expect_restriction_is_scaled_transpose(PoissonOperator(shape, 0.3, bc, solid.data()), 4);
 }
 
 TEST_P(PoissonShapes, VCycleIsSymmetric) {
   const auto& [dims, bc] = GetParam();
   const GridShape shape(dims);
   const auto solid = random_solid(shape.size(), 0.1, 6);
-  const PoissonOperator op(shape, 0.3, bc, solid.data());
-  Multigrid mg(op, MultigridOptions{2, 2, 64});
-  auto a = random_vector(op.size(), 7), b = random_vector(op.size(), 8);
-  op.project(a.data());
-  op.project(b.data());
-  std::vector<Scalar> Va(op.size()), Vb(op.size());
-  mg.vcycle(a.data(), Va.data());
-  mg.vcycle(b.data(), Vb.data());
-  EXPECT_NEAR(dot(Va, b), dot(a, Vb), 1e-12 * std::abs(dot(Va, b)));
-  EXPECT_GT(dot(Va, a), 0);
+  expect_vcycle_symmetric(PoissonOperator(shape, 0.3, bc, solid.data()), 7);
 }
 
 INSTANTIATE_TEST_SUITE_P(
@@ -127,27 +135,9 @@ TEST_P(MixedWalls, OperatorAndTransfersStayConsistent) {
       const auto it = std::find_if(rows[c].begin(), rows[c].end(), [&](const auto& e) { return e.first == r; });
       ASSERT_TRUE(it != rows[c].end() && it->second == v) << "A(" << r << ", " << c << ") not symmetric";
     }
-  Multigrid mg(op, MultigridOptions{2, 2, 64});
-  ASSERT_GE(mg.levels(), 2);
-  EXPECT_EQ(mg.level(1).dirichlet_walls(), op.dirichlet_walls());
-  auto fine = random_vector(op.size(), 13);
-  for (Index c = 0; c < op.size(); ++c)
-    if (!op.fluid(c)) fine[c] = 0;
-  const Index nc = mg.level(1).size();
-  const auto coarse = random_vector(nc, 14);
-  std::vector<Scalar> Rf(nc), Pc(op.size(), 0);
-  mg.restrict_residual(0, fine.data(), Rf.data());
-  mg.prolong_add(0, coarse.data(), Pc.data());
-  const Scalar scale = shape.dim == 3 ? 8 : 4;
-  EXPECT_NEAR(scale * dot(Rf, coarse), dot(fine, Pc), 1e-12 * std::abs(dot(fine, Pc)));
-  auto a = random_vector(op.size(), 15), b = random_vector(op.size(), 16);
-  op.project(a.data());
-  op.project(b.data());
-  std::vector<Scalar> Va(op.size()), Vb(op.size());
-  mg.vcycle(a.data(), Va.data());
-  mg.vcycle(b.data(), Vb.data());
-  EXPECT_NEAR(dot(Va, b), dot(a, Vb), 1e-12 * std::abs(dot(Va, b)));
-  EXPECT_GT(dot(Va, a), 0);
+  EXPECT_EQ(op.coarsened().dirichlet_walls(), op.dirichlet_walls());
+  expect_restriction_is_scaled_transpose(op, 13);
+  expect_vcycle_symmetric(op, 15);
 }
 
 // Walls are bits 2*axis + side of the internal axes (a 2D grid's axes are 1 and 2): the upper
