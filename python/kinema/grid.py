@@ -196,7 +196,10 @@ class Fluid:
 
     @velocity.setter
     def velocity(self, value):
-        comps = list(value) if not isinstance(value, np.ndarray) or value.dtype == object else None
+        try:
+            comps = list(value) if not isinstance(value, np.ndarray) or value.dtype == object else None
+        except TypeError:
+            comps = None
         if comps is None or len(comps) != self.dim:
             raise ValueError(f"velocity: expected a sequence of {self.dim} MAC components (u, v[, w])")
         for c, (view, comp) in enumerate(zip(self.velocity, comps)):
