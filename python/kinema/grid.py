@@ -9,14 +9,14 @@ by kinema's MGPCG, :mod:`kinema.poisson`, also on periodic domains; CG for odd p
 and a blow-up check.
 See Bridson, "Fluid Simulation for Computer Graphics" (2nd ed., 2015) for the MAC grid.
 
+Layout (API.md): cells ``(nx, ny[, nz])`` of size ``h``; ``u`` has shape ``(nx+1, ny[, nz])`` at
+``(i*h, (j+0.5)h)``, ``v`` ``(nx, ny+1[, nz])``, ``w`` ``(nx, ny, nz+1)``. In a periodic domain the
+last face along each component's axis duplicates the first and is kept equal to it.
+
 Boundaries: closed walls (free or no slip, moving lids), periodic, or open sides (``open=``:
 p = 0 there, so smoke leaves the box; the pressure solve keeps its multigrid speed). Sources
 (``add_source``) impose density, temperature or velocity in a region before every step: emitters
 and inflows from Python, as scene files' ``source`` objects do. Example: examples/smoke_outflow.py.
-
-Layout (API.md): cells ``(nx, ny[, nz])`` of size ``h``; ``u`` has shape ``(nx+1, ny[, nz])`` at
-``(i*h, (j+0.5)h)``, ``v`` ``(nx, ny+1[, nz])``, ``w`` ``(nx, ny, nz+1)``. In a periodic domain the
-last face along each component's axis duplicates the first and is kept equal to it.
 """
 
 from __future__ import annotations
@@ -268,7 +268,7 @@ class Fluid:
             raise ValueError("add_source: give at least one of density, temperature, velocity")
         for value, name in ((density, "density"), (temperature, "temperature")):
             if value is not None:
-                _finite(value, name)
+                as_float_array([value], name)  # a real, finite number
                 if self._core.scalar(name) is None:
                     raise ValueError(f"{name}: the fluid carries no {name} field; create it with {name}=True")
         vel = None
