@@ -711,3 +711,17 @@ def test_open_sides_keep_multigrid_iterations_low(open_sides):
         f.u[30:34, 40:50] = 0.5  # a shear that is not divergence free
         counts[sides] = max(f.step(0.01).pressure.iterations for _ in range(3))
     assert counts[open_sides] <= counts[()] + 2, counts
+
+
+def test_smoke_outflow_example_runs(tmp_path):
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parent.parent / "examples" / "smoke_outflow.py"
+    spec = importlib.util.spec_from_file_location("smoke_outflow", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    results = module.main(["--out", str(tmp_path), "--cells", "24", "--seconds", "3"])
+    assert (tmp_path / "outflow.png").stat().st_size > 0
+    closed, opened = (results[k].density.sum() for k in ("closed box", "open top"))
+    assert opened < closed

@@ -12,6 +12,11 @@ See Bridson, "Fluid Simulation for Computer Graphics" (2nd ed., 2015) for the MA
 Layout: cells ``(nx, ny[, nz])`` of size ``h``; ``u`` has shape ``(nx+1, ny[, nz])`` at
 ``(i*h, (j+0.5)h)``, ``v`` ``(nx, ny+1[, nz])``, ``w`` ``(nx, ny, nz+1)``. In a periodic domain the
 last face along each component's axis duplicates the first and is kept equal to it.
+
+Boundaries: closed walls (free or no slip, moving lids), periodic, or open sides (``open=``:
+p = 0 there, so smoke leaves the box; the pressure solve keeps its multigrid speed). Sources
+(``add_source``) impose density, temperature or velocity in a region before every step: emitters
+and inflows from Python, as scene files' ``source`` objects do. Example: examples/smoke_outflow.py.
 """
 
 from __future__ import annotations
@@ -186,7 +191,10 @@ class Fluid:
 
     @velocity.setter
     def velocity(self, value):
-        comps = list(value) if not isinstance(value, np.ndarray) or value.dtype == object else None
+        try:
+            comps = list(value) if not isinstance(value, np.ndarray) or value.dtype == object else None
+        except TypeError:
+            comps = None
         if comps is None or len(comps) != self.dim:
             raise ValueError(f"velocity: expected a sequence of {self.dim} MAC components (u, v[, w])")
         for c, (view, comp) in enumerate(zip(self.velocity, comps)):
