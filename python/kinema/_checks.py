@@ -150,6 +150,13 @@ def finite_result(value, what):
                           "(written into a state view, or left by a diverged run)")
 
 
+def grid_array(a, name):
+    """``a`` as a float64 field on a 2D or 3D grid (every dimension >= 1, within MAX_CELLS)."""
+    a = as_float_array(a, name, ndim=(2, 3))
+    grid_shape(a.shape, name)
+    return a
+
+
 def grid_shape(shape, name):
     """A 2D or 3D grid shape of positive ints, within MAX_CELLS."""
     try:

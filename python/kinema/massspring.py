@@ -162,8 +162,15 @@ class System:
         choice(integrator, "integrator", INTEGRATORS)
         beta = non_negative(beta, "beta")
         choice(linear_solver, "linear_solver", _SOLVERS)
-        info = self._core.step(dt, integrator, beta, linear_solver, positive(cg_tol, "cg_tol"),
-                               positive_int(steps, "steps"))
+        try:
+            info = self._core.step(dt, integrator, beta, linear_solver, positive(cg_tol, "cg_tol"),
+                                   positive_int(steps, "steps"))
+        except ValueError as exc:
+            if not str(exc).startswith("A:"):
+                raise
+            # the implicit matrix M - h C - beta h^2 K overflowed: dt is the argument to blame
+            raise ValueError(f"dt: {dt} makes the implicit matrix M - dt C - beta dt^2 K non-finite "
+                             f"({exc}); use a smaller dt") from None
         return StepInfo(**info)
 
     def energy(self) -> float:
