@@ -60,6 +60,20 @@ def spacing(x, name):
     return v
 
 
+# Schemes divide by dt and dt^2 (pressure solves, implicit matrices M / dt^2): below this a
+# time step makes them overflow.
+MIN_TIME_STEP = 1e-150
+
+
+def time_step(x, name="dt"):
+    """``x`` as a finite float >= MIN_TIME_STEP."""
+    v = positive(x, name)
+    if v < MIN_TIME_STEP:
+        raise ValueError(f"{name}: {v} is below {MIN_TIME_STEP:g}: 1/{name}^2 would overflow float64; "
+                         "choose other units")
+    return v
+
+
 def non_negative(x, name):
     """``x`` as a float, which must be finite and >= 0."""
     try:

@@ -29,7 +29,7 @@ import numpy as np
 from kinema import _core
 from kinema._checks import (
     as_float_array, choice, finite_result, non_negative, positive, positive_int, simulation_object,
-    spacing)
+    spacing, time_step)
 
 __all__ = ["System", "StepInfo", "cloth", "INTEGRATORS"]
 
@@ -158,7 +158,7 @@ class System:
     def step(self, dt, integrator="implicit", beta=1.0, *, linear_solver="cholmod",
              cg_tol=1e-8, steps=1) -> StepInfo:
         """Advances ``steps`` steps of ``dt`` [s] with ``integrator``; see the module docstring."""
-        dt = positive(dt, "dt")
+        dt = time_step(dt)
         choice(integrator, "integrator", INTEGRATORS)
         beta = non_negative(beta, "beta")
         choice(linear_solver, "linear_solver", _SOLVERS)
