@@ -22,11 +22,19 @@ class Interrupt {
 
   // Throws Interrupted when the poll function asks to stop.
   void check() {
-    if (!poll_) return;
+    if (requested()) throw Interrupted();
+  }
+
+  // Whether the poll function asked to stop, without throwing: for the one thread of a parallel
+  // region that polls (an exception must not leave the region), which then tells the others to
+  // skip their remaining work; check() after the region throws. The answer is sticky.
+  bool requested() {
+    if (stopped_ || !poll_) return stopped_;
     const auto now = Clock::now();
-    if (std::chrono::duration<double>(now - last_).count() < interval_) return;
+    if (std::chrono::duration<double>(now - last_).count() < interval_) return false;
     last_ = now;
-    if (poll_()) throw Interrupted();
+    stopped_ = poll_();
+    return stopped_;
   }
 
  private:
@@ -34,6 +42,7 @@ class Interrupt {
   Poll poll_;
   double interval_ = 0.1;
   Clock::time_point last_{};
+  bool stopped_ = false;
 };
 
 }  // namespace kinema

@@ -1,7 +1,10 @@
 // The z-buffered splatter/rasteriser behind render::preview.
 #include "render/preview.h"
 
+#include <omp.h>
+
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <cstdint>
 #include <string>
@@ -190,8 +193,15 @@ PreviewResult preview(const Scene& scene, const Camera& camera, const Sky& sky,
   out.ids.assign(pixels, -1);
   out.depth.assign(pixels, kInfinity);
   const Vec3 light = config.light.normalized();
+  // Ctrl-C: the thread that made the call polls between its bands, the others then skip theirs.
+  std::atomic<bool> stop{false};
 #pragma omp parallel for schedule(dynamic, 1)
   for (Index k = 0; k < bands; ++k) {
+    if (stop.load(std::memory_order_relaxed)) continue;
+    if (omp_get_thread_num() == 0 && interrupt.requested()) {
+      stop = true;
+      continue;
+    }
     const Index row0 = k * kBandRows, row1 = std::min(height, row0 + kBandRows);
     // The pixel-centre rays of the band, made once and shared by every primitive.
     std::vector<Ray> rays(static_cast<size_t>((row1 - row0) * width));

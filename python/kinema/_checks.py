@@ -60,6 +60,20 @@ def spacing(x, name):
     return v
 
 
+# Schemes divide by dt and dt^2 (pressure solves, implicit matrices M / dt^2): below this a
+# time step makes them overflow.
+MIN_TIME_STEP = 1e-150
+
+
+def time_step(x, name="dt"):
+    """``x`` as a finite float >= MIN_TIME_STEP."""
+    v = positive(x, name)
+    if v < MIN_TIME_STEP:
+        raise ValueError(f"{name}: {v} is below {MIN_TIME_STEP:g}: 1/{name}^2 would overflow float64; "
+                         "choose other units")
+    return v
+
+
 def non_negative(x, name):
     """``x`` as a float, which must be finite and >= 0."""
     try:
@@ -148,6 +162,13 @@ def finite_result(value, what):
     from kinema.errors import DivergenceError
     raise DivergenceError(f"{what}: non-finite result; the state holds a NaN or Inf "
                           "(written into a state view, or left by a diverged run)")
+
+
+def grid_array(a, name):
+    """``a`` as a float64 field on a 2D or 3D grid (every dimension >= 1, within MAX_CELLS)."""
+    a = as_float_array(a, name, ndim=(2, 3))
+    grid_shape(a.shape, name)
+    return a
 
 
 def grid_shape(shape, name):

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from kinema._checks import as_float_array, choice, positive, positive_int, representable, spacing
+from kinema._checks import as_float_array, choice, grid_array, positive, positive_int, representable, spacing
 from kinema.errors import DivergenceError, StabilityError
 from kinema.poisson import Solver
 
@@ -86,6 +86,9 @@ class Stepper:
                 rhs = self._shift * out
             else:
                 rhs = 2 * self._shift * out - self._solver.apply(out)  # apply() includes the shift
+            if not np.isfinite(rhs).all():
+                raise ValueError("T: the implicit scheme's right-hand side overflows float64 for these "
+                                 "temperatures; scale T into a smaller range")
             out, _info = self._solver.solve(rhs, tol=self.tol, x0=out)
         return out
 
@@ -101,6 +104,6 @@ def step(T, kappa, dt, h, scheme="implicit", bc="neumann", steps=1, check=True, 
     cells excluded from the domain (T is 0 there). For many calls on one grid, a
     :class:`Stepper` keeps the solver between them.
     """
-    T = as_float_array(T, "T", ndim=(2, 3))
+    T = grid_array(T, "T")
     stepper = Stepper(T.shape, kappa, dt, h, scheme, bc, check=check, tol=tol, solid=solid)
     return stepper.step(T, steps)

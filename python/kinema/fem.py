@@ -33,7 +33,7 @@ import scipy.sparse as sp
 from kinema import _core
 from kinema._checks import (
     as_float_array, choice, finite, finite_result, non_negative, positive, positive_int,
-    simulation_object)
+    simulation_object, time_step)
 from kinema._state import state_property
 from kinema.massspring import _gravity, _indices
 
@@ -214,7 +214,7 @@ class Body:
         (the lagged factor with the fixed PCG tolerance cg_tol) or "cg" (Jacobi-preconditioned
         CG to cg_tol).
         """
-        dt = positive(dt, "dt")
+        dt = time_step(dt)
         choice(integrator, "integrator", ("implicit", "symplectic"))
         steps = positive_int(steps, "steps")
         if integrator == "symplectic":

@@ -28,7 +28,7 @@ import numpy as np
 from kinema import _core
 from kinema._checks import (
     as_float_array, choice, finite, finite_result, grid_shape, non_negative, positive,
-    positive_int, simulation_object, spacing)
+    positive_int, simulation_object, spacing, time_step)
 from kinema._info import SolveInfo
 from kinema._state import assign
 
@@ -295,7 +295,7 @@ class Fluid:
     # ------------------------------------------------------------------ stepping
     def step(self, dt) -> StepInfo:
         """Advances by dt [s] (any dt > 0; accuracy needs a CFL number of a few at most)."""
-        return _step_info(self._core.step(positive(dt, "dt")))
+        return _step_info(self._core.step(time_step(dt)))
 
     def advance(self, duration, cfl=1.0) -> int:
         """Advances by ``duration`` [s] in steps of dt = cfl*h/u_max; returns the step count.

@@ -29,7 +29,7 @@ import numpy as np
 from kinema import _core
 from kinema._checks import (
     as_float_array, choice, finite_result, non_negative, positive, positive_int, simulation_object,
-    spacing)
+    spacing, time_step)
 from kinema._state import assign
 
 __all__ = ["System", "StepInfo", "cloth", "INTEGRATORS"]
@@ -169,12 +169,19 @@ class System:
     def step(self, dt, integrator="implicit", beta=1.0, *, linear_solver="cholmod",
              cg_tol=1e-8, steps=1) -> StepInfo:
         """Advances ``steps`` steps of ``dt`` [s] with ``integrator``; see the module docstring."""
-        dt = positive(dt, "dt")
+        dt = time_step(dt)
         choice(integrator, "integrator", INTEGRATORS)
         beta = non_negative(beta, "beta")
         choice(linear_solver, "linear_solver", _SOLVERS)
-        info = self._core.step(dt, integrator, beta, linear_solver, positive(cg_tol, "cg_tol"),
-                               positive_int(steps, "steps"))
+        try:
+            info = self._core.step(dt, integrator, beta, linear_solver, positive(cg_tol, "cg_tol"),
+                                   positive_int(steps, "steps"))
+        except ValueError as exc:
+            if not str(exc).startswith("A:"):
+                raise
+            # the implicit matrix M - h C - beta h^2 K overflowed: dt is the argument to blame
+            raise ValueError(f"dt: {dt} makes the implicit matrix M - dt C - beta dt^2 K non-finite "
+                             f"({exc}); use a smaller dt") from None
         return StepInfo(**info)
 
     def energy(self) -> float:

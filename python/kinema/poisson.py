@@ -26,7 +26,7 @@ import scipy.sparse as sp
 
 from kinema import _core
 from kinema._checks import (
-    as_float_array, choice, grid_shape, integer, positive, positive_int, real, representable,
+    as_float_array, choice, grid_array, grid_shape, integer, positive, positive_int, real, representable,
     simulation_object, spacing)
 from kinema._info import SolveInfo
 from kinema.errors import ConvergenceError, DivergenceError
@@ -209,7 +209,7 @@ def solve(f, h, bc="dirichlet", method="mgpcg", tol=1e-8, max_iter=None, x0=None
     Further keywords go to :class:`Solver` (pre_smooth, post_smooth) and
     :meth:`Solver.solve` (rhs_mean, raise_on_failure).
     """
-    f = as_float_array(f, "f", ndim=(2, 3))
+    f = grid_array(f, "f")
     solve_keys = {"rhs_mean", "raise_on_failure"}
     solver = Solver(f.shape, h, bc, method=method, solid=solid,
                     **{k: v for k, v in options.items() if k not in solve_keys})
@@ -219,7 +219,7 @@ def solve(f, h, bc="dirichlet", method="mgpcg", tol=1e-8, max_iter=None, x0=None
 
 def laplacian(u, h, bc="dirichlet", solid=None) -> np.ndarray:
     """Applies the operator: returns A u = -lap(u) on the grid of ``u.shape`` (0 in solid cells)."""
-    u = as_float_array(u, "u", ndim=(2, 3))
+    u = grid_array(u, "u")
     return Solver(u.shape, h, bc, method="cg", solid=solid).apply(u)
 
 

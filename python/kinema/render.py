@@ -124,9 +124,9 @@ def emissive(radiance) -> Material:
 # ------------------------------------------------------------------ camera
 
 
-# Images up to 2^27 pixels (3 GiB of float64 RGB) and 2^16 pixels a side; up to 2^20 samples per
+# Images up to 2^25 pixels (768 MiB of float64 RGB) and 2^16 pixels a side; up to 2^20 samples per
 # pixel and 2^16 bounces (beyond, a render would not end in any useful time).
-MAX_SIDE, MAX_PIXELS, MAX_SPP, MAX_DEPTH = 2**16, 2**27, 2**20, 2**16
+MAX_SIDE, MAX_PIXELS, MAX_SPP, MAX_DEPTH = 2**16, 2**25, 2**20, 2**16
 
 
 class Camera:

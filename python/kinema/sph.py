@@ -23,7 +23,7 @@ import numpy as np
 from kinema import _core
 from kinema._checks import (
     as_float_array, choice, finite_result, non_negative, positive, positive_int, simulation_object,
-    spacing as _spacing)
+    spacing as _spacing, time_step)
 from kinema._state import assign
 
 __all__ = ["Fluid", "neighbor_pairs", "kernel", "block", "box_boundary", "martin_moyce", "METHODS"]
@@ -291,7 +291,7 @@ class Fluid:
         Raises km.DivergenceError when a value turns non-finite or speeds run away (dt too
         large: see :meth:`stable_dt`).
         """
-        return self._core.step(positive(dt, "dt"))
+        return self._core.step(time_step(dt))
 
     def advance(self, duration, cfl=0.4) -> int:
         """Advances by ``duration`` [s] in steps of :meth:`stable_dt` (cfl); returns the step count."""

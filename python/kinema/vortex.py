@@ -41,6 +41,9 @@ class VortexParticles:
         self.x = as_float_array(x, "x", ndim=2).copy()
         if self.x.shape[1] != 2:
             raise ValueError(f"x: expected shape (n, 2), got {self.x.shape}")
+        if self.x.size and np.abs(self.x).max() > 1e100:
+            raise ValueError("x: positions beyond 1e100 (velocities ~ circulation / distance and their "
+                             "squares would over- or underflow); choose other units")
         self.circulation = as_float_array(circulation, "circulation", ndim=1).copy()
         if self.circulation.shape != (len(self.x),):
             raise ValueError(f"circulation: expected shape ({len(self.x)},), got {self.circulation.shape}")
@@ -51,7 +54,13 @@ class VortexParticles:
     def velocity(self, x=None) -> np.ndarray:
         """u at the particles (or at the vortex positions `x`, for the RK stages): (n, 2) [m/s]."""
         x = self.x if x is None else x
-        _, grad = fmm.laplace2d(x, self.circulation, eps=self.eps, gradient=True)
+        try:
+            _, grad = fmm.laplace2d(x, self.circulation, eps=self.eps, gradient=True)
+        except ValueError as exc:
+            if "overflows" not in str(exc):
+                raise
+            raise ValueError("x, circulation: the induced velocity overflows float64 (particles too close "
+                             "for their circulation, or values too large); choose other units") from None
         u = np.empty_like(grad)
         u[:, 0] = -grad[:, 1]
         u[:, 1] = grad[:, 0]
@@ -80,17 +89,22 @@ class VortexParticles:
     def step(self, dt):
         """One classical RK4 step of dx/dt = u(x)."""
         dt = positive(dt, "dt")
-        x0 = self.x
-        k1 = self.velocity(x0)
-        k2 = self.velocity(x0 + 0.5 * dt * k1)
-        k3 = self.velocity(x0 + 0.5 * dt * k2)
-        k4 = self.velocity(x0 + dt * k3)
-        self.x = x0 + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-        if not np.isfinite(self.x).all():
-            from kinema.errors import DivergenceError
+        from kinema.errors import DivergenceError
 
+        x0 = self.x
+        try:
+            k1 = self.velocity(x0)
+            k2 = self.velocity(x0 + 0.5 * dt * k1)
+            k3 = self.velocity(x0 + 0.5 * dt * k2)
+            k4 = self.velocity(x0 + dt * k3)
+        except ValueError as exc:  # a stage left the representable range (x stays as it was)
+            raise DivergenceError(f"vortex positions: a stage of the step to t = {self.time + dt:g} "
+                                  f"overflowed ({exc}); reduce dt (now {dt:g})") from None
+        x = x0 + dt / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        if not np.isfinite(x).all():
             raise DivergenceError(f"vortex positions: non-finite after the step to t = {self.time + dt:g}; "
                                   f"reduce dt (now {dt:g})")
+        self.x = x
         self.time += dt
 
     def total_circulation(self) -> float:
