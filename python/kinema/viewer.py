@@ -222,9 +222,10 @@ def read_item(name, path):
 
     path = Path(path)
     if path.suffix == ".vti":
-        from kinema.scenes.output import read_vti
+        from kinema.io import read_vtk
 
-        fields, spacing, _origin = read_vti(path)
+        data = read_vtk(path)
+        fields, spacing = data["fields"], data["spacing"]
         if all(f.shape[2] == 1 for f in fields.values()):
             fields = {k: v[:, :, 0] for k, v in fields.items()}
         return GridData(name, fields, spacing[0])
