@@ -100,7 +100,7 @@ class Simulation:
     (snow, sand; 1 otherwise), ``time`` [s].
 
     ``gravity`` defaults to (0, -9.81[, 0]); ``friction`` is the Coulomb coefficient of the
-    walls (slip and separate; an addition to API.md, whose walls are frictionless). ``max_cells_per_step``: a step in which a particle
+    walls (slip and separate; an addition to the API contract, whose walls are frictionless). ``max_cells_per_step``: a step in which a particle
     crosses more cells than this raises :class:`kinema.DivergenceError`. ``max_dt`` caps
     :meth:`stable_dt`.
     """

@@ -7,7 +7,7 @@ checked): the far field is the unsoftened 1/r expansion (relative accuracy ``eps
 near field, every pair in adjacent leaves, is summed directly with the softened kernel. The
 leaves are never narrower than ``20 s``, so a pair that sees the unsoftened far field is at
 least 20 s apart, where softening changes its force by less than 3 s^2 / (2 r^2) < 0.4 % and
-decays as 1/r^2 (the contract of API.md; with s = 0 the forces are exact to eps). Up to
+decays as 1/r^2 (the API contract; with s = 0 the forces are exact to eps). Up to
 N = 1414 (2e6 pairs) the softened sum is done directly, exactly.
 
 Time integration: the symplectic kick-drift-kick leapfrog (Hockney & Eastwood 1988), second
