@@ -255,7 +255,7 @@ class Fluid:
             raise ValueError("add_source: give at least one of density, temperature, velocity")
         for value, name in ((density, "density"), (temperature, "temperature")):
             if value is not None:
-                _finite(value, name)
+                finite(value, name)
                 if self._core.scalar(name) is None:
                     raise ValueError(f"{name}: the fluid carries no {name} field; create it with {name}=True")
         vel = None
