@@ -114,6 +114,16 @@ def test_compression_of_smoke_frames():
     assert packed < raw / 20, (packed, raw)
 
 
+def test_grid_in_single_precision(tmp_path):
+    q = np.random.default_rng(4).standard_normal((6, 5, 4))
+    full = km.io.write_grid(tmp_path / "d.vti", {"q": q}, 0.5)
+    half = km.io.write_grid(tmp_path / "s.vti", {"q": q}, 0.5, single=True)
+    back = km.io.read_vtk(half)["fields"]["q"]
+    assert back.dtype == np.float32
+    np.testing.assert_allclose(back, q, rtol=2.0**-24)  # float32 rounding, half an ulp
+    assert half.stat().st_size < 0.7 * full.stat().st_size
+
+
 def test_series_pvd_and_json(tmp_path):
     series = km.io.Series(tmp_path / "s.pvd")
     for k, t in enumerate([0.0, 0.04, 0.1]):

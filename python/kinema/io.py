@@ -102,12 +102,12 @@ def _encode(array, compress):
     return base64.b64encode(header).decode("ascii") + base64.b64encode(b"".join(packed)).decode("ascii")
 
 
-def _data_array(name, array, compress, ncomp=None):
+def _data_array(name, array, compress, ncomp=None, single=False):
     a = np.asarray(array)
     if a.dtype == bool:
         a = a.astype(np.uint8)
     elif a.dtype.kind == "f":
-        a = a.astype("<f8")
+        a = a.astype("<f4" if single else "<f8")
     elif a.dtype.kind in "iu" and a.dtype != np.uint8:
         a = a.astype("<i8")
     if ncomp is None:
@@ -317,12 +317,13 @@ def write_mesh(path, points, cells, point_data=None, cell_data=None, *, compress
     return path
 
 
-def write_grid(path, fields, h, origin=(0.0, 0.0, 0.0), *, compress=True):
+def write_grid(path, fields, h, origin=(0.0, 0.0, 0.0), *, compress=True, single=False):
     """Cell-centred fields on cells of size ``h`` [m] as VTK image data (``.vti``); returns the path.
 
     fields: name -> array of the grid's shape (a scalar, e.g. ``fluid.density``) or the grid's
     shape + (d,) (a vector, padded to 3 components). origin: the lower corner of cell (0, 0, 0).
-    Read back with :func:`read_vtk`.
+    single: store the values as float32 (half the size, 7 significant digits; enough to look
+    at, not to restart from). Read back with :func:`read_vtk`.
     """
     _format(path, ("vti",))
     if not fields:
@@ -347,7 +348,7 @@ def write_grid(path, fields, h, origin=(0.0, 0.0, 0.0), *, compress=True):
         grid = a.reshape(dims + (1,) * (3 - len(dims)) + ((ncomp,) if ncomp > 1 else ()))
         data = np.moveaxis(grid, (0, 1, 2), (2, 1, 0)).reshape(-1, ncomp) if ncomp > 1 else \
             np.moveaxis(grid, (0, 1, 2), (2, 1, 0)).ravel()
-        arrays.append(f"        {_data_array(name, data, compress, ncomp)}\n")
+        arrays.append(f"        {_data_array(name, data, compress, ncomp, single)}\n")
     shape3 = tuple(dims) + (1,) * (3 - len(dims))
     extent = " ".join(f"0 {n}" for n in shape3)
     org = " ".join(repr(float(o)) for o in (list(origin) + [0.0] * 3)[:3])
