@@ -126,6 +126,19 @@ def test_rollback_fem_after_failed_step():
     assert b.time == pytest.approx(0.02)
 
 
+def test_rollback_mpm_after_failed_step():
+    sim = km.mpm.Simulation((16, 16), 1 / 16, gravity=[0, -9.8])
+    sim.add_particles(km.mpm.block([0.3, 0.3], [0.6, 0.6], 1 / 32), "elastic", density=1e3,
+                      youngs_modulus=1e4, poisson_ratio=0.3)
+    sim.step(1e-3)
+    snap = _snapshot(sim, ["x", "v", "F", "C"])
+    with pytest.raises(km.DivergenceError):
+        sim.step(10.0)  # a particle would cross many cells in one step
+    _assert_same(sim, snap)
+    sim.step(1e-3)
+    assert sim.time == pytest.approx(2e-3)
+
+
 def test_rollback_sph_after_failed_step():
     x = km.sph.block([0, 0], [0.1, 0.1], 0.02) + 0.01
     f = km.sph.Fluid(x, 0.02, gravity=[0, -9.8], domain=([0, 0], [0.2, 0.2]))

@@ -63,6 +63,18 @@ SCENARIOS = {
             stop.set(); q.join()
         assert abs(a.time - 20e-4) < 1e-12
     """,
+    "mpm": """
+        def make():
+            sim = km.mpm.Simulation((16, 16), 1 / 16, gravity=[0, -9.8])
+            sim.add_particles(km.mpm.block([0.3, 0.3], [0.6, 0.6], 1 / 32), "elastic", density=1e3,
+                              youngs_modulus=1e4, poisson_ratio=0.3)
+            return sim
+        a, b = make(), make()
+        both(lambda: a.step(1e-3), 10)
+        for _ in range(20): b.step(1e-3)
+        np.testing.assert_array_equal(a.x, b.x)
+        np.testing.assert_array_equal(a.F, b.F)
+    """,
     "grid": """
         a = km.grid.Fluid((48, 48), 1 / 48, gravity=[0, -9.8], density=True, buoyancy=(0, 1))
         b = km.grid.Fluid((48, 48), 1 / 48, gravity=[0, -9.8], density=True, buoyancy=(0, 1))

@@ -149,7 +149,7 @@ struct PyFluid {
     const std::uint8_t* m = mask.data();
     const bool set_d = !density.is_none(), set_t = !temperature.is_none(), set_v = !velocity.is_none();
     const Scalar d = set_d ? density.cast<Scalar>() : 0, t = set_t ? temperature.cast<Scalar>() : 0;
-    py::gil_scoped_release release;
+    ReleaseGil release;
     return solver_->add_source(m, set_d, d, set_t, t, set_v, vel);
   }
 

@@ -6,6 +6,7 @@
 #include <optional>
 
 #include "bindings/common.h"
+#include "core/rollback.h"
 #include "core/errors.h"
 #include "mpm/kernels.h"
 #include "mpm/solver.h"
@@ -101,8 +102,8 @@ struct PySimulation {
     mpm::StepStats stats;
     {
       Interrupt interrupt = python_interrupt();
-      py::gil_scoped_release release;
-      stats = solver->step(*state, dt, interrupt);
+      ReleaseGil release;
+      stats = with_rollback(*state, [&] { return solver->step(*state, dt, interrupt); });
     }
     return to_dict(stats);
   }
@@ -116,7 +117,7 @@ struct PySimulation {
     mpm::StepStats last, sum;
     {
       Interrupt interrupt = python_interrupt();
-      py::gil_scoped_release release;
+      ReleaseGil release;
       const Scalar end = state->time + duration;
       while (state->time < end) {
         interrupt.check();
@@ -124,7 +125,7 @@ struct PySimulation {
         const Scalar remaining = end - state->time;
         // Stretch the last step a little rather than leave a sliver.
         if (dt >= remaining || remaining - dt < 0.1 * dt) dt = remaining;
-        last = solver->step(*state, dt, interrupt);
+        last = with_rollback(*state, [&] { return solver->step(*state, dt, interrupt); });
         sum.sort_seconds += last.sort_seconds;
         sum.p2g_seconds += last.p2g_seconds;
         sum.grid_seconds += last.grid_seconds;

@@ -33,7 +33,8 @@ from __future__ import annotations
 import numpy as np
 
 from kinema import _core
-from kinema._checks import as_float_array, choice, grid_shape, non_negative, positive
+from kinema._checks import (
+    as_float_array, choice, grid_shape, non_negative, positive, simulation_object)
 
 __all__ = ["Simulation", "block", "sphere", "MATERIALS", "BOUNDARIES"]
 
@@ -89,6 +90,7 @@ def _lattice_volume(x):
     return spacing ** x.shape[1]
 
 
+@simulation_object
 class Simulation:
     """An MPM simulation on a background grid of ``shape`` cells of spacing ``h`` spanning
     [origin, origin + shape h] (origin 0 by default).
