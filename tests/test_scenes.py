@@ -434,3 +434,21 @@ def test_sweep_keys_reach_objects_and_the_plot_names_the_metric(tmp_path, monkey
     _plot(tmp_path / "s.png", rows, ["solver.substeps"], "impulse_drift")
     assert figures[0].axes[1].get_ylabel() == "impulse_drift"
     assert figures[0].axes[0].get_xlabel() == "solver.substeps"
+
+
+def test_one_up_axis_in_every_shipped_scene():
+    """y is up everywhere (docs/guide/conventions.md): every shipped scene with gravity pulls
+    along -y, and the default 3D view has y up on screen. Deformable scenes once pulled along
+    -z while the renderer drew y up, so a jelly fell sideways through the drawn floor."""
+    from kinema.scenes import render3d
+
+    for path in sorted(Path(km.__file__).parent.joinpath("scenes", "examples").glob("*.toml")):
+        scene = km.Scene.load(path, quick=True)
+        g = scene.config["solver"].get("gravity")
+        if g is not None and any(g):
+            assert g[1] < 0 and all(c == 0 for i, c in enumerate(g) if i != 1), (path.stem, g)
+        assert scene.config["output"].get("view") in (None, [0, 1], (0, 1)), path.stem
+    right, up, toward = render3d._basis((0, 1))
+    np.testing.assert_array_equal(up, [0, 1, 0])
+    sim = km.mpm.Simulation((4, 4, 4), 0.25)  # gravity=None: 9.81 down y, as everywhere
+    assert np.asarray(sim.gravity)[1] < 0
