@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import time
 from pathlib import Path
 
@@ -129,6 +130,7 @@ def main():
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--large", action="store_true")
     ap.add_argument("--no-peer", action="store_true")
+    ap.add_argument("--no-crossover", action="store_true")
     ap.add_argument("--size", type=float, default=1e6)
     ap.add_argument("--eps", type=float, nargs="*")
     ap.add_argument("--max-seconds", type=float, default=300)
@@ -137,8 +139,8 @@ def main():
     global TRIES
     TRIES = args.tries
     rec = harness.Recorder(OUT / "fmm3d.csv", "fmm3d")
-    print(f"commit {rec.commit}, threads {rec.threads}")
-    if not args.quick:
+    print(f"commit {rec.commit}, threads {rec.threads}, load average {os.getloadavg()}")
+    if not (args.quick or args.no_crossover):
         crossover(rec)
     n = int(1e5 if args.quick else args.size)
     eps_list = args.eps or ((1e-3, 1e-6, 1e-9) if args.quick else EPS)
@@ -146,6 +148,7 @@ def main():
     summary(rows)
     if args.large:
         sweep(rec, int(1e7), (1e-6,), False, 1e9)
+    print(f"load average at the end: {os.getloadavg()}")
 
 
 if __name__ == "__main__":

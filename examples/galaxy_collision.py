@@ -64,9 +64,9 @@ def main(argv=None):
     for k in range(args.frames + 1):
         ax.clear()
         ax.set_facecolor("black")
-        ax.scatter(sim.x[:, 0], sim.x[:, 1], c=colour, s=0.3, cmap="coolwarm", alpha=0.6, linewidths=0)
-        ax.set_xlim(-12, 12)
-        ax.set_ylim(-12, 12)
+        ax.scatter(sim.x[:, 0], sim.x[:, 1], c=colour, s=2.0, cmap="coolwarm", alpha=0.8, linewidths=0)
+        ax.set_xlim(-8, 8)
+        ax.set_ylim(-8, 8)
         ax.set_aspect("equal")
         ax.set_axis_off()
         ax.set_title(f"t = {sim.time:5.1f}   N = {len(m)}", color="white")

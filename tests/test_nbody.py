@@ -25,11 +25,10 @@ def test_kepler_period_and_bounded_energy_error():
     period = 2 * np.pi * np.sqrt(a**3 / (G * m.sum()))
     s = km.nbody.System(x, v, m, G=G)
     e0 = s.energy()
-    dt = period / 2000
-    energies, seps = [], []
+    dt = period / 1000
+    energies = []
     for _ in range(3):  # three orbits
-        s.advance(period, dt, callback=lambda sy: (energies.append(sy.energy()),
-                                                   seps.append(np.linalg.norm(sy.x[1] - sy.x[0]))))
+        s.advance(period, dt, callback=lambda sy: energies.append(sy.energy()) if sy.steps % 5 == 0 else None)
     # back at pericentre after each period: the separation returns to a (1 - e)
     r = np.linalg.norm(s.x[1] - s.x[0])
     assert r == pytest.approx(a * 0.5, rel=2e-4), f"separation after 3 periods {r}"
@@ -44,12 +43,12 @@ def test_leapfrog_is_second_order():
     x, v, m = kepler(e=0.3)
     errors = []
     ref = km.nbody.System(x, v, m)
-    ref.advance(1.0, 1e-4)
-    for dt in (0.02, 0.01, 0.005):
+    ref.advance(1.0, 0.0025)  # its own error is 1/16 of the finest run's
+    for dt in (0.04, 0.02, 0.01):
         s = km.nbody.System(x, v, m)
         s.advance(1.0, dt)
         errors.append(np.abs(s.x - ref.x).max())
-    slope = np.polyfit(np.log([0.02, 0.01, 0.005]), np.log(errors), 1)[0]
+    slope = np.polyfit(np.log([0.04, 0.02, 0.01]), np.log(errors), 1)[0]
     assert abs(slope - 2) < 0.2, f"convergence order {slope:.2f}"
 
 
@@ -69,7 +68,7 @@ def test_plummer_sphere_stays_in_virial_equilibrium():
 
 
 def test_momentum_conserved_to_fmm_eps():
-    x, v, m = km.nbody.plummer(10000, seed=3)
+    x, v, m = km.nbody.plummer(5000, seed=3)
     for eps in (1e-4, 1e-8):
         s = km.nbody.System(x, v, m, eps=eps, softening=0.0)
         a = s.accelerations()
@@ -83,7 +82,7 @@ def test_momentum_conserved_to_fmm_eps():
 
 
 def test_softened_forces_against_exact_softened_sum():
-    x, v, m = km.nbody.plummer(20000, seed=4)
+    x, v, m = km.nbody.plummer(8000, seed=4)
     soft = 0.02
     s = km.nbody.System(x, v, m, softening=soft, eps=1e-8)
     a = s.accelerations()
@@ -97,14 +96,14 @@ def test_softened_forces_against_exact_softened_sum():
 
 
 def test_resume_from_state_is_bitwise():
-    x, v, m = km.nbody.plummer(3000, seed=5)
+    x, v, m = km.nbody.plummer(2000, seed=5)  # above the direct-sum size: the FMM runs
     a = km.nbody.System(x, v, m, softening=0.05, eps=1e-6)
-    a.advance(0.05, 0.01)
+    a.advance(0.03, 0.01)
     saved = a.state()
-    a.advance(0.05, 0.01)
+    a.advance(0.03, 0.01)
     b = km.nbody.System(x, v, m, softening=0.05, eps=1e-6)
     b.set_state(saved)
-    b.advance(0.05, 0.01)
+    b.advance(0.03, 0.01)
     assert np.array_equal(a.x, b.x) and np.array_equal(a.v, b.v) and a.time == b.time
 
 

@@ -68,6 +68,16 @@ struct M2lOperators {
     const int dx = o / 49 - 3, dy = (o / 7) % 7 - 3, dz = o % 7 - 3;
     return std::abs(dx) * 16 + std::abs(dy) * 4 + std::abs(dz);
   }
+  // Order used for offset o: the expansions of boxes |d| widths apart converge as (sqrt3/|d|)^p
+  // (radii sqrt3 h each, centres 2 h |d| apart), so the farther offsets reach the nearest
+  // ones' (|d| = 2) accuracy with fewer terms: the order scaled by log(sqrt3/2)/log(sqrt3/|d|),
+  // with a factor 3 of margin (the bound is loose at the nearest offsets).
+  static int truncated_order(int o, int p) {
+    const int dx = o / 49 - 3, dy = (o / 7) % 7 - 3, dz = o % 7 - 3;
+    const Scalar d = std::sqrt(Scalar(dx * dx + dy * dy + dz * dz));
+    const Scalar ratio = std::log(std::sqrt(3.0) / 2) / std::log(std::sqrt(3.0) / d);
+    return std::clamp(static_cast<int>(std::ceil(3 * ratio * (p + 1))) - 1, std::min(p, 3), p);
+  }
   static int pattern(int o) {
     return (o / 49 - 3 < 0) + 2 * ((o / 7) % 7 - 3 < 0) + 4 * (o % 7 - 3 < 0);
   }
@@ -143,24 +153,25 @@ struct Engine {
       const bool flip = pattern != 0;
       const Index count = static_cast<Index>(list.size());
       const Index chunks = (count + kChunk - 1) / kChunk;
+      const int ne = coefficient_count(M2lOperators::truncated_order(o, p));
 #pragma omp parallel for schedule(dynamic, 1) if (chunks > 1)
       for (Index ck = 0; ck < chunks; ++ck) {
         const Index begin = ck * kChunk, end = std::min(count, begin + kChunk);
-        ColMatrix b(n, (end - begin) * nc), result(n, (end - begin) * nc);
+        ColMatrix b(ne, (end - begin) * nc), result(ne, (end - begin) * nc);
         for (Index i = begin; i < end; ++i)
           for (int c = 0; c < nc; ++c) {
             const Scalar* m = mul(list[static_cast<size_t>(i)].second, c);
             Scalar* col = b.col((i - begin) * nc + c).data();
-            if (flip) for (int k = 0; k < n; ++k) col[k] = sign[k] * m[k];
-            else std::copy(m, m + n, col);
+            if (flip) for (int k = 0; k < ne; ++k) col[k] = sign[k] * m[k];
+            else std::copy(m, m + ne, col);
           }
-        m2l_product(a, n, b.data(), static_cast<int>(b.cols()), result.data());
+        m2l_product(a, n, ne, b.data(), static_cast<int>(b.cols()), result.data());
         for (Index i = begin; i < end; ++i)
           for (int c = 0; c < nc; ++c) {
             Scalar* l = loc(list[static_cast<size_t>(i)].first, c);
             const Scalar* r = result.col((i - begin) * nc + c).data();
-            if (flip) for (int k = 0; k < n; ++k) l[k] += sign[k] * inv_h * r[k];
-            else for (int k = 0; k < n; ++k) l[k] += inv_h * r[k];
+            if (flip) for (int k = 0; k < ne; ++k) l[k] += sign[k] * inv_h * r[k];
+            else for (int k = 0; k < ne; ++k) l[k] += inv_h * r[k];
           }
       }
     }

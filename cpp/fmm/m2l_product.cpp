@@ -10,12 +10,12 @@ namespace kinema::fmm3 {
 
 namespace {
 
-void product_portable(const Scalar* a, int n, const Scalar* b, int k, Scalar* c) {
+void product_portable(const Scalar* a, int lda, int n, const Scalar* b, int k, Scalar* c) {
   for (int col = 0; col < k; ++col) {
     const Scalar* bc = b + static_cast<size_t>(col) * n;
     Scalar* cc = c + static_cast<size_t>(col) * n;
     for (int i = 0; i < n; ++i) {
-      const Scalar* row = a + static_cast<size_t>(i) * n;
+      const Scalar* row = a + static_cast<size_t>(i) * lda;
       Scalar s = 0;
       for (int j = 0; j < n; ++j) s += row[j] * bc[j];
       cc[i] = s;
@@ -34,13 +34,13 @@ KINEMA_AVX2_FMA inline Scalar reduce(__m256d v) {
 
 // Rows i0, i0 + 1 of A against columns c0 .. c0 + cols - 1 (cols <= 4) of B.
 template <int Cols>
-KINEMA_AVX2_FMA void block(const Scalar* a, int n, int rows, const Scalar* b, Scalar* c) {
+KINEMA_AVX2_FMA void block(const Scalar* a, int lda, int n, int rows, const Scalar* b, Scalar* c) {
   const int vec_end = n & ~3;
   __m256d acc[2][Cols];
   for (int r = 0; r < 2; ++r)
     for (int q = 0; q < Cols; ++q) acc[r][q] = _mm256_setzero_pd();
   const Scalar* a0 = a;
-  const Scalar* a1 = rows > 1 ? a + n : a;
+  const Scalar* a1 = rows > 1 ? a + lda : a;
   for (int j = 0; j < vec_end; j += 4) {
     const __m256d x0 = _mm256_loadu_pd(a0 + j), x1 = _mm256_loadu_pd(a1 + j);
     for (int q = 0; q < Cols; ++q) {
@@ -58,19 +58,19 @@ KINEMA_AVX2_FMA void block(const Scalar* a, int n, int rows, const Scalar* b, Sc
   }
 }
 
-KINEMA_AVX2_FMA void product_avx2(const Scalar* a, int n, const Scalar* b, int k, Scalar* c) {
+KINEMA_AVX2_FMA void product_avx2(const Scalar* a, int lda, int n, const Scalar* b, int k, Scalar* c) {
   for (int c0 = 0; c0 < k; c0 += 4) {
     const int cols = k - c0 < 4 ? k - c0 : 4;
     const Scalar* bc = b + static_cast<size_t>(c0) * n;
     Scalar* cc = c + static_cast<size_t>(c0) * n;
     for (int i = 0; i < n; i += 2) {
       const int rows = n - i < 2 ? 1 : 2;
-      const Scalar* ai = a + static_cast<size_t>(i) * n;
+      const Scalar* ai = a + static_cast<size_t>(i) * lda;
       switch (cols) {
-        case 4: block<4>(ai, n, rows, bc, cc + i); break;
-        case 3: block<3>(ai, n, rows, bc, cc + i); break;
-        case 2: block<2>(ai, n, rows, bc, cc + i); break;
-        default: block<1>(ai, n, rows, bc, cc + i); break;
+        case 4: block<4>(ai, lda, n, rows, bc, cc + i); break;
+        case 3: block<3>(ai, lda, n, rows, bc, cc + i); break;
+        case 2: block<2>(ai, lda, n, rows, bc, cc + i); break;
+        default: block<1>(ai, lda, n, rows, bc, cc + i); break;
       }
     }
   }
@@ -79,15 +79,15 @@ KINEMA_AVX2_FMA void product_avx2(const Scalar* a, int n, const Scalar* b, int k
 
 }  // namespace
 
-void m2l_product(const Scalar* a, int n, const Scalar* b, int k, Scalar* c) {
+void m2l_product(const Scalar* a, int lda, int n, const Scalar* b, int k, Scalar* c) {
 #if KINEMA_HAVE_AVX2_CLONES
   static const bool avx2 = use_avx2();
   if (avx2) {
-    product_avx2(a, n, b, k, c);
+    product_avx2(a, lda, n, b, k, c);
     return;
   }
 #endif
-  product_portable(a, n, b, k, c);
+  product_portable(a, lda, n, b, k, c);
 }
 
 }  // namespace kinema::fmm3

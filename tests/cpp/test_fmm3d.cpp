@@ -88,7 +88,7 @@ TEST(Fmm3dKernels, ProductKernelMatchesPlainLoop) {
       std::vector<Scalar> a(n * n), b(n * k), c(n * k);
       for (Scalar& v : a) v = u(rng);
       for (Scalar& v : b) v = u(rng);
-      m2l_product(a.data(), n, b.data(), k, c.data());
+      m2l_product(a.data(), n, n, b.data(), k, c.data());
       for (int col = 0; col < k; ++col)
         for (int i = 0; i < n; ++i) {
           Scalar s = 0;
