@@ -75,6 +75,18 @@ SCENARIOS = {
         np.testing.assert_array_equal(a.x, b.x)
         np.testing.assert_array_equal(a.F, b.F)
     """,
+    "nbody_vortex3d": """
+        x, v, m = km.nbody.plummer(300, seed=1)
+        a, b = km.nbody.System(x, v, m, softening=0.05), km.nbody.System(x, v, m, softening=0.05)
+        both(lambda: a.step(1e-3), 5)
+        for _ in range(10): b.step(1e-3)
+        np.testing.assert_array_equal(a.x, b.x)
+        xr, s = km.vortex.ring(1.0, 0.2, 1.0, 32)
+        c, d = km.vortex.VortexParticles3D(xr, s, 0.2), km.vortex.VortexParticles3D(xr, s, 0.2)
+        both(lambda: c.step(1e-2), 3)
+        for _ in range(6): d.step(1e-2)
+        np.testing.assert_array_equal(c.x, d.x)
+    """,
     "grid": """
         a = km.grid.Fluid((48, 48), 1 / 48, gravity=[0, -9.8], density=True, buoyancy=(0, 1))
         b = km.grid.Fluid((48, 48), 1 / 48, gravity=[0, -9.8], density=True, buoyancy=(0, 1))

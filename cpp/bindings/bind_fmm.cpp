@@ -133,7 +133,7 @@ void bind_fmm3d(py::module_& m) {
         fmm3::Fmm3dStats stats;
         {
           Interrupt interrupt = python_interrupt();
-          py::gil_scoped_release release;
+          ReleaseGil release;
           if (direct) fmm3::direct3d(src, n, q, components, tgt, mt, config, out.data(), interrupt);
           else stats = fmm3::fmm3d(src, n, q, components, tgt, mt, config, out.data(), interrupt);
         }

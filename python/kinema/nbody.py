@@ -20,7 +20,7 @@ from __future__ import annotations
 import numpy as np
 
 from kinema import _stepping, fmm
-from kinema._checks import as_float_array, non_negative, positive
+from kinema._checks import as_float_array, non_negative, positive, simulation_object
 from kinema.errors import DivergenceError
 
 __all__ = ["System", "plummer"]
@@ -30,6 +30,7 @@ _DIRECT_PAIRS = 2_000_000
 _NEAR_WIDTH = 20.0
 
 
+@simulation_object
 class System:
     """N self-gravitating particles.
 

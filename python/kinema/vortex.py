@@ -147,6 +147,7 @@ _INV_4PI = 1.0 / (4.0 * np.pi)
 _CORE_WIDTH_3D = 6.0
 
 
+@simulation_object
 class VortexParticles3D:
     """3D vortex particles with Gaussian cores, RK4, velocities by the 3D FMM.
 
