@@ -139,6 +139,33 @@ def test_rollback_mpm_after_failed_step():
     assert sim.time == pytest.approx(2e-3)
 
 
+def test_rollback_nbody_after_failed_step():
+    # the step fails in its second force evaluation, after the kick and the drift changed v and
+    # x: the state must be that before the step
+    x, v, m = km.nbody.plummer(50, seed=3)
+    s = km.nbody.System(x, v, m, softening=0.05)
+    s.step(1e-3)
+    snap = _snapshot(s, ["x", "v"])
+    forces = s.accelerations
+    calls = []
+
+    def failing():
+        calls.append(1)
+        if len(calls) == 2:
+            raise km.DivergenceError("accelerations: injected failure")
+        return forces()
+
+    s.accelerations = failing
+    s._acc = None  # the step then evaluates the forces twice: before the kick, after the drift
+    with pytest.raises(km.DivergenceError, match="injected"):
+        s.step(1e-3)
+    _assert_same(s, snap)
+    assert s.steps == 1
+    del s.accelerations
+    s.step(1e-3)
+    assert s.steps == 2 and np.isfinite(s.x).all()
+
+
 def test_rollback_sph_after_failed_step():
     x = km.sph.block([0, 0], [0.1, 0.1], 0.02) + 0.01
     f = km.sph.Fluid(x, 0.02, gravity=[0, -9.8], domain=([0, 0], [0.2, 0.2]))

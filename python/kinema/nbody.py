@@ -112,8 +112,17 @@ class System:
 
     # ------------------------------------------------------------------ time stepping
     def step(self, dt):
-        """One kick-drift-kick leapfrog step of dt [s]."""
+        """One kick-drift-kick leapfrog step of dt [s]. A step that fails (km.DivergenceError,
+        Ctrl-C) leaves the state as it was before it, so a smaller dt can be tried at once."""
         dt = positive(dt, "dt")
+        before = self.state()
+        try:
+            self._leapfrog(dt)
+        except BaseException:
+            self.set_state(before)
+            raise
+
+    def _leapfrog(self, dt):
         if self._acc is None:
             self._acc = self.accelerations()
         self.v += 0.5 * dt * self._acc
