@@ -29,7 +29,7 @@ from math import factorial, sqrt
 
 import numpy as np
 
-from kinema._checks import as_float_array
+from kinema._checks import as_float_array, real, representable
 
 __all__ = ["MeshReport", "signed_volumes", "quality", "orient", "remove_slivers", "clean", "surface",
            "surface_area", "euler_characteristic", "boundary_edges"]
@@ -117,8 +117,16 @@ def signed_volumes(vertices, elements) -> np.ndarray:
 
 def _signed(v, e):
     d = v.shape[1]
+    if not len(e):
+        return np.zeros(0)
     D = np.stack([v[e[:, a + 1]] - v[e[:, 0]] for a in range(d)], -1)
-    return np.linalg.det(D) / factorial(d) if len(e) else np.zeros(0)
+    # det of the edge matrix scaled to O(1) entries, times the scale^d: denormal or huge
+    # coordinates neither divide by zero inside the LU nor overflow before the end
+    scale = np.abs(D).max(axis=(1, 2))
+    scale = np.where(scale > 0, scale, 1.0)
+    with np.errstate(over="ignore", under="ignore"):
+        vol = np.linalg.det(D / scale[:, None, None]) * scale**d / factorial(d)
+    return representable(vol, "vertices", "an element's volume")
 
 
 def _longest_edge(v, e):
@@ -185,7 +193,7 @@ def remove_slivers(vertices, elements, *, min_quality=SLIVER_QUALITY):
     the removed ones and how many of those were interior (every facet shared with another
     element; see :class:`MeshReport`)."""
     v, e = _mesh(vertices, elements)
-    q = float(min_quality)
+    q = real(min_quality, "min_quality")
     if not 0 <= q < 1:
         raise ValueError(f"min_quality: expected a value in [0, 1), got {min_quality!r}")
     bad = _quality(v, e) < q if q > 0 else np.zeros(len(e), bool)
