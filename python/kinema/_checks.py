@@ -164,6 +164,27 @@ def finite_result(value, what):
                           "(written into a state view, or left by a diverged run)")
 
 
+def checked_state(state, keys, shape):
+    """The arrays ``keys`` (each of ``shape``), time and steps of a particle system's
+    ``state()`` dict, checked (ValueError naming the entry) before anything is restored."""
+    if not isinstance(state, dict):
+        raise ValueError(f"state: expected a dict from state(), got {type(state).__name__}")
+    for key in (*keys, "time", "steps"):
+        if key not in state:
+            raise ValueError(f"state: missing {key!r}")
+    arrays = []
+    for key in keys:
+        a = as_float_array(state[key], f"state[{key!r}]")
+        if a.shape != shape:
+            raise ValueError(f"state[{key!r}]: expected shape {shape}, got {a.shape}")
+        arrays.append(a)
+    time = finite(state["time"], "state['time']")
+    steps = state["steps"]
+    if isinstance(steps, np.ndarray) and steps.ndim == 0:
+        steps = steps[()]
+    return (*arrays, time, integer(steps, "state['steps']", low=0))
+
+
 def grid_array(a, name):
     """``a`` as a float64 field on a 2D or 3D grid (every dimension >= 1, within MAX_CELLS)."""
     a = as_float_array(a, name, ndim=(2, 3))

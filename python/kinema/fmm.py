@@ -181,6 +181,7 @@ def laplace3d(sources, charges, targets=None, *, eps=1e-10, gradient=False, orde
     out, info = _eval3d(src, q, tgt, eps=e, derivatives=1 if gradient else 0, order=p,
                         leaf_size=_count(leaf_size, "leaf_size"), direct=direct)
     info["direct"] = direct
+    representable(out, "sources, charges", "the potential or its gradient")
     _last_info.clear()
     _last_info.update(info)
     phi = out[:, 0, 0].copy()
@@ -193,5 +194,6 @@ def direct3d(sources, charges, targets=None, *, eps=None, gradient=False):
     if eps is not None:
         _eps(eps)
     out, _ = _eval3d(src, q, tgt, eps=1e-15, derivatives=1 if gradient else 0, direct=True)
+    representable(out, "sources, charges", "the potential or its gradient")
     phi = out[:, 0, 0].copy()
     return (phi, out[:, 0, 1:4].copy()) if gradient else phi

@@ -42,6 +42,8 @@ from pathlib import Path
 
 import numpy as np
 
+from kinema._checks import as_float_array, finite, spacing
+
 __all__ = ["write_particles", "write_mesh", "write_grid", "Series", "read_vtk", "atomic_path"]
 
 _BLOCK = 1 << 20  # bytes per compressed block of a VTK array
@@ -77,10 +79,15 @@ def atomic_path(path):
 
 
 def _parent(path):
+    if not isinstance(path, (str, os.PathLike)):
+        raise ValueError(f"path: expected a file name, got {path!r}")
     path = Path(path)
     if path.is_dir():
         raise ValueError(f"path: {path} is a folder, expected a file name")
-    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise ValueError(f"path: cannot create the folder {path.parent} ({exc.strerror})") from None
     return path
 
 
@@ -124,7 +131,7 @@ def _vtk_document(kind, body, compress):
 
 
 def _points3(points, name="points"):
-    p = np.asarray(points, dtype=np.float64)
+    p = as_float_array(points, name, finite=False)
     if p.ndim != 2 or p.shape[1] not in (2, 3):
         raise ValueError(f"{name}: expected shape (n, 2) or (n, 3), got {p.shape}")
     if not np.all(np.isfinite(p)):
@@ -136,9 +143,11 @@ def _points3(points, name="points"):
 
 def _point_data(data, n, fmt="vtu"):
     out = {}
+    if data is not None and not isinstance(data, dict):
+        raise ValueError(f"point_data: expected a dict of name -> array, got {type(data).__name__}")
     for name, value in (data or {}).items():
         v = np.asarray(value)
-        if v.dtype.kind not in "biuf":
+        if v.dtype.kind not in "biuf" or v.dtype == object:
             raise ValueError(f"point_data[{name!r}]: expected numbers, got dtype {v.dtype}")
         if v.ndim == 0 or v.shape[0] != n or v.ndim > 2:
             raise ValueError(f"point_data[{name!r}]: expected shape ({n},) or ({n}, k), got {v.shape}")
@@ -246,6 +255,8 @@ def _write_obj(path, points, triangles):
 
 
 def _format(path, known):
+    if not isinstance(path, (str, os.PathLike)):
+        raise ValueError(f"path: expected a file name, got {path!r}")
     suffix = Path(path).suffix.lower().lstrip(".")
     if suffix not in known:
         raise ValueError(f"path: expected a file name ending in {', '.join('.' + k for k in known)}, got {str(path)!r}")
@@ -274,10 +285,10 @@ def write_particles(path, points, point_data=None, *, ids=None, compress=True):
         ids = np.asarray(ids)
         if ids.shape != (len(p),) or ids.dtype.kind not in "iu":
             raise ValueError(f"ids: expected {len(p)} integers, got {ids.dtype} {ids.shape}")
-        order = np.empty(len(p), dtype=np.int64)
-        order[ids] = np.arange(len(p))
         if not np.array_equal(np.sort(ids), np.arange(len(p))):
             raise ValueError("ids: expected a permutation of 0..n-1")
+        order = np.empty(len(p), dtype=np.int64)
+        order[ids] = np.arange(len(p))
         p = p[order]
         data = {k: v[order] for k, v in data.items()}
         data["id"] = np.arange(len(p), dtype=np.int64) if fmt == "vtu" else np.arange(len(p), dtype=float)
@@ -328,10 +339,10 @@ def write_grid(path, fields, h, origin=(0.0, 0.0, 0.0), *, compress=True, single
     _format(path, ("vti",))
     if not fields:
         raise ValueError("fields: expected at least one field")
-    h = float(h)
-    if not (np.isfinite(h) and h > 0):
-        raise ValueError(f"h: expected a finite number > 0, got {h}")
-    fields = {name: np.asarray(a, dtype=np.float64) for name, a in fields.items()}
+    if not isinstance(fields, dict):
+        raise ValueError(f"fields: expected a dict of name -> array, got {type(fields).__name__}")
+    h = spacing(h, "h")
+    fields = {name: as_float_array(a, f"fields[{name!r}]") for name, a in fields.items()}
     dims = min((a.shape for a in fields.values()), key=len)  # the grid: a scalar's shape
     if len(dims) not in (2, 3):
         raise ValueError(f"fields: expected 2D or 3D grids, got shape {dims}")
@@ -351,6 +362,9 @@ def write_grid(path, fields, h, origin=(0.0, 0.0, 0.0), *, compress=True, single
         arrays.append(f"        {_data_array(name, data, compress, ncomp, single)}\n")
     shape3 = tuple(dims) + (1,) * (3 - len(dims))
     extent = " ".join(f"0 {n}" for n in shape3)
+    origin = as_float_array(origin, "origin", ndim=1)
+    if not 2 <= origin.size <= 3:
+        raise ValueError(f"origin: expected 2 or 3 coordinates, got {origin.size}")
     org = " ".join(repr(float(o)) for o in (list(origin) + [0.0] * 3)[:3])
     body = (f'  <ImageData WholeExtent="{extent}" Origin="{org}" Spacing="{h!r} {h!r} {h!r}">\n'
             f'    <Piece Extent="{extent}">\n      <CellData>\n' + "".join(arrays)
@@ -385,6 +399,19 @@ def read_vtk(path):
     ``.vti``: {"fields": name -> [i, j, k(, c)] array, "spacing", "origin"}; ``.vtu``:
     {"points", "cells": [(type, array)], "point_data", "cell_data"}.
     """
+    if not isinstance(path, (str, os.PathLike)):
+        raise ValueError(f"path: expected a file name, got {path!r}")
+    try:
+        return _read_vtk(path)
+    except OSError as exc:
+        raise ValueError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+    except (ET.ParseError, zlib.error, AttributeError, KeyError, TypeError, IndexError,
+            struct.error, ValueError) as exc:
+        raise ValueError(f"{path}: not a readable VTK file written by kinema.io "
+                         f"({type(exc).__name__}: {exc})") from None
+
+
+def _read_vtk(path):
     root = ET.parse(path).getroot()
     compressed = root.get("compressor") is not None
     types = {v: k for k, v in _VTK_TYPES.items()}
@@ -452,9 +479,9 @@ class Series:
     def add(self, time, file):
         """Lists ``file`` at simulated time ``time`` [s] (an entry for the same file or a later
         time is replaced: a resumed run overwrites what followed its checkpoint)."""
-        time = float(time)
-        if not np.isfinite(time):
-            raise ValueError(f"time: expected a finite number, got {time}")
+        time = finite(time, "time")
+        if not isinstance(file, (str, os.PathLike)):
+            raise ValueError(f"file: expected a file name, got {file!r}")
         rel = os.path.relpath(Path(file), self.path.parent).replace(os.sep, "/")
         self.entries = [(t, f) for t, f in self.entries if f != rel and t < time]
         self.entries.append((time, rel))
@@ -465,7 +492,7 @@ class Series:
         self.entries = [(t, f) for t, f in self.entries if t < time]
 
     def write(self):
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        _parent(self.path)
         if self.format == "series":
             text = json.dumps({"file-series-version": "1.0",
                                "files": [{"name": f, "time": t} for t, f in self.entries]}, indent=1)

@@ -29,7 +29,7 @@ from math import factorial, sqrt
 
 import numpy as np
 
-from kinema._checks import as_float_array
+from kinema._checks import as_float_array, real, representable
 
 __all__ = ["MeshReport", "signed_volumes", "quality", "orient", "remove_slivers", "clean", "surface",
            "surface_area", "euler_characteristic", "boundary_edges"]
@@ -112,22 +112,29 @@ def _mesh(vertices, elements, *, name="elements"):
 def signed_volumes(vertices, elements) -> np.ndarray:
     """(m,) signed volumes (3D) or areas (2D) of the elements [m^d]; positive = positively oriented."""
     v, e = _mesh(vertices, elements)
-    return _signed(v, e)
+    return representable(_signed(v, e), "vertices", "an element's volume")
+
+
+def _scaled(v, e):
+    """(signed volume, longest edge) of each element with its edges divided by scale, and
+    scale: the edge matrix scaled to O(1) entries, so that denormal or huge coordinates neither
+    divide by zero inside the LU nor overflow; orientation and quality need no more."""
+    d = v.shape[1]
+    D = np.stack([v[e[:, a + 1]] - v[e[:, 0]] for a in range(d)], -1)
+    scale = np.abs(D).max(axis=(1, 2))
+    scale = np.where(scale > 0, scale, 1.0)
+    D = D / scale[:, None, None]
+    edges = [D[:, :, a] for a in range(d)] + [D[:, :, b] - D[:, :, a] for a in range(d) for b in range(a + 1, d)]
+    longest = np.max([np.linalg.norm(x, axis=1) for x in edges], axis=0)
+    return np.linalg.det(D) / factorial(d), longest, scale
 
 
 def _signed(v, e):
-    d = v.shape[1]
-    D = np.stack([v[e[:, a + 1]] - v[e[:, 0]] for a in range(d)], -1)
-    return np.linalg.det(D) / factorial(d) if len(e) else np.zeros(0)
-
-
-def _longest_edge(v, e):
-    d = v.shape[1]
-    longest = np.zeros(len(e))
-    for a in range(d + 1):
-        for b in range(a + 1, d + 1):
-            longest = np.maximum(longest, np.linalg.norm(v[e[:, a]] - v[e[:, b]], axis=1))
-    return longest
+    if not len(e):
+        return np.zeros(0)
+    vol, _, scale = _scaled(v, e)
+    with np.errstate(over="ignore", under="ignore"):
+        return vol * scale ** v.shape[1]
 
 
 def quality(vertices, elements) -> np.ndarray:
@@ -138,11 +145,13 @@ def quality(vertices, elements) -> np.ndarray:
 
 
 def _quality(v, e):
+    if not len(e):
+        return np.zeros(0)
     d = v.shape[1]
-    L = _longest_edge(v, e)
+    vol, L, _ = _scaled(v, e)
     regular = L**3 / (6 * sqrt(2)) if d == 3 else sqrt(3) / 4 * L**2
     with np.errstate(divide="ignore", invalid="ignore"):
-        q = np.abs(_signed(v, e)) / regular
+        q = np.abs(vol) / regular
     return np.where(regular > 0, q, 0.0)
 
 
@@ -185,7 +194,7 @@ def remove_slivers(vertices, elements, *, min_quality=SLIVER_QUALITY):
     the removed ones and how many of those were interior (every facet shared with another
     element; see :class:`MeshReport`)."""
     v, e = _mesh(vertices, elements)
-    q = float(min_quality)
+    q = real(min_quality, "min_quality")
     if not 0 <= q < 1:
         raise ValueError(f"min_quality: expected a value in [0, 1), got {min_quality!r}")
     bad = _quality(v, e) < q if q > 0 else np.zeros(len(e), bool)

@@ -34,7 +34,8 @@ import numpy as np
 
 from kinema import _core
 from kinema._checks import (
-    as_float_array, choice, grid_shape, non_negative, positive, simulation_object)
+    as_float_array, choice, finite, finite_result, grid_shape, integer, non_negative, positive,
+    simulation_object)
 
 __all__ = ["Simulation", "block", "sphere", "MATERIALS", "BOUNDARIES"]
 
@@ -163,13 +164,13 @@ class Simulation:
             raise ValueError(f"volume: expected a scalar or shape ({n},), got {vol.shape}")
         e_default, nu_default = DEFAULTS[material]
         e = e_default if youngs_modulus is None else positive(youngs_modulus, "youngs_modulus")
-        nu = nu_default if poisson_ratio is None else float(poisson_ratio)
+        nu = nu_default if poisson_ratio is None else finite(poisson_ratio, "poisson_ratio")
         if material == "sand":
             if friction_angle is None:
                 raise ValueError("friction_angle: sand needs a friction angle in degrees (e.g. 30)")
             phi = positive(friction_angle, "friction_angle")
         else:
-            phi = 0.0 if friction_angle is None else float(friction_angle)
+            phi = 0.0 if friction_angle is None else finite(friction_angle, "friction_angle")
         start, stop = self._sim.add_particles(x, material, positive(density, "density"), e, nu, v, vol, phi,
                                               non_negative(cohesion, "cohesion"))
         return slice(start, stop)
@@ -217,11 +218,11 @@ class Simulation:
     # ---------------------------------------------------------------- diagnostics
     def kinetic_energy(self) -> float:
         """sum m |v|^2 / 2 [J]."""
-        return self._sim.kinetic_energy()
+        return finite_result(self._sim.kinetic_energy(), "kinetic_energy")
 
     def momentum(self) -> np.ndarray:
         """sum m v, shape (d,) [kg m/s]."""
-        return np.array(self._sim.momentum())
+        return finite_result(np.array(self._sim.momentum()), "momentum")
 
     def angular_momentum(self):
         """The angular momentum about the origin that APIC conserves: sum m x x v plus each
@@ -255,7 +256,7 @@ class Simulation:
 
     @time.setter
     def time(self, t):
-        self._sim.time = float(t)
+        self._sim.time = finite(t, "time")
 
     # ---------------------------------------------------------------- checkpoints
     _STATE_ARRAYS = ("x", "v", "F", "C", "mass", "volume", "material", "Jp")
@@ -273,19 +274,32 @@ class Simulation:
         return out
 
     def set_state(self, state: dict):
-        """Restores :meth:`state`'s dict exactly (same particle count and materials)."""
+        """Restores :meth:`state`'s dict exactly (same particle count and materials). Every
+        entry is checked before anything is written: a refused dict leaves the state as it was."""
+        if not isinstance(state, dict):
+            raise ValueError(f"state: expected a dict from state(), got {type(state).__name__}")
+        values = {}
         for k in self._STATE_ARRAYS:
             if k not in state:
                 raise ValueError(f"state: missing '{k}'")
             view = getattr(self._sim, k)
-            value = np.asarray(state[k])
+            if k == "material":
+                value = np.asarray(state[k])
+                if value.dtype.kind not in "iu":
+                    raise ValueError(f"state['material']: expected integer codes, got dtype {value.dtype}")
+            else:
+                value = as_float_array(state[k], f"state['{k}']")
             if value.shape != view.shape:
                 raise ValueError(f"state['{k}']: expected shape {view.shape}, got {value.shape}")
             if k == "material" and (value.min(initial=0) < 0 or value.max(initial=0) >= len(self.materials)):
                 raise ValueError(f"state['material']: codes must index the {len(self.materials)} materials")
-            view[...] = value
-        self._sim.time = float(state.get("time", 0.0))
-        self._sim.steps = int(state.get("steps", 0))
+            values[k] = value
+        time = finite(state.get("time", 0.0), "state['time']")
+        steps = integer(state.get("steps", 0), "state['steps']", low=0)
+        for k, value in values.items():
+            getattr(self._sim, k)[...] = value
+        self._sim.time = time
+        self._sim.steps = steps
 
     def __repr__(self):
         return (f"kinema.mpm.Simulation(shape={self.shape}, h={self.h}, particles={self.count}, "

@@ -20,7 +20,9 @@ from __future__ import annotations
 import numpy as np
 
 from kinema import _stepping, fmm
-from kinema._checks import as_float_array, non_negative, positive, simulation_object
+from kinema._checks import (
+    as_float_array, checked_state, finite_result, integer, non_negative, positive, representable,
+    simulation_object, spacing)
 from kinema.errors import DivergenceError
 
 __all__ = ["System", "plummer"]
@@ -28,6 +30,10 @@ __all__ = ["System", "plummer"]
 _DIRECT_PAIRS = 2_000_000
 # Leaves are at least this many softening lengths wide (see the module docstring).
 _NEAR_WIDTH = 20.0
+
+# Largest Plummer sphere drawn (about 10 GB of float64 arrays; the rejection loop is not
+# interruptible).
+MAX_PLUMMER = 10**8
 
 
 @simulation_object
@@ -88,11 +94,12 @@ class System:
     def potential_energy(self) -> float:
         """-G/2 sum_i m_i sum_{j != i} m_j / sqrt(r_ij^2 + s^2) [J]."""
         phi = self._field(0)[:, 0]
-        return float(-0.5 * self.G * np.dot(self.mass, phi))
+        return finite_result(float(-0.5 * self.G * np.dot(self.mass, phi)), "potential_energy")
 
     def kinetic_energy(self) -> float:
         """1/2 sum_i m_i |v_i|^2 [J]."""
-        return float(0.5 * np.dot(self.mass, np.einsum("ij,ij->i", self.v, self.v)))
+        return finite_result(float(0.5 * np.dot(self.mass, np.einsum("ij,ij->i", self.v, self.v))),
+                             "kinetic_energy")
 
     def energy(self) -> float:
         """Kinetic plus (softened) potential energy, self terms left out [J]."""
@@ -100,15 +107,18 @@ class System:
 
     def momentum(self) -> np.ndarray:
         """sum_i m_i v_i (3,) [kg m/s]."""
-        return self.mass @ self.v
+        return finite_result(self.mass @ self.v, "momentum")
 
     def angular_momentum(self) -> np.ndarray:
         """sum_i m_i x_i x v_i (3,) [kg m^2/s], about the origin."""
-        return self.mass @ np.cross(self.x, self.v)
+        return finite_result(self.mass @ np.cross(self.x, self.v), "angular_momentum")
 
     def virial_ratio(self) -> float:
         """2 K / |W| (1 in virial equilibrium)."""
-        return 2 * self.kinetic_energy() / abs(self.potential_energy())
+        w = abs(self.potential_energy())
+        if w == 0:
+            raise ValueError("virial_ratio: the potential energy is zero (one particle, or no mass)")
+        return 2 * self.kinetic_energy() / w
 
     # ------------------------------------------------------------------ time stepping
     def step(self, dt):
@@ -151,16 +161,17 @@ class System:
         return s
 
     def set_state(self, state: dict) -> None:
-        """Restores a :meth:`state` exactly (the resumed run is bitwise the uninterrupted one)."""
-        for key in ("x", "v"):
-            a = as_float_array(state[key], key)
-            if a.shape != self.x.shape:
-                raise ValueError(f"state[{key!r}]: expected shape {self.x.shape}, got {a.shape}")
-        self.x[...] = state["x"]
-        self.v[...] = state["v"]
-        self.time = float(state["time"])
-        self.steps = int(state["steps"])
-        self._acc = np.array(state["a"], dtype=np.float64) if "a" in state else None
+        """Restores a :meth:`state` exactly (the resumed run is bitwise the uninterrupted one).
+        A refused dict (missing keys, wrong shapes, non-finite values) changes nothing."""
+        x, v, time, steps = checked_state(state, ("x", "v"), self.x.shape)
+        acc = None
+        if "a" in state:
+            acc = as_float_array(state["a"], "state['a']")
+            if acc.shape != self.x.shape:
+                raise ValueError(f"state['a']: expected shape {self.x.shape}, got {acc.shape}")
+        self.x[...] = x
+        self.v[...] = v
+        self.time, self.steps, self._acc = time, steps, acc
 
 
 def plummer(n, *, seed=0, G=1.0, total_mass=1.0, scale=1.0):
@@ -173,9 +184,12 @@ def plummer(n, *, seed=0, G=1.0, total_mass=1.0, scale=1.0):
     """
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 2:
         raise ValueError(f"n: expected an integer >= 2, got {n!r}")
+    integer(n, "n", high=MAX_PLUMMER)
+    if seed is not None:
+        integer(seed, "seed", low=0)
     G = positive(G, "G")
     total_mass = positive(total_mass, "total_mass")
-    a = positive(scale, "scale")
+    a = spacing(scale, "scale")
     rng = np.random.default_rng(seed)
 
     def directions(k):
@@ -185,7 +199,8 @@ def plummer(n, *, seed=0, G=1.0, total_mass=1.0, scale=1.0):
     # Radii: M(r)/M = r^3 / (r^2 + a^2)^{3/2}; the outermost 0.1 % of the mass is re-drawn
     # (r < 31.6 a), as AHW's cut keeps a few particles from flying to infinity.
     u = rng.uniform(0, 0.999, n)
-    r = a / np.sqrt(u ** (-2.0 / 3.0) - 1.0)
+    with np.errstate(all="ignore"):  # a scale near the float64 limits: checked below
+        r = a / np.sqrt(u ** (-2.0 / 3.0) - 1.0)
     x = directions(n) * r[:, None]
     q = np.empty(n)
     todo = np.arange(n)
@@ -195,9 +210,12 @@ def plummer(n, *, seed=0, G=1.0, total_mass=1.0, scale=1.0):
         ok = ys < qs**2 * (1 - qs**2) ** 3.5
         q[todo[ok]] = qs[ok]
         todo = todo[~ok]
-    v_escape = np.sqrt(2 * G * total_mass) * (r**2 + a**2) ** -0.25
-    v = directions(n) * (q * v_escape)[:, None]
-    mass = np.full(n, total_mass / n)
-    x -= mass @ x / total_mass
-    v -= mass @ v / total_mass
+    with np.errstate(all="ignore"):
+        v_escape = np.sqrt(2 * G * total_mass) * (r**2 + a**2) ** -0.25
+        v = directions(n) * (q * v_escape)[:, None]
+        mass = np.full(n, total_mass / n)
+        x -= mass @ x / total_mass
+        v -= mass @ v / total_mass
+    for out in (x, v, mass):
+        representable(out, "G, total_mass, scale", "the sphere's positions or velocities")
     return x, v, mass

@@ -31,7 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
-from kinema._checks import as_float_array, positive
+from kinema._checks import as_float_array, finite, positive
+from kinema._checks import spacing as _spacing
 
 __all__ = ["Mesh", "reconstruct", "METHODS"]
 
@@ -138,16 +139,28 @@ def reconstruct(points, spacing, *, method="marching_cubes", cell=None, iso=None
         raise ValueError(f"points: expected shape (n, 3) (surfaces are 3D), got {x.shape}")
     if not np.isfinite(x).all():
         raise ValueError("points: contains NaN or inf")
-    s = positive(spacing, "spacing")
-    c = positive(cell, "cell") if cell is not None else 0.5 * s
+    s = _spacing(spacing, "spacing")
+    c = _spacing(cell, "cell") if cell is not None else 0.5 * s
+    iso = None if iso is None else finite(iso, "iso")
     if method not in METHODS:
         raise ValueError(f"method: expected one of {METHODS}, got {method!r}")
     if len(x) == 0:
         return Mesh(np.zeros((0, 3)), np.zeros((0, 3), np.int64))
-    if method == "splashsurf":
-        return _splashsurf(x, s, c, 0.6 if iso is None else float(iso))
     sigma = positive(smoothing, "smoothing") if smoothing is not None else 0.6 * s
-    return _marching_cubes(x, s, c, 0.5 if iso is None else float(iso), sigma)
+    extent = (np.ptp(x, axis=0) + 2 * (3.0 * sigma + s + 2 * c)) / c + 2
+    if not np.isfinite(extent).all() or np.prod(extent) > MAX_CELLS:
+        raise ValueError(f"points, spacing, cell: the grid around the points would have more than "
+                         f"{MAX_CELLS:.0e} cells; use a larger cell or split far-apart particles")
+    try:
+        if method == "splashsurf":
+            return _splashsurf(x, s, c, 0.6 if iso is None else iso)
+        return _marching_cubes(x, s, c, 0.5 if iso is None else iso, sigma)
+    except RuntimeError as exc:  # "no surface found at the given iso value" and the like
+        raise ValueError(f"iso: {exc}") from None
+
+
+# Largest marching-cubes grid (cells) accepted: 8 GB of float64.
+MAX_CELLS = 10**9
 
 
 def _splashsurf(x, s, c, iso):

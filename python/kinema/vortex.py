@@ -21,7 +21,9 @@ from __future__ import annotations
 import numpy as np
 
 from kinema import _stepping, fmm
-from kinema._checks import as_float_array, positive, simulation_object, spacing
+from kinema._checks import (
+    as_float_array, checked_state, finite, finite_result, integer, positive, representable,
+    simulation_object, spacing)
 
 __all__ = ["VortexParticles", "merging_patches", "VortexParticles3D", "ring", "thick_ring", "saffman_speed"]
 
@@ -216,7 +218,7 @@ class VortexParticles3D:
             tgt = as_float_array(points, "points", ndim=2)
             if tgt.shape[1] != 3:
                 raise ValueError(f"points: expected shape (m, 3), got {tgt.shape}")
-        return self._curl(self._psi(self.x, self.strength, tgt, 1))
+        return finite_result(self._curl(self._psi(self.x, self.strength, tgt, 1)), "velocity")
 
     def step(self, dt):
         """One classical RK4 step of dx/dt = u, d alpha/dt = (alpha . grad) u."""
@@ -244,7 +246,7 @@ class VortexParticles3D:
 
     def linear_impulse(self) -> np.ndarray:
         """I = 1/2 sum_j x_j x alpha_j (3,) [m^4/s] (per unit density)."""
-        return 0.5 * np.cross(self.x, self.strength).sum(axis=0)
+        return finite_result(0.5 * np.cross(self.x, self.strength).sum(axis=0), "linear_impulse")
 
     def total_strength(self) -> np.ndarray:
         """sum_j alpha_j (3,) [m^3/s] (zero for closed vortex lines)."""
@@ -256,15 +258,15 @@ class VortexParticles3D:
                 "steps": np.array(self.steps)}
 
     def set_state(self, state: dict) -> None:
-        """Restores a :meth:`state` exactly."""
-        for key in ("x", "strength"):
-            a = as_float_array(state[key], key)
-            if a.shape != self.x.shape:
-                raise ValueError(f"state[{key!r}]: expected shape {self.x.shape}, got {a.shape}")
-        self.x[...] = state["x"]
-        self.strength[...] = state["strength"]
-        self.time = float(state["time"])
-        self.steps = int(state["steps"])
+        """Restores a :meth:`state` exactly; a refused dict changes nothing."""
+        x, strength, time, steps = checked_state(state, ("x", "strength"), self.x.shape)
+        self.x[...] = x
+        self.strength[...] = strength
+        self.time, self.steps = time, steps
+
+
+# Largest ring drawn by ring() and thick_ring() (particles; a few GB of float64 arrays).
+MAX_RING_PARTICLES = 10**8
 
 
 def ring(radius, core, circulation, n, *, center=(0.0, 0.0, 0.0), axis=(0.0, 0.0, 1.0)):
@@ -275,13 +277,12 @@ def ring(radius, core, circulation, n, *, center=(0.0, 0.0, 0.0), axis=(0.0, 0.0
     Saffman's (1970) speed U = circulation / (4 pi radius) (ln(8 radius / core) - 0.558).
     The particle spacing should stay below the core radius (overlapping cores).
     """
-    radius = positive(radius, "radius")
-    positive(core, "core")
-    circulation = float(circulation)
-    if not np.isfinite(circulation):
-        raise ValueError(f"circulation: expected a finite number, got {circulation}")
+    radius = spacing(radius, "radius")
+    spacing(core, "core")
+    circulation = finite(circulation, "circulation")
     if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 3:
         raise ValueError(f"n: expected an integer >= 3, got {n!r}")
+    integer(n, "n", high=MAX_RING_PARTICLES)
     c = as_float_array(center, "center", ndim=1)
     ax = as_float_array(axis, "axis", ndim=1)
     if c.shape != (3,):
@@ -296,7 +297,10 @@ def ring(radius, core, circulation, n, *, center=(0.0, 0.0, 0.0), axis=(0.0, 0.0
     theta = 2 * np.pi * np.arange(n) / n
     x = c + radius * (np.cos(theta)[:, None] * ex + np.sin(theta)[:, None] * ey)
     tangent = -np.sin(theta)[:, None] * ex + np.cos(theta)[:, None] * ey
-    strength = circulation * (2 * np.pi * radius / n) * tangent
+    with np.errstate(all="ignore"):
+        strength = circulation * (2 * np.pi * radius / n) * tangent
+    representable(x, "radius, center", "the positions")
+    representable(strength, "radius, circulation", "the strengths")
     return x, strength
 
 
@@ -310,10 +314,17 @@ def thick_ring(radius, core, circulation, n, *, layers=3, center=(0.0, 0.0, 0.0)
     Gaussian of width `core` (Gaussians of widths a and b convolve to sqrt(a^2 + b^2)).
     n particles per circle along the ring. Returns (x, strength, particle_core).
     """
-    radius = positive(radius, "radius")
-    core = positive(core, "core")
+    radius = spacing(radius, "radius")
+    core = spacing(core, "core")
+    circulation = finite(circulation, "circulation")
     if isinstance(layers, bool) or not isinstance(layers, (int, np.integer)) or layers < 1:
         raise ValueError(f"layers: expected an integer >= 1, got {layers!r}")
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 3:
+        raise ValueError(f"n: expected an integer >= 3, got {n!r}")
+    integer(layers, "layers", high=1000)
+    if n * (1 + 3 * layers * (layers + 1)) > MAX_RING_PARTICLES:
+        raise ValueError(f"n, layers: {n} x {1 + 3 * layers * (layers + 1)} particles is more than "
+                         f"{MAX_RING_PARTICLES}")
     h = 2.0 * core / layers
     width2 = core**2 - h**2
     if width2 <= 0:
@@ -337,7 +348,11 @@ def thick_ring(radius, core, circulation, n, *, layers=3, center=(0.0, 0.0, 0.0)
         xs.append(x0 + offset)
         alphas.append(a0 * w_ * scale)
     c = as_float_array(center, "center", ndim=1)
-    return np.concatenate(xs) + c, np.concatenate(alphas), h
+    with np.errstate(all="ignore"):
+        x, alpha = np.concatenate(xs) + c, np.concatenate(alphas)
+    representable(x, "radius, center", "the positions")
+    representable(alpha, "radius, circulation", "the strengths")
+    return x, alpha, h
 
 
 def saffman_speed(radius, core, circulation):

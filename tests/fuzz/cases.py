@@ -46,7 +46,22 @@ MS_X = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
 FEM_V, FEM_E = km.fem.rectangle_mesh([0, 0], [1, 1], (2, 2))
 SPH_X = km.sph.block([0, 0], [0.1, 0.1], 0.02)
 CAM = km.render.Camera([0, 0, 5], [0, 0, 0], width=16, height=12)
+TMP = __import__('tempfile').mkdtemp()
+P = __import__('pathlib').Path
+WRITE = lambda f, d: P(f).write_bytes(d) if isinstance(d, bytes) else P(f).write_text(d)
+RB = lambda f: P(f).read_bytes()
+MPM_X = km.mpm.block([0.2, 0.2], [0.4, 0.4], 0.05)
+NB_X, NB_V, NB_M = km.nbody.plummer(20, seed=1)
+VR_X, VR_A = km.vortex.ring(1.0, 0.3, 1.0, 16)
+TET_V, TET_E = km.fem.box_mesh([0, 0, 0], [1, 1, 1], 1)
+BALL = km.mpm.sphere([0.0, 0.0, 0.0], 0.3, 0.05)
 """
+
+# Simulation objects built in one statement, for scenarios
+MPM_SIM = ("_m = km.mpm.Simulation((16, 16), 1/16); "
+           "_m.add_particles(MPM_X, 'elastic', density=1000.0, youngs_modulus=1e4, poisson_ratio=0.3); ")
+NB_SYS = "_n = km.nbody.System(NB_X, NB_V, NB_M, softening=0.05); "
+VX_SYS = "_w = km.vortex.VortexParticles3D(VR_X, VR_A, 0.3); "
 
 # entry point -> (base call template with {name} slots, {name: (kind, base source)})
 ENTRIES = {
@@ -129,6 +144,280 @@ ENTRIES = {
                         {"n": ("count", "2")}),
 }
 
+# The modules added later (mpm, 3D fmm, nbody, vortex 3D, mesh, io, surface); only their base
+# call and first value per argument are in the fast subset.
+NEW_ENTRIES = {
+    "mpm.Simulation": ("km.mpm.Simulation({shape}, {h}, gravity={gravity}, friction={friction}, "
+                       "max_cells_per_step={mcs}, max_dt={max_dt}).stable_dt()",
+                       {"shape": ("vector", "(16, 16)"), "h": ("real", "1/16"), "gravity": ("vector", "[0.0, -9.8]"),
+                        "friction": ("real", "0.0"), "mcs": ("real", "2.0"), "max_dt": ("real", "1e-2")}),
+    "mpm.add_particles": ("_m = km.mpm.Simulation((16, 16), 1/16); _m.add_particles({positions}, {material}, "
+                          "density={density}, youngs_modulus={E}, poisson_ratio={nu}, velocity={velocity}, "
+                          "volume={volume}, cohesion={cohesion}); _m.step(1e-4); _m.x",
+                          {"positions": ("array", "MPM_X"), "material": ("name", "'elastic'"),
+                           "density": ("real", "1000.0"), "E": ("real", "1e4"), "nu": ("real", "0.3"),
+                           "velocity": ("array", "[0.0, 0.0]"), "volume": ("real", "None"),
+                           "cohesion": ("real", "0.0")}),
+    "mpm.add_collider": ("_m = km.mpm.Simulation((16, 16), 1/16); "
+                         "_m.add_particles(MPM_X, 'elastic', density=1000.0); "
+                         "_m.add_collider({{'shape': 'sphere', 'center': {center}, 'radius': {radius}}}, "
+                         "boundary={boundary}, friction={friction}); _m.step(1e-4); _m.x",
+                         {"center": ("vector", "[0.5, 0.2]"), "radius": ("real", "0.1"),
+                          "boundary": ("name", "'slip'"), "friction": ("real", "0.0")}),
+    "mpm.step": (MPM_SIM + "_m.step({dt}); _m.x", {"dt": ("real", "1e-4")}),
+    "mpm.advance": (MPM_SIM + "_m.advance({duration}, cfl={cfl}); _m.x",
+                    {"duration": ("real", "1e-3"), "cfl": ("real", "0.5")}),
+    "mpm.stable_dt": (MPM_SIM + "_m.stable_dt({cfl})", {"cfl": ("real", "0.5")}),
+    "fmm.laplace3d": ("km.fmm.laplace3d({sources}, {charges}, {targets}, eps={eps}, order={order}, "
+                      "leaf_size={leaf_size})",
+                      {"sources": ("array", "rng.random((40, 3))"), "charges": ("array", "np.ones(40)"),
+                       "targets": ("array", "rng.random((5, 3))"), "eps": ("real", "1e-6"),
+                       "order": ("count", "None"), "leaf_size": ("count", "None")}),
+    "fmm.direct3d": ("km.fmm.direct3d({sources}, {charges}, gradient=True)",
+                     {"sources": ("array", "rng.random((20, 3))"), "charges": ("array", "np.ones(20)")}),
+    "nbody.System": ("_n = km.nbody.System({x}, {v}, {mass}, G={G}, softening={softening}, eps={eps}); "
+                     "_n.step({dt}); (_n.x, _n.energy())",
+                     {"x": ("array", "NB_X"), "v": ("array", "NB_V"), "mass": ("array", "NB_M"),
+                      "G": ("real", "1.0"), "softening": ("real", "0.05"), "eps": ("real", "1e-8"),
+                      "dt": ("real", "1e-3")}),
+    "nbody.advance": (NB_SYS + "_n.advance({duration}, {dt}); _n.x",
+                      {"duration": ("real", "3e-3"), "dt": ("real", "1e-3")}),
+    "nbody.plummer": ("km.nbody.plummer({n}, seed={seed}, G={G}, total_mass={M}, scale={scale})",
+                      {"n": ("count", "20"), "seed": ("count", "0"), "G": ("real", "1.0"), "M": ("real", "1.0"),
+                       "scale": ("real", "1.0")}),
+    "vortex.VortexParticles3D": ("_w = km.vortex.VortexParticles3D({x}, {strength}, {core}, eps={eps}); "
+                                 "_w.step({dt}); (_w.x, _w.strength)",
+                                 {"x": ("array", "VR_X"), "strength": ("array", "VR_A"), "core": ("real", "0.3"),
+                                  "eps": ("real", "1e-10"), "dt": ("real", "1e-2")}),
+    "vortex.VortexParticles3D.velocity": (VX_SYS + "_w.velocity({points})",
+                                          {"points": ("array", "rng.random((4, 3))")}),
+    "vortex.VortexParticles3D.advance": (VX_SYS + "_w.advance({duration}, {dt}); _w.x",
+                                         {"duration": ("real", "2e-2"), "dt": ("real", "1e-2")}),
+    "vortex.ring": ("km.vortex.ring({radius}, {core}, {circulation}, {n}, center={center}, axis={axis})",
+                    {"radius": ("real", "1.0"), "core": ("real", "0.3"), "circulation": ("real", "1.0"),
+                     "n": ("count", "16"), "center": ("vector", "[0.0, 0.0, 0.0]"),
+                     "axis": ("vector", "[0.0, 0.0, 1.0]")}),
+    "vortex.thick_ring": ("km.vortex.thick_ring({radius}, {core}, {circulation}, {n}, layers={layers}, "
+                          "center={center}, axis={axis})",
+                          {"radius": ("real", "1.0"), "core": ("real", "0.3"), "circulation": ("real", "1.0"),
+                           "n": ("count", "8"), "layers": ("count", "3"),
+                           "center": ("vector", "[0.0, 0.0, 0.0]"), "axis": ("vector", "[0.0, 0.0, 1.0]")}),
+    "mesh.orient": ("km.mesh.orient({vertices}, {elements})",
+                    {"vertices": ("array", "TET_V"), "elements": ("index", "TET_E")}),
+    "mesh.remove_slivers": ("km.mesh.remove_slivers({vertices}, {elements}, min_quality={q})",
+                            {"vertices": ("array", "TET_V"), "elements": ("index", "TET_E"), "q": ("real", "0.1")}),
+    "mesh.clean": ("km.mesh.clean({vertices}, {elements}, min_quality={q}, drop_unused=True)",
+                   {"vertices": ("array", "TET_V"), "elements": ("index", "TET_E"), "q": ("real", "0.1")}),
+    "mesh.surface": ("km.mesh.surface({vertices}, {elements})",
+                     {"vertices": ("array", "TET_V"), "elements": ("index", "TET_E")}),
+    "io.write_particles": ("str(km.io.write_particles({path}, {points}, {{'a': {data}}}, ids={ids}))",
+                           {"path": ("name", "TMP + '/p.vtu'"), "points": ("array", "rng.random((6, 3))"),
+                            "data": ("array", "np.ones(6)"), "ids": ("index", "np.arange(6)")}),
+    "io.write_mesh": ("str(km.io.write_mesh(TMP + '/m.vtu', {points}, {cells}, {{'a': {data}}}))",
+                      {"points": ("array", "TET_V"), "cells": ("index", "TET_E"),
+                       "data": ("array", "np.ones(len(TET_V))")}),
+    "io.write_grid": ("km.io.read_vtk(km.io.write_grid(TMP + '/g.vti', {{'a': {field}}}, {h}, origin={origin}))",
+                      {"field": ("array", "np.ones((4, 5, 6))"), "h": ("real", "0.1"),
+                       "origin": ("vector", "(0.0, 0.0, 0.0)")}),
+    "io.Series": ("_s = km.io.Series(TMP + '/s.pvd'); _s.add({time}, TMP + '/f.vtu'); _s.entries",
+                  {"time": ("real", "0.5")}),
+    "surface.reconstruct": ("km.surface.reconstruct({points}, {spacing}, method={method}, cell={cell}, "
+                            "iso={iso}, smoothing={smoothing}).vertices",
+                            {"points": ("array", "BALL"), "spacing": ("real", "0.05"),
+                             "method": ("name", "'marching_cubes'"), "cell": ("real", "None"),
+                             "iso": ("real", "None"), "smoothing": ("real", "None")}),
+}
+
+NEW_SCENARIOS = {
+    "mpm.nan_view.x.step": MPM_SIM + "_m.x[0, 0] = np.nan; _m.step(1e-4); _m.x",
+    "mpm.nan_view.v.stable_dt": MPM_SIM + "_m.v[0, 0] = np.nan; _m.stable_dt()",
+    "mpm.nan_view.v.kinetic_energy": MPM_SIM + "_m.v[0, 0] = np.nan; _m.kinetic_energy()",
+    "mpm.inf_view.F.step": MPM_SIM + "_m.F[0] = np.inf; _m.step(1e-4); _m.x",
+    "mpm.huge_view.x.step": MPM_SIM + "_m.x[0] = 1e308; _m.step(1e-4); _m.x",
+    "mpm.huge_view.v.step": MPM_SIM + "_m.v[:] = 1e300; _m.step(1e-4); _m.x",
+    "mpm.zero_mass.step": MPM_SIM + "_m.mass[:] = 0.0; _m.step(1e-4); _m.x",
+    "mpm.negative_mass.step": MPM_SIM + "_m.mass[:] = -1.0; _m.step(1e-4); _m.x",
+    "mpm.nan_volume.step": MPM_SIM + "_m.volume[0] = np.nan; _m.step(1e-4); _m.x",
+    "mpm.zero_F.step": MPM_SIM + "_m.F[:] = 0.0; _m.step(1e-4); _m.x",
+    "mpm.material_view.garbage": MPM_SIM + "_m.material[:] = 99; _m.step(1e-4); _m.x",
+    "mpm.Jp_view.negative": MPM_SIM + "_m.Jp[:] = -1.0; _m.step(1e-4); _m.x",
+    "mpm.time.nan": MPM_SIM + "_m.time = float('nan'); _m.step(1e-4); _m.time",
+    "mpm.set_state.nan": MPM_SIM + "_st = _m.state(); _st['x'][0, 0] = np.nan; _m.set_state(_st); _m.x",
+    "mpm.set_state.complex": MPM_SIM + "_st = _m.state(); _st['v'] = _st['v'] + 1j; _m.set_state(_st); _m.v",
+    "mpm.set_state.missing": MPM_SIM + "_m.set_state({'x': _m.x.copy()})",
+    "mpm.set_state.wrong_shape": MPM_SIM + "_st = _m.state(); _st['x'] = _st['x'][:1]; _m.set_state(_st)",
+    "mpm.set_state.strings": MPM_SIM + "_st = _m.state(); _st['mass'] = np.array(['a'] * len(_st['mass'])); _m.set_state(_st)",
+    "mpm.set_state.material_float": MPM_SIM + "_st = _m.state(); _st['material'] = _st['material'] + 0.5; _m.set_state(_st); _m.material",
+    "mpm.set_state.time_str": MPM_SIM + "_st = _m.state(); _st['time'] = 'x'; _m.set_state(_st)",
+    "mpm.set_state.steps_huge": MPM_SIM + "_st = _m.state(); _st['steps'] = 2**70; _m.set_state(_st)",
+    "mpm.set_state.not_dict": MPM_SIM + "_m.set_state(None)",
+    "mpm.set_state.rollback": (MPM_SIM + "_x0 = _m.x.copy(); _st = _m.state(); _st['Jp'] = _st['Jp'] * np.nan; "
+                               "_ok = False\ntry:\n    _m.set_state(_st)\nexcept ValueError:\n    _ok = True\n"
+                               "assert _ok and np.isfinite(_m.Jp).all(); _m.Jp"),
+    "mpm.advance.huge": MPM_SIM + "_m.advance(1e300)",
+    "mpm.no_particles.step": "_m = km.mpm.Simulation((16, 16), 1/16); _m.step(1e-3); _m.kinetic_energy()",
+    "mpm.no_particles.stable_dt": "km.mpm.Simulation((16, 16), 1/16).stable_dt()",
+    "mpm.huge_grid": "km.mpm.Simulation((2**40, 2**40), 1.0)",
+    "mpm.denormal_h": "km.mpm.Simulation((16, 16), 5e-324).stable_dt()",
+    "mpm.huge_h": "km.mpm.Simulation((16, 16), 1e300).stable_dt()",
+    "mpm.particles_outside": ("_m = km.mpm.Simulation((16, 16), 1/16); "
+                              "_m.add_particles(MPM_X + 100.0, 'elastic', density=1000.0); _m.step(1e-4); _m.x"),
+    "mpm.sand_no_angle": "_m = km.mpm.Simulation((16, 16), 1/16); _m.add_particles(MPM_X, 'sand', density=1000.0)",
+    "mpm.sand_angle_huge": ("_m = km.mpm.Simulation((16, 16), 1/16); "
+                            "_m.add_particles(MPM_X, 'sand', density=1000.0, friction_angle=1e300); _m.step(1e-4); _m.x"),
+    "mpm.nu_half": ("_m = km.mpm.Simulation((16, 16), 1/16); "
+                    "_m.add_particles(MPM_X, 'elastic', density=1000.0, poisson_ratio=0.5); _m.step(1e-4); _m.x"),
+    "mpm.nu_nan": "_m = km.mpm.Simulation((16, 16), 1/16); _m.add_particles(MPM_X, 'elastic', density=1000.0, poisson_ratio=float('nan'))",
+    "mpm.nu_str": "_m = km.mpm.Simulation((16, 16), 1/16); _m.add_particles(MPM_X, 'elastic', density=1000.0, poisson_ratio='x')",
+    "mpm.volume_array_bad": ("_m = km.mpm.Simulation((16, 16), 1/16); "
+                             "_m.add_particles(MPM_X, 'elastic', density=1000.0, volume=-np.ones(len(MPM_X))); _m.step(1e-4); _m.x"),
+    "mpm.collider_box_bad": ("_m = km.mpm.Simulation((16, 16), 1/16); "
+                             "_m.add_collider({'shape': 'box', 'lower': [0.5], 'upper': [0.2, 0.2]})"),
+    "mpm.collider_box_nan": ("_m = km.mpm.Simulation((16, 16), 1/16); "
+                             "_m.add_collider({'shape': 'box', 'lower': [np.nan, 0], 'upper': [0.2, 0.2]})"),
+    "mpm.collider_not_dict": "_m = km.mpm.Simulation((16, 16), 1/16); _m.add_collider([1, 2])",
+    "mpm.collider_shape_unhashable": "_m = km.mpm.Simulation((16, 16), 1/16); _m.add_collider({'shape': ['box']})",
+    "mpm.collider_center_3": ("_m = km.mpm.Simulation((16, 16), 1/16); "
+                              "_m.add_collider({'shape': 'sphere', 'center': [0.5, 0.5, 0.5], 'radius': 0.1})"),
+    "mpm.3d.base": ("_m = km.mpm.Simulation((8, 8, 8), 1/8); "
+                    "_m.add_particles(km.mpm.block([0.3] * 3, [0.5] * 3, 1/16), 'water', density=1000.0); "
+                    "_m.step(1e-4); _m.x"),
+    "mpm.copy": "__import__('copy').copy(km.mpm.Simulation((16, 16), 1/16))",
+    "mpm.block.denormal": "km.mpm.block([0, 0], [1, 1], 5e-324)",
+    "mpm.sphere.huge": "km.mpm.sphere([0, 0, 0], 1e300, 1.0)",
+    "fmm3d.cluster_far": ("km.fmm.laplace3d(np.vstack([rng.random((300, 3)) * 1e-9, [[1e3, 1e3, 1e3], [-1e3, 5, 0]]]), "
+                          "np.ones(302), order=6)"),
+    "fmm3d.scalar_charge": "km.fmm.laplace3d(rng.random((20, 3)), 1.0)",
+    "fmm3d.overflow": "km.fmm.laplace3d(np.array([[0.0, 0, 0], [1e308, 1e308, 1e308]]), np.ones(2))",
+    "fmm3d.overflow.fmm": "km.fmm.laplace3d(np.vstack([rng.random((50, 3)), [[1e308, 1e308, 1e308]]]), np.ones(51), order=4)",
+    "fmm3d.coincident": "km.fmm.laplace3d(np.zeros((30, 3)), np.ones(30), order=4)",
+    "fmm3d.tiny_charges": "km.fmm.laplace3d(rng.random((30, 3)), np.full(30, 5e-324), order=4)",
+    "fmm3d.huge_charges": "km.fmm.laplace3d(rng.random((30, 3)), np.full(30, 1e308))",
+    "fmm3d.empty_sources": "km.fmm.laplace3d(np.zeros((0, 3)), np.zeros(0))",
+    "fmm3d.empty_targets": "km.fmm.laplace3d(rng.random((5, 3)), np.ones(5), np.zeros((0, 3)))",
+    "fmm3d.leaf_size.one": "km.fmm.laplace3d(rng.random((200, 3)), np.ones(200), leaf_size=1, order=3)",
+    "fmm3d.leaf_size.huge": "km.fmm.laplace3d(rng.random((50, 3)), np.ones(50), leaf_size=2**62, order=3)",
+    "fmm3d.denormal_cluster": "km.fmm.laplace3d(rng.random((100, 3)) * 5e-324, np.ones(100), order=4)",
+    "nbody.coincident": "_n = km.nbody.System(np.zeros((4, 3)), np.zeros((4, 3)), 1.0); _n.step(1e-3)",
+    "nbody.coincident.energy": "km.nbody.System(np.zeros((4, 3)), np.zeros((4, 3)), 1.0).energy()",
+    "nbody.zero_mass.virial": "km.nbody.System(NB_X, NB_V, 0.0).virial_ratio()",
+    "nbody.single.virial": "km.nbody.System([[0.0, 0, 0]], [[1.0, 0, 0]], 1.0).virial_ratio()",
+    "nbody.huge_x.energy": "km.nbody.System(NB_X * 1e300, NB_V, NB_M).energy()",
+    "nbody.huge_v.energy": "km.nbody.System(NB_X, NB_V * 1e300, NB_M).kinetic_energy()",
+    "nbody.huge_mass.step": "_n = km.nbody.System(NB_X, NB_V, NB_M * 1e308); _n.step(1e-3); _n.x",
+    "nbody.huge_G.energy": "km.nbody.System(NB_X, NB_V, NB_M, G=1e308).energy()",
+    "nbody.huge_softening": "_n = km.nbody.System(NB_X, NB_V, NB_M, softening=1e300); _n.step(1e-3); _n.energy()",
+    "nbody.denormal_softening": "_n = km.nbody.System(NB_X, NB_V, NB_M, softening=5e-324); _n.step(1e-3); _n.energy()",
+    "nbody.nan_view.energy": NB_SYS + "_n.x[0, 0] = np.nan; _n.energy()",
+    "nbody.nan_view.momentum": NB_SYS + "_n.v[0, 0] = np.nan; _n.momentum()",
+    "nbody.nan_view.step": NB_SYS + "_n.v[0, 0] = np.nan; _n.step(1e-3); _n.x",
+    "nbody.mass_view.nan": NB_SYS + "_n.mass[0] = np.nan; _n.step(1e-3); _n.x",
+    "nbody.set_state.nan": NB_SYS + "_st = _n.state(); _st['x'][0, 0] = np.nan; _n.set_state(_st); _n.x",
+    "nbody.set_state.missing": NB_SYS + "_n.set_state({'x': _n.x})",
+    "nbody.set_state.not_dict": NB_SYS + "_n.set_state(3)",
+    "nbody.set_state.time_nan": NB_SYS + "_st = _n.state(); _st['time'] = float('nan'); _n.set_state(_st); _n.time",
+    "nbody.set_state.time_str": NB_SYS + "_st = _n.state(); _st['time'] = 'x'; _n.set_state(_st)",
+    "nbody.set_state.steps_float": NB_SYS + "_st = _n.state(); _st['steps'] = float('inf'); _n.set_state(_st)",
+    "nbody.set_state.a_shape": NB_SYS + "_n.step(1e-3); _st = _n.state(); _st['a'] = np.ones(2); _n.set_state(_st); _n.step(1e-3); _n.x",
+    "nbody.set_state.a_nan": NB_SYS + "_n.step(1e-3); _st = _n.state(); _st['a'] = _st['a'] * np.nan; _n.set_state(_st); _n.step(1e-3); _n.x",
+    "nbody.set_state.complex": NB_SYS + "_st = _n.state(); _st['v'] = _st['v'] + 1j; _n.set_state(_st); _n.v",
+    "nbody.advance.huge": NB_SYS + "_n.advance(1e300, 1e-3)",
+    "nbody.advance.dt_tiny": NB_SYS + "_n.advance(1.0, 1e-300)",
+    "nbody.plummer.huge": "km.nbody.plummer(2**40)",
+    "nbody.plummer.seed_bad": "km.nbody.plummer(20, seed='x')",
+    "vortex3d.coincident": "_w = km.vortex.VortexParticles3D(np.zeros((5, 3)), np.ones((5, 3)), 0.1); _w.step(1e-2); _w.x",
+    "vortex3d.huge_strength": "_w = km.vortex.VortexParticles3D(VR_X, VR_A * 1e300, 0.3); _w.step(1e-2); _w.x",
+    "vortex3d.denormal_core": "_w = km.vortex.VortexParticles3D(VR_X, VR_A, 5e-324); _w.step(1e-2); _w.x",
+    "vortex3d.huge_core": "_w = km.vortex.VortexParticles3D(VR_X, VR_A, 1e300); _w.step(1e-2); _w.x",
+    "vortex3d.huge_x": "_w = km.vortex.VortexParticles3D(VR_X * 1e300, VR_A, 0.3); _w.velocity()",
+    "vortex3d.nan_view.step": VX_SYS + "_w.strength[0, 0] = np.nan; _w.step(1e-2); _w.x",
+    "vortex3d.nan_view.velocity": VX_SYS + "_w.x[0, 0] = np.nan; _w.velocity()",
+    "vortex3d.nan_view.impulse": VX_SYS + "_w.x[0, 0] = np.nan; _w.linear_impulse()",
+    "vortex3d.set_state.nan": VX_SYS + "_st = _w.state(); _st['x'][0, 0] = np.nan; _w.set_state(_st); _w.x",
+    "vortex3d.set_state.missing": VX_SYS + "_w.set_state({})",
+    "vortex3d.set_state.time_str": VX_SYS + "_st = _w.state(); _st['time'] = 'x'; _w.set_state(_st)",
+    "vortex3d.advance.huge": VX_SYS + "_w.advance(1e300, 1e-2)",
+    "vortex.ring.huge_n": "km.vortex.ring(1.0, 0.3, 1.0, 2**40)",
+    "vortex.thick_ring.huge_layers": "km.vortex.thick_ring(1.0, 0.3, 1.0, 8, layers=2**31)",
+    "vortex.thick_ring.huge_radius": "km.vortex.thick_ring(1e308, 0.3, 1.0, 8)",
+    "vortex.ring.huge_circulation": "km.vortex.ring(1e308, 0.3, 1e308, 16)",
+    "mesh.surface.empty": "km.mesh.surface(TET_V, np.zeros((0, 4), int))",
+    "mesh.clean.empty": "km.mesh.clean(TET_V, np.zeros((0, 4), int), drop_unused=True)",
+    "mesh.clean.huge": "km.mesh.clean(TET_V * 1e300, TET_E)",
+    "mesh.orient.huge": "km.mesh.orient(TET_V * 1e300, TET_E)",
+    "mesh.remove_slivers.huge": "km.mesh.remove_slivers(TET_V * 1e300, TET_E)",
+    "mesh.orient.denormal": "km.mesh.orient(TET_V * 5e-324, TET_E)",
+    "mesh.flat": "km.mesh.clean(TET_V * [1, 1, 0], TET_E)",
+    "mesh.triangles": "km.mesh.surface(FEM_V, FEM_E)",
+    "mesh.index_past_int64": "km.mesh.orient(TET_V, np.array([[0, 1, 2, 2**64 - 1]], dtype=np.uint64))",
+    "mesh.index_object_huge": "km.mesh.orient(TET_V, [[0, 1, 2, 10**30]])",
+    "io.write_particles.bad_dir": "km.io.write_particles('/proc/nonexistent/p.vtu', np.ones((3, 3)))",
+    "io.write_particles.dir": "km.io.write_particles(TMP, np.ones((3, 3)))",
+    "io.write_particles.path_none": "km.io.write_particles(None, np.ones((3, 3)))",
+    "io.write_particles.data_not_dict": "km.io.write_particles(TMP + '/p.vtu', np.ones((3, 3)), [1, 2])",
+    "io.write_particles.data_bad_name": "km.io.write_particles(TMP + '/p.vtu', np.ones((3, 3)), {3: np.ones(3)})",
+    "io.write_particles.data_complex": "km.io.write_particles(TMP + '/p.ply', np.ones((3, 3)), {'a': np.ones(3) * 1j})",
+    "io.write_particles.ids_huge": "km.io.write_particles(TMP + '/p.vtu', np.ones((3, 3)), ids=[0, 1, 2**62])",
+    "io.write_particles.ids_neg": "km.io.write_particles(TMP + '/p.vtu', np.ones((3, 3)), ids=[0, 1, -1])",
+    "io.write_particles.empty": "km.io.read_vtk(km.io.write_particles(TMP + '/e.vtu', np.zeros((0, 3))))",
+    "io.write_particles.roundtrip": ("_p = rng.random((5, 3)); _r = km.io.read_vtk(km.io.write_particles(TMP + '/r.vtu', _p, "
+                                     "{'a': np.arange(5.0)})); assert np.array_equal(_r['points'], _p), _r; _r['points']"),
+    "io.write_mesh.bad_cells_type": "km.io.write_mesh(TMP + '/m.vtu', TET_V, {'pyramid': TET_E})",
+    "io.write_mesh.cells_index": "km.io.write_mesh(TMP + '/m.vtu', TET_V, TET_E + 100)",
+    "io.write_mesh.cells_float": "km.io.write_mesh(TMP + '/m.vtu', TET_V, TET_E + 0.5)",
+    "io.write_mesh.cells_list_bad": "km.io.write_mesh(TMP + '/m.vtu', TET_V, [('tetra',)])",
+    "io.write_mesh.cell_data_len": "km.io.write_mesh(TMP + '/m.vtu', TET_V, TET_E, cell_data={'a': np.ones(1000)})",
+    "io.write_mesh.obj_tets": "km.io.write_mesh(TMP + '/m.obj', TET_V, TET_E)",
+    "io.write_grid.empty": "km.io.write_grid(TMP + '/g.vti', {}, 0.1)",
+    "io.write_grid.not_dict": "km.io.write_grid(TMP + '/g.vti', np.ones((4, 4)), 0.1)",
+    "io.write_grid.complex": "km.io.write_grid(TMP + '/g.vti', {'a': np.ones((4, 4)) * 1j}, 0.1)",
+    "io.write_grid.strings": "km.io.write_grid(TMP + '/g.vti', {'a': np.array([['a']])}, 0.1)",
+    "io.write_grid.nan": "km.io.read_vtk(km.io.write_grid(TMP + '/g.vti', {'a': np.full((4, 4), np.nan)}, 0.1))",
+    "io.write_grid.1d": "km.io.write_grid(TMP + '/g.vti', {'a': np.ones(4)}, 0.1)",
+    "io.write_grid.vector_huge": "km.io.write_grid(TMP + '/g.vti', {'a': np.ones((4, 4, 4, 9))}, 0.1)",
+    "io.write_grid.h_str": "km.io.write_grid(TMP + '/g.vti', {'a': np.ones((4, 4))}, 'x')",
+    "io.write_grid.h_complex": "km.io.write_grid(TMP + '/g.vti', {'a': np.ones((4, 4))}, 1j)",
+    "io.write_grid.origin_nan": "km.io.write_grid(TMP + '/g.vti', {'a': np.ones((4, 4))}, 0.1, origin=[np.nan, 0, 0])",
+    "io.write_grid.origin_short": "km.io.write_grid(TMP + '/g.vti', {'a': np.ones((4, 4))}, 0.1, origin=[0])",
+    "io.read_vtk.missing": "km.io.read_vtk(TMP + '/nope.vtu')",
+    "io.read_vtk.empty_file": "WRITE(TMP + '/e2.vtu', ''); km.io.read_vtk(TMP + '/e2.vtu')",
+    "io.read_vtk.garbage": "WRITE(TMP + '/g2.vtu', bytes(range(256))); km.io.read_vtk(TMP + '/g2.vtu')",
+    "io.read_vtk.truncated": ("_f = km.io.write_particles(TMP + '/t.vtu', rng.random((50, 3))); _b = RB(_f); "
+                              "WRITE(_f, _b[:len(_b) // 2]); km.io.read_vtk(_f)"),
+    "io.read_vtk.bitflip": ("_f = km.io.write_particles(TMP + '/b.vtu', rng.random((50, 3))); _b = bytearray(RB(_f)); "
+                            "_b[len(_b) // 2] ^= 0x55; WRITE(_f, bytes(_b)); km.io.read_vtk(_f)"),
+    "io.read_vtk.wrong_xml": "WRITE(TMP + '/x.vtu', '<a><b/></a>'); km.io.read_vtk(TMP + '/x.vtu')",
+    "io.read_vtk.dir": "km.io.read_vtk(TMP)",
+    "io.read_vtk.none": "km.io.read_vtk(None)",
+    "io.read_vtk.ply": "km.io.read_vtk(km.io.write_particles(TMP + '/q.ply', rng.random((5, 3))))",
+    "io.Series.bad_suffix": "km.io.Series(TMP + '/s.txt')",
+    "io.Series.resume_garbage": "WRITE(TMP + '/r.pvd', '<<<'); km.io.Series(TMP + '/r.pvd', resume=True)",
+    "io.Series.resume_series_garbage": "WRITE(TMP + '/r.series', '[1]'); km.io.Series(TMP + '/r.series', resume=True)",
+    "io.Series.resume_bad_time": ("WRITE(TMP + '/r2.series', '{\"files\": [{\"time\": \"x\", \"name\": \"a\"}]}'); "
+                                  "km.io.Series(TMP + '/r2.series', resume=True)"),
+    "io.Series.file_none": "km.io.Series(TMP + '/s.pvd').add(0.0, None)",
+    "io.Series.unwritable": "km.io.Series('/proc/nonexistent/s.pvd').add(0.0, 'f.vtu')",
+    "surface.empty": "km.surface.reconstruct(np.zeros((0, 3)), 0.05).vertices",
+    "surface.one_point": "km.surface.reconstruct(np.zeros((1, 3)), 0.05).vertices",
+    "surface.far_apart": "km.surface.reconstruct(np.array([[0.0, 0, 0], [1e6, 0, 0]]), 0.05).vertices",
+    "surface.huge_extent": "km.surface.reconstruct(np.array([[0.0, 0, 0], [1e300, 0, 0]]), 0.05).vertices",
+    "surface.denormal_spacing": "km.surface.reconstruct(BALL, 5e-324).vertices",
+    "surface.huge_spacing": "km.surface.reconstruct(BALL, 1e300).vertices",
+    "surface.tiny_cell": "km.surface.reconstruct(BALL, 0.05, cell=1e-9).vertices",
+    "surface.iso_nan": "km.surface.reconstruct(BALL, 0.05, iso=float('nan')).vertices",
+    "surface.iso_huge": "km.surface.reconstruct(BALL, 0.05, iso=1e300).vertices",
+    "surface.splashsurf.iso_str": "km.surface.reconstruct(BALL, 0.05, method='splashsurf', iso='x').vertices",
+    "surface.coincident": "km.surface.reconstruct(np.zeros((100, 3)), 0.05).vertices",
+    "surface.area_finite": "_s = km.surface.reconstruct(BALL, 0.05); (_s.area, _s.volume)",
+}
+# A few of the scenarios above in the fast subset (about 2 s; the whole new fast part ~11 s).
+NEW_FAST = {"mpm.nan_view.x.step", "mpm.set_state.rollback", "fmm3d.cluster_far", "nbody.set_state.nan",
+            "vortex3d.nan_view.velocity", "mesh.orient.denormal", "io.read_vtk.truncated", "surface.iso_nan"}
+NEW_INTERRUPTIBLE = {"mpm.advance.huge", "nbody.advance.huge", "nbody.advance.dt_tiny", "vortex3d.advance.huge",
+                     "nbody.plummer.huge", "vortex.ring.huge_n", "vortex.thick_ring.huge_layers", "mpm.huge_grid",
+                     "surface.tiny_cell", "surface.far_apart", "surface.huge_extent", "mpm.sphere.huge",
+                     "mpm.block.denormal", "fmm3d.leaf_size.huge"}
+
 # Whole scenarios: degenerate-but-legal inputs, NaN written into views, copies, absurd sizes.
 SCENARIOS = {
     "massspring.no_springs.energy": "km.massspring.System(MS_X, np.zeros((0, 2), int), stiffness=1.0).energy()",
@@ -190,10 +479,11 @@ VALUES = {"real": lambda base: REAL, "count": lambda base: COUNT, "name": lambda
           "vector": lambda base: VECTOR, "array": array_values, "index": index_values}
 
 
-def cases():
-    """Every case, in a fixed order; about one in six is in the fast subset."""
+def _entry_cases(entries, n_fast, interrupt):
+    """The base call of each entry point, and one case per bad value of each argument (the
+    first ``n_fast`` values of each in the fast subset)."""
     out = []
-    for entry, (template, args) in ENTRIES.items():
+    for entry, (template, args) in entries.items():
         base = {k: src for k, (_, src) in args.items()}
         out.append(dict(id=f"{entry}.base", setup=SETUP, expr=template.format(**base), arg=None,
                         interrupt=None, fast=True))
@@ -201,8 +491,18 @@ def cases():
             for i, value in enumerate(VALUES[kind](src)):
                 call = template.format(**{**base, name: value})
                 out.append(dict(id=f"{entry}[{name}={value}]", setup=SETUP, expr=call, arg=name,
-                                interrupt=None, fast=i < 2))
+                                interrupt=interrupt, fast=i < n_fast))
+    return out
+
+
+def cases():
+    """Every case, in a fixed order; about one in six is in the fast subset."""
+    out = _entry_cases(ENTRIES, 2, None)
     for sid, expr in SCENARIOS.items():
         out.append(dict(id=sid, setup=SETUP, expr=expr, arg=None,
                         interrupt=3.0 if sid in INTERRUPTIBLE else None, fast=True))
+    out += _entry_cases(NEW_ENTRIES, 1, 3.0)
+    for sid, expr in NEW_SCENARIOS.items():
+        out.append(dict(id=sid, setup=SETUP, expr=expr, arg=None,
+                        interrupt=3.0 if sid in NEW_INTERRUPTIBLE else None, fast=sid in NEW_FAST))
     return out
