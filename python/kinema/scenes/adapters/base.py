@@ -70,6 +70,29 @@ class Simulation:
         return []
 
 
+class SubstepSimulation(Simulation):
+    """A simulation ``self.sim`` advanced by ``self.substeps`` equal steps per frame, whose
+    ``state()`` / ``set_state()`` hold everything it evolves (km.nbody, km.vortex)."""
+
+    @property
+    def time(self):
+        return self.sim.time
+
+    def advance_to(self, t_end):
+        dt = (t_end - self.sim.time) / self.substeps
+        for _ in range(self.substeps):
+            self.sim.step(dt)
+        self.steps += self.substeps
+        return self.substeps
+
+    def get_state(self):
+        return self.sim.state() | {"scene_steps": np.int64(self.steps)}
+
+    def set_state(self, state):
+        self.sim.set_state(state)
+        self.steps = int(state["scene_steps"])
+
+
 class ArrayStateSimulation(Simulation):
     """A simulation whose state is a set of writable views of the C++ solver's arrays plus its
     time and step counter (restored through the bindings' setters)."""

@@ -11,7 +11,7 @@ import numpy as np
 
 import kinema as km
 from kinema.scenes import preview
-from kinema.scenes.adapters.base import PointData, Simulation, restore, view_camera
+from kinema.scenes.adapters.base import PointData, SubstepSimulation, restore, view_camera
 from kinema.scenes.schema import Field, Int, Real, Table, Vec
 
 SOLVER = Table({
@@ -37,7 +37,7 @@ def dimension(solver, objects):
     return 3
 
 
-class NBodySimulation(Simulation):
+class NBodySimulation(SubstepSimulation):
     DIAGNOSTICS = ("energy_drift", "momentum_drift", "virial_ratio")
 
     def __init__(self, scene):
@@ -62,25 +62,10 @@ class NBodySimulation(Simulation):
         centre, half = 0.5 * (lo + hi), 0.3 * (hi - lo).max()
         self.view = (centre - half, centre + half)
 
-    @property
-    def time(self):
-        return self.sim.time
-
-    def advance_to(self, t_end):
-        dt = (t_end - self.sim.time) / self.substeps
-        for _ in range(self.substeps):
-            self.sim.step(dt)
-        self.steps += self.substeps
-        return self.substeps
-
-    def get_state(self):
-        return self.sim.state() | {"scene_steps": np.int64(self.steps)}
-
     def set_state(self, state):
         restore(self.sim.x, state["x"], "x")
         restore(self.sim.v, state["v"], "v")
-        self.sim.set_state(state)
-        self.steps = int(state["scene_steps"])
+        super().set_state(state)
 
     def diagnostics(self):
         return {"energy_drift": abs(self.sim.energy() / self.e0 - 1),

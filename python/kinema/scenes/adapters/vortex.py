@@ -14,7 +14,7 @@ import numpy as np
 
 import kinema as km
 from kinema.scenes import preview
-from kinema.scenes.adapters.base import PointData, restore, view_camera
+from kinema.scenes.adapters.base import PointData, SubstepSimulation, restore, view_camera
 from kinema.scenes.adapters.base import Simulation as BaseSimulation
 from kinema.scenes.schema import Field, Int, Real, Table, Vec
 
@@ -64,7 +64,7 @@ def _sheet(obj):
     return x, gamma[:-1] - gamma[1:], 0.05 * obj["half_span"]
 
 
-class VortexSimulation(BaseSimulation):
+class VortexSimulation(SubstepSimulation):
     DIAGNOSTICS = ("circulation_drift", "impulse_drift")
 
     def __init__(self, scene):
@@ -95,17 +95,6 @@ class VortexSimulation(BaseSimulation):
         grow = 0.5 * (hi - lo).max()
         self.view = (lo - grow, hi + grow)
 
-    @property
-    def time(self):
-        return self.sim.time
-
-    def advance_to(self, t_end):
-        dt = (t_end - self.sim.time) / self.substeps
-        for _ in range(self.substeps):
-            self.sim.step(dt)
-        self.steps += self.substeps
-        return self.substeps
-
     def get_state(self):
         return {"x": self.sim.x.copy(), "time": np.float64(self.sim.time), "steps": np.int64(self.steps)}
 
@@ -130,7 +119,7 @@ class VortexSimulation(BaseSimulation):
         return [PointData("vortices", self.sim.x.copy(), point_data={"circulation": self.sim.circulation})]
 
 
-class Vortex3DSimulation(BaseSimulation):
+class Vortex3DSimulation(SubstepSimulation):
     DIAGNOSTICS = ("impulse_drift",)
 
     def __init__(self, scene):
@@ -150,24 +139,6 @@ class Vortex3DSimulation(BaseSimulation):
         lo, hi = x0.min(axis=0), x0.max(axis=0)
         grow = 0.6 * (hi - lo).max()
         self.view = (lo - grow, hi + grow)
-
-    @property
-    def time(self):
-        return self.sim.time
-
-    def advance_to(self, t_end):
-        dt = (t_end - self.sim.time) / self.substeps
-        for _ in range(self.substeps):
-            self.sim.step(dt)
-        self.steps += self.substeps
-        return self.substeps
-
-    def get_state(self):
-        return self.sim.state() | {"scene_steps": np.int64(self.steps)}
-
-    def set_state(self, state):
-        self.sim.set_state(state)
-        self.steps = int(state["scene_steps"])
 
     def diagnostics(self):
         return {"impulse_drift": float(np.linalg.norm(self.sim.linear_impulse() - self.impulse0))}
