@@ -112,6 +112,20 @@ def timed_dt(n, method, tol):
     return started_dt(fluid, method, s), s, fluid.speed_of_sound
 
 
+def steps_of(fluid, dt, iterations):
+    """The timed call: STEPS steps of dt, their pressure iterations (both solves) appended to
+    ``iterations``; returns the mean compression after them."""
+
+    def run():
+        iterations.clear()
+        for _ in range(STEPS):
+            st = fluid.step(dt)
+            iterations.append(st["iterations"] + st["divergence_iterations"])
+        return fluid.density_error()
+
+    return run
+
+
 def started_fluid(n, method, tol, dt):
     """kinema's fluid after the start-up every code runs before its timed steps: from rest,
     round(START / dt) steps of the timed dt, as SPlisHSPlasH (fixed dt) and the Taichi WCSPH are
@@ -138,13 +152,7 @@ def bench_kinema(sizes, rec, tol, results):
             fluid = started_fluid(n, method, tol, dt)
 
             iterations = []
-
-            def run():
-                iterations.clear()
-                for _ in range(STEPS):
-                    st = fluid.step(dt)
-                    iterations.append(st["iterations"] + st["divergence_iterations"])
-                return fluid.density_error()
+            run = steps_of(fluid, dt, iterations)
 
             # The CPU seconds of our threads as a second figure: other processes' load disturbs
             # it far less than the wall time (spin-waiting threads inflate it somewhat).
@@ -292,13 +300,7 @@ def bench_work_precision(n, tols, rec, threads, boundaries=("akinci", "volume-ma
     for tol in tols:
         fluid = started_fluid(n, "dfsph", tol, dt)
         iterations = []
-
-        def run():
-            iterations.clear()
-            for _ in range(STEPS):
-                st = fluid.step(dt)
-                iterations.append(st["iterations"] + st["divergence_iterations"])
-            return fluid.density_error()
+        run = steps_of(fluid, dt, iterations)
 
         m = harness.measure(run, min_of=1, **MEASURE)
         err = m.value
