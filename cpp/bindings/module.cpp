@@ -8,6 +8,7 @@
 #include "core/build_info.h"
 #include "core/errors.h"
 #include "core/parallel.h"
+#include "core/step_stats.h"
 
 namespace py = pybind11;
 
@@ -92,6 +93,13 @@ PYBIND11_MODULE(_core, m) {
   m.def("get_num_threads", &configured_num_threads);
   m.def("max_num_threads", &max_thread_count);
   m.def("build_info", &build_info);
+
+  // The base of every method's StepStats (core/step_stats.h), registered before the
+  // submodules so that theirs can name it as their base class.
+  py::class_<StepStatsBase>(m, "StepStats", "Fields every method's step statistics share.")
+      .def_readonly("time", &StepStatsBase::time, "simulated time at the end of the step [s]")
+      .def_readonly("dt", &StepStatsBase::dt, "the step taken [s]")
+      .def_readonly("seconds", &StepStatsBase::seconds, "wall time of the step [s]");
 
   auto sparse = m.def_submodule("sparse");
   bind::bind_sparse(sparse);

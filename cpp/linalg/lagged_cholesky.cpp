@@ -108,4 +108,10 @@ bool LaggedCholesky::solve(const CsrView& A, const Scalar* b, Scalar* x, bool re
   return true;
 }
 
+void LaggedCholesky::solve_with_factor(const Scalar* b, Scalar* x) const {
+  if (!has_factor()) throw KinemaError("solve_with_factor: no valid CHOLMOD factor");
+  OneBlasThread single;
+  factor_->solve(b, x, 1);
+}
+
 }  // namespace kinema

@@ -40,6 +40,10 @@ class LaggedCholesky {
 
   bool has_factor() const { return factor_ && valid_; }
 
+  // x = L^-T L^-1 b with the current factor (requires has_factor()): the exact solve of the
+  // matrix last factorised.
+  void solve_with_factor(const Scalar* b, Scalar* x) const;
+
  private:
   std::unique_ptr<CholmodFactor> factor_;
   bool valid_ = false;
