@@ -14,12 +14,13 @@
 #include <random>
 #include <vector>
 
+#include "core/advance.h"
 #include "core/interrupt.h"
 #include "core/parallel.h"
 #include "core/simd.h"
 #include "particles/neighbor_grid.h"
 #include "particles/neighbor_lists.h"
-#include "sph/fluid.h"
+#include "sph/solver.h"
 
 namespace kinema {
 namespace {
@@ -87,14 +88,13 @@ void BM_DensityPass(benchmark::State& state) {
   const std::vector<Scalar> x = jittered_cube(state.range(0));
   sph::State s(3, static_cast<Index>(x.size()) / 3);
   s.x = x;
-  const sph::Model model = sph::make_model(3, kSpacing, 1000, {}, nullptr, nullptr);
   sph::Config config;
   config.method = sph::Method::WCSPH;
-  config.gravity = {0, 0, 0};
   config.speed_of_sound = 20;
-  const auto solver = sph::Solver::create(model, config, s);
-  solver->density_error(s);  // builds the lists once
-  for (auto _ : state) benchmark::DoNotOptimize(solver->density_error(s));
+  const sph::Model model = sph::make_model(config, s, kSpacing, {}, nullptr, nullptr);
+  sph::Solver solver(model, config);
+  solver.density_error(s);  // builds the lists once
+  for (auto _ : state) benchmark::DoNotOptimize(solver.density_error(s));
   state.counters["particles"] = static_cast<double>(s.n);
   state.counters["threads"] = num_threads();
 }
@@ -112,7 +112,9 @@ void BM_DamBreakSearch(benchmark::State& state) {
   std::uniform_real_distribution<Scalar> jitter(-0.1 * spacing, 0.1 * spacing);
   for (Scalar& c : x) c += jitter(rng);
   const Index n = static_cast<Index>(x.size()) / 3;
-  const sph::Model model = sph::make_model(3, spacing, 1000, {}, lower, box);
+  sph::State s(3, static_cast<Index>(x.size()) / 3);
+  s.x = x;
+  const sph::Model model = sph::make_model(sph::Config{}, s, spacing, {}, lower, box);
   const std::vector<Index> order = morton_order<3>(x.data(), n, model.h);
   std::vector<Scalar> xs(x.size());
   for (Index k = 0; k < n; ++k)
@@ -145,24 +147,22 @@ void BM_DamBreakStep(benchmark::State& state, sph::Method method) {
   const std::vector<Scalar> x = sph::block(3, lower, column, spacing);
   sph::State s(3, static_cast<Index>(x.size()) / 3);
   s.x = x;
-  const sph::Model model = sph::make_model(3, spacing, 1000, {}, lower, box);
   sph::Config config;
   config.method = method;
-  const auto solver = sph::Solver::create(model, config, s);
+  config.gravity = {0, -9.81, 0};
+  const sph::Model model = sph::make_model(config, s, spacing, {}, lower, box);
+  sph::Solver solver(model, config);
   Interrupt interrupt;
-  const Scalar start = 0.02;
-  while (s.time < start) {
-    Scalar dt = solver->stable_dt(s, 0.4);
-    if (dt >= start - s.time || start - s.time - dt < 0.1 * dt) dt = start - s.time;
-    solver->step(s, dt, interrupt);
-  }
-  Scalar dt = solver->stable_dt(s, 0.4);
+  advance_to(
+      s, 0.02, [&](const sph::State& st) { return solver.stable_dt(st, 0.4); },
+      [&](sph::State& st, Scalar dt) { return solver.step(st, dt, interrupt); }, interrupt);
+  Scalar dt = solver.stable_dt(s, 0.4);
   if (method == sph::Method::DFSPH) dt = std::min(dt, 0.4 * spacing / std::sqrt(2 * 9.81 * 2 * a));
   // Past the DFSPH solvers' first steps at the smaller dt (the Python benchmark's first call).
-  for (int k = 0; k < 5; ++k) solver->step(s, dt, interrupt);
+  for (int k = 0; k < 5; ++k) solver.step(s, dt, interrupt);
   double iterations = 0;
   for (auto _ : state) {
-    const sph::StepStats stats = solver->step(s, dt, interrupt);
+    const sph::StepStats stats = solver.step(s, dt, interrupt);
     iterations += stats.iterations + stats.divergence_iterations;
   }
   state.counters["particles"] = static_cast<double>(s.n);

@@ -14,7 +14,7 @@
 
 #include "particles/neighbor_grid.h"
 #include "particles/neighbor_lists.h"
-#include "sph/fluid.h"
+#include "sph/model.h"
 #include "sph/kernels.h"
 
 namespace kinema {

@@ -1,13 +1,15 @@
-// kinema._core.sph: the SPH fluid behind km.sph.Fluid, the neighbour search and scene helpers.
-// State arrays are zero-copy views of the C++ State whose base is the Fluid object; the State's
-// buffers are never reallocated (Morton reordering permutes their rows in place).
+// kinema._core.sph: the SPH fluid behind km.sph.Fluid (its Config, StepStats and Method bound as
+// Python objects), the neighbour search and scene helpers. State arrays are zero-copy views of
+// the C++ State whose base is the Fluid object; a step never reallocates them (Morton
+// reordering permutes their rows in place); set_state copies into them.
 #include <optional>
 
 #include "bindings/common.h"
+#include "core/advance.h"
 #include "core/errors.h"
 #include "particles/neighbor_grid.h"
-#include "sph/fluid.h"
 #include "sph/kernels.h"
+#include "sph/solver.h"
 
 namespace kinema::bind {
 
@@ -19,16 +21,27 @@ int dim_of(const py::array& a, const char* name) {
   return static_cast<int>(a.shape(1));
 }
 
+// Copies the array src[key] of to.size() values into `to` (a ValueError naming the entry if it
+// has another size).
+template <class T>
+void copy_into(std::vector<T>& to, const py::dict& src, const char* key) {
+  const auto a = py::array_t<T, py::array::c_style | py::array::forcecast>::ensure(src[key]);
+  const std::string name = std::string("state['") + key + "']";
+  if (!a || a.size() != static_cast<py::ssize_t>(to.size()))
+    throw InvalidArgument(name + ": expected " + std::to_string(to.size()) + " numbers");
+  std::copy(a.data(), a.data() + a.size(), to.begin());
+}
+
+
+
 struct PyFluid {
-  PyFluid(py::array positions, py::array velocities, Scalar spacing, const std::string& method,
-          Scalar rho0, Scalar viscosity, std::vector<Scalar> gravity, std::optional<py::array> boundary,
-          std::optional<std::vector<Scalar>> lower, std::optional<std::vector<Scalar>> upper,
-          Scalar speed_of_sound, Scalar gamma, Scalar tol, Scalar divergence_tol, int max_iter,
-          bool divergence_solve, int reorder_every, Scalar neighbor_skin, Scalar warm_start)
+  PyFluid(py::array positions, py::array velocity, Scalar spacing, const sph::Config& config,
+          std::optional<py::array> boundary, std::optional<std::vector<Scalar>> lower,
+          std::optional<std::vector<Scalar>> upper)
       : state(dim_of(positions, "positions"), positions.shape(0)) {
     const int d = state.dim;
     const Scalar* xp = checked_data(positions, "positions", state.n * d, false);
-    const Scalar* vp = checked_data(velocities, "velocity", state.n * d, false);
+    const Scalar* vp = checked_data(velocity, "velocity", state.n * d, false);
     std::copy(xp, xp + state.n * d, state.x.begin());
     std::copy(vp, vp + state.n * d, state.v.begin());
     std::vector<Scalar> xb;
@@ -38,71 +51,40 @@ struct PyFluid {
       const Scalar* bp = checked_data(*boundary, "boundary", boundary->size(), false);
       xb.assign(bp, bp + boundary->size());
     }
-    if (gravity.size() != static_cast<size_t>(d))
-      throw InvalidArgument("gravity: expected " + std::to_string(d) + " components");
-    sph::Config config;
-    config.method = sph::parse_method(method);
-    config.rho0 = rho0;
-    config.viscosity = viscosity;
-    config.gravity = {0, 0, 0};
-    std::copy(gravity.begin(), gravity.end(), config.gravity.begin());
-    config.speed_of_sound = speed_of_sound;
-    config.gamma = gamma;
-    config.tol = tol;
-    config.divergence_tol = divergence_tol;
-    config.max_iter = max_iter;
-    config.divergence_solve = divergence_solve;
-    config.reorder_every = reorder_every;
-    config.neighbor_skin = neighbor_skin;
-    config.warm_start = warm_start;
+    for (const auto* corner : {&lower, &upper})
+      if (*corner && (*corner)->size() != static_cast<size_t>(d))
+        throw InvalidArgument("domain: expected " + std::to_string(d) + " coordinates per corner");
     ReleaseGil release;
-    const sph::Model model = sph::make_model(d, spacing, rho0, std::move(xb),
-                                             lower ? lower->data() : nullptr,
-                                             upper ? upper->data() : nullptr);
-    solver = sph::Solver::create(model, config, state);
+    const sph::Model model = sph::make_model(config, state, spacing, std::move(xb),
+                                             lower ? lower->data() : nullptr, upper ? upper->data() : nullptr);
+    solver.emplace(model, config);
   }
 
-  py::dict step(Scalar dt) {
-    sph::StepStats stats;
-    {
-      Interrupt interrupt = python_interrupt();
-      ReleaseGil release;
-      stats = step_or_rollback(dt, interrupt);
-    }
-    return to_dict(stats);
+  sph::StepStats step(Scalar dt) {
+    Interrupt interrupt = python_interrupt();
+    ReleaseGil release;
+    return step_or_rollback(dt, interrupt);
   }
 
-  // One step; a failing step leaves the state as it was and drops the caches it built.
+  // One step; a failing step leaves the state as it was.
   sph::StepStats step_or_rollback(Scalar dt, Interrupt& interrupt) {
     check_ids();
-    try {
-      return with_rollback(state, [&] { return solver->step(state, dt, interrupt); });
-    } catch (...) {
-      solver->reset_caches();
-      throw;
-    }
+    return with_rollback(state, [&] { return solver->step(state, dt, interrupt); });
   }
 
   // Steps of CFL-limited dt until `duration` has passed; Ctrl-C is checked between steps.
   py::tuple advance(Scalar duration, Scalar cfl) {
-    Index steps = 0;
     sph::StepStats last;
+    AdvanceResult result;
     {
       Interrupt interrupt = python_interrupt();
       ReleaseGil release;
-      const Scalar end = state.time + duration;
-      while (state.time < end) {
-        interrupt.check();
-        Scalar dt = solver->stable_dt(state, cfl);
-        const Scalar remaining = end - state.time;
-        // Stretch the last step a little rather than leave a sliver.
-        if (dt >= remaining || remaining - dt < 0.1 * dt) dt = remaining;
-        last = step_or_rollback(dt, interrupt);
-        ++steps;
-        if (dt == remaining) state.time = end;
-      }
+      result = advance_to(
+          state, duration, [&](const sph::State& s) { return solver->stable_dt(s, cfl); },
+          [&](sph::State&, Scalar dt) { return step_or_rollback(dt, interrupt); },
+          [&](const sph::StepStats& stats) { last = stats; }, interrupt);
     }
-    return py::make_tuple(steps, to_dict(last));
+    return py::make_tuple(result.steps, last);
   }
 
   // The ids view is writable (checkpoints restore it), so a step first checks that it still
@@ -119,22 +101,70 @@ struct PyFluid {
     }
   }
 
-  static py::dict to_dict(const sph::StepStats& s) {
-    py::dict d;
-    d["dt"] = s.dt;
-    d["iterations"] = s.iterations;
-    d["divergence_iterations"] = s.divergence_iterations;
-    d["density_error"] = s.density_error;
-    d["divergence_error"] = s.divergence_error;
-    d["max_speed"] = s.max_speed;
-    d["neighbor_count"] = s.neighbor_count;
-    d["neighbor_rebuild"] = s.neighbor_rebuild;
-    d["seconds"] = s.seconds;
-    return d;
+  // Copies of everything the State holds, the neighbour lists as the positions and skin they
+  // were built with (neighbor_x has 0 rows when there are none yet).
+  py::dict get_state() const {
+    const Index n = state.n, d = state.dim;
+    py::dict out;
+    out["x"] = to_numpy(std::vector<Scalar>(state.x), {n, d});
+    out["v"] = to_numpy(std::vector<Scalar>(state.v), {n, d});
+    out["density"] = to_numpy(std::vector<Scalar>(state.density), {n});
+    out["pressure"] = to_numpy(std::vector<Scalar>(state.pressure), {n});
+    out["ids"] = to_numpy(std::vector<Index>(state.ids), {n});
+    out["time"] = py::array_t<Scalar>(std::vector<py::ssize_t>{}, &state.time);
+    out["steps"] = py::array_t<Index>(std::vector<py::ssize_t>{}, &state.steps);
+    out["last_dt"] = py::array_t<Scalar>(std::vector<py::ssize_t>{}, &state.last_dt);
+    out["reorder_step"] = py::array_t<Index>(std::vector<py::ssize_t>{}, &state.reorder_step);
+    if (solver->config().method == sph::Method::DFSPH) {
+      out["kappa_density"] = to_numpy(std::vector<Scalar>(state.kappa_density.size() == size_t(n) ? state.kappa_density : std::vector<Scalar>(n, 0)), {n});
+      out["kappa_divergence"] = to_numpy(std::vector<Scalar>(state.kappa_divergence.size() == size_t(n) ? state.kappa_divergence : std::vector<Scalar>(n, 0)), {n});
+    }
+    const bool lists = state.lists != nullptr;
+    out["neighbor_x"] = to_numpy(lists ? std::vector<Scalar>(state.lists->x) : std::vector<Scalar>(), {lists ? n : 0, d});
+    const Scalar skin = lists ? state.lists->skin : 0;
+    out["neighbor_skin"] = py::array_t<Scalar>(std::vector<py::ssize_t>{}, &skin);
+    return out;
+  }
+
+  // Restores get_state()'s dict (Python has checked its keys and converted its scalars); all
+  // or nothing: the state changes only once every entry has been read and checked.
+  void set_state(const py::dict& src, Scalar time, Index steps, Scalar last_dt, Index reorder_step,
+                 Scalar neighbor_skin) {
+    sph::State next = state;
+    copy_into(next.x, src, "x");
+    copy_into(next.v, src, "v");
+    copy_into(next.density, src, "density");
+    copy_into(next.pressure, src, "pressure");
+    copy_into(next.ids, src, "ids");
+    if (solver->config().method == sph::Method::DFSPH) {
+      next.kappa_density.resize(static_cast<size_t>(state.n));
+      next.kappa_divergence.resize(static_cast<size_t>(state.n));
+      copy_into(next.kappa_density, src, "kappa_density");
+      copy_into(next.kappa_divergence, src, "kappa_divergence");
+    }
+    if (!std::isfinite(time)) throw InvalidArgument("state['time']: expected a finite time [s]");
+    if (steps < 0) throw InvalidArgument("state['steps']: expected an integer >= 0");
+    if (!(last_dt >= 0) || !std::isfinite(last_dt)) throw InvalidArgument("state['last_dt']: expected a finite dt >= 0 [s]");
+    if (reorder_step < -1 || reorder_step > steps)
+      throw InvalidArgument("state['reorder_step']: expected an integer in [-1, steps]");
+    next.time = time;
+    next.steps = steps;
+    next.last_dt = last_dt;
+    next.reorder_step = reorder_step;
+    const auto neighbor_x = py::array_t<Scalar, py::array::c_style | py::array::forcecast>::ensure(src["neighbor_x"]);
+    if (!neighbor_x) throw InvalidArgument("state['neighbor_x']: expected an array of positions");
+    ReleaseGil release;
+    if (neighbor_x.size() == 0) {
+      next.lists = nullptr;
+    } else {
+      const std::vector<Scalar> x(neighbor_x.data(), neighbor_x.data() + neighbor_x.size());
+      solver->restore_lists(next, x, neighbor_skin);
+    }
+    state = next;
   }
 
   sph::State state;
-  std::unique_ptr<sph::Solver> solver;
+  std::optional<sph::Solver> solver;
 };
 
 // A view of one State buffer whose base is the Fluid object (kept alive by the array).
@@ -146,22 +176,59 @@ py::array view(py::object self, std::vector<T>& buffer, std::vector<py::ssize_t>
 }  // namespace
 
 void bind_sph(py::module_& m) {
+  py::enum_<sph::Method>(m, "Method", "The pressure solver: WCSPH (Becker and Teschner 2007) or DFSPH "
+                                      "(Bender and Koschier 2017).")
+      .value("WCSPH", sph::Method::WCSPH)
+      .value("DFSPH", sph::Method::DFSPH);
+  m.def("parse_method", &sph::parse_method, py::arg("name"));
+
+  using sph::Config;
+  py::class_<Config>(m, "Config", "The parameters of an SPH liquid (checked when a Fluid is built).")
+      .def(py::init<>())
+      .def_readwrite("method", &Config::method)
+      .def_readwrite("rho0", &Config::rho0, "rest density [kg/m^d]")
+      .def_readwrite("viscosity", &Config::viscosity, "kinematic viscosity [m^2/s]; 0 skips the pass")
+      .def_readwrite("gravity", &Config::gravity, "[m/s^2], the first d components are used")
+      .def_readwrite("speed_of_sound", &Config::speed_of_sound,
+                     "WCSPH c [m/s]; 0: 10 sqrt(2 |g| H) for the initial fluid height H")
+      .def_readwrite("gamma", &Config::gamma, "Tait exponent")
+      .def_readwrite("tol", &Config::tol, "DFSPH: mean relative compression after the density solve")
+      .def_readwrite("divergence_tol", &Config::divergence_tol,
+                     "DFSPH: mean (d rho/dt) dt / rho0 after the divergence solve")
+      .def_readwrite("max_iter", &Config::max_iter, "DFSPH: iterations per solve")
+      .def_readwrite("divergence_solve", &Config::divergence_solve, "DFSPH: run the divergence-free solver")
+      .def_readwrite("reorder_every", &Config::reorder_every, "least steps between Morton reorderings (0: never)")
+      .def_readwrite("neighbor_skin", &Config::neighbor_skin, "Verlet skin of the neighbour lists, fraction of h")
+      .def_readwrite("warm_start", &Config::warm_start,
+                     "DFSPH: share of the last step's stiffnesses a solve starts from");
+
+  using sph::StepStats;
+  py::class_<StepStats, StepStatsBase>(m, "StepStats", "What one SPH step did.")
+      .def_readonly("iterations", &StepStats::iterations, "DFSPH constant-density iterations")
+      .def_readonly("divergence_iterations", &StepStats::divergence_iterations, "DFSPH divergence-free iterations")
+      .def_readonly("density_error", &StepStats::density_error,
+                    "mean compression max(rho/rho0 - 1, 0) (DFSPH: what the density solve reached)")
+      .def_readonly("divergence_error", &StepStats::divergence_error, "the divergence solve's error (DFSPH)")
+      .def_readonly("max_speed", &StepStats::max_speed, "after the step [m/s]")
+      .def_readonly("neighbor_count", &StepStats::neighbor_count, "fluid-fluid neighbour entries (2 per pair)")
+      .def_readonly("neighbor_rebuild", &StepStats::neighbor_rebuild,
+                    "the neighbour lists were rebuilt from the cell grid")
+      .def("__repr__", [](const StepStats& s) {
+        return "sph.StepStats(time=" + format_real(s.time) + ", dt=" + format_real(s.dt) +
+               ", iterations=" + std::to_string(s.iterations) + ", divergence_iterations=" +
+               std::to_string(s.divergence_iterations) + ", density_error=" + format_real(s.density_error) +
+               ", max_speed=" + format_real(s.max_speed) + ")";
+      });
+
   py::class_<PyFluid>(m, "Fluid")
-      .def(py::init<py::array, py::array, Scalar, const std::string&, Scalar, Scalar, std::vector<Scalar>,
-                    std::optional<py::array>, std::optional<std::vector<Scalar>>,
-                    std::optional<std::vector<Scalar>>, Scalar, Scalar, Scalar, Scalar, int, bool, int,
-                    Scalar, Scalar>(),
-           py::arg("positions"), py::arg("velocity"), py::arg("spacing"), py::arg("method"),
-           py::arg("rho0"), py::arg("viscosity"), py::arg("gravity"), py::arg("boundary"),
-           py::arg("lower"), py::arg("upper"), py::arg("speed_of_sound"), py::arg("gamma"),
-           py::arg("tol"), py::arg("divergence_tol"), py::arg("max_iter"),
-           py::arg("divergence_solve"), py::arg("reorder_every"), py::arg("neighbor_skin"),
-           py::arg("warm_start"))
+      .def(py::init<py::array, py::array, Scalar, const sph::Config&, std::optional<py::array>,
+                    std::optional<std::vector<Scalar>>, std::optional<std::vector<Scalar>>>(),
+           py::arg("positions"), py::arg("velocity"), py::arg("spacing"), py::arg("config"),
+           py::arg("boundary"), py::arg("lower"), py::arg("upper"))
       .def("step", &PyFluid::step, py::arg("dt"))
       .def("advance", &PyFluid::advance, py::arg("duration"), py::arg("cfl"))
       .def("stable_dt", [](const PyFluid& f, Scalar cfl) { return f.solver->stable_dt(f.state, cfl); },
            py::arg("cfl"))
-      .def("reset_caches", [](PyFluid& f) { f.solver->reset_caches(); })
       .def("density_error", [](PyFluid& f) {
         ReleaseGil release;
         return f.solver->density_error(f.state);
@@ -176,6 +243,9 @@ void bind_sph(py::module_& m) {
         const Index p = static_cast<Index>(pairs.size()) / 2, q = static_cast<Index>(boundary_pairs.size()) / 2;
         return py::make_tuple(to_numpy(std::move(pairs), {p, 2}), to_numpy(std::move(boundary_pairs), {q, 2}));
       })
+      .def("state", &PyFluid::get_state)
+      .def("set_state", &PyFluid::set_state, py::arg("state"), py::arg("time"), py::arg("steps"),
+           py::arg("last_dt"), py::arg("reorder_step"), py::arg("neighbor_skin"))
       .def_property_readonly("x", [](py::object self) {
         auto& f = self.cast<PyFluid&>();
         return view(self, f.state.x, {f.state.n, f.state.dim});
@@ -196,14 +266,12 @@ void bind_sph(py::module_& m) {
         auto& f = self.cast<PyFluid&>();
         return view(self, f.state.ids, {f.state.n});
       })
-      .def_property("time", [](const PyFluid& f) { return f.state.time; },
-                    [](PyFluid& f, Scalar t) { f.state.time = t; })
-      // Settable for checkpoints: the Morton reordering is scheduled by the step count.
-      .def_property("steps", [](const PyFluid& f) { return f.state.steps; },
-                    [](PyFluid& f, Index n) { f.state.steps = n; })
+      .def_property_readonly("time", [](const PyFluid& f) { return f.state.time; })
+      .def_property_readonly("steps", [](const PyFluid& f) { return f.state.steps; })
+      .def_property_readonly("config", [](const PyFluid& f) { return f.solver->config(); })
       .def_property_readonly("mass", [](const PyFluid& f) { return f.solver->model().mass; })
       .def_property_readonly("support_radius", [](const PyFluid& f) { return f.solver->model().h; })
-      .def_property_readonly("speed_of_sound", [](const PyFluid& f) { return f.solver->speed_of_sound(); })
+      .def_property_readonly("speed_of_sound", [](const PyFluid& f) { return f.solver->model().speed_of_sound; })
       .def_property_readonly("boundary_count", [](const PyFluid& f) { return f.solver->model().boundary_count(); })
       .def_property_readonly("boundary_psi", [](const PyFluid& f) {
         auto psi = f.solver->model().boundary_psi;

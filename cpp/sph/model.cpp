@@ -1,11 +1,13 @@
-// Model and State construction, scene helpers (lattice blocks, box walls) and the solver factory.
+// Config checks, Model and State construction and the scene helpers (lattice blocks, box walls).
+#include "sph/model.h"
+
+#include <algorithm>
 #include <cmath>
 #include <string>
 
 #include "core/errors.h"
 #include "core/parallel.h"
 #include "particles/neighbor_grid.h"
-#include "sph/fluid.h"
 #include "sph/kernels.h"
 
 namespace kinema::sph {
@@ -16,14 +18,71 @@ Method parse_method(const std::string& name) {
   throw InvalidArgument("method: expected 'wcsph' or 'dfsph', got '" + name + "'");
 }
 
+const char* method_name(Method method) { return method == Method::WCSPH ? "wcsph" : "dfsph"; }
+
+void check(const Config& c) {
+  auto positive = [](Scalar v, const char* name) {
+    if (!(v > 0) || !std::isfinite(v))
+      throw InvalidArgument(std::string(name) + ": expected a finite number > 0, got " + format_real(v));
+  };
+  auto fraction = [](Scalar v, const char* name) {
+    if (!(v >= 0) || !(v <= 1))
+      throw InvalidArgument(std::string(name) + ": expected a number in [0, 1], got " + format_real(v));
+  };
+  if (c.method != Method::WCSPH && c.method != Method::DFSPH) throw InvalidArgument("method: unknown");
+  positive(c.rho0, "rho0");
+  if (!(c.viscosity >= 0) || !std::isfinite(c.viscosity))
+    throw InvalidArgument("viscosity: expected a finite number >= 0, got " + format_real(c.viscosity));
+  for (Scalar g : c.gravity)
+    if (!std::isfinite(g)) throw InvalidArgument("gravity: expected finite components, got " + format_real(g));
+  if (c.speed_of_sound != 0) positive(c.speed_of_sound, "speed_of_sound");
+  positive(c.gamma, "gamma");
+  positive(c.tol, "tol");
+  positive(c.divergence_tol, "divergence_tol");
+  if (c.max_iter < 1) throw InvalidArgument("max_iter: expected an integer >= 1, got " + std::to_string(c.max_iter));
+  if (c.reorder_every < 0)
+    throw InvalidArgument("reorder_every: expected an integer >= 0, got " + std::to_string(c.reorder_every));
+  fraction(c.neighbor_skin, "neighbor_skin");
+  fraction(c.warm_start, "warm_start");
+}
+
 State::State(int dim_, Index n_)
     : dim(dim_), n(n_), x(static_cast<size_t>(n_ * dim_), 0), v(static_cast<size_t>(n_ * dim_), 0),
       density(static_cast<size_t>(n_), 0), pressure(static_cast<size_t>(n_), 0),
       ids(static_cast<size_t>(n_)) {
+  if (dim != 2 && dim != 3) throw InvalidArgument("positions: expected d = 2 or 3 columns");
   for (Index i = 0; i < n; ++i) ids[i] = i;
 }
 
 namespace {
+
+// c = 10 sqrt(2 |g| H) for the fluid's initial height H along gravity, so that the flow stays
+// below Mach 0.1 and compression near 1% (Monaghan 1994); never below 10 x the initial speeds.
+Scalar default_speed_of_sound(const Config& config, const State& s, Scalar h) {
+  const int d = s.dim;
+  Scalar g = 0;
+  for (int a = 0; a < d; ++a) g += config.gravity[a] * config.gravity[a];
+  g = std::sqrt(g);
+  Scalar height = 0;
+  if (g > 0 && s.n > 0) {
+    Scalar lo = INFINITY, hi = -INFINITY;
+    for (Index i = 0; i < s.n; ++i) {
+      Scalar y = 0;  // the height along -g
+      for (int a = 0; a < d; ++a) y += (-config.gravity[a] / g) * s.x[i * d + a];
+      lo = std::min(lo, y);
+      hi = std::max(hi, y);
+    }
+    height = std::max(hi - lo, h);
+  }
+  Scalar vmax2 = 0;
+  for (Index i = 0; i < s.n; ++i) {
+    Scalar v2 = 0;
+    for (int a = 0; a < d; ++a) v2 += s.v[i * d + a] * s.v[i * d + a];
+    vmax2 = std::max(vmax2, v2);
+  }
+  const Scalar c = std::max(10 * std::sqrt(2 * g * height), 10 * std::sqrt(vmax2));
+  return c > 0 ? c : 1.0;
+}
 
 template <int D>
 std::vector<Scalar> akinci_psi(const std::vector<Scalar>& xb, Scalar h, Scalar rho0) {
@@ -47,28 +106,38 @@ std::vector<Scalar> akinci_psi(const std::vector<Scalar>& xb, Scalar h, Scalar r
 
 }  // namespace
 
-Model make_model(int dim, Scalar spacing, Scalar rho0, std::vector<Scalar> boundary,
+Model make_model(const Config& config, const State& initial, Scalar spacing, std::vector<Scalar> boundary,
                  const Scalar* lower, const Scalar* upper) {
+  check(config);
+  const int dim = initial.dim;
+  const Scalar rho0 = config.rho0;
   if (dim != 2 && dim != 3) throw InvalidArgument("positions: expected d = 2 or 3 columns");
+  if (initial.n >= (Index{1} << 31)) throw InvalidArgument("positions: at most 2^31 - 1 particles");
+  for (const std::vector<Scalar>* a : {&initial.x, &initial.v})
+    for (Scalar c : *a)
+      if (!std::isfinite(c))
+        throw InvalidArgument(std::string(a == &initial.x ? "positions" : "velocity") + ": expected finite values");
   if (!(spacing > 0) || !std::isfinite(spacing))
-    throw InvalidArgument("spacing: expected a finite number > 0, got " + std::to_string(spacing));
-  if (!(rho0 > 0) || !std::isfinite(rho0))
-    throw InvalidArgument("rho0: expected a finite number > 0, got " + std::to_string(rho0));
+    throw InvalidArgument("spacing: expected a finite number > 0, got " + format_real(spacing));
   if (boundary.size() % static_cast<size_t>(dim) != 0)
     throw InvalidArgument("boundary: expected shape (M, " + std::to_string(dim) + ")");
+  for (Scalar c : boundary)
+    if (!std::isfinite(c)) throw InvalidArgument("boundary: expected finite values");
   Model model;
   model.dim = dim;
   model.spacing = spacing;
   model.h = 2 * spacing;
   model.mass = rho0 * std::pow(spacing, dim);
+  model.speed_of_sound =
+      config.speed_of_sound > 0 ? config.speed_of_sound : default_speed_of_sound(config, initial, model.h);
   model.boundary_x = std::move(boundary);
   model.boundary_psi = dim == 2 ? akinci_psi<2>(model.boundary_x, model.h, rho0)
                                 : akinci_psi<3>(model.boundary_x, model.h, rho0);
   if (lower && upper) {
     model.has_domain = true;
     for (int a = 0; a < dim; ++a) {
-      if (!(upper[a] > lower[a]))
-        throw InvalidArgument("domain: expected lower < upper on every axis");
+      if (!(upper[a] > lower[a]) || !std::isfinite(lower[a]) || !std::isfinite(upper[a]))
+        throw InvalidArgument("domain: expected finite lower < upper on every axis");
       model.lower[a] = lower[a];
       model.upper[a] = upper[a];
     }

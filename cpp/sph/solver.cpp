@@ -12,40 +12,43 @@
 #include "core/timer.h"
 #include "particles/neighbor_grid.h"
 #include "particles/neighbor_lists.h"
-#include "sph/fluid.h"
 #include "sph/kernels.h"
+#include "sph/solver.h"
 
 namespace kinema::sph {
+
+// The solver of one dimension behind Solver (SolverD<2> or SolverD<3>).
+struct Solver::Impl {
+  Impl(const Model& model, const Config& config) : model_(model), config_(config) {}
+  virtual ~Impl() = default;
+  virtual StepStats step(State& state, Scalar dt, Interrupt& interrupt) = 0;
+  virtual Scalar stable_dt(const State& state, Scalar cfl) const = 0;
+  virtual Scalar density_error(State& state) = 0;
+  virtual std::vector<Index> neighbor_pairs_in_use(State& state, std::vector<Index>& boundary_pairs) = 0;
+  virtual void restore_lists(State& state, const std::vector<Scalar>& x, Scalar skin) = 0;
+  const Model model_;
+  const Config config_;
+};
 
 namespace {
 
 template <int D>
-class SolverD final : public Solver {
+class SolverD final : public Solver::Impl {
  public:
   using Vec = Eigen::Matrix<Scalar, D, 1>;
   using Map = Eigen::Map<Vec>;
   using CMap = Eigen::Map<const Vec>;
 
-  SolverD(const Model& model, const Config& config, const State& state)
-      : Solver(model, config), W_(model.h), rows_(RowSums<D>::choose(use_avx2())) {
+  SolverD(const Model& model, const Config& config)
+      : Impl(model, config), W_(model.h), c_(model.speed_of_sound), rows_(RowSums<D>::choose(use_avx2())) {
     for (int a = 0; a < D; ++a) g_[a] = config.gravity[a];
-    c_ = config.speed_of_sound > 0 ? config.speed_of_sound : default_speed_of_sound(state);
     B_ = config.rho0 * c_ * c_ / config.gamma;
-    const auto n = static_cast<size_t>(state.n);
-    accel_.assign(n * D, 0);
-    aux_.assign(n, 0);
-    kappa_.assign(n, 0);
-    warm_left_.assign(n, 0);
-    kappa_density_.assign(n, 0);
-    kappa_divergence_.assign(n, 0);
-    factor_.assign(n, 0);
-    if (config.method == Method::DFSPH) grad_sum_.assign(n * D, 0);
-    boundary_grad_sum_.assign(n * D, 0);
   }
 
   StepStats step(State& s, Scalar dt, Interrupt& interrupt) override {
     if (!(dt > 0) || !std::isfinite(dt))
-      throw InvalidArgument("dt: expected a finite number > 0, got " + std::to_string(dt));
+      throw InvalidArgument("dt: expected a finite number > 0, got " + format_real(dt));
+    prepare(s);
     Stopwatch watch;
     StepStats stats;
     stats.dt = dt;
@@ -53,7 +56,8 @@ class SolverD final : public Solver {
     else step_dfsph(s, dt, stats, interrupt);
     s.time += dt;
     ++s.steps;
-    last_dt_ = dt;
+    s.last_dt = dt;
+    stats.time = s.time;
     stats.max_speed = check_state(s, dt);
     stats.neighbor_count = fluid().size();
     stats.neighbor_rebuild = rebuilt_;
@@ -64,7 +68,8 @@ class SolverD final : public Solver {
   Scalar stable_dt(const State& s, Scalar cfl) const override {
     const Scalar vmax = max_speed(s);
     const Scalar signal = config_.method == Method::WCSPH ? c_ + vmax : vmax;
-    Scalar dt = kMaxDt;
+    if (s.dim != D) throw InvalidArgument("state: expected " + std::to_string(D) + "D");
+    Scalar dt = Solver::kMaxDt;
     if (signal > 0) dt = std::min(dt, cfl * model_.spacing / signal);
     // Explicit viscosity: dt <= kViscousDt spacing^2 / nu. The viscosity term's largest
     // eigenvalue is 13.1 nu / spacing^2 on a 2D lattice (14.2 in 3D) and 19.3 (21.4) once the
@@ -84,6 +89,7 @@ class SolverD final : public Solver {
   }
 
   Scalar density_error(State& s) override {
+    prepare(s);
     check_finite(s, "x", s.x);
     neighborhoods(s, false, false, s.density.data());
     if (config_.method == Method::WCSPH) pressures(s);
@@ -134,13 +140,12 @@ class SolverD final : public Solver {
     enforce_domain(s);
     // The step's pressure: both solvers change velocities as the force -(m_i / rho_i) grad p_i
     // with p_i = kappa_i rho_i would over dt (Bender and Koschier 2017, eqs. 5-6), at the same
-    // positions, and kappa_density_ and kappa_divergence_ hold their kappa_i / rho_i (warm start
+    // positions, and s.kappa_density and s.kappa_divergence hold their kappa_i / rho_i (warm start
     // and iterations). Both count: in a column at rest the divergence solve's warm start carries
     // part of the weight, and the density solve's share alone read 0.2-1.5 rho0 g (H - y).
     parallel_for(n, [&](Index i) {
-      s.pressure[i] = s.density[i] * s.density[i] * (kappa_density_[i] + kappa_divergence_[i]);
+      s.pressure[i] = s.density[i] * s.density[i] * (s.kappa_density[i] + s.kappa_divergence[i]);
     });
-    warm_ = true;
   }
 
   // ------------------------------------------------------------------ DFSPH solvers
@@ -215,7 +220,7 @@ class SolverD final : public Solver {
                        Residual&& residual, Scalar& error, Interrupt& interrupt, Scalar warm_scale,
                        Scalar expansion_weight) {
     const Index n = s.n;
-    const Scalar w = warm_ ? config_.warm_start * warm_scale : 0;
+    const Scalar w = s.last_dt > 0 ? config_.warm_start * warm_scale : 0;
     if (w > 0) {
       parallel_for(n, [&](Index i) { k[i] = kappa_[i] = warm_left_[i] = w * k[i]; });
       apply_kappa(s, dt);
@@ -260,8 +265,8 @@ class SolverD final : public Solver {
       return parallel_sum(n, [&](Index i) { return std::max<Scalar>(aux_[i], 0); }) / std::max<Index>(n, 1) * dt /
              config_.rho0;
     };
-    const int it = projected_jacobi(s, dt, dt, kappa_divergence_, config_.divergence_tol, 1, residual,
-                                    stats.divergence_error, interrupt, last_dt_ > 0 ? last_dt_ / dt : 1, 0);
+    const int it = projected_jacobi(s, dt, dt, s.kappa_divergence, config_.divergence_tol, 1, residual,
+                                    stats.divergence_error, interrupt, s.last_dt > 0 ? s.last_dt / dt : 1, 0);
     return it;
   }
 
@@ -280,8 +285,8 @@ class SolverD final : public Solver {
     // started with small fixed steps) it is 2500x too large, so a longer step takes the last
     // stiffnesses times (last dt / dt)^2, as SPlisHSPlasH carries kappa dt^2, and a shorter one
     // takes them as they are.
-    const Scalar ratio = last_dt_ > 0 ? std::min<Scalar>(1, last_dt_ / dt) : 1;
-    return projected_jacobi(s, dt, dt * dt, kappa_density_, config_.tol, 2, residual, stats.density_error,
+    const Scalar ratio = s.last_dt > 0 ? std::min<Scalar>(1, s.last_dt / dt) : 1;
+    return projected_jacobi(s, dt, dt * dt, s.kappa_density, config_.tol, 2, residual, stats.density_error,
                             interrupt, ratio * ratio, kExpansionWeight);
   }
 
@@ -289,8 +294,8 @@ class SolverD final : public Solver {
 
   // The step's neighbour lists: the entries within h at the current positions (without a
   // skin, the lists of the grid search are these already).
-  const NeighborLists& fluid() const { return skin_ > 0 ? fluid_exact_ : fluid_wide_; }
-  const NeighborLists& boundary() const { return skin_ > 0 ? boundary_exact_ : boundary_wide_; }
+  const NeighborLists& fluid() const { return lists_->skin > 0 ? fluid_exact_ : lists_->fluid; }
+  const NeighborLists& boundary() const { return lists_->skin > 0 ? boundary_exact_ : lists_->boundary; }
 
   // Calls keep(j, x_i - x_j, |x_i - x_j|) for the entries j of row i of the Verlet list `wide`
   // (listed points xs) within h, in list order. The test is done branch-free a chunk of entries
@@ -343,7 +348,7 @@ class SolverD final : public Solver {
     auto store = [&](Index k, Scalar dw, const Vec& xij) {
       if (grads) Eigen::Map<Eigen::Matrix<float, D, 1>>(grads->data() + k * D) = stored_gradient(dw, xij);
     };
-    if (skin_ > 0) {
+    if (lists_->skin > 0) {
       exact.fill_with_values(n, dw_, [&](Index i, auto&& push) {
         const Vec xi = CMap(x + i * D);
         row(i, xi, [&](auto&& entry) {
@@ -385,7 +390,7 @@ class SolverD final : public Solver {
     const Scalar* x = s.x.data();
     // With factors, sum_j |m grad W_ij|^2 goes from the fluid pass to the boundary pass in factor_.
     Scalar* sum_sq = factor_.data();
-    kernel_rows(fluid_wide_, fluid_exact_, &fluid_grad_, x, x, s.n, [&](Index i, const Vec&, auto&& entries) {
+    kernel_rows(lists_->fluid, fluid_exact_, &fluid_grad_, x, x, s.n, [&](Index i, const Vec&, auto&& entries) {
       Scalar rho = m * W_.w0();
       Vec gsum = Vec::Zero();
       Scalar gsq = 0;
@@ -409,7 +414,7 @@ class SolverD final : public Solver {
     const Scalar* psi = model_.boundary_psi.data();
     // Below this a particle has (almost) no neighbours and no pressure to apply.
     const Scalar min_denom = 1e-6 * m * m / std::pow(model_.h, 2 * D + 2);
-    kernel_rows(boundary_wide_, boundary_exact_, nullptr, xb, x, s.n, [&](Index i, const Vec&, auto&& entries) {
+    kernel_rows(lists_->boundary, boundary_exact_, nullptr, xb, x, s.n, [&](Index i, const Vec&, auto&& entries) {
       Scalar rho = density[i];
       Vec bsum = Vec::Zero();
       entries([&](Index b, const Vec& xib, Scalar r) {
@@ -436,51 +441,92 @@ class SolverD final : public Solver {
   // skin. Morton reordering happens at a rebuild, at most every reorder_every steps.
   void neighborhoods(State& s, bool may_reorder, bool factors, Scalar* density) {
     const Scalar h = model_.h;
-    rebuilt_ = !built_ || skin_ == 0 || 2 * max_displacement(s) >= 0.999 * skin_ * h;
+    const VerletLists* lists = s.lists.get();
+    rebuilt_ = !lists || lists->skin == 0 || lists->x.size() != s.x.size() ||
+               2 * max_displacement(s, lists->x) >= 0.999 * lists->skin * h;
     if (rebuilt_) {
-      if (may_reorder && config_.reorder_every > 0 && (!reordered_ || s.steps - reorder_step_ >= config_.reorder_every)) {
+      if (may_reorder && config_.reorder_every > 0 &&
+          (s.reorder_step < 0 || s.steps - s.reorder_step >= config_.reorder_every)) {
         reorder(s);
-        reordered_ = true;
-        reorder_step_ = s.steps;
+        s.reorder_step = s.steps;
       }
-      const Scalar travel = last_dt_ * max_speed(s);  // expected distance per step
-      skin_ = config_.neighbor_skin * h >= 4 * travel ? config_.neighbor_skin : 0;
-      const Scalar radius = h * (1 + skin_);
-      fluid_grid_.build(s.x.data(), s.n, radius);
-      fluid_wide_.build<D>(fluid_grid_, s.x.data(), s.n, radius, true);
-      if (model_.boundary_count() > 0) {
-        if (boundary_grid_radius_ != radius) {
-          boundary_grid_.build(model_.boundary_x.data(), model_.boundary_count(), radius);
-          boundary_grid_radius_ = radius;
-        }
-        boundary_wide_.build<D>(boundary_grid_, s.x.data(), s.n, radius, false);
-      } else {
-        boundary_wide_.start.assign(static_cast<size_t>(s.n) + 1, 0);
-      }
-      x_built_ = s.x;
-      built_ = true;
+      const Scalar travel = s.last_dt * max_speed(s);  // expected distance per step
+      build_lists(s, s.x, config_.neighbor_skin * h >= 4 * travel ? config_.neighbor_skin : 0);
     }
+    lists_ = s.lists.get();
     kernel_pass(s, factors, density);
   }
 
-  void reset_caches() override {
-    built_ = reordered_ = warm_ = false;
-    last_dt_ = 0;
-    std::fill(kappa_density_.begin(), kappa_density_.end(), Scalar(0));
-    std::fill(kappa_divergence_.begin(), kappa_divergence_.end(), Scalar(0));
+  // s.lists := the Verlet lists of radius h (1 + skin) at the positions x, in lists the
+  // solver alone holds (the last ones, when no State copy shares them any more: a rebuild
+  // then allocates nothing).
+  void build_lists(State& s, const std::vector<Scalar>& x, Scalar skin) {
+    std::shared_ptr<VerletLists> fresh =
+        spare_ && spare_.use_count() == 1 ? std::move(spare_) : std::make_shared<VerletLists>();
+    fresh->x = x;
+    fresh->skin = skin;
+    const Scalar radius = model_.h * (1 + skin);
+    fluid_grid_.build(fresh->x.data(), s.n, radius);
+    fresh->fluid.build<D>(fluid_grid_, fresh->x.data(), s.n, radius, true);
+    if (model_.boundary_count() > 0) {
+      if (boundary_grid_radius_ != radius) {
+        boundary_grid_.build(model_.boundary_x.data(), model_.boundary_count(), radius);
+        boundary_grid_radius_ = radius;
+      }
+      fresh->boundary.build<D>(boundary_grid_, fresh->x.data(), s.n, radius, false);
+    } else {
+      fresh->boundary.start.assign(static_cast<size_t>(s.n) + 1, 0);
+      fresh->boundary.list.clear();
+    }
+    spare_ = std::const_pointer_cast<VerletLists>(std::move(s.lists));
+    s.lists = std::move(fresh);
   }
 
-  // Largest distance a particle has moved since the lists were built [m].
-  Scalar max_displacement(const State& s) const {
+  void restore_lists(State& s, const std::vector<Scalar>& x, Scalar skin) override {
+    prepare(s);
+    if (x.size() != s.x.size())
+      throw InvalidArgument("neighbor_x: expected shape (" + std::to_string(s.n) + ", " + std::to_string(D) + ")");
+    check_finite(s, "neighbor_x", x);
+    if (!(skin >= 0) || !(skin <= 1)) throw InvalidArgument("neighbor_skin: expected a number in [0, 1], got " + format_real(skin));
+    build_lists(s, x, skin);
+  }
+
+  // Largest distance a particle has moved since the positions x0 [m].
+  Scalar max_displacement(const State& s, const std::vector<Scalar>& built) const {
     Scalar d2 = 0;
     const Scalar* x = s.x.data();
-    const Scalar* x0 = x_built_.data();
+    const Scalar* x0 = built.data();
 #pragma omp parallel for schedule(static) reduction(max : d2) if (s.n > kParallelGrain)
     for (Index i = 0; i < s.n; ++i) d2 = std::max(d2, (CMap(x + i * D) - CMap(x0 + i * D)).squaredNorm());
     return std::sqrt(d2);
   }
 
+  // Checks that the state is one of this model's and sizes the scratch (and DFSPH's
+  // stiffnesses, zero in a new state) for it. The values left in the scratch do not matter:
+  // every pass writes before it reads.
+  void prepare(State& s) {
+    if (s.dim != D || s.x.size() != static_cast<size_t>(s.n * D) || s.v.size() != s.x.size() ||
+        s.density.size() != static_cast<size_t>(s.n) || s.pressure.size() != static_cast<size_t>(s.n) ||
+        s.ids.size() != static_cast<size_t>(s.n))
+      throw InvalidArgument("state: expected the arrays of " + std::to_string(s.n) + " particles in " +
+                            std::to_string(D) + "D");
+    if (s.n >= (Index{1} << 31)) throw InvalidArgument("state: at most 2^31 - 1 particles");
+    const auto n = static_cast<size_t>(s.n);
+    if (config_.method == Method::DFSPH) {
+      if (s.kappa_density.size() != n) s.kappa_density.assign(n, 0);
+      if (s.kappa_divergence.size() != n) s.kappa_divergence.assign(n, 0);
+      grad_sum_.resize(n * D);
+    }
+    accel_.resize(n * D);
+    aux_.resize(n);
+    kappa_.resize(n);
+    warm_left_.resize(n);
+    factor_.resize(n);
+    boundary_grad_sum_.resize(n * D);
+  }
+
   std::vector<Index> neighbor_pairs_in_use(State& s, std::vector<Index>& boundary_pairs) override {
+    prepare(s);
     check_finite(s, "x", s.x);
     neighborhoods(s, true, false, aux_.data());  // the densities only as a by-product
     std::vector<Index> pairs;
@@ -517,8 +563,10 @@ class SolverD final : public Solver {
     permute(s.density, 1);
     permute(s.pressure, 1);
     permute(s.ids, 1);
-    permute(kappa_density_, 1);
-    permute(kappa_divergence_, 1);
+    if (!s.kappa_density.empty()) {
+      permute(s.kappa_density, 1);
+      permute(s.kappa_divergence, 1);
+    }
   }
 
   void pressures(State& s) {
@@ -629,46 +677,21 @@ class SolverD final : public Solver {
     return config_.method == Method::WCSPH ? 0.4 * model_.spacing / c_ : 0.4 * model_.spacing / (0.1 * c_);
   }
 
-  // c = 10 sqrt(2 |g| H) for the fluid's initial height H along gravity, so that the flow stays
-  // below Mach 0.1 and compression near 1% (Monaghan 1994); never below 10 x the initial speeds.
-  Scalar default_speed_of_sound(const State& s) const {
-    const Scalar g = g_.norm();
-    Scalar height = 0;
-    if (g > 0 && s.n > 0) {
-      const Vec up = -g_ / g;
-      Scalar lo = INFINITY, hi = -INFINITY;
-      for (Index i = 0; i < s.n; ++i) {
-        const Scalar y = up.dot(CMap(s.x.data() + i * D));
-        lo = std::min(lo, y);
-        hi = std::max(hi, y);
-      }
-      height = std::max(hi - lo, model_.h);
-    }
-    Scalar c = 10 * std::sqrt(2 * g * height);
-    c = std::max(c, 10 * max_speed(s));
-    return c > 0 ? c : 1.0;
-  }
-
   CubicSpline<D> W_;
+  Scalar c_;  // speed of sound (WCSPH) or reference speed (DFSPH) [m/s]
   Vec g_ = Vec::Zero();
   Scalar B_ = 0;
   NeighborGrid<D> fluid_grid_, boundary_grid_;
-  Scalar boundary_grid_radius_ = 0;           // cell size boundary_grid_ was built for
-  NeighborLists fluid_wide_, boundary_wide_;    // Verlet lists, radius h (1 + skin_)
+  Scalar boundary_grid_radius_ = 0;             // cell size boundary_grid_ was built for
+  std::shared_ptr<VerletLists> spare_;          // the lists before the state's last ones, for reuse
+  const VerletLists* lists_ = nullptr;          // the step's Verlet lists (the state's)
   NeighborLists fluid_exact_, boundary_exact_;  // their entries within h (kernel_pass; with a skin)
   RowSums<D> rows_;                             // the light passes' row sums (AVX2 or baseline)
-  std::vector<Scalar> x_built_;                 // positions the Verlet lists were built at
-  Scalar skin_ = 0;                             // skin of the current lists (fraction of h)
-  bool built_ = false, rebuilt_ = false, reordered_ = false;
-  Index reorder_step_ = 0;
-  Scalar last_dt_ = 0;                          // the previous step's dt [s]
+  bool rebuilt_ = false;                        // the step rebuilt the lists
   std::vector<Scalar> accel_;      // (n, d) accelerations
   std::vector<Scalar> aux_;        // DFSPH: predicted densities or density rates; WCSPH: p_i / rho_i^2
-  std::vector<Scalar> warm_left_;         // DFSPH: warm-start stiffness a solve may still give back
-  std::vector<Scalar> kappa_;             // DFSPH: increment of kappa_i / rho_i in the current iteration
-  std::vector<Scalar> kappa_density_;     // DFSPH: kappa_i / rho_i of the constant-density solve
-  std::vector<Scalar> kappa_divergence_;  // DFSPH: kappa^v_i / rho_i of the divergence-free solve
-  bool warm_ = false;                     // the kappa arrays hold a previous step's values
+  std::vector<Scalar> warm_left_;  // DFSPH: warm-start stiffness a solve may still give back
+  std::vector<Scalar> kappa_;      // DFSPH: increment of kappa_i / rho_i in the current iteration
   std::vector<Scalar> factor_;     // DFSPH: alpha_i
   // The step's kernel gradients grad_i W_ij of each entry of fluid() (D floats) and their sums,
   // set by kernel_pass (step-local: every step recomputes them before use).
@@ -680,23 +703,25 @@ class SolverD final : public Solver {
 
 }  // namespace
 
-std::unique_ptr<Solver> Solver::create(const Model& model, const Config& config, const State& state) {
-  if (state.dim != model.dim) throw InvalidArgument("positions: dimension differs from the model's");
-  if (state.n >= (Index{1} << 31)) throw InvalidArgument("positions: at most 2^31 - 1 particles");
-  if (!(config.rho0 > 0)) throw InvalidArgument("rho0: expected a number > 0");
-  if (config.viscosity < 0) throw InvalidArgument("viscosity: expected a number >= 0");
-  if (!(config.gamma > 0)) throw InvalidArgument("gamma: expected a number > 0");
-  if (config.speed_of_sound < 0) throw InvalidArgument("speed_of_sound: expected a number > 0");
-  if (!(config.tol > 0)) throw InvalidArgument("tol: expected a number > 0");
-  if (!(config.divergence_tol > 0)) throw InvalidArgument("divergence_tol: expected a number > 0");
-  if (config.max_iter < 1) throw InvalidArgument("max_iter: expected an integer >= 1");
-  if (config.reorder_every < 0) throw InvalidArgument("reorder_every: expected an integer >= 0");
-  if (!(config.neighbor_skin >= 0) || !(config.neighbor_skin <= 1))
-    throw InvalidArgument("neighbor_skin: expected a number in [0, 1], got " + std::to_string(config.neighbor_skin));
-  if (!(config.warm_start >= 0) || !(config.warm_start <= 1))
-    throw InvalidArgument("warm_start: expected a number in [0, 1], got " + std::to_string(config.warm_start));
-  if (model.dim == 2) return std::make_unique<SolverD<2>>(model, config, state);
-  return std::make_unique<SolverD<3>>(model, config, state);
+Solver::Solver(const Model& model, const Config& config) {
+  check(config);
+  if (model.dim == 2) impl_ = std::make_unique<SolverD<2>>(model, config);
+  else if (model.dim == 3) impl_ = std::make_unique<SolverD<3>>(model, config);
+  else throw InvalidArgument("model: expected d = 2 or 3");
 }
+
+Solver::~Solver() = default;
+Solver::Solver(Solver&&) noexcept = default;
+Solver& Solver::operator=(Solver&&) noexcept = default;
+
+StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) { return impl_->step(state, dt, interrupt); }
+Scalar Solver::stable_dt(const State& state, Scalar cfl) const { return impl_->stable_dt(state, cfl); }
+Scalar Solver::density_error(State& state) { return impl_->density_error(state); }
+std::vector<Index> Solver::neighbor_pairs_in_use(State& state, std::vector<Index>& boundary_pairs) {
+  return impl_->neighbor_pairs_in_use(state, boundary_pairs);
+}
+void Solver::restore_lists(State& state, const std::vector<Scalar>& x, Scalar skin) { impl_->restore_lists(state, x, skin); }
+const Model& Solver::model() const { return impl_->model_; }
+const Config& Solver::config() const { return impl_->config_; }
 
 }  // namespace kinema::sph

@@ -22,7 +22,7 @@ import numpy as np
 
 from kinema import _core
 from kinema._checks import (
-    as_float_array, choice, finite_result, non_negative, positive, positive_int, simulation_object,
+    as_float_array, choice, finite_result, integer, positive, positive_int, real, simulation_object,
     spacing as _spacing, time_step)
 from kinema._state import assign
 
@@ -115,16 +115,20 @@ def box_boundary(lower, upper, spacing, layers=2) -> np.ndarray:
     return _core.sph.box_boundary(lo.tolist(), hi.tolist(), s, layers)
 
 
+INT32_MAX = 2**31 - 1
+
+
 @simulation_object
 class Fluid:
     """An SPH liquid (2D or 3D) of particles of equal mass rho0 * spacing^d.
 
     positions: (n, d) initial positions [m]. spacing: particle spacing [m] (support radius
     h = 2 * spacing). method: "wcsph" or "dfsph". rho0: rest density [kg/m^d].
-    viscosity: kinematic viscosity [m^2/s] (0 skips the pass). gravity: (d,) [m/s^2], default
-    -9.81 along y. domain: (lower, upper) of a closed box. boundary: (M, d) static boundary
-    samples of any solid. speed_of_sound: WCSPH's c [m/s], default 10 sqrt(2 |g| H) for the
-    initial fluid height H. gamma: Tait exponent.
+    viscosity: kinematic viscosity [m^2/s] (0 skips the pass). gravity: (d,) [m/s^2]; None
+    means no gravity (pass ``(0, -9.81)`` or ``(0, -9.81, 0)`` for water in a tank).
+    domain: (lower, upper) of a closed box. boundary: (M, d) static boundary samples of any
+    solid. speed_of_sound: WCSPH's c [m/s], default 10 sqrt(2 |g| H) for the initial fluid
+    height H. gamma: Tait exponent.
     Further keywords: velocity ((n, d) initial velocities), tol (DFSPH mean density error,
     default 1e-3), divergence_tol (1e-3), max_iter (100), divergence_solve (True),
     reorder_every (least steps between Morton reorderings, 16; 0 keeps the input order),
@@ -133,7 +137,7 @@ class Fluid:
     warm_start (DFSPH: share of the last step's stiffnesses each solve starts from, 0.5,
     scaled for a change of dt; it halved the density iterations of a collapsing column, while
     1.0 overshot and diverged: the density solve gives back only what the warm start gave, at
-    half the rate).
+    half the rate). ``config`` holds them all (a ``kinema._core.sph.Config``, read-only here).
 
     State (writable zero-copy views of the solver's memory; they stay valid for the life of
     the Fluid, but Morton reordering permutes rows in place, so row k of ``x`` is the particle
@@ -144,7 +148,14 @@ class Fluid:
     * pressure: (n,) [Pa] of the last step (DFSPH: p_i = kappa_i rho_i of its constant-density
       and divergence-free solves together, the pressure whose force they applied)
     * ids: (n,) int64 original index of each row; time [s]
+
+    :meth:`state` and :meth:`set_state` hold these and what a step reads from the earlier ones
+    (DFSPH's warm-start stiffnesses, the neighbour lists, the last dt), so a run resumed from a
+    state is bitwise the run that was not stopped.
     """
+
+    #: the differentiable parameters (km.diff)
+    parameters = ("viscosity",)
 
     def __init__(self, positions, spacing, *, method="dfsph", rho0=1000.0, viscosity=0.0,
                  gravity=None, domain=None, boundary=None, speed_of_sound=None, gamma=7.0,
@@ -153,63 +164,84 @@ class Fluid:
         x = _points(positions, "positions")
         n, d = x.shape
         self.dim = d
-        self.method = choice(method, "method", METHODS)
+        if not isinstance(method, str):
+            raise ValueError(f"method: expected one of {list(METHODS)}, got {method!r}")
         self.spacing = _spacing(spacing, "spacing")
-        self.rho0 = positive(rho0, "rho0")
-        self.viscosity = non_negative(viscosity, "viscosity")
-        if gravity is None:
-            g = np.zeros(d)
-            g[1] = -9.81
-        else:
+        config = _core.sph.Config()
+        config.method = _core.sph.parse_method(method)
+        config.rho0 = real(rho0, "rho0")
+        config.viscosity = real(viscosity, "viscosity")
+        if gravity is not None:
             g = as_float_array(gravity, "gravity", ndim=1)
             if g.size != d:
                 raise ValueError(f"gravity: expected {d} components for {d}D positions, got {g.size}")
-        self.gravity = g
+            config.gravity = np.r_[g, np.zeros(3 - d)].tolist()
         if velocity is None:
             v = np.zeros_like(x)
         else:
             v = as_float_array(velocity, "velocity")
             if v.shape != x.shape:
                 raise ValueError(f"velocity: expected shape {x.shape} like positions, got {v.shape}")
-        c = 0.0 if speed_of_sound is None else positive(speed_of_sound, "speed_of_sound")
-        gamma = positive(gamma, "gamma")
-        tol = positive(tol, "tol")
-        divergence_tol = positive(divergence_tol, "divergence_tol")
-        max_iter = positive_int(max_iter, "max_iter")
-        if isinstance(reorder_every, bool) or not isinstance(reorder_every, (int, np.integer)) \
-                or reorder_every < 0:
-            raise ValueError(f"reorder_every: expected an integer >= 0, got {reorder_every!r}")
+        if speed_of_sound is not None:
+            config.speed_of_sound = real(speed_of_sound, "speed_of_sound")
+            if config.speed_of_sound == 0:  # 0 would mean "derive it"
+                raise ValueError("speed_of_sound: expected a finite number > 0, got 0.0")
+        config.gamma = real(gamma, "gamma")
+        config.tol = real(tol, "tol")
+        config.divergence_tol = real(divergence_tol, "divergence_tol")
+        config.max_iter = integer(max_iter, "max_iter", high=INT32_MAX)
+        config.divergence_solve = bool(divergence_solve)
+        config.reorder_every = integer(reorder_every, "reorder_every", high=INT32_MAX)
+        config.neighbor_skin = real(neighbor_skin, "neighbor_skin")
+        config.warm_start = real(warm_start, "warm_start")
 
-        neighbor_skin = non_negative(neighbor_skin, "neighbor_skin")
-        if neighbor_skin > 1:
-            raise ValueError(f"neighbor_skin: expected a number in [0, 1], got {neighbor_skin!r}")
-        warm_start = non_negative(warm_start, "warm_start")
-        if warm_start > 1:
-            raise ValueError(f"warm_start: expected a number in [0, 1], got {warm_start!r}")
-
-        parts = []
         lower = upper = None
         if domain is not None:
             try:
                 lower, upper = domain
             except (TypeError, ValueError):
                 raise ValueError("domain: expected (lower, upper), two points of d coordinates") from None
-            lower, upper = _box(lower, upper, "domain lower", "domain upper")
-            if lower.size != d:
+            lower = as_float_array(lower, "domain lower", ndim=1)
+            upper = as_float_array(upper, "domain upper", ndim=1)
+            if lower.size != d or upper.size != d:
                 raise ValueError(f"domain: expected {d} coordinates per corner for {d}D positions, "
-                                 f"got {lower.size}")
-            lower, upper = lower.tolist(), upper.tolist()
+                                 f"got {lower.size} and {upper.size}")
+        xb = None
         if boundary is not None:
-            b = as_float_array(boundary, "boundary", ndim=2)
-            if b.shape[1] != d:
-                raise ValueError(f"boundary: expected shape (M, {d}) for {d}D positions, got {b.shape}")
-            parts.append(b)
-        xb = np.ascontiguousarray(np.concatenate(parts)) if parts else None
-        self.domain = None if lower is None else (np.array(lower), np.array(upper))
-        self._core = _core.sph.Fluid(x, v, self.spacing, self.method, self.rho0, self.viscosity,
-                                     g.tolist(), xb, lower, upper, c, gamma, tol, divergence_tol,
-                                     max_iter, bool(divergence_solve), int(reorder_every),
-                                     neighbor_skin, warm_start)
+            xb = as_float_array(boundary, "boundary", ndim=2)
+            if xb.shape[1] != d:
+                raise ValueError(f"boundary: expected shape (M, {d}) for {d}D positions, got {xb.shape}")
+        self._core = _core.sph.Fluid(x, v, self.spacing, config, xb,
+                                     None if lower is None else lower.tolist(),
+                                     None if upper is None else upper.tolist())
+        self.domain = None if lower is None else (lower, upper)
+        self.last_stats = None
+
+    # ------------------------------------------------------------------ configuration
+    @property
+    def config(self):
+        """The parameters (a copy: changing it changes nothing)."""
+        return self._core.config
+
+    @property
+    def method(self) -> str:
+        """"wcsph" or "dfsph"."""
+        return self._core.config.method.name.lower()
+
+    @property
+    def rho0(self) -> float:
+        """Rest density [kg/m^d]."""
+        return self._core.config.rho0
+
+    @property
+    def viscosity(self) -> float:
+        """Kinematic viscosity [m^2/s]."""
+        return self._core.config.viscosity
+
+    @property
+    def gravity(self) -> np.ndarray:
+        """(d,) [m/s^2]."""
+        return np.array(self._core.config.gravity[:self.dim])
 
     # ------------------------------------------------------------------ state
     @property
@@ -260,6 +292,11 @@ class Fluid:
         return self._core.time
 
     @property
+    def steps(self) -> int:
+        """Steps taken."""
+        return self._core.steps
+
+    @property
     def n(self) -> int:
         return self.x.shape[0]
 
@@ -283,19 +320,63 @@ class Fluid:
         """Number of boundary samples (domain walls and ``boundary``)."""
         return self._core.boundary_count
 
+    @property
+    def boundary_psi(self) -> np.ndarray:
+        """(M,) rho0 V_b of each boundary sample [kg] (Akinci et al. 2012, eq. 4): the
+        ``boundary`` samples first, then the domain's walls."""
+        return self._core.boundary_psi
+
+    _STATE_SCALARS = ("time", "steps", "last_dt", "reorder_step", "neighbor_skin")
+
+    def state(self) -> dict:
+        """Copies of everything that evolves: x, v, density, pressure, ids, time, steps; the
+        last dt and the step of the last reordering; DFSPH's stiffnesses kappa_density and
+        kappa_divergence ((n,) p_i / rho_i^2 of each solve, the next solves' warm start); and
+        the neighbour lists as the positions neighbor_x ((n, d), or (0, d) before the first
+        step) and skin neighbor_skin they were built with."""
+        return self._core.state()
+
+    def set_state(self, state: dict) -> None:
+        """Restores a :meth:`state` of this fluid (or of one built alike) exactly: the resumed
+        run is bitwise the run that was not stopped. A refused dict changes nothing."""
+        if not isinstance(state, dict):
+            raise ValueError(f"state: expected a dict from state(), got {type(state).__name__}")
+        keys = set(self.state())
+        missing = sorted(keys - set(state))
+        if missing:
+            raise ValueError(f"state: missing {missing[0]!r}")
+        arrays = {}
+        for key in keys - set(self._STATE_SCALARS):
+            a = np.asarray(state[key])
+            want = self.ids.dtype if key == "ids" else np.float64
+            if a.dtype.kind not in ("iu" if key == "ids" else "fiu"):
+                raise ValueError(f"state[{key!r}]: expected {np.dtype(want).name} values, got {a.dtype}")
+            if key == "neighbor_x":
+                if a.ndim != 2 or a.shape[1] != self.dim or len(a) not in (0, self.n):
+                    raise ValueError(f"state['neighbor_x']: expected shape ({self.n}, {self.dim}) or "
+                                     f"(0, {self.dim}), got {a.shape}")
+            elif a.shape[0:1] != (self.n,) or a.size != self.n * (self.dim if key in ("x", "v") else 1):
+                raise ValueError(f"state[{key!r}]: expected {self.n} rows like x, got shape {a.shape}")
+            arrays[key] = np.ascontiguousarray(a, dtype=want)
+        scalars = {k: (integer if k in ("steps", "reorder_step") else real)(
+            np.asarray(state[k])[()], f"state[{k!r}]") for k in self._STATE_SCALARS}
+        self._core.set_state(arrays, **scalars)
+
     # ------------------------------------------------------------------ stepping
-    def step(self, dt) -> dict:
-        """Advances by dt [s]. Returns stats: dt, iterations, divergence_iterations,
-        density_error, divergence_error, max_speed, neighbor_count, neighbor_rebuild, seconds.
+    def step(self, dt):
+        """Advances by dt [s]; returns the step's ``kinema._core.sph.StepStats`` (time, dt,
+        seconds, iterations, divergence_iterations, density_error, divergence_error,
+        max_speed, neighbor_count, neighbor_rebuild).
 
         Raises km.DivergenceError when a value turns non-finite or speeds run away (dt too
-        large: see :meth:`stable_dt`).
+        large: see :meth:`stable_dt`); the state is then as before the step.
         """
         return self._core.step(time_step(dt))
 
     def advance(self, duration, cfl=0.4) -> int:
-        """Advances by ``duration`` [s] in steps of :meth:`stable_dt` (cfl); returns the step count."""
-        duration = non_negative(duration, "duration")
+        """Advances by ``duration`` [s] in steps of :meth:`stable_dt` (cfl), the last one
+        landing on the end; returns the step count (the last step's stats in ``last_stats``)."""
+        duration = real(duration, "duration")
         cfl = positive(cfl, "cfl")
         if duration == 0:
             return 0
@@ -312,16 +393,6 @@ class Fluid:
         """0.5 * m * sum |v|^2 [J] (2D: per unit depth)."""
         v = self.v
         return finite_result(0.5 * self.mass * float(np.einsum("ij,ij->", v, v)), "kinetic_energy")
-
-    def reset_caches(self) -> None:
-        """Forgets what the solver carries between steps besides the state arrays and time.
-
-        That is the Verlet neighbour lists, the Morton reordering schedule, DFSPH's warm-start
-        stiffnesses and the last dt: the next step searches neighbours afresh (reordering
-        particles if ``reorder_every`` > 0) and solves from cold. Two runs that reset at the
-        same steps depend on the state alone, which is how scene checkpoints resume exactly.
-        """
-        self._core.reset_caches()
 
     def neighbor_pairs(self):
         """The neighbour pairs the next step will use, brought up to date as a step does.
