@@ -89,7 +89,8 @@ def kinema_fluid(n, method, tol):
     import kinema as km
 
     x, s, domain = scene(n)
-    fluid = km.sph.Fluid(x, s, method=method, domain=domain, tol=tol, divergence_tol=tol)
+    fluid = km.sph.Fluid(x, s, method=method, gravity=(0, -9.81, 0), domain=domain, tol=tol,
+                         divergence_tol=tol)
     return fluid, s
 
 
@@ -120,7 +121,7 @@ def steps_of(fluid, dt, iterations):
         iterations.clear()
         for _ in range(STEPS):
             st = fluid.step(dt)
-            iterations.append(st["iterations"] + st["divergence_iterations"])
+            iterations.append(st.iterations + st.divergence_iterations)
         return fluid.density_error()
 
     return run

@@ -32,7 +32,8 @@ def main():
     steps = int(sys.argv[2]) if len(sys.argv) > 2 else 20
     kw = json.loads(sys.argv[3]) if len(sys.argv) > 3 else {}
     x, s, domain = sb.scene(n)
-    fluid = km.sph.Fluid(x, s, method="dfsph", domain=domain, tol=1e-3, divergence_tol=1e-3, **kw)
+    fluid = km.sph.Fluid(x, s, method="dfsph", gravity=(0, -9.81, 0), domain=domain, tol=1e-3,
+                         divergence_tol=1e-3, **kw)
     dt = sb.timed_dt(n, "dfsph", 1e-3)[0]
     for _ in range(max(1, round(sb.START / dt))):  # sph_bench.py's start-up (started_fluid)
         fluid.step(dt)
@@ -40,9 +41,9 @@ def main():
     cpu, wall = time.process_time(), time.perf_counter()
     for _ in range(steps):
         st = fluid.step(dt)
-        density_its.append(st["iterations"])
-        divergence_its.append(st["divergence_iterations"])
-        errors.append(st["density_error"])
+        density_its.append(st.iterations)
+        divergence_its.append(st.divergence_iterations)
+        errors.append(st.density_error)
     cpu = (time.process_time() - cpu) / steps * 1e3
     wall = (time.perf_counter() - wall) / steps * 1e3
     print(f"n={fluid.n} {kw} dt={dt:.3g}: density iterations {np.mean(density_its):.2f}, divergence "

@@ -27,7 +27,7 @@ G = 9.81
 def dam(method, n=40, a=0.1, tol=1e-3, warmup=True):
     s = a / n
     x = km.sph.block([0, 0], [a, a], s)
-    f = km.sph.Fluid(x, s, method=method, domain=([0, 0], [5 * a, 2 * a]), viscosity=1e-4, tol=tol)
+    f = km.sph.Fluid(x, s, method=method, gravity=(0, -9.81), domain=([0, 0], [5 * a, 2 * a]), viscosity=1e-4, tol=tol)
     if warmup:
         for _ in range(10):
             f.step(5e-5)
@@ -43,7 +43,7 @@ def rest(method, dim=2, s=0.02, nu=0.01, settle=1.0, free=1.0, width=1.0, depth=
     lo, hi = [0] * dim, [width, 1.2] + ([width] if dim == 3 else [])
     up = [width, depth] + ([width] if dim == 3 else [])
     x = km.sph.block([0] * dim, up, s)
-    f = km.sph.Fluid(x, s, method=method, domain=(lo, hi), viscosity=nu)
+    f = km.sph.Fluid(x, s, method=method, gravity=(0, -9.81, 0)[:x.shape[1]], domain=(lo, hi), viscosity=nu)
     while f.time < settle - 1e-9:
         f.advance(0.02)
         f.v[:] = 0
@@ -51,9 +51,9 @@ def rest(method, dim=2, s=0.02, nu=0.01, settle=1.0, free=1.0, width=1.0, depth=
     t_end = f.time + free
     while f.time < t_end - 1e-12:
         st = f.step(min(f.stable_dt(), t_end - f.time))
-        its.append(st["iterations"])
+        its.append(st.iterations)
         if history is not None:
-            history.append((f.time, f.kinetic_energy(), st["iterations"]))
+            history.append((f.time, f.kinetic_energy(), st.iterations))
     f.density_error()
     H = f.x[:, 1].max() + s / 2
     y, p = f.x[:, 1], f.pressure

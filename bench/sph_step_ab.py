@@ -5,7 +5,8 @@ alternated round by round, so that a shared machine's load falls on both alike.
 
     python bench/sph_step_ab.py BEFORE_PYTHON AFTER_PYTHON [--rounds 3] [--steps 10]
 
-e.g. ``python bench/sph_step_ab.py /work/main/.venv/bin/python .venv/bin/python``. A run starts
+e.g. ``python bench/sph_step_ab.py /work/main/.venv/bin/python .venv/bin/python`` (a build is
+named by its Python interpreter; a wrapper script that sets PYTHONPATH names a copied install). A run starts
 as sph_bench.py's does (advance to START, one untimed step at the timed dt), times `steps`
 steps and reports CPU and wall milliseconds per step, the other processes' load during the
 timed window (harness.other_load, in cores), and for DFSPH the iterations per step and the
@@ -26,6 +27,11 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 
 
+def stat(st, name):
+    """A field of a step's stats: a StepStats object, or the dict older builds returned."""
+    return st[name] if isinstance(st, dict) else getattr(st, name)
+
+
 def worker(method: str, steps: int) -> None:
     sys.path.insert(0, str(HERE))
     import harness
@@ -39,8 +45,8 @@ def worker(method: str, steps: int) -> None:
     cpu, wall = time.process_time(), time.perf_counter()
     for _ in range(steps):
         st = fluid.step(dt)
-        its.append(st["iterations"] + st["divergence_iterations"])
-        errors.append(st["density_error"])
+        its.append(stat(st, "iterations") + stat(st, "divergence_iterations"))
+        errors.append(stat(st, "density_error"))
     cpu = (time.process_time() - cpu) / steps * 1e3
     wall = (time.perf_counter() - wall) / steps * 1e3
     load = harness.other_load(before, harness.sample_cpu())

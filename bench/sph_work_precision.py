@@ -36,7 +36,7 @@ def dam_break(method, ratio, tol):
     data = km.sph.martin_moyce()
     s = A / ratio
     x = km.sph.block([0, 0], [A, 2 * A], s)
-    fluid = km.sph.Fluid(x, s, method=method, domain=([0, 0], [8 * A, 3 * A]), tol=tol,
+    fluid = km.sph.Fluid(x, s, method=method, gravity=(0, -9.81), domain=([0, 0], [8 * A, 3 * A]), tol=tol,
                          divergence_tol=tol)
     fronts, compression, steps = [], [], 0
     for T, _ in data:
@@ -59,22 +59,23 @@ def settings():
     x = km.sph.block([0, 0], [A, 2 * A], s)
     domain = ([0, 0], [8 * A, 3 * A])
     for warm in (0.0, 0.5, 0.75, 1.0):
-        fluid = km.sph.Fluid(x, s, domain=domain, warm_start=warm)
+        fluid = km.sph.Fluid(x, s, gravity=(0, -9.81, 0)[:x.shape[1]], domain=domain, warm_start=warm)
         its = div = steps = 0
         try:
             while fluid.time < 0.2:
                 st = fluid.step(fluid.stable_dt())
-                its, div, steps = its + st["iterations"], div + st["divergence_iterations"], steps + 1
+                its, div, steps = its + st.iterations, div + st.divergence_iterations, steps + 1
             print(f"dfsph warm_start={warm}: {steps} steps, {its / steps:.2f} density and "
                   f"{div / steps:.2f} divergence iterations per step")
         except km.DivergenceError:
             print(f"dfsph warm_start={warm}: diverged at step {steps}")
     for method in ("wcsph", "dfsph"):
         for skin in (0.0, 0.2):
-            fluid = km.sph.Fluid(x, s, method=method, domain=domain, neighbor_skin=skin)
+            fluid = km.sph.Fluid(x, s, method=method, gravity=(0, -9.81, 0)[:x.shape[1]], domain=domain,
+                                 neighbor_skin=skin)
             searches = steps = 0
             while fluid.time < 0.2:
-                searches += fluid.step(fluid.stable_dt())["neighbor_rebuild"]
+                searches += fluid.step(fluid.stable_dt()).neighbor_rebuild
                 steps += 1
             print(f"{method} neighbor_skin={skin}: {searches} grid searches in {steps} steps")
 

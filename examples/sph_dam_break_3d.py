@@ -89,8 +89,8 @@ def main(argv=None):
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     water, obstacle, tank = scene(args.spacing)
-    fluid = km.sph.Fluid(water, args.spacing, method=args.method, domain=tank, boundary=obstacle,
-                         viscosity=1e-5)
+    fluid = km.sph.Fluid(water, args.spacing, method=args.method, gravity=(0, -9.81, 0), domain=tank,
+                         boundary=obstacle, viscosity=1e-5)
     write_ply(out / "obstacle.ply", obstacle)
     write_vtk(out / "obstacle.vtk", obstacle)
     video = not args.no_video and shutil.which("ffmpeg") is not None

@@ -31,7 +31,7 @@ def main():
     pool = km.sph.block([0, 0, 0], [0.6, 0.12, 0.6], s)
     drop = km.sph.block([0.2, 0.3, 0.2], [0.4, 0.5, 0.4], s)
     x = np.concatenate([pool, drop])
-    fluid = km.sph.Fluid(x, s, domain=(lower, upper), viscosity=1e-5)
+    fluid = km.sph.Fluid(x, s, gravity=(0, -9.81, 0), domain=(lower, upper), viscosity=1e-5)
     fps = 30
 
     def mesh():

@@ -198,7 +198,7 @@ def test_queries_after_nan_in_a_view_raise():
 
 
 def test_sph_ids_are_checked_before_a_step():
-    f = km.sph.Fluid(km.sph.block([0, 0], [0.1, 0.1], 0.02), 0.02)
+    f = km.sph.Fluid(km.sph.block([0, 0], [0.1, 0.1], 0.02), 0.02, gravity=(0, -9.81))
     f.ids[:] = 7
     with pytest.raises(ValueError, match="ids"):
         f.step(1e-4)

@@ -38,7 +38,7 @@ def test_particles_vtu_and_ply_read_back_by_meshio(tmp_path):
 def test_sph_fluid_is_written_in_its_input_order(tmp_path):
     s = 0.05
     start = km.sph.block([0, 0], [0.5, 0.5], s)
-    fluid = km.sph.Fluid(start, s, method="wcsph", domain=([0, 0], [1.0, 0.8]), reorder_every=1)
+    fluid = km.sph.Fluid(start, s, method="wcsph", gravity=(0, -9.81), domain=([0, 0], [1.0, 0.8]), reorder_every=1)
     fluid.step(1e-3)
     fluid.step(1e-3)
     ids = np.asarray(fluid.ids)

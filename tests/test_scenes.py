@@ -250,6 +250,7 @@ threads = 1
 type = "sph"
 spacing = 0.1
 domain = { lower = [0.0, 0.0, 0.0], upper = [1.0, 0.6, 0.6] }
+gravity = [0.0, -9.81, 0.0]
 [[objects]]
 type = "fluid"
 region = { shape = "box", lower = [0.0, 0.0, 0.0], upper = [0.4, 0.4, 0.6] }

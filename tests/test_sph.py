@@ -9,6 +9,11 @@ import kinema as km
 G = 9.81
 
 
+def down(d):
+    """Gravity along -y in d dimensions [m/s^2]."""
+    return (0, -G, 0)[:d]
+
+
 def brute_pairs(x, r):
     d2 = ((x[:, None, :] - x[None, :, :]) ** 2).sum(-1)
     i, j = np.nonzero(np.triu(d2 < r * r, k=1))
@@ -69,7 +74,7 @@ def test_neighbor_lists_in_use_equal_brute_force_every_step(method):
     lower, upper = [0, 0], [0.3, 0.25]
     x = km.sph.block([0, 0], [0.1, 0.2], s)
     obstacle = km.sph.block([0.15, 0], [0.17, 0.04], s)
-    fluid = km.sph.Fluid(x, s, method=method, domain=(lower, upper), boundary=obstacle,
+    fluid = km.sph.Fluid(x, s, gravity=down(2), method=method, domain=(lower, upper), boundary=obstacle,
                          reorder_every=3)
     xb = np.concatenate([obstacle, km.sph.box_boundary(lower, upper, s, layers=2)])
     h = fluid.support_radius
@@ -82,7 +87,7 @@ def test_neighbor_lists_in_use_equal_brute_force_every_step(method):
         np.testing.assert_array_equal(sorted_rows(pairs), brute_pairs(fluid.x, h), err_msg=f"step {k}")
         np.testing.assert_array_equal(sorted_rows(bpairs), brute_boundary_pairs(fluid.x, xb, h),
                                       err_msg=f"boundary pairs, step {k}")
-        rebuilds += fluid.step(fluid.stable_dt())["neighbor_rebuild"]
+        rebuilds += fluid.step(fluid.stable_dt()).neighbor_rebuild
     if method == "wcsph":  # small steps: the lists must outlive several of them
         assert rebuilds < steps / 3, f"{rebuilds} rebuilds in {steps} steps"
 
@@ -146,8 +151,8 @@ def test_akinci_volumes_of_a_single_layer_wall():
     x = km.sph.block([0, 0.1], [0.4, 0.3], s)
     coarse = np.stack([np.arange(-0.1, 0.5, s), np.zeros(30)], axis=1)
     fine = np.stack([np.arange(-0.1, 0.5, s / 2), np.zeros(60)], axis=1)
-    psi_c = km.sph.Fluid(x, s, boundary=coarse)._core.boundary_psi
-    psi_f = km.sph.Fluid(x, s, boundary=fine)._core.boundary_psi
+    psi_c = km.sph.Fluid(x, s, boundary=coarse).boundary_psi
+    psi_f = km.sph.Fluid(x, s, boundary=fine).boundary_psi
     assert psi_c[15] / psi_f[30] == pytest.approx(2.0, rel=0.02)
 
 
@@ -161,7 +166,7 @@ def test_hydrostatic_tank(method):
     # column kept moving and its pressure rose to 1.75 rho g; the viscous step bound then sat
     # past forward Euler's limit for settled particles and DFSPH's warm start could not give
     # pressure back). nu = 0.01 caps DFSPH's dt at 0.05 s^2 / nu = 0.5 ms.
-    fluid = km.sph.Fluid(x, s, method=method, domain=([0, 0], [L, 0.4]), viscosity=0.01)
+    fluid = km.sph.Fluid(x, s, gravity=down(2), method=method, domain=([0, 0], [L, 0.4]), viscosity=0.01)
     fluid.advance(1.0)
     err = fluid.density_error()
     # WCSPH's column rings acoustically (period 4H/c ~ 0.04 s, amplitude rho c v ~ 10% of
@@ -201,7 +206,7 @@ def column_at_rest(method, d, tol=1e-3):
     H = size[1]
     box = list(size)
     box[1] = 2 * H
-    fluid = km.sph.Fluid(km.sph.block([0] * d, size, s), s, method=method, domain=([0] * d, box),
+    fluid = km.sph.Fluid(km.sph.block([0] * d, size, s), s, gravity=down(d), method=method, domain=([0] * d, box),
                          viscosity=0.01, tol=tol)
     while fluid.time < SETTLE - 1e-9:
         fluid.advance(0.02)
@@ -210,7 +215,7 @@ def column_at_rest(method, d, tol=1e-3):
     end = fluid.time + FREE
     while fluid.time < end - 1e-12:
         st = fluid.step(min(fluid.stable_dt(), end - fluid.time))
-        iterations.append(st["iterations"])
+        iterations.append(st.iterations)
         energies.append(fluid.kinetic_energy())
         if fluid.time > end - 0.1:  # the last 0.1 s: 2.5 periods of WCSPH's acoustic ringing
             ys.append(fluid.x[:, 1].copy())
@@ -278,35 +283,15 @@ def test_dfsph_warm_start_saves_iterations():
     x = km.sph.block([0, 0], [a, 2 * a], s)
     totals = {}
     for warm in (0.0, 0.5):
-        fluid = km.sph.Fluid(x, s, domain=([0, 0], [8 * a, 3 * a]), warm_start=warm)
+        fluid = km.sph.Fluid(x, s, gravity=down(2), domain=([0, 0], [8 * a, 3 * a]), warm_start=warm)
         its = errs = 0
         for _ in range(50):
             st = fluid.step(fluid.stable_dt())
-            its += st["iterations"] + st["divergence_iterations"]
-            errs = max(errs, st["density_error"])
+            its += st.iterations + st.divergence_iterations
+            errs = max(errs, st.density_error)
         totals[warm] = its
         assert errs <= 1e-3, f"warm_start={warm}: density error {errs:.2e} above tol"
     assert totals[0.5] < 0.8 * totals[0.0], f"iterations with / without warm start: {totals}"
-
-
-@pytest.mark.parametrize("method", ["wcsph", "dfsph"])
-def test_after_reset_caches_the_run_depends_on_the_state_alone(method):
-    # After reset_caches() the solver carries nothing but the state: continuing a run equals,
-    # bit for bit, a new Fluid built from that run's positions and velocities (and its speed of
-    # sound, which the default derives from the initial column).
-    s, a = 0.01, 0.1
-    box = ([0, 0], [8 * a, 3 * a])
-    fluid = km.sph.Fluid(km.sph.block([0, 0], [a, 2 * a], s), s, method=method, domain=box)
-    dt = 0.5 * fluid.stable_dt()
-    for _ in range(12):  # lists built, particles reordered, stiffnesses warm
-        fluid.step(dt)
-    fresh = km.sph.Fluid(fluid.x.copy(), s, method=method, domain=box, velocity=fluid.v.copy(),
-                         speed_of_sound=fluid.speed_of_sound)
-    fluid.reset_caches()
-    for _ in range(8):
-        fluid.step(dt)
-        fresh.step(dt)
-    assert np.array_equal(fluid.x, fresh.x) and np.array_equal(fluid.v, fresh.v), method
 
 
 # ---------------------------------------------------------------- dam break
@@ -324,7 +309,7 @@ def dam_break_front(method, spacing_ratio, a=0.1, points=MARTIN_MOYCE):
     """
     s = a / spacing_ratio
     x = km.sph.block([0, 0], [a, 2 * a], s)
-    fluid = km.sph.Fluid(x, s, method=method, domain=([0, 0], [8 * a, 3 * a]))
+    fluid = km.sph.Fluid(x, s, gravity=down(2), method=method, domain=([0, 0], [8 * a, 3 * a]))
     Z = []
     for T, _ in points:
         fluid.advance(T / np.sqrt(2 * G / a) - fluid.time)
@@ -339,7 +324,7 @@ def dam_break_fronts(method, d, ratio, a=0.1, points=MARTIN_MOYCE[:4], viscosity
     (issue 15's set-up: the DFSPH warm start then met a 50x longer step)."""
     s = a / ratio
     size, box = [a, 2 * a] + [a / 2] * (d - 2), [5 * a, 3 * a] + [a / 2] * (d - 2)
-    fluid = km.sph.Fluid(km.sph.block([0] * d, size, s), s, method=method, domain=([0] * d, box),
+    fluid = km.sph.Fluid(km.sph.block([0] * d, size, s), s, gravity=down(d), method=method, domain=([0] * d, box),
                          viscosity=viscosity)
     for _ in range(start_steps):
         fluid.step(5e-5)
@@ -405,7 +390,7 @@ def test_dam_break_front_martin_moyce(method):
 def test_wcsph_dt_far_above_cfl_raises_divergence():
     s = 0.01
     x = km.sph.block([0, 0], [0.2, 0.2], s)
-    fluid = km.sph.Fluid(x, s, method="wcsph", domain=([0, 0], [0.4, 0.4]))
+    fluid = km.sph.Fluid(x, s, gravity=down(2), method="wcsph", domain=([0, 0], [0.4, 0.4]))
     dt = 30 * fluid.stable_dt()
     with pytest.raises(km.DivergenceError, match="dt"):
         for _ in range(2000):
@@ -416,7 +401,7 @@ def test_wcsph_dt_far_above_cfl_raises_divergence():
 def test_dfsph_large_dt_stays_bounded():
     s = 0.01
     x = km.sph.block([0, 0], [0.2, 0.2], s)
-    fluid = km.sph.Fluid(x, s, method="dfsph", domain=([0, 0], [0.4, 0.4]))
+    fluid = km.sph.Fluid(x, s, gravity=down(2), method="dfsph", domain=([0, 0], [0.4, 0.4]))
     try:
         for _ in range(40):
             fluid.step(0.02)  # 4x the largest step advance() would take
@@ -432,7 +417,7 @@ def test_overlapping_and_outside_particles(method):
     s = 0.01
     x = km.sph.block([0.05, 0.05], [0.15, 0.15], s)
     x = np.concatenate([x, x + 0.3 * s, [[-0.1, 0.05], [0.5, 0.5]], x[:3]])  # overlaps, outside
-    fluid = km.sph.Fluid(x, s, method=method, domain=([0, 0], [0.3, 0.3]))
+    fluid = km.sph.Fluid(x, s, gravity=down(2), method=method, domain=([0, 0], [0.3, 0.3]))
     try:
         fluid.advance(0.2)
     except km.DivergenceError:
@@ -446,7 +431,7 @@ def test_single_particle_free_fall(d):
     # No neighbours: symplectic Euler gives y_n = y0 - g dt^2 n(n+1)/2 exactly.
     x0 = np.full((1, d), 0.5)
     for method in ("wcsph", "dfsph"):
-        fluid = km.sph.Fluid(x0, 0.01, method=method)
+        fluid = km.sph.Fluid(x0, 0.01, gravity=down(d), method=method)
         dt, n = 1e-3, 100
         for _ in range(n):
             fluid.step(dt)
@@ -458,7 +443,7 @@ def test_single_particle_free_fall(d):
 def test_coarse_and_fine_spacing(spacing):
     L = 0.1
     x = km.sph.block([0, 0], [L, L / 2], spacing)
-    fluid = km.sph.Fluid(x, spacing, domain=([0, 0], [L, L]))
+    fluid = km.sph.Fluid(x, spacing, gravity=down(2), domain=([0, 0], [L, L]))
     fluid.advance(0.05)
     assert np.isfinite(fluid.x).all() and fluid.density_error() < 0.01
 
@@ -467,7 +452,7 @@ def test_long_run_without_energy_gain():
     # A column collapsing in a closed tank: kinetic + potential energy may only decrease.
     s = 0.01
     x = km.sph.block([0, 0], [0.1, 0.2], s)
-    fluid = km.sph.Fluid(x, s, method="dfsph", domain=([0, 0], [0.3, 0.3]))
+    fluid = km.sph.Fluid(x, s, gravity=down(2), method="dfsph", domain=([0, 0], [0.3, 0.3]))
     mass = fluid.mass
 
     def energy():
@@ -507,7 +492,7 @@ def test_runs_are_bitwise_reproducible():
     x = km.sph.block([0, 0], [0.1, 0.2], s)
     results = []
     for _ in range(2):
-        fluid = km.sph.Fluid(x, s, domain=([0, 0], [0.3, 0.3]), viscosity=1e-3)
+        fluid = km.sph.Fluid(x, s, gravity=down(2), domain=([0, 0], [0.3, 0.3]), viscosity=1e-3)
         fluid.advance(0.05)
         results.append(fluid.x.copy())
     np.testing.assert_array_equal(results[0], results[1])
@@ -525,11 +510,11 @@ def test_runs_do_not_depend_on_the_thread_count(method):
     try:
         for t in (1, 2):
             km.set_num_threads(t)
-            fluid = km.sph.Fluid(x, s, method=method, domain=([0, 0], [0.6, 0.4]))
+            fluid = km.sph.Fluid(x, s, gravity=down(2), method=method, domain=([0, 0], [0.6, 0.4]))
             dt = 0.5 * fluid.stable_dt()
             stats = [fluid.step(dt) for _ in range(4)]
             results.append((fluid.x.copy(), fluid.v.copy(), fluid.density.copy(),
-                            [st["iterations"] for st in stats]))
+                            [st.iterations for st in stats]))
     finally:
         km.set_num_threads(threads)
     (x1, v1, rho1, it1), (x2, v2, rho2, it2) = results
@@ -553,10 +538,10 @@ def test_avx2_and_baseline_runs_are_bitwise_equal(method, monkeypatch):
             monkeypatch.setenv("KINEMA_SIMD", simd)
         else:
             monkeypatch.delenv("KINEMA_SIMD", raising=False)
-        fluid = km.sph.Fluid(x, s, method=method, domain=domain)
+        fluid = km.sph.Fluid(x, s, gravity=down(3), method=method, domain=domain)
         dt = 0.5 * fluid.stable_dt()
         stats = [fluid.step(dt) for _ in range(4)]
-        results.append((fluid.x.copy(), fluid.v.copy(), [st["iterations"] for st in stats]))
+        results.append((fluid.x.copy(), fluid.v.copy(), [st.iterations for st in stats]))
     (x1, v1, it1), (x2, v2, it2) = results
     assert it1 == it2, (it1, it2)
     for name, a, b in (("x", x1, x2), ("v", v1, v2)):

@@ -2,7 +2,9 @@
 // Python objects), the neighbour search and scene helpers. State arrays are zero-copy views of
 // the C++ State whose base is the Fluid object; a step never reallocates them (Morton
 // reordering permutes their rows in place); set_state copies into them.
+#include <cmath>
 #include <optional>
+#include <type_traits>
 
 #include "bindings/common.h"
 #include "core/advance.h"
@@ -29,6 +31,9 @@ void copy_into(std::vector<T>& to, const py::dict& src, const char* key) {
   const std::string name = std::string("state['") + key + "']";
   if (!a || a.size() != static_cast<py::ssize_t>(to.size()))
     throw InvalidArgument(name + ": expected " + std::to_string(to.size()) + " numbers");
+  if constexpr (std::is_floating_point_v<T>)
+    for (py::ssize_t k = 0; k < a.size(); ++k)
+      if (!std::isfinite(a.data()[k])) throw InvalidArgument(name + ": expected finite values");
   std::copy(a.data(), a.data() + a.size(), to.begin());
 }
 
@@ -116,8 +121,12 @@ struct PyFluid {
     out["last_dt"] = py::array_t<Scalar>(std::vector<py::ssize_t>{}, &state.last_dt);
     out["reorder_step"] = py::array_t<Index>(std::vector<py::ssize_t>{}, &state.reorder_step);
     if (solver->config().method == sph::Method::DFSPH) {
-      out["kappa_density"] = to_numpy(std::vector<Scalar>(state.kappa_density.size() == size_t(n) ? state.kappa_density : std::vector<Scalar>(n, 0)), {n});
-      out["kappa_divergence"] = to_numpy(std::vector<Scalar>(state.kappa_divergence.size() == size_t(n) ? state.kappa_divergence : std::vector<Scalar>(n, 0)), {n});
+      // Empty until the first step sizes them: zero stiffnesses, as a cold start has.
+      auto stiffness = [&](const std::vector<Scalar>& k) {
+        return to_numpy(k.empty() ? std::vector<Scalar>(static_cast<size_t>(n), 0) : std::vector<Scalar>(k), {n});
+      };
+      out["kappa_density"] = stiffness(state.kappa_density);
+      out["kappa_divergence"] = stiffness(state.kappa_divergence);
     }
     const bool lists = state.lists != nullptr;
     out["neighbor_x"] = to_numpy(lists ? std::vector<Scalar>(state.lists->x) : std::vector<Scalar>(), {lists ? n : 0, d});

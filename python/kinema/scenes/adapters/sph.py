@@ -11,7 +11,7 @@ import numpy as np
 
 import kinema as km
 from kinema.scenes import preview, regions, render3d
-from kinema.scenes.adapters.base import ArrayStateSimulation, PointData, view_camera
+from kinema.scenes.adapters.base import PointData, Simulation, view_camera
 from kinema.scenes.schema import REGION, Bool, Field, Int, Real, Str, Table, Vec
 
 SOLVER = Table({
@@ -21,7 +21,7 @@ SOLVER = Table({
                     doc="the closed tank [m]"),
     "rho0": Field(Real(gt=0), 1000.0, "rest density [kg/m^d]"),
     "viscosity": Field(Real(ge=0), 0.0, "kinematic viscosity [m^2/s]"),
-    "gravity": Field(Vec(spatial=True), None, "[m/s^2], default 9.81 down y"),
+    "gravity": Field(Vec(spatial=True), None, "[m/s^2]; none by default"),
     "speed_of_sound": Field(Real(gt=0), None, "WCSPH c [m/s]"),
     "gamma": Field(Real(gt=0), 7.0),
     "tol": Field(Real(gt=0), 1e-3, "DFSPH mean density error"),
@@ -69,7 +69,7 @@ def _shell(region, spacing):
     return pts[depth < 2 * spacing]
 
 
-class SPHSimulation(ArrayStateSimulation):
+class SPHSimulation(Simulation):
     DIAGNOSTICS = ("density_error", "kinetic_energy", "max_speed")
 
     def __init__(self, scene):
@@ -112,19 +112,20 @@ class SPHSimulation(ArrayStateSimulation):
         return self.fluid.time
 
     def advance_to(self, t_end):
-        # Each frame starts from the checkpointable state alone (no lists or warm start carried
-        # over), so that a resumed run takes bit for bit the steps of a straight one.
-        self.fluid.reset_caches()
         taken = self.fluid.advance(t_end - self.fluid.time, cfl=self.cfl)
         self.steps += taken
         return taken
 
-    def _arrays(self):
-        f = self.fluid
-        return {"x": f.x, "v": f.v, "density": f.density, "pressure": f.pressure, "ids": f.ids}
+    def get_state(self):
+        # The fluid's state holds what its steps carry over (neighbour lists, warm start), so a
+        # resumed run takes bit for bit the steps of a straight one.
+        return self.fluid.state() | {"scene_steps": np.int64(self.steps)}
 
-    def _core(self):
-        return self.fluid._core
+    def set_state(self, state):
+        if "scene_steps" not in state:
+            raise ValueError("checkpoint: missing 'scene_steps'")
+        self.fluid.set_state({k: v for k, v in state.items() if k != "scene_steps"})
+        self.steps = int(state["scene_steps"])
 
     def diagnostics(self):
         f = self.fluid
