@@ -66,9 +66,11 @@ class SolverD final : public Solver::Impl {
   }
 
   Scalar stable_dt(const State& s, Scalar cfl) const override {
+    if (s.dim != D || s.v.size() != static_cast<size_t>(s.n * D))
+      throw InvalidArgument("state: expected the velocities of " + std::to_string(s.n) + " particles in " +
+                            std::to_string(D) + "D");
     const Scalar vmax = max_speed(s);
     const Scalar signal = config_.method == Method::WCSPH ? c_ + vmax : vmax;
-    if (s.dim != D) throw InvalidArgument("state: expected " + std::to_string(D) + "D");
     Scalar dt = Solver::kMaxDt;
     if (signal > 0) dt = std::min(dt, cfl * model_.spacing / signal);
     // Explicit viscosity: dt <= kViscousDt spacing^2 / nu. The viscosity term's largest

@@ -341,26 +341,17 @@ class Fluid:
         run is bitwise the run that was not stopped. A refused dict changes nothing."""
         if not isinstance(state, dict):
             raise ValueError(f"state: expected a dict from state(), got {type(state).__name__}")
-        keys = set(self.state())
-        missing = sorted(keys - set(state))
+        keys = ("x", "v", "density", "pressure", "ids", "neighbor_x", *self._STATE_SCALARS)
+        if self.method == "dfsph":
+            keys += ("kappa_density", "kappa_divergence")
+        missing = [k for k in keys if k not in state]
         if missing:
             raise ValueError(f"state: missing {missing[0]!r}")
-        arrays = {}
-        for key in keys - set(self._STATE_SCALARS):
-            a = np.asarray(state[key])
-            want = self.ids.dtype if key == "ids" else np.float64
-            if a.dtype.kind not in ("iu" if key == "ids" else "fiu"):
-                raise ValueError(f"state[{key!r}]: expected {np.dtype(want).name} values, got {a.dtype}")
-            if key == "neighbor_x":
-                if a.ndim != 2 or a.shape[1] != self.dim or len(a) not in (0, self.n):
-                    raise ValueError(f"state['neighbor_x']: expected shape ({self.n}, {self.dim}) or "
-                                     f"(0, {self.dim}), got {a.shape}")
-            elif a.shape[0:1] != (self.n,) or a.size != self.n * (self.dim if key in ("x", "v") else 1):
-                raise ValueError(f"state[{key!r}]: expected {self.n} rows like x, got shape {a.shape}")
-            arrays[key] = np.ascontiguousarray(a, dtype=want)
+        if np.asarray(state["ids"]).dtype.kind not in "iu":
+            raise ValueError(f"state['ids']: expected integers, got {np.asarray(state['ids']).dtype}")
         scalars = {k: (integer if k in ("steps", "reorder_step") else real)(
             np.asarray(state[k])[()], f"state[{k!r}]") for k in self._STATE_SCALARS}
-        self._core.set_state(arrays, **scalars)
+        self._core.set_state(state, **scalars)
 
     # ------------------------------------------------------------------ stepping
     def step(self, dt):
