@@ -69,6 +69,7 @@ class SolverD final : public Solver::Impl {
     if (s.dim != D || s.v.size() != static_cast<size_t>(s.n * D))
       throw InvalidArgument("state: expected the velocities of " + std::to_string(s.n) + " particles in " +
                             std::to_string(D) + "D");
+    if (!(cfl > 0) || !std::isfinite(cfl)) throw InvalidArgument("cfl: expected a finite number > 0, got " + format_real(cfl));
     const Scalar vmax = max_speed(s);
     const Scalar signal = config_.method == Method::WCSPH ? c_ + vmax : vmax;
     Scalar dt = Solver::kMaxDt;

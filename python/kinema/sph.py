@@ -368,7 +368,7 @@ class Fluid:
         """Advances by ``duration`` [s] in steps of :meth:`stable_dt` (cfl), the last one
         landing on the end; returns the step count (the last step's stats in ``last_stats``)."""
         duration = real(duration, "duration")
-        cfl = positive(cfl, "cfl")
+        cfl = real(cfl, "cfl")
         if duration == 0:
             return 0
         steps, self.last_stats = self._core.advance(duration, cfl)
@@ -378,7 +378,7 @@ class Fluid:
         """The CFL step cfl * spacing / (c + v_max) (WCSPH) or cfl * spacing / v_max (DFSPH),
         also bounded by the viscous limit 0.05 spacing^2 / nu, sqrt(0.1 cfl spacing / |g|) and
         5 ms."""
-        return self._core.stable_dt(positive(cfl, "cfl"))
+        return self._core.stable_dt(real(cfl, "cfl"))
 
     def kinetic_energy(self) -> float:
         """0.5 * m * sum |v|^2 [J] (2D: per unit depth)."""
