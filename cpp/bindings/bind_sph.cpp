@@ -74,7 +74,7 @@ struct PyFluid {
   // One step; a failing step leaves the state as it was.
   sph::StepStats step_or_rollback(Scalar dt, Interrupt& interrupt) {
     check_ids();
-    return with_rollback(state, [&] { return solver->step(state, dt, interrupt); });
+    return with_rollback(state, backup, [&] { return solver->step(state, dt, interrupt); });
   }
 
   // Steps of CFL-limited dt until `duration` has passed; Ctrl-C is checked between steps.
@@ -173,6 +173,7 @@ struct PyFluid {
   }
 
   sph::State state;
+  sph::State backup{2, 0};  // the state before the current step (step_or_rollback)
   std::optional<sph::Solver> solver;
 };
 

@@ -21,4 +21,19 @@ decltype(auto) with_rollback(State& state, Step&& step) {
   }
 }
 
+// The same with a caller-owned backup that keeps its buffers from call to call: copy
+// assignment reuses them, so a large state costs one copy per step and no allocation (a fresh
+// copy each step can land where the allocator returns memory to the system and page-faults
+// back in every step).
+template <class State, class Step>
+decltype(auto) with_rollback(State& state, State& backup, Step&& step) {
+  backup = state;
+  try {
+    return std::forward<Step>(step)();
+  } catch (...) {
+    state = backup;
+    throw;
+  }
+}
+
 }  // namespace kinema

@@ -343,16 +343,16 @@ class SolverD final : public Solver::Impl {
   // row sums of kernels.h read; nothing stored if grads is null). The later passes then stream
   // the gradients instead of gathering x_j: 12 bytes per entry, and single precision perturbs a
   // gradient by ~1e-7 relative, far below the solvers' tolerances. With a skin the Verlet list
-  // `wide` is filtered into `exact` on the way (the factors staged in dw_), without it is exact
+  // `wide` is filtered into `exact` on the way (the factors staged in kept_dw), without it is exact
   // already.
   template <class Row>
-  void kernel_rows(const NeighborLists& wide, NeighborLists& exact, std::vector<float>* grads, const Scalar* xs,
-                   const Scalar* x, Index n, Row&& row) {
+  void kernel_rows(const NeighborLists& wide, NeighborLists& exact, std::vector<Scalar>& kept_dw,
+                   std::vector<float>* grads, const Scalar* xs, const Scalar* x, Index n, Row&& row) {
     auto store = [&](Index k, Scalar dw, const Vec& xij) {
       if (grads) Eigen::Map<Eigen::Matrix<float, D, 1>>(grads->data() + k * D) = stored_gradient(dw, xij);
     };
     if (lists_->skin > 0) {
-      exact.fill_with_values(n, dw_, [&](Index i, auto&& push) {
+      exact.fill_with_values(n, kept_dw, [&](Index i, auto&& push) {
         const Vec xi = CMap(x + i * D);
         row(i, xi, [&](auto&& entry) {
           within_support(wide, xs, xi, i, [&](Index j, const Vec& xij, Scalar r) { push(j, entry(j, xij, r)); });
@@ -362,7 +362,7 @@ class SolverD final : public Solver::Impl {
       grads->resize(exact.list.size() * D + 1);
       parallel_for(n, [&](Index i) {
         const Vec xi = CMap(x + i * D);
-        for (Index k = exact.start[i]; k < exact.start[i + 1]; ++k) store(k, dw_[k], xi - CMap(xs + Index{exact.list[k]} * D));
+        for (Index k = exact.start[i]; k < exact.start[i + 1]; ++k) store(k, kept_dw[k], xi - CMap(xs + Index{exact.list[k]} * D));
       });
       return;
     }
@@ -393,7 +393,7 @@ class SolverD final : public Solver::Impl {
     const Scalar* x = s.x.data();
     // With factors, sum_j |m grad W_ij|^2 goes from the fluid pass to the boundary pass in factor_.
     Scalar* sum_sq = factor_.data();
-    kernel_rows(lists_->fluid, fluid_exact_, &fluid_grad_, x, x, s.n, [&](Index i, const Vec&, auto&& entries) {
+    kernel_rows(lists_->fluid, fluid_exact_, fluid_dw_, &fluid_grad_, x, x, s.n, [&](Index i, const Vec&, auto&& entries) {
       Scalar rho = m * W_.w0();
       Vec gsum = Vec::Zero();
       Scalar gsq = 0;
@@ -417,7 +417,7 @@ class SolverD final : public Solver::Impl {
     const Scalar* psi = model_.boundary_psi.data();
     // Below this a particle has (almost) no neighbours and no pressure to apply.
     const Scalar min_denom = 1e-6 * m * m / std::pow(model_.h, 2 * D + 2);
-    kernel_rows(lists_->boundary, boundary_exact_, nullptr, xb, x, s.n, [&](Index i, const Vec&, auto&& entries) {
+    kernel_rows(lists_->boundary, boundary_exact_, boundary_dw_, nullptr, xb, x, s.n, [&](Index i, const Vec&, auto&& entries) {
       Scalar rho = density[i];
       Vec bsum = Vec::Zero();
       entries([&](Index b, const Vec& xib, Scalar r) {
@@ -701,7 +701,9 @@ class SolverD final : public Solver::Impl {
   std::vector<float> fluid_grad_;
   std::vector<Scalar> grad_sum_;           // (n, d) DFSPH: G_i = sum_j m grad W_ij + sum_b psi_b grad W_ib
   std::vector<Scalar> boundary_grad_sum_;  // (n, d) sum_b psi_b grad W_ib
-  std::vector<Scalar> dw_;  // kernel_pass with a skin: dW/dr / r of the entries kept
+  // kernel_pass with a skin: dW/dr / r of the entries kept, one buffer per list so that each
+  // grows to its list's size once (shared, every fluid pass after a boundary pass regrew it).
+  std::vector<Scalar> fluid_dw_, boundary_dw_;
 };
 
 }  // namespace
