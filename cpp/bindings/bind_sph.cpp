@@ -37,8 +37,6 @@ void copy_into(std::vector<T>& to, const py::dict& src, const char* key) {
   std::copy(a.data(), a.data() + a.size(), to.begin());
 }
 
-
-
 struct PyFluid {
   PyFluid(py::array positions, py::array velocity, Scalar spacing, const sph::Config& config,
           std::optional<py::array> boundary, std::optional<std::vector<Scalar>> lower,
@@ -94,8 +92,9 @@ struct PyFluid {
 
   // The ids view is writable (checkpoints restore it), so a step first checks that it still
   // is a permutation of 0..n-1: the ids label the particles the step moves and reorders.
-  void check_ids() const {
-    std::vector<char> seen(static_cast<size_t>(state.n), 0);
+  void check_ids() {
+    std::vector<char>& seen = ids_seen;
+    seen.assign(static_cast<size_t>(state.n), 0);
     for (Index k = 0; k < state.n; ++k) {
       const Index id = state.ids[k];
       if (id < 0 || id >= state.n || seen[id])
@@ -173,7 +172,8 @@ struct PyFluid {
   }
 
   sph::State state;
-  sph::State backup{2, 0};  // the state before the current step (step_or_rollback)
+  sph::State backup{2, 0};       // the state before the current step (step_or_rollback)
+  std::vector<char> ids_seen;    // check_ids' scratch, kept so that a step allocates nothing
   std::optional<sph::Solver> solver;
 };
 
