@@ -127,7 +127,7 @@ void step_conserves_momentum() {
   std::vector<Scalar> x(count * D), v(count * D), mass(count, 1e-3), vol(count, 1e-6);
   for (auto& xi : x) xi = u(rng);
   for (auto& vi : v) vi = n(rng);
-  state.append(x.data(), v.data(), count, mass.data(), vol.data(), 0);
+  state.append(x.data(), v.data(), count, mass.data(), vol.data(), 0, 1e4, 0.3);
   for (auto& f : state.F) f += 0.05 * n(rng);
   Solver solver(model, config);
   const std::vector<Scalar> p0 = solver.momentum(state);
