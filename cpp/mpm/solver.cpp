@@ -773,7 +773,15 @@ void SolverD<D>::step_adjoint(const State& before, const State& after, Scalar dt
       const Mat<D> C = ConstRowMap(&before.C[pd * D]);
       Vec<D> momentum = m * Eigen::Map<const Vec<D>>(&before.v[pd]);
       if (forces) momentum += dt * Eigen::Map<const Vec<D>>(forces + pd);
-      const Mat<D> A = (m * C - (stress_scale * V) * tau(before, p, F)) * h;
+      const Material& mat = model_.materials[static_cast<size_t>(before.material[static_cast<size_t>(p)])];
+      const bool corotated = mat.kind == MaterialKind::Elastic;
+      Scalar mu, lambda;
+      particle_lame(before, mat, p, mu, lambda);
+      // tau as step() computes it (kernels.h), with one SVD for the stress and its adjoint.
+      Svd<D> sv;
+      if (corotated) sv = svd(F);
+      const Mat<D> stress = corotated ? corotated_tau<D>(F, sv, mu, lambda) : neohookean_tau<D>(F, mu, lambda);
+      const Mat<D> A = (m * C - (stress_scale * V) * stress) * h;
       Vec<D> P_bar_sum = Vec<D>::Zero(), fx_bar = Vec<D>::Zero();
       Mat<D> A_bar = Mat<D>::Zero();
       each_node(st, [&](int t, Scalar w, const Vec<D>& grad_w, const Vec<D>& offset) {
@@ -789,12 +797,10 @@ void SolverD<D>::step_adjoint(const State& before, const State& after, Scalar dt
       Eigen::Map<Vec<D>>(&adjoint.x[pd]) += fx_bar / h;
       // tau's adjoint, then the moduli's.
       const Mat<D> tau_bar = -(stress_scale * V * h) * A_bar;
-      const Material& mat = model_.materials[static_cast<size_t>(before.material[static_cast<size_t>(p)])];
-      Scalar mu, lambda, mu_bar, lambda_bar;
-      particle_lame(before, mat, p, mu, lambda);
+      Scalar mu_bar, lambda_bar;
       Mat<D> F_bar = RowMap(&adjoint.F[pd * D]);
-      if (mat.kind == MaterialKind::Elastic)
-        corotated_tau_vjp<D>(F, svd(F), mu, lambda, tau_bar, F_bar, mu_bar, lambda_bar);
+      if (corotated)
+        corotated_tau_vjp<D>(F, sv, mu, lambda, tau_bar, F_bar, mu_bar, lambda_bar);
       else
         neohookean_tau_vjp<D>(F, mu, lambda, tau_bar, F_bar, mu_bar, lambda_bar);
       RowMap(&adjoint.F[pd * D]) = F_bar;
