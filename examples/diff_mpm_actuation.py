@@ -3,7 +3,7 @@ on km.mpm and km.diff.
 
     .venv/bin/python examples/diff_mpm_actuation.py --out demo_output/diffmpm [--iterations 30]
 
-A 2D fixed-corotated jelly (a body on two legs) stands on a floor with the "separate" condition
+A 2D fixed-corotated jelly (E = 10 kPa) (a body on two legs) stands on a floor with the "separate" condition
 and Coulomb friction. Four actuators (the legs' and the body's halves) push their particles
 apart or together along x: actuator k applies the force m_p a_k(t) sign(x_p - c_k) e_x, so
 each actuator's forces sum to zero and the body can only move by pushing on the floor. The
@@ -38,7 +38,7 @@ def walker(h):
 def make_sim(h, x):
     sim = km.mpm.Simulation((int(round(1 / h)), int(round(0.5 / h))), h, gravity=(0.0, -9.81),
                             boundary="separate", friction=1.5)
-    sim.add_particles(x + [0.0, h], "elastic", density=1000.0, youngs_modulus=4e3, poisson_ratio=0.2)
+    sim.add_particles(x + [0.0, h], "elastic", density=1000.0, youngs_modulus=1e4, poisson_ratio=0.2)
     return sim
 
 
@@ -70,7 +70,7 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", type=Path, default=Path("demo_output/diffmpm"))
     parser.add_argument("--iterations", type=int, default=30)
-    parser.add_argument("--steps", type=int, default=400, help="MPM steps of the run")
+    parser.add_argument("--steps", type=int, default=600, help="MPM steps of the run")
     parser.add_argument("--dt", type=float, default=1e-3)
     parser.add_argument("--cells", type=int, default=64, help="grid cells per metre")
     parser.add_argument("--learning-rate", type=float, default=0.1)
@@ -86,7 +86,7 @@ def main(argv=None):
     # direction[p, k] = m_p sign(x_p - c_k) for the particles of actuator k.
     direction = np.zeros((n, K))
     direction[np.arange(n), groups] = sim.mass * np.sign(sim.x[:, 0] - centres[groups])
-    ctrl = Controller(K, 4, amplitude=30.0, omega=2 * np.pi * 5)
+    ctrl = Controller(K, 4, amplitude=40.0, omega=2 * np.pi * 5)
     t = np.arange(args.steps) * args.dt
     adam = {"m": [0, 0], "v": [0, 0]}
     losses, first_x = [], None
@@ -131,7 +131,7 @@ def main(argv=None):
     ax.scatter(*first_x.T, s=1, c="tab:blue", label="first controller")
     ax.scatter(*run.outputs["x"].T, s=1, c="tab:red", label="last controller")
     ax.set_aspect("equal")
-    ax.set_xlim(0, 1)
+    ax.set_xlim(0, 0.7)
     ax.set_ylim(0, 0.3)
     ax.legend(loc="upper right", markerscale=6)
     fig.tight_layout()
