@@ -197,6 +197,8 @@ def test_bad_wrt_and_controls_raise_value_errors():
         km.diff.rollout(sim, 2, 1e-3, wrt=("controls",))
     with pytest.raises(ValueError, match="controls"):
         km.diff.rollout(sim, 2, 1e-3, wrt=("x",), controls=np.zeros((2, sim.count, 3)))
+    with pytest.raises(ValueError, match="cfl"):
+        km.diff.rollout(sim, 2, 1e-3, wrt=("x",), cfl=0.5)
     assert sim.parameters == ("youngs_modulus", "poisson_ratio")
 
 

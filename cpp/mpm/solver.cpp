@@ -86,8 +86,13 @@ inline void particle_lame(const State& state, const Material& m, Index p, Scalar
     mu = lambda = 0;
     return;
   }
-  lame_parameters(state.youngs_modulus[static_cast<size_t>(p)], state.poisson_ratio[static_cast<size_t>(p)], mu,
-                  lambda);
+  const Scalar E = state.youngs_modulus[static_cast<size_t>(p)], nu = state.poisson_ratio[static_cast<size_t>(p)];
+  if (E == m.youngs_modulus && nu == m.poisson_ratio) {  // the material's own: the same bits, no divisions
+    mu = m.mu;
+    lambda = m.lambda;
+    return;
+  }
+  lame_parameters(E, nu, mu, lambda);
 }
 
 template <int D>

@@ -329,9 +329,13 @@ class Simulation:
     # ---------------------------------------------------------------- km.diff protocol
     _diff_state_names = ("x", "v", "F", "C")
 
-    def _diff_check(self, wrt, step_options):
+    @staticmethod
+    def _no_step_options(step_options):
         for option in step_options:
             raise ValueError(f"{option}: km.mpm.Simulation.step takes no option besides dt")
+
+    def _diff_check(self, wrt, step_options):
+        self._no_step_options(step_options)
         allowed = self._diff_state_names + self.parameters + ("controls",)
         for name in wrt:
             if name not in allowed:
@@ -370,7 +374,7 @@ class Simulation:
         return f
 
     def _diff_step(self, dt, control, step_options):
-        self._diff_check((), step_options)
+        self._no_step_options(step_options)
         return self._sim.step(positive(dt, "dt"), self._control(control))
 
     def _diff_step_adjoint(self, dt, before, after, control, grad_after, step_options):
