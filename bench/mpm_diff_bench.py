@@ -80,6 +80,27 @@ def main():
             return {"forward": t1 - t0, "backward": t2 - t1, "g": g, "peak": r.peak_states}
         return run
 
+    # One step and its adjoint alone (C++, best of 30): the solver's own backward/forward,
+    # without km.diff's bookkeeping.
+    sim.set_state(s0)
+    sim._sim.step(dt, forces[0])
+    s1 = sim.state()
+    g1 = {k: np.ones_like(s1[k]) for k in ("x", "v", "F", "C")}
+
+    def best_of(fn, reps=30):
+        times = []
+        for _ in range(reps):
+            t0 = time.perf_counter()
+            fn()
+            times.append(time.perf_counter() - t0)
+        return min(times)
+
+    sim.set_state(s0)
+    t_step = best_of(lambda: sim._sim.step(dt, forces[0]))
+    t_adj = best_of(lambda: sim._sim.step_adjoint(dt, s0, s1, forces[0], g1))
+    rec.record("kinema-one-step-adjoint", n, t_adj, notes={"step_s": f"{t_step:.4g}", "ratio": f"{t_adj / t_step:.3g}"})
+    print(f"kinema one step {t_step * 1e3:.3f} ms, its adjoint {t_adj * 1e3:.3f} ms (ratio {t_adj / t_step:.2f}; "
+          f"best of 30)", flush=True)
     fwd = harness.measure(plain, min_of=3, max_load=opts.max_load)
     loss0 = fwd.value
     e = 1e-5
