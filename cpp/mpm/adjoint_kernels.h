@@ -7,6 +7,7 @@
 //   in the form of Stomakhin et al. 2012's supplement); no 1 / (sigma_i - sigma_j) terms, so it is
 //   regular at F = I.
 //   neo-Hookean: tau = mu F F^T + (lambda_s (J - 1) J - mu J) I, lambda_s = lambda + mu.
+//   water: tau = -J p(J) I and the projection F <- J^(1/d) I, both functions of J alone.
 // dJ = cof(F) : dF with cof(F) = J F^-T written without the inverse.
 #pragma once
 
@@ -66,6 +67,26 @@ void neohookean_tau_vjp(const Mat<D>& F, Scalar mu, Scalar lambda, const Mat<D>&
   F_bar += mu * (tau_bar + tau_bar.transpose()) * F + (trace * ((lambda + mu) * (2 * J - 1) - mu)) * cofactor(F);
   mu_bar = tau_bar.cwiseProduct(F * F.transpose()).sum() + trace * ((J - 1) * J - J);
   lambda_bar = trace * (J - 1) * J;
+}
+
+// Water (kernels.h, water_tau): tau = -J p I, p = K / gamma (Jc^-gamma - 1), Jc = max(J, 1e-6).
+// F_bar += dL/dF; returns dL/dK. Below the clamp p is constant (the branch taken).
+template <int D>
+Scalar water_tau_vjp(const Mat<D>& F, Scalar bulk, Scalar gamma, const Mat<D>& tau_bar, Mat<D>& F_bar) {
+  const Scalar J = F.determinant(), Jc = std::max(J, 1e-6), J_gamma = std::pow(Jc, -gamma);
+  const Scalar p = bulk / gamma * (J_gamma - 1), dp_dJ = J > 1e-6 ? -bulk * J_gamma / Jc : 0;
+  const Scalar trace = tau_bar.trace();
+  F_bar += (-trace * (p + J * dp_dJ)) * cofactor(F);
+  return -trace * J * (J_gamma - 1) / gamma;
+}
+
+// Water's projection F <- Jc^(1/d) I (solver.cpp, plasticity), transposed at the trial F.
+template <int D>
+Mat<D> water_projection_vjp(const Mat<D>& F, const Mat<D>& F_bar) {
+  const Scalar J = F.determinant();
+  if (!(J > 1e-6)) return Mat<D>::Zero();
+  const Scalar root = D == 2 ? std::sqrt(J) : std::cbrt(J);
+  return (F_bar.trace() * root / (D * J)) * cofactor(F);
 }
 
 // d(mu, lambda) / d(E, nu) of lame_parameters, transposed.

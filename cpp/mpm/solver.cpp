@@ -675,7 +675,7 @@ void SolverD<D>::step_adjoint(const State& before, const State& after, Scalar dt
     const Index code = before.material[static_cast<size_t>(p)];
     if (code >= 0 && code < static_cast<Index>(model_.materials.size()) &&
         !differentiable_material(model_.materials[static_cast<size_t>(code)].kind))
-      throw InvalidArgument(std::string("material: gradients need elastic or neohookean particles, particle ") +
+      throw InvalidArgument(std::string("material: gradients need elastic, neohookean or water particles, particle ") +
                             std::to_string(p) + " is " +
                             material_name(model_.materials[static_cast<size_t>(code)].kind));
   }
@@ -712,7 +712,10 @@ void SolverD<D>::step_adjoint(const State& before, const State& after, Scalar dt
         const Stencil st = stencil(&before.x[pd], o);
         const Mat<D> C_after = ConstRowMap(&after.C[pd * D]);
         const Mat<D> F = ConstRowMap(&before.F[pd * D]);
-        const Mat<D> F_bar = RowMap(&adjoint.F[pd * D]);
+        Mat<D> F_bar = RowMap(&adjoint.F[pd * D]);
+        // Water's F' is the projection of the trial (I + dt C') F.
+        if (model_.materials[static_cast<size_t>(before.material[static_cast<size_t>(p)])].kind == MaterialKind::Water)
+          F_bar = water_projection_vjp<D>(Mat<D>((Mat<D>::Identity() + dt * C_after) * F), F_bar);
         Vec<D> x_bar;
         for (int a = 0; a < D; ++a) {
           const Scalar y = before.x[pd + a] + dt * after.v[pd + a];
@@ -779,13 +782,16 @@ void SolverD<D>::step_adjoint(const State& before, const State& after, Scalar dt
       Vec<D> momentum = m * Eigen::Map<const Vec<D>>(&before.v[pd]);
       if (forces) momentum += dt * Eigen::Map<const Vec<D>>(forces + pd);
       const Material& mat = model_.materials[static_cast<size_t>(before.material[static_cast<size_t>(p)])];
-      const bool corotated = mat.kind == MaterialKind::Elastic;
+      const bool corotated = mat.kind == MaterialKind::Elastic, water = mat.kind == MaterialKind::Water;
       Scalar mu, lambda;
       particle_lame(before, mat, p, mu, lambda);
+      const Scalar E = before.youngs_modulus[static_cast<size_t>(p)];
       // tau as step() computes it (kernels.h), with one SVD for the stress and its adjoint.
       Svd<D> sv;
       if (corotated) sv = svd(F);
-      const Mat<D> stress = corotated ? corotated_tau<D>(F, sv, mu, lambda) : neohookean_tau<D>(F, mu, lambda);
+      const Mat<D> stress = corotated ? corotated_tau<D>(F, sv, mu, lambda)
+                            : water   ? water_tau<D>(F.determinant(), E, mat.gamma)
+                                      : neohookean_tau<D>(F, mu, lambda);
       const Mat<D> A = (m * C - (stress_scale * V) * stress) * h;
       Vec<D> P_bar_sum = Vec<D>::Zero(), fx_bar = Vec<D>::Zero();
       Mat<D> A_bar = Mat<D>::Zero();
@@ -804,6 +810,11 @@ void SolverD<D>::step_adjoint(const State& before, const State& after, Scalar dt
       const Mat<D> tau_bar = -(stress_scale * V * h) * A_bar;
       Scalar mu_bar, lambda_bar;
       Mat<D> F_bar = RowMap(&adjoint.F[pd * D]);
+      if (water) {
+        adjoint_params.youngs_modulus[static_cast<size_t>(p)] = water_tau_vjp<D>(F, E, mat.gamma, tau_bar, F_bar);
+        RowMap(&adjoint.F[pd * D]) = F_bar;
+        continue;
+      }
       if (corotated)
         corotated_tau_vjp<D>(F, sv, mu, lambda, tau_bar, F_bar, mu_bar, lambda_bar);
       else
@@ -833,7 +844,7 @@ Solver::Solver(const Model& model, const Config& config) : model_(model), config
 Solver::~Solver() = default;
 
 bool differentiable_material(MaterialKind kind) {
-  return kind == MaterialKind::Elastic || kind == MaterialKind::NeoHookean;
+  return kind == MaterialKind::Elastic || kind == MaterialKind::NeoHookean || kind == MaterialKind::Water;
 }
 
 StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt, const Scalar* forces) {

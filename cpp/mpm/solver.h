@@ -44,11 +44,11 @@ struct ParamsAdjoint {
   std::vector<Scalar> poisson_ratio;   // (n,) dL/dnu
 };
 
-// Whether step_adjoint differentiates a material: the elastic ones, whose stress is a smooth
-// function of F. Snow's and sand's return mappings clamp singular values, whose SVD derivative
-// has 1 / (sigma_i - sigma_j) terms that blow up at the repeated singular values every particle
-// starts with (F = I). Water (a smooth map, F <- J^(1/d) I and the Tait stress) has no adjoint
-// written yet and is refused the same way.
+// Whether step_adjoint differentiates a material: the elastic ones and water, whose stresses
+// and (water's) projection F <- J^(1/d) I are smooth functions of F (water's clamp of J at 1e-6:
+// the branch taken). Snow's and sand's return mappings clamp singular values, whose SVD
+// derivative has 1 / (sigma_i - sigma_j) terms that blow up at the repeated singular values
+// every particle starts with (F = I).
 bool differentiable_material(MaterialKind kind);
 
 class Solver {
@@ -69,7 +69,7 @@ class Solver {
   // dL/d(before). `adjoint_params` receives dL/d(youngs_modulus, poisson_ratio) of this step
   // and `adjoint_forces` (n, d) dL/d(forces) when not null. Where the forward switched branch
   // (wall and collider conditions, friction sticking, the clamp of x to the domain) this is
-  // the derivative of the branch taken. Elastic and neo-Hookean particles only: an
+  // the derivative of the branch taken. Elastic, neo-Hookean and water particles only: an
   // InvalidArgument names `material` otherwise (see differentiable_material).
   void step_adjoint(const State& before, const State& after, Scalar dt, const Scalar* forces, State& adjoint,
                     ParamsAdjoint& adjoint_params, Scalar* adjoint_forces, Interrupt& interrupt);

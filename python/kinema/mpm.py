@@ -115,7 +115,7 @@ class Simulation:
     particle (views ``youngs_modulus`` and ``poisson_ratio`` (n,), initialised from the
     material; the step derives each particle's Lame parameters from them); the differentiable
     state is ``x``, ``v``, ``F``, ``C``; a control is an (n, d) force [N] per particle added to
-    the P2G momentum as dt f, where gravity enters. Elastic and neo-Hookean particles only
+    the P2G momentum as dt f, where gravity enters. Elastic, neo-Hookean and water particles only
     (``material`` is named in the ValueError otherwise). Where the step switches branch (wall and
     collider conditions, Coulomb sticking, the clamp of x to the domain, a particle's B-spline
     base node) the gradient is that of the branch taken.
@@ -342,10 +342,10 @@ class Simulation:
                 raise ValueError(f"wrt: {name!r} is not differentiable in km.mpm (expected one of {allowed})")
         codes = np.unique(self.material)
         kinds = [self.materials[c].kind for c in codes]
-        refused = sorted({k for k in kinds if k not in ("elastic", "neohookean")})
+        refused = sorted({k for k in kinds if k not in ("elastic", "neohookean", "water")})
         if refused:
-            raise ValueError(f"material: gradients need 'elastic' or 'neohookean' particles, the simulation has "
-                             f"{refused} (their return mappings / projections have no adjoint)")
+            raise ValueError(f"material: gradients need 'elastic', 'neohookean' or 'water' particles, the simulation "
+                             f"has {refused} (their return mappings clamp singular values: see docs/guide/mpm.md)")
 
     def _diff_control_shape(self):
         return (self.count, self.dim)
