@@ -176,6 +176,25 @@ void stress_adjoints_match_finite_differences() {
       EXPECT_NEAR(lambda_bar, fd_lambda, 1e-7 * (1 + std::abs(fd_lambda))) << "corotated " << corotated;
     }
   }
+  // Water: the Tait stress's and the projection's adjoints (functions of J alone).
+  for (int k = 0; k < 20; ++k) {
+    const Mat<D> F = random_F<D>(rng, 0.1), W = random_mat(), dF = random_mat();
+    const Scalar K = 5.0, gamma = 7.0;
+    auto tau = [&](const Mat<D>& G, Scalar bulk) { return water_tau<D>(G.determinant(), bulk, gamma); };
+    auto project = [&](const Mat<D>& G) {
+      const Scalar J = G.determinant();
+      return Mat<D>(Mat<D>::Identity() * (D == 2 ? std::sqrt(J) : std::cbrt(J)));
+    };
+    Mat<D> F_bar = Mat<D>::Zero();
+    const Scalar K_bar = water_tau_vjp<D>(F, K, gamma, W, F_bar);
+    const Scalar fd_F = W.cwiseProduct(tau(F + e * dF, K) - tau(F - e * dF, K)).sum() / (2 * e);
+    const Scalar fd_K = W.cwiseProduct(tau(F, K + e) - tau(F, K - e)).sum() / (2 * e);
+    EXPECT_NEAR(F_bar.cwiseProduct(dF).sum(), fd_F, 1e-7 * (1 + std::abs(fd_F))) << "water stress, case " << k;
+    EXPECT_NEAR(K_bar, fd_K, 1e-7 * (1 + std::abs(fd_K))) << "water bulk modulus, case " << k;
+    const Scalar fd_P = W.cwiseProduct(project(F + e * dF) - project(F - e * dF)).sum() / (2 * e);
+    EXPECT_NEAR(water_projection_vjp<D>(F, W).cwiseProduct(dF).sum(), fd_P, 1e-7 * (1 + std::abs(fd_P)))
+        << "water projection, case " << k;
+  }
   // lame_parameters_vjp against differences of lame_parameters.
   const Scalar E = 1e3, nu = 0.3, mb = 0.7, lb = -1.3;
   Scalar E_bar, nu_bar, mp, lp, mm, lm;
