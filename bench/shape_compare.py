@@ -15,7 +15,8 @@ both alike; each run records the CPU load of other processes over its timed wind
 exceeds --max-load.
 
 The figure per run is the median of its per-step wall times; per workload and build the median
-over the repeats, with the spread (min-max) and the highest load. The final states of the
+over the repeats, with the spread (min-max) and the highest load, and beside it the median CPU
+time per step (all threads), which other processes' load disturbs much less than the wall time. The final states of the
 two builds are compared: "bitwise" when every array is identical, else the largest difference
 relative to the array's largest magnitude. Writes OUT.csv (one row per run) and OUT.md (the
 table) and prints the table.
@@ -299,20 +300,23 @@ def main(argv=None) -> int:
     lines = [f"Steps timed per run: {args.steps}; repeats: {args.repeats}; threads: {args.threads}; "
              f"machine load cap {args.max_load} cores; script at commit {commit}.", "",
              "| workload | size | before ms/step (min-max) | after ms/step (min-max) | after / before | "
-             "max other load | result |",
-             "| --- | --- | --- | --- | --- | --- | --- |"]
+             "CPU ms/step before / after | CPU after / before | max other load | result |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for name in names:
-        cells = {}
+        cells, cpu = {}, {}
         for build in builds:
-            w = [x["wall_ms"] for x in rows if x["workload"] == name and x["build"] == build]
+            mine = [x for x in rows if x["workload"] == name and x["build"] == build]
+            w = [x["wall_ms"] for x in mine]
             cells[build] = (statistics.median(w), min(w), max(w))
+            cpu[build] = statistics.median(x["cpu_ms"] for x in mine)
         load = max(x["other_load"] for x in rows if x["workload"] == name)
         size = next(x["size"] for x in rows if x["workload"] == name)
         same, rel, where = diffs[name]
         result = "bitwise" if same else f"differs: {where} {rel:.1e} (relative to max)"
         b, a = cells["before"], cells["after"]
         lines.append(f"| {name} | {size} | {b[0]:.2f} ({b[1]:.2f}-{b[2]:.2f}) | {a[0]:.2f} ({a[1]:.2f}-{a[2]:.2f}) | "
-                     f"{a[0] / b[0]:.3f} | {load:.2f} | {result} |")
+                     f"{a[0] / b[0]:.3f} | {cpu['before']:.2f} / {cpu['after']:.2f} | "
+                     f"{cpu['after'] / cpu['before']:.3f} | {load:.2f} | {result} |")
     table = "\n".join(lines) + "\n"
     out.with_suffix(".md").write_text(table)
     print("\n" + table)
