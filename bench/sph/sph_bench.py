@@ -130,9 +130,9 @@ def steps_of(fluid, dt, iterations):
 def started_fluid(n, method, tol, dt):
     """kinema's fluid after the start-up every code runs before its timed steps: from rest,
     round(START / dt) steps of the timed dt, as SPlisHSPlasH (fixed dt) and the Taichi WCSPH are
-    started. (Until session 5 kinema alone started with CFL steps to START and was timed on its
-    first steps at the larger dt: a transient at which DFSPH took 4.2 iterations per step
-    instead of the 3.0 it takes here, as SPlisHSPlasH does.)"""
+    started. (Started with CFL steps to START instead, kinema would be timed on its first steps
+    at the larger dt: a transient at which DFSPH takes 4.2 iterations per step instead of the
+    3.0 it takes here, as SPlisHSPlasH does.)"""
     fluid, _ = kinema_fluid(n, method, tol)
     for _ in range(max(1, round(START / dt))):
         fluid.step(dt)

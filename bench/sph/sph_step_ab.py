@@ -5,7 +5,7 @@ alternated round by round, so that a shared machine's load falls on both alike.
 
     python bench/sph/sph_step_ab.py BEFORE_PYTHON AFTER_PYTHON [--rounds 3] [--steps 10]
 
-e.g. ``python bench/sph/sph_step_ab.py /work/main/.venv/bin/python .venv/bin/python``. A run starts
+e.g. ``python bench/sph_step_ab.py /work/main/.venv/bin/python .venv/bin/python``. A run starts
 as sph_bench.py's does (advance to START, one untimed step at the timed dt), times `steps`
 steps and reports CPU and wall milliseconds per step, the other processes' load during the
 timed window (harness.other_load, in cores), and for DFSPH the iterations per step and the
