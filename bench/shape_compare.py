@@ -3,6 +3,7 @@ only: the before/after check of a refactor that must change neither speed nor re
 
     .venv/bin/python bench/shape_compare.py BEFORE_PYTHON AFTER_PYTHON [--repeats 5] [--steps 10]
         [--only sph_wcsph grid_smoke ...] [--threads 2] [--out bench/out/shape_compare]
+    .venv/bin/python bench/shape_compare.py --table bench/out/shape_compare.csv   # its table again
 
 BEFORE_PYTHON / AFTER_PYTHON are the interpreters of two virtual environments, each with one
 build of kinema installed (bench/README.md shows how to make the "before" one from a git
@@ -247,6 +248,31 @@ def compare(a_path: Path, b_path: Path) -> tuple:
     return worst == 0.0, worst, where
 
 
+FIELDS = ["repeat", "workload", "build", "wall_ms", "cpu_ms", "other_load", "disturbed", "size", "threads",
+          "version", "kinema", "result"]
+
+
+def markdown(rows, header: str) -> str:
+    """The table of medians over the repeats, per workload (in the order of the rows)."""
+    lines = [header, "",
+             "| workload | size | before ms/step (min-max) | after ms/step (min-max) | after / before | "
+             "CPU ms/step before / after | CPU after / before | max other load | result |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for name in dict.fromkeys(x["workload"] for x in rows):
+        mine = [x for x in rows if x["workload"] == name]
+        wall, cpu = {}, {}
+        for build in ("before", "after"):
+            w = [float(x["wall_ms"]) for x in mine if x["build"] == build]
+            wall[build] = (statistics.median(w), min(w), max(w))
+            cpu[build] = statistics.median(float(x["cpu_ms"]) for x in mine if x["build"] == build)
+        load = max(float(x["other_load"]) for x in mine)
+        b, a = wall["before"], wall["after"]
+        lines.append(f"| {name} | {mine[0]['size']} | {b[0]:.2f} ({b[1]:.2f}-{b[2]:.2f}) | "
+                     f"{a[0]:.2f} ({a[1]:.2f}-{a[2]:.2f}) | {a[0] / b[0]:.3f} | {cpu['before']:.2f} / {cpu['after']:.2f} | "
+                     f"{cpu['after'] / cpu['before']:.3f} | {load:.2f} | {mine[0]['result']} |")
+    return "\n".join(lines) + "\n"
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -259,11 +285,16 @@ def main(argv=None) -> int:
     ap.add_argument("--max-load", type=float, default=0.25, help="other processes' load (cores) that marks a run disturbed")
     ap.add_argument("--tries", type=int, default=2, help="runs of a disturbed (workload, build) before keeping the least loaded")
     ap.add_argument("--out", default=str(HERE / "out" / "shape_compare"), help="OUT.csv and OUT.md are written")
+    ap.add_argument("--table", metavar="CSV", help="only print the markdown table of an earlier run's OUT.csv")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     ap.add_argument("--state", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.worker:
         worker(args.worker, args.steps, args.state)
+        return 0
+    if args.table:
+        with open(args.table, newline="") as fh:
+            print(markdown(list(csv.DictReader(fh)), f"From {args.table}."), end="")
         return 0
     if not args.before or not args.after:
         ap.error("give the two interpreters, BEFORE_PYTHON and AFTER_PYTHON")
@@ -290,34 +321,16 @@ def main(argv=None) -> int:
                           f"{'  DISTURBED' if res['disturbed'] else ''}", flush=True)
                 if r == 0:
                     diffs[name] = compare(Path(tmp) / f"{name}_before.npz", Path(tmp) / f"{name}_after.npz")
-    fields = ["repeat", "workload", "build", "wall_ms", "cpu_ms", "other_load", "disturbed", "size", "threads",
-              "version", "kinema"]
+    for row in rows:
+        same, rel, where = diffs[row["workload"]]
+        row["result"] = "bitwise" if same else f"differs: {where} {rel:.1e} (relative to max)"
     with open(out.with_suffix(".csv"), "w", newline="") as fh:
-        w = csv.DictWriter(fh, fieldnames=fields, extrasaction="ignore")
+        w = csv.DictWriter(fh, fieldnames=FIELDS, extrasaction="ignore")
         w.writeheader()
         w.writerows(rows)
-    commit = harness.git_commit(HERE)
-    lines = [f"Steps timed per run: {args.steps}; repeats: {args.repeats}; threads: {args.threads}; "
-             f"machine load cap {args.max_load} cores; script at commit {commit}.", "",
-             "| workload | size | before ms/step (min-max) | after ms/step (min-max) | after / before | "
-             "CPU ms/step before / after | CPU after / before | max other load | result |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
-    for name in names:
-        cells, cpu = {}, {}
-        for build in builds:
-            mine = [x for x in rows if x["workload"] == name and x["build"] == build]
-            w = [x["wall_ms"] for x in mine]
-            cells[build] = (statistics.median(w), min(w), max(w))
-            cpu[build] = statistics.median(x["cpu_ms"] for x in mine)
-        load = max(x["other_load"] for x in rows if x["workload"] == name)
-        size = next(x["size"] for x in rows if x["workload"] == name)
-        same, rel, where = diffs[name]
-        result = "bitwise" if same else f"differs: {where} {rel:.1e} (relative to max)"
-        b, a = cells["before"], cells["after"]
-        lines.append(f"| {name} | {size} | {b[0]:.2f} ({b[1]:.2f}-{b[2]:.2f}) | {a[0]:.2f} ({a[1]:.2f}-{a[2]:.2f}) | "
-                     f"{a[0] / b[0]:.3f} | {cpu['before']:.2f} / {cpu['after']:.2f} | "
-                     f"{cpu['after'] / cpu['before']:.3f} | {load:.2f} | {result} |")
-    table = "\n".join(lines) + "\n"
+    header = (f"Steps timed per run: {args.steps}; repeats: {args.repeats}; threads: {args.threads}; "
+              f"machine load cap {args.max_load} cores; script at commit {harness.git_commit(HERE)}.")
+    table = markdown(rows, header)
     out.with_suffix(".md").write_text(table)
     print("\n" + table)
     print(f"wrote {out.with_suffix('.csv')} and {out.with_suffix('.md')}")
