@@ -1,7 +1,6 @@
 """The before/after tools in bench/: the result comparison of shape_compare.py and the line
 counts of line_counts.py (their timings are benchmarks, not tests)."""
 
-import importlib.util
 import shutil
 import subprocess
 from pathlib import Path
@@ -9,14 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from load_script import load_script
+
 BENCH = Path(__file__).resolve().parents[1] / "bench"
 
 
 def load(name):
-    spec = importlib.util.spec_from_file_location(name, BENCH / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script(BENCH / f"{name}.py")
 
 
 def test_shape_compare_reports_bitwise_and_relative_differences(tmp_path):

@@ -1,23 +1,21 @@
 """The programs in examples/ run, small, and write what their docstrings promise. Examples that
 show one method are smoke-tested beside that method's tests (tests/test_sph.py runs
-sph_dam_break_3d.py, ...); the last test here checks that no example is left without one."""
+sph_dam_break_3d.py, ...); test_every_example_is_smoke_tested checks that none is left without one."""
 
-import importlib.util
 import re
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from load_script import load_script
+
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "examples"
 
 
 def load(name):
-    spec = importlib.util.spec_from_file_location(name, EXAMPLES / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script(EXAMPLES / f"{name}.py")
 
 
 def test_poisson_heat_writes_fields_video_and_study(tmp_path):
