@@ -2,8 +2,8 @@
 for one set of km.sph.Fluid keyword arguments (kinema only; no harness: a quick probe whose
 figures compare only with other calls of it on an equally quiet machine).
 
-    python bench/sph_dfsph_iterations.py                     # 150k particles, 20 steps
-    python bench/sph_dfsph_iterations.py 150000 20 '{"warm_start": 0.75}'
+    python bench/sph/sph_dfsph_iterations.py                     # 150k particles, 20 steps
+    python bench/sph/sph_dfsph_iterations.py 150000 20 '{"warm_start": 0.75}'
 
 The run starts as sph_bench.py's does (round(START / dt) steps from rest at the DFSPH step of
 sph_bench.timed_dt, the surge front's CFL step) and prints, per step on average: the
@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "common"))  # harness.py
 import sph_bench as sb  # noqa: E402
 
 

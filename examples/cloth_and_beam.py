@@ -1,14 +1,14 @@
 """Deformable-body demonstration: a hanging cloth and a soft 3D body swinging from a fixed end.
 
-    python -m kinema.demo_deform --out demo_output/deform [--frames 90] [--no-video]
+    .venv/bin/python examples/cloth_and_beam.py --out demo_output/deform [--frames 90] [--no-video]
 
 Writes, into the output folder:
-  cloth/frame_NNNN.vtk   the cloth (km.massspring, implicit, 1/30 s steps) as a VTK legacy
-                         triangle mesh per frame (ParaView)
+  cloth/frame_NNNN.vtu   the cloth (km.massspring, implicit, 1/30 s steps) as a VTK triangle
+                         mesh per frame (ParaView)
   cloth/frame_NNNN.obj   the same as Wavefront OBJ (Blender imports OBJ natively; a sequence
                          loads as an animation with a mesh-sequence add-on)
-  body/frame_NNNN.vtk    the neo-Hookean beam (km.fem, implicit Newton) as a tetrahedral mesh
-  body/frame_NNNN.obj    its boundary surface, outward-oriented triangles
+  body/frame_NNNN.vtu    the neo-Hookean beam (km.fem, implicit Newton) as a tetrahedral mesh
+  body/frame_NNNN.obj    its boundary surface, outward-oriented triangles (km.mesh.surface)
   preview/NNNN.png, deform.mp4   a side-by-side preview (the video when ffmpeg is installed)
   summary.txt            steps, Newton iterations and timings
 """
@@ -16,51 +16,13 @@ Writes, into the output folder:
 from __future__ import annotations
 
 import argparse
-import shutil
-import subprocess
 import time
 from pathlib import Path
 
 import numpy as np
 
 import kinema as km
-
-
-def write_vtk(path, points, cells, cell_type):
-    """A VTK legacy ASCII unstructured grid (cell_type 5 = triangle, 10 = tetrahedron)."""
-    points = np.asarray(points, dtype=float)
-    if points.shape[1] == 2:
-        points = np.hstack([points, np.zeros((len(points), 1))])
-    k = cells.shape[1]
-    with open(path, "w") as f:
-        f.write("# vtk DataFile Version 3.0\nkinema deformable body\nASCII\nDATASET UNSTRUCTURED_GRID\n")
-        f.write(f"POINTS {len(points)} double\n")
-        np.savetxt(f, points, fmt="%.9g")
-        f.write(f"CELLS {len(cells)} {len(cells) * (k + 1)}\n")
-        np.savetxt(f, np.hstack([np.full((len(cells), 1), k), cells]), fmt="%d")
-        f.write(f"CELL_TYPES {len(cells)}\n")
-        np.savetxt(f, np.full(len(cells), cell_type), fmt="%d")
-
-
-def write_obj(path, points, faces):
-    """A Wavefront OBJ triangle mesh (1-based vertex indices)."""
-    points = np.asarray(points, dtype=float)
-    if points.shape[1] == 2:
-        points = np.hstack([points, np.zeros((len(points), 1))])
-    with open(path, "w") as f:
-        f.write("# kinema deformable body\n")
-        np.savetxt(f, points, fmt="v %.9g %.9g %.9g")
-        np.savetxt(f, faces + 1, fmt="f %d %d %d")
-
-
-def boundary_faces(tets):
-    """The faces of a positively oriented tetrahedral mesh that belong to one tetrahedron only,
-    ordered so that their normals point out of the body."""
-    a, b, c, d = tets.T
-    # Opposite a, b, c, d: (b, c, d), (a, d, c), (a, b, d), (a, c, b) are outward for det > 0.
-    faces = np.concatenate([np.stack(f, 1) for f in ((b, c, d), (a, d, c), (a, b, d), (a, c, b))])
-    _, first, counts = np.unique(np.sort(faces, axis=1), axis=0, return_index=True, return_counts=True)
-    return faces[np.sort(first[counts == 1])]
+from kinema.scenes.output import write_mp4
 
 
 def cloth_scene(n):
@@ -118,7 +80,7 @@ def main(argv=None):
         (out / sub).mkdir(parents=True, exist_ok=True)
     cloth, tris = cloth_scene(args.cloth)
     body, tets = body_scene(args.cells)
-    surface = boundary_faces(tets)
+    surface = km.mesh.surface(body.x, tets)
     dt = 1 / 30
     newton, t_cloth, t_body = [], 0.0, 0.0
     for frame in range(args.frames):
@@ -128,18 +90,15 @@ def main(argv=None):
         t = time.perf_counter()
         newton.append(body.step(dt).iterations)
         t_body += time.perf_counter() - t
-        write_vtk(out / "cloth" / f"frame_{frame:04d}.vtk", cloth.x, tris, 5)
-        write_vtk(out / "body" / f"frame_{frame:04d}.vtk", body.x, tets, 10)
-        write_obj(out / "cloth" / f"frame_{frame:04d}.obj", cloth.x, tris)
-        write_obj(out / "body" / f"frame_{frame:04d}.obj", body.x, surface)
+        km.io.write_mesh(out / "cloth" / f"frame_{frame:04d}.vtu", cloth.x, tris)
+        km.io.write_mesh(out / "body" / f"frame_{frame:04d}.vtu", body.x, tets)
+        km.io.write_mesh(out / "cloth" / f"frame_{frame:04d}.obj", cloth.x, tris)
+        km.io.write_mesh(out / "body" / f"frame_{frame:04d}.obj", body.x, surface)
         if not args.no_video:
             render(out / "preview" / f"{frame:04d}.png", cloth.x, tris, body.x, surface)
     video = None
-    if not args.no_video and shutil.which("ffmpeg"):
+    if not args.no_video and write_mp4(out / "deform.mp4", out / "preview" / "%04d.png", 30):
         video = out / "deform.mp4"
-        subprocess.run(["ffmpeg", "-y", "-loglevel", "error", "-framerate", "30", "-i",
-                        str(out / "preview" / "%04d.png"), "-pix_fmt", "yuv420p",
-                        "-vf", "scale=trunc(iw/2)*2:trunc(ih/2)*2", str(video)], check=True)
     summary = (f"frames {args.frames}, dt {dt:.4f} s\n"
                f"cloth: {args.cloth}^2 vertices, {len(cloth.springs)} springs, implicit, "
                f"{t_cloth / args.frames * 1e3:.2f} ms/step\n"

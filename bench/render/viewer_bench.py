@@ -1,8 +1,8 @@
 """Frames per second of the live viewer (km.viewer on Polyscope) at 1e5 and 1e6 particles, on
 whatever OpenGL the display offers (here: Mesa's llvmpipe software rasteriser under Xvfb).
 
-    python bench/viewer_bench.py                   # 1e4, 1e5, 1e6 particles, 1024x768
-    python bench/viewer_bench.py --sizes 100000 --width 640 --height 480
+    python bench/render/viewer_bench.py                   # 1e4, 1e5, 1e6 particles, 1024x768
+    python bench/render/viewer_bench.py --sizes 100000 --width 640 --height 480
 
 A frame is what the window does while a simulation runs: new positions and a new colour
 quantity (speed) uploaded, then drawn and presented (Viewer.tick with a CallbackSource that
@@ -10,7 +10,7 @@ moves the particles: a ball of n particles rotating about the vertical axis, so 
 frame does not change). Particles are drawn as shaded sphere impostors up to 2e4 and as flat
 quads beyond (Viewer's choice, kv.QUAD_ABOVE). Before a time is recorded, a screenshot must show the particles'
 colours inside the ball's projection. The time of 20 frames after 3 warm-up frames is timed by
-bench/harness.py (other processes' load recorded, disturbed runs retried). Starts an Xvfb when
+bench/common/harness.py (other processes' load recorded, disturbed runs retried). Starts an Xvfb when
 no DISPLAY is set. CSV: bench/out/viewer.csv.
 """
 
@@ -27,12 +27,13 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "common"))  # harness.py
 import harness  # noqa: E402
 
 import kinema as km  # noqa: E402
 from kinema import viewer as kv  # noqa: E402
 
-OUT = Path(__file__).resolve().parent / "out"
+OUT = Path(__file__).resolve().parents[1] / "out"
 
 
 def ensure_display():

@@ -1,14 +1,14 @@
 """km.render benchmarks: path-tracing throughput (rays per second) and BVH build time against
 scene size, and the preview's frame time at simulation sizes.
 
-    python bench/render_bench.py            # spheres 1e3 .. 1e6, a 131k-triangle mesh, previews
-    python bench/render_bench.py --quick    # spheres 1e3 .. 1e5, a small mesh (wiring check)
+    python bench/render/render_bench.py            # spheres 1e3 .. 1e6, a 131k-triangle mesh, previews
+    python bench/render/render_bench.py --quick    # spheres 1e3 .. 1e5, a small mesh (wiring check)
 
 Scenes: n particles of radius 0.35 (1/n)^(1/3) uniform in the unit cube above a floor plane
 (Lambertian albedo 0.7, gradient sky), or a torus mesh (metal, fuzz 0.2) above the floor.
 Path tracing at 160x120, 4 spp, max_depth 8; rays/s counts closest-hit queries (camera rays and
 bounces); per CPU-second (all threads' CPU time) it is less sensitive to the machine's load.
-Preview at 640x480. Each figure is timed by bench/harness.py, which records the load
+Preview at 640x480. Each figure is timed by bench/common/harness.py, which records the load
 other processes put on the machine (other_load, cores) and retries disturbed runs. Checks before
 recording: BVH against brute force on 300 rays, a finite image with mean radiance inside the
 sky's range, and the preview's visible primitives equal to the tracer's primary hits.
@@ -25,12 +25,13 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "common"))  # harness.py
 import harness  # noqa: E402
 
 import kinema as km  # noqa: E402
 
 R = km.render
-OUT = Path(__file__).resolve().parent / "out"
+OUT = Path(__file__).resolve().parents[1] / "out"
 SKY = ((1.0, 1.0, 1.0), (0.5, 0.7, 1.0))
 CAM = dict(look_from=(0.5, 1.2, 2.6), look_at=(0.5, 0.4, 0.5), vfov=40)
 

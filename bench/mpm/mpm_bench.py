@@ -1,8 +1,8 @@
 """km.mpm benchmarks (results in bench/out/mpm.csv; summary in bench/RESULTS.md, "MPM").
 
-    .venv/bin/python bench/mpm_bench.py scaling   [--threads 2]   # 3D step time, 1e4..1e6 particles
-    .venv/bin/python bench/mpm_bench.py precision                 # dam-break front error vs wall time
-    .venv/bin/python bench/mpm_bench.py taichi    [--threads 2]   # side by side with Taichi (CPU, f32)
+    .venv/bin/python bench/mpm/mpm_bench.py scaling   [--threads 2]   # 3D step time, 1e4..1e6 particles
+    .venv/bin/python bench/mpm/mpm_bench.py precision                 # dam-break front error vs wall time
+    .venv/bin/python bench/mpm/mpm_bench.py taichi    [--threads 2]   # side by side with Taichi (CPU, f32)
 
 scaling: 3D water and sand blocks of 1e4, 1e5 and 1e6 particles (8 per cell) in a 128^3 domain,
 mean time per step over 5 steps after 2 warm-up steps, with the per-stage times (sort, P2G,
@@ -30,9 +30,10 @@ import numpy as np
 import kinema as km
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "common"))  # harness.py
 import harness  # noqa: E402
 
-OUT = Path(__file__).resolve().parent / "out"
+OUT = Path(__file__).resolve().parents[1] / "out"
 CSV = OUT / "mpm.csv"
 
 
@@ -85,7 +86,7 @@ def scaling(opts):
 
 
 def precision(opts):
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "tests"))
     from test_mpm import _dam_break_front
 
     rec = harness.Recorder(CSV, "mpm2d_dam_break_front", threads=opts.threads)

@@ -1,9 +1,9 @@
-"""Taichi peers of bench/mpm_bench.py: the algorithms of Taichi's shipped MPM examples (mpm88: 2D
+"""Taichi peers of bench/mpm/mpm_bench.py: the algorithms of Taichi's shipped MPM examples (mpm88: 2D
 weakly compressible fluid; mpm99: water, jelly and snow with SVD plasticity; mpm3d: 3D fluid),
 written here from the published MLS-MPM algorithm (Hu et al. 2018), driven headless on the CPU
 backend in float32 as the examples run. Run in its own process by mpm_bench.py:
 
-    .venv/bin/python bench/mpm_taichi_peer.py {mpm88,mpm99,mpm3d} POSITIONS.npy STEPS DT GRID [--threads T]
+    .venv/bin/python bench/mpm/mpm_taichi_peer.py {mpm88,mpm99,mpm3d} POSITIONS.npy STEPS DT GRID [--threads T]
 
 Prints one JSON line: seconds per substep, wall and CPU (best of 3 blocks of STEPS substeps,
 after a warm-up block that compiles the kernels) and the mean particle position afterwards (the bench checks

@@ -27,7 +27,7 @@ in one run so that their ratios compare like with like:
 
 The harness records other processes' load with every figure and repeats disturbed calls
 (--max-load, --max-tries, --quiet-timeout). One command for the whole set:
-    .venv/bin/python bench/deform_bench.py            (--quick: small sizes, smoke run)
+    .venv/bin/python bench/deform/deform_bench.py            (--quick: small sizes, smoke run)
 """
 
 from __future__ import annotations
@@ -39,15 +39,16 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "common"))  # harness.py
 import harness  # noqa: E402
 
 import kinema as km  # noqa: E402
 
-OUT = Path(__file__).resolve().parent / "out"
+OUT = Path(__file__).resolve().parents[1] / "out"
 
 
 def peer(part, size, opts, kinema):
-    """Runs the Taichi peer (bench/deform_taichi_peer.py) in its own process, so that a crash
+    """Runs the Taichi peer (bench/deform/deform_taichi_peer.py) in its own process, so that a crash
     of the peer cannot end the whole run. kinema: the kinema default's Measurement, for the
     printed ratios."""
     import subprocess

@@ -5,11 +5,11 @@ spacing (both methods) and the DFSPH solver tolerance, against two errors:
   at its recorded times T = t sqrt(2 g / a) (up to Z ~ 5), and
 * density error: the mean compression max(rho/rho0 - 1, 0) averaged over the run's frames.
 
-    python bench/sph_work_precision.py            # ratios 10, 20, 40 particles across the column
-    python bench/sph_work_precision.py --quick    # ratios 10, 20
-    python bench/sph_work_precision.py --settings # DFSPH warm start and Verlet skin counts
+    python bench/sph/sph_work_precision.py            # ratios 10, 20, 40 particles across the column
+    python bench/sph/sph_work_precision.py --quick    # ratios 10, 20
+    python bench/sph/sph_work_precision.py --settings # DFSPH warm start and Verlet skin counts
 
-Each run is timed with bench/harness.py (the load of other processes is recorded per run).
+Each run is timed with bench/common/harness.py (the load of other processes is recorded per run).
 CSV: bench/out/sph_work_precision.csv; plot: bench/out/sph_work_precision.png.
 """
 
@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "common"))  # harness.py
 import harness  # noqa: E402
 from sph_bench import MEASURE, OUT, plot_and_report  # noqa: E402
 

@@ -1,4 +1,4 @@
-"""A straightforward Taichi CPU WCSPH, the peer of kinema's WCSPH in bench/sph_bench.py.
+"""A straightforward Taichi CPU WCSPH, the peer of kinema's WCSPH in bench/sph/sph_bench.py.
 
 Written here from the course formulas (Koschier et al. 2019; Becker and Teschner 2007), not
 copied from any project: cubic spline kernel with support h = 2 * spacing, density by summation

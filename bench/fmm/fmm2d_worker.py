@@ -1,7 +1,7 @@
-"""Runs Flatiron's FMM2D (pip fmm2dpy, `rfmm2d`) on points saved by bench/fmm_bench.py.
+"""Runs Flatiron's FMM2D (pip fmm2dpy, `rfmm2d`) on points saved by bench/fmm/fmm_bench.py.
 
 Runs in its own virtual environment with numpy<2 (fmm2dpy's only release is built against
-numpy 1.x); bench/fmm_bench.py creates it (bench/out/venv-fmm2d) and calls this script as a
+numpy 1.x); bench/fmm/fmm_bench.py creates it (bench/out/venv-fmm2d) and calls this script as a
 subprocess, so nothing of FMM2D is imported into kinema's environment. Usage:
 
     python fmm2d_worker.py DIR EPS [EPS ...]

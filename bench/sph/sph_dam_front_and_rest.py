@@ -1,12 +1,12 @@
-"""Issue 15's two symptoms as reproducible runs (2D): the dam-break front against Martin and
+"""Two accuracy checks of km.sph as reproducible runs (2D): the dam-break front against Martin and
 Moyce (1952) and a viscous column at rest. Prints one line per case.
 
-  python bench/sph_issue15.py dam --method dfsph
-  python bench/sph_issue15.py rest --method dfsph
-  python bench/sph_issue15.py record after     # both cases, both methods, into
-                                                       # bench/out/sph_issue15_after.json
-  python bench/sph_issue15.py plot before after        # bench/out/sph_issue15.png
-  python bench/sph_issue15.py viscous-spectrum         # largest eigenvalue of the viscosity term
+  python bench/sph/sph_dam_front_and_rest.py dam --method dfsph
+  python bench/sph/sph_dam_front_and_rest.py rest --method dfsph
+  python bench/sph/sph_dam_front_and_rest.py record after     # both cases, both methods, into
+                                                       # bench/out/sph_dam_front_and_rest_after.json
+  python bench/sph/sph_dam_front_and_rest.py plot before after        # bench/out/sph_dam_front_and_rest.png
+  python bench/sph/sph_dam_front_and_rest.py viscous-spectrum         # largest eigenvalue of the viscosity term
 
 Dam break: the issue's square column a = 0.1 m of 40 x 40 particles in the tank 5a x 2a,
 nu = 1e-4, 10 steps of 5e-5 s, then advance() to each time; front = x of the third-farthest
@@ -99,7 +99,7 @@ def record(label):
         out[f"rest_{method}"] = rest(method, history=hist)
         out[f"rest_{method}"]["H"] = float(out[f"rest_{method}"]["H"])
         out[f"history_{method}"] = hist
-    path = Path(__file__).resolve().parent / "out" / f"sph_issue15_{label}.json"
+    path = Path(__file__).resolve().parents[1] / "out" / f"sph_dam_front_and_rest_{label}.json"
     path.parent.mkdir(exist_ok=True)
     path.write_text(json.dumps(out))
     print(f"wrote {path}")
@@ -113,12 +113,12 @@ def plot(labels):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    out = Path(__file__).resolve().parent / "out"
+    out = Path(__file__).resolve().parents[1] / "out"
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(12, 4.5))
     mm = km.sph.martin_moyce()
     a1.plot(mm[:, 0], mm[:, 1], "ks", label="Martin & Moyce 1952")
     for label, style in zip(labels, ("--", "-")):
-        data = json.loads((out / f"sph_issue15_{label}.json").read_text())
+        data = json.loads((out / f"sph_dam_front_and_rest_{label}.json").read_text())
         for method, color in (("wcsph", "C0"), ("dfsph", "C3")):
             T, Z, _ = np.array(data[f"dam_{method}"]).T
             a1.plot(T, Z, style, color=color, marker="o", label=f"{method} {label}")
@@ -133,8 +133,8 @@ def plot(labels):
     a2.set_title("2D viscous column at rest, nu = 0.01")
     a2.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(out / "sph_issue15.png", dpi=90)
-    print(f"wrote {out / 'sph_issue15.png'}")
+    fig.savefig(out / "sph_dam_front_and_rest.png", dpi=90)
+    print(f"wrote {out / 'sph_dam_front_and_rest.png'}")
 
 
 if __name__ == "__main__":

@@ -1,8 +1,8 @@
 """Runs every peer solver once and prints its time by phase, iterations and verified residual.
 
-    .venv/bin/python bench/peers_smoke.py            # small: 2D 128^2 and 3D 32^3 (about a minute)
-    .venv/bin/python bench/peers_smoke.py --full     # the sizes of issue 2, section 5 (minutes)
-    .venv/bin/python bench/peers_smoke.py --only taichi pyamg --threads 2
+    .venv/bin/python bench/poisson/peers_smoke.py            # small: 2D 128^2 and 3D 32^3 (about a minute)
+    .venv/bin/python bench/poisson/peers_smoke.py --full     # the sizes of issue 2, section 5 (minutes)
+    .venv/bin/python bench/poisson/peers_smoke.py --only taichi pyamg --threads 2
 
 Problem: -lap u = f, cell-centred, Dirichlet (ghost = -u), h = 1/N, f = poisson_rhs(kind="random")
 (seed 0). The matrix peers get laplacian_matrix(shape, h) and f; Taichi gets b = h^2 f on its
@@ -20,8 +20,9 @@ import sys
 import time
 from pathlib import Path
 
-import harness
-import peers
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "common"))  # harness.py
+import harness  # noqa: E402
+import peers  # noqa: E402
 
 #: (peer, shape, tol) runs of the quick check.
 SMALL_RUNS = (
@@ -71,7 +72,7 @@ def main(argv=None) -> int:
     parser.add_argument("--threads", type=int, default=os.cpu_count() or 1,
                         help="threads for Taichi and CHOLMOD's BLAS (PyAMG and SciPy are serial)")
     parser.add_argument("--max-tries", type=int, default=3, help="timed calls at most when disturbed")
-    parser.add_argument("--csv", default=str(Path(__file__).parent / "out" / "peers_smoke.csv"))
+    parser.add_argument("--csv", default=str(Path(__file__).resolve().parents[1] / "out" / "peers_smoke.csv"))
     args = parser.parse_args(argv)
 
     runs = [r for r in (FULL_RUNS if args.full else SMALL_RUNS) if not args.only or r[0] in args.only]

@@ -1,6 +1,6 @@
 """MGPCG iteration counts to tol 1e-8 against the grid size (issue 2: they must stay flat).
 
-    .venv/bin/python bench/mgpcg_iterations.py [--thin-walls]
+    .venv/bin/python bench/poisson/mgpcg_iterations.py [--thin-walls]
 
 Random f (seed 4), h = 1/N, Dirichlet and Neumann (mean removed); then a solid disk/ball of
 radius 0.2 at 0.4 in every coordinate. Prints one line per grid; counts, not times, so the

@@ -1,14 +1,14 @@
 """km.sph benchmarks: neighbour-search throughput and time per step against particle count,
 side by side with SPlisHSPlasH (pysplishsplash, WCSPH and DFSPH) and a Taichi CPU WCSPH
-(bench/taichi_sph.py) on the same 3D dam break.
+(bench/sph/taichi_sph.py) on the same 3D dam break.
 
-    python bench/sph_bench.py                 # quick: ~10k and ~40k particles
-    python bench/sph_bench.py --full          # adds ~100k and ~190k (the issue's target sizes)
-    python bench/sph_bench.py --no-peers      # kinema only
-    python bench/sph_bench.py --side-by-side  # the issue's comparison: ~150k particles, all five
+    python bench/sph/sph_bench.py                 # quick: ~10k and ~40k particles
+    python bench/sph/sph_bench.py --full          # adds ~100k and ~190k (the issue's target sizes)
+    python bench/sph/sph_bench.py --no-peers      # kinema only
+    python bench/sph/sph_bench.py --side-by-side  # the issue's comparison: ~150k particles, all five
                                               # codes in one run, with the ratios
-    python bench/sph_bench.py --side-by-side --splishsplash-only   # rerun SPlisHSPlasH alone
-    python bench/sph_bench.py --work-precision  # DFSPH seconds per simulated second against the
+    python bench/sph/sph_bench.py --side-by-side --splishsplash-only   # rerun SPlisHSPlasH alone
+    python bench/sph/sph_bench.py --work-precision  # DFSPH seconds per simulated second against the
                                               # measured mean density error, sweeping kinema's
                                               # tol and SPlisHSPlasH's maxError (both wall
                                               # models), ~150k particles, one run
@@ -16,7 +16,7 @@ side by side with SPlisHSPlasH (pysplishsplash, WCSPH and DFSPH) and a Taichi CP
 Scene (sph_bench.scene): a water column [0, a] x [0, 2a] x [0, a] (a = 0.5 m) in the closed box
 [0, 4a] x [0, 3a] x [0, a], released at rest; the spacing sets the particle count. Every code
 runs the same start-up before its timed steps: round(START / dt) steps of the timed dt from rest. Each figure is
-the best of a few timed calls (bench/harness.py records the load other processes put on the
+the best of a few timed calls (bench/common/harness.py records the load other processes put on the
 machine; a disturbed figure is retried and flagged). Every result is checked before it is
 recorded: the neighbour pairs against scipy's cKDTree, the simulations' mean density error
 against a bound and their positions for finiteness.
@@ -36,10 +36,11 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "common"))  # harness.py
 import harness  # noqa: E402
 
 A = 0.5
-OUT = Path(__file__).resolve().parent / "out"
+OUT = Path(__file__).resolve().parents[1] / "out"
 STEPS = 5  # steps per timed call
 START = 0.02  # simulated start-up before timing [s]
 MEASURE = {}  # harness.measure options; --loaded caps the retries of disturbed calls
@@ -129,9 +130,9 @@ def steps_of(fluid, dt, iterations):
 def started_fluid(n, method, tol, dt):
     """kinema's fluid after the start-up every code runs before its timed steps: from rest,
     round(START / dt) steps of the timed dt, as SPlisHSPlasH (fixed dt) and the Taichi WCSPH are
-    started. (Until session 5 kinema alone started with CFL steps to START and was timed on its
-    first steps at the larger dt: a transient at which DFSPH took 4.2 iterations per step
-    instead of the 3.0 it takes here, as SPlisHSPlasH does.)"""
+    started. (Started with CFL steps to START instead, kinema would be timed on its first steps
+    at the larger dt: a transient at which DFSPH takes 4.2 iterations per step instead of the
+    3.0 it takes here, as SPlisHSPlasH does.)"""
     fluid, _ = kinema_fluid(n, method, tol)
     for _ in range(max(1, round(START / dt))):
         fluid.step(dt)
@@ -214,7 +215,7 @@ def bench_taichi(sizes, rec, dts, threads, results):
 
 
 def run_splishsplash(method, boundary, spacing, dt, tol, stiffness, skip, threads):
-    """One bench/splishsplash_run.py process; its JSON result, or None (reported) if it failed."""
+    """One bench/sph/splishsplash_run.py process; its JSON result, or None (reported) if it failed."""
     script = Path(__file__).resolve().parent / "splishsplash_run.py"
     cache = OUT / "splishsplash_cache"  # wall samplings / volume maps, reused between runs
     out = Path(tempfile.mkstemp(suffix=".json")[1])
@@ -235,7 +236,7 @@ def run_splishsplash(method, boundary, spacing, dt, tol, stiffness, skip, thread
 
 def bench_splishsplash(sizes, rec, dts, tol, threads, results, boundaries=("akinci",)):
     """SPlisHSPlasH on the same scene, per method and wall model, each run in its own process
-    (bench/splishsplash_run.py: kinema's lattice, kinema's dt, Tait B and tol, set on its objects
+    (bench/sph/splishsplash_run.py: kinema's lattice, kinema's dt, Tait B and tol, set on its objects
     and read back). Its per-step figure is the median of the timed steps; the check also rejects
     a run that lost particles through a wall or blew up (its earlier runs did, unnoticed, since
     scattered particles have no compression)."""

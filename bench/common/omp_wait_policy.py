@@ -19,12 +19,12 @@ Policies (environment of the worker):
   env:K=V,..  any environment (to explore, e.g. env:OPENBLAS_NUM_THREADS=1)
 
 Each figure is the best of up to 3 timed calls (fewer when one call takes over 5 s), with the
-load other processes put on the machine during the best call (bench/harness.py) and the result
+load other processes put on the machine during the best call (bench/common/harness.py) and the result
 checked (residual / finite state) before it is recorded.
 
-    .venv/bin/python bench/omp_wait_policy.py                       # before/after/passive, 0-2 busy
-    .venv/bin/python bench/omp_wait_policy.py --policies before after spin=10000 --busy 0 1
-    .venv/bin/python bench/omp_wait_policy.py --workloads cg mgpcg
+    .venv/bin/python bench/common/omp_wait_policy.py                       # before/after/passive, 0-2 busy
+    .venv/bin/python bench/common/omp_wait_policy.py --policies before after spin=10000 --busy 0 1
+    .venv/bin/python bench/common/omp_wait_policy.py --workloads cg mgpcg
 
 CSV: bench/out/omp_wait_policy.csv.
 """
@@ -43,7 +43,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import harness  # noqa: E402
 
-OUT = Path(__file__).resolve().parent / "out"
+OUT = Path(__file__).resolve().parents[1] / "out"
 WORKLOADS = ("cg", "mgpcg", "sph", "fem")
 POLICY_ENV = ("GOMP_SPINCOUNT", "OMP_WAIT_POLICY")
 

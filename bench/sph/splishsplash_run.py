@@ -1,7 +1,7 @@
 """Times SPlisHSPlasH (pysplishsplash) on kinema's 3D dam break; run as a subprocess by
-bench/sph_bench.py, so that a crash of the peer cannot take the benchmark down.
+bench/sph/sph_bench.py, so that a crash of the peer cannot take the benchmark down.
 
-    python bench/splishsplash_run.py --method wcsph --spacing S --steps N --dt DT --tol TOL \\
+    python bench/sph/splishsplash_run.py --method wcsph --spacing S --steps N --dt DT --tol TOL \\
         --stiffness B --out OUT.json [--skip K] [--boundary akinci|volume-map] [--cache DIR]
 
 K steps are run untimed first (the benchmark's start-up transient), then, after waiting up to
@@ -40,8 +40,10 @@ import os
 import sys
 import tempfile
 import time
+from pathlib import Path
 
-import harness
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "common"))  # harness.py
+import harness  # noqa: E402
 
 A = 0.5
 BOX = (4 * A, 3 * A, A)

@@ -1,6 +1,8 @@
-"""kinema's demonstration run: fields solved, checked and written to disk.
+"""kinema's numerical demonstration: fields solved, checked and written to disk.
 
-    python -m kinema.demo --out demo_output
+    .venv/bin/python examples/poisson_heat.py --out demo_output/numerics [--frames 96] [--size 256]
+
+scripts/demo.sh runs it after the smoke_plume scene.
 
 Writes, into the output folder:
   poisson_potential.png   a 2D Poisson solution around an insulating obstacle (mgpcg)
@@ -15,8 +17,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import shutil
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -24,7 +24,8 @@ from pathlib import Path
 import numpy as np
 
 import kinema as km
-from kinema.scenes.output import write_vti
+from kinema.scenes.output import write_mp4, write_png
+from kinema.scenes.preview import field_image
 
 
 def log(msg):
@@ -32,15 +33,8 @@ def log(msg):
 
 
 def save_image(path, field, cmap, vmin=None, vmax=None, mask=None):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    img = np.ma.array(field.T, mask=None if mask is None else mask.T)  # x to the right
-    tmp = Path(path).with_suffix(".tmp.png")
-    plt.imsave(tmp, img, cmap=cmap, vmin=vmin, vmax=vmax, origin="lower")
-    tmp.replace(path)
+    """A cell field [i, j] (x right, y up) as a PNG; ``mask`` cells grey."""
+    write_png(path, field_image(field, cmap=cmap, vmin=vmin, vmax=vmax, mask=mask))
 
 
 def poisson_obstacle(out, n):
@@ -87,12 +81,9 @@ def heat_movie(out, n, frames):
                 f"{rate:.1f} frames/s  ETA {(frames - frame - 1) / rate:.0f} s")
     drift = abs(T.sum() - heat0) / heat0
     np.savez_compressed(out / "heat_final.npz", T=T, solid=solid, h=h, kappa=kappa)
-    write_vti(out / "heat_final.vti", {"temperature": T}, h)
+    km.io.write_grid(out / "heat_final.vti", {"temperature": T}, h)
     video = "not written (ffmpeg not found)"
-    if shutil.which("ffmpeg"):
-        cmd = ["ffmpeg", "-y", "-loglevel", "error", "-framerate", "24", "-i", str(frame_dir / "frame_%04d.png"),
-               "-vf", "scale=trunc(iw/2)*2:trunc(ih/2)*2", "-pix_fmt", "yuv420p", str(out / "heat.mp4")]
-        subprocess.run(cmd, check=True)
+    if write_mp4(out / "heat.mp4", frame_dir / "frame_%04d.png", 24):
         video = str(out / "heat.mp4")
     log(f"heat: {frames} frames, relative heat drift {drift:.1e}, video {video}")
     return f"heat {shape} crank_nicolson: frames={frames} relative_heat_drift={drift:.2e} video={video}"
@@ -144,19 +135,21 @@ def work_precision(out, sizes):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(prog="python -m kinema.demo", description=__doc__,
+    parser = argparse.ArgumentParser(prog="examples/poisson_heat.py", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", default="demo_output", help="output folder (created)")
     parser.add_argument("--frames", type=int, default=96, help="heat video frames")
     parser.add_argument("--size", type=int, default=256, help="grid cells per unit length")
+    parser.add_argument("--sizes", type=int, nargs="+", default=[32, 64, 128, 256, 512, 1024],
+                        help="grid sizes of the work-precision study")
     args = parser.parse_args(argv)
-    if args.frames < 1 or args.size < 8:
-        parser.error("--frames must be >= 1 and --size >= 8")
+    if args.frames < 1 or args.size < 8 or min(args.sizes) < 8:
+        parser.error("--frames must be >= 1, --size and --sizes >= 8")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     log(f"kinema {km.__version__}, {km.get_num_threads()} threads, BLAS {km.build_info()['blas']}")
     lines = [poisson_obstacle(out, args.size), heat_movie(out, args.size, args.frames)]
-    lines += work_precision(out, [32, 64, 128, 256, 512, 1024])
+    lines += work_precision(out, args.sizes)
     (out / "summary.txt").write_text("\n".join(lines) + "\n")
     log(f"done: outputs in {out.resolve()}")
     return 0

@@ -1,10 +1,10 @@
 """kinema's linear solvers beside their peers, on the problems and targets of issue 2, section 5.
 
-    .venv/bin/python bench/side_by_side.py --quick          # small grids: checks the wiring (~1 min)
-    .venv/bin/python bench/side_by_side.py                  # the targets at full size
-    .venv/bin/python bench/side_by_side.py --sweep          # plus work-precision sweeps over tol
-    .venv/bin/python bench/side_by_side.py --stream         # plus the STREAM triad (build/bench)
-    .venv/bin/python bench/side_by_side.py --only cholesky --min-of 5 --alternate
+    .venv/bin/python bench/poisson/side_by_side.py --quick          # small grids: checks the wiring (~1 min)
+    .venv/bin/python bench/poisson/side_by_side.py                  # the targets at full size
+    .venv/bin/python bench/poisson/side_by_side.py --sweep          # plus work-precision sweeps over tol
+    .venv/bin/python bench/poisson/side_by_side.py --stream         # plus the STREAM triad (build/bench)
+    .venv/bin/python bench/poisson/side_by_side.py --only cholesky --min-of 5 --alternate
                                    # one target, its two codes timed in alternating rounds
 
 Problem: -lap u = f on the cell-centred grid, Dirichlet (ghost = -u), h = 1/N, f random in
@@ -31,11 +31,12 @@ from typing import Callable, Optional
 
 import numpy as np
 
-import harness
-import peers
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "common"))  # harness.py
+import harness  # noqa: E402
+import peers  # noqa: E402
 
-OUT = Path(__file__).resolve().parent / "out"
-BENCH_BINARY = Path(__file__).resolve().parent.parent / "build" / "bench" / "kinema_bench"
+OUT = Path(__file__).resolve().parents[1] / "out"
+BENCH_BINARY = Path(__file__).resolve().parents[2] / "build" / "bench" / "kinema_bench"
 
 #: Tolerances of the work-precision sweeps (relative residual).
 SWEEP_TOLS = (1e-2, 1e-4, 1e-6, 1e-8, 1e-10)

@@ -1,8 +1,8 @@
 """km.fmm.laplace3d beside the direct sum and Flatiron's FMM3D (issue 23, "Speed").
 
-    .venv/bin/python bench/fmm3d_bench.py --quick       # wiring check, N = 1e5 (~2 min)
-    .venv/bin/python bench/fmm3d_bench.py               # crossover, eps sweep at N = 1e6
-    .venv/bin/python bench/fmm3d_bench.py --large       # also N = 1e7 at eps 1e-6
+    .venv/bin/python bench/fmm/fmm3d_bench.py --quick       # wiring check, N = 1e5 (~2 min)
+    .venv/bin/python bench/fmm/fmm3d_bench.py               # crossover, eps sweep at N = 1e6
+    .venv/bin/python bench/fmm/fmm3d_bench.py --large       # also N = 1e7 at eps 1e-6
 
 Problem: N points uniform in the unit cube (seed 0), charges uniform in [-1, 1]; potential AND
 gradient at the sources (self term left out), float64: km.fmm.laplace3d(gradient=True) and
@@ -20,16 +20,18 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-import harness
-import kinema as km
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "common"))  # harness.py
+import harness  # noqa: E402
+import kinema as km  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
-OUT = HERE / "out"
+OUT = HERE.parent / "out"
 TRIES = 2
 EPS = (1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-11, 1e-12)
 

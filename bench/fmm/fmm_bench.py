@@ -1,9 +1,9 @@
 """km.fmm beside the direct sum and Flatiron's FMM2D (issue 6, "Speed, side by side").
 
-    .venv/bin/python bench/fmm_bench.py --quick        # wiring check, N <= 1e5 (~1-2 min)
-    .venv/bin/python bench/fmm_bench.py                # N = 1e3 .. 1e6, eps sweep at N = 1e6
-    .venv/bin/python bench/fmm_bench.py --large        # also N = 1e7
-    .venv/bin/python bench/fmm_bench.py --no-peer      # kinema and direct2d only
+    .venv/bin/python bench/fmm/fmm_bench.py --quick        # wiring check, N <= 1e5 (~1-2 min)
+    .venv/bin/python bench/fmm/fmm_bench.py                # N = 1e3 .. 1e6, eps sweep at N = 1e6
+    .venv/bin/python bench/fmm/fmm_bench.py --large        # also N = 1e7
+    .venv/bin/python bench/fmm/fmm_bench.py --no-peer      # kinema and direct2d only
 
 Problem: N points uniform in the unit square (seed 0), charges uniform in [-1, 1]; potential
 AND gradient at the sources themselves (self term left out), in float64, by
@@ -16,7 +16,7 @@ curve, and the summary interpolates kinema's time (log-log) at each of FMM2D's e
 
 The peer runs in its own virtual environment (bench/out/venv-fmm2d, numpy<2 and fmm2dpy,
 created on first use; fmm2dpy's only release is built for numpy 1.x) through
-bench/fmm2d_worker.py as a subprocess; its figure is the time of the rfmm2d call itself
+bench/fmm/fmm2d_worker.py as a subprocess; its figure is the time of the rfmm2d call itself
 (timed inside the worker, without start-up and I/O).
 
 Every call goes through harness.measure (repeated when other processes loaded the machine) and
@@ -35,10 +35,11 @@ from pathlib import Path
 
 import numpy as np
 
-import harness
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "common"))  # harness.py
+import harness  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
-OUT = HERE / "out"
+OUT = HERE.parent / "out"
 PEER_VENV = OUT / "venv-fmm2d"
 WORKER = HERE / "fmm2d_worker.py"
 

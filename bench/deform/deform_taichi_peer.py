@@ -1,7 +1,7 @@
-"""Taichi's bundled implicit examples as the peers of bench/deform_bench.py (which runs this script
+"""Taichi's bundled implicit examples as the peers of bench/deform/deform_bench.py (which runs this script
 in its own process, so that a crash of the peer cannot end the whole run).
 
-    .venv/bin/python bench/deform_taichi_peer.py {cloth,cube} SIZE [--threads T] [--kinema WALL CPU]
+    .venv/bin/python bench/deform/deform_taichi_peer.py {cloth,cube} SIZE [--threads T] [--kinema WALL CPU]
 
 cloth: examples/simulation/implicit_mass_spring.py's Cloth class with N = SIZE (LDLT analysed and
 factorised every step, as the example does); its sparse-matrix builders are sized for N = 5 and
@@ -25,9 +25,10 @@ import taichi as ti
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "common"))  # harness.py
 import harness  # noqa: E402
 
-OUT = Path(__file__).resolve().parent / "out"
+OUT = Path(__file__).resolve().parents[1] / "out"
 
 
 def measure(fn, opts):

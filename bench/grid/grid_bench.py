@@ -1,10 +1,10 @@
 """km.grid benchmarks: per-stage timings of smoke steps, a work-precision study on Taylor-Green,
 and Taichi's bundled stable-fluids example as the side-by-side peer (issue 3, "Speed").
 
-    .venv/bin/python bench/grid_bench.py             # the issue's figures, one run (~5 min quiet)
-    .venv/bin/python bench/grid_bench.py --quick     # 256^2 / 48^3 smoke, small sweep (~1 min)
-    .venv/bin/python bench/grid_bench.py --only 3d --steps 4   # the 128^3 smoke step alone
-    .venv/bin/python bench/grid_bench.py --only 3d --steps 3 --kernel nodes auto --rounds 2
+    .venv/bin/python bench/grid/grid_bench.py             # the issue's figures, one run (~5 min quiet)
+    .venv/bin/python bench/grid/grid_bench.py --quick     # 256^2 / 48^3 smoke, small sweep (~1 min)
+    .venv/bin/python bench/grid/grid_bench.py --only 3d --steps 4   # the 128^3 smoke step alone
+    .venv/bin/python bench/grid/grid_bench.py --only 3d --steps 3 --kernel nodes auto --rounds 2
         # before/after the row advection kernels, alternating in one run
 
 One run gives: the 2D 512^2 smoke step (MacCormack, MGPCG to 1e-6) and its ratios to Taichi's
@@ -22,7 +22,7 @@ subprocess (it calls ti.init and parses sys.argv at import) and driven headless 
 kernels with a fixed impulse. Its step is timed with the default 500 Jacobi iterations, and the
 divergence left after them is measured with its own divergence kernel (before/after the pressure
 solve). The "MGPCG" peer figure is composed: the same step with 0 Jacobi iterations plus the
-steady-state solve of Taichi's bundled MGPCG (bench/peers.py, TaichiMGPCG) at the same size and
+steady-state solve of Taichi's bundled MGPCG (bench/poisson/peers.py, TaichiMGPCG) at the same size and
 tol 1e-6, since stable_fluid.py has no MGPCG option of its own.
 Every figure records the cores other processes used while it ran (other_load); on a shared
 machine treat them as orientation.
@@ -41,12 +41,13 @@ from pathlib import Path
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE))
+sys.path.insert(0, str(HERE.parent / "common"))  # harness.py
+sys.path.insert(0, str(HERE.parent / "poisson"))  # peers.py (Taichi's MGPCG)
 import harness  # noqa: E402
 
 import kinema as km  # noqa: E402
 
-OUT = HERE / "out"
+OUT = HERE.parent / "out"
 
 
 # ------------------------------------------------------------------ kinema

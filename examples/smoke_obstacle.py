@@ -1,7 +1,7 @@
 """A smoke plume rising around a round obstacle (km.grid), written as frames and a video.
 
-    python -m kinema.smoke_demo --out demo_output/smoke            # 2D, 192 x 256 cells
-    python -m kinema.smoke_demo --out demo_output/smoke3d --3d     # 3D, 64 x 96 x 64 cells
+    .venv/bin/python examples/smoke_obstacle.py --out demo_output/smoke          # 2D, 192 x 256 cells
+    .venv/bin/python examples/smoke_obstacle.py --out demo_output/smoke3d --3d   # 3D, 64 x 96 x 64 cells
 
 Writes smoke/frame_NNNN.png (density; in 3D its integral along z), smoke.mp4 (when ffmpeg is
 installed) and smoke_final.npz (density, velocity, solid). Hot, light smoke is injected near
@@ -12,15 +12,14 @@ vorticity confinement keeps its curls.
 from __future__ import annotations
 
 import argparse
-import shutil
-import subprocess
 import time
 from pathlib import Path
 
 import numpy as np
 
 import kinema as km
-from kinema.demo import save_image
+from kinema.scenes.output import write_mp4, write_png
+from kinema.scenes.preview import field_image
 
 
 def log(msg):
@@ -59,18 +58,15 @@ def run(out, shape, frames, steps_per_frame=2):
             info = f.step(dt)
         img = f.density if f.dim == 2 else f.density.sum(axis=2) / shape[2]
         mask = f.solid if f.dim == 2 else f.solid.any(axis=2)
-        save_image(frame_dir / f"frame_{frame:04d}.png", img, "inferno", vmin=0, vmax=1 if f.dim == 2 else 0.3,
-                   mask=mask)
+        write_png(frame_dir / f"frame_{frame:04d}.png",
+                  field_image(img, cmap="inferno", vmin=0, vmax=1 if f.dim == 2 else 0.3, mask=mask))
         if (frame + 1) % 10 == 0 or frame + 1 == frames:
             log(f"frame {frame + 1}/{frames}  t = {f.time:.2f} s  cfl {info.cfl:.2f}  "
                 f"pressure {info.pressure.iterations} it  {(time.perf_counter() - start) / (frame + 1):.2f} s/frame")
     np.savez_compressed(out / "smoke_final.npz", density=f.density, solid=f.solid,
                         **{name: c for name, c in zip("uvw", f.velocity)})
     video = "not written (ffmpeg not found)"
-    if shutil.which("ffmpeg") and frames > 1:
-        cmd = ["ffmpeg", "-y", "-loglevel", "error", "-framerate", "30", "-i", str(frame_dir / "frame_%04d.png"),
-               "-vf", "scale=trunc(iw/2)*2:trunc(ih/2)*2", "-pix_fmt", "yuv420p", str(out / "smoke.mp4")]
-        subprocess.run(cmd, check=True)
+    if frames > 1 and write_mp4(out / "smoke.mp4", frame_dir / "frame_%04d.png", 30):
         video = str(out / "smoke.mp4")
     div = float(np.abs(f.divergence()).max())
     log(f"{shape}: {frames} frames, max |div u| = {div:.1e} 1/s, video {video}")

@@ -3,7 +3,7 @@
 acoustic CFL step). Each (build, method, threads) run is a fresh process, and the builds are
 alternated round by round, so that a shared machine's load falls on both alike.
 
-    python bench/sph_step_ab.py BEFORE_PYTHON AFTER_PYTHON [--rounds 3] [--steps 10]
+    python bench/sph/sph_step_ab.py BEFORE_PYTHON AFTER_PYTHON [--rounds 3] [--steps 10]
 
 e.g. ``python bench/sph_step_ab.py /work/main/.venv/bin/python .venv/bin/python``. A run starts
 as sph_bench.py's does (advance to START, one untimed step at the timed dt), times `steps`
@@ -28,6 +28,7 @@ HERE = Path(__file__).resolve().parent
 
 def worker(method: str, steps: int) -> None:
     sys.path.insert(0, str(HERE))
+    sys.path.insert(0, str(HERE.parent / "common"))  # harness.py
     import harness
     import sph_bench as sb
 

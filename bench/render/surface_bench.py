@@ -1,14 +1,14 @@
 """Free-surface reconstruction per frame (km.surface): splashsurf (pysplashsurf) against
 scikit-image's marching cubes on the smoothed volume fraction, at 150k SPH particles.
 
-    python bench/surface_bench.py              # a ball of ~150k particles and a breaking-wave block of ~150k
-    python bench/surface_bench.py --quick      # ~20k particles (wiring check)
+    python bench/render/surface_bench.py              # a ball of ~150k particles and a breaking-wave block of ~150k
+    python bench/render/surface_bench.py --quick      # ~20k particles (wiring check)
 
 Particles on a lattice of spacing s = 0.01 m, jittered by 0.05 s (a settled SPH fluid is not a
 perfect lattice). Accuracy, measured before a time is recorded: for the ball, the RMS and the
 largest distance of the mesh vertices to the sphere of the particles' volume (in spacings) and
 the relative volume error against n s^3; the mesh must be closed with the right Euler
-characteristic. Both methods at their defaults (cell s / 2). Times by bench/harness.py (other
+characteristic. Both methods at their defaults (cell s / 2). Times by bench/common/harness.py (other
 processes' load recorded, disturbed runs retried), best of 3. CSV: bench/out/surface.csv.
 """
 
@@ -21,11 +21,12 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "common"))  # harness.py
 import harness  # noqa: E402
 
 import kinema as km  # noqa: E402
 
-OUT = Path(__file__).resolve().parent / "out"
+OUT = Path(__file__).resolve().parents[1] / "out"
 S = 0.01
 
 
