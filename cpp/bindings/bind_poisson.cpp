@@ -4,7 +4,7 @@
 
 #include "bindings/common.h"
 #include "core/parallel.h"
-#include "grid/poisson_solver.h"
+#include "poisson/poisson_solver.h"
 
 namespace kinema::bind {
 
@@ -139,6 +139,12 @@ struct PySolver {
 }  // namespace
 
 void bind_poisson(py::module_& m) {
+  py::enum_<PoissonMethod>(m, "Method", "Solver of the grid Poisson problem.")
+      .value("jacobi", PoissonMethod::Jacobi)
+      .value("gauss_seidel", PoissonMethod::GaussSeidel)
+      .value("cg", PoissonMethod::CG)
+      .value("multigrid", PoissonMethod::Multigrid)
+      .value("mgpcg", PoissonMethod::MGPCG);
   py::class_<PySolver>(m, "Solver")
       .def(py::init<const std::vector<Index>&, Scalar, const std::string&,
                     std::optional<py::array_t<std::uint8_t, py::array::c_style>>, Scalar,

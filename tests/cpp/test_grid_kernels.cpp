@@ -1,4 +1,4 @@
-// The MAC-grid advection kernels (fluid/kernels.h), tested without Python: interpolation is
+// The MAC-grid advection kernels (grid/kernels.h), tested without Python: interpolation is
 // exact for linear fields, an integer-cell shift in a periodic domain is exact for every
 // scheme, the clamped schemes stay within the initial range, and higher-order back-traces
 // follow a circular streamline more closely; the node-wise and the row-wise (baseline and AVX2)
@@ -13,10 +13,10 @@
 
 #include "core/errors.h"
 #include "core/simd.h"
-#include "fluid/advect_rows.h"
-#include "fluid/kernels.h"
+#include "grid/advect_rows.h"
+#include "grid/kernels.h"
 
-namespace kinema::fluid {
+namespace kinema::grid {
 namespace {
 
 TEST(FluidKernels, InterpolationExactForLinearFields) {
@@ -189,4 +189,4 @@ TEST(FluidKernels, RowKernelsRefuseNoSlipWalls) {
 }
 
 }  // namespace
-}  // namespace kinema::fluid
+}  // namespace kinema::grid

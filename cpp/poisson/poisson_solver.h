@@ -10,8 +10,8 @@
 #include <vector>
 
 #include "core/interrupt.h"
-#include "grid/multigrid.h"
-#include "grid/poisson_operator.h"
+#include "poisson/multigrid.h"
+#include "poisson/poisson_operator.h"
 #include "linalg/cg.h"
 #include "linalg/solve_info.h"
 

@@ -1,4 +1,4 @@
-#include "grid/poisson_operator.h"
+#include "poisson/poisson_operator.h"
 
 #include <algorithm>
 #include <array>

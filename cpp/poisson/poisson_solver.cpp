@@ -1,4 +1,4 @@
-#include "grid/poisson_solver.h"
+#include "poisson/poisson_solver.h"
 
 #include <cmath>
 
