@@ -19,8 +19,6 @@ namespace kinema {
 
 enum class PoissonMethod { Jacobi, GaussSeidel, CG, Multigrid, MGPCG };
 
-PoissonMethod parse_poisson_method(const std::string& name);
-
 struct PoissonConfig {
   PoissonMethod method = PoissonMethod::MGPCG;
   Scalar jacobi_omega = 0.8;  // damping of the Jacobi iteration

@@ -25,8 +25,8 @@ import numpy as np
 
 from kinema import _core
 from kinema._checks import (
-    as_float_array, checked_state, choice, finite, finite_result, grid_shape, non_negative, positive,
-    positive_int, simulation_object, spacing, time_step)
+    as_float_array, checked_state, choice, finite, finite_result, grid_shape, positive_int, real,
+    simulation_object, spacing, time_step)
 from kinema._state import assign
 
 __all__ = ["Fluid", "StepInfo", "advect", "SCHEMES", "ADVECTION_KERNELS"]
@@ -95,10 +95,8 @@ class Fluid:
         self.advection = choice(advection, "advection", SCHEMES)
         self.rk_order = _rk(rk_order)
         self.projection = choice(projection, "projection", _PROJECTIONS)
-        self.tol = positive(tol, "tol")
-        if self.tol >= 1:
-            raise ValueError(f"tol: expected a relative tolerance < 1, got {self.tol}")
-        self.viscosity = non_negative(viscosity, "viscosity")
+        self.tol = real(tol, "tol")
+        self.viscosity = real(viscosity, "viscosity")
         self.boundary = choice(boundary, "boundary", ("closed", "periodic"))
         self.walls = choice(walls, "walls", ("free_slip", "no_slip"))
         if gravity is None:
@@ -116,9 +114,9 @@ class Fluid:
             alpha, beta = buoyancy
         except (TypeError, ValueError):
             raise ValueError(f"buoyancy: expected a pair (alpha, beta), got {buoyancy!r}") from None
-        alpha, beta = finite(alpha, "buoyancy"), finite(beta, "buoyancy")
+        alpha, beta = real(alpha, "buoyancy"), real(beta, "buoyancy")
         self.buoyancy = (alpha, beta)
-        self.vorticity_confinement = non_negative(vorticity_confinement, "vorticity_confinement")
+        self.vorticity_confinement = real(vorticity_confinement, "vorticity_confinement")
         max_iter = positive_int(max_iter, "max_iter", allow_none=True) or 0
         self.advection_kernel = choice(advection_kernel, "advection_kernel", ADVECTION_KERNELS)
         self.open = self._sides(open)
@@ -342,13 +340,12 @@ class Fluid:
         """The CFL step cfl * h / u_max [s], at most ``max_dt``, where u_max = max|u| +
         sqrt(5 h |g|) (Bridson 2015, Sec. 3.2: the speed gravity adds in one step) also counts
         moving walls and velocity sources; ``inf`` when nothing moves and no max_dt is given."""
-        return self._core.stable_dt(positive(cfl, "cfl"), _max_dt(max_dt))
+        return self._core.stable_dt(real(cfl, "cfl"), _max_dt(max_dt))
 
     def advance(self, duration, cfl=1.0, *, max_dt=None) -> int:
         """Advances by ``duration`` [s] in steps of :meth:`stable_dt`, the last one landing on the
         end; returns the step count. The last step's StepInfo is kept in ``self.last_step``."""
-        duration = non_negative(duration, "duration")
-        steps, info = self._core.advance(duration, positive(cfl, "cfl"), _max_dt(max_dt))
+        steps, info = self._core.advance(real(duration, "duration"), real(cfl, "cfl"), _max_dt(max_dt))
         self.last_step = info
         return steps
 
@@ -386,7 +383,7 @@ class Fluid:
 
 
 def _max_dt(max_dt):
-    return float("inf") if max_dt is None else positive(max_dt, "max_dt")
+    return float("inf") if max_dt is None else real(max_dt, "max_dt")
 
 
 def advect(q, velocity, dt, h, scheme="maccormack", rk_order=2, *, periodic=False):
