@@ -286,8 +286,11 @@ Index Solver::add_source(const std::uint8_t* mask, bool set_density, Scalar dens
     throw InvalidArgument("density: the fluid carries no density field (create it with density=True)");
   if (set_temperature && !config_.temperature)
     throw InvalidArgument("temperature: the fluid carries no temperature field (create it with temperature=True)");
-  if (!std::isfinite(density) || !std::isfinite(temperature))
-    throw InvalidArgument("source: expected finite density and temperature");
+  if (!set_density && !set_temperature && !set_velocity)
+    throw InvalidArgument("add_source: give at least one of density, temperature, velocity");
+  if (!std::isfinite(density)) throw InvalidArgument("density: expected a finite value, got " + format_real(density));
+  if (!std::isfinite(temperature))
+    throw InvalidArgument("temperature: expected a finite value, got " + format_real(temperature));
   for (int a = 0; a < 3; ++a)
     if (!std::isfinite(velocity[a])) throw InvalidArgument("velocity: expected finite values");
   Model::Source src;

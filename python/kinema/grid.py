@@ -120,8 +120,6 @@ class Fluid:
         max_iter = positive_int(max_iter, "max_iter", allow_none=True) or 0
         self.advection_kernel = choice(advection_kernel, "advection_kernel", ADVECTION_KERNELS)
         self.open = self._sides(open)
-        if self.open and self.boundary == "periodic":
-            raise ValueError("open: a periodic domain has no open sides (boundary='periodic')")
         config = _core.grid.Config()
         config.advection = getattr(_core.grid.AdvectionScheme, self.advection)
         config.rk_order = self.rk_order
@@ -260,21 +258,14 @@ class Fluid:
         m = np.asarray(region)
         if m.shape != self.shape or m.dtype != np.bool_:
             raise ValueError(f"region: expected a bool array of shape {self.shape}, got {m.dtype} {m.shape}")
-        if density is None and temperature is None and velocity is None:
-            raise ValueError("add_source: give at least one of density, temperature, velocity")
-        for value, name in ((density, "density"), (temperature, "temperature")):
-            if value is not None:
-                finite(value, name)
-                if self._core.scalar(name) is None:
-                    raise ValueError(f"{name}: the fluid carries no {name} field; create it with {name}=True")
         vel = None
         if velocity is not None:
             vel = as_float_array(velocity, "velocity", ndim=1)
             if vel.shape != (self.dim,):
                 raise ValueError(f"velocity: expected {self.dim} components, got shape {vel.shape}")
             vel = [float(x) for x in vel]
-        return self._core.add_source(m.astype(np.uint8), None if density is None else float(density),
-                                     None if temperature is None else float(temperature), vel)
+        return self._core.add_source(m.astype(np.uint8), None if density is None else real(density, "density"),
+                                     None if temperature is None else real(temperature, "temperature"), vel)
 
     def clear_sources(self) -> None:
         """Removes every source added by :meth:`add_source`."""
