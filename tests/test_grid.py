@@ -416,16 +416,6 @@ def test_advance_reports_steps_and_time():
     assert isinstance(s, km.grid.StepInfo) and s.time == f.time and s.dt > 0
 
 
-def test_smoke_demo_runs(tmp_path):
-    from kinema import smoke_demo
-
-    f = smoke_demo.run(tmp_path, (24, 32), frames=2)
-    assert (tmp_path / "smoke" / "frame_0001.png").exists() and (tmp_path / "smoke_final.npz").exists()
-    assert f.density.max() > 0 and np.abs(f.divergence()).max() < 1e-4
-    g = smoke_demo.run(tmp_path / "3d", (12, 16, 12), frames=1)
-    assert g.density.max() > 0
-
-
 def test_ctrl_c_interrupts_advance():
     import os
     import signal
