@@ -65,14 +65,20 @@ def main():
             grid_m_in.grad[i, j] = 0
             grid_v_out.grad[i, j] = [0, 0]
 
+    @ti.func
+    def stencil(xp):
+        # Grid index shifted by one so that the ghost layer at -1 is index 0; quadratic
+        # B-spline weights of the 3 nodes per axis (rows).
+        g = xp * inv_dx + 1
+        base = ti.cast(g - 0.5, ti.i32)
+        fx = g - ti.cast(base, fp)
+        w = ti.Matrix.rows([0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2])
+        return base, fx, w
+
     @ti.kernel
     def p2g(s: ti.i32):
         for p in range(n):
-            # Grid index shifted by one so that the ghost layer at -1 is index 0.
-            g = x[s, p] * inv_dx + 1
-            base = ti.cast(g - 0.5, ti.i32)
-            fx = g - ti.cast(base, fp)
-            w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
+            base, fx, w = stencil(x[s, p])
             Fp = F[s, p]
             J = Fp.determinant()
             r, _ = ti.polar_decompose(Fp)
@@ -82,7 +88,7 @@ def main():
                 for j in ti.static(range(3)):
                     offset = ti.Vector([i, j])
                     dpos = (ti.cast(offset, fp) - fx) * dx
-                    weight = w[i][0] * w[j][1]
+                    weight = w[i, 0] * w[j, 1]
                     grid_v_in[base + offset] += weight * (p_mass * v[s, p] + dt * force[s, p] + affine @ dpos)
                     grid_m_in[base + offset] += weight * p_mass
 
@@ -100,16 +106,13 @@ def main():
     @ti.kernel
     def g2p(s: ti.i32):
         for p in range(n):
-            g = x[s, p] * inv_dx + 1
-            base = ti.cast(g - 0.5, ti.i32)
-            fx = g - ti.cast(base, fp)
-            w = [0.5 * (1.5 - fx) ** 2, 0.75 - (fx - 1) ** 2, 0.5 * (fx - 0.5) ** 2]
+            base, fx, w = stencil(x[s, p])
             new_v = ti.Vector([0.0, 0.0], fp)
             new_C = mat(0.0)
             for i in ti.static(range(3)):
                 for j in ti.static(range(3)):
                     dpos = ti.cast(ti.Vector([i, j]), fp) - fx
-                    weight = w[i][0] * w[j][1]
+                    weight = w[i, 0] * w[j, 1]
                     gv = grid_v_out[base[0] + i, base[1] + j]
                     new_v += weight * gv
                     new_C += 4 * inv_dx * weight * gv.outer_product(dpos)
