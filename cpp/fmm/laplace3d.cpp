@@ -15,14 +15,14 @@
 #include "core/timer.h"
 #include "fmm/kernels3d.h"
 #include "fmm/m2l_product.h"
-#include "fmm/octree.h"
+#include "fmm/tree.h"
 
 namespace kinema::fmm3 {
 
 namespace {
 
 using fmm::Box3;
-using fmm::Lists3;
+using fmm::Lists;
 using fmm::Octree;
 using ColMatrix = Eigen::Matrix<Scalar, Eigen::Dynamic, Eigen::Dynamic>;
 
@@ -191,7 +191,7 @@ struct Engine {
         const Box3& box = tree.boxes[static_cast<size_t>(id)];
         if (box.target_count() == 0) continue;
         const Box3& parent = tree.boxes[static_cast<size_t>(box.parent)];
-        const Lists3& lists = tree.lists[static_cast<size_t>(id)];
+        const Lists& lists = tree.lists[static_cast<size_t>(id)];
         for (int c = 0; c < nc; ++c) {
           if (box.parent > 0) l2l(p, loc(box.parent, c), parent.c, parent.h, box.c, loc(id, c));
           for (Index s : lists.p2l) {
@@ -247,7 +247,7 @@ struct Engine {
       for (Index i = start; i < stop; ++i) {
         const Index id = tree.leaves[static_cast<size_t>(i)];
         const Box3& box = tree.boxes[static_cast<size_t>(id)];
-        const Lists3& lists = tree.lists[static_cast<size_t>(id)];
+        const Lists& lists = tree.lists[static_cast<size_t>(id)];
         const int extra = width == 1 ? 0 : width == 4 ? 1 : 2;
         std::vector<Complex> coeffs(static_cast<size_t>(complex_count(p)));
         std::vector<Complex> values(static_cast<size_t>(complex_count(p + extra)));
@@ -367,7 +367,7 @@ Fmm3dStats fmm3d(const Scalar* sources, Index n, const Scalar* charges, int comp
   stats.box_count = static_cast<Index>(tree.boxes.size());
   stats.depth = static_cast<int>(tree.levels.size()) - 1;
   std::vector<char> used(kOffsets, 0);
-  for (const Lists3& l : tree.lists)
+  for (const Lists& l : tree.lists)
     for (const fmm::M2lEntry& e : l.m2l) used[static_cast<size_t>(e.offset)] = 1;
   const M2lOperators ops(p, used);
   stats.seconds_tree = watch.seconds();
