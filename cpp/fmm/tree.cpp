@@ -210,9 +210,9 @@ void Tree<D>::build_lists(Index p2p_below, Interrupt& interrupt) {
       if (!box.leaf) continue;
       // Leaf: adjacent leaves are summed directly; below adjacent non-leaves, the first boxes
       // that are not adjacent are evaluated from their multipoles (W list).
-      std::vector<Index> p2p, stack;
+      std::vector<Index> stack;
       for (Index e : mine) {
-        if (boxes[static_cast<size_t>(e)].leaf) p2p.push_back(e);
+        if (boxes[static_cast<size_t>(e)].leaf) out.u.push_back(e);
         else stack.push_back(e);
       }
       while (!stack.empty()) {
@@ -223,19 +223,23 @@ void Tree<D>::build_lists(Index p2p_below, Interrupt& interrupt) {
           const Box& fb = boxes[static_cast<size_t>(f)];
           if (fb.source_count() == 0) continue;
           if (adjacent(box, fb)) {
-            if (fb.leaf) p2p.push_back(f);
+            if (fb.leaf) out.u.push_back(f);
             else stack.push_back(f);
           } else if (fb.source_count() <= p2p_below) {
-            p2p.push_back(f);
+            out.w_direct.push_back(f);
           } else {
             out.m2p.push_back(f);
           }
         }
       }
-      std::sort(p2p.begin(), p2p.end(), [&](Index a, Index c) {
+      const auto by_memory = [&](Index a, Index c) {
         return boxes[static_cast<size_t>(a)].src_begin < boxes[static_cast<size_t>(c)].src_begin;
-      });
-      for (Index e : p2p) {
+      };
+      std::sort(out.u.begin(), out.u.end(), by_memory);
+      std::sort(out.w_direct.begin(), out.w_direct.end(), by_memory);
+      std::vector<Index> all(out.u.size() + out.w_direct.size());
+      std::merge(out.u.begin(), out.u.end(), out.w_direct.begin(), out.w_direct.end(), all.begin(), by_memory);
+      for (Index e : all) {
         const Box& eb = boxes[static_cast<size_t>(e)];
         if (!out.p2p_ranges.empty() && out.p2p_ranges.back() == eb.src_begin) out.p2p_ranges.back() = eb.src_end;
         else out.p2p_ranges.insert(out.p2p_ranges.end(), {eb.src_begin, eb.src_end});

@@ -56,6 +56,9 @@ struct Lists {
   // neighbours in memory merged (begin, end, begin, end, ...), so that direct sums run over
   // long contiguous loops.
   std::vector<Index> p2p_ranges;
+  // The same boxes split: the adjacent leaves (B itself included) and the small W boxes, each
+  // by ascending src_begin, for near fields that visit each pair of leaves once.
+  std::vector<Index> u, w_direct;
 };
 
 template <int D>
