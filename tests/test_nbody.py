@@ -164,3 +164,11 @@ def test_galaxy_collision_example_runs(tmp_path):
     assert len(list((tmp_path / "frames").glob("*.png"))) == 3
     assert (tmp_path / "energy_error.png").exists()
     assert worst < 1e-2
+
+
+def test_step_returns_step_stats():
+    x, v, m = km.nbody.plummer(50, seed=2)
+    s = km.nbody.System(x, v, m, softening=0.05)
+    stats = s.step(0.01)
+    assert isinstance(stats, km._core.StepStats)
+    assert stats.time == s.time == pytest.approx(0.01) and stats.dt == 0.01 and stats.seconds >= 0

@@ -118,9 +118,13 @@ TEST(Fmm3dKernels, MutualNearFieldEqualsBothOneWaySums) {
         }
         const Scalar* xa[3] = {a.x[0].data(), a.x[1].data(), a.x[2].data()};
         const Scalar* xb[3] = {bp.x[0].data(), bp.x[1].data(), bp.x[2].data()};
-        std::vector<Scalar> out_a(4 * na, 0.0), out_b(4 * stride, 0.0);
+        std::vector<Scalar> out_a(4 * na, 0.0), out_b(4 * stride, 0.0), phi_a(na, 0.0), phi_b(stride, 0.0);
         ASSERT_TRUE(p2p_mutual(true, 2, soft, xa, a.q.data(), na, xb, bp.q.data(), stride, stride,
                                out_a.data(), out_b.data()));
+        ASSERT_TRUE(p2p_mutual(false, 2, soft, xa, a.q.data(), na, xb, bp.q.data(), stride, stride,
+                               phi_a.data(), phi_b.data()));
+        for (int i = 0; i < na; ++i) EXPECT_NEAR(phi_a[i], out_a[4 * i], 1e-14 * (1 + std::abs(phi_a[i])));
+        for (int j = 0; j < nb; ++j) EXPECT_NEAR(phi_b[j], out_b[j], 1e-14 * (1 + std::abs(phi_b[j])));
         const NearKernel kernel = soft > 0 ? NearKernel::Plummer : NearKernel::Laplace;
         // Two Newton steps from a 12-bit estimate: relative error below 1e-13 per pair.
         for (int i = 0; i < na; ++i) {
