@@ -151,7 +151,8 @@ class System:
                                   f"(t = {self.time:g}); reduce dt (now {dt:g}) or add softening")
 
     def advance(self, duration, dt, *, callback=None):
-        """Steps of dt up to `duration` [s], the last one shortened to land on it.
+        """Steps of dt up to `duration` [s], the last landing on it (a remainder under dt/10 is
+        absorbed by stretching the last step, the rule of every method).
 
         callback(system), if given, runs after every step (progress output, recording)."""
         return _stepping.advance(self, duration, dt, callback)

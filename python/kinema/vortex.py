@@ -119,7 +119,8 @@ class VortexParticles:
         return _core.StepStats(time=self.time, dt=dt, seconds=_time.perf_counter() - start)
 
     def advance(self, duration, dt, *, callback=None):
-        """Steps of dt up to `duration` [s], the last one shortened to land on it."""
+        """Steps of dt up to `duration` [s], the last landing on it (a remainder under dt/10 is
+        absorbed by stretching the last step, the rule of every method)."""
         return _stepping.advance(self, duration, dt, callback)
 
     def state(self) -> dict:
@@ -267,7 +268,8 @@ class VortexParticles3D:
         return _core.StepStats(time=self.time, dt=dt, seconds=_time.perf_counter() - start)
 
     def advance(self, duration, dt, *, callback=None):
-        """Steps of dt up to `duration` [s], the last one shortened to land on it."""
+        """Steps of dt up to `duration` [s], the last landing on it (a remainder under dt/10 is
+        absorbed by stretching the last step, the rule of every method)."""
         return _stepping.advance(self, duration, dt, callback)
 
     def linear_impulse(self) -> np.ndarray:
