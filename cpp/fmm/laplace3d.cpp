@@ -1,7 +1,9 @@
 // The FMM passes over the adaptive octree: upward (P2M, M2M), downward (M2L from the V list
 // as dense matrix products batched by offset, P2L from the X list, L2L), then per leaf L2P +
-// M2P (W list) + P2P (U list). Every output is written by one loop iteration, and each
-// expansion receives its terms in a fixed order, so results are bitwise identical run to run
+// M2P (W list) + P2P (U list); when the targets are the sources, the U-list P2P instead runs
+// once per pair of adjacent leaves for both ends, in groups of leaves whose tasks write
+// disjoint leaves. Every output is written by one task at a time, and each expansion and
+// target receives its terms in a fixed order, so results are bitwise identical run to run
 // and for any thread count.
 #include "fmm/laplace3d.h"
 
