@@ -13,7 +13,7 @@
 
 #include "core/parallel.h"
 #include "core/simd.h"
-#include "grid/multigrid.h"
+#include "poisson/multigrid.h"
 
 #if KINEMA_HAVE_AVX2_CLONES
 #include <immintrin.h>

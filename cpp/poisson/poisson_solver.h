@@ -10,16 +10,14 @@
 #include <vector>
 
 #include "core/interrupt.h"
-#include "grid/multigrid.h"
-#include "grid/poisson_operator.h"
+#include "poisson/multigrid.h"
+#include "poisson/poisson_operator.h"
 #include "linalg/cg.h"
 #include "linalg/solve_info.h"
 
 namespace kinema {
 
 enum class PoissonMethod { Jacobi, GaussSeidel, CG, Multigrid, MGPCG };
-
-PoissonMethod parse_poisson_method(const std::string& name);
 
 struct PoissonConfig {
   PoissonMethod method = PoissonMethod::MGPCG;

@@ -8,9 +8,9 @@
 // Same schemes and equations as kernels.h (Stam 1999; Selle et al. 2008; Kim et al. 2005).
 #pragma once
 
-#include "fluid/kernels.h"
+#include "grid/kernels.h"
 
-namespace kinema::fluid {
+namespace kinema::grid {
 
 // Whether the row passes handle this problem: no no-slip wall enters the interpolation, every
 // active axis has at least 2 cells, and every field has fewer than 2^31 nodes (the rows index
@@ -22,4 +22,4 @@ void advect_rows(AdvectionScheme scheme, const MacVelocity& u, const FieldLayout
                  const Scalar* const* q, Scalar* const* out, Scalar dt, int rk_order,
                  AdvectionScratch& scratch, bool avx2);
 
-}  // namespace kinema::fluid
+}  // namespace kinema::grid

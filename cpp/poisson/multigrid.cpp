@@ -1,4 +1,4 @@
-#include "grid/multigrid.h"
+#include "poisson/multigrid.h"
 
 #include <Eigen/SparseCholesky>
 #include <algorithm>

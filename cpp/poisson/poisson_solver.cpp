@@ -1,4 +1,4 @@
-#include "grid/poisson_solver.h"
+#include "poisson/poisson_solver.h"
 
 #include <cmath>
 
@@ -8,20 +8,14 @@
 
 namespace kinema {
 
-PoissonMethod parse_poisson_method(const std::string& name) {
-  if (name == "jacobi") return PoissonMethod::Jacobi;
-  if (name == "gauss_seidel") return PoissonMethod::GaussSeidel;
-  if (name == "cg") return PoissonMethod::CG;
-  if (name == "multigrid") return PoissonMethod::Multigrid;
-  if (name == "mgpcg") return PoissonMethod::MGPCG;
-  throw InvalidArgument("method: expected one of jacobi, gauss_seidel, cg, multigrid, mgpcg; got '" +
-                        name + "'");
-}
-
 PoissonSolver::PoissonSolver(const GridShape& shape, Scalar h, Boundary bc,
                              const std::uint8_t* solid, Scalar shift, const PoissonConfig& config,
                              int dirichlet_walls)
     : op_(std::make_unique<PoissonOperator>(shape, h, bc, solid, shift, dirichlet_walls)), config_(config) {
+  const MultigridOptions& mg = config_.multigrid;
+  if (mg.pre_smooth < 0 || mg.post_smooth < 0 || mg.pre_smooth + mg.post_smooth < 1)
+    throw InvalidArgument("pre_smooth, post_smooth: expected counts >= 0 with a positive sum, got " +
+                          std::to_string(mg.pre_smooth) + " and " + std::to_string(mg.post_smooth));
   if (bc == Boundary::Periodic && config_.method != PoissonMethod::Jacobi && config_.method != PoissonMethod::CG)
     for (int a = 0; a < 3; ++a)
       if (shape.active(a) && shape.n[a] % 2 != 0)

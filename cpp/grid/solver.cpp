@@ -1,4 +1,4 @@
-#include "fluid/fluid.h"
+#include "grid/solver.h"
 
 #include <algorithm>
 #include <cmath>
@@ -11,10 +11,10 @@
 #include "core/rollback.h"
 #include "core/simd.h"
 #include "core/timer.h"
-#include "fluid/advect_rows.h"
+#include "grid/advect_rows.h"
 #include "linalg/cg.h"
 
-namespace kinema::fluid {
+namespace kinema::grid {
 
 namespace {
 
@@ -72,35 +72,63 @@ class SerialBelow {
 
 }  // namespace
 
-FluidSolver::FluidSolver(const GridShape& shape, Scalar h, const FluidConfig& config)
-    : config_(config) {
+Model make_model(const GridShape& shape, Scalar h) {
   if (!(h > 0) || !std::isfinite(h)) throw InvalidArgument("h: expected a finite cell size > 0");
-  if (config.rk_order < 1 || config.rk_order > 3)
-    throw InvalidArgument("rk_order: expected 1, 2 or 3, got " + std::to_string(config.rk_order));
-  if (!(config.tol > 0)) throw InvalidArgument("tol: expected a tolerance > 0");
-  if (!(config.viscosity >= 0)) throw InvalidArgument("viscosity: expected a value >= 0");
-  for (int w = 0; w < 6; ++w) {
-    if (!config.open[w]) continue;
-    if (config.periodic) throw InvalidArgument("open: a periodic domain has no open sides (boundary='periodic')");
-    if (!shape.active(w / 2)) throw InvalidArgument("open: a 2D domain has no z sides");
+  Model model;
+  model.shape = shape;
+  model.h = h;
+  model.solid.assign(shape.size(), 0);
+  return model;
+}
+
+void Solver::check_config() const {
+  const Config& c = config_;
+  if (c.rk_order < 1 || c.rk_order > 3)
+    throw InvalidArgument("rk_order: expected 1, 2 or 3, got " + std::to_string(c.rk_order));
+  if (!(c.tol > 0 && c.tol < 1))
+    throw InvalidArgument("tol: expected a relative tolerance in (0, 1), got " + format_real(c.tol));
+  if (c.max_iter < 0) throw InvalidArgument("max_iter: expected a count >= 0 (0: the default)");
+  if (!(c.viscosity >= 0 && std::isfinite(c.viscosity)))
+    throw InvalidArgument("viscosity: expected a finite value >= 0, got " + format_real(c.viscosity));
+  if (!(c.vorticity_confinement >= 0 && std::isfinite(c.vorticity_confinement)))
+    throw InvalidArgument("vorticity_confinement: expected a finite value >= 0, got " +
+                          format_real(c.vorticity_confinement));
+  if (!std::isfinite(c.alpha) || !std::isfinite(c.beta))
+    throw InvalidArgument("buoyancy: expected finite (alpha, beta)");
+  for (int a = 0; a < 3; ++a) {
+    if (!std::isfinite(c.gravity[a])) throw InvalidArgument("gravity: expected finite components");
+    if (!std::isfinite(c.up[a])) throw InvalidArgument("up: expected finite components");
   }
-  model_.shape = shape;
-  model_.h = h;
-  model_.solid.assign(shape.size(), 0);
+  for (int w = 0; w < 6; ++w) {
+    if (!c.open[w]) continue;
+    if (c.periodic) throw InvalidArgument("open: a periodic domain has no open sides (boundary='periodic')");
+    if (!model_.shape.active(w / 2)) throw InvalidArgument("open: a 2D domain has no z sides");
+  }
+  if (static_cast<Index>(model_.solid.size()) != model_.shape.size())
+    throw InvalidArgument("solid: expected one entry per cell (" + std::to_string(model_.shape.size()) +
+                          "), got " + std::to_string(model_.solid.size()));
+}
+
+Solver::Solver(const Model& model, const Config& config) : model_(model), config_(config) {
+  check_config();
+  const GridShape& shape = model_.shape;
+  // Buoyancy acts against gravity, or along +y without it.
+  if (config_.up == Vec3{0, 0, 0}) {
+    const Vec3& g = config_.gravity;
+    const Scalar norm = std::sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2]);
+    if (norm > 0) config_.up = Vec3{-g[0] / norm, -g[1] / norm, -g[2] / norm};
+    else config_.up[3 - shape.dim + 1] = 1;
+  }
   cells_ = cell_layout(shape, config.periodic);
   for (int a = 0; a < 3; ++a) {
     active_[a] = shape.active(a);
     faces_[a] = face_layout(shape, a, config.periodic);
     if (!active_[a]) continue;
-    state_.velocity[a].assign(faces_[a].size(), 0);
     velocity_new_[a].assign(faces_[a].size(), 0);
     fixed_[a].assign(faces_[a].size(), 0);
   }
-  state_.pressure.assign(shape.size(), 0);
   rhs_.assign(shape.size(), 0);
   residual_.assign(shape.size(), 0);
-  if (config.density) state_.density.assign(shape.size(), 0);
-  if (config.temperature) state_.temperature.assign(shape.size(), 0);
   const int scalars = int(config.density) + int(config.temperature);
   for (int f = 0; f < scalars; ++f) scalar_new_[f].assign(shape.size(), 0);
   Index largest_face = 0;
@@ -123,20 +151,33 @@ FluidSolver::FluidSolver(const GridShape& shape, Scalar h, const FluidConfig& co
     }
     vorticity_norm_.assign(shape.size(), 0);
   }
-  if (config.no_slip && !config.periodic) walls_.no_slip.fill(true);
-  // Open sides extend the nearest value, as free-slip walls do (zero normal gradient).
-  for (int w = 0; w < 6; ++w)
-    if (config.open[w]) walls_.no_slip[w] = false;
+  for (int w = 0; w < 6; ++w) {
+    // Open sides extend the nearest value, as free-slip walls do (zero normal gradient).
+    walls_.no_slip[w] = !config.open[w] && !config.periodic && (config.no_slip || model_.wall_moving[w]);
+    walls_.velocity[w] = model_.wall_velocity[w];
+  }
   check_kernel();
-  refresh_solids();
+  build_solids();
 }
 
-void FluidSolver::check_kernel() const {
+State Solver::make_state() const {
+  State state;
+  const Index n = model_.shape.size();
+  for (int a = 0; a < 3; ++a)
+    if (active_[a]) state.velocity[a].assign(faces_[a].size(), 0);
+  state.pressure.assign(n, 0);
+  if (config_.density) state.density.assign(n, 0);
+  if (config_.temperature) state.temperature.assign(n, 0);
+  return state;
+}
+
+void Solver::check_kernel() const {
   const AdvectionKernel k = config_.advection_kernel;
   if (k == AdvectionKernel::Auto || k == AdvectionKernel::Nodes) return;
   if (k == AdvectionKernel::RowsAvx2 && !cpu_has_avx2())
     throw InvalidArgument("advection_kernel: 'rows_avx2' needs a CPU with AVX2");
-  const MacVelocity u = mac_velocity();
+  // The row kernels' conditions depend on the layouts and walls only, not on the values.
+  const MacVelocity u = mac_velocity(velocity_new_);
   bool apply = rows_apply(u, cells_);
   for (int a = 0; a < 3; ++a) apply = apply && (!active_[a] || rows_apply(u, faces_[a]));
   if (!apply)
@@ -144,7 +185,7 @@ void FluidSolver::check_kernel() const {
                           "moving walls; use 'auto' or 'nodes'");
 }
 
-Index FluidSolver::neighbour(const FieldLayout& L, const std::array<Index, 3>& idx, int axis,
+Index Solver::neighbour(const FieldLayout& L, const std::array<Index, 3>& idx, int axis,
                              int step) {
   Index m = idx[axis] + step;
   if (L.period[axis] > 0) {
@@ -158,9 +199,15 @@ Index FluidSolver::neighbour(const FieldLayout& L, const std::array<Index, 3>& i
   return L.index(j[0], j[1], j[2]);
 }
 
-void FluidSolver::refresh_solids() {
-  if (built_ && model_.solid == solid_used_) return;
-  built_ = true;
+void Solver::refresh_solids(State& state) {
+  if (model_.solid == solid_used_) return;
+  build_solids();
+  for (Index c = 0; c < model_.shape.size(); ++c)
+    if (!fluid_cell(c)) state.pressure[c] = 0;
+  enforce_boundary(state);
+}
+
+void Solver::build_solids() {
   solid_used_ = model_.solid;
   has_solid_ = std::any_of(solid_used_.begin(), solid_used_.end(), [](std::uint8_t s) { return s != 0; });
   const GridShape& s = model_.shape;
@@ -209,14 +256,12 @@ void FluidSolver::refresh_solids() {
   pressure_solver_ = std::make_unique<PoissonSolver>(
       s, model_.h, config_.periodic ? Boundary::Periodic : Boundary::Neumann,
       has_solid_ ? solid_used_.data() : nullptr, 0, pc, open_walls);
-  for (Index c = 0; c < s.size(); ++c)
-    if (!fluid_cell(c)) state_.pressure[c] = 0;
-  enforce_boundary();
 }
 
-void FluidSolver::set_wall_velocity(int wall, const Vec3& velocity) {
+void Solver::set_wall_velocity(int wall, const Vec3& velocity) {
   if (config_.periodic)
     throw InvalidArgument("side: a periodic domain has no walls (boundary='periodic')");
+  if (wall < 0 || wall >= 6) throw InvalidArgument("side: expected a wall 0-5, got " + std::to_string(wall));
   const int axis = wall / 2;
   if (!active_[axis]) throw InvalidArgument("side: no such wall in a 2D domain");
   if (config_.open[wall]) throw InvalidArgument("side: an open side is not a wall and cannot move");
@@ -235,17 +280,20 @@ void FluidSolver::set_wall_velocity(int wall, const Vec3& velocity) {
   walls_.velocity[wall] = velocity;
 }
 
-Index FluidSolver::add_source(const std::uint8_t* mask, bool set_density, Scalar density, bool set_temperature,
-                              Scalar temperature, bool set_velocity, const Vec3& velocity) {
-  if (set_density && state_.density.empty())
+Index Solver::add_source(const std::uint8_t* mask, bool set_density, Scalar density, bool set_temperature,
+                         Scalar temperature, bool set_velocity, const Vec3& velocity) {
+  if (set_density && !config_.density)
     throw InvalidArgument("density: the fluid carries no density field (create it with density=True)");
-  if (set_temperature && state_.temperature.empty())
+  if (set_temperature && !config_.temperature)
     throw InvalidArgument("temperature: the fluid carries no temperature field (create it with temperature=True)");
-  if (!std::isfinite(density) || !std::isfinite(temperature))
-    throw InvalidArgument("source: expected finite density and temperature");
+  if (!set_density && !set_temperature && !set_velocity)
+    throw InvalidArgument("add_source: give at least one of density, temperature, velocity");
+  if (!std::isfinite(density)) throw InvalidArgument("density: expected a finite value, got " + format_real(density));
+  if (!std::isfinite(temperature))
+    throw InvalidArgument("temperature: expected a finite value, got " + format_real(temperature));
   for (int a = 0; a < 3; ++a)
     if (!std::isfinite(velocity[a])) throw InvalidArgument("velocity: expected finite values");
-  FluidModel::Source src;
+  Model::Source src;
   src.set_density = set_density;
   src.set_temperature = set_temperature;
   src.density = density;
@@ -278,17 +326,17 @@ Index FluidSolver::add_source(const std::uint8_t* mask, bool set_density, Scalar
   return static_cast<Index>(model_.sources.size()) - 1;
 }
 
-void FluidSolver::apply_sources() {
-  for (const FluidModel::Source& src : model_.sources) {
+void Solver::apply_sources(State& state) const {
+  for (const Model::Source& src : model_.sources) {
     for (Index c : src.cells) {
       if (!fluid_cell(c)) continue;
-      if (src.set_density) state_.density[c] = src.density;
-      if (src.set_temperature) state_.temperature[c] = src.temperature;
+      if (src.set_density) state.density[c] = src.density;
+      if (src.set_temperature) state.temperature[c] = src.temperature;
     }
     if (!src.set_velocity) continue;
     for (int a = 0; a < 3; ++a) {
       if (!active_[a]) continue;
-      Scalar* u = state_.velocity[a].data();
+      Scalar* u = state.velocity[a].data();
       for (Index f : src.faces[a])
         if (fixed_[a][f] != 1) u[f] = src.velocity[a];
     }
@@ -297,91 +345,105 @@ void FluidSolver::apply_sources() {
 
 // ------------------------------------------------------------------------------------ step
 
-StepInfo FluidSolver::step(Scalar dt, Interrupt& interrupt) {
-  if (!(dt > 0) || !std::isfinite(dt)) throw InvalidArgument("dt: expected a finite time step > 0");
-  return with_rollback(state_, [&] { return step_phases(dt, interrupt); });
+void Solver::check_state(const State& state) const {
+  bool fits = state.pressure.size() == static_cast<size_t>(cells_.size()) &&
+              state.density.size() == (config_.density ? state.pressure.size() : 0) &&
+              state.temperature.size() == (config_.temperature ? state.pressure.size() : 0);
+  for (int a = 0; a < 3; ++a)
+    fits = fits && state.velocity[a].size() == static_cast<size_t>(active_[a] ? faces_[a].size() : 0);
+  if (!fits)
+    throw InvalidArgument("state: its arrays do not fit this grid and configuration (make it with make_state)");
 }
 
-StepInfo FluidSolver::step_phases(Scalar dt, Interrupt& interrupt) {
+StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
+  if (!(dt > 0) || !std::isfinite(dt)) throw InvalidArgument("dt: expected a finite time step > 0, got " + format_real(dt));
+  check_state(state);
+  return with_rollback(state, [&] { return step_phases(state, dt, interrupt); });
+}
+
+StepStats Solver::step_phases(State& state, Scalar dt, Interrupt& interrupt) {
   SerialBelow serial(cells_.size());
   Stopwatch total, clock;
-  StepInfo info;
-  info.dt = dt;
-  info.cfl = max_speed() * dt / model_.h;
-  if (!std::isfinite(info.cfl)) check(dt, state_.steps + 1);  // the caller wrote a NaN or Inf
-  refresh_solids();
-  apply_sources();
-  enforce_boundary();
+  StepStats stats;
+  stats.dt = dt;
+  stats.cfl = max_speed(state) * dt / model_.h;
+  if (!std::isfinite(stats.cfl)) check(state, dt, state.steps + 1);  // the caller wrote a NaN or Inf
+  refresh_solids(state);
+  apply_sources(state);
+  enforce_boundary(state);
 
   // 1. Advection of velocity and scalars (kernels.h; Stam 1999, Selle et al. 2008).
-  advect(dt);
-  info.advect = clock.seconds();
+  advect(state, dt);
+  stats.advect_seconds = clock.seconds();
   clock.restart();
   // 2. Body forces: gravity, buoyancy, vorticity confinement (Fedkiw et al. 2001, Sec. 3-4).
-  add_forces(dt);
-  info.forces = clock.seconds();
+  add_forces(state, dt);
+  stats.forces_seconds = clock.seconds();
   clock.restart();
   interrupt.check();
   // 3. Viscosity, backward Euler: (I - nu dt lap) u^{n+1} = u* (Stam 1999, Sec. 3).
-  info.viscosity_iterations = diffuse(dt, interrupt);
-  info.viscosity = clock.seconds();
+  stats.viscosity_iterations = diffuse(state, dt, interrupt);
+  stats.viscosity_seconds = clock.seconds();
   clock.restart();
   // 4. Projection: -lap p = -div(u*)/dt, u = u* - dt grad p (Chorin 1968; Bridson Ch. 5).
-  info.pressure = project(dt, interrupt);
-  info.projection = clock.seconds();
+  stats.pressure = project(state, dt, interrupt);
+  stats.projection_seconds = clock.seconds();
   // 5. Blow-up detection.
-  state_.time += dt;
-  ++state_.steps;
-  check(dt, state_.steps);
-  info.total = total.seconds();
-  return info;
+  state.time += dt;
+  ++state.steps;
+  check(state, dt, state.steps);
+  stats.time = state.time;
+  stats.seconds = total.seconds();
+  return stats;
 }
 
-Index FluidSolver::advance(Scalar duration, Scalar cfl, Interrupt& interrupt, StepInfo* last) {
-  if (!(duration >= 0) || !std::isfinite(duration))
-    throw InvalidArgument("duration: expected a finite time >= 0");
-  if (!(cfl > 0) || !std::isfinite(cfl)) throw InvalidArgument("cfl: expected a finite number > 0");
-  Scalar g = std::sqrt(config_.gravity[0] * config_.gravity[0] + config_.gravity[1] * config_.gravity[1] +
-                       config_.gravity[2] * config_.gravity[2]);
-  Scalar remaining = duration;
-  Index steps = 0;
-  while (remaining > 1e-12 * duration) {
-    interrupt.check();
-    // moving walls and gravity accelerate a fluid at rest: count them in the speed
-    Scalar speed = max_speed();
-    if (!std::isfinite(speed)) check(0, state_.steps + 1);
-    for (const Vec3& w : model_.wall_velocity)
-      speed = std::max(speed, std::sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2]));
-    for (const FluidModel::Source& src : model_.sources)  // imposed before the step
-      if (src.set_velocity)
-        for (Scalar c : src.velocity) speed = std::max(speed, std::fabs(c));
-    speed += std::sqrt(5 * model_.h * g);
-    Scalar dt = speed > 0 ? cfl * model_.h / speed : remaining;
-    // avoid a sliver of a last step: split what is left in two
-    if (dt >= remaining) dt = remaining;
-    else if (dt > 0.5 * remaining) dt = 0.5 * remaining;
-    StepInfo info = step(dt, interrupt);
-    if (last) *last = info;
-    remaining -= dt;
-    ++steps;
-  }
-  return steps;
+Scalar Solver::stable_dt(const State& state, Scalar cfl, Scalar max_dt) const {
+  if (!(cfl > 0) || !std::isfinite(cfl)) throw InvalidArgument("cfl: expected a finite number > 0, got " + format_real(cfl));
+  if (!(max_dt > 0)) throw InvalidArgument("max_dt: expected a step > 0 [s], got " + format_real(max_dt));
+  check_state(state);
+  Scalar speed = max_speed(state);
+  if (!std::isfinite(speed)) check(state, 0, state.steps + 1);
+  for (const Vec3& w : model_.wall_velocity)
+    speed = std::max(speed, std::sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2]));
+  for (const Model::Source& src : model_.sources)  // imposed before the step
+    if (src.set_velocity)
+      for (Scalar c : src.velocity) speed = std::max(speed, std::fabs(c));
+  const Vec3& g = config_.gravity;
+  speed += std::sqrt(5 * model_.h * std::sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2]));
+  return speed > 0 ? std::min(max_dt, cfl * model_.h / speed) : max_dt;
+}
+
+AdvanceResult Solver::advance(State& state, Scalar duration, Scalar cfl, Scalar max_dt, Interrupt& interrupt,
+                              StepStats* last) {
+  stable_dt(state, cfl, max_dt);  // the argument checks, before any step
+  const Scalar end = state.time + duration;
+  return advance_to(
+      state, duration,
+      [&](const State& s) {
+        const Scalar dt = stable_dt(s, cfl, max_dt);
+        return std::isinf(dt) ? end - s.time : dt;  // nothing moves: one step to the end
+      },
+      [&](State& s, Scalar dt) { return step(s, dt, interrupt); },
+      [&](const StepStats& stats) {
+        if (last) *last = stats;
+      },
+      interrupt);
 }
 
 // ------------------------------------------------------------------------------ advection
 
-MacVelocity FluidSolver::mac_velocity() const {
+MacVelocity Solver::mac_velocity(const std::array<std::vector<Scalar>, 3>& velocity) const {
   MacVelocity u;
   for (int a = 0; a < 3; ++a) {
     u.layout[a] = faces_[a];
-    if (active_[a]) u.comp[a] = state_.velocity[a].data();
+    if (active_[a]) u.comp[a] = velocity[a].data();
   }
   if (walls_.no_slip != std::array<bool, 6>{}) u.walls = &walls_;
   return u;
 }
 
-void FluidSolver::advect(Scalar dt) {
-  const MacVelocity u = mac_velocity();
+void Solver::advect(State& state, Scalar dt) {
+  const MacVelocity u = mac_velocity(state.velocity);
   const Scalar dt_grid = dt / model_.h;
   const int rk = config_.rk_order;
   // The scalars share their departure points: one call advects both.
@@ -389,13 +451,13 @@ void FluidSolver::advect(Scalar dt) {
   const Scalar* q[2];
   Scalar* out[2];
   int count = 0;
-  for (std::vector<Scalar>* s : {&state_.density, &state_.temperature}) {
+  for (std::vector<Scalar>* s : {&state.density, &state.temperature}) {
     if (s->empty()) continue;
     q[count] = fields[count] = s->data();
     out[count] = scalar_new_[count].data();
     ++count;
   }
-  fluid::advect_fields(config_.advection, u, cells_, count, q, out, dt_grid, rk, advection_scratch_, -1,
+  grid::advect_fields(config_.advection, u, cells_, count, q, out, dt_grid, rk, advection_scratch_, -1,
                        config_.advection_kernel);
   const std::vector<std::uint8_t>& solid = model_.solid;
   for (int f = 0; f < count; ++f) {
@@ -403,35 +465,35 @@ void FluidSolver::advect(Scalar dt) {
     const Scalar* src = out[f];
     parallel_for(cells_.size(), [&](Index c) { dst[c] = has_solid_ && solid[c] ? 0 : src[c]; });
   }
-  if (count > 0 && any_open()) inflow_ambient(fields, count);
+  if (count > 0 && any_open()) inflow_ambient(state, fields, count);
   // Velocity last: every component is traced through the old field.
   for (int a = 0; a < 3; ++a) {
     if (!active_[a]) continue;
-    const Scalar* qa = state_.velocity[a].data();
+    const Scalar* qa = state.velocity[a].data();
     Scalar* oa = velocity_new_[a].data();
-    fluid::advect_fields(config_.advection, u, faces_[a], 1, &qa, &oa, dt_grid, rk, advection_scratch_, a,
+    grid::advect_fields(config_.advection, u, faces_[a], 1, &qa, &oa, dt_grid, rk, advection_scratch_, a,
                          config_.advection_kernel);
   }
   for (int a = 0; a < 3; ++a) {
     if (!active_[a]) continue;
-    Scalar* dst = state_.velocity[a].data();
+    Scalar* dst = state.velocity[a].data();
     const Scalar* src = velocity_new_[a].data();
     parallel_for(faces_[a].size(), [&](Index f) { dst[f] = src[f]; });
   }
-  enforce_boundary();
+  enforce_boundary(state);
 }
 
 // Where fluid enters through an open side it brings ambient air: the scalars of the cells whose
 // open face has an inward velocity become 0 (Dirichlet at inflow; outflow keeps the
 // zero-gradient extension of the clamped back-trace).
-void FluidSolver::inflow_ambient(Scalar* const* fields, int count) {
+void Solver::inflow_ambient(const State& state, Scalar* const* fields, int count) const {
   const GridShape& s = model_.shape;
   for (int w = 0; w < 6; ++w) {
     if (!config_.open[w]) continue;
     const int a = w / 2, side = w % 2;
     const Index layer = side ? s.n[a] - 1 : 0, face_layer = side ? s.n[a] : 0;
     const FieldLayout& F = faces_[a];
-    const Scalar* u = state_.velocity[a].data();
+    const Scalar* u = state.velocity[a].data();
     const int b = (a + 1) % 3, c = (a + 2) % 3;
     for (Index ib = 0; ib < s.n[b]; ++ib)
       for (Index ic = 0; ic < s.n[c]; ++ic) {
@@ -450,9 +512,9 @@ void FluidSolver::inflow_ambient(Scalar* const* fields, int count) {
 
 // --------------------------------------------------------------------------------- forces
 
-void FluidSolver::add_cell_force(int axis, const Scalar* f, Scalar dt, Scalar du) {
+void Solver::add_cell_force(State& state, int axis, const Scalar* f, Scalar dt, Scalar du) const {
   const FieldLayout& L = faces_[axis];
-  Scalar* u = state_.velocity[axis].data();
+  Scalar* u = state.velocity[axis].data();
   const std::vector<std::uint8_t>& fixed = fixed_[axis];
   const Index n_axis = model_.shape.n[axis];
   const Index stride = cells_.stride(axis);
@@ -473,18 +535,18 @@ void FluidSolver::add_cell_force(int axis, const Scalar* f, Scalar dt, Scalar du
   });
 }
 
-void FluidSolver::add_forces(Scalar dt) {
+void Solver::add_forces(State& state, Scalar dt) {
   // One pass per component: the cell-centred forces (buoyancy and vorticity confinement, summed
   // per cell into force_) averaged to the faces, plus gravity, uniform on every free face.
-  const bool rho = !state_.density.empty() && config_.alpha != 0;
-  const bool temp = !state_.temperature.empty() && config_.beta != 0;
+  const bool rho = !state.density.empty() && config_.alpha != 0;
+  const bool temp = !state.temperature.empty() && config_.beta != 0;
   const bool buoyant = rho || temp;
   const bool confined = config_.vorticity_confinement > 0;
   if (confined) {
-    confinement_force(buoyant);
+    confinement_force(state, buoyant);
   } else if (buoyant) {
-    const Scalar* density = state_.density.data();
-    const Scalar* temperature = state_.temperature.data();
+    const Scalar* density = state.density.data();
+    const Scalar* temperature = state.temperature.data();
     const Scalar alpha = config_.alpha, beta = config_.beta;
     for (int a = 0; a < 3; ++a) {
       if (!active_[a] || config_.up[a] == 0) continue;
@@ -499,9 +561,9 @@ void FluidSolver::add_forces(Scalar dt) {
     if (!active_[a]) continue;
     const Scalar du = dt * config_.gravity[a];
     if (confined || (buoyant && config_.up[a] != 0)) {
-      add_cell_force(a, force_[a].data(), dt, du);
+      add_cell_force(state, a, force_[a].data(), dt, du);
     } else if (du != 0) {
-      Scalar* u = state_.velocity[a].data();
+      Scalar* u = state.velocity[a].data();
       const std::uint8_t* fixed = fixed_[a].data();
       parallel_for(faces_[a].size(), [&](Index f) {
         if (!fixed[f]) u[f] += du;
@@ -510,17 +572,17 @@ void FluidSolver::add_forces(Scalar dt) {
   }
   // Prescribed and duplicate faces were skipped above; a periodic duplicate must follow its face
   // 0, or the seam carries a spurious divergence that the projection cannot remove.
-  if (config_.periodic) enforce_boundary();
+  if (config_.periodic) enforce_boundary(state);
 }
 
-void FluidSolver::confinement_force(bool buoyant) {
+void Solver::confinement_force(const State& state, bool buoyant) {
   const GridShape& s = model_.shape;
   const FieldLayout& C = cells_;
   const Scalar h = model_.h;
   // Cell-centred velocity.
   for (int a = 0; a < 3; ++a) {
     if (!active_[a]) continue;
-    const Scalar* u = state_.velocity[a].data();
+    const Scalar* u = state.velocity[a].data();
     const Index fs = faces_[a].stride(a);
     Scalar* cu = cell_velocity_[a].data();
     const FieldLayout& F = faces_[a];
@@ -615,10 +677,10 @@ void FluidSolver::confinement_force(bool buoyant) {
   // f = eps h (N x omega), N = grad|omega| / |grad|omega||, plus buoyancy (-alpha rho + beta T) up.
   const Scalar eps = config_.vorticity_confinement;
   const Scalar* wn = vorticity_norm_.data();
-  const bool rho = buoyant && !state_.density.empty() && config_.alpha != 0;
-  const bool temp = buoyant && !state_.temperature.empty() && config_.beta != 0;
-  const Scalar* density = state_.density.data();
-  const Scalar* temperature = state_.temperature.data();
+  const bool rho = buoyant && !state.density.empty() && config_.alpha != 0;
+  const bool temp = buoyant && !state.temperature.empty() && config_.beta != 0;
+  const Scalar* density = state.density.data();
+  const Scalar* temperature = state.temperature.data();
   const Scalar alpha = config_.alpha, beta = config_.beta;
   const Vec3 up = config_.up;
   for_each_row(C, 3, [&](Index i, Index j, Index c0, Scalar* grad) {
@@ -647,7 +709,7 @@ void FluidSolver::confinement_force(bool buoyant) {
 // y = (I + c L) x on the free faces of component `axis`, L = -h^2 lap with the wall ghosts of
 // Bridson Sec. 10.1 (no slip: ghost = 2 U_wall - u; free slip: ghost = u); prescribed faces
 // are identity rows. The operator is symmetric positive definite for any c >= 0.
-void FluidSolver::apply_viscosity_operator(int axis, Scalar c, const Scalar* x, Scalar* y) const {
+void Solver::apply_viscosity_operator(int axis, Scalar c, const Scalar* x, Scalar* y) const {
   const FieldLayout& L = faces_[axis];
   const std::vector<std::uint8_t>& fixed = fixed_[axis];
   for_each_node(L, [&](Index i, Index j, Index k, Index f) {
@@ -673,7 +735,7 @@ void FluidSolver::apply_viscosity_operator(int axis, Scalar c, const Scalar* x, 
   });
 }
 
-Index FluidSolver::diffuse(Scalar dt, Interrupt& interrupt) {
+Index Solver::diffuse(State& state, Scalar dt, Interrupt& interrupt) {
   if (config_.viscosity == 0) return 0;
   const Scalar c = config_.viscosity * dt / (model_.h * model_.h);
   Index iterations = 0;
@@ -681,7 +743,7 @@ Index FluidSolver::diffuse(Scalar dt, Interrupt& interrupt) {
     if (!active_[a]) continue;
     const FieldLayout& L = faces_[a];
     const std::vector<std::uint8_t>& fixed = fixed_[a];
-    Scalar* u = state_.velocity[a].data();
+    Scalar* u = state.velocity[a].data();
     Scalar* b = rhs_face_.data();
     // Right-hand side: u* plus the known neighbours (prescribed faces, moving walls).
     for_each_node(L, [&](Index i, Index j, Index k, Index f) {
@@ -710,17 +772,17 @@ Index FluidSolver::diffuse(Scalar dt, Interrupt& interrupt) {
     if (!info.converged)
       throw ConvergenceError("viscosity: CG did not reach tol for component " +
                              component_name(model_.shape.dim, a) + " at step " +
-                             std::to_string(state_.steps + 1));
+                             std::to_string(state.steps + 1));
     iterations += info.iterations;
     std::memcpy(u, x, sizeof(Scalar) * L.size());
   }
-  enforce_boundary();
+  enforce_boundary(state);
   return iterations;
 }
 
 // ----------------------------------------------------------------------------- projection
 
-void FluidSolver::divergence(Scalar* out, Scalar scale) const {
+void Solver::divergence(const State& state, Scalar* out, Scalar scale) const {
   const Scalar inv_h = 1 / model_.h;
   for_each_node(cells_, [&](Index i, Index j, Index k, Index c) {
     if (!fluid_cell(c)) {
@@ -732,17 +794,17 @@ void FluidSolver::divergence(Scalar* out, Scalar scale) const {
       if (!active_[a]) continue;
       const FieldLayout& F = faces_[a];
       const Index f = F.index(i, j, k);
-      d += state_.velocity[a][f + F.stride(a)] - state_.velocity[a][f];
+      d += state.velocity[a][f + F.stride(a)] - state.velocity[a][f];
     }
     out[c] = d * inv_h * scale;
   });
 }
 
-SolveInfo FluidSolver::project(Scalar dt, Interrupt& interrupt) {
+SolveInfo Solver::project(State& state, Scalar dt, Interrupt& interrupt) {
   const Index n = cells_.size();
   Scalar* b = rhs_.data();
-  divergence(b, -1 / dt);
-  Scalar* p = state_.pressure.data();
+  divergence(state, b, -1 / dt);
+  Scalar* p = state.pressure.data();
   IterativeOptions options{config_.tol, config_.max_iter};
   SolveInfo info;
   // Warm start from the last pressure only when it beats zero: when the flow nearly stops,
@@ -756,24 +818,24 @@ SolveInfo FluidSolver::project(Scalar dt, Interrupt& interrupt) {
   try {
     info = pressure_solver_->solve(b, p, options, interrupt);
   } catch (const DivergenceError& e) {
-    throw DivergenceError(std::string("pressure: ") + e.what() + " at step " + std::to_string(state_.steps + 1));
+    throw DivergenceError(std::string("pressure: ") + e.what() + " at step " + std::to_string(state.steps + 1));
   } catch (const InvalidArgument& e) {
     // CG broke down on rounding (p^T A p <= 0 on a semi-definite operator)
-    throw ConvergenceError(std::string("pressure: ") + e.what() + " at step " + std::to_string(state_.steps + 1) +
+    throw ConvergenceError(std::string("pressure: ") + e.what() + " at step " + std::to_string(state.steps + 1) +
                            "; hint: a larger tol");
   }
   if (!info.converged)
     throw ConvergenceError("pressure: the projection did not reach tol=" + std::to_string(config_.tol) +
                            " (relative residual " + std::to_string(info.residual) + " after " +
                            std::to_string(info.iterations) + " iterations) at step " +
-                           std::to_string(state_.steps + 1));
+                           std::to_string(state.steps + 1));
   // u -= dt grad p on every free face.
   const Scalar scale = dt / model_.h;
   const bool periodic = config_.periodic;
   for (int a = 0; a < 3; ++a) {
     if (!active_[a]) continue;
     const FieldLayout& F = faces_[a];
-    Scalar* u = state_.velocity[a].data();
+    Scalar* u = state.velocity[a].data();
     const std::vector<std::uint8_t>& fixed = fixed_[a];
     const Index n_axis = model_.shape.n[a], stride = cells_.stride(a);
     for_each_node(F, [&](Index i, Index j, Index k, Index f) {
@@ -792,16 +854,16 @@ SolveInfo FluidSolver::project(Scalar dt, Interrupt& interrupt) {
       u[f] -= scale * (p[hi] - p[lo]);
     });
   }
-  enforce_boundary();
+  enforce_boundary(state);
   return info;
 }
 
 // ------------------------------------------------------------------------- bookkeeping
 
-void FluidSolver::enforce_boundary() {
+void Solver::enforce_boundary(State& state) const {
   for (int a = 0; a < 3; ++a) {
     if (!active_[a]) continue;
-    Scalar* u = state_.velocity[a].data();
+    Scalar* u = state.velocity[a].data();
     const Index back = model_.shape.n[a] * faces_[a].stride(a);  // from the duplicate to face 0
     const Index* pinned = pinned_faces_[a].data();
     const Index* duplicate = duplicate_faces_[a].data();
@@ -812,43 +874,43 @@ void FluidSolver::enforce_boundary() {
   }
 }
 
-void FluidSolver::check(Scalar dt, Index step) const {
+void Solver::check(const State& state, Scalar dt, Index step) const {
   for (int a = 0; a < 3; ++a) {
     if (!active_[a]) continue;
-    const Scalar m = max_abs(state_.velocity[a]);
+    const Scalar m = max_abs(state.velocity[a]);
     if (!std::isfinite(m))
       throw DivergenceError("velocity " + component_name(model_.shape.dim, a) +
                             ": non-finite value at step " + std::to_string(step) +
-                            " (t = " + std::to_string(state_.time) + " s, dt = " + std::to_string(dt) +
+                            " (t = " + std::to_string(state.time) + " s, dt = " + std::to_string(dt) +
                             " s); hint: check the forces and inputs, or use a smaller dt");
   }
   const std::pair<const char*, const std::vector<Scalar>*> scalars[] = {
-      {"density", &state_.density}, {"temperature", &state_.temperature}, {"pressure", &state_.pressure}};
+      {"density", &state.density}, {"temperature", &state.temperature}, {"pressure", &state.pressure}};
   for (const auto& [name, q] : scalars)
     if (!q->empty() && !std::isfinite(max_abs(*q)))
       throw DivergenceError(std::string(name) + ": non-finite value at step " + std::to_string(step) +
-                            " (t = " + std::to_string(state_.time) + " s); hint: use a smaller dt");
+                            " (t = " + std::to_string(state.time) + " s); hint: use a smaller dt");
 }
 
-Scalar FluidSolver::max_speed() const {
+Scalar Solver::max_speed(const State& state) const {
   Scalar m = 0;
   for (int a = 0; a < 3; ++a)
-    if (active_[a]) m = std::max(m, max_abs(state_.velocity[a]));
+    if (active_[a]) m = std::max(m, max_abs(state.velocity[a]));
   return m;
 }
 
-Vec3 FluidSolver::velocity_at(const Vec3& x) const {
+Vec3 Solver::velocity_at(const State& state, const Vec3& x) const {
   const Scalar inv_h = 1 / model_.h;
-  return mac_velocity().at(Vec3{active_[0] ? x[0] * inv_h : 0.5, x[1] * inv_h, x[2] * inv_h});
+  return mac_velocity(state.velocity).at(Vec3{active_[0] ? x[0] * inv_h : 0.5, x[1] * inv_h, x[2] * inv_h});
 }
 
-Scalar FluidSolver::kinetic_energy() const {
+Scalar Solver::kinetic_energy(const State& state) const {
   // Trapezoid rule per component: closed-wall faces carry half weight, a periodic duplicate none.
   Scalar e = 0;
   for (int a = 0; a < 3; ++a) {
     if (!active_[a]) continue;
     const FieldLayout& F = faces_[a];
-    const Scalar* u = state_.velocity[a].data();
+    const Scalar* u = state.velocity[a].data();
     const Index n_axis = model_.shape.n[a], stride = F.stride(a);
     e += parallel_sum(F.size(), [&](Index f) {
       const Index ia = (f / stride) % (n_axis + 1);
@@ -861,4 +923,4 @@ Scalar FluidSolver::kinetic_energy() const {
   return 0.5 * e * std::pow(model_.h, model_.shape.dim);
 }
 
-}  // namespace kinema::fluid
+}  // namespace kinema::grid

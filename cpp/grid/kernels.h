@@ -21,9 +21,9 @@
 
 #include "core/parallel.h"
 #include "core/types.h"
-#include "grid/grid.h"
+#include "poisson/grid.h"
 
-namespace kinema::fluid {
+namespace kinema::grid {
 
 using Vec3 = std::array<Scalar, 3>;
 
@@ -337,4 +337,4 @@ void advect_fields(AdvectionScheme scheme, const MacVelocity& u, const FieldLayo
 void advect(AdvectionScheme scheme, const MacVelocity& u, const FieldLayout& L, const Scalar* q,
             Scalar* out, Scalar dt, int rk_order, AdvectionScratch& scratch);
 
-}  // namespace kinema::fluid
+}  // namespace kinema::grid

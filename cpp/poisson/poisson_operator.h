@@ -15,7 +15,7 @@
 #include <vector>
 
 #include "core/parallel.h"
-#include "grid/grid.h"
+#include "poisson/grid.h"
 
 namespace kinema {
 

@@ -1,4 +1,4 @@
-#include "fluid/advect_rows.h"
+#include "grid/advect_rows.h"
 
 #include <algorithm>
 #include <cmath>
@@ -9,7 +9,7 @@
 
 #include "core/simd.h"
 
-namespace kinema::fluid {
+namespace kinema::grid {
 
 namespace {
 
@@ -361,4 +361,4 @@ void advect_rows(AdvectionScheme scheme, const MacVelocity& u, const FieldLayout
   }
 }
 
-}  // namespace kinema::fluid
+}  // namespace kinema::grid

@@ -16,7 +16,7 @@
 #include <vector>
 
 #include "core/buffer.h"
-#include "grid/poisson_operator.h"
+#include "poisson/poisson_operator.h"
 
 namespace kinema {
 

@@ -1,4 +1,4 @@
-// The MAC-grid advection kernels (fluid/kernels.h), tested without Python: interpolation is
+// The MAC-grid advection kernels (grid/kernels.h), tested without Python: interpolation is
 // exact for linear fields, an integer-cell shift in a periodic domain is exact for every
 // scheme, the clamped schemes stay within the initial range, and higher-order back-traces
 // follow a circular streamline more closely; the node-wise and the row-wise (baseline and AVX2)
@@ -13,13 +13,13 @@
 
 #include "core/errors.h"
 #include "core/simd.h"
-#include "fluid/advect_rows.h"
-#include "fluid/kernels.h"
+#include "grid/advect_rows.h"
+#include "grid/kernels.h"
 
-namespace kinema::fluid {
+namespace kinema::grid {
 namespace {
 
-TEST(FluidKernels, InterpolationExactForLinearFields) {
+TEST(GridKernels, InterpolationExactForLinearFields) {
   for (const auto& dims : {std::vector<Index>{7, 5}, std::vector<Index>{4, 6, 5}}) {
     const GridShape shape(dims);
     for (int axis = 3 - shape.dim; axis < 3; ++axis) {
@@ -39,7 +39,7 @@ TEST(FluidKernels, InterpolationExactForLinearFields) {
   }
 }
 
-TEST(FluidKernels, PeriodicIntegerShiftIsExactForEveryScheme) {
+TEST(GridKernels, PeriodicIntegerShiftIsExactForEveryScheme) {
   const GridShape shape(std::vector<Index>{16, 12});
   const FieldLayout C = cell_layout(shape, true);
   std::vector<Scalar> u(face_layout(shape, 1, true).size(), 3.0);  // 3 cells per unit time in x
@@ -80,7 +80,7 @@ struct Rotation {
   }
 };
 
-TEST(FluidKernels, ClampedSchemesStayInRange) {
+TEST(GridKernels, ClampedSchemesStayInRange) {
   Rotation r;
   const FieldLayout C = cell_layout(r.shape, false);
   std::vector<Scalar> q(C.size()), out(C.size());
@@ -98,7 +98,7 @@ TEST(FluidKernels, ClampedSchemesStayInRange) {
   }
 }
 
-TEST(FluidKernels, HigherOrderBackTraceFollowsTheCircle) {
+TEST(GridKernels, HigherOrderBackTraceFollowsTheCircle) {
   Rotation r;
   const Vec3 x{0.5, 34.0, 24.0};  // radius 10 from the centre
   Scalar err[4];
@@ -115,7 +115,7 @@ TEST(FluidKernels, HigherOrderBackTraceFollowsTheCircle) {
 // Random velocities up to 3 cells per unit time (departure points beyond the walls, where the
 // clamping and wrapping act), every field layout, scheme and back-trace order: the row kernels
 // must reproduce the node-wise passes exactly, and so the results cannot depend on the CPU.
-TEST(FluidKernels, RowKernelsGiveTheSameBitsAsTheNodeWisePasses) {
+TEST(GridKernels, RowKernelsGiveTheSameBitsAsTheNodeWisePasses) {
   std::vector<AdvectionKernel> kernels{AdvectionKernel::Rows};
   if (cpu_has_avx2()) kernels.push_back(AdvectionKernel::RowsAvx2);
   std::mt19937 rng(7);
@@ -166,7 +166,7 @@ TEST(FluidKernels, RowKernelsGiveTheSameBitsAsTheNodeWisePasses) {
   }
 }
 
-TEST(FluidKernels, RowKernelsRefuseNoSlipWalls) {
+TEST(GridKernels, RowKernelsRefuseNoSlipWalls) {
   const GridShape shape(std::vector<Index>{8, 8});
   std::vector<Scalar> u(face_layout(shape, 1, false).size(), 1.0), v(face_layout(shape, 2, false).size(), 0.0);
   MacVelocity vel;
@@ -189,4 +189,4 @@ TEST(FluidKernels, RowKernelsRefuseNoSlipWalls) {
 }
 
 }  // namespace
-}  // namespace kinema::fluid
+}  // namespace kinema::grid

@@ -1,11 +1,11 @@
-#include "fluid/kernels.h"
+#include "grid/kernels.h"
 
 #include <algorithm>
 
 #include "core/simd.h"
-#include "fluid/advect_rows.h"
+#include "grid/advect_rows.h"
 
-namespace kinema::fluid {
+namespace kinema::grid {
 
 FieldLayout cell_layout(const GridShape& shape, bool periodic) {
   FieldLayout L;
@@ -218,4 +218,4 @@ void advect(AdvectionScheme scheme, const MacVelocity& u, const FieldLayout& L, 
   advect_fields(scheme, u, L, 1, &q, &out, dt, rk_order, scratch);
 }
 
-}  // namespace kinema::fluid
+}  // namespace kinema::grid
