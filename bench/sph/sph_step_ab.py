@@ -5,7 +5,7 @@ alternated round by round, so that a shared machine's load falls on both alike.
 
     python bench/sph/sph_step_ab.py BEFORE_PYTHON AFTER_PYTHON [--rounds 3] [--steps 10]
 
-e.g. ``python bench/sph_step_ab.py /work/main/.venv/bin/python .venv/bin/python`` (a build is
+e.g. ``python bench/sph/sph_step_ab.py build/venv-before/bin/python .venv/bin/python`` (a build is
 named by its Python interpreter; a wrapper script that sets PYTHONPATH names a copied install). A run starts
 as sph_bench.py's does (advance to START, one untimed step at the timed dt), times `steps`
 steps and reports CPU and wall milliseconds per step, the other processes' load during the

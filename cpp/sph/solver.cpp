@@ -77,7 +77,7 @@ class SolverD final : public Solver::Impl {
     // Explicit viscosity: dt <= kViscousDt spacing^2 / nu. The viscosity term's largest
     // eigenvalue is 13.1 nu / spacing^2 on a 2D lattice (14.2 in 3D) and 19.3 (21.4) once the
     // particles are displaced by 0.2 spacing at random, as settled fluid is (computed by
-    // bench/sph_issue15.py --viscous-spectrum), so forward Euler's bound 2 / lambda falls from
+    // bench/sph/sph_dam_front_and_rest.py --viscous-spectrum), so forward Euler's bound 2 / lambda falls from
     // 0.15 to 0.10 spacing^2 / nu. The 0.125 used before (Morris et al. 1997, eq. 24) was past
     // it: a viscous column at rest at that step kept ~2 J of noise (issue 15). 0.05 keeps
     // dt lambda <= 1, where no mode changes sign.

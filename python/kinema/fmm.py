@@ -118,7 +118,7 @@ def last_info() -> dict:
 
 _NEAR_KERNELS = {"laplace": 0, "plummer": 1, "gaussian": 2}
 
-# Below this many source-target pairs the direct sum is as fast as the FMM (bench/fmm3d_bench.py
+# Below this many source-target pairs the direct sum is as fast as the FMM (bench/fmm/fmm3d_bench.py
 # measures the crossover); laplace3d then sums directly, which is exact.
 _DIRECT_PAIRS_3D = 2_000_000
 
