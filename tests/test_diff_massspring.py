@@ -1,0 +1,218 @@
+"""km.massspring's adjoint step (the km.diff protocol) against central finite differences, for
+every integrator, parameter and control, in 2D and 3D; the dot-product test on an exactly
+linear system; exact resume through state() / set_state()."""
+
+import numpy as np
+import pytest
+
+import kinema as km
+
+EPS = np.finfo(float).eps
+INTEGRATORS = ("explicit", "symplectic", "implicit")
+
+
+def lattice(dim, seed, *, scalar=False, compress=1.0, gravity=True):
+    """A 4 x 4 cloth, randomly perturbed and moving, one corner fixed; per-item parameters
+    (or scalars) drawn at random; springs at rest length * compress."""
+    rng = np.random.default_rng(seed)
+    x, springs = km.massspring.cloth(4, 4, 1.0, dim=dim)
+    x = x + 0.05 * rng.standard_normal(x.shape)
+    m = len(springs)
+    rest = np.linalg.norm(x[springs[:, 1]] - x[springs[:, 0]], axis=1) * compress
+    rest *= 1 + 0.1 * rng.standard_normal(m)
+    if scalar:
+        params = dict(stiffness=40.0, rest_length=rest, damping=0.2, mass=0.05)
+    else:
+        params = dict(stiffness=40.0 * (1 + 0.5 * rng.random(m)), rest_length=rest,
+                      damping=0.2 * rng.random(m), mass=0.05 * (1 + rng.random(len(x))))
+    g = (0.0, -9.81, 0.0)[:dim] if gravity else None
+    s = km.massspring.System(x, springs, fixed=[0], gravity=g, **params)
+    s.v[:] = 0.3 * rng.standard_normal(x.shape)
+    s.v[0] = 0
+    return s
+
+
+def options(integrator):
+    # The implicit step is differentiated as if solved exactly; the forward solve that the
+    # finite differences see must then be exact too (a direct factorisation, rounding only).
+    if integrator == "implicit":
+        return dict(integrator="implicit", beta=0.8, linear_solver="cholmod_direct")
+    return dict(integrator=integrator)
+
+
+def fd_check(f, g_dot, h, what):
+    """Central difference of the scalar function f(t) at 0 against g_dot = <grad, direction>.
+    Truncation error of D(h) = (f(h) - f(-h)) / 2h is f'''(0) h^2 / 6 + O(h^4), estimated by
+    Richardson from D(2h): |D(2h) - D(h)| / 3; rounding error at most 2 eps max|f| / (2h) per
+    difference (f is evaluated to a few ulps), i.e. 4 eps max|f| / h on the estimate. The
+    assertion allows twice their sum."""
+    f0 = f(0.0)
+    fp, fm, fp2, fm2 = f(h), f(-h), f(2 * h), f(-2 * h)
+    d1 = (fp - fm) / (2 * h)
+    d2 = (fp2 - fm2) / (4 * h)
+    scale = max(abs(v) for v in (f0, fp, fm, fp2, fm2))
+    bound = 2 * (abs(d2 - d1) / 3 + 4 * 16 * EPS * scale / h)
+    err = abs(d1 - g_dot)
+    assert err <= bound, (f"{what}: finite difference {d1:.12e}, adjoint {g_dot:.12e}, "
+                          f"|diff| {err:.2e} > bound {bound:.2e} (h = {h})")
+    return err, bound
+
+
+def one_step_loss(sys, before, dt, opts, gx, gv):
+    """L(t) for a perturbation: the loss <gx, x'> + <gv, v'> after one step."""
+    def loss(state, params, control):
+        sys.set_state(state)
+        for k, v in params.items():
+            sys._diff_set(k, v)
+        sys._diff_step(dt, control, opts)
+        return float(np.sum(gx * sys.x) + np.sum(gv * sys.v))
+    return loss
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("integrator", INTEGRATORS)
+@pytest.mark.parametrize("scalar", [False, True])
+def test_step_adjoint_matches_finite_differences(dim, integrator, scalar):
+    sys = lattice(dim, seed=dim * 10 + INTEGRATORS.index(integrator), scalar=scalar)
+    rng = np.random.default_rng(7)
+    opts = options(integrator)
+    dt = 0.01 if integrator != "implicit" else 0.05
+    n, d = sys.x.shape
+    control = rng.standard_normal((n, d))
+    params0 = {k: sys._diff_get(k) for k in sys.parameters}
+    before = sys.state()
+    sys._diff_step(dt, control, opts)
+    after = sys.state()
+    gx, gv = rng.standard_normal((n, d)), rng.standard_normal((n, d))
+    grad_before, grad_params, grad_control = sys._diff_step_adjoint(
+        dt, before, after, control, {"x": gx, "v": gv}, opts)
+    assert grad_control.shape == (n, d)
+    for k in sys.parameters:
+        if scalar and k != "rest_length":
+            assert isinstance(grad_params[k], float), (k, type(grad_params[k]))
+        else:
+            assert np.shape(grad_params[k]) == np.shape(params0[k]), k
+    loss = one_step_loss(sys, before, dt, opts, gx, gv)
+    h = 1e-5
+    for name in ("x", "v"):
+        delta = rng.standard_normal((n, d))
+        def f(t, name=name, delta=delta):
+            s = dict(before)
+            s[name] = before[name] + t * delta
+            return loss(s, params0, control)
+        fd_check(f, float(np.sum(grad_before[name] * delta)), h, f"{integrator} {dim}D d/d{name}")
+    for k in sys.parameters:
+        p0 = params0[k]
+        delta = float(rng.standard_normal()) if np.ndim(p0) == 0 else rng.standard_normal(np.shape(p0))
+        scale = np.abs(p0).max() if np.ndim(p0) else abs(p0)
+        hp = h * scale
+        def f(t, k=k, delta=delta, p0=p0):
+            return loss(before, dict(params0, **{k: p0 + t * delta}), control)
+        fd_check(f, float(np.sum(grad_params[k] * delta)), hp, f"{integrator} {dim}D d/d{k}")
+    delta = rng.standard_normal((n, d))
+    fd_check(lambda t: loss(before, params0, control + t * delta),
+             float(np.sum(grad_control * delta)), h, f"{integrator} {dim}D d/dcontrol")
+    # Fixed vertices ignore the control forces.
+    assert np.all(grad_control[0] == 0)
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_clamped_implicit_step_is_differentiated_on_its_branch(dim):
+    # Springs at 1.6 x their length and a long step: the exact Jacobian is indefinite and the
+    # step clamps the transverse terms of the compressed springs; the gradient is that branch's.
+    sys = lattice(dim, seed=3, compress=1.6, gravity=False)
+    opts = dict(integrator="implicit", linear_solver="cholmod_direct")
+    dt = 0.5
+    rng = np.random.default_rng(1)
+    n, d = sys.x.shape
+    before = sys.state()
+    info = sys.step(dt, **opts)
+    assert info.clamped, "the set-up must take the clamped branch"
+    after = sys.state()
+    gx, gv = rng.standard_normal((n, d)), rng.standard_normal((n, d))
+    grad_before, grad_params, _ = sys._diff_step_adjoint(dt, before, after, None, {"x": gx, "v": gv}, opts)
+    params0 = {k: sys._diff_get(k) for k in sys.parameters}
+    loss = one_step_loss(sys, before, dt, opts, gx, gv)
+    delta = rng.standard_normal((n, d))
+    def f(t):
+        s = dict(before)
+        s["x"] = before["x"] + t * delta
+        value = loss(s, params0, None)
+        assert sys.state()["clamped"], "the perturbation left the branch"
+        return value
+    fd_check(f, float(np.sum(grad_before["x"] * delta)), 1e-6, f"clamped {dim}D d/dx")
+    k0 = params0["rest_length"]
+    dk = rng.standard_normal(k0.shape)
+    fd_check(lambda t: loss(before, dict(params0, rest_length=k0 + t * dk), None),
+             float(np.sum(grad_params["rest_length"] * dk)), 1e-6, f"clamped {dim}D d/drest_length")
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("integrator", INTEGRATORS)
+def test_adjoint_is_the_transpose_of_the_linear_step(dim, integrator):
+    # Zero rest lengths make the spring force -k d exactly linear (S = I, kernels.h), and
+    # without gravity and damping the step is a linear map J of (x, v): J delta is the
+    # difference of two steps exactly (to rounding, no truncation), and the adjoint must pass
+    # the dot-product test <J delta, g> = <delta, J^T g>.
+    rng = np.random.default_rng(dim)
+    x, springs = km.massspring.cloth(4, 4, 1.0, dim=dim)
+    sys = km.massspring.System(x, springs, stiffness=5.0 * (1 + rng.random(len(springs))),
+                               rest_length=0.0, mass=0.1 * (1 + rng.random(len(x))), fixed=[0, 3])
+    opts = options(integrator)
+    dt = 0.02
+    n, d = x.shape
+    base = sys.state()
+    dx, dv = rng.standard_normal((n, d)), rng.standard_normal((n, d))
+    gx, gv = rng.standard_normal((n, d)), rng.standard_normal((n, d))
+
+    def step(xx, vv):
+        sys.set_state(dict(base, x=xx, v=vv))
+        sys._diff_step(dt, None, opts)
+        return sys.x.copy(), sys.v.copy()
+
+    x1, v1 = step(base["x"] + dx, base["v"] + dv)
+    x0, v0 = step(base["x"], base["v"])
+    lhs = np.sum((x1 - x0) * gx) + np.sum((v1 - v0) * gv)
+    grad, _, _ = sys._diff_step_adjoint(dt, dict(base), sys.state(), None, {"x": gx, "v": gv}, opts)
+    rhs = np.sum(dx * grad["x"]) + np.sum(dv * grad["v"])
+    scale = np.abs(x1).max() * np.abs(gx).sum() + np.abs(v1).max() * np.abs(gv).sum()
+    assert abs(lhs - rhs) <= 1e3 * EPS * scale, (lhs, rhs, 1e3 * EPS * scale)
+
+
+@pytest.mark.parametrize("linear_solver", ["cholmod", "cholmod_pcg", "cholmod_direct", "cg"])
+@pytest.mark.parametrize("integrator", INTEGRATORS)
+def test_state_copy_resumes_bit_for_bit(integrator, linear_solver):
+    if integrator != "implicit" and linear_solver != "cholmod":
+        pytest.skip("the linear solver is an implicit option")
+    def make():
+        s = lattice(3, seed=5)
+        s.step(0.01, integrator, linear_solver=linear_solver, steps=3)
+        return s
+    a = make()
+    saved = a.state()
+    a.step(0.02, integrator, linear_solver=linear_solver, steps=6)
+    # A fresh system, and the same one after other steps: both resume from the copy exactly.
+    for b in (make(), a):
+        b.step(0.05, integrator, linear_solver=linear_solver, steps=2)
+        b.set_state(saved)
+        b.step(0.02, integrator, linear_solver=linear_solver, steps=6)
+        np.testing.assert_array_equal(b.x, a.x if b is not a else ref_x)
+        ref_x = b.x.copy()
+
+
+def test_diff_protocol_errors():
+    sys = lattice(2, seed=0)
+    with pytest.raises(ValueError, match="steps"):
+        sys._diff_check(("x",), {"steps": 2})
+    with pytest.raises(ValueError, match="integrator"):
+        sys._diff_check(("x",), {"integrator": "rk4"})
+    with pytest.raises(ValueError, match="wrt"):
+        sys._diff_check(("youngs_modulus",), {})
+    with pytest.raises(ValueError, match="control"):
+        sys._diff_step(0.01, np.zeros((3, 2)), {})
+    with pytest.raises(ValueError, match="stiffness"):
+        sys._diff_set("stiffness", -1.0)
+    with pytest.raises(ValueError, match="state"):
+        sys.set_state({"x": sys.x})
+    assert sys._diff_control_shape() == sys.x.shape
+    assert sys.parameters == ("stiffness", "rest_length", "mass", "damping")
