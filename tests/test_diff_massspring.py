@@ -216,3 +216,123 @@ def test_diff_protocol_errors():
         sys.set_state({"x": sys.x})
     assert sys._diff_control_shape() == sys.x.shape
     assert sys.parameters == ("stiffness", "rest_length", "mass", "damping")
+
+
+# ---------------------------------------------------------------- km.diff rollouts
+
+ROLLOUT_STEPS = 6
+
+
+def run_loss(sys, start, params, controls, dt, opts, gx, gv):
+    sys.set_state(start)
+    for k, v in params.items():
+        sys._diff_set(k, v)
+    for c in controls:
+        sys._diff_step(dt, c, opts)
+    return float(np.sum(gx * sys.x) + np.sum(gv * sys.v))
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("integrator", INTEGRATORS)
+def test_rollout_gradient_matches_finite_differences(dim, integrator):
+    sys = lattice(dim, seed=40 + dim, scalar=(integrator == "symplectic"))
+    rng = np.random.default_rng(11)
+    opts = options(integrator)
+    dt = 0.01 if integrator != "implicit" else 0.04
+    n, d = sys.x.shape
+    controls = 0.5 * rng.standard_normal((ROLLOUT_STEPS, n, d))
+    start = sys.state()
+    params0 = {k: sys._diff_get(k) for k in sys.parameters}
+    wrt = ("x", "v", "controls") + sys.parameters
+    run = km.diff.rollout(sys, ROLLOUT_STEPS, dt, wrt=wrt, controls=controls, **opts)
+    gx, gv = rng.standard_normal((n, d)), rng.standard_normal((n, d))
+    grads = run.backward({"x": gx, "v": gv})
+    for name in wrt:
+        value = start[name] if name in ("x", "v") else controls if name == "controls" else params0[name]
+        delta = rng.standard_normal(np.shape(value)) if np.ndim(value) else float(rng.standard_normal())
+        h = 1e-5 * (np.abs(value).max() if name in sys.parameters else 1.0)
+
+        def f(t, name=name, delta=delta, value=value):
+            s, p, c = dict(start), dict(params0), controls
+            if name in ("x", "v"):
+                s[name] = value + t * delta
+            elif name == "controls":
+                c = value + t * delta
+            else:
+                p[name] = value + t * delta
+            return run_loss(sys, s, p, c, dt, opts, gx, gv)
+        fd_check(f, float(np.sum(grads[name] * delta)), h, f"rollout {integrator} {dim}D d/d{name}")
+
+
+@pytest.mark.parametrize("integrator", INTEGRATORS)
+def test_checkpointed_chained_and_repeated_backward_agree(integrator):
+    # The default implicit solver (PCG with the lagged factor) included: the recomputed steps
+    # rebuild the factor from the State's record, so checkpointed = stored bit for bit.
+    steps, dt = 20, 0.02 if integrator == "implicit" else 0.005
+    opts = {"integrator": integrator}
+    rng = np.random.default_rng(2)
+    wrt = ("x", "v", "stiffness", "mass", "controls")
+
+    def make():
+        return lattice(3, seed=9)
+    n, d = make().x.shape
+    controls = rng.standard_normal((steps, n, d))
+    g = {"x": rng.standard_normal((n, d)), "v": rng.standard_normal((n, d))}
+    stored = km.diff.rollout(make(), steps, dt, wrt=wrt, controls=controls, **opts)
+    a = stored.backward(g)
+    K = int(2 * np.sqrt(steps))
+    checked = km.diff.rollout(make(), steps, dt, wrt=wrt, controls=controls, checkpoints=K, **opts)
+    np.testing.assert_array_equal(checked.outputs["x"], stored.outputs["x"])
+    b = checked.backward(g)
+    assert checked.peak_states <= K + 1, checked.peak_states
+    for name in wrt:
+        np.testing.assert_array_equal(a[name], b[name], err_msg=f"checkpointed {name}")
+    again = stored.backward(g)
+    for name in wrt:
+        np.testing.assert_array_equal(a[name], again[name], err_msg=f"backward twice {name}")
+    # Two rollouts of 12 + 8 steps chain to the one of 20.
+    sys = make()
+    first = km.diff.rollout(sys, 12, dt, wrt=wrt, controls=controls[:12], **opts)
+    second = km.diff.rollout(sys, 8, dt, wrt=wrt, controls=controls[12:], **opts)
+    np.testing.assert_array_equal(second.outputs["x"], stored.outputs["x"])
+    g2 = second.backward(g)
+    g1 = first.backward({"x": g2["x"], "v": g2["v"]})
+    for name in ("x", "v"):
+        np.testing.assert_allclose(g1[name], a[name], rtol=0, atol=1e-12 * np.abs(a[name]).max())
+    for name in ("stiffness", "mass"):
+        np.testing.assert_allclose(g1[name] + g2[name], a[name], rtol=0,
+                                   atol=1e-12 * np.abs(a[name]).max())
+    np.testing.assert_allclose(np.concatenate([g1["controls"], g2["controls"]]), a["controls"],
+                               rtol=0, atol=1e-12 * np.abs(a["controls"]).max())
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize("integrator", INTEGRATORS)
+def test_gradient_of_momentum(dim, integrator):
+    # Without fixed vertices and gravity the springs' forces cancel in pairs and every step
+    # (the implicit one too: the spring blocks of A sum to zero over a spring's two rows) gives
+    # P' = P + h sum_i u_i. For L = e . sum_i m_i v_i(T) with the weights m_i e held fixed:
+    # dL/dv_i(0) = m_i e, dL/dx(0) = 0, dL/du_k = h e, dL/dk = 0, dL/dm_i = e . (v_i(0) - v_i(T)).
+    rng = np.random.default_rng(dim)
+    x, springs = km.massspring.cloth(4, 4, 1.0, dim=dim)
+    x = x + 0.05 * rng.standard_normal(x.shape)
+    mass = 0.1 * (1 + rng.random(len(x)))
+    sys = km.massspring.System(x, springs, stiffness=30.0 * (1 + rng.random(len(springs))),
+                               damping=0.1, mass=mass)
+    sys.v[:] = rng.standard_normal(x.shape)
+    v0 = sys.v.copy()
+    steps, dt = 10, 0.01
+    controls = rng.standard_normal((steps,) + x.shape)
+    e = rng.standard_normal(dim)
+    run = km.diff.rollout(sys, steps, dt, wrt=("x", "v", "controls", "stiffness", "mass", "damping"),
+                          controls=controls, integrator=integrator,
+                          **({"linear_solver": "cholmod_direct"} if integrator == "implicit" else {}))
+    vT = run.outputs["v"]
+    g = run.backward({"v": mass[:, None] * e})
+    tol = 1e-12 * (np.abs(mass).max() * np.abs(e).max())
+    np.testing.assert_allclose(g["v"], mass[:, None] * e[None, :], rtol=0, atol=1e3 * tol)
+    np.testing.assert_allclose(g["x"], 0, atol=1e3 * tol)
+    np.testing.assert_allclose(g["controls"], np.broadcast_to(dt * e, controls.shape), rtol=0, atol=1e3 * tol)
+    np.testing.assert_allclose(g["mass"], (v0 - vT) @ e, rtol=0, atol=1e4 * tol * np.abs(vT).max())
+    for name in ("stiffness", "damping"):
+        np.testing.assert_allclose(g[name], 0, atol=1e4 * tol)
