@@ -122,7 +122,12 @@ void bind_massspring(py::module_& m) {
       .def_readwrite("integrator", &Config::integrator)
       .def_readwrite("beta", &Config::beta, "implicit weight: 1 backward Euler, 0.5 trapezoid-like")
       .def_readwrite("linear_solver", &Config::linear_solver)
-      .def_readwrite("cg_tol", &Config::cg_tol, "relative residual of the (P)CG solves");
+      .def_readwrite("cg_tol", &Config::cg_tol, "relative residual of the (P)CG solves")
+      .def_readwrite("adjoint_tol", &Config::adjoint_tol,
+                     "relative residual of the adjoint's implicit solve (0: a direct solve)");
+
+  m.def("check_config", &check_config, py::arg("config"),
+        "Raises ValueError naming the first field out of range.");
 
   py::class_<StepStats, StepStatsBase>(m, "StepStats", "Statistics of System.step (summed over steps).")
       .def_readonly("clamped", &StepStats::clamped,

@@ -5,7 +5,8 @@
 //     adjoint is psi = -mu . f_i, differentiated in d, dv, k, L, c (kernels.h's f_i);
 //   implicit: A(x) v' = b(x, v), A = M - h C - beta h^2 K, b = M v + h f; A lambda = dL/dv'
 //     (A symmetric), then dL/dp = lambda . db/dp - lambda^T dA/dp v' for every input p: the
-//     implicit function theorem, exact for the step as run up to the solve's rounding.
+//     implicit function theorem, exact for the step as if its solve were exact (the adjoint
+//     solve itself to Config::adjoint_tol, 1e-12 by default).
 // Fixed vertices: v' = 0 and x' = x whatever the inputs, so their lambda is 0; their positions
 // still enter the free vertices' forces and matrix rows.
 #include <Eigen/Core>
@@ -146,7 +147,15 @@ void Solver::adjoint_implicit_d(const State& before, const State& after, Scalar 
   });
   assemble(before.x.data(), dt, beta, clamp);
   SpdSolveStats stats;
-  if (!adjoint_linear_.solve_exact(matrix(), rhs.data(), lambda.data(), false, stats))
+  const bool new_pass = before.step >= adjoint_last_step_;
+  adjoint_last_step_ = before.step;
+  Interrupt none;  // the caller checks between steps
+  const bool ok =
+      config_.adjoint_tol > 0
+          ? adjoint_linear_.solve(LinearSolver::Cholmod, matrix(), rhs.data(), lambda.data(),
+                                  config_.adjoint_tol, !new_pass, none, stats)
+          : adjoint_linear_.solve_exact(matrix(), rhs.data(), lambda.data(), false, stats);
+  if (!ok)
     throw NotPositiveDefinite("step_adjoint: the implicit matrix of step " +
                               std::to_string(before.step) +
                               " is not positive definite, so the step has no unique derivative "

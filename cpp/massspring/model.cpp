@@ -23,6 +23,8 @@ void check_config(const Config& c) {
     throw InvalidArgument("beta: expected a finite number >= 0, got " + format_real(c.beta));
   if (!(std::isfinite(c.cg_tol) && c.cg_tol > 0))
     throw InvalidArgument("cg_tol: expected a finite number > 0, got " + format_real(c.cg_tol));
+  if (!(std::isfinite(c.adjoint_tol) && c.adjoint_tol >= 0))
+    throw InvalidArgument("adjoint_tol: expected a finite number >= 0, got " + format_real(c.adjoint_tol));
 }
 
 void check_parameters(const Model& m) {

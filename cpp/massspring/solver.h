@@ -27,6 +27,11 @@ struct Config {
   Scalar beta = 1;  // implicit weight of the stiffness term: 1 backward Euler, 1/2 trapezoid-like
   LinearSolver linear_solver = LinearSolver::Cholmod;
   Scalar cg_tol = 1e-8;  // relative residual of the (P)CG solves
+  // Relative residual of step_adjoint's implicit solve, by PCG preconditioned with a CHOLMOD
+  // factor lagged across the backward pass's steps (refactorised as the forward's is); 0: a
+  // fresh factorisation every step. The forward's cg_tol is not what the gradient sees: the
+  // step is differentiated as if solved exactly, to this tolerance.
+  Scalar adjoint_tol = 1e-12;
 };
 
 // Throws InvalidArgument naming the field (beta >= 0 finite, cg_tol > 0 finite).
@@ -107,8 +112,8 @@ class Solver {
   // hold dL/dx', dL/dv'; on exit dL/dx, dL/dv of `before`. dL/d(parameters) of this step are
   // added to adjoint_params (sized like the model's arrays), dL/du written to adjoint_control
   // (n d, when not null). The implicit step is differentiated as if solved exactly (implicit
-  // function theorem: one solve with the step's matrix, factorised afresh), on the branch the
-  // step took (after.clamped).
+  // function theorem: one solve with the step's matrix to Config::adjoint_tol), on the branch
+  // the step took (after.clamped).
   void step_adjoint(const State& before, const State& after, Scalar dt, const Scalar* control,
                     State& adjoint, Params& adjoint_params, Scalar* adjoint_control,
                     Interrupt& interrupt);
@@ -145,6 +150,11 @@ class Solver {
   std::vector<Scalar> element_vectors_, element_matrices_, values_, f_, rhs_;
   SpdSolver linear_;
   SpdSolver adjoint_linear_;  // its own factor, so a backward pass leaves the forward's alone
+  // The step index of the last adjoint: a backward pass visits steps in decreasing order, so
+  // an index not below it starts a new pass, which starts from a fresh factor. Every pass then
+  // sees the same sequence of matrices and gives the same gradients bit for bit (stored,
+  // checkpointed, chained or repeated).
+  Index adjoint_last_step_ = -1;
   FactorRecord factor_;       // what linear_'s lagged factor is (valid while factor_known_)
   bool factor_known_ = true;
 };

@@ -23,8 +23,10 @@ Gradients (km.diff): ``System`` implements the km.diff protocol for every integr
 respect to the initial ``x``, ``v``, the parameters ``System.parameters`` (scalar or per item,
 gradients of the same shape) and per-step vertex forces [N] (added where gravity is; fixed
 vertices ignore them). The implicit step is differentiated as if its linear system were solved
-exactly (one solve with the step's matrix per step; the forward's PCG tolerance ``cg_tol`` is not
-differentiated). Where the exact Jacobian was indefinite and the step clamped it, the gradient is
+exactly: one adjoint solve with the step's matrix per step, by PCG to the relative residual
+``adjoint_tol`` (a km.diff step option, default 1e-12; 0 factorises every step) preconditioned
+with a CHOLMOD factor lagged across the backward pass; the forward's ``cg_tol`` is not
+differentiated. Where the exact Jacobian was indefinite and the step clamped it, the gradient is
 that of the clamped step; zero-length springs (no force direction) contribute no gradient.
 """
 
@@ -47,6 +49,9 @@ Config = _core.massspring.Config
 StepStats = _core.massspring.StepStats
 Integrator = _core.massspring.Integrator
 _STEP_OPTIONS = ("integrator", "beta", "linear_solver", "cg_tol")
+# km.diff's step options: the step's, and the adjoint solve's tolerance (Config.adjoint_tol).
+_DIFF_OPTIONS = _STEP_OPTIONS + ("adjoint_tol",)
+_DEFAULTS = dict(integrator="implicit", beta=1.0, linear_solver="cholmod", cg_tol=1e-8, adjoint_tol=1e-12)
 
 
 def _per_item(value, count, name):
@@ -183,12 +188,15 @@ class System:
             raise ValueError(f"state: expected a dict from System.state(), got {type(state).__name__}")
         self._core.set_state(state)
 
-    def _configure(self, integrator, beta, linear_solver, cg_tol):
-        c = self._core.config
+    def _configure(self, integrator, beta, linear_solver, cg_tol, adjoint_tol=None, config=None):
+        c = self._core.config if config is None else config
         c.integrator = _enum(integrator, "integrator", Integrator, INTEGRATORS)
         c.linear_solver = _enum(linear_solver, "linear_solver", _core.LinearSolver, _SOLVERS)
         c.beta = real(beta, "beta")
         c.cg_tol = real(cg_tol, "cg_tol")
+        if adjoint_tol is not None:
+            c.adjoint_tol = real(adjoint_tol, "adjoint_tol")
+        return c
 
     def step(self, dt, integrator="implicit", beta=1.0, *, linear_solver="cholmod",
              cg_tol=1e-8, steps=1) -> StepStats:
@@ -229,19 +237,10 @@ class System:
 
     def _diff_check(self, wrt, step_options):
         for key in step_options:
-            if key not in _STEP_OPTIONS:
-                raise ValueError(f"{key}: not an option of km.massspring.System.step under km.diff "
-                                 f"(expected {', '.join(_STEP_OPTIONS)}; km.diff takes one step per call)")
-        opts = dict(integrator="implicit", beta=1.0, linear_solver="cholmod", cg_tol=1e-8)
-        opts.update(step_options)
-        config = Config()
-        config.integrator = _enum(opts["integrator"], "integrator", Integrator, INTEGRATORS)
-        config.linear_solver = _enum(opts["linear_solver"], "linear_solver", _core.LinearSolver, _SOLVERS)
-        for key in ("beta", "cg_tol"):
-            if not np.isfinite(real(opts[key], key)) or real(opts[key], key) < 0 or (
-                    key == "cg_tol" and real(opts[key], key) == 0):
-                raise ValueError(f"{key}: expected a finite number {'> 0' if key == 'cg_tol' else '>= 0'}, "
-                                 f"got {opts[key]!r}")
+            if key not in _DIFF_OPTIONS:
+                raise ValueError(f"{key}: not an option of km.massspring.System under km.diff "
+                                 f"(expected {', '.join(_DIFF_OPTIONS)}; km.diff takes one step per call)")
+        _core.massspring.check_config(self._configure(**(_DEFAULTS | step_options), config=Config()))
         for name in wrt:
             if name not in self._diff_state_names + self.parameters + ("controls",):
                 raise ValueError(f"wrt: {name!r} is not differentiable in km.massspring.System "
@@ -269,11 +268,10 @@ class System:
         self._scalar[name] = np.ndim(value) == 0
 
     def _diff_step(self, dt, control, step_options):
-        self._step(dt, control, **step_options)
+        self._step(dt, control, **{k: v for k, v in step_options.items() if k != "adjoint_tol"})
 
     def _diff_step_adjoint(self, dt, before, after, control, grad_after, step_options):
-        opts = {k: v for k, v in step_options.items() if k != "steps"}
-        self._configure(**(dict(integrator="implicit", beta=1.0, linear_solver="cholmod", cg_tol=1e-8) | opts))
+        self._configure(**(_DEFAULTS | step_options))
         gx, gv, params, gcontrol = self._core.step_adjoint(
             real(dt, "dt"), before, after, control, grad_after["x"], grad_after["v"])
         grads = {k: float(g.sum()) if self._scalar[k] else g for k, g in params.items()}
