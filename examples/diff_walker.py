@@ -120,11 +120,13 @@ def main(argv=None):
             first_path = path
         losses.append(loss)
         norm = np.sqrt(np.sum(gW**2) + np.sum(gb**2))
-        # Adam (Kingma and Ba 2015): steps of about lr whatever the gradient's scale.
+        # Adam (Kingma and Ba 2015): steps of about lr whatever the gradient's scale, lr
+        # decaying so that the walk settles (the contacts make the loss rough at small scales).
+        lr = args.lr / (1 + it / 10)
         for k, (theta, g) in enumerate(((W, gW), (b, gb))):
             m1[k] = 0.9 * m1[k] + 0.1 * g
             m2[k] = 0.999 * m2[k] + 0.001 * g**2
-            theta -= args.lr * (m1[k] / (1 - 0.9 ** (it + 1))) / (
+            theta -= lr * (m1[k] / (1 - 0.9 ** (it + 1))) / (
                 np.sqrt(m2[k] / (1 - 0.999 ** (it + 1))) + 1e-12)
         print(f"iteration {it:3d}: loss {loss:+.4f} m (moved {path[-1, 0] - path[0, 0]:+.3f} m), "
               f"|grad| {norm:.2e}, {time.perf_counter() - t0:.1f} s", flush=True)
