@@ -19,6 +19,9 @@ struct System {
   Model model;
   State state;
   std::unique_ptr<Solver> solver;
+  // step_adjoint's inputs and outputs, kept so that a backward pass reuses their buffers.
+  State before, after, adjoint;
+  Params params;
 };
 
 py::array view(py::object self, std::vector<Scalar>& buffer, Index d) {
@@ -70,8 +73,11 @@ py::dict to_dict(const State& s, Index d) {
   return out;
 }
 
-void from_dict(const py::dict& in, State& s, Index n, int d) {
-  State t;
+// Reads a state() dict into s; with `checked`, into a copy first so that s is left as it was
+// when the dict is refused (the simulation's own State).
+void from_dict(const py::dict& in, State& s, Index n, int d, bool checked = true) {
+  State staged;
+  State& t = checked ? staged : s;
   read_array(in, "x", t.x, n, d);
   read_array(in, "v", t.v, n, d);
   read_array(in, "factor_x", t.factor.x, n, d, true);
@@ -85,7 +91,7 @@ void from_dict(const py::dict& in, State& s, Index n, int d) {
   t.factor.beta = item<Scalar>(in, "factor_beta");
   if (t.factor.valid && t.factor.x.empty())
     throw InvalidArgument("state[factor_x]: expected shape (n, d) when factor_valid");
-  s = t;  // copy assignment: x and v keep their buffers, so numpy views stay valid
+  if (checked) s = t;  // copy assignment: x and v keep their buffers, so numpy views stay valid
 }
 
 std::vector<Scalar>& parameter(Model& m, const std::string& name) {
@@ -241,17 +247,16 @@ void bind_massspring(py::module_& m) {
               const py::object& control, const py::object& grad_x, const py::object& grad_v) {
              const Index n = s.model.vertex_count * s.model.dim;
              const int d = s.model.dim;
-             State b, a, adjoint;
-             from_dict(before, b, n, d);
-             from_dict(after, a, n, d);
+             from_dict(before, s.before, n, d, false);
+             from_dict(after, s.after, n, d, false);
              py::dict grads;
              grads["x"] = grad_x;
              grads["v"] = grad_v;
-             read_array(grads, "x", adjoint.x, n, d);
-             read_array(grads, "v", adjoint.v, n, d);
+             read_array(grads, "x", s.adjoint.x, n, d);
+             read_array(grads, "v", s.adjoint.v, n, d);
              std::vector<Scalar> buffer;
              const Scalar* u = optional_control(control, n, buffer);
-             Params p;
+             Params& p = s.params;
              p.stiffness.assign(s.model.spring_count, 0);
              p.rest_length.assign(s.model.spring_count, 0);
              p.damping.assign(s.model.spring_count, 0);
@@ -260,18 +265,20 @@ void bind_massspring(py::module_& m) {
              Interrupt interrupt = python_interrupt();
              {
                ReleaseGil release;
-               s.solver->step_adjoint(b, a, dt, u, adjoint, p, u ? gu.data() : nullptr, interrupt);
+               s.solver->step_adjoint(s.before, s.after, dt, s.adjoint, p, u ? gu.data() : nullptr, interrupt);
              }
+             const auto copy = [](const std::vector<Scalar>& a, std::vector<Index> shape) {
+               return to_numpy(std::vector<Scalar>(a), shape);
+             };
              py::dict params;
-             params["stiffness"] = to_numpy(std::move(p.stiffness), {s.model.spring_count});
-             params["rest_length"] = to_numpy(std::move(p.rest_length), {s.model.spring_count});
-             params["damping"] = to_numpy(std::move(p.damping), {s.model.spring_count});
-             params["mass"] = to_numpy(std::move(p.mass), {s.model.vertex_count});
+             params["stiffness"] = copy(p.stiffness, {s.model.spring_count});
+             params["rest_length"] = copy(p.rest_length, {s.model.spring_count});
+             params["damping"] = copy(p.damping, {s.model.spring_count});
+             params["mass"] = copy(p.mass, {s.model.vertex_count});
              py::object gcontrol = py::none();
              if (u) gcontrol = to_numpy(std::move(gu), {s.model.vertex_count, d});
-             return py::make_tuple(to_numpy(std::move(adjoint.x), {s.model.vertex_count, d}),
-                                   to_numpy(std::move(adjoint.v), {s.model.vertex_count, d}),
-                                   params, gcontrol);
+             return py::make_tuple(copy(s.adjoint.x, {s.model.vertex_count, d}),
+                                   copy(s.adjoint.v, {s.model.vertex_count, d}), params, gcontrol);
            },
            py::arg("dt"), py::arg("before"), py::arg("after"), py::arg("control"),
            py::arg("grad_x"), py::arg("grad_v"))

@@ -34,6 +34,13 @@ void put(Scalar* out, const Vec<D>& a) {
   }
 }
 
+// A scratch buffer of the solver, sized once (a backward pass calls this every step: fresh
+// allocations of megabytes would cost page faults each time). Every entry is overwritten.
+std::vector<Scalar>& scratch(std::vector<Scalar>& buffer, Index size) {
+  buffer.resize(static_cast<std::size_t>(size));
+  return buffer;
+}
+
 void check_adjoint_shapes(const Model& m, const State& before, const State& after,
                           const State& adjoint, const Params& p) {
   const std::size_t n = static_cast<std::size_t>(m.vertex_count * m.dim);
@@ -51,8 +58,8 @@ void check_adjoint_shapes(const Model& m, const State& before, const State& afte
 
 }  // namespace
 
-void Solver::step_adjoint(const State& before, const State& after, Scalar dt, const Scalar* control,
-                          State& adjoint, Params& params, Scalar* adjoint_control,
+void Solver::step_adjoint(const State& before, const State& after, Scalar dt, State& adjoint,
+                          Params& params, Scalar* adjoint_control,
                           Interrupt& interrupt) {
   check_adjoint_shapes(model_, before, after, adjoint, params);
   interrupt.check();
@@ -61,26 +68,32 @@ void Solver::step_adjoint(const State& before, const State& after, Scalar dt, co
     if (d == 2) adjoint_implicit_d<2>(before, after, dt, adjoint, params, adjoint_control);
     else adjoint_implicit_d<3>(before, after, dt, adjoint, params, adjoint_control);
   } else {
-    if (d == 2) adjoint_explicit_d<2>(before, after, dt, control, adjoint, params, adjoint_control);
-    else adjoint_explicit_d<3>(before, after, dt, control, adjoint, params, adjoint_control);
+    if (d == 2) adjoint_explicit_d<2>(before, after, dt, adjoint, params, adjoint_control);
+    else adjoint_explicit_d<3>(before, after, dt, adjoint, params, adjoint_control);
   }
 }
 
 template <int D>
-void Solver::adjoint_explicit_d(const State& before, const State&, Scalar dt, const Scalar* control,
-                                State& adjoint, Params& params, Scalar* adjoint_control) {
+void Solver::adjoint_explicit_d(const State& before, const State& after, Scalar dt, State& adjoint,
+                                Params& params, Scalar* adjoint_control) {
   const Model& m = model_;
   const Index n = assembly_.dof_count();
   const bool symplectic = config_.integrator == Integrator::Symplectic;
-  forces_d<D>(before, control, true, f_.data());
+  // The step's f / m, read back from its velocity change (free vertices): to rounding the same
+  // as evaluating the forces again, at no cost.
+  const Scalar* v_new = after.v.data();
+  const Scalar* v_old = before.v.data();
   // lambda = dL/df = h M^-1 dL/dv'_total; dL/dv = dL/dv'_total (+ h dL/dx' for explicit Euler).
-  std::vector<Scalar> lambda(n, 0), gx = adjoint.x;
+  std::vector<Scalar>& lambda = scratch(adj_lambda_, n);
+  std::vector<Scalar>& gx = adj_gx_;
+  gx = adjoint.x;
   std::vector<Scalar>& gv = adjoint.v;
   parallel_for(m.vertex_count, [&](Index i) {
     for (int r = 0; r < D; ++r) {
       const Index q = i * D + r;
       if (m.fixed[i]) {
         gv[q] = 0;
+        lambda[q] = 0;
         continue;
       }
       const Scalar vbar = gv[q] + (symplectic ? dt * gx[q] : 0);
@@ -93,13 +106,14 @@ void Solver::adjoint_explicit_d(const State& before, const State&, Scalar dt, co
     for (int r = 0; r < D; ++r) {
       const Index q = i * D + r;
       const Scalar g = m.gravity.empty() ? 0 : m.gravity[r];
-      s += lambda[q] * (g - f_[q] / m.mass[i]);
+      s += lambda[q] * (g - (v_new[q] - v_old[q]) / dt);
     }
-    params.mass[i] += s;
+    if (!m.fixed[i]) params.mass[i] += s;
   });
   if (adjoint_control) std::copy(lambda.begin(), lambda.end(), adjoint_control);
   // psi = -mu . f_i per spring, in d (-> x), dv (-> v) and the parameters.
-  std::vector<Scalar> ex(m.spring_count * 2 * D), ev(m.spring_count * 2 * D);
+  std::vector<Scalar>& ex = scratch(adj_ex_, m.spring_count * 2 * D);
+  std::vector<Scalar>& ev = scratch(adj_ev_, m.spring_count * 2 * D);
   const Scalar* x = before.x.data();
   const Scalar* v = before.v.data();
   parallel_for(m.spring_count, [&](Index s) {
@@ -124,7 +138,7 @@ void Solver::adjoint_explicit_d(const State& before, const State&, Scalar dt, co
     put<D>(ex.data() + s * 2 * D, Vec<D>(-gd));
     put<D>(ev.data() + s * 2 * D, Vec<D>(-gdv));
   });
-  std::vector<Scalar> sum(n);
+  std::vector<Scalar>& sum = scratch(adj_sum_, n);
   assembly_.gather_vector(ex.data(), sum.data());
   parallel_for(n, [&](Index q) { adjoint.x[q] = gx[q] + sum[q]; });
   assembly_.gather_vector(ev.data(), sum.data());
@@ -140,10 +154,16 @@ void Solver::adjoint_implicit_d(const State& before, const State& after, Scalar 
   const Scalar beta = config_.beta;
   const bool clamp = after.clamped;
   // A lambda = dL/dv' + h dL/dx' (x' = x + h v'), zero on fixed rows.
-  std::vector<Scalar> rhs(n, 0), lambda(n, 0), gx = adjoint.x;
+  std::vector<Scalar>& rhs = scratch(adj_rhs_, n);
+  std::vector<Scalar>& lambda = scratch(adj_lambda_, n);
+  std::vector<Scalar>& gx = adj_gx_;
+  gx = adjoint.x;
   parallel_for(m.vertex_count, [&](Index i) {
-    if (m.fixed[i]) return;
-    for (int r = 0; r < D; ++r) rhs[i * D + r] = adjoint.v[i * D + r] + dt * gx[i * D + r];
+    for (int r = 0; r < D; ++r) {
+      const Index q = i * D + r;
+      rhs[q] = m.fixed[i] ? 0 : adjoint.v[q] + dt * gx[q];
+      lambda[q] = 0;  // PCG's initial guess: the same every pass, so passes repeat exactly
+    }
   });
   assemble(before.x.data(), dt, beta, clamp);
   SpdSolveStats stats;
@@ -176,7 +196,7 @@ void Solver::adjoint_implicit_d(const State& before, const State& after, Scalar 
   });
   // Per spring: lambda . h df/d(.) (the right-hand side's exact force) minus
   // d/d(.) [mu^T B w], B = beta h^2 k S + h c n n^T the spring's block of A, w = v'_j - v'_i.
-  std::vector<Scalar> ex(m.spring_count * 2 * D);
+  std::vector<Scalar>& ex = scratch(adj_ex_, m.spring_count * 2 * D);
   const Scalar* x = before.x.data();
   parallel_for(m.spring_count, [&](Index s) {
     const Index i = m.springs[2 * s], j = m.springs[2 * s + 1];
@@ -200,7 +220,7 @@ void Solver::adjoint_implicit_d(const State& before, const State& after, Scalar 
     }
     put<D>(ex.data() + s * 2 * D, gi);
   });
-  std::vector<Scalar> sum(n);
+  std::vector<Scalar>& sum = scratch(adj_sum_, n);
   assembly_.gather_vector(ex.data(), sum.data());
   parallel_for(n, [&](Index q) { adjoint.x[q] = gx[q] + sum[q]; });
 }

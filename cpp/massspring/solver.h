@@ -111,12 +111,11 @@ class Solver {
   // Vector-Jacobian product of step(before, dt, control) -> after. On entry adjoint.x, adjoint.v
   // hold dL/dx', dL/dv'; on exit dL/dx, dL/dv of `before`. dL/d(parameters) of this step are
   // added to adjoint_params (sized like the model's arrays), dL/du written to adjoint_control
-  // (n d, when not null). The implicit step is differentiated as if solved exactly (implicit
+  // (n d, when not null). The control's value is not needed: forces enter the step linearly. The implicit step is differentiated as if solved exactly (implicit
   // function theorem: one solve with the step's matrix to Config::adjoint_tol), on the branch
   // the step took (after.clamped).
-  void step_adjoint(const State& before, const State& after, Scalar dt, const Scalar* control,
-                    State& adjoint, Params& adjoint_params, Scalar* adjoint_control,
-                    Interrupt& interrupt);
+  void step_adjoint(const State& before, const State& after, Scalar dt, State& adjoint,
+                    Params& adjoint_params, Scalar* adjoint_control, Interrupt& interrupt);
 
   // The model's parameters were changed in place: cached matrices are stale.
   void model_changed() { factor_known_ = false; }
@@ -138,8 +137,7 @@ class Solver {
   void record_solve(FactorRecord& record, const State& state, Scalar dt, bool clamp, bool ok,
                     const SpdSolveStats& s) const;
   template <int D> void adjoint_explicit_d(const State& before, const State& after, Scalar dt,
-                                           const Scalar* control, State& adjoint, Params& params,
-                                           Scalar* adjoint_control);
+                                           State& adjoint, Params& params, Scalar* adjoint_control);
   template <int D> void adjoint_implicit_d(const State& before, const State& after, Scalar dt,
                                            State& adjoint, Params& params, Scalar* adjoint_control);
   void check_finite(const std::vector<Scalar>& a, const char* quantity, Index step) const;
@@ -155,6 +153,7 @@ class Solver {
   // sees the same sequence of matrices and gives the same gradients bit for bit (stored,
   // checkpointed, chained or repeated).
   Index adjoint_last_step_ = -1;
+  std::vector<Scalar> adj_lambda_, adj_gx_, adj_rhs_, adj_ex_, adj_ev_, adj_sum_;  // step_adjoint's
   FactorRecord factor_;       // what linear_'s lagged factor is (valid while factor_known_)
   bool factor_known_ = true;
 };
