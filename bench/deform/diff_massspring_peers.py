@@ -1,5 +1,5 @@
 """The gradient of a mass-spring cloth run in Taichi (ti.ad.Tape) and NVIDIA Warp (wp.Tape), for
-bench/diff_massspring_bench.py, which runs this file in its own process per peer.
+bench/deform/diff_massspring_bench.py, which runs this file in its own process per peer.
 
 The task, the same in kinema: Taichi's cloth layout of bench/deform_bench.py ((N+1)^2 vertices in
 [0.25, 0.75]^2, structural and shear springs, k = 1000, c = 0.5 along the springs, unit masses,
@@ -7,7 +7,7 @@ gravity (0, -2), the two corners N and (N+1)^2 - 1 pinned), `steps` symplectic E
 from rest (v0 = 0), loss L = sum_i w_i . x_i(T) for fixed random w;
 the gradient dL/dv0. float64 throughout, CPU. Prints one JSON line: seconds per gradient
 (forward + backward, best of --min-of), the directional derivative along a random direction and
-its central finite difference (h = 1e-5; bench/diff_massspring_bench.py compares every
+its central finite difference (h = 1e-5; bench/deform/diff_massspring_bench.py compares every
 framework's directional derivative with the same difference of kinema's forward run).
 """
 

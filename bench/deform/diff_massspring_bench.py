@@ -19,12 +19,12 @@ figure; CSV rows in bench/out/diff_massspring.csv):
 - peers: the same cloth (from rest) and loss, symplectic Euler at dt = 0.005 for --peer-steps steps,
   float64 on the CPU: kinema (rollout + backward), Taichi 1.7 (ti.ad.Tape over time-indexed
   fields, the DiffTaichi pattern) and Warp (wp.Tape over per-step arrays, the pattern of its
-  cloth_throw example), bench/diff_massspring_peers.py. Each directional derivative is compared
+  cloth_throw example), bench/deform/diff_massspring_peers.py. Each directional derivative is compared
   with the same finite difference (kinema's forward, h = 1e-5) and with each other.
 - step_ab (with --old DIR): the 129^2 implicit forward step of an older kinema build (a
   directory holding its installed `kinema` package) against this one, alternated in rounds.
 
-    .venv/bin/python bench/diff_massspring_bench.py [--steps 100] [--peer-steps 100] [--old DIR]
+    .venv/bin/python bench/deform/diff_massspring_bench.py [--steps 100] [--peer-steps 100] [--old DIR]
 """
 
 from __future__ import annotations
@@ -40,9 +40,10 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE))
+sys.path.insert(0, str(HERE.parent / "common"))  # harness.py
 import harness  # noqa: E402
 
-OUT = HERE / "out"
+OUT = HERE.parent / "out"
 
 
 def cloth(N, km):
@@ -240,6 +241,7 @@ import sys, time, json
 sys.path.insert(0, {path!r}) if {path!r} else None
 import numpy as np
 sys.path.insert(0, {here!r})
+sys.path.insert(0, {common!r})
 import harness
 import kinema as km
 from diff_massspring_bench import cloth
@@ -261,7 +263,7 @@ def bench_step_ab(rec, opts):
     best = {}
     for _ in range(opts.rounds):
         for label, path in (("old", opts.old), ("new", "")):
-            code = STEP_CHILD.format(path=path, here=str(HERE), N=opts.N, k=opts.ab_steps, min_of=opts.min_of,
+            code = STEP_CHILD.format(path=path, here=str(HERE), common=str(HERE.parent / "common"), N=opts.N, k=opts.ab_steps, min_of=opts.min_of,
                                      max_load=opts.max_load, max_tries=opts.max_tries,
                                      quiet_timeout=opts.quiet_timeout)
             r = json.loads(subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
