@@ -7,6 +7,10 @@
 // S is indefinite for a compressed spring (l < L); `clamp` drops the negative transverse
 // term, which makes the stiffness positive semidefinite (the exact Jacobian otherwise).
 // Damping along the spring: f_i = c ((v_j - v_i) . n) n, df_i/dv_j = c n n^T.
+// The adjoint of the implicit step needs the derivative of a bilinear form of these matrices:
+//   d/dd [mu^T S w] with S = (1 - L/l) I + L d d^T / l^3 (unclamped), d d^T / l^2 (clamped, l < L)
+//   = L (mu.w) d / l^3 + L [(w.d) mu + (mu.d) w] / l^3 - 3 L (mu.d)(w.d) d / l^5,
+//   d/dd [(mu.d)(w.d) / l^2] = [(w.d) mu + (mu.d) w] / l^2 - 2 (mu.d)(w.d) d / l^4.
 #pragma once
 
 #include <Eigen/Core>
@@ -55,6 +59,40 @@ Mat<D> spring_damping(const Vec<D>& d) {
   if (l == 0) return Mat<D>::Zero();
   const Vec<D> n = d / l;
   return n * n.transpose();
+}
+
+// Whether spring_jacobian(d, L, clamp) dropped the transverse term (its t = 1 - L/l < 0).
+template <int D>
+bool transverse_clamped(const Vec<D>& d, Scalar L, bool clamp) {
+  return clamp && d.norm() < L;
+}
+
+// d/dd [(mu.d)(w.d) / l^2] = d/dd [mu^T n n^T w] (header); 0 for a zero-length spring.
+template <int D>
+Vec<D> spring_damping_vjp(const Vec<D>& d, const Vec<D>& mu, const Vec<D>& w) {
+  const Scalar l2 = d.squaredNorm();
+  if (l2 == 0) return Vec<D>::Zero();
+  const Scalar md = mu.dot(d), wd = w.dot(d);
+  return (wd * mu + md * w) / l2 - 2 * md * wd / (l2 * l2) * d;
+}
+
+// d/dd [mu^T S w] for S = spring_jacobian(d, L, clamp) (header); 0 for a zero-length spring.
+template <int D>
+Vec<D> spring_jacobian_vjp(const Vec<D>& d, Scalar L, bool clamp, const Vec<D>& mu, const Vec<D>& w) {
+  const Scalar l = d.norm();
+  if (l == 0) return Vec<D>::Zero();
+  if (transverse_clamped<D>(d, L, clamp)) return spring_damping_vjp<D>(d, mu, w);
+  const Scalar md = mu.dot(d), wd = w.dot(d), l3 = l * l * l;
+  return L / l3 * (mu.dot(w) * d + wd * mu + md * w - 3 * md * wd / (l * l) * d);
+}
+
+// d/dL [mu^T S w] = -(mu^T (I - n n^T) w) / l (0 where clamped or zero-length).
+template <int D>
+Scalar spring_jacobian_dL(const Vec<D>& d, Scalar L, bool clamp, const Vec<D>& mu, const Vec<D>& w) {
+  const Scalar l = d.norm();
+  if (l == 0 || transverse_clamped<D>(d, L, clamp)) return 0;
+  const Vec<D> n = d / l;
+  return -(mu.dot(w) - mu.dot(n) * w.dot(n)) / l;
 }
 
 }  // namespace kinema::massspring

@@ -18,58 +18,48 @@ and gravity. Integrators (``System.step``):
   (Choi & Ko 2002) and the step's info reports ``clamped=True``.
 
 Blow-ups raise km.DivergenceError naming the step and the explicit limit, never silent NaN.
+
+Gradients (km.diff): ``System`` implements the km.diff protocol for every integrator, with
+respect to the initial ``x``, ``v``, the parameters ``System.parameters`` (scalar or per item,
+gradients of the same shape) and per-step vertex forces [N] (added where gravity is; fixed
+vertices ignore them). The implicit step is differentiated as if its linear system were solved
+exactly: one adjoint solve with the step's matrix per step, by PCG to the relative residual
+``adjoint_tol`` (a km.diff step option, default 1e-12; 0 factorises every step) preconditioned
+with a CHOLMOD factor lagged across the backward pass; the forward's ``cg_tol`` is not
+differentiated. Where the exact Jacobian was indefinite and the step clamped it, the gradient is
+that of the clamped step; zero-length springs (no force direction) contribute no gradient.
 """
 
 from __future__ import annotations
-
-from dataclasses import dataclass
 
 import numpy as np
 
 from kinema import _core
 from kinema._checks import (
-    as_float_array, choice, finite_result, non_negative, positive, positive_int, simulation_object,
-    spacing, time_step)
+    as_float_array, choice, finite_result, positive_int, real, simulation_object, spacing)
 from kinema._state import assign
 
-__all__ = ["System", "StepInfo", "cloth", "INTEGRATORS"]
+__all__ = ["System", "Config", "StepStats", "Integrator", "cloth", "INTEGRATORS"]
 
 INTEGRATORS = ("explicit", "symplectic", "implicit")
 _SOLVERS = ("cholmod", "cholmod_direct", "cholmod_pcg", "cg")
 
 
-@dataclass(frozen=True)
-class StepInfo:
-    """Statistics of ``System.step`` (summed over ``steps``).
-
-    clamped: the exact spring Jacobian was not positive definite and was clamped.
-    refactored: a CHOLMOD factorisation was computed; factorizations: how many.
-    cg_iterations: (P)CG iterations.
-    seconds_assembly, seconds_factor, seconds_solve: implicit phases [s]; seconds: total [s].
-    """
-
-    clamped: bool
-    refactored: bool
-    factorizations: int
-    cg_iterations: int
-    seconds_assembly: float
-    seconds_factor: float
-    seconds_solve: float
-    seconds: float
+Config = _core.massspring.Config
+StepStats = _core.massspring.StepStats
+Integrator = _core.massspring.Integrator
+_STEP_OPTIONS = ("integrator", "beta", "linear_solver", "cg_tol")
+# km.diff's step options: the step's, and the adjoint solve's tolerance (Config.adjoint_tol).
+_DIFF_OPTIONS = _STEP_OPTIONS + ("adjoint_tol",)
+_DEFAULTS = dict(integrator="implicit", beta=1.0, linear_solver="cholmod", cg_tol=1e-8, adjoint_tol=1e-12)
 
 
-def _per_item(value, count, name, *, positive_only=False):
+def _per_item(value, count, name):
     a = as_float_array(value, name, ndim=(0, 1))
     if np.ndim(value) == 0:  # ascontiguousarray turns a scalar into shape (1,)
         a = np.full(count, float(a[0]))
     elif a.shape != (count,):
         raise ValueError(f"{name}: expected a scalar or shape ({count},), got {a.shape}")
-    if positive_only and count and not (a > 0).all():
-        i = int(np.flatnonzero(~(a > 0))[0])
-        raise ValueError(f"{name}: expected values > 0, got {a[i]} at index {i}")
-    if count and not (a >= 0).all():
-        i = int(np.flatnonzero(~(a >= 0))[0])
-        raise ValueError(f"{name}: expected values >= 0, got {a[i]} at index {i}")
     return np.ascontiguousarray(a)
 
 
@@ -98,6 +88,12 @@ def _gravity(gravity, d):
     return [float(c) for c in g]
 
 
+def _enum(value, name, enum, options):
+    if isinstance(value, enum):
+        return value
+    return getattr(enum, choice(value, name, options))
+
+
 @simulation_object
 class System:
     """A mass-spring system.
@@ -109,11 +105,16 @@ class System:
     rest_length: L [m], scalar or (m,); default the initial distances.
     damping: c [N s/m] along each spring, scalar or (m,).
     fixed: indices of vertices held in place (their velocity stays 0; writing ``x`` moves them).
-    gravity: (d,) acceleration [m/s^2] or None.
+    gravity: (d,) acceleration [m/s^2], or None for no gravity.
 
     Attributes (writable zero-copy views of the solver's memory, valid as long as the system):
-    x: (n, d) positions [m]; v: (n, d) velocities [m/s].
+    x: (n, d) positions [m]; v: (n, d) velocities [m/s]. ``config``: the :class:`Config` of the
+    last ``step`` (integrator, beta, linear_solver, cg_tol). ``parameters``: the names km.diff
+    differentiates with respect to.
     """
+
+    parameters = ("stiffness", "rest_length", "mass", "damping")
+    _diff_state_names = ("x", "v")
 
     def __init__(self, x, springs, *, stiffness, mass=1.0, rest_length=None, damping=0.0,
                  fixed=(), gravity=None):
@@ -130,9 +131,12 @@ class System:
             raise ValueError(f"springs: spring {s} joins vertex {springs[s, 0]} to itself")
         if rest_length is None:
             rest_length = np.linalg.norm(x[springs[:, 1]] - x[springs[:, 0]], axis=1)
+        given = dict(stiffness=stiffness, rest_length=rest_length, damping=damping, mass=mass)
+        # Whether each parameter was given as one number: its gradient is then one number too.
+        self._scalar = {k: np.ndim(v) == 0 for k, v in given.items()}
         self._core = _core.massspring.System(
             x, springs, _per_item(stiffness, m, "stiffness"), _per_item(rest_length, m, "rest_length"),
-            _per_item(damping, m, "damping"), _per_item(mass, n, "mass", positive_only=True),
+            _per_item(damping, m, "damping"), _per_item(mass, n, "mass"),
             _indices(np.asarray(fixed).ravel() if np.size(fixed) else np.zeros(0, np.int64), "fixed", n),
             _gravity(gravity, d))
         self.springs = springs
@@ -161,28 +165,58 @@ class System:
         return self._core.time
 
     @property
+    def config(self) -> Config:
+        """The step options in use (set by ``step``'s arguments)."""
+        return self._core.config
+
+    @property
     def explicit_dt_limit(self) -> float:
         """Gershgorin bound 2 / omega_max [s] on the explicit and symplectic steps; ``inf`` when
         no spring has stiffness (nothing limits the step)."""
         return self._core.explicit_dt_limit
 
+    def state(self) -> dict:
+        """Copies of everything that evolves: ``x``, ``v`` (n, d), ``time`` [s], ``step``, the
+        branch of the last implicit step (``clamped``) and the record of the lagged CHOLMOD
+        factor the next implicit step preconditions with (``factor_*``). ``set_state`` of it
+        resumes the run bit for bit."""
+        return self._core.state()
+
+    def set_state(self, state: dict) -> None:
+        """Restores a ``state()`` exactly (x and v are copied into the existing views)."""
+        if not isinstance(state, dict):
+            raise ValueError(f"state: expected a dict from System.state(), got {type(state).__name__}")
+        self._core.set_state(state)
+
+    def _configure(self, integrator, beta, linear_solver, cg_tol, adjoint_tol=None, config=None):
+        c = self._core.config if config is None else config
+        c.integrator = _enum(integrator, "integrator", Integrator, INTEGRATORS)
+        c.linear_solver = _enum(linear_solver, "linear_solver", _core.LinearSolver, _SOLVERS)
+        c.beta = real(beta, "beta")
+        c.cg_tol = real(cg_tol, "cg_tol")
+        if adjoint_tol is not None:
+            c.adjoint_tol = real(adjoint_tol, "adjoint_tol")
+        return c
+
     def step(self, dt, integrator="implicit", beta=1.0, *, linear_solver="cholmod",
-             cg_tol=1e-8, steps=1) -> StepInfo:
-        """Advances ``steps`` steps of ``dt`` [s] with ``integrator``; see the module docstring."""
-        dt = time_step(dt)
-        choice(integrator, "integrator", INTEGRATORS)
-        beta = non_negative(beta, "beta")
-        choice(linear_solver, "linear_solver", _SOLVERS)
+             cg_tol=1e-8, steps=1) -> StepStats:
+        """Advances ``steps`` steps of ``dt`` [s] with ``integrator``; see the module docstring.
+        Returns the :class:`StepStats` summed over the steps."""
+        return self._step(dt, None, integrator=integrator, beta=beta, linear_solver=linear_solver,
+                          cg_tol=cg_tol, steps=steps)
+
+    def _step(self, dt, control, *, integrator="implicit", beta=1.0, linear_solver="cholmod",
+              cg_tol=1e-8, steps=1):
+        self._configure(integrator, beta, linear_solver, cg_tol)
+        dt = real(dt, "dt")
         try:
-            info = self._core.step(dt, integrator, beta, linear_solver, positive(cg_tol, "cg_tol"),
-                                   positive_int(steps, "steps"))
+            return self._core.step(dt, positive_int(steps, "steps"), control)
         except ValueError as exc:
             if not str(exc).startswith("A:"):
                 raise
             # the implicit matrix M - h C - beta h^2 K overflowed: dt is the argument to blame
             raise ValueError(f"dt: {dt} makes the implicit matrix M - dt C - beta dt^2 K non-finite "
                              f"({exc}); use a smaller dt") from None
-        return StepInfo(**info)
 
     def energy(self) -> float:
         """Kinetic + spring + gravitational energy [J] (gravity potential -m g . x)."""
@@ -198,6 +232,50 @@ class System:
     def forces(self) -> np.ndarray:
         """(n, d) total force [N] at the current state: springs, damping and gravity."""
         return finite_result(self._core.forces(), "forces")
+
+    # ------------------------------------------------------------ km.diff protocol
+
+    def _diff_check(self, wrt, step_options):
+        for key in step_options:
+            if key not in _DIFF_OPTIONS:
+                raise ValueError(f"{key}: not an option of km.massspring.System under km.diff "
+                                 f"(expected {', '.join(_DIFF_OPTIONS)}; km.diff takes one step per call)")
+        _core.massspring.check_config(self._configure(**(_DEFAULTS | step_options), config=Config()))
+        for name in wrt:
+            if name not in self._diff_state_names + self.parameters + ("controls",):
+                raise ValueError(f"wrt: {name!r} is not differentiable in km.massspring.System "
+                                 f"(expected x, v, controls or one of {', '.join(self.parameters)})")
+
+    def _diff_control_shape(self):
+        return self.x.shape
+
+    def _diff_get(self, name):
+        if name in self._diff_state_names:
+            return getattr(self, name).copy()
+        if name in self.parameters:
+            value = self._core.parameter(name)
+            return float(value[0]) if self._scalar[name] and value.size else value
+        raise ValueError(f"name: {name!r} is neither a state array nor a parameter of km.massspring.System")
+
+    def _diff_set(self, name, value):
+        if name in self._diff_state_names:
+            setattr(self, name, value)
+            return
+        if name not in self.parameters:
+            raise ValueError(f"name: {name!r} is neither a state array nor a parameter of km.massspring.System")
+        count = len(self.springs) if name != "mass" else len(self.x)
+        self._core.set_parameter(name, _per_item(value, count, name))
+        self._scalar[name] = np.ndim(value) == 0
+
+    def _diff_step(self, dt, control, step_options):
+        self._step(dt, control, **{k: v for k, v in step_options.items() if k != "adjoint_tol"})
+
+    def _diff_step_adjoint(self, dt, before, after, control, grad_after, step_options):
+        self._configure(**(_DEFAULTS | step_options))
+        gx, gv, params, gcontrol = self._core.step_adjoint(
+            real(dt, "dt"), before, after, control, grad_after["x"], grad_after["v"])
+        grads = {k: float(g.sum()) if self._scalar[k] else g for k, g in params.items()}
+        return {"x": gx, "v": gv}, grads, gcontrol
 
 
 class ClothMesh(tuple):

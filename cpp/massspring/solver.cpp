@@ -1,0 +1,329 @@
+#include "massspring/solver.h"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <string>
+
+#include "core/errors.h"
+#include "core/parallel.h"
+#include "core/timer.h"
+#include "massspring/kernels.h"
+#include "mesh/vertex_set.h"
+
+namespace kinema::massspring {
+
+namespace {
+
+template <int D>
+Vec<D> vertex(const Scalar* a, Index i) {
+  return Eigen::Map<const Vec<D>>(a + i * D);
+}
+
+// Schemes divide by dt^2 (the implicit matrix's scale): below this dt makes them overflow.
+constexpr Scalar kMinTimeStep = 1e-150;
+
+void check_dt(Scalar dt) {
+  if (!(std::isfinite(dt) && dt > 0))
+    throw InvalidArgument("dt: expected a finite number > 0, got " + format_real(dt));
+  if (dt < kMinTimeStep)
+    throw InvalidArgument("dt: " + format_real(dt) +
+                          " is below 1e-150: 1/dt^2 would overflow float64; choose other units");
+}
+
+// LaggedCholesky's rule (linalg/lagged_cholesky.h) with SpdSolver's PCG cap of 25: a PCG solve
+// of more than 25 / 2 iterations makes the next solve factorise.
+constexpr Index kSlowPcg = 25 / 2;
+
+}  // namespace
+
+Solver::Solver(const Model& model, const Config& config)
+    : model_(model),
+      config_(config),
+      assembly_(model.vertex_count, model.dim, 2, model.springs.data(), model.spring_count) {
+  check_config(config_);
+  element_vectors_.resize(model_.spring_count * assembly_.element_vector_size());
+  f_.resize(assembly_.dof_count());
+}
+
+State Solver::initial_state(const Scalar* x0) const {
+  State s;
+  const Index n = assembly_.dof_count();
+  s.x.assign(x0, x0 + n);
+  s.v.assign(n, 0);
+  return s;
+}
+
+// ---------------------------------------------------------------- energies, forces
+
+Scalar Solver::kinetic_energy(const State& s) const {
+  return lumped_kinetic_energy(model_.mass.data(), s.v.data(), model_.vertex_count, model_.dim);
+}
+
+Scalar Solver::spring_energy(const State& s) const {
+  const int d = model_.dim;
+  const auto& x = s.x;
+  return parallel_sum(model_.spring_count, [&](Index e) {
+    const Index i = model_.springs[2 * e], j = model_.springs[2 * e + 1];
+    Scalar l2 = 0;
+    for (int r = 0; r < d; ++r) l2 += (x[j * d + r] - x[i * d + r]) * (x[j * d + r] - x[i * d + r]);
+    const Scalar dl = std::sqrt(l2) - model_.rest_length[e];
+    return model_.stiffness[e] / 2 * dl * dl;
+  });
+}
+
+Scalar Solver::gravity_energy(const State& s) const {
+  if (model_.gravity.empty()) return 0;
+  const int d = model_.dim;
+  return parallel_sum(model_.vertex_count, [&](Index i) {
+    Scalar gx = 0;
+    for (int r = 0; r < d; ++r) gx += model_.gravity[r] * s.x[i * d + r];
+    return -model_.mass[i] * gx;
+  });
+}
+
+template <int D>
+void Solver::forces_d(const State& st, const Scalar* control, bool with_damping, Scalar* f) {
+  const Model& m = model_;
+  const Scalar* x = st.x.data();
+  const Scalar* v = st.v.data();
+  parallel_for(m.spring_count, [&](Index s) {
+    const Index i = m.springs[2 * s], j = m.springs[2 * s + 1];
+    const Vec<D> d = vertex<D>(x, j) - vertex<D>(x, i);
+    const Vec<D> dv = vertex<D>(v, j) - vertex<D>(v, i);
+    const Vec<D> fi = spring_force<D>(d, dv, m.stiffness[s], m.rest_length[s],
+                                      with_damping ? m.damping[s] : 0);
+    Scalar* out = element_vectors_.data() + s * 2 * D;
+    for (int r = 0; r < D; ++r) {
+      out[r] = fi(r);
+      out[D + r] = -fi(r);
+    }
+  });
+  assembly_.gather_vector(element_vectors_.data(), f);
+  if (!m.gravity.empty())
+    parallel_for(m.vertex_count, [&](Index i) {
+      for (int r = 0; r < D; ++r) f[i * D + r] += m.mass[i] * m.gravity[r];
+    });
+  if (control)
+    parallel_for(m.vertex_count * D, [&](Index q) { f[q] += control[q]; });
+}
+
+void Solver::forces(const State& s, Scalar* f) {
+  if (model_.dim == 2) forces_d<2>(s, nullptr, true, f);
+  else forces_d<3>(s, nullptr, true, f);
+}
+
+Scalar Solver::explicit_dt_limit() const {
+  // omega^2 <= max_i sum_{springs at i} 2 k / m_i (Gershgorin on M^-1 K), dt < 2 / omega.
+  std::vector<Scalar> row(model_.vertex_count, 0);
+  for (Index s = 0; s < model_.spring_count; ++s)
+    for (int a = 0; a < 2; ++a) row[model_.springs[2 * s + a]] += 2 * model_.stiffness[s];
+  Scalar w2 = 0;
+  for (Index i = 0; i < model_.vertex_count; ++i)
+    if (!model_.fixed[i]) w2 = std::max(w2, row[i] / model_.mass[i]);
+  return w2 > 0 ? 2 / std::sqrt(w2) : std::numeric_limits<Scalar>::infinity();
+}
+
+void Solver::check_finite(const std::vector<Scalar>& a, const char* quantity, Index step) const {
+  for (Scalar v : a)
+    if (!std::isfinite(v))
+      throw DivergenceError(std::string(quantity) + ": non-finite value at step " +
+                            std::to_string(step) + "; the explicit limit is about dt < " +
+                            format_real(explicit_dt_limit()) + " s: reduce dt or use integrator='implicit'");
+}
+
+// ---------------------------------------------------------------- implicit matrix
+
+// values = M - h C - beta h^2 K at positions x, fixed rows/columns replaced by m_i I.
+template <int D>
+void Solver::assemble_d(const Scalar* x, Scalar dt, Scalar beta, bool clamp) {
+  const Model& m = model_;
+  constexpr int K = 2 * D;
+  if (element_matrices_.empty()) element_matrices_.resize(m.spring_count * K * K);
+  if (values_.empty()) values_.resize(assembly_.nonzeros());
+  parallel_for(m.spring_count, [&](Index s) {
+    const Index i = m.springs[2 * s], j = m.springs[2 * s + 1];
+    const Vec<D> d = vertex<D>(x, j) - vertex<D>(x, i);
+    Mat<D> B = beta * dt * dt * m.stiffness[s] * spring_jacobian<D>(d, m.rest_length[s], clamp);
+    if (m.damping[s] > 0) B += dt * m.damping[s] * spring_damping<D>(d);
+    Eigen::Map<Eigen::Matrix<Scalar, K, K, Eigen::RowMajor>> E(element_matrices_.data() + s * K * K);
+    E.template topLeftCorner<D, D>() = B;
+    E.template bottomRightCorner<D, D>() = B;
+    E.template topRightCorner<D, D>() = -B;
+    E.template bottomLeftCorner<D, D>() = -B;
+  });
+  assembly_.gather_matrix(element_matrices_.data(), values_.data());
+  const auto& row_ptr = assembly_.row_ptr();
+  const auto& col = assembly_.col_index();
+  const auto& diag = assembly_.diagonal();
+  parallel_for(m.vertex_count, [&](Index i) {
+    for (int r = 0; r < D; ++r) {
+      const Index q = i * D + r;
+      for (Index p = row_ptr[q]; p < row_ptr[q + 1]; ++p)
+        if (m.fixed[i] || m.fixed[col[p] / D]) values_[p] = 0;
+      values_[diag[q]] += m.mass[i];
+    }
+  });
+}
+
+void Solver::assemble(const Scalar* x, Scalar dt, Scalar beta, bool clamp) {
+  if (model_.dim == 2) assemble_d<2>(x, dt, beta, clamp);
+  else assemble_d<3>(x, dt, beta, clamp);
+}
+
+CsrView Solver::matrix() const {
+  const Index n = assembly_.dof_count();
+  return CsrView{n, n, assembly_.row_ptr().data(), assembly_.col_index().data(), values_.data()};
+}
+
+// Makes linear_'s lagged factor the one state.factor records (when it is not already).
+void Solver::sync_factor(const State& state) {
+  if (factor_known_ && factor_ == state.factor) return;
+  const FactorRecord& r = state.factor;
+  if (r.valid && !r.refactor_next) {
+    assemble(r.x.data(), r.dt, r.beta, r.clamped);
+    std::vector<Scalar> zero(assembly_.dof_count(), 0), out(zero.size());
+    SpdSolveStats s;
+    if (!linear_.solve_exact(matrix(), zero.data(), out.data(), false, s))
+      throw InvalidArgument("state: its lagged factor's matrix is not positive definite for this "
+                            "system (a state of another system?)");
+  }
+  factor_ = r;
+  factor_known_ = true;
+}
+
+// What a solve did to linear_'s lagged factor, as LaggedCholesky decides it.
+void Solver::record_solve(FactorRecord& r, const State& state, Scalar dt, bool clamp, bool ok,
+                          const SpdSolveStats& s) const {
+  if (s.factorizations > 0) {
+    r.refactor_next = false;
+    r.valid = ok;
+    if (ok) {
+      r.x = state.x;
+      r.dt = dt;
+      r.beta = config_.beta;
+      r.clamped = clamp;
+    } else {
+      r.x.clear();
+    }
+  } else if (ok) {
+    r.refactor_next = s.cg_iterations > kSlowPcg;
+  }
+}
+
+// ---------------------------------------------------------------- step
+
+StepStats Solver::step(State& state, Scalar dt, const Scalar* control, Interrupt& interrupt) {
+  check_dt(dt);
+  check_config(config_);
+  Stopwatch clock, phase;
+  StepStats stats;
+  const Model& m = model_;
+  const int d = m.dim;
+  const Index n = assembly_.dof_count();
+  std::vector<Scalar> x = state.x, v = state.v;
+  bool clamped = false;
+
+  if (config_.integrator != Integrator::Implicit) {
+    // f(x_n, v_n); explicit Euler moves x with v_n, symplectic Euler with v_{n+1}.
+    if (d == 2) forces_d<2>(state, control, true, f_.data());
+    else forces_d<3>(state, control, true, f_.data());
+    const bool symplectic = config_.integrator == Integrator::Symplectic;
+    parallel_for(m.vertex_count, [&](Index i) {
+      for (int r = 0; r < d; ++r) {
+        const Index q = i * d + r;
+        if (m.fixed[i]) {
+          v[q] = 0;
+          continue;
+        }
+        const Scalar v_new = v[q] + dt * f_[q] / m.mass[i];
+        x[q] += dt * (symplectic ? v_new : v[q]);
+        v[q] = v_new;
+      }
+    });
+  } else {
+    // Elastic, gravity and control forces at x_n; damping enters the matrix, implicitly in v'.
+    if (d == 2) forces_d<2>(state, control, false, f_.data());
+    else forces_d<3>(state, control, false, f_.data());
+    rhs_.resize(n);
+    parallel_for(m.vertex_count, [&](Index i) {
+      for (int r = 0; r < d; ++r) {
+        const Index q = i * d + r;
+        rhs_[q] = m.fixed[i] ? 0 : m.mass[i] * v[q] + dt * f_[q];  // M v + h f
+      }
+    });
+    interrupt.check();
+    const LinearSolver kind = config_.linear_solver;
+    // The lagged kinds read the factor of an earlier step: the one state.factor records. Every
+    // CHOLMOD kind leaves a factor behind, recorded in the state for the next step.
+    const bool cholmod = kind != LinearSolver::CG;
+    if (kind == LinearSolver::Cholmod || kind == LinearSolver::CholmodPcg) sync_factor(state);
+    // A factor the record says is stale (or absent) is refactorised first, as it was originally.
+    const bool reuse = !factor_.refactor_next && factor_.valid;
+    FactorRecord record = factor_;
+    if (cholmod) factor_known_ = false;  // until the solves below are recorded
+    // [M - h C - beta h^2 K] v' = M v + h f with the exact spring Jacobian; when it is not
+    // positive definite (springs compressed far below rest length), the clamped one.
+    for (int attempt = 0; attempt < 2; ++attempt) {
+      const bool clamp = attempt == 1;
+      clamped = clamp;
+      phase.restart();
+      assemble(state.x.data(), dt, config_.beta, clamp);
+      stats.seconds_assembly += phase.seconds();
+      if (kind == LinearSolver::CG) std::fill(v.begin(), v.end(), 0);  // PCG starts from v' = v
+      SpdSolveStats s;
+      bool ok = false;
+      try {
+        ok = linear_.solve(kind, matrix(), rhs_.data(), v.data(), config_.cg_tol,
+                           reuse || attempt > 0, interrupt, s);
+      } catch (const InvalidArgument&) {
+        // CG's certificates of indefiniteness (a diagonal entry or a curvature p^T A p <= 0):
+        // the exact matrix goes the way of a failed factorisation, to the clamped one.
+        if (kind != LinearSolver::CG || clamp) throw;
+        s.converged = false;
+      }
+      stats.cg_iterations += s.cg_iterations;
+      stats.factorizations += s.factorizations;
+      stats.seconds_factor += s.seconds_factor;
+      stats.seconds_solve += s.seconds_solve;
+      if (cholmod) record_solve(record, state, dt, clamp, ok, s);
+      if (kind == LinearSolver::CG) {
+        if (s.converged) break;
+        if (clamp)
+          throw ConvergenceError("implicit step: CG reached " + std::to_string(s.cg_iterations) +
+                                 " iterations at step " + std::to_string(state.step) +
+                                 "; use linear_solver='cholmod' or reduce dt");
+        continue;
+      }
+      if (ok) break;
+      if (clamp)
+        throw NotPositiveDefinite("implicit step: the clamped implicit matrix is not positive "
+                                  "definite at step " + std::to_string(state.step) +
+                                  "; check for negative stiffness or reduce dt", -1);
+    }
+    stats.refactored = stats.factorizations > 0;
+    if (cholmod) {
+      factor_ = record;
+      factor_known_ = true;
+    }
+    // x' = x + h v'
+    parallel_for(n, [&](Index q) { x[q] += dt * v[q]; });
+  }
+  check_finite(v, "v", state.step);
+  check_finite(x, "x", state.step);
+  accept_step(state, x, v, dt);
+  state.clamped = clamped;
+  if (config_.integrator == Integrator::Implicit && config_.linear_solver != LinearSolver::CG)
+    state.factor = factor_;
+  stats.clamped = clamped;
+  stats.time = state.time;
+  stats.dt = dt;
+  stats.seconds = clock.seconds();
+  return stats;
+}
+
+// adjoint.cpp evaluates the same forces.
+template void Solver::forces_d<2>(const State&, const Scalar*, bool, Scalar*);
+template void Solver::forces_d<3>(const State&, const Scalar*, bool, Scalar*);
+
+}  // namespace kinema::massspring
