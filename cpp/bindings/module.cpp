@@ -9,6 +9,7 @@
 #include "core/errors.h"
 #include "core/parallel.h"
 #include "core/step_stats.h"
+#include "linalg/spd_solver.h"
 
 namespace py = pybind11;
 
@@ -100,6 +101,13 @@ PYBIND11_MODULE(_core, m) {
       .def_readonly("time", &StepStatsBase::time, "simulated time at the end of the step [s]")
       .def_readonly("dt", &StepStatsBase::dt, "the step taken [s]")
       .def_readonly("seconds", &StepStatsBase::seconds, "wall time of the step [s]");
+
+  // The shared linear-solver choice of the implicit mechanics steps (linalg/spd_solver.h).
+  py::enum_<LinearSolver>(m, "LinearSolver")
+      .value("cholmod", LinearSolver::Cholmod)
+      .value("cholmod_direct", LinearSolver::CholmodDirect)
+      .value("cholmod_pcg", LinearSolver::CholmodPcg)
+      .value("cg", LinearSolver::CG);
 
   auto sparse = m.def_submodule("sparse");
   bind::bind_sparse(sparse);
