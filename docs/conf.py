@@ -40,6 +40,8 @@ API_MODULES = [
     "kinema.vortex",
     "kinema.nbody",
     "kinema.mpm",
+    "kinema.diff",
+    "kinema.torch",
     "kinema.mesh",
     "kinema.render",
     "kinema.io",

@@ -34,6 +34,7 @@ from kinema import diffusion, fem, fmm, grid, massspring, poisson, render, spars
 from kinema import mesh, mpm, nbody
 from kinema.scenes import Scene, SceneError
 from kinema import io
+from kinema import diff
 from kinema import surface, viewer
 from kinema.notebook import show
 
@@ -62,6 +63,8 @@ __all__ = [
     "mesh",
     "sph",
     "mpm",
+    "diff",
+    "torch",
     "render",
     "Scene",
     "SceneError",
@@ -70,6 +73,14 @@ __all__ = [
     "viewer",
     "show",
 ]
+
+
+def __getattr__(name):
+    # km.torch imports PyTorch (an optional extra, slow to import): only on first use.
+    if name == "torch":
+        import importlib
+        return importlib.import_module("kinema.torch")
+    raise AttributeError(f"module 'kinema' has no attribute {name!r}")
 
 
 def set_num_threads(n: int) -> None:
