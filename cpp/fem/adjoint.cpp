@@ -8,21 +8,29 @@
 //               H = (1 + h c) M + h^2 K(x_{n+1}) and dL/dtheta = -lambda . dG/dtheta:
 //               dL/dx_n = (1 + h c) M lambda - b/h (free), a - h^2 K lambda (fixed),
 //               dL/dv_n = h M lambda,  dL/du = h^2 lambda.
+// The adjoint solve reaches a relative residual of 1e-12 (PCG with the forward step's own
+// preconditioner, or a CHOLMOD factorisation of H).
 // Element parameters enter through P = mu A(F) + lam B(F) (fem/kernels.h), chained to
 // (E, nu) by mu = E / (2 (1 + nu)), lam = E nu / ((1 + nu)(1 - 2 nu)).
 // The implicit adjoint is the derivative of the exact minimiser: the definiteness fix and the
 // line search change Newton's path to it, not the point it converges to, so they do not enter;
 // the result differs from the derivative of the computed step by O(tol) (Newton's stopping test).
+#include <algorithm>
 #include <cmath>
 #include <string>
 
 #include "core/errors.h"
 #include "core/parallel.h"
 #include "fem/solver.h"
+#include "linalg/cg.h"
 
 namespace kinema::fem {
 
 namespace {
+
+// Relative residual of the adjoint solve H lambda = rhs: rounding level of the solve itself,
+// far below the O(tol) by which Newton's answer differs from the exact minimiser.
+constexpr Scalar kAdjointTolerance = 1e-12;
 
 template <int D>
 Mat<D> dm_inverse(const Model& m, Index e) {
@@ -108,7 +116,7 @@ void Solver::step_adjoint(const State& before, const State& after, Scalar dt,
   if (config_.integrator == Integrator::Symplectic)
     adjoint_symplectic(before, after, dt, control, adjoint, params, grad_control);
   else
-    adjoint_implicit(before, after, dt, control, adjoint, params, grad_control);
+    adjoint_implicit(before, after, dt, control, adjoint, params, grad_control, interrupt);
 }
 
 void Solver::adjoint_symplectic(const State& before, const State& after, Scalar dt,
@@ -171,7 +179,7 @@ void Solver::adjoint_symplectic(const State& before, const State& after, Scalar 
 
 void Solver::adjoint_implicit(const State& before, const State& after, Scalar dt,
                               const Scalar* control, State& adjoint, ParameterGradient& params,
-                              Scalar* grad_control) {
+                              Scalar* grad_control, Interrupt& interrupt) {
   (void)control;  // G is linear in u: dG/du = -h^2 I whatever its value
   const Model& m = model_;
   const int d = m.dim;
@@ -188,19 +196,42 @@ void Solver::adjoint_implicit(const State& before, const State& after, Scalar dt
     }
   });
   if (values_.empty()) values_.resize(assembly_.nonzeros());
-  assemble_newton_matrix(after.x.data(), weight, scale, false);
   const CsrView A{n, n, assembly_.row_ptr().data(), assembly_.col_index().data(), values_.data()};
+  // PCG preconditioned by the factor the forward step itself preconditioned with (the State's
+  // record: a matrix of a nearby step, so a few iterations reach rounding), else, or when PCG
+  // stalls, a factorisation of H. The adjoint keeps its own factor, so that the forward one
+  // survives a backward pass, and a step's answer depends on its states only (not on which
+  // adjoint steps ran before it): checkpointed and repeated backward passes agree bitwise.
   SpdSolveStats s;
-  const bool ok = spd_.solve_exact(A, rhs.data(), lambda.data(), false, s);
-  // The factor is now the exact Hessian at x_{n+1}; a later forward step that records another
-  // matrix rebuilds its own (sync_factor).
-  force_refactor_ = !ok;
-  if (ok) factor_.x = after.x;
-  else factor_.x.clear();
-  factor_.weight = ok ? weight : 0;
-  factor_.scale = ok ? scale : 0;
-  factor_.projected = false;
-  factor_.refactor_pending = spd_.refactor_pending();
+  FactorRecord key = before.factor;
+  key.refactor_pending = false;
+  const bool lagged = config_.linear_solver != LinearSolver::CholmodDirect && !key.x.empty() &&
+                      key.x.size() == before.x.size();
+  if (lagged && !(adjoint_factor_ == key)) {
+    assemble_newton_matrix(key.x.data(), key.weight, key.scale, key.projected);
+    std::vector<Scalar> zero(n, 0), out(n);
+    adjoint_factor_.x.clear();
+    if (adjoint_spd_.solve_exact(A, zero.data(), out.data(), false, s)) adjoint_factor_ = key;
+  }
+  assemble_newton_matrix(after.x.data(), weight, scale, false);
+  bool ok = false;
+  if (lagged && !adjoint_factor_.x.empty()) {
+    const LinearOperator op = [&](const Scalar* v, Scalar* y) { spmv(A, v, y); };
+    const LinearOperator pre = [&](const Scalar* r, Scalar* z) {
+      adjoint_spd_.solve_exact(A, r, z, true, s);
+    };
+    try {
+      ok = pcg(n, op, pre, rhs.data(), lambda.data(), IterativeOptions{kAdjointTolerance, 50},
+               interrupt).converged;
+    } catch (const InvalidArgument&) {
+      ok = false;  // negative curvature: H may be indefinite; the factorisation decides
+    }
+  }
+  if (!ok) {
+    std::fill(lambda.begin(), lambda.end(), 0);
+    adjoint_factor_.x.clear();  // the factor becomes H's own, no record's
+    ok = adjoint_spd_.solve_exact(A, rhs.data(), lambda.data(), false, s);
+  }
   if (!ok)
     throw NotPositiveDefinite(
         "step_adjoint: the exact Hessian of the implicit step at its solution (step " +

@@ -9,7 +9,8 @@
 // c is a mass-proportional (Rayleigh) damping rate [1/s]; u the step's control forces [N]
 // (none on fixed vertices, which keep their positions and have v = 0).
 // The adjoint step is the vector-Jacobian product of either step (fem/adjoint.cpp); the
-// implicit one by the implicit function theorem on grad g(x_{n+1}) = 0 with the exact Hessian.
+// implicit one by the implicit function theorem on grad g(x_{n+1}) = 0 with the exact Hessian,
+// solved to rounding by PCG with the forward step's own CHOLMOD factor, or by a factorisation.
 #pragma once
 
 #include <vector>
@@ -100,7 +101,7 @@ class Solver {
   StepStats step_symplectic(State& state, Scalar dt, const Scalar* control);
   void adjoint_implicit(const State& before, const State& after, Scalar dt,
                         const Scalar* control, State& adjoint, ParameterGradient& params,
-                        Scalar* grad_control);
+                        Scalar* grad_control, Interrupt& interrupt);
   void adjoint_symplectic(const State& before, const State& after, Scalar dt,
                           const Scalar* control, State& adjoint, ParameterGradient& params,
                           Scalar* grad_control);
@@ -131,6 +132,9 @@ class Solver {
   std::vector<Scalar> element_vectors_, element_matrices_, values_;
   std::vector<Scalar> grad_, dx_, trial_, rhs_;
   SpdSolver spd_;
+  // The adjoint solves' own factor and the forward record it is of (empty: H's own or none).
+  SpdSolver adjoint_spd_;
+  FactorRecord adjoint_factor_;
   // Which matrix spd_'s factor is, as State records it; force_refactor_: the next CHOLMOD
   // solve factorises (the State has no factor, or a pending refactorisation).
   FactorRecord factor_;
