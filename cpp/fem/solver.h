@@ -93,9 +93,10 @@ class Solver {
   void hessian_product(const Scalar* x, const Scalar* w, Scalar* out);
   // g_mu[e], g_lam[e] = w . d(grad E(x))/d(mu_e), d(grad E(x))/d(lam_e).
   void parameter_product(const Scalar* x, const Scalar* w, Scalar* g_mu, Scalar* g_lam) const;
-  // Chains per-element (mu, lam) gradients to (E, nu) and adds them to params.
-  void add_lame_gradient(const std::vector<Scalar>& g_mu, const std::vector<Scalar>& g_lam,
-                         ParameterGradient& params) const;
+  // params.youngs_modulus, .poisson_ratio = factor w . d(grad E(x))/d(E_e, nu_e), through
+  // (mu_e, lam_e).
+  void elastic_parameter_gradient(const Scalar* x, const Scalar* w, Scalar factor,
+                                  ParameterGradient& params) const;
 
   StepStats step_implicit(State& state, Scalar dt, const Scalar* control, Interrupt& interrupt);
   StepStats step_symplectic(State& state, Scalar dt, const Scalar* control);
