@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import subprocess
 import sys
 import time
@@ -125,12 +126,12 @@ def baseline(args):
     times = {"current": [], "baseline": []}
     for _ in range(args.rounds):
         for which, path in (("current", None), ("baseline", args.baseline)):
-            code = (f"import sys; sys.path.insert(0, {str(path)!r}); " if path else "") + \
-                f"sys.argv = ['x', '--child', '--n', '{args.n}', '--steps', '{args.steps}']; " \
-                f"exec(open({str(script)!r}).read())"
+            env = dict(os.environ)
+            if path:  # PYTHONPATH comes before site-packages: that folder's kinema is imported
+                env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(path), env.get("PYTHONPATH")]))
             before = harness.sample_cpu()
-            out = subprocess.run([sys.executable, "-c", "import sys; " + code], capture_output=True,
-                                 text=True, check=True)
+            out = subprocess.run([sys.executable, str(script), "--child", "--n", str(args.n), "--steps",
+                                  str(args.steps)], capture_output=True, text=True, check=True, env=env)
             load = harness.other_load(before, harness.sample_cpu())
             value = json.loads(out.stdout.strip().splitlines()[-1])
             times[which].append((value["forward"], load))
