@@ -166,3 +166,15 @@ def test_linear_scaling():
         times.append(best)
     k = np.polyfit(np.log(ns), np.log(times), 1)[0]
     assert abs(k - 1) < 0.2, f"fitted exponent {k:.2f} (times {times})"
+
+
+def test_near_field_beyond_the_float_estimate_range_falls_back_exactly():
+    # Coordinates of size 1e19: squared distances up to ~1e38 exceed the range of the float
+    # reciprocal square root (1e36), so the vectorised near field (one-way and mutual, the
+    # targets being the sources) hands those leaves to the exact kernel.
+    x = np.random.default_rng(12).random((3000, 3)) * 1e19
+    q = np.random.default_rng(13).uniform(-1, 1, 3000)
+    phi, grad = km.fmm.laplace3d(x, q, eps=1e-8, gradient=True)
+    ref_phi, ref_grad = km.fmm.direct3d(x, q, gradient=True)
+    assert not km.fmm.last_info()["direct"]
+    assert rel(phi, ref_phi) < 1e-8 and rel(grad, ref_grad) < 1e-7

@@ -164,3 +164,22 @@ def test_galaxy_collision_example_runs(tmp_path):
     assert len(list((tmp_path / "frames").glob("*.png"))) == 3
     assert (tmp_path / "energy_error.png").exists()
     assert worst < 1e-2
+
+
+def test_step_returns_step_stats():
+    x, v, m = km.nbody.plummer(50, seed=2)
+    s = km.nbody.System(x, v, m, softening=0.05)
+    stats = s.step(0.01)
+    assert isinstance(stats, km._core.StepStats)
+    assert stats.time == s.time == pytest.approx(0.01) and stats.dt == 0.01 and stats.seconds >= 0
+
+
+def test_advance_lands_on_the_end_and_absorbs_a_sliver():
+    # The advance rule of every method (cpp/core/advance.h): a last step shorter than dt/10 is
+    # merged into the step before it; a longer remainder is a short last step.
+    x, v, m = km.nbody.plummer(20, seed=1)
+    for duration, expected in ((0.305, [0.1, 0.2, 0.305]), (0.35, [0.1, 0.2, 0.3, 0.35])):
+        s = km.nbody.System(x, v, m, softening=0.05)
+        times = []
+        s.advance(duration, 0.1, callback=lambda sy: times.append(sy.time))
+        assert times == pytest.approx(expected, abs=1e-15) and s.time == duration

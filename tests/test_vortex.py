@@ -72,3 +72,24 @@ def test_example_runs(tmp_path):
     spec.loader.exec_module(module)
     module.main(["--out", str(tmp_path), "--particles", "200", "--steps", "4", "--every", "2"])
     assert len(list((tmp_path / "frames").glob("*.png"))) == 3
+
+
+def test_resume_from_state_is_bitwise_and_steps_report_stats():
+    rng = np.random.default_rng(4)
+    x = rng.random((300, 2))
+    gamma = rng.uniform(-1, 1, 300)
+    a = km.vortex.VortexParticles(x, gamma, 0.05, eps=1e-8)
+    b = km.vortex.VortexParticles(x, gamma, 0.05, eps=1e-8)
+    stats = a.step(0.01)
+    assert isinstance(stats, km._core.StepStats)
+    assert (stats.time, stats.dt, a.steps) == (pytest.approx(0.01), 0.01, 1) and stats.seconds >= 0
+    saved = a.state()
+    a.step(0.01)
+    a.step(0.01)
+    b.set_state(saved)
+    b.step(0.01)
+    b.step(0.01)
+    assert np.array_equal(a.x, b.x) and a.time == b.time and a.steps == b.steps == 3
+    assert a.parameters == ("circulation", "core")
+    with pytest.raises(ValueError, match="state"):
+        b.set_state({"x": np.zeros((3, 2)), "time": 0.0, "steps": 0})

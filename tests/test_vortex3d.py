@@ -141,3 +141,11 @@ def test_vortex_rings_example_runs(tmp_path):
     module.main(["--out", str(tmp_path), "--steps", "2", "--particles", "24", "--no-saffman"])
     assert len(list((tmp_path / "frames").glob("*.png"))) == 3
     assert (tmp_path / "leapfrog.png").exists()
+
+
+def test_step_returns_step_stats():
+    x, a = km.vortex.ring(1.0, 0.2, 1.0, 24)
+    s = km.vortex.VortexParticles3D(x, a, 0.2)
+    stats = s.step(0.05)
+    assert isinstance(stats, km._core.StepStats)
+    assert stats.time == s.time == pytest.approx(0.05) and stats.dt == 0.05 and s.steps == 1

@@ -1,6 +1,8 @@
 // kinema._core.fmm: the 2D Laplace FMM and the direct sum behind km.fmm. Arrays arrive
 // checked and C-contiguous from python/kinema/fmm.py; results are handed over without a copy.
 #include <optional>
+#include <string>
+#include <type_traits>
 
 #include "bindings/common.h"
 #include "fmm/laplace2d.h"
@@ -10,26 +12,37 @@ namespace kinema::bind {
 
 namespace {
 
-struct Inputs {
-  const Scalar* sources;
-  const Scalar* charges;
-  const Scalar* targets;
-  Index n, m;
+// Points of shape (count, dim), checked and C-contiguous.
+struct Points {
+  const Scalar* data = nullptr;
+  Index count = 0;
 };
 
-Inputs inputs(py::array& sources, py::array& charges, std::optional<py::array>& targets) {
-  if (sources.ndim() != 2 || sources.shape(1) != 2)
-    throw InvalidArgument("sources: expected shape (n, 2)");
-  const Index n = sources.shape(0);
-  Inputs in{checked_data(sources, "sources", 2 * n, false), checked_data(charges, "charges", n, false),
-            nullptr, n, n};
-  if (targets) {
-    if (targets->ndim() != 2 || targets->shape(1) != 2)
-      throw InvalidArgument("targets: expected shape (m, 2)");
-    in.m = targets->shape(0);
-    in.targets = checked_data(*targets, "targets", 2 * in.m, false);
-  }
-  return in;
+Points points(py::array& a, int dim, const char* name) {
+  if (a.ndim() != 2 || a.shape(1) != dim)
+    throw InvalidArgument(std::string(name) + ": expected shape (n, " + std::to_string(dim) + ")");
+  return {checked_data(a, name, dim * a.shape(0), false), a.shape(0)};
+}
+
+// Targets, or the sources themselves (a null pointer with the sources' count) when absent.
+Points targets_or_sources(std::optional<py::array>& targets, int dim, const Points& sources) {
+  return targets ? points(*targets, dim, "targets") : Points{nullptr, sources.count};
+}
+
+// The statistics of one FMM call as the dict behind km.fmm.last_info().
+template <class Stats>
+py::dict info(const Stats& stats) {
+  py::dict d;
+  d["order"] = stats.order;
+  d["leaf_size"] = stats.leaf_size;
+  d["boxes"] = stats.box_count;
+  d["depth"] = stats.depth;
+  d["seconds_tree"] = stats.seconds_tree;
+  d["seconds_upward"] = stats.seconds_upward;
+  if constexpr (std::is_same_v<Stats, fmm3::Fmm3dStats>) d["seconds_m2l"] = stats.seconds_m2l;
+  d["seconds_downward"] = stats.seconds_downward;
+  d["seconds_leaves"] = stats.seconds_leaves;
+  return d;
 }
 
 py::tuple results(std::vector<Scalar>&& phi, std::vector<Scalar>&& grad, Index m, bool gradient) {
@@ -47,48 +60,41 @@ void bind_fmm(py::module_& m) {
       "laplace2d",
       [](py::array sources, py::array charges, std::optional<py::array> targets, Scalar eps,
          bool gradient, int order, Index leaf_size) {
-        const Inputs in = inputs(sources, charges, targets);
+        const Points src = points(sources, 2, "sources"), tgt = targets_or_sources(targets, 2, src);
+        const Scalar* q = checked_data(charges, "charges", src.count, false);
         fmm::Laplace2dConfig config;
         config.eps = eps;
         config.gradient = gradient;
         config.order = order;
         config.leaf_size = leaf_size;
-        std::vector<Scalar> phi(static_cast<size_t>(in.m));
-        std::vector<Scalar> grad(gradient ? static_cast<size_t>(2 * in.m) : 0);
+        std::vector<Scalar> phi(static_cast<size_t>(tgt.count));
+        std::vector<Scalar> grad(gradient ? static_cast<size_t>(2 * tgt.count) : 0);
         fmm::Laplace2dStats stats;
         {
           Interrupt interrupt = python_interrupt();
           ReleaseGil release;
-          stats = fmm::laplace2d(in.sources, in.charges, in.n, in.targets, in.m, config, phi.data(),
+          stats = fmm::laplace2d(src.data, q, src.count, tgt.data, tgt.count, config, phi.data(),
                                  grad.data(), interrupt);
         }
-        py::dict info;
-        info["order"] = stats.order;
-        info["leaf_size"] = stats.leaf_size;
-        info["boxes"] = stats.box_count;
-        info["depth"] = stats.depth;
-        info["seconds_tree"] = stats.seconds_tree;
-        info["seconds_upward"] = stats.seconds_upward;
-        info["seconds_downward"] = stats.seconds_downward;
-        info["seconds_leaves"] = stats.seconds_leaves;
-        py::tuple out = results(std::move(phi), std::move(grad), in.m, gradient);
-        return py::make_tuple(out[0], out[1], info);
+        py::tuple out = results(std::move(phi), std::move(grad), tgt.count, gradient);
+        return py::make_tuple(out[0], out[1], info(stats));
       },
       py::arg("sources"), py::arg("charges"), py::arg("targets"), py::arg("eps"),
       py::arg("gradient"), py::arg("order"), py::arg("leaf_size"));
   m.def(
       "direct2d",
       [](py::array sources, py::array charges, std::optional<py::array> targets, bool gradient) {
-        const Inputs in = inputs(sources, charges, targets);
-        std::vector<Scalar> phi(static_cast<size_t>(in.m));
-        std::vector<Scalar> grad(gradient ? static_cast<size_t>(2 * in.m) : 0);
+        const Points src = points(sources, 2, "sources"), tgt = targets_or_sources(targets, 2, src);
+        const Scalar* q = checked_data(charges, "charges", src.count, false);
+        std::vector<Scalar> phi(static_cast<size_t>(tgt.count));
+        std::vector<Scalar> grad(gradient ? static_cast<size_t>(2 * tgt.count) : 0);
         {
           Interrupt interrupt = python_interrupt();
           ReleaseGil release;
-          fmm::direct2d(in.sources, in.charges, in.n, in.targets, in.m, gradient, phi.data(),
+          fmm::direct2d(src.data, q, src.count, tgt.data, tgt.count, gradient, phi.data(),
                         grad.data(), interrupt);
         }
-        return results(std::move(phi), std::move(grad), in.m, gradient);
+        return results(std::move(phi), std::move(grad), tgt.count, gradient);
       },
       py::arg("sources"), py::arg("charges"), py::arg("targets"), py::arg("gradient"));
   bind_fmm3d(m);
@@ -103,22 +109,12 @@ void bind_fmm3d(py::module_& m) {
       [](py::array sources, py::array charges, std::optional<py::array> targets, Scalar eps,
          int derivatives, int kernel, Scalar length, Scalar min_width, int order, Index leaf_size,
          bool direct) {
-        if (sources.ndim() != 2 || sources.shape(1) != 3)
-          throw InvalidArgument("sources: expected shape (n, 3)");
-        const Index n = sources.shape(0);
+        const Points src = points(sources, 3, "sources"), tgt = targets_or_sources(targets, 3, src);
+        const Index n = src.count, mt = tgt.count;
         if (charges.ndim() != 2 || charges.shape(0) != n)
           throw InvalidArgument("charges: expected shape (n, components)");
         const int components = static_cast<int>(charges.shape(1));
-        const Scalar* src = checked_data(sources, "sources", 3 * n, false);
         const Scalar* q = checked_data(charges, "charges", n * components, false);
-        const Scalar* tgt = nullptr;
-        Index mt = n;
-        if (targets) {
-          if (targets->ndim() != 2 || targets->shape(1) != 3)
-            throw InvalidArgument("targets: expected shape (m, 3)");
-          mt = targets->shape(0);
-          tgt = checked_data(*targets, "targets", 3 * mt, false);
-        }
         if (kernel < 0 || kernel > 2) throw InvalidArgument("kernel: expected 0, 1 or 2");
         fmm3::Fmm3dConfig config;
         config.eps = eps;
@@ -134,20 +130,10 @@ void bind_fmm3d(py::module_& m) {
         {
           Interrupt interrupt = python_interrupt();
           ReleaseGil release;
-          if (direct) fmm3::direct3d(src, n, q, components, tgt, mt, config, out.data(), interrupt);
-          else stats = fmm3::fmm3d(src, n, q, components, tgt, mt, config, out.data(), interrupt);
+          if (direct) fmm3::direct3d(src.data, n, q, components, tgt.data, mt, config, out.data(), interrupt);
+          else stats = fmm3::fmm3d(src.data, n, q, components, tgt.data, mt, config, out.data(), interrupt);
         }
-        py::dict info;
-        info["order"] = stats.order;
-        info["leaf_size"] = stats.leaf_size;
-        info["boxes"] = stats.box_count;
-        info["depth"] = stats.depth;
-        info["seconds_tree"] = stats.seconds_tree;
-        info["seconds_upward"] = stats.seconds_upward;
-        info["seconds_m2l"] = stats.seconds_m2l;
-        info["seconds_downward"] = stats.seconds_downward;
-        info["seconds_leaves"] = stats.seconds_leaves;
-        return py::make_tuple(to_numpy(std::move(out), {mt, components, width}), info);
+        return py::make_tuple(to_numpy(std::move(out), {mt, components, width}), info(stats));
       },
       py::arg("sources"), py::arg("charges"), py::arg("targets"), py::arg("eps"),
       py::arg("derivatives"), py::arg("kernel"), py::arg("length"), py::arg("min_width"),

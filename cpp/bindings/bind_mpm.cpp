@@ -6,8 +6,9 @@
 #include <optional>
 
 #include "bindings/common.h"
-#include "core/rollback.h"
+#include "core/advance.h"
 #include "core/errors.h"
+#include "core/rollback.h"
 #include "mpm/kernels.h"
 #include "mpm/solver.h"
 
@@ -15,27 +16,55 @@ namespace kinema::bind {
 
 namespace {
 
+// A State from a dict of km.mpm.Simulation.state() (a copy; shapes checked against n, d).
+mpm::State state_from(const py::dict& dict, int d, const char* which) {
+  mpm::State state(d);
+  auto array = [&](const char* key) {
+    if (!dict.contains(key)) throw InvalidArgument(std::string(which) + ": missing '" + key + "'");
+    return py::array_t<Scalar, py::array::c_style | py::array::forcecast>::ensure(dict[key]);
+  };
+  auto copy = [&](const char* key, std::vector<Scalar>& out, Index per_particle) {
+    auto a = array(key);
+    if (!a || a.size() != state.n * per_particle)
+      throw InvalidArgument(std::string(which) + "['" + key + "']: expected " + std::to_string(state.n * per_particle) +
+                            " values for " + std::to_string(state.n) + " particles");
+    out.assign(a.data(), a.data() + a.size());
+  };
+  auto x = array("x");
+  if (!x || x.ndim() != 2 || x.shape(1) != d)
+    throw InvalidArgument(std::string(which) + "['x']: expected shape (n, " + std::to_string(d) + ")");
+  state.n = x.shape(0);
+  copy("x", state.x, d);
+  copy("v", state.v, d);
+  copy("F", state.F, d * d);
+  copy("C", state.C, d * d);
+  copy("mass", state.mass, 1);
+  copy("volume", state.volume, 1);
+  copy("Jp", state.Jp, 1);
+  copy("youngs_modulus", state.youngs_modulus, 1);
+  copy("poisson_ratio", state.poisson_ratio, 1);
+  if (!dict.contains("material")) throw InvalidArgument(std::string(which) + ": missing 'material'");
+  auto codes = py::array_t<Index, py::array::c_style | py::array::forcecast>::ensure(dict["material"]);
+  if (!codes || codes.size() != state.n)
+    throw InvalidArgument(std::string(which) + "['material']: expected " + std::to_string(state.n) + " codes");
+  state.material.assign(codes.data(), codes.data() + codes.size());
+  return state;
+}
+
 struct PySimulation {
-  PySimulation(std::vector<Index> shape, Scalar h, std::vector<Scalar> gravity, const std::string& boundary,
-               std::vector<Scalar> origin, Scalar friction, Scalar max_cells_per_step, Scalar max_dt) {
-    model = mpm::make_model(static_cast<int>(shape.size()), shape, h, origin,
-                            mpm::parse_boundary(boundary, "boundary"), friction);
-    if (gravity.size() != shape.size())
-      throw InvalidArgument("gravity: expected " + std::to_string(shape.size()) + " components, got " +
-                            std::to_string(gravity.size()));
-    config.gravity = {0, 0, 0};
-    std::copy(gravity.begin(), gravity.end(), config.gravity.begin());
-    config.max_cells_per_step = max_cells_per_step;
-    config.max_dt = max_dt;
+  PySimulation(std::vector<Index> shape, Scalar h, const mpm::Config& config_, mpm::Boundary boundary,
+               std::vector<Scalar> origin, Scalar friction)
+      : config(config_) {
+    model = mpm::make_model(static_cast<int>(shape.size()), shape, h, origin, boundary, friction);
     state = std::make_shared<mpm::State>(model.dim);
     solver = std::make_unique<mpm::Solver>(model, config);
   }
 
   int dim() const { return model.dim; }
 
-  py::tuple add_particles(py::array positions, const std::string& material, Scalar density,
-                          Scalar youngs_modulus, Scalar poisson_ratio, py::array velocity, py::array volume,
-                          Scalar friction_angle, Scalar cohesion) {
+  py::tuple add_particles(py::array positions, mpm::MaterialKind kind, Scalar density, Scalar youngs_modulus,
+                          Scalar poisson_ratio, py::array velocity, py::array volume, Scalar friction_angle,
+                          Scalar cohesion) {
     const int d = model.dim;
     if (positions.ndim() != 2 || positions.shape(1) != d)
       throw InvalidArgument("positions: expected shape (n, " + std::to_string(d) + ")");
@@ -54,7 +83,6 @@ struct PySimulation {
       }
       if (!(std::isfinite(vol[p]) && vol[p] > 0)) throw InvalidArgument("volume: expected finite values > 0");
     }
-    const mpm::MaterialKind kind = mpm::parse_material(material);
     const mpm::Material mat =
         mpm::make_material(d, kind, density, youngs_modulus, poisson_ratio, friction_angle, cohesion);
     std::vector<Scalar> mass(vol, vol + m);
@@ -63,7 +91,8 @@ struct PySimulation {
     auto next = std::make_shared<mpm::State>(*state);
     mpm::Model next_model = model;
     next_model.materials.push_back(mat);
-    next->append(x, v, m, mass.data(), vol, static_cast<Index>(next_model.materials.size() - 1));
+    next->append(x, v, m, mass.data(), vol, static_cast<Index>(next_model.materials.size() - 1), mat.youngs_modulus,
+                 mat.poisson_ratio);
     solver = std::make_unique<mpm::Solver>(next_model, config);
     model = std::move(next_model);
     const Index start = state->n;
@@ -72,7 +101,7 @@ struct PySimulation {
   }
 
   void add_collider(const std::string& shape, std::vector<Scalar> lower, std::vector<Scalar> upper,
-                    std::vector<Scalar> center, Scalar radius, const std::string& boundary, Scalar friction) {
+                    std::vector<Scalar> center, Scalar radius, mpm::Boundary boundary, Scalar friction) {
     mpm::Collider c;
     const size_t d = static_cast<size_t>(model.dim);
     if (shape == "box") {
@@ -90,7 +119,7 @@ struct PySimulation {
     } else {
       throw InvalidArgument("region: 'shape' must be 'box' or 'sphere', got '" + shape + "'");
     }
-    c.boundary = mpm::parse_boundary(boundary, "boundary");
+    c.boundary = boundary;
     c.friction = friction;
     mpm::Model next = model;
     mpm::add_collider(next, c);
@@ -98,63 +127,102 @@ struct PySimulation {
     model = std::move(next);
   }
 
-  py::dict step(Scalar dt) {
-    mpm::StepStats stats;
-    {
-      Interrupt interrupt = python_interrupt();
-      ReleaseGil release;
-      stats = with_rollback(*state, [&] { return solver->step(*state, dt, interrupt); });
-    }
-    return to_dict(stats);
+  // (n, d) forces [N] or None.
+  const Scalar* forces_of(py::object forces) const {
+    if (forces.is_none()) return nullptr;
+    py::array a = forces.cast<py::array>();
+    if (a.ndim() != 2 || a.shape(0) != state->n || a.shape(1) != model.dim)
+      throw InvalidArgument("control: expected forces of shape (" + std::to_string(state->n) + ", " +
+                            std::to_string(model.dim) + ") [N]");
+    return checked_data(a, "control", state->n * model.dim, false);
   }
 
-  // Steps of stable_dt(cfl) until `duration` has passed; Ctrl-C is checked between steps.
+  mpm::StepStats step(Scalar dt, py::object forces) {
+    const Scalar* f = forces_of(forces);
+    Interrupt interrupt = python_interrupt();
+    ReleaseGil release;
+    return with_rollback(*state, [&] { return solver->step(*state, dt, interrupt, f); });
+  }
+
+  // Steps of stable_dt(cfl) until `duration` has passed (core/advance.h); returns the step
+  // count and the last step's statistics with the stage and wall seconds summed over all.
   py::tuple advance(Scalar duration, Scalar cfl) {
-    if (!(std::isfinite(duration) && duration >= 0))
-      throw InvalidArgument("duration: expected a finite time >= 0 [s], got " + format_real(duration));
     if (!(std::isfinite(cfl) && cfl > 0)) throw InvalidArgument("cfl: expected a number > 0, got " + format_real(cfl));
-    Index steps = 0;
     mpm::StepStats last, sum;
+    AdvanceResult result;
     {
       Interrupt interrupt = python_interrupt();
       ReleaseGil release;
-      const Scalar end = state->time + duration;
-      while (state->time < end) {
-        interrupt.check();
-        Scalar dt = solver->stable_dt(*state, cfl);
-        const Scalar remaining = end - state->time;
-        // Stretch the last step a little rather than leave a sliver.
-        if (dt >= remaining || remaining - dt < 0.1 * dt) dt = remaining;
-        last = with_rollback(*state, [&] { return solver->step(*state, dt, interrupt); });
-        sum.sort_seconds += last.sort_seconds;
-        sum.p2g_seconds += last.p2g_seconds;
-        sum.grid_seconds += last.grid_seconds;
-        sum.g2p_seconds += last.g2p_seconds;
-        sum.seconds += last.seconds;
-        ++steps;
-        if (dt == remaining) state->time = end;
-      }
+      result = advance_to(
+          *state, duration, [&](const mpm::State& s) { return solver->stable_dt(s, cfl); },
+          [&](mpm::State& s, Scalar dt) { return with_rollback(s, [&] { return solver->step(s, dt, interrupt); }); },
+          [&](const mpm::StepStats& stats) {
+            last = stats;
+            sum.sort_seconds += stats.sort_seconds;
+            sum.p2g_seconds += stats.p2g_seconds;
+            sum.grid_seconds += stats.grid_seconds;
+            sum.g2p_seconds += stats.g2p_seconds;
+            sum.seconds += stats.seconds;
+          },
+          interrupt);
     }
+    last.time = state->time;
     last.sort_seconds = sum.sort_seconds;
     last.p2g_seconds = sum.p2g_seconds;
     last.grid_seconds = sum.grid_seconds;
     last.g2p_seconds = sum.g2p_seconds;
     last.seconds = sum.seconds;
-    return py::make_tuple(steps, to_dict(last));
+    return py::make_tuple(result.steps, last);
   }
 
-  static py::dict to_dict(const mpm::StepStats& s) {
-    py::dict d;
-    d["dt"] = s.dt;
-    d["max_speed"] = s.max_speed;
-    d["particle_blocks"] = s.particle_blocks;
-    d["active_blocks"] = s.active_blocks;
-    d["sort_seconds"] = s.sort_seconds;
-    d["p2g_seconds"] = s.p2g_seconds;
-    d["grid_seconds"] = s.grid_seconds;
-    d["g2p_seconds"] = s.g2p_seconds;
-    d["seconds"] = s.seconds;
-    return d;
+  // The vector-Jacobian product of one step (Solver::step_adjoint): `before`/`after` are state()
+  // dicts around step(dt, forces); `grads` maps x, v, F, C to dL/d(after). Returns
+  // (dL/d(before) as a dict of x, v, F, C; dL/dE (n,); dL/dnu (n,); dL/dforces (n, d) or None).
+  py::tuple step_adjoint(Scalar dt, const py::dict& before_dict, const py::dict& after_dict, py::object forces,
+                         const py::dict& grads) {
+    const int d = model.dim;
+    const mpm::State before = state_from(before_dict, d, "before");
+    const mpm::State after = state_from(after_dict, d, "after");
+    if (after.n != before.n) throw InvalidArgument("after: particle count differs from before's");
+    const Index n = before.n;
+    const Scalar* f = nullptr;
+    if (!forces.is_none()) {
+      py::array a = forces.cast<py::array>();
+      if (a.ndim() != 2 || a.shape(0) != n || a.shape(1) != d)
+        throw InvalidArgument("control: expected forces of shape (" + std::to_string(n) + ", " + std::to_string(d) + ")");
+      f = checked_data(a, "control", n * d, false);
+    }
+    mpm::State adjoint(d);
+    adjoint.n = n;
+    const std::pair<const char*, std::vector<Scalar>*> fields[] = {
+        {"x", &adjoint.x}, {"v", &adjoint.v}, {"F", &adjoint.F}, {"C", &adjoint.C}};
+    for (const auto& [key, out] : fields) {
+      const Index size = n * d * (key[0] == 'F' || key[0] == 'C' ? d : 1);
+      if (!grads.contains(key)) {
+        out->assign(static_cast<size_t>(size), 0.0);
+        continue;
+      }
+      auto a = py::array_t<Scalar, py::array::c_style | py::array::forcecast>::ensure(grads[key]);
+      if (!a || a.size() != size)
+        throw InvalidArgument(std::string("grads['") + key + "']: expected " + std::to_string(size) + " values");
+      out->assign(a.data(), a.data() + size);
+    }
+    mpm::ParamsAdjoint params;
+    std::vector<Scalar> forces_bar(f ? static_cast<size_t>(n * d) : 0);
+    {
+      Interrupt interrupt = python_interrupt();
+      ReleaseGil release;
+      solver->step_adjoint(before, after, dt, f, adjoint, params, f ? forces_bar.data() : nullptr, interrupt);
+    }
+    py::dict out;
+    out["x"] = to_numpy(std::move(adjoint.x), {n, d});
+    out["v"] = to_numpy(std::move(adjoint.v), {n, d});
+    out["F"] = to_numpy(std::move(adjoint.F), {n, d, d});
+    out["C"] = to_numpy(std::move(adjoint.C), {n, d, d});
+    py::object fb = py::none();
+    if (f) fb = to_numpy(std::move(forces_bar), {n, d});
+    return py::make_tuple(out, to_numpy(std::move(params.youngs_modulus), {n}),
+                          to_numpy(std::move(params.poisson_ratio), {n}), fb);
   }
 
   // A writable view of one State buffer, owned by the State through a capsule.
@@ -174,24 +242,67 @@ struct PySimulation {
 }  // namespace
 
 void bind_mpm(py::module_& m) {
+  py::enum_<mpm::Boundary>(m, "Boundary", "Velocity condition at a wall or collider.")
+      .value("sticky", mpm::Boundary::Sticky)
+      .value("slip", mpm::Boundary::Slip)
+      .value("separate", mpm::Boundary::Separate);
+  py::enum_<mpm::MaterialKind>(m, "MaterialKind")
+      .value("elastic", mpm::MaterialKind::Elastic)
+      .value("neohookean", mpm::MaterialKind::NeoHookean)
+      .value("snow", mpm::MaterialKind::Snow)
+      .value("sand", mpm::MaterialKind::Sand)
+      .value("water", mpm::MaterialKind::Water);
+
+  py::class_<mpm::Config>(m, "Config", "How the MPM solver steps (cpp/mpm/config.h).")
+      .def(py::init<>())
+      .def_readwrite("gravity", &mpm::Config::gravity, "[m/s^2], 3 entries, the first d used")
+      .def_readwrite("max_cells_per_step", &mpm::Config::max_cells_per_step,
+                     "cells a particle may cross in one step before DivergenceError")
+      .def_readwrite("max_dt", &mpm::Config::max_dt, "largest step stable_dt returns [s]");
+
+  py::class_<mpm::StepStats, StepStatsBase>(m, "StepStats", "Statistics of one MPM step.")
+      .def_readonly("max_speed", &mpm::StepStats::max_speed, "largest particle speed after the step [m/s]")
+      .def_readonly("particle_blocks", &mpm::StepStats::particle_blocks, "grid blocks holding particles")
+      .def_readonly("active_blocks", &mpm::StepStats::active_blocks, "blocks the transfers touch")
+      .def_readonly("sort_seconds", &mpm::StepStats::sort_seconds, "binning and block activation [s]")
+      .def_readonly("p2g_seconds", &mpm::StepStats::p2g_seconds, "stress and particle-to-grid transfer [s]")
+      .def_readonly("grid_seconds", &mpm::StepStats::grid_seconds, "grid update and boundary conditions [s]")
+      .def_readonly("g2p_seconds", &mpm::StepStats::g2p_seconds, "grid-to-particle transfer and plasticity [s]")
+      .def("__repr__", [](const mpm::StepStats& s) {
+        return "kinema.mpm.StepStats(time=" + format_real(s.time) + ", dt=" + format_real(s.dt) +
+               ", max_speed=" + format_real(s.max_speed) + ", seconds=" + format_real(s.seconds) + ")";
+      });
+
+  py::class_<mpm::Material>(m, "Material", "One entry of the material table (model.h).")
+      .def_property_readonly("kind", [](const mpm::Material& mat) { return std::string(mpm::material_name(mat.kind)); })
+      .def_readonly("density", &mpm::Material::density, "[kg/m^d]")
+      .def_readonly("youngs_modulus", &mpm::Material::youngs_modulus, "[Pa] (water: bulk modulus)")
+      .def_readonly("poisson_ratio", &mpm::Material::poisson_ratio)
+      .def_readonly("mu", &mpm::Material::mu, "[Pa]")
+      .def_readonly("lambda_", &mpm::Material::lambda, "[Pa]")
+      .def_readonly("friction_angle", &mpm::Material::friction_angle, "[deg]")
+      .def_readonly("cohesion", &mpm::Material::cohesion, "[Pa]")
+      .def_readonly("wave_speed", &mpm::Material::wave_speed, "fastest elastic wave at rest [m/s]");
+
   py::class_<PySimulation>(m, "Simulation")
-      .def(py::init<std::vector<Index>, Scalar, std::vector<Scalar>, const std::string&, std::vector<Scalar>,
-                    Scalar, Scalar, Scalar>(),
-           py::arg("shape"), py::arg("h"), py::arg("gravity"), py::arg("boundary"), py::arg("origin"),
-           py::arg("friction"),
-           py::arg("max_cells_per_step"), py::arg("max_dt"))
+      .def(py::init<std::vector<Index>, Scalar, const mpm::Config&, mpm::Boundary, std::vector<Scalar>, Scalar>(),
+           py::arg("shape"), py::arg("h"), py::arg("config"), py::arg("boundary"), py::arg("origin"),
+           py::arg("friction"))
       .def("add_particles", &PySimulation::add_particles, py::arg("positions"), py::arg("material"),
            py::arg("density"), py::arg("youngs_modulus"), py::arg("poisson_ratio"), py::arg("velocity"),
            py::arg("volume"), py::arg("friction_angle"), py::arg("cohesion"))
       .def("add_collider", &PySimulation::add_collider, py::arg("shape"), py::arg("lower"), py::arg("upper"),
            py::arg("center"), py::arg("radius"), py::arg("boundary"), py::arg("friction"))
-      .def("step", &PySimulation::step, py::arg("dt"))
+      .def("step", &PySimulation::step, py::arg("dt"), py::arg("forces") = py::none())
+      .def("step_adjoint", &PySimulation::step_adjoint, py::arg("dt"), py::arg("before"), py::arg("after"),
+           py::arg("forces"), py::arg("grads"))
       .def("advance", &PySimulation::advance, py::arg("duration"), py::arg("cfl"))
       .def("stable_dt", [](const PySimulation& s, Scalar cfl) { return s.solver->stable_dt(*s.state, cfl); },
            py::arg("cfl"))
       .def("kinetic_energy", [](const PySimulation& s) { return s.solver->kinetic_energy(*s.state); })
       .def("momentum", [](const PySimulation& s) { return s.solver->momentum(*s.state); })
       .def("angular_momentum", [](const PySimulation& s) { return s.solver->angular_momentum(*s.state); })
+      .def_property_readonly("config", [](const PySimulation& s) { return s.config; })
       .def_property_readonly("dim", &PySimulation::dim)
       .def_property_readonly("count", [](const PySimulation& s) { return s.state->n; })
       .def_property_readonly("x", [](PySimulation& s) { return s.view(s.state->x, {s.state->n, s.dim()}); })
@@ -206,27 +317,15 @@ void bind_mpm(py::module_& m) {
       .def_property_readonly("volume", [](PySimulation& s) { return s.view(s.state->volume, {s.state->n}); })
       .def_property_readonly("material", [](PySimulation& s) { return s.view(s.state->material, {s.state->n}); })
       .def_property_readonly("Jp", [](PySimulation& s) { return s.view(s.state->Jp, {s.state->n}); })
+      .def_property_readonly("youngs_modulus",
+                             [](PySimulation& s) { return s.view(s.state->youngs_modulus, {s.state->n}); })
+      .def_property_readonly("poisson_ratio",
+                             [](PySimulation& s) { return s.view(s.state->poisson_ratio, {s.state->n}); })
       .def_property("time", [](const PySimulation& s) { return s.state->time; },
                     [](PySimulation& s, Scalar t) { s.state->time = t; })
       .def_property("steps", [](const PySimulation& s) { return s.state->steps; },
                     [](PySimulation& s, Index n) { s.state->steps = n; })
-      .def_property_readonly("materials", [](const PySimulation& s) {
-        py::list out;
-        for (const auto& mat : s.model.materials) {
-          py::dict d;
-          d["kind"] = mpm::material_name(mat.kind);
-          d["density"] = mat.density;
-          d["youngs_modulus"] = mat.youngs_modulus;
-          d["poisson_ratio"] = mat.poisson_ratio;
-          d["mu"] = mat.mu;
-          d["lambda"] = mat.lambda;
-          d["friction_angle"] = mat.friction_angle;
-          d["cohesion"] = mat.cohesion;
-          d["wave_speed"] = mat.wave_speed;
-          out.append(d);
-        }
-        return out;
-      });
+      .def_property_readonly("materials", [](const PySimulation& s) { return s.model.materials; });
 }
 
 }  // namespace kinema::bind

@@ -17,7 +17,6 @@ namespace kinema::bind {
 
 void bind_sparse(py::module_& m);
 void bind_poisson(py::module_& m);
-void bind_diffusion(py::module_& m);
 void bind_fmm(py::module_& m);
 void bind_grid(py::module_& m);
 void bind_massspring(py::module_& m);
@@ -98,6 +97,9 @@ PYBIND11_MODULE(_core, m) {
   // The base of every method's StepStats (core/step_stats.h), registered before the
   // submodules so that theirs can name it as their base class.
   py::class_<StepStatsBase>(m, "StepStats", "Fields every method's step statistics share.")
+      // Constructible for the methods whose time stepping is written in Python (km.nbody, km.vortex).
+      .def(py::init([](Scalar time, Scalar dt, double seconds) { return StepStatsBase{time, dt, seconds}; }),
+           py::kw_only(), py::arg("time"), py::arg("dt"), py::arg("seconds"))
       .def_readonly("time", &StepStatsBase::time, "simulated time at the end of the step [s]")
       .def_readonly("dt", &StepStatsBase::dt, "the step taken [s]")
       .def_readonly("seconds", &StepStatsBase::seconds, "wall time of the step [s]");
@@ -113,8 +115,6 @@ PYBIND11_MODULE(_core, m) {
   bind::bind_sparse(sparse);
   auto poisson = m.def_submodule("poisson");
   bind::bind_poisson(poisson);
-  auto diffusion = m.def_submodule("diffusion");
-  bind::bind_diffusion(diffusion);
   auto fmm = m.def_submodule("fmm");
   bind::bind_fmm(fmm);
   auto grid = m.def_submodule("grid");

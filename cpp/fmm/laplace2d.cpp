@@ -12,7 +12,7 @@
 #include "core/errors.h"
 #include "core/timer.h"
 #include "fmm/kernels.h"
-#include "fmm/quadtree.h"
+#include "fmm/tree.h"
 
 namespace kinema::fmm {
 
@@ -44,8 +44,8 @@ void evaluate(const Quadtree& tree, const std::vector<Scalar>& q, const Operator
   std::vector<char> has_local(static_cast<size_t>(box_count), 0);
   auto mre = [&](Index b) { return &multipole[static_cast<size_t>(b) * stride]; };
   auto lre = [&](Index b) { return &local[static_cast<size_t>(b) * stride]; };
-  const Scalar* sx = tree.sx.data();
-  const Scalar* sy = tree.sy.data();
+  const Scalar* sx = tree.s[0].data();
+  const Scalar* sy = tree.s[1].data();
   const Scalar* sq = q.data();
 
   // Upward pass: P2M at leaves, M2M into parents, finest level first.
@@ -61,14 +61,14 @@ void evaluate(const Quadtree& tree, const std::vector<Scalar>& q, const Operator
       if (box.source_count() == 0) continue;
       Scalar* re = mre(id);
       if (box.leaf) {
-        p2m(op, box.cx, box.cy, box.h, sx + box.src_begin, sy + box.src_begin,
+        p2m(op, box.c[0], box.c[1], box.h, sx + box.src_begin, sy + box.src_begin,
             sq + box.src_begin, box.source_count(), re, re + p + 1);
         continue;
       }
       for (Index c : box.child) {
         if (c < 0 || tree.boxes[static_cast<size_t>(c)].source_count() == 0) continue;
         const Box& cb = tree.boxes[static_cast<size_t>(c)];
-        m2m(op, mre(c), mre(c) + p + 1, cb.cx, cb.cy, cb.h, re, re + p + 1, box.cx, box.cy, box.h);
+        m2m(op, mre(c), mre(c) + p + 1, cb.c[0], cb.c[1], cb.h, re, re + p + 1, box.c[0], box.c[1], box.h);
       }
     }
   }
@@ -91,18 +91,19 @@ void evaluate(const Quadtree& tree, const std::vector<Scalar>& q, const Operator
       bool any = false;
       if (has_local[static_cast<size_t>(box.parent)]) {
         const Box& parent = tree.boxes[static_cast<size_t>(box.parent)];
-        l2l(op, lre(box.parent), lre(box.parent) + p + 1, parent.cx, parent.cy, parent.h, re, im,
-            box.cx, box.cy, box.h);
+        l2l(op, lre(box.parent), lre(box.parent) + p + 1, parent.c[0], parent.c[1], parent.h, re, im,
+            box.c[0], box.c[1], box.h);
         any = true;
       }
-      for (Index s : lists.m2l) {
+      for (const M2lEntry& e : lists.m2l) {
+        const Index s = e.source;
         const Box& sb = tree.boxes[static_cast<size_t>(s)];
-        m2l(op, mre(s), mre(s) + p + 1, sb.cx, sb.cy, sb.h, re, im, box.cx, box.cy, box.h);
+        m2l(op, mre(s), mre(s) + p + 1, sb.c[0], sb.c[1], sb.h, re, im, box.c[0], box.c[1], box.h);
         any = true;
       }
       for (Index s : lists.p2l) {
         const Box& sb = tree.boxes[static_cast<size_t>(s)];
-        p2l(op, box.cx, box.cy, box.h, sx + sb.src_begin, sy + sb.src_begin, sq + sb.src_begin,
+        p2l(op, box.c[0], box.c[1], box.h, sx + sb.src_begin, sy + sb.src_begin, sq + sb.src_begin,
             sb.source_count(), re, im);
         any = true;
       }
@@ -125,12 +126,12 @@ void evaluate(const Quadtree& tree, const std::vector<Scalar>& q, const Operator
       const Lists& lists = tree.lists[static_cast<size_t>(id)];
       const bool use_local = has_local[static_cast<size_t>(id)];
       for (Index t = box.tgt_begin; t < box.tgt_end; ++t) {
-        const Scalar x = tree.tx[static_cast<size_t>(t)], y = tree.ty[static_cast<size_t>(t)];
+        const Scalar x = tree.t[0][static_cast<size_t>(t)], y = tree.t[1][static_cast<size_t>(t)];
         Scalar f = 0, gx = 0, gy = 0;
-        if (use_local) l2p<Gradient>(p, lre(id), lre(id) + p + 1, box.cx, box.cy, box.h, x, y, f, gx, gy);
+        if (use_local) l2p<Gradient>(p, lre(id), lre(id) + p + 1, box.c[0], box.c[1], box.h, x, y, f, gx, gy);
         for (Index s : lists.m2p) {
           const Box& sb = tree.boxes[static_cast<size_t>(s)];
-          m2p<Gradient>(p, mre(s), mre(s) + p + 1, sb.cx, sb.cy, sb.h, x, y, f, gx, gy);
+          m2p<Gradient>(p, mre(s), mre(s) + p + 1, sb.c[0], sb.c[1], sb.h, x, y, f, gx, gy);
         }
         for (size_t r = 0; r < lists.p2p_ranges.size(); r += 2) {
           const Index begin = lists.p2p_ranges[r], end = lists.p2p_ranges[r + 1];
@@ -192,8 +193,9 @@ Laplace2dStats laplace2d(const Scalar* sources, const Scalar* charges, Index n,
   for (Index i = 0; i < n; ++i) x[i] = sources[2 * i], y[i] = sources[2 * i + 1];
   for (Index i = 0; i < m; ++i) u[i] = targets[2 * i], v[i] = targets[2 * i + 1];
   const Operators op(stats.order);
-  const Quadtree tree(x.data(), y.data(), n, u.data(), v.data(), m, stats.leaf_size,
-                      stats.order, interrupt);
+  const Scalar* sources_xy[2] = {x.data(), y.data()};
+  const Scalar* targets_xy[2] = {u.data(), v.data()};
+  const Quadtree tree(sources_xy, n, targets_xy, m, stats.leaf_size, 0, stats.order, interrupt);
   std::vector<Scalar> q(static_cast<size_t>(n));
   for (Index i = 0; i < n; ++i) q[static_cast<size_t>(i)] = charges[tree.src_perm[static_cast<size_t>(i)]];
   stats.box_count = static_cast<Index>(tree.boxes.size());

@@ -1,7 +1,9 @@
 // The FMM passes over the adaptive octree: upward (P2M, M2M), downward (M2L from the V list
 // as dense matrix products batched by offset, P2L from the X list, L2L), then per leaf L2P +
-// M2P (W list) + P2P (U list). Every output is written by one loop iteration, and each
-// expansion receives its terms in a fixed order, so results are bitwise identical run to run
+// M2P (W list) + P2P (U list); when the targets are the sources, the U-list P2P instead runs
+// once per pair of adjacent leaves for both ends, in groups of leaves whose tasks write
+// disjoint leaves. Every output is written by one task at a time, and each expansion and
+// target receives its terms in a fixed order, so results are bitwise identical run to run
 // and for any thread count.
 #include "fmm/laplace3d.h"
 
@@ -15,14 +17,14 @@
 #include "core/timer.h"
 #include "fmm/kernels3d.h"
 #include "fmm/m2l_product.h"
-#include "fmm/octree.h"
+#include "fmm/tree.h"
 
 namespace kinema::fmm3 {
 
 namespace {
 
 using fmm::Box3;
-using fmm::Lists3;
+using fmm::Lists;
 using fmm::Octree;
 using ColMatrix = Eigen::Matrix<Scalar, Eigen::Dynamic, Eigen::Dynamic>;
 
@@ -191,7 +193,7 @@ struct Engine {
         const Box3& box = tree.boxes[static_cast<size_t>(id)];
         if (box.target_count() == 0) continue;
         const Box3& parent = tree.boxes[static_cast<size_t>(box.parent)];
-        const Lists3& lists = tree.lists[static_cast<size_t>(id)];
+        const Lists& lists = tree.lists[static_cast<size_t>(id)];
         for (int c = 0; c < nc; ++c) {
           if (box.parent > 0) l2l(p, loc(box.parent, c), parent.c, parent.h, box.c, loc(id, c));
           for (Index s : lists.p2l) {
@@ -233,7 +235,9 @@ struct Engine {
     }
   }
 
-  void leaves(std::vector<Scalar>& result, Interrupt& interrupt) {
+  // `mutual`: the targets are the sources, and the near field of adjacent leaves is summed
+  // once per pair of leaves (near_mutual) instead of here.
+  void leaves(std::vector<Scalar>& result, bool mutual, Interrupt& interrupt) {
     const Index leaf_count = static_cast<Index>(tree.leaves.size());
     const bool fast = config.kernel != NearKernel::Gaussian && nc == 1 && width <= 4;
     const Scalar softening = config.kernel == NearKernel::Plummer ? config.length : 0.0;
@@ -247,8 +251,13 @@ struct Engine {
       for (Index i = start; i < stop; ++i) {
         const Index id = tree.leaves[static_cast<size_t>(i)];
         const Box3& box = tree.boxes[static_cast<size_t>(id)];
-        const Lists3& lists = tree.lists[static_cast<size_t>(id)];
+        const Lists& lists = tree.lists[static_cast<size_t>(id)];
         const int extra = width == 1 ? 0 : width == 4 ? 1 : 2;
+        std::vector<Index> small_w;  // source ranges of the W boxes summed directly
+        if (mutual)
+          for (Index w : lists.w_direct)
+            small_w.insert(small_w.end(), {tree.boxes[static_cast<size_t>(w)].src_begin, tree.boxes[static_cast<size_t>(w)].src_end});
+        const std::vector<Index>& ranges = mutual ? small_w : lists.p2p_ranges;
         std::vector<Complex> coeffs(static_cast<size_t>(complex_count(p)));
         std::vector<Complex> values(static_cast<size_t>(complex_count(p + extra)));
         std::vector<std::vector<std::vector<Complex>>> local_d(static_cast<size_t>(nc));
@@ -289,14 +298,102 @@ struct Engine {
               }
           }
           // P2P: the near field with the near kernel.
-          for (size_t r = 0; r < lists.p2p_ranges.size(); r += 2) {
-            const Index b = lists.p2p_ranges[r], e = lists.p2p_ranges[r + 1];
+          for (size_t r = 0; r < ranges.size(); r += 2) {
+            const Index b = ranges[r], e = ranges[r + 1];
             if (fast && p2p_fast(width == 4, newton, softening, x, y, z, src[0] + b, src[1] + b,
                                  src[2] + b, &q[static_cast<size_t>(b)], e - b, out))
               continue;
             p2p_generic(config.kernel, config.length, width, x, y, z, src[0] + b, src[1] + b,
                         src[2] + b, &q[static_cast<size_t>(b) * nc], nc, e - b, out);
           }
+        }
+      }
+    }
+  }
+
+  // Leaves grouped so that the tasks of one group write disjoint leaves: leaf A's task sums
+  // the pairs of A with itself and with its adjacent leaves B > A, writing A and those B.
+  // Greedy colouring in leaf order; every target then receives its terms group by group in a
+  // fixed order, whatever the thread count.
+  std::vector<std::vector<Index>> mutual_groups() const {
+    std::vector<int> colour(tree.boxes.size(), -1);
+    std::vector<Index> seen;  // seen[c] == a: colour c is taken by a task in conflict with a
+    std::vector<std::vector<Index>> groups;
+    for (Index a : tree.leaves) {
+      for (Index x : tree.lists[static_cast<size_t>(a)].u) {
+        if (x < a) continue;  // x in A's write set
+        for (Index w : tree.lists[static_cast<size_t>(x)].u) {
+          if (w > x) continue;  // w writes x
+          const int c = colour[static_cast<size_t>(w)];
+          if (c >= 0) seen[static_cast<size_t>(c)] = a;
+        }
+      }
+      int c = 0;
+      while (c < static_cast<int>(seen.size()) && seen[static_cast<size_t>(c)] == a) ++c;
+      if (c == static_cast<int>(seen.size())) {
+        seen.push_back(-1);
+        groups.emplace_back();
+      }
+      colour[static_cast<size_t>(a)] = c;
+      groups[static_cast<size_t>(c)].push_back(a);
+    }
+    return groups;
+  }
+
+  // The near field of adjacent leaves when the targets are the sources, each pair of leaves
+  // visited once (p2p_mutual), A with itself by p2p_fast.
+  void near_mutual(std::vector<Scalar>& result, Interrupt& interrupt) {
+    const Scalar softening = config.kernel == NearKernel::Plummer ? config.length : 0.0;
+    const int newton = config.eps < 1e-9 ? 3 : 2;
+    const bool gradient = width == 4;
+    for (const std::vector<Index>& group : mutual_groups()) {
+      interrupt.check();
+      const Index count = static_cast<Index>(group.size());
+#pragma omp parallel for schedule(dynamic, 1) if (count > 1)
+      for (Index g = 0; g < count; ++g) {
+        const Index a = group[static_cast<size_t>(g)];
+        const Box3& ab = tree.boxes[static_cast<size_t>(a)];
+        const Index na = ab.source_count(), a0 = ab.src_begin;
+        const Scalar* xa[3] = {src[0] + a0, src[1] + a0, src[2] + a0};
+        for (Index t = a0; t < ab.src_end; ++t) {
+          Scalar* out = &result[static_cast<size_t>(t) * width];
+          if (!p2p_fast(gradient, newton, softening, src[0][t], src[1][t], src[2][t], xa[0], xa[1], xa[2],
+                        &q[static_cast<size_t>(a0)], na, out))
+            p2p_generic(config.kernel, config.length, width, src[0][t], src[1][t], src[2][t], xa[0],
+                        xa[1], xa[2], &q[static_cast<size_t>(a0)], 1, na, out);
+        }
+        std::vector<Scalar> out_a, out_b, xb[3], qb;
+        for (Index b : tree.lists[static_cast<size_t>(a)].u) {
+          if (b <= a) continue;
+          const Box3& bb = tree.boxes[static_cast<size_t>(b)];
+          const Index nb = bb.source_count(), b0 = bb.src_begin, stride = (nb + 3) & ~Index{3};
+          // b padded to whole vectors with zero charges at its first point.
+          for (int d = 0; d < 3; ++d) {
+            xb[d].assign(src[d] + b0, src[d] + bb.src_end);
+            xb[d].resize(static_cast<size_t>(stride), src[d][b0]);
+          }
+          qb.assign(q.begin() + b0, q.begin() + bb.src_end);
+          qb.resize(static_cast<size_t>(stride), 0.0);
+          out_a.assign(static_cast<size_t>(na * width), 0.0);
+          out_b.assign(static_cast<size_t>(stride * width), 0.0);
+          const Scalar* xbp[3] = {xb[0].data(), xb[1].data(), xb[2].data()};
+          if (p2p_mutual(gradient, newton, softening, xa, &q[static_cast<size_t>(a0)], na, xbp,
+                         qb.data(), stride, stride, out_a.data(), out_b.data())) {
+            for (Index i = 0; i < na; ++i)
+              for (int k = 0; k < width; ++k)
+                result[static_cast<size_t>((a0 + i) * width + k)] += out_a[static_cast<size_t>(i * width + k)];
+            for (Index j = 0; j < nb; ++j)
+              for (int k = 0; k < width; ++k)
+                result[static_cast<size_t>((b0 + j) * width + k)] += out_b[static_cast<size_t>(k * stride + j)];
+            continue;
+          }
+          for (Index t = a0; t < ab.src_end; ++t)
+            p2p_generic(config.kernel, config.length, width, src[0][t], src[1][t], src[2][t], src[0] + b0,
+                        src[1] + b0, src[2] + b0, &q[static_cast<size_t>(b0)], 1, nb,
+                        &result[static_cast<size_t>(t) * width]);
+          for (Index t = b0; t < bb.src_end; ++t)
+            p2p_generic(config.kernel, config.length, width, src[0][t], src[1][t], src[2][t], xa[0],
+                        xa[1], xa[2], &q[static_cast<size_t>(a0)], 1, na, &result[static_cast<size_t>(t) * width]);
         }
       }
     }
@@ -367,7 +464,7 @@ Fmm3dStats fmm3d(const Scalar* sources, Index n, const Scalar* charges, int comp
   stats.box_count = static_cast<Index>(tree.boxes.size());
   stats.depth = static_cast<int>(tree.levels.size()) - 1;
   std::vector<char> used(kOffsets, 0);
-  for (const Lists3& l : tree.lists)
+  for (const Lists& l : tree.lists)
     for (const fmm::M2lEntry& e : l.m2l) used[static_cast<size_t>(e.offset)] = 1;
   const M2lOperators ops(p, used);
   stats.seconds_tree = watch.seconds();
@@ -381,7 +478,12 @@ Fmm3dStats fmm3d(const Scalar* sources, Index n, const Scalar* charges, int comp
   stats.seconds_downward = watch.seconds() - stats.seconds_m2l;
   watch.restart();
   std::vector<Scalar> result(static_cast<size_t>(m) * components * width);
-  engine.leaves(result, interrupt);
+  // In the self case the two trees' orders coincide (the same points partitioned alike), so a
+  // leaf's targets are its sources.
+  const bool mutual = self && config.kernel != NearKernel::Gaussian && components == 1 &&
+                      width <= 4 && p2p_mutual_available();
+  engine.leaves(result, mutual, interrupt);
+  if (mutual) engine.near_mutual(result, interrupt);
   stats.seconds_leaves = watch.seconds();
 
   const size_t row = static_cast<size_t>(components * width);

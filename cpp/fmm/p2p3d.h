@@ -89,4 +89,20 @@ bool p2p_fast(bool gradient, int newton_steps, Scalar a, Scalar x, Scalar y, Sca
               const Scalar* sx, const Scalar* sy, const Scalar* sz, const Scalar* q, Index n,
               Scalar* out);
 
+// True when p2p_mutual has its vectorised form on this CPU (otherwise near fields use
+// p2p_fast in both directions).
+bool p2p_mutual_available();
+
+// The Laplace or Plummer near field between two disjoint blocks of points that are sources and
+// targets at once (Newton's third law: each pair's kernel is evaluated once for both ends).
+// Block a: coordinates xa[3][na], charges qa; block b likewise, its arrays readable up to nb
+// rounded up to a multiple of 4 (padding: zero charges at one of b's points). Adds the field
+// of b at a's points to out_a (na x width rows, width 1 or 4: phi[, grad]) and the field of a
+// at b's points to out_b (width arrays of stride `stride_b`). Returns false when a pair is
+// outside the range of the float estimate (as p2p_fast): the outputs are then partial, so
+// they are scratch that the caller adds to its results only on success.
+bool p2p_mutual(bool gradient, int newton_steps, Scalar a, const Scalar* const xa[3],
+                const Scalar* qa, Index na, const Scalar* const xb[3], const Scalar* qb, Index nb,
+                Index stride_b, Scalar* out_a, Scalar* out_b);
+
 }  // namespace kinema::fmm3

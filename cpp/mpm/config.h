@@ -10,7 +10,7 @@
 namespace kinema::mpm {
 
 struct Config {
-  std::array<Scalar, 3> gravity{0, -9.81, 0};  // [m/s^2], first d entries used
+  std::array<Scalar, 3> gravity{0, 0, 0};  // [m/s^2], first d entries used; none by default
   // A step whose fastest particle crosses more than this many cells is a blow-up: the
   // DivergenceError names stable_dt. MPM's transfers assume particles move less than one cell
   // per step (the CFL rule of the course notes, CFL 0.3-1).

@@ -64,8 +64,7 @@ Material make_material(int dim, MaterialKind kind, Scalar density, Scalar youngs
   if (!(std::isfinite(poisson_ratio) && poisson_ratio > -1 && poisson_ratio < 0.5))
     throw InvalidArgument("poisson_ratio: expected a number in (-1, 0.5), got " + format_real(poisson_ratio));
   m.poisson_ratio = poisson_ratio;
-  m.mu = youngs_modulus / (2 * (1 + poisson_ratio));
-  m.lambda = youngs_modulus * poisson_ratio / ((1 + poisson_ratio) * (1 - 2 * poisson_ratio));
+  lame_parameters(youngs_modulus, poisson_ratio, m.mu, m.lambda);
   m.wave_speed = std::sqrt((m.lambda + 2 * m.mu) / density);
   if (kind == MaterialKind::Sand) {
     if (!(std::isfinite(friction_angle) && friction_angle > 0 && friction_angle < 90))
@@ -131,7 +130,7 @@ void add_collider(Model& model, const Collider& c) {
 }
 
 void State::append(const Scalar* x0, const Scalar* v0, Index m, const Scalar* mass0, const Scalar* volume0,
-                   Index material_code) {
+                   Index material_code, Scalar youngs_modulus0, Scalar poisson_ratio0) {
   const int d = dim;
   x.insert(x.end(), x0, x0 + m * d);
   v.insert(v.end(), v0, v0 + m * d);
@@ -143,6 +142,8 @@ void State::append(const Scalar* x0, const Scalar* v0, Index m, const Scalar* ma
   volume.insert(volume.end(), volume0, volume0 + m);
   material.resize(material.size() + static_cast<size_t>(m), material_code);
   Jp.resize(Jp.size() + static_cast<size_t>(m), 1.0);
+  youngs_modulus.resize(youngs_modulus.size() + static_cast<size_t>(m), youngs_modulus0);
+  poisson_ratio.resize(poisson_ratio.size() + static_cast<size_t>(m), poisson_ratio0);
   n += m;
 }
 

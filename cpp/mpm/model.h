@@ -49,6 +49,14 @@ struct Material {
   Scalar wave_speed = 0;  // speed of the fastest elastic wave at rest [m/s]
 };
 
+// Lame parameters from Young's modulus and Poisson's ratio (plane strain in 2D, as km.fem):
+// mu = E / (2 (1 + nu)), lambda = E nu / ((1 + nu) (1 - 2 nu)). One expression for the material
+// table and the per-particle moduli the solver reads, so both give the same bits.
+inline void lame_parameters(Scalar youngs_modulus, Scalar poisson_ratio, Scalar& mu, Scalar& lambda) {
+  mu = youngs_modulus / (2 * (1 + poisson_ratio));
+  lambda = youngs_modulus * poisson_ratio / ((1 + poisson_ratio) * (1 - 2 * poisson_ratio));
+}
+
 // A validated material: `dim` fixes the Drucker-Prager constants of sand.
 Material make_material(int dim, MaterialKind kind, Scalar density, Scalar youngs_modulus,
                        Scalar poisson_ratio, Scalar friction_angle, Scalar cohesion);

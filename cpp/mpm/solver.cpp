@@ -13,6 +13,7 @@
 #include "core/errors.h"
 #include "core/parallel.h"
 #include "core/timer.h"
+#include "mpm/adjoint_kernels.h"
 #include "mpm/kernels.h"
 
 namespace kinema::mpm {
@@ -20,7 +21,10 @@ namespace kinema::mpm {
 class Solver::Impl {
  public:
   virtual ~Impl() = default;
-  virtual StepStats step(State& state, Scalar dt, Interrupt& interrupt) = 0;
+  virtual StepStats step(State& state, Scalar dt, Interrupt& interrupt, const Scalar* forces) = 0;
+  virtual void step_adjoint(const State& before, const State& after, Scalar dt, const Scalar* forces,
+                            State& adjoint, ParamsAdjoint& adjoint_params, Scalar* adjoint_forces,
+                            Interrupt& interrupt) = 0;
 };
 
 namespace {
@@ -56,6 +60,41 @@ void apply_boundary(Vec<D>& v, const Vec<D>& n, Boundary boundary, Scalar fricti
   v = vt;
 }
 
+// The transpose of apply_boundary's Jacobian at v (the branch v takes), applied to v_bar.
+template <int D>
+Vec<D> apply_boundary_vjp(const Vec<D>& v, const Vec<D>& n, Boundary boundary, Scalar friction, const Vec<D>& v_bar) {
+  if (boundary == Boundary::Sticky) return Vec<D>::Zero();
+  const Scalar vn = v.dot(n);
+  if (boundary == Boundary::Separate && vn >= 0) return v_bar;
+  Vec<D> vt_bar = v_bar;
+  Scalar vn_bar = 0;
+  if (vn < 0 && friction > 0) {
+    const Vec<D> vt = v - vn * n;
+    const Scalar t = vt.norm();
+    if (t <= -friction * vn) return Vec<D>::Zero();
+    // out = vt + friction vn vt / t
+    const Vec<D> e = vt / t;
+    vt_bar += (friction * vn / t) * (v_bar - e * e.dot(v_bar));
+    vn_bar = friction * e.dot(v_bar);
+  }
+  return vt_bar - n * n.dot(vt_bar) + n * vn_bar;
+}
+
+// Lame parameters of particle p from its own moduli (water: mu = lambda = 0).
+inline void particle_lame(const State& state, const Material& m, Index p, Scalar& mu, Scalar& lambda) {
+  if (m.kind == MaterialKind::Water) {
+    mu = lambda = 0;
+    return;
+  }
+  const Scalar E = state.youngs_modulus[static_cast<size_t>(p)], nu = state.poisson_ratio[static_cast<size_t>(p)];
+  if (E == m.youngs_modulus && nu == m.poisson_ratio) {  // the material's own: the same bits, no divisions
+    mu = m.mu;
+    lambda = m.lambda;
+    return;
+  }
+  lame_parameters(E, nu, mu, lambda);
+}
+
 template <int D>
 class SolverD final : public Solver::Impl {
  public:
@@ -77,9 +116,8 @@ class SolverD final : public Solver::Impl {
     table_.assign(static_cast<size_t>(block_count_), -1);
   }
 
-  StepStats step(State& state, Scalar dt, Interrupt& interrupt) override {
-    if (!(std::isfinite(dt) && dt > 0))
-      throw InvalidArgument("dt: expected a finite time step > 0 [s], got " + format_real(dt));
+  StepStats step(State& state, Scalar dt, Interrupt& interrupt, const Scalar* forces) override {
+    check_dt(dt);
     Stopwatch total, watch;
     StepStats stats;
     stats.dt = dt;
@@ -91,7 +129,7 @@ class SolverD final : public Solver::Impl {
     interrupt.check();
     // 2. P2G (Hu et al. 2018, eq. 16-17).
     watch.restart();
-    p2g(state, dt);
+    p2g(state, dt, forces);
     stats.p2g_seconds = watch.seconds();
     // 3. Grid velocities, gravity, walls and colliders.
     watch.restart();
@@ -103,11 +141,23 @@ class SolverD final : public Solver::Impl {
     stats.g2p_seconds = watch.seconds();
     state.time += dt;
     ++state.steps;
+    stats.time = state.time;
     stats.seconds = total.seconds();
     return stats;
   }
 
+  void step_adjoint(const State& before, const State& after, Scalar dt, const Scalar* forces, State& adjoint,
+                    ParamsAdjoint& adjoint_params, Scalar* adjoint_forces, Interrupt& interrupt) override;
+
  private:
+  using RowMap = Eigen::Map<Eigen::Matrix<Scalar, D, D, Eigen::RowMajor>>;
+  using ConstRowMap = Eigen::Map<const Eigen::Matrix<Scalar, D, D, Eigen::RowMajor>>;
+
+  static void check_dt(Scalar dt) {
+    if (!(std::isfinite(dt) && dt > 0))
+      throw InvalidArgument("dt: expected a finite time step > 0 [s], got " + format_real(dt));
+  }
+
   // Grid coordinates of x (in cells, ghost-shifted so that node I sits at I - 1).
   Vec<D> grid_coords(const Scalar* x) const {
     Vec<D> g;
@@ -141,6 +191,8 @@ class SolverD final : public Solver::Impl {
       }
       const Index code = state.material[static_cast<size_t>(p)];
       inside = inside && code >= 0 && code < static_cast<Index>(model_.materials.size());
+      const Scalar E = state.youngs_modulus[static_cast<size_t>(p)], nu = state.poisson_ratio[static_cast<size_t>(p)];
+      inside = inside && std::isfinite(E) && E > 0 && std::isfinite(nu) && nu > -1 && nu < 0.5;
       if (!inside) {
 #pragma omp critical(mpm_bad_particle)
         bad = bad < 0 ? p : std::min(bad, p);
@@ -153,7 +205,8 @@ class SolverD final : public Solver::Impl {
       for (int a = 0; a < D; ++a) where += (a ? ", " : "") + format_real(state.x[static_cast<size_t>(bad * D + a)]);
       throw InvalidArgument("x: particle " + std::to_string(bad) + " at " + where +
                             ") is outside the domain or not finite (or its material code is not one of the " +
-                            std::to_string(model_.materials.size()) + " materials)");
+                            std::to_string(model_.materials.size()) +
+                            " materials, or its youngs_modulus is not > 0 or poisson_ratio not in (-1, 0.5))");
     }
     // The distinct particle blocks, in Morton order, take the first slots.
     std::vector<std::pair<std::uint64_t, Index>> found;
@@ -265,27 +318,64 @@ class SolverD final : public Solver::Impl {
     return st;
   }
 
-  // Kirchhoff stress of particle p (kernels.h).
+  // Calls fn(tile index, w, dw/dfx, offset x_i/h - x_p/h) for the 3^d nodes of a stencil.
+  template <class Fn>
+  static void each_node(const Stencil& st, Fn&& fn) {
+    Scalar dw[D][3];
+    for (int a = 0; a < D; ++a) bspline_derivatives(st.fx(a), dw[a]);
+    for (int node = 0; node < ipow(3, D); ++node) {
+      int index[D];
+      int rest = node, t = 0;
+      for (int a = D - 1; a >= 0; --a) {
+        index[a] = rest % 3;
+        rest /= 3;
+      }
+      Scalar w = 1;
+      Vec<D> grad_w, offset;
+      for (int a = 0; a < D; ++a) {
+        t = t * T + index[a];
+        w *= st.w[a][index[a]];
+        offset(a) = index[a] - st.fx(a);
+        grad_w(a) = dw[a][index[a]];
+        for (int b = 0; b < D; ++b)
+          if (b != a) grad_w(a) *= st.w[b][index[b]];
+      }
+      fn(st.base + t, w, grad_w, offset);
+    }
+  }
+
+  // Unshifted node index per axis of node l of the block whose lower node is o.
+  static void node_index(const std::array<Index, 3>& o, int l, Index* i) {
+    int rest = l;
+    for (int a = D - 1; a >= 0; --a) {
+      i[a] = o[a] + rest % B - 1;
+      rest /= B;
+    }
+  }
+
+  // Kirchhoff stress of particle p (kernels.h) with its own moduli.
   Mat<D> tau(const State& state, Index p, const Mat<D>& F) const {
     const Material& m = model_.materials[static_cast<size_t>(state.material[static_cast<size_t>(p)])];
+    Scalar mu, lambda;
+    particle_lame(state, m, p, mu, lambda);
     switch (m.kind) {
       case MaterialKind::Elastic:
-        return corotated_tau<D>(F, svd(F), m.mu, m.lambda);
+        return corotated_tau<D>(F, svd(F), mu, lambda);
       case MaterialKind::NeoHookean:
-        return neohookean_tau<D>(F, m.mu, m.lambda);
+        return neohookean_tau<D>(F, mu, lambda);
       case MaterialKind::Snow: {
         const Scalar harden = std::exp(m.hardening * (1 - state.Jp[static_cast<size_t>(p)]));
-        return corotated_tau<D>(F, svd(F), m.mu * harden, m.lambda * harden);
+        return corotated_tau<D>(F, svd(F), mu * harden, lambda * harden);
       }
       case MaterialKind::Sand:
-        return hencky_tau<D>(svd(F), m.mu, m.lambda);
+        return hencky_tau<D>(svd(F), mu, lambda);
       case MaterialKind::Water:
-        return water_tau<D>(F.determinant(), m.youngs_modulus, m.gamma);
+        return water_tau<D>(F.determinant(), state.youngs_modulus[static_cast<size_t>(p)], m.gamma);
     }
     return Mat<D>::Zero();
   }
 
-  void p2g(const State& state, Scalar dt) {
+  void p2g(const State& state, Scalar dt, const Scalar* forces) {
     const Scalar h = model_.h, stress_scale = 4 * dt / (h * h);
     const bool parallel = state.n > kParallelParticles;
     for (int colour = 0; colour < NEIGHBORS; ++colour) {
@@ -306,10 +396,12 @@ class SolverD final : public Solver::Impl {
           const Eigen::Map<const Vec<D>> v(&state.v[pd]);
           // Affine momentum per unit offset, in cells: (m C - 4 dt V / h^2 tau) h.
           const Mat<D> A = (m * C - (stress_scale * state.volume[static_cast<size_t>(p)]) * tau(state, p, F)) * h;
-          const Vec<D> q0 = m * v - A * st.fx;  // momentum at offset 0 (the base node)
+          // Momentum at offset 0 (the base node); an external force adds dt f, as gravity would.
+          const Vec<D> q0 = forces ? Vec<D>(m * v + dt * Eigen::Map<const Vec<D>>(forces + pd) - A * st.fx)
+                                   : Vec<D>(m * v - A * st.fx);
           scatter(tile, st, m, q0, A);
         }
-        flush(tile, s);
+        flush(tile, s, grid_, true);
       }
     }
   }
@@ -348,18 +440,21 @@ class SolverD final : public Solver::Impl {
     }
   }
 
-  void flush(const Scalar* tile, Index s) {
+  // Adds a block's tile into `target` (nodes without mass skipped when `massive_only`).
+  void flush(const Scalar* tile, Index s, std::vector<Scalar>& target, bool massive_only) {
     const std::int32_t* nb = &neighbor_slot_[static_cast<size_t>(s * NEIGHBORS)];
     for (int t = 0; t < TN; ++t) {
-      if (tile[t * S] == 0) continue;
+      if (massive_only && tile[t * S] == 0) continue;
       int neighbor, local;
       tile_to_block(t, neighbor, local);
-      Scalar* node = &grid_[static_cast<size_t>((static_cast<Index>(nb[neighbor]) * BN + local) * S)];
+      Scalar* node = &target[static_cast<size_t>((static_cast<Index>(nb[neighbor]) * BN + local) * S)];
       for (int c = 0; c < S; ++c) node[c] += tile[t * S + c];
     }
   }
 
-  void grid_update(Scalar dt) {
+  // `pre` (slots B^d d, or null) receives each node's velocity before the wall and collider
+  // conditions, which their adjoint needs.
+  void grid_update(Scalar dt, Scalar* pre = nullptr) {
     const Index slots = static_cast<Index>(slot_key_.size());
     Vec<D> g;
     for (int a = 0; a < D; ++a) g(a) = config_.gravity[a];
@@ -371,26 +466,46 @@ class SolverD final : public Solver::Impl {
         if (node[0] <= 0) continue;
         Vec<D> v;
         for (int a = 0; a < D; ++a) v(a) = node[a + 1] / node[0] + dt * g(a);
-        // Node index i (unshifted) per axis.
+        if (pre) Eigen::Map<Vec<D>>(pre + (s * BN + l) * D) = v;
         Index i[3] = {0, 0, 0};
-        int rest = l;
-        for (int a = D - 1; a >= 0; --a) {
-          i[a] = o[a] + rest % B - 1;
-          rest /= B;
-        }
+        node_index(o, l, i);
         boundary(v, i);
         for (int a = 0; a < D; ++a) node[a + 1] = v(a);
       }
     }
   }
 
-  // Walls at i <= 0 and i >= shape, then the colliders, on the node with index i.
   void boundary(Vec<D>& v, const Index* i) const {
+    conditions(i, [&](const Vec<D>& n, Boundary b, Scalar friction) { apply_boundary<D>(v, n, b, friction); });
+  }
+
+  // The transpose of boundary()'s Jacobian at v, applied to v_bar: the conditions in reverse,
+  // each at the velocity it saw.
+  Vec<D> boundary_vjp(Vec<D> v, const Index* i, Vec<D> v_bar) const {
+    struct Applied {
+      Vec<D> n, v;
+      Boundary boundary;
+      Scalar friction;
+    };
+    std::vector<Applied> applied;
+    conditions(i, [&](const Vec<D>& n, Boundary b, Scalar friction) {
+      applied.push_back({n, v, b, friction});
+      apply_boundary<D>(v, n, b, friction);
+    });
+    for (auto c = applied.rbegin(); c != applied.rend(); ++c)
+      v_bar = apply_boundary_vjp<D>(c->v, c->n, c->boundary, c->friction, v_bar);
+    return v_bar;
+  }
+
+  // Calls fn(normal, boundary, friction) for each condition on the node with index i, in the
+  // order they apply: walls at i <= 0 and i >= shape, then the colliders.
+  template <class Fn>
+  void conditions(const Index* i, Fn&& fn) const {
     for (int a = 0; a < D; ++a) {
       if (i[a] <= 0 || i[a] >= model_.shape[a]) {
         Vec<D> n = Vec<D>::Zero();
         n(a) = i[a] <= 0 ? 1 : -1;
-        apply_boundary<D>(v, n, model_.boundary, model_.wall_friction);
+        fn(n, model_.boundary, model_.wall_friction);
       }
     }
     if (model_.colliders.empty()) return;
@@ -418,7 +533,7 @@ class SolverD final : public Solver::Impl {
         n.setZero();
         n(std::abs(face) - 1) = face > 0 ? 1 : -1;
       }
-      apply_boundary<D>(v, n, c.boundary, c.friction);
+      fn(n, c.boundary, c.friction);
     }
   }
 
@@ -430,7 +545,7 @@ class SolverD final : public Solver::Impl {
     for (Index s = 0; s < particle_blocks_; ++s) {
       const auto o = block_origin(s);
       alignas(64) Scalar tile[TN * S];
-      gather(tile, s);
+      gather(tile, s, grid_, 1);
       for (Index q = block_start_[s]; q < block_start_[s + 1]; ++q) {
         const Index p = order_[static_cast<size_t>(q)];
         const size_t pd = static_cast<size_t>(p * D);
@@ -462,13 +577,14 @@ class SolverD final : public Solver::Impl {
     return vmax;
   }
 
-  void gather(Scalar* tile, Index s) const {
+  // Copies components first..S-1 of the nodes a block's tile covers from `source`.
+  void gather(Scalar* tile, Index s, const std::vector<Scalar>& source, int first) const {
     const std::int32_t* nb = &neighbor_slot_[static_cast<size_t>(s * NEIGHBORS)];
     for (int t = 0; t < TN; ++t) {
       int neighbor, local;
       tile_to_block(t, neighbor, local);
-      const Scalar* node = &grid_[static_cast<size_t>((static_cast<Index>(nb[neighbor]) * BN + local) * S)];
-      for (int c = 1; c < S; ++c) tile[t * S + c] = node[c];
+      const Scalar* node = &source[static_cast<size_t>((static_cast<Index>(nb[neighbor]) * BN + local) * S)];
+      for (int c = first; c < S; ++c) tile[t * S + c] = node[c];
     }
   }
 
@@ -512,9 +628,12 @@ class SolverD final : public Solver::Impl {
       case MaterialKind::Snow:
         F = snow_project<D>(F, m, Jp, s);
         break;
-      case MaterialKind::Sand:
-        F = sand_project<D>(F, m, Jp, s);
+      case MaterialKind::Sand: {
+        Material own = m;  // the yield surface with this particle's moduli
+        particle_lame(state, m, p, own.mu, own.lambda);
+        F = sand_project<D>(F, own, Jp, s);
         break;
+      }
       case MaterialKind::Water: {
         // A fluid has no shear memory: keep only the volume ratio, F = J^(1/d) I.
         const Scalar J = F.determinant();
@@ -542,7 +661,171 @@ class SolverD final : public Solver::Impl {
   std::vector<Index> order_;                 // particle rows sorted by block
   std::vector<Index> colour_start_, colour_blocks_;
   std::vector<Scalar> grid_;                 // (slots, B^d, d + 1): mass, momentum -> velocity
+  std::vector<Scalar> pre_;                  // (slots, B^d, d): velocity before the boundary conditions
+  std::vector<Scalar> adjoint_grid_;         // (slots, B^d, d + 1): dL/d(mass, momentum)
 };
+
+template <int D>
+void SolverD<D>::step_adjoint(const State& before, const State& after, Scalar dt, const Scalar* forces,
+                              State& adjoint, ParamsAdjoint& adjoint_params, Scalar* adjoint_forces,
+                              Interrupt& interrupt) {
+  check_dt(dt);
+  const Index n = before.n;
+  for (Index p = 0; p < n; ++p) {
+    const Index code = before.material[static_cast<size_t>(p)];
+    if (code >= 0 && code < static_cast<Index>(model_.materials.size()) &&
+        !differentiable_material(model_.materials[static_cast<size_t>(code)].kind))
+      throw InvalidArgument(std::string("material: gradients need elastic, neohookean or water particles, particle ") +
+                            std::to_string(p) + " is " +
+                            material_name(model_.materials[static_cast<size_t>(code)].kind));
+  }
+  // 1. The step's grid, rebuilt from `before` as step() built it: masses, momenta, and the
+  //    velocities before (pre_) and after (grid_) the boundary conditions.
+  sort(before);
+  p2g(before, dt, forces);
+  const Index slots = static_cast<Index>(slot_key_.size());
+  pre_.resize(static_cast<size_t>(slots * BN * D));
+  grid_update(dt, pre_.data());
+  interrupt.check();
+  adjoint_grid_.resize(grid_.size());
+  parallel_for(slots, [&](Index s) { std::fill_n(&adjoint_grid_[static_cast<size_t>(s * BN * S)], BN * S, 0.0); });
+  const Scalar h = model_.h, apic = 4 / h, stress_scale = 4 * dt / (h * h);
+  const bool parallel = n > kParallelParticles;
+  adjoint_params.youngs_modulus.assign(static_cast<size_t>(n), 0.0);
+  adjoint_params.poisson_ratio.assign(static_cast<size_t>(n), 0.0);
+
+  // 2. G2P transposed: v' = sum w u_i, C' = 4/h sum w u_i d_i^T, F' = (I + dt C') F,
+  //    x' = clamp(x + dt v'). Scatters dL/du_i into the grid in P2G's colour phases.
+  for (int colour = 0; colour < NEIGHBORS; ++colour) {
+    const Index begin = colour_start_[colour], end = colour_start_[colour + 1];
+#pragma omp parallel for schedule(dynamic, 1) if (parallel)
+    for (Index k = begin; k < end; ++k) {
+      const Index s = colour_blocks_[static_cast<size_t>(k)];
+      const auto o = block_origin(s);
+      alignas(64) Scalar velocity[TN * S];
+      alignas(64) Scalar tile[TN * S];
+      gather(velocity, s, grid_, 1);
+      std::fill_n(tile, TN * S, 0.0);
+      for (Index q = block_start_[s]; q < block_start_[s + 1]; ++q) {
+        const Index p = order_[static_cast<size_t>(q)];
+        const size_t pd = static_cast<size_t>(p * D);
+        const Stencil st = stencil(&before.x[pd], o);
+        const Mat<D> C_after = ConstRowMap(&after.C[pd * D]);
+        const Mat<D> F = ConstRowMap(&before.F[pd * D]);
+        Mat<D> F_bar = RowMap(&adjoint.F[pd * D]);
+        // Water's F' is the projection of the trial (I + dt C') F.
+        if (model_.materials[static_cast<size_t>(before.material[static_cast<size_t>(p)])].kind == MaterialKind::Water)
+          F_bar = water_projection_vjp<D>(Mat<D>((Mat<D>::Identity() + dt * C_after) * F), F_bar);
+        Vec<D> x_bar;
+        for (int a = 0; a < D; ++a) {
+          const Scalar y = before.x[pd + a] + dt * after.v[pd + a];
+          const bool clamped = y < model_.origin[a] || model_.upper(a) < y;
+          x_bar(a) = clamped ? 0 : adjoint.x[pd + a];
+        }
+        const Mat<D> C_bar = Mat<D>(RowMap(&adjoint.C[pd * D])) + dt * F_bar * F.transpose();
+        const Vec<D> v_bar = Eigen::Map<const Vec<D>>(&adjoint.v[pd]) + dt * x_bar;
+        Vec<D> fx_bar = Vec<D>::Zero();
+        const Mat<D> C_bar_t = apic * C_bar.transpose();
+        each_node(st, [&](int t, Scalar w, const Vec<D>& grad_w, const Vec<D>& offset) {
+          const Eigen::Map<const Vec<D>> u(velocity + t * S + 1);
+          const Vec<D> g = v_bar + apic * (C_bar * offset);
+          Eigen::Map<Vec<D>>(tile + t * S + 1) += w * g;
+          fx_bar += u.dot(g) * grad_w - w * (C_bar_t * u);
+        });
+        // x and F of `before` also reach the step through P2G, which adds to these; v and C
+        // only through P2G, which sets theirs.
+        Eigen::Map<Vec<D>>(&adjoint.x[pd]) = x_bar + fx_bar / h;
+        RowMap(&adjoint.F[pd * D]) = (Mat<D>::Identity() + dt * C_after).transpose() * F_bar;
+      }
+      flush(tile, s, adjoint_grid_, false);
+    }
+  }
+  interrupt.check();
+
+  // 3. Grid update transposed, node by node: u = P / M + dt g, then the boundary conditions.
+  Vec<D> g;
+  for (int a = 0; a < D; ++a) g(a) = config_.gravity[a];
+  parallel_for(slots, [&](Index s) {
+    const auto o = block_origin(s);
+    for (int l = 0; l < BN; ++l) {
+      const size_t at = static_cast<size_t>((s * BN + l) * S);
+      const Scalar M = grid_[at];
+      Scalar* node = &adjoint_grid_[at];
+      if (M <= 0) {
+        std::fill_n(node, S, 0.0);
+        continue;
+      }
+      Index i[3] = {0, 0, 0};
+      node_index(o, l, i);
+      const Vec<D> u = Eigen::Map<const Vec<D>>(&pre_[static_cast<size_t>((s * BN + l) * D)]);
+      const Vec<D> u_bar = boundary_vjp(u, i, Eigen::Map<const Vec<D>>(node + 1));
+      node[0] = -u_bar.dot(u - dt * g) / M;
+      Eigen::Map<Vec<D>>(node + 1) = u_bar / M;
+    }
+  });
+  interrupt.check();
+
+  // 4. P2G transposed, a gather per particle: M_i = sum w m, P_i = sum w (m v + dt f + A d_i),
+  //    A = (m C - 4 dt V / h^2 tau(F)) h.
+#pragma omp parallel for schedule(dynamic, 1) if (parallel)
+  for (Index s = 0; s < particle_blocks_; ++s) {
+    const auto o = block_origin(s);
+    alignas(64) Scalar tile[TN * S];
+    gather(tile, s, adjoint_grid_, 0);
+    for (Index q = block_start_[s]; q < block_start_[s + 1]; ++q) {
+      const Index p = order_[static_cast<size_t>(q)];
+      const size_t pd = static_cast<size_t>(p * D);
+      const Stencil st = stencil(&before.x[pd], o);
+      const Scalar m = before.mass[static_cast<size_t>(p)], V = before.volume[static_cast<size_t>(p)];
+      const Mat<D> F = ConstRowMap(&before.F[pd * D]);
+      const Mat<D> C = ConstRowMap(&before.C[pd * D]);
+      Vec<D> momentum = m * Eigen::Map<const Vec<D>>(&before.v[pd]);
+      if (forces) momentum += dt * Eigen::Map<const Vec<D>>(forces + pd);
+      const Material& mat = model_.materials[static_cast<size_t>(before.material[static_cast<size_t>(p)])];
+      const bool corotated = mat.kind == MaterialKind::Elastic, water = mat.kind == MaterialKind::Water;
+      Scalar mu, lambda;
+      particle_lame(before, mat, p, mu, lambda);
+      const Scalar E = before.youngs_modulus[static_cast<size_t>(p)];
+      // tau as step() computes it (kernels.h), with one SVD for the stress and its adjoint.
+      Svd<D> sv;
+      if (corotated) sv = svd(F);
+      const Mat<D> stress = corotated ? corotated_tau<D>(F, sv, mu, lambda)
+                            : water   ? water_tau<D>(F.determinant(), E, mat.gamma)
+                                      : neohookean_tau<D>(F, mu, lambda);
+      const Mat<D> A = (m * C - (stress_scale * V) * stress) * h;
+      Vec<D> P_bar_sum = Vec<D>::Zero(), fx_bar = Vec<D>::Zero();
+      Mat<D> A_bar = Mat<D>::Zero();
+      each_node(st, [&](int t, Scalar w, const Vec<D>& grad_w, const Vec<D>& offset) {
+        const Scalar M_bar = tile[t * S];
+        const Eigen::Map<const Vec<D>> P_bar(tile + t * S + 1);
+        P_bar_sum += w * P_bar;
+        A_bar += (w * P_bar) * offset.transpose();
+        fx_bar += (P_bar.dot(momentum + A * offset) + M_bar * m) * grad_w - w * (A.transpose() * P_bar);
+      });
+      Eigen::Map<Vec<D>>(&adjoint.v[pd]) = m * P_bar_sum;
+      if (adjoint_forces) Eigen::Map<Vec<D>>(adjoint_forces + pd) = dt * P_bar_sum;
+      RowMap(&adjoint.C[pd * D]) = (m * h) * A_bar;
+      Eigen::Map<Vec<D>>(&adjoint.x[pd]) += fx_bar / h;
+      // tau's adjoint, then the moduli's.
+      const Mat<D> tau_bar = -(stress_scale * V * h) * A_bar;
+      Scalar mu_bar, lambda_bar;
+      Mat<D> F_bar = RowMap(&adjoint.F[pd * D]);
+      if (water) {
+        adjoint_params.youngs_modulus[static_cast<size_t>(p)] = water_tau_vjp<D>(F, E, mat.gamma, tau_bar, F_bar);
+        RowMap(&adjoint.F[pd * D]) = F_bar;
+        continue;
+      }
+      if (corotated)
+        corotated_tau_vjp<D>(F, sv, mu, lambda, tau_bar, F_bar, mu_bar, lambda_bar);
+      else
+        neohookean_tau_vjp<D>(F, mu, lambda, tau_bar, F_bar, mu_bar, lambda_bar);
+      RowMap(&adjoint.F[pd * D]) = F_bar;
+      lame_parameters_vjp(before.youngs_modulus[static_cast<size_t>(p)], before.poisson_ratio[static_cast<size_t>(p)],
+                          mu_bar, lambda_bar, adjoint_params.youngs_modulus[static_cast<size_t>(p)],
+                          adjoint_params.poisson_ratio[static_cast<size_t>(p)]);
+    }
+  }
+}
 
 }  // namespace
 
@@ -560,27 +843,50 @@ Solver::Solver(const Model& model, const Config& config) : model_(model), config
 
 Solver::~Solver() = default;
 
-StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
+bool differentiable_material(MaterialKind kind) {
+  return kind == MaterialKind::Elastic || kind == MaterialKind::NeoHookean || kind == MaterialKind::Water;
+}
+
+StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt, const Scalar* forces) {
   if (state.dim != model_.dim) throw InvalidArgument("state: dimension differs from the model's");
-  return impl_->step(state, dt, interrupt);
+  return impl_->step(state, dt, interrupt, forces);
+}
+
+void Solver::step_adjoint(const State& before, const State& after, Scalar dt, const Scalar* forces, State& adjoint,
+                          ParamsAdjoint& adjoint_params, Scalar* adjoint_forces, Interrupt& interrupt) {
+  if (before.dim != model_.dim || after.dim != model_.dim || adjoint.dim != model_.dim)
+    throw InvalidArgument("state: dimension differs from the model's");
+  const size_t n = static_cast<size_t>(before.n), d = static_cast<size_t>(model_.dim);
+  if (after.n != before.n || adjoint.x.size() != n * d || adjoint.v.size() != n * d ||
+      adjoint.F.size() != n * d * d || adjoint.C.size() != n * d * d)
+    throw InvalidArgument("adjoint: expected x, v (n, d) and F, C (n, d, d) for the n = " + std::to_string(n) +
+                          " particles of `before` and `after`");
+  impl_->step_adjoint(before, after, dt, forces, adjoint, adjoint_params, adjoint_forces, interrupt);
 }
 
 Scalar Solver::stable_dt(const State& state, Scalar cfl) const {
   if (!(std::isfinite(cfl) && cfl > 0)) throw InvalidArgument("cfl: expected a number > 0, got " + format_real(cfl));
   const int d = state.dim;
-  Scalar vmax = 0, harden = 1;
-#pragma omp parallel for schedule(static) reduction(max : vmax, harden) if (state.n > kParallelParticles)
+  // Wave speeds from each particle's own moduli, with the expressions of make_material.
+  Scalar vmax = 0, harden = 1, c_elastic = 0, c_snow = 0;
+#pragma omp parallel for schedule(static) reduction(max : vmax, harden, c_elastic, c_snow) if (state.n > kParallelParticles)
   for (Index p = 0; p < state.n; ++p) {
     Scalar v2 = 0;
     for (int a = 0; a < d; ++a) v2 += state.v[static_cast<size_t>(p * d + a)] * state.v[static_cast<size_t>(p * d + a)];
     vmax = std::max(vmax, std::sqrt(v2));
     const Material& m = model_.materials[static_cast<size_t>(state.material[static_cast<size_t>(p)])];
-    if (m.kind == MaterialKind::Snow)
+    const Scalar E = state.youngs_modulus[static_cast<size_t>(p)];
+    Scalar mu, lambda;
+    lame_parameters(E, state.poisson_ratio[static_cast<size_t>(p)], mu, lambda);
+    const Scalar c = m.kind == MaterialKind::Water ? std::sqrt(E / m.density) : std::sqrt((lambda + 2 * mu) / m.density);
+    if (m.kind == MaterialKind::Snow) {
       harden = std::max(harden, std::exp(m.hardening * (1 - state.Jp[static_cast<size_t>(p)])));
+      c_snow = std::max(c_snow, c);
+    } else {
+      c_elastic = std::max(c_elastic, c);
+    }
   }
-  Scalar c = 0;
-  for (const Material& m : model_.materials)
-    c = std::max(c, m.wave_speed * (m.kind == MaterialKind::Snow ? std::sqrt(harden) : 1.0));
+  const Scalar c = std::max(c_elastic, c_snow * std::sqrt(harden));
   Scalar dt = config_.max_dt;
   if (vmax + c > 0) dt = std::min(dt, cfl * model_.h / (vmax + c));
   Scalar g = 0;

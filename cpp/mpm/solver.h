@@ -6,6 +6,9 @@
 //   3. grid update: v_i = (m v)_i / m_i + dt g, then the wall and collider conditions;
 //   4. G2P: v_p = sum w v_i,  C_p = 4 / h^2 sum w v_i (x_i - x_p)^T,  x_p += dt v_p,
 //      F_p <- (I + dt C_p) F_p and the material's plastic projection.
+// step_adjoint runs these phases backwards (the vector-Jacobian product of one step, for
+// km.diff): it rebuilds the step's grid from `before`, then G2P^T (a scatter, coloured as P2G),
+// the grid update's transpose node by node, and P2G^T (a gather, per particle).
 // The grid is sparse: storage and work exist only for the blocks of nodes that particles reach.
 // P2G needs no atomics and is deterministic for any thread count: each block scatters into a
 // private tile of (B + 2)^d nodes and the tiles are added to the grid in 2^d colour phases
@@ -17,6 +20,7 @@
 #include <vector>
 
 #include "core/interrupt.h"
+#include "core/step_stats.h"
 #include "core/types.h"
 #include "mpm/config.h"
 #include "mpm/model.h"
@@ -24,8 +28,7 @@
 
 namespace kinema::mpm {
 
-struct StepStats {
-  Scalar dt = 0;
+struct StepStats : StepStatsBase {
   Scalar max_speed = 0;         // largest particle speed after the step [m/s]
   Index particle_blocks = 0;    // grid blocks holding particles
   Index active_blocks = 0;      // blocks the transfers touch (with their +1 neighbours)
@@ -33,8 +36,20 @@ struct StepStats {
   Scalar p2g_seconds = 0;       // stress and particle-to-grid transfer
   Scalar grid_seconds = 0;      // grid velocity update and boundary conditions
   Scalar g2p_seconds = 0;       // grid-to-particle transfer, advection and plasticity
-  Scalar seconds = 0;
 };
+
+// Gradients with respect to the per-particle parameters of one step.
+struct ParamsAdjoint {
+  std::vector<Scalar> youngs_modulus;  // (n,) dL/dE [1/Pa]
+  std::vector<Scalar> poisson_ratio;   // (n,) dL/dnu
+};
+
+// Whether step_adjoint differentiates a material: the elastic ones and water, whose stresses
+// and (water's) projection F <- J^(1/d) I are smooth functions of F (water's clamp of J at 1e-6:
+// the branch taken). Snow's and sand's return mappings clamp singular values, whose SVD
+// derivative has 1 / (sigma_i - sigma_j) terms that blow up at the repeated singular values
+// every particle starts with (F = I).
+bool differentiable_material(MaterialKind kind);
 
 class Solver {
  public:
@@ -43,10 +58,21 @@ class Solver {
   Solver(const Solver&) = delete;
   Solver& operator=(const Solver&) = delete;
 
-  // Advances state by dt. Throws InvalidArgument for particles outside the domain or a bad
-  // dt, DivergenceError when a value turns non-finite or a particle crosses more than
-  // config.max_cells_per_step cells in one step.
-  StepStats step(State& state, Scalar dt, Interrupt& interrupt);
+  // Advances state by dt. `forces` (n, d) [N] (or null) are external particle forces, added
+  // where gravity is (the P2G momentum gains dt f_p). Throws InvalidArgument for particles
+  // outside the domain or a bad dt, DivergenceError when a value turns non-finite or a particle
+  // crosses more than config.max_cells_per_step cells in one step.
+  StepStats step(State& state, Scalar dt, Interrupt& interrupt, const Scalar* forces = nullptr);
+
+  // The vector-Jacobian product of step(before -> after) with the same dt and forces.
+  // On entry `adjoint`'s x, v, F, C (shapes as State's) hold dL/d(after); on return they hold
+  // dL/d(before). `adjoint_params` receives dL/d(youngs_modulus, poisson_ratio) of this step
+  // and `adjoint_forces` (n, d) dL/d(forces) when not null. Where the forward switched branch
+  // (wall and collider conditions, friction sticking, the clamp of x to the domain) this is
+  // the derivative of the branch taken. Elastic, neo-Hookean and water particles only: an
+  // InvalidArgument names `material` otherwise (see differentiable_material).
+  void step_adjoint(const State& before, const State& after, Scalar dt, const Scalar* forces, State& adjoint,
+                    ParamsAdjoint& adjoint_params, Scalar* adjoint_forces, Interrupt& interrupt);
 
   // min(cfl h / (v_max + c_max), sqrt(cfl h / |g|), max_dt): the CFL rule with the fastest
   // elastic wave c_max = sqrt((lambda + 2 mu) / rho) (snow: with its hardening; water:

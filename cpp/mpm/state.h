@@ -23,12 +23,18 @@ struct State {
   std::vector<Scalar> volume;    // (n,) rest volume [m^d]
   std::vector<Index> material;   // (n,) index into Model::materials
   std::vector<Scalar> Jp;        // (n,) plastic volume ratio det(F_P) (snow, sand; 1 otherwise)
+  // Per-particle elastic moduli, so that km.diff can differentiate with respect to each
+  // particle's; they start as the material's and the step derives the Lame parameters from them
+  // (model.h, lame_parameters). Water reads youngs_modulus as its bulk modulus K.
+  std::vector<Scalar> youngs_modulus;  // (n,) E [Pa]
+  std::vector<Scalar> poisson_ratio;   // (n,) nu [-]
   Scalar time = 0;               // [s]
   Index steps = 0;
 
-  // Appends m particles at x0 (m, d) with velocity v0 (m, d), F = I, C = 0, Jp = 1.
+  // Appends m particles at x0 (m, d) with velocity v0 (m, d), F = I, C = 0, Jp = 1 and the
+  // moduli of their material.
   void append(const Scalar* x0, const Scalar* v0, Index m, const Scalar* mass0, const Scalar* volume0,
-              Index material_code);
+              Index material_code, Scalar youngs_modulus0, Scalar poisson_ratio0);
 };
 
 }  // namespace kinema::mpm

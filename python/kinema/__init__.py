@@ -13,7 +13,7 @@ import os as _os
 # libgomp's default lets an idle thread spin ~3 ms before it sleeps: on a machine where another
 # process keeps a core busy that spinning starves the thread it waits for, and a CG solve took
 # 60x longer. A short bounded spin keeps most of the quiet-machine speed and the loaded-machine
-# speed (bench/omp_wait_policy.py, bench/RESULTS.md). A user's own setting of either variable
+# speed (bench/common/omp_wait_policy.py, bench/RESULTS.md). A user's own setting of either variable
 # wins; this has no effect when another library started the OpenMP runtime first.
 #: GOMP_SPINCOUNT kinema sets when the user set neither it nor OMP_WAIT_POLICY.
 DEFAULT_GOMP_SPINCOUNT = "1000"

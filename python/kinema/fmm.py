@@ -26,25 +26,30 @@ __all__ = ["laplace2d", "direct2d", "laplace3d", "direct3d", "last_info"]
 _last_info: dict = {}
 
 
-def _points(x, name):
+_AXES = {2: "(x, y) pairs", 3: "(x, y, z) coordinates"}
+
+
+def _points(x, name, dim):
+    if np.iscomplexobj(x):
+        raise ValueError(f"{name}: expected real {_AXES[dim]}, got complex numbers")
     a = as_float_array(x, name, ndim=2)
-    if a.shape[1] != 2:
-        raise ValueError(f"{name}: expected shape (n, 2), got {a.shape}")
+    if a.shape[1] != dim:
+        raise ValueError(f"{name}: expected shape (n, {dim}), got {a.shape}")
     return a
 
 
-def _inputs(sources, charges, targets):
-    if np.iscomplexobj(sources) or np.iscomplexobj(targets):
-        raise ValueError("sources, targets: expected real (x, y) pairs, got complex numbers")
+def _inputs(sources, charges, targets, dim):
+    """Checked float64 sources (N, dim), charges (N,) (a scalar is one charge for all) and
+    targets (M, dim) or None; shared by the 2D and 3D functions."""
+    src = _points(sources, "sources", dim)
     if np.iscomplexobj(charges):
         raise ValueError("charges: expected real charges, got complex numbers")
-    src = _points(sources, "sources")
     q = as_float_array(charges, "charges", ndim=(0, 1))
     if np.ndim(charges) == 0:  # one charge for all (as_float_array returns it with shape (1,))
         q = np.full(src.shape[0], float(q[0]))
     if q.shape != (src.shape[0],):
         raise ValueError(f"charges: expected shape ({src.shape[0]},) (one per source), got {q.shape}")
-    tgt = None if targets is None else _points(targets, "targets")
+    tgt = None if targets is None else _points(targets, "targets", dim)
     return src, q, tgt
 
 
@@ -77,7 +82,7 @@ def laplace2d(sources, charges, targets=None, *, eps=1e-10, gradient=False, orde
     Statistics of the last call (order, boxes, depth, seconds per pass) are in
     :func:`last_info`.
     """
-    src, q, tgt = _inputs(sources, charges, targets)
+    src, q, tgt = _inputs(sources, charges, targets, 2)
     e = _eps(eps)
     p = _count(order, "order")
     if p > 100:
@@ -94,7 +99,7 @@ def laplace2d(sources, charges, targets=None, *, eps=1e-10, gradient=False, orde
 
 def direct2d(sources, charges, targets=None, *, eps=None, gradient=False):
     """The exact O(N M) sum of :func:`laplace2d`, in parallel; same arguments (eps is ignored)."""
-    src, q, tgt = _inputs(sources, charges, targets)
+    src, q, tgt = _inputs(sources, charges, targets, 2)
     if eps is not None:
         _eps(eps)
     phi, grad = _core.fmm.direct2d(src, q, tgt, bool(gradient))
@@ -116,28 +121,6 @@ _NEAR_KERNELS = {"laplace": 0, "plummer": 1, "gaussian": 2}
 # Below this many source-target pairs the direct sum is as fast as the FMM (bench/fmm3d_bench.py
 # measures the crossover); laplace3d then sums directly, which is exact.
 _DIRECT_PAIRS_3D = 2_000_000
-
-
-def _points3(x, name):
-    if np.iscomplexobj(x):
-        raise ValueError(f"{name}: expected real (x, y, z) coordinates, got complex numbers")
-    a = as_float_array(x, name, ndim=2)
-    if a.shape[1] != 3:
-        raise ValueError(f"{name}: expected shape (n, 3), got {a.shape}")
-    return a
-
-
-def _inputs3(sources, charges, targets):
-    src = _points3(sources, "sources")
-    if np.iscomplexobj(charges):
-        raise ValueError("charges: expected real charges, got complex numbers")
-    q = as_float_array(charges, "charges")
-    if np.ndim(charges) == 0:  # as_float_array makes a scalar a 1-element array
-        q = np.full(src.shape[0], float(q[0]))
-    if q.shape != (src.shape[0],):
-        raise ValueError(f"charges: expected shape ({src.shape[0]},) (one per source), got {q.shape}")
-    tgt = None if targets is None else _points3(targets, "targets")
-    return src, q, tgt
 
 
 def _eval3d(src, q, tgt, *, eps, derivatives, kernel="laplace", length=0.0, min_width=0.0,
@@ -171,7 +154,7 @@ def laplace3d(sources, charges, targets=None, *, eps=1e-10, gradient=False, orde
     faster there). Returns phi (M,), or (phi, grad) with grad of shape (M, 3). Statistics of
     the last call are in :func:`last_info`.
     """
-    src, q, tgt = _inputs3(sources, charges, targets)
+    src, q, tgt = _inputs(sources, charges, targets, 3)
     e = _eps(eps)
     p = _count(order, "order")
     if p > 40:
@@ -190,7 +173,7 @@ def laplace3d(sources, charges, targets=None, *, eps=1e-10, gradient=False, orde
 
 def direct3d(sources, charges, targets=None, *, eps=None, gradient=False):
     """The exact O(N M) sum of :func:`laplace3d`, in parallel; same arguments (eps is ignored)."""
-    src, q, tgt = _inputs3(sources, charges, targets)
+    src, q, tgt = _inputs(sources, charges, targets, 3)
     if eps is not None:
         _eps(eps)
     out, _ = _eval3d(src, q, tgt, eps=1e-15, derivatives=1 if gradient else 0, direct=True)

@@ -37,7 +37,10 @@ from kinema._checks import (
     as_float_array, choice, finite, finite_result, grid_shape, integer, non_negative, positive,
     simulation_object)
 
-__all__ = ["Simulation", "block", "sphere", "MATERIALS", "BOUNDARIES"]
+__all__ = ["Simulation", "Config", "StepStats", "block", "sphere", "MATERIALS", "BOUNDARIES"]
+
+Config = _core.mpm.Config
+StepStats = _core.mpm.StepStats
 
 MATERIALS = ("elastic", "neohookean", "snow", "sand", "water")
 BOUNDARIES = ("sticky", "slip", "separate")
@@ -102,10 +105,20 @@ class Simulation:
     [m^d], ``material`` (n,) int64 index into :attr:`materials`, ``Jp`` (n,) plastic volume ratio
     (snow, sand; 1 otherwise), ``time`` [s].
 
-    ``gravity`` defaults to (0, -9.81[, 0]); ``friction`` is the Coulomb coefficient of the
+    ``gravity`` [m/s^2]: None (the default) means no gravity; pass (0, -9.81[, 0]) for Earth's.
+    ``friction`` is the Coulomb coefficient of the
     walls (slip and separate; an addition to the API contract, whose walls are frictionless). ``max_cells_per_step``: a step in which a particle
     crosses more cells than this raises :class:`kinema.DivergenceError`. ``max_dt`` caps
-    :meth:`stable_dt`.
+    :meth:`stable_dt`. These three are the fields of :attr:`config` (a :class:`Config`).
+
+    Gradients (km.diff): ``parameters`` are ``("youngs_modulus", "poisson_ratio")``, one value per
+    particle (views ``youngs_modulus`` and ``poisson_ratio`` (n,), initialised from the
+    material; the step derives each particle's Lame parameters from them); the differentiable
+    state is ``x``, ``v``, ``F``, ``C``; a control is an (n, d) force [N] per particle added to
+    the P2G momentum as dt f, where gravity enters. Elastic, neo-Hookean and water particles only
+    (``material`` is named in the ValueError otherwise). Where the step switches branch (wall and
+    collider conditions, Coulomb sticking, the clamp of x to the domain, a particle's B-spline
+    base node) the gradient is that of the branch taken.
     """
 
     def __init__(self, shape, h, *, gravity=None, boundary="slip", origin=None, friction=0.0,
@@ -113,19 +126,19 @@ class Simulation:
         shape = grid_shape(shape, "shape")
         d = len(shape)
         h = positive(h, "h")
-        if gravity is None:
-            gravity = (0.0, -9.81, 0.0)[:d]
-        gravity = as_float_array(gravity, "gravity", ndim=1)
+        gravity = np.zeros(d) if gravity is None else as_float_array(gravity, "gravity", ndim=1)
         if gravity.size != d:
             raise ValueError(f"gravity: expected {d} components, got {gravity.size}")
         origin = np.zeros(d) if origin is None else as_float_array(origin, "origin", ndim=1)
         if origin.size != d:
             raise ValueError(f"origin: expected {d} coordinates, got {origin.size}")
         choice(boundary, "boundary", BOUNDARIES)
-        self._sim = _core.mpm.Simulation(list(shape), h, gravity.tolist(), boundary, origin.tolist(),
-                                         non_negative(friction, "friction"),
-                                         positive(max_cells_per_step, "max_cells_per_step"),
-                                         positive(max_dt, "max_dt"))
+        config = Config()
+        config.gravity = gravity.tolist() + [0.0] * (3 - d)
+        config.max_cells_per_step = positive(max_cells_per_step, "max_cells_per_step")
+        config.max_dt = positive(max_dt, "max_dt")
+        self._sim = _core.mpm.Simulation(list(shape), h, config, _core.mpm.Boundary.__members__[boundary],
+                                         origin.tolist(), non_negative(friction, "friction"))
         self.shape = shape
         self.h = h
         self.dim = d
@@ -171,7 +184,7 @@ class Simulation:
             phi = positive(friction_angle, "friction_angle")
         else:
             phi = 0.0 if friction_angle is None else finite(friction_angle, "friction_angle")
-        start, stop = self._sim.add_particles(x, material, positive(density, "density"), e, nu, v, vol, phi,
+        start, stop = self._sim.add_particles(x, _core.mpm.MaterialKind.__members__[material], positive(density, "density"), e, nu, v, vol, phi,
                                               non_negative(cohesion, "cohesion"))
         return slice(start, stop)
 
@@ -195,18 +208,20 @@ class Simulation:
         else:
             lower, upper, center = [], [], coords("center")
             radius = positive(region.get("radius"), "region['radius']")
-        self._sim.add_collider(shape, lower, upper, center, radius, boundary, non_negative(friction, "friction"))
+        self._sim.add_collider(shape, lower, upper, center, radius, _core.mpm.Boundary.__members__[boundary],
+                               non_negative(friction, "friction"))
 
     # ---------------------------------------------------------------- stepping
-    def step(self, dt) -> dict:
-        """One MLS-MPM step of ``dt`` [s]; returns its statistics (per-stage seconds,
-        max_speed, active_blocks). Raises DivergenceError on a blow-up."""
+    def step(self, dt) -> StepStats:
+        """One MLS-MPM step of ``dt`` [s]; returns its :class:`StepStats` (time, dt, seconds,
+        per-stage seconds, max_speed, active_blocks). Raises DivergenceError on a blow-up."""
         return self._sim.step(positive(dt, "dt"))
 
     def advance(self, duration, cfl=0.5) -> int:
-        """Steps of :meth:`stable_dt` until ``duration`` [s] has passed; returns the number of
-        steps. The statistics of the last step (stage times summed over all) are in
-        :attr:`last_stats`."""
+        """Steps of :meth:`stable_dt` until ``duration`` [s] has passed (the last step lands on
+        the end; a sliver under a tenth of a step is absorbed by the one before); returns the
+        number of steps. The :class:`StepStats` of the last step (stage and wall seconds summed
+        over all) are in :attr:`last_stats`."""
         steps, self.last_stats = self._sim.advance(non_negative(duration, "duration"), positive(cfl, "cfl"))
         return steps
 
@@ -232,9 +247,14 @@ class Simulation:
 
     @property
     def materials(self) -> list:
-        """One dict per add_particles call (kind, density, Lame parameters ...); the
-        ``material`` codes index it."""
+        """One :class:`kinema._core.mpm.Material` per add_particles call (kind, density,
+        youngs_modulus, poisson_ratio, mu, lambda_ ...); the ``material`` codes index it."""
         return self._sim.materials
+
+    @property
+    def config(self) -> Config:
+        """A copy of the solver's :class:`Config` (gravity, max_cells_per_step, max_dt)."""
+        return self._sim.config
 
     @property
     def count(self) -> int:
@@ -248,6 +268,10 @@ class Simulation:
     volume = property(lambda self: self._sim.volume, doc="(n,) rest volumes [m^d], writable view")
     material = property(lambda self: self._sim.material, doc="(n,) material codes (index into materials)")
     Jp = property(lambda self: self._sim.Jp, doc="(n,) plastic volume ratios, writable view")
+    youngs_modulus = property(lambda self: self._sim.youngs_modulus,
+                              doc="(n,) per-particle Young's modulus [Pa] (water: bulk modulus), writable view")
+    poisson_ratio = property(lambda self: self._sim.poisson_ratio,
+                             doc="(n,) per-particle Poisson ratio, writable view")
 
     @property
     def time(self) -> float:
@@ -259,12 +283,13 @@ class Simulation:
         self._sim.time = finite(t, "time")
 
     # ---------------------------------------------------------------- checkpoints
-    _STATE_ARRAYS = ("x", "v", "F", "C", "mass", "volume", "material", "Jp")
+    _STATE_ARRAYS = ("x", "v", "F", "C", "mass", "volume", "material", "Jp", "youngs_modulus", "poisson_ratio")
 
     @property
     def parameters(self) -> tuple:
-        """Names of the differentiable parameters: none (km.mpm has no adjoint yet)."""
-        return ()
+        """Names of the differentiable parameters, per particle: ``youngs_modulus`` and
+        ``poisson_ratio`` ((n,) arrays)."""
+        return ("youngs_modulus", "poisson_ratio")
 
     def state(self) -> dict:
         """Copies of everything that evolves (the particle arrays, time and step count)."""
@@ -301,6 +326,63 @@ class Simulation:
         self._sim.time = time
         self._sim.steps = steps
 
+    # ---------------------------------------------------------------- km.diff protocol
+    _diff_state_names = ("x", "v", "F", "C")
+
+    @staticmethod
+    def _no_step_options(step_options):
+        for option in step_options:
+            raise ValueError(f"{option}: km.mpm.Simulation.step takes no option besides dt")
+
+    def _diff_check(self, wrt, step_options):
+        self._no_step_options(step_options)
+        allowed = self._diff_state_names + self.parameters + ("controls",)
+        for name in wrt:
+            if name not in allowed:
+                raise ValueError(f"wrt: {name!r} is not differentiable in km.mpm (expected one of {allowed})")
+        codes = np.unique(self.material)
+        kinds = [self.materials[c].kind for c in codes]
+        refused = sorted({k for k in kinds if k not in ("elastic", "neohookean", "water")})
+        if refused:
+            raise ValueError(f"material: gradients need 'elastic', 'neohookean' or 'water' particles, the simulation "
+                             f"has {refused} (their return mappings clamp singular values: see docs/guide/mpm.md)")
+
+    def _diff_control_shape(self):
+        return (self.count, self.dim)
+
+    def _diff_get(self, name):
+        if name not in self._diff_state_names + self.parameters:
+            raise ValueError(f"name: {name!r} is not a state array or parameter of km.mpm.Simulation")
+        return getattr(self._sim, name).copy()
+
+    def _diff_set(self, name, value):
+        if name not in self._diff_state_names + self.parameters:
+            raise ValueError(f"name: {name!r} is not a state array or parameter of km.mpm.Simulation")
+        view = getattr(self._sim, name)
+        value = np.asarray(value, dtype=float)
+        if value.shape != view.shape:
+            raise ValueError(f"{name}: expected shape {view.shape}, got {value.shape}")
+        view[...] = value
+
+    def _control(self, control):
+        if control is None:
+            return None
+        f = as_float_array(control, "controls")
+        if f.shape != (self.count, self.dim):
+            raise ValueError(f"controls: expected one step's forces of shape {(self.count, self.dim)} [N], "
+                             f"got {f.shape}")
+        return f
+
+    def _diff_step(self, dt, control, step_options):
+        self._no_step_options(step_options)
+        return self._sim.step(positive(dt, "dt"), self._control(control))
+
+    def _diff_step_adjoint(self, dt, before, after, control, grad_after, step_options):
+        grads = {k: as_float_array(grad_after[k], f"grads['{k}']") for k in self._diff_state_names if k in grad_after}
+        grad_before, g_e, g_nu, g_control = self._sim.step_adjoint(positive(dt, "dt"), before, after,
+                                                                   self._control(control), grads)
+        return grad_before, {"youngs_modulus": g_e, "poisson_ratio": g_nu}, g_control
+
     def __repr__(self):
         return (f"kinema.mpm.Simulation(shape={self.shape}, h={self.h}, particles={self.count}, "
-                f"materials={[m['kind'] for m in self.materials]}, t={self.time:.4g})")
+                f"materials={[m.kind for m in self.materials]}, t={self.time:.4g})")

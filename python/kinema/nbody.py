@@ -17,9 +17,11 @@ accuracy (exactly by the direct sum, to ~eps by the FMM).
 
 from __future__ import annotations
 
+import time as _time
+
 import numpy as np
 
-from kinema import _stepping, fmm
+from kinema import _core, _stepping, fmm
 from kinema._checks import (
     as_float_array, checked_state, finite_result, integer, non_negative, positive, representable,
     simulation_object, spacing)
@@ -121,16 +123,19 @@ class System:
         return 2 * self.kinetic_energy() / w
 
     # ------------------------------------------------------------------ time stepping
-    def step(self, dt):
-        """One kick-drift-kick leapfrog step of dt [s]. A step that fails (km.DivergenceError,
-        Ctrl-C) leaves the state as it was before it, so a smaller dt can be tried at once."""
+    def step(self, dt) -> _core.StepStats:
+        """One kick-drift-kick leapfrog step of dt [s]; returns its km StepStats (time at the
+        end [s], dt [s], wall seconds). A step that fails (km.DivergenceError, Ctrl-C) leaves
+        the state as it was before it, so a smaller dt can be tried at once."""
         dt = positive(dt, "dt")
+        start = _time.perf_counter()
         before = self.state()
         try:
             self._leapfrog(dt)
         except BaseException:
             self.set_state(before)
             raise
+        return _core.StepStats(time=self.time, dt=dt, seconds=_time.perf_counter() - start)
 
     def _leapfrog(self, dt):
         if self._acc is None:
@@ -146,7 +151,8 @@ class System:
                                   f"(t = {self.time:g}); reduce dt (now {dt:g}) or add softening")
 
     def advance(self, duration, dt, *, callback=None):
-        """Steps of dt up to `duration` [s], the last one shortened to land on it.
+        """Steps of dt up to `duration` [s], the last landing on it (a remainder under dt/10 is
+        absorbed by stretching the last step, the rule of every method).
 
         callback(system), if given, runs after every step (progress output, recording)."""
         return _stepping.advance(self, duration, dt, callback)

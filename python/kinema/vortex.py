@@ -18,9 +18,11 @@ K's antisymmetry conserves (each RK stage velocity has sum_j Gamma_j u_j = 0 up 
 
 from __future__ import annotations
 
+import time as _time
+
 import numpy as np
 
-from kinema import _stepping, fmm
+from kinema import _core, _stepping, fmm
 from kinema._checks import (
     as_float_array, checked_state, finite, finite_result, integer, positive, representable,
     simulation_object, spacing)
@@ -37,7 +39,10 @@ class VortexParticles:
 
     x: (n, 2) positions [m] (a writable array, the state). circulation: (n,) Gamma_j [m^2/s].
     core: core radius delta [m]. eps: relative accuracy of the FMM velocity.
+    Attributes: x, circulation, core, eps, time [s], steps (count).
     """
+
+    parameters = ("circulation", "core")
 
     def __init__(self, x, circulation, core, *, eps=1e-10):
         self.x = as_float_array(x, "x", ndim=2).copy()
@@ -52,6 +57,7 @@ class VortexParticles:
         self.core = spacing(core, "core")
         self.eps = fmm._eps(eps)
         self.time = 0.0
+        self.steps = 0
 
     def velocity(self, x=None) -> np.ndarray:
         """u at the particles (or at the vortex positions `x`, for the RK stages): (n, 2) [m/s]."""
@@ -88,9 +94,10 @@ class VortexParticles:
         np.add.at(u[:, 0], j, -self.circulation[i] * kx)
         np.add.at(u[:, 1], j, -self.circulation[i] * ky)
 
-    def step(self, dt):
-        """One classical RK4 step of dx/dt = u(x)."""
+    def step(self, dt) -> _core.StepStats:
+        """One classical RK4 step of dx/dt = u(x); returns its StepStats (time, dt, seconds)."""
         dt = positive(dt, "dt")
+        start = _time.perf_counter()
         from kinema.errors import DivergenceError
 
         x0 = self.x
@@ -108,6 +115,23 @@ class VortexParticles:
                                   f"reduce dt (now {dt:g})")
         self.x = x
         self.time += dt
+        self.steps += 1
+        return _core.StepStats(time=self.time, dt=dt, seconds=_time.perf_counter() - start)
+
+    def advance(self, duration, dt, *, callback=None):
+        """Steps of dt up to `duration` [s], the last landing on it (a remainder under dt/10 is
+        absorbed by stretching the last step, the rule of every method)."""
+        return _stepping.advance(self, duration, dt, callback)
+
+    def state(self) -> dict:
+        """Copies of x, time and steps (RK4 reads nothing else from the past)."""
+        return {"x": self.x.copy(), "time": np.array(self.time), "steps": np.array(self.steps)}
+
+    def set_state(self, state: dict) -> None:
+        """Restores a :meth:`state` exactly; a refused dict changes nothing."""
+        x, time, steps = checked_state(state, ("x",), self.x.shape)
+        self.x = x.copy()
+        self.time, self.steps = time, steps
 
     def total_circulation(self) -> float:
         """sum_j Gamma_j [m^2/s]."""
@@ -220,9 +244,11 @@ class VortexParticles3D:
                 raise ValueError(f"points: expected shape (m, 3), got {tgt.shape}")
         return finite_result(self._curl(self._psi(self.x, self.strength, tgt, 1)), "velocity")
 
-    def step(self, dt):
-        """One classical RK4 step of dx/dt = u, d alpha/dt = (alpha . grad) u."""
+    def step(self, dt) -> _core.StepStats:
+        """One classical RK4 step of dx/dt = u, d alpha/dt = (alpha . grad) u; returns its
+        StepStats (time at the end [s], dt [s], wall seconds)."""
         dt = positive(dt, "dt")
+        start = _time.perf_counter()
         x0, a0 = self.x, self.strength
         k1 = self._rates(x0, a0)
         k2 = self._rates(x0 + 0.5 * dt * k1[0], a0 + 0.5 * dt * k1[1])
@@ -239,9 +265,11 @@ class VortexParticles3D:
         self.strength[...] = a1
         self.time += dt
         self.steps += 1
+        return _core.StepStats(time=self.time, dt=dt, seconds=_time.perf_counter() - start)
 
     def advance(self, duration, dt, *, callback=None):
-        """Steps of dt up to `duration` [s], the last one shortened to land on it."""
+        """Steps of dt up to `duration` [s], the last landing on it (a remainder under dt/10 is
+        absorbed by stretching the last step, the rule of every method)."""
         return _stepping.advance(self, duration, dt, callback)
 
     def linear_impulse(self) -> np.ndarray:

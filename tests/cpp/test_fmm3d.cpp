@@ -1,8 +1,10 @@
 // 3D FMM kernels: the addition theorem of the solid harmonics, each translation (P2M, M2M,
 // M2L matrix, L2L, L2P and its derivatives) against the direct potential it stands for, the
-// M2L product kernel against a plain loop, and the whole FMM against direct3d.
+// M2L product kernel against a plain loop, the mutual near field against the one-way sums,
+// the tree's lists, and the whole FMM against direct3d.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
 #include <omp.h>
 
@@ -12,6 +14,8 @@
 #include "fmm/kernels3d.h"
 #include "fmm/laplace3d.h"
 #include "fmm/m2l_product.h"
+#include "fmm/p2p3d.h"
+#include "fmm/tree.h"
 
 namespace kinema::fmm3 {
 
@@ -96,6 +100,74 @@ TEST(Fmm3dKernels, ProductKernelMatchesPlainLoop) {
           ASSERT_NEAR(c[col * n + i], s, 1e-13 * n) << n << " " << k;
         }
     }
+  }
+}
+
+TEST(Fmm3dKernels, MutualNearFieldEqualsBothOneWaySums) {
+  if (!p2p_mutual_available()) GTEST_SKIP() << "no vectorised mutual kernel on this CPU";
+  const Scalar ca[3] = {0, 0, 0}, cb[3] = {0.9, 0.4, -0.3};
+  for (int na : {1, 5, 37}) {
+    for (int nb : {1, 4, 6, 29}) {
+      for (Scalar soft : {0.0, 0.05}) {
+        const Cloud a = cloud(na, ca, 0.5, 7 + na), b = cloud(nb, cb, 0.5, 11 + nb);
+        const Index stride = (nb + 3) & ~3;
+        Cloud bp = b;  // padded to whole vectors: zero charges at b's first point
+        for (Index j = nb; j < stride; ++j) {
+          for (int d = 0; d < 3; ++d) bp.x[d].push_back(b.x[d][0]);
+          bp.q.push_back(0);
+        }
+        const Scalar* xa[3] = {a.x[0].data(), a.x[1].data(), a.x[2].data()};
+        const Scalar* xb[3] = {bp.x[0].data(), bp.x[1].data(), bp.x[2].data()};
+        std::vector<Scalar> out_a(4 * na, 0.0), out_b(4 * stride, 0.0), phi_a(na, 0.0), phi_b(stride, 0.0);
+        ASSERT_TRUE(p2p_mutual(true, 2, soft, xa, a.q.data(), na, xb, bp.q.data(), stride, stride,
+                               out_a.data(), out_b.data()));
+        ASSERT_TRUE(p2p_mutual(false, 2, soft, xa, a.q.data(), na, xb, bp.q.data(), stride, stride,
+                               phi_a.data(), phi_b.data()));
+        for (int i = 0; i < na; ++i) EXPECT_NEAR(phi_a[i], out_a[4 * i], 1e-14 * (1 + std::abs(phi_a[i])));
+        for (int j = 0; j < nb; ++j) EXPECT_NEAR(phi_b[j], out_b[j], 1e-14 * (1 + std::abs(phi_b[j])));
+        const NearKernel kernel = soft > 0 ? NearKernel::Plummer : NearKernel::Laplace;
+        // Two Newton steps from a 12-bit estimate: relative error below 1e-13 per pair.
+        for (int i = 0; i < na; ++i) {
+          Scalar ref[4] = {0, 0, 0, 0};
+          p2p_generic(kernel, soft, 4, a.x[0][i], a.x[1][i], a.x[2][i], b.x[0].data(), b.x[1].data(),
+                      b.x[2].data(), b.q.data(), 1, nb, ref);
+          for (int k = 0; k < 4; ++k) EXPECT_NEAR(out_a[4 * i + k], ref[k], 1e-12 * nb * (1 + std::abs(ref[k]))) << i << " " << k;
+        }
+        for (int j = 0; j < nb; ++j) {
+          Scalar ref[4] = {0, 0, 0, 0};
+          p2p_generic(kernel, soft, 4, b.x[0][j], b.x[1][j], b.x[2][j], a.x[0].data(), a.x[1].data(),
+                      a.x[2].data(), a.q.data(), 1, na, ref);
+          for (int k = 0; k < 4; ++k) EXPECT_NEAR(out_b[k * stride + j], ref[k], 1e-12 * na * (1 + std::abs(ref[k]))) << j << " " << k;
+        }
+      }
+    }
+  }
+}
+
+TEST(Fmm3dTree, NearListsAreSymmetricAndCoverTheDirectRanges) {
+  const Scalar c[3] = {0, 0, 0}, c2[3] = {0.7, 0.7, 0.7};
+  Cloud s = cloud(3000, c, 1.0, 5);
+  const Cloud dense = cloud(2000, c2, 0.01, 6);  // a cluster: leaves of several levels
+  for (int d = 0; d < 3; ++d) s.x[d].insert(s.x[d].end(), dense.x[d].begin(), dense.x[d].end());
+  const Scalar* xyz[3] = {s.x[0].data(), s.x[1].data(), s.x[2].data()};
+  Interrupt none;
+  const fmm::Octree tree(xyz, 5000, xyz, 5000, 40, 0, 20, none);
+  ASSERT_GE(tree.levels.size(), 4u);
+  for (Index a : tree.leaves) {
+    const fmm::Lists& la = tree.lists[static_cast<size_t>(a)];
+    EXPECT_NE(std::find(la.u.begin(), la.u.end(), a), la.u.end());
+    Index covered = 0;
+    for (Index b : la.u) {
+      const fmm::Lists& lb = tree.lists[static_cast<size_t>(b)];
+      EXPECT_TRUE(tree.boxes[static_cast<size_t>(b)].leaf);
+      EXPECT_TRUE(tree.adjacent(tree.boxes[static_cast<size_t>(a)], tree.boxes[static_cast<size_t>(b)]));
+      EXPECT_NE(std::find(lb.u.begin(), lb.u.end(), a), lb.u.end()) << a << " " << b;
+      covered += tree.boxes[static_cast<size_t>(b)].source_count();
+    }
+    for (Index w : la.w_direct) covered += tree.boxes[static_cast<size_t>(w)].source_count();
+    Index ranges = 0;
+    for (size_t r = 0; r < la.p2p_ranges.size(); r += 2) ranges += la.p2p_ranges[r + 1] - la.p2p_ranges[r];
+    EXPECT_EQ(covered, ranges);
   }
 }
 

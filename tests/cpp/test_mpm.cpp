@@ -7,6 +7,7 @@
 #include <cmath>
 #include <random>
 
+#include "mpm/adjoint_kernels.h"
 #include "mpm/kernels.h"
 #include "mpm/solver.h"
 
@@ -127,7 +128,7 @@ void step_conserves_momentum() {
   std::vector<Scalar> x(count * D), v(count * D), mass(count, 1e-3), vol(count, 1e-6);
   for (auto& xi : x) xi = u(rng);
   for (auto& vi : v) vi = n(rng);
-  state.append(x.data(), v.data(), count, mass.data(), vol.data(), 0);
+  state.append(x.data(), v.data(), count, mass.data(), vol.data(), 0, 1e4, 0.3);
   for (auto& f : state.F) f += 0.05 * n(rng);
   Solver solver(model, config);
   const std::vector<Scalar> p0 = solver.momentum(state);
@@ -139,6 +140,75 @@ void step_conserves_momentum() {
 
 }  // namespace
 
+// The stress adjoints against central differences of tau along random directions, for random F
+// and at F = I (repeated singular values, where the corotated adjoint must stay regular).
+// With mu, lambda = O(1) and step e = 1e-6 the difference's truncation is O(e^2) = 1e-12 and its
+// rounding O(u / e) = 1e-10 relative, so 1e-7 relative leaves a wide margin.
+template <int D>
+void stress_adjoints_match_finite_differences() {
+  const Scalar mu = 3.0, lambda = 2.0, e = 1e-6;
+  std::mt19937 rng(17);
+  std::normal_distribution<Scalar> normal(0, 1);
+  auto random_mat = [&] {
+    Mat<D> m;
+    for (int i = 0; i < D * D; ++i) m(i) = normal(rng);
+    return m;
+  };
+  for (int k = 0; k < 40; ++k) {
+    const Mat<D> F = k == 0 ? Mat<D>::Identity() : random_F<D>(rng, 0.3);
+    const Mat<D> W = random_mat(), dF = random_mat();
+    for (int corotated = 0; corotated < 2; ++corotated) {
+      auto tau = [&](const Mat<D>& G, Scalar m, Scalar l) {
+        return corotated ? corotated_tau<D>(G, svd(G), m, l) : neohookean_tau<D>(G, m, l);
+      };
+      Mat<D> F_bar = Mat<D>::Zero();
+      Scalar mu_bar = 0, lambda_bar = 0;
+      if (corotated)
+        corotated_tau_vjp<D>(F, svd(F), mu, lambda, W, F_bar, mu_bar, lambda_bar);
+      else
+        neohookean_tau_vjp<D>(F, mu, lambda, W, F_bar, mu_bar, lambda_bar);
+      const Scalar fd_F = W.cwiseProduct(tau(F + e * dF, mu, lambda) - tau(F - e * dF, mu, lambda)).sum() / (2 * e);
+      const Scalar fd_mu = W.cwiseProduct(tau(F, mu + e, lambda) - tau(F, mu - e, lambda)).sum() / (2 * e);
+      const Scalar fd_lambda = W.cwiseProduct(tau(F, mu, lambda + e) - tau(F, mu, lambda - e)).sum() / (2 * e);
+      const Scalar scale = 1 + std::abs(fd_F);
+      EXPECT_NEAR(F_bar.cwiseProduct(dF).sum(), fd_F, 1e-7 * scale) << "corotated " << corotated << " case " << k;
+      EXPECT_NEAR(mu_bar, fd_mu, 1e-7 * (1 + std::abs(fd_mu))) << "corotated " << corotated << " case " << k;
+      EXPECT_NEAR(lambda_bar, fd_lambda, 1e-7 * (1 + std::abs(fd_lambda))) << "corotated " << corotated;
+    }
+  }
+  // Water: the Tait stress's and the projection's adjoints (functions of J alone).
+  for (int k = 0; k < 20; ++k) {
+    const Mat<D> F = random_F<D>(rng, 0.1), W = random_mat(), dF = random_mat();
+    const Scalar K = 5.0, gamma = 7.0;
+    auto tau = [&](const Mat<D>& G, Scalar bulk) { return water_tau<D>(G.determinant(), bulk, gamma); };
+    auto project = [&](const Mat<D>& G) {
+      const Scalar J = G.determinant();
+      return Mat<D>(Mat<D>::Identity() * (D == 2 ? std::sqrt(J) : std::cbrt(J)));
+    };
+    Mat<D> F_bar = Mat<D>::Zero();
+    const Scalar K_bar = water_tau_vjp<D>(F, K, gamma, W, F_bar);
+    const Scalar fd_F = W.cwiseProduct(tau(F + e * dF, K) - tau(F - e * dF, K)).sum() / (2 * e);
+    const Scalar fd_K = W.cwiseProduct(tau(F, K + e) - tau(F, K - e)).sum() / (2 * e);
+    EXPECT_NEAR(F_bar.cwiseProduct(dF).sum(), fd_F, 1e-7 * (1 + std::abs(fd_F))) << "water stress, case " << k;
+    EXPECT_NEAR(K_bar, fd_K, 1e-7 * (1 + std::abs(fd_K))) << "water bulk modulus, case " << k;
+    const Scalar fd_P = W.cwiseProduct(project(F + e * dF) - project(F - e * dF)).sum() / (2 * e);
+    EXPECT_NEAR(water_projection_vjp<D>(F, W).cwiseProduct(dF).sum(), fd_P, 1e-7 * (1 + std::abs(fd_P)))
+        << "water projection, case " << k;
+  }
+  // lame_parameters_vjp against differences of lame_parameters.
+  const Scalar E = 1e3, nu = 0.3, mb = 0.7, lb = -1.3;
+  Scalar E_bar, nu_bar, mp, lp, mm, lm;
+  lame_parameters_vjp(E, nu, mb, lb, E_bar, nu_bar);
+  lame_parameters(E, nu + e, mp, lp);
+  lame_parameters(E, nu - e, mm, lm);
+  EXPECT_NEAR(nu_bar, (mb * (mp - mm) + lb * (lp - lm)) / (2 * e), 1e-6 * std::abs(nu_bar));
+  lame_parameters(E + 1e-3, nu, mp, lp);
+  lame_parameters(E - 1e-3, nu, mm, lm);
+  EXPECT_NEAR(E_bar, (mb * (mp - mm) + lb * (lp - lm)) / 2e-3, 1e-6 * std::abs(E_bar));
+}
+
+TEST(MpmKernels, StressAdjoints2D) { stress_adjoints_match_finite_differences<2>(); }
+TEST(MpmKernels, StressAdjoints3D) { stress_adjoints_match_finite_differences<3>(); }
 TEST(MpmKernels, SignedSvd2D) { svd_cases<2>(); }
 TEST(MpmKernels, SignedSvd3D) { svd_cases<3>(); }
 TEST(MpmKernels, StressesSymmetricAndZeroAtRest2D) { stresses_symmetric_and_zero_at_rest<2>(); }

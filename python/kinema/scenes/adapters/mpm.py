@@ -88,7 +88,8 @@ class MPMSimulation(ArrayStateSimulation):
         o = scene.config["solver"]
         self.dim = dimension(o, None)
         self.cfl = o["cfl"]
-        self.sim = km.mpm.Simulation(o["shape"], o["h"], gravity=o["gravity"], boundary=o["boundary"],
+        gravity = o["gravity"] if o["gravity"] is not None else (0.0, -9.81, 0.0)[:len(o["shape"])]
+        self.sim = km.mpm.Simulation(o["shape"], o["h"], gravity=gravity, boundary=o["boundary"],
                                      origin=o["origin"], friction=o["friction"])
         self.lower = np.array(self.sim.origin, float)
         self.upper = self.lower + np.array(o["shape"]) * o["h"]
@@ -111,7 +112,7 @@ class MPMSimulation(ArrayStateSimulation):
                 raise scene.error(f"objects[{k}]", str(exc)) from None
         if self.sim.count == 0:
             raise scene.error("objects", "an mpm scene needs at least one block, sphere or mesh of particles")
-        self.kinds = np.array([m["kind"] for m in self.sim.materials])
+        self.kinds = np.array([m.kind for m in self.sim.materials])
 
     def _fill(self, scene, k, obj):
         """Lattice points (anchored at the domain's corner) inside the object and the domain."""
