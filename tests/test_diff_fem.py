@@ -291,13 +291,11 @@ def test_fixed_vertices_ignore_controls_and_get_no_velocity_gradient():
 
 
 def test_beam_identification_example_smoke(tmp_path):
-    import importlib.util
     from pathlib import Path
 
-    path = Path(__file__).resolve().parent.parent / "examples" / "diff_beam_identify.py"
-    spec = importlib.util.spec_from_file_location("diff_beam_identify", path)
-    example = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(example)
+    from load_script import load_script
+
+    example = load_script(Path(__file__).resolve().parents[1] / "examples" / "diff_beam_identify.py")
     losses, error = example.main(["--out", str(tmp_path), "--cells", "8", "2", "--steps", "6",
                                   "--iterations", "6"])
     assert losses[-1] < 0.5 * losses[0], losses

@@ -1,7 +1,7 @@
 """Gradients through the neo-Hookean cube: backward time against forward time, stored and
 checkpointed, with peak memory (km.diff over km.fem.Body).
 
-The cube of bench/deform_bench.py: 20^3 vertices, 19^3 cells x 5 = 34,295 tetrahedra, E = 5e4,
+The cube of bench/deform/deform_bench.py: 20^3 vertices, 19^3 cells x 5 = 34,295 tetrahedra, E = 5e4,
 nu = 0, rho = 1000, gravity -9.8 y, an initial velocity with a shear; T implicit steps of
 h = 0.01, Newton to a relative gradient norm of 1e-6 with the default linear solver (PCG with
 the lagged CHOLMOD factor). Gradient of L = w . x_T with respect to x_0, v_0 and the per-element
@@ -17,8 +17,8 @@ Before timing, the benchmark checks its gradient: the directional derivative alo
 direction of v_0 against a central difference of two forward runs, and the checkpointed
 gradients against the stored ones (bitwise).
 
-    .venv/bin/python bench/diff_fem_bench.py [--steps 16] [--quick]
-    .venv/bin/python bench/diff_fem_bench.py --baseline DIR   (forward step against the kinema
+    .venv/bin/python bench/deform/diff_fem_bench.py [--steps 16] [--quick]
+    .venv/bin/python bench/deform/diff_fem_bench.py --baseline DIR   (forward step against the kinema
         package in DIR, e.g. an older build, alternated in one run)
 """
 
@@ -36,12 +36,12 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "common"))  # harness.py
 import harness  # noqa: E402
 
 import kinema as km  # noqa: E402
 
-OUT = Path(__file__).resolve().parent / "out"
+OUT = Path(__file__).resolve().parents[1] / "out"
 DT = 0.01
 
 
