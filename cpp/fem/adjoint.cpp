@@ -33,6 +33,18 @@ namespace {
 // is Newton's, not the solve's.
 constexpr Scalar kAdjointTolerance = 1e-10;
 
+// sum over the free dofs q = i d + r of term(i, q, r).
+template <class Term>
+Scalar free_dof_sum(const Model& m, Term&& term) {
+  const int d = m.dim;
+  return parallel_sum(m.vertex_count, [&](Index i) {
+    Scalar t = 0;
+    if (!m.fixed[i])
+      for (int r = 0; r < d; ++r) t += term(i, i * d + r, r);
+    return t;
+  });
+}
+
 template <int D>
 Mat<D> dm_inverse(const Model& m, Index e) {
   return Eigen::Map<const Mat<D>>(m.Dm_inv.data() + e * D * D);
@@ -144,24 +156,12 @@ void Solver::adjoint_symplectic(const State& before, const State& after, Scalar 
   elastic_parameter_gradient(before.x.data(), w.data(), -1, params);  // f = -grad E
   // v_{n+1} = (v_n + h (f + u)/m) damp: d/drho of (f + u)/m with m = rho m^ is
   // -(f + u - m g)/(m rho); d/dc of damp is -h damp^2, so dv_{n+1}/dc = -h damp v_{n+1}.
-  params.density = parallel_sum(m.vertex_count, [&](Index i) {
-    Scalar t = 0;
-    if (!m.fixed[i])
-      for (int r = 0; r < d; ++r) {
-        const Index q = i * d + r;
-        const Scalar own = f[q] + (control ? control[q] : 0) - (gravity ? m.mass[i] * m.gravity()[r] : 0);
-        t -= w[q] * own / rho;
-      }
-    return t;
+  params.density = -free_dof_sum(m, [&](Index i, Index q, int r) {
+    const Scalar own = f[q] + (control ? control[q] : 0) - (gravity ? m.mass[i] * m.gravity()[r] : 0);
+    return w[q] * own / rho;
   });
-  params.damping = parallel_sum(m.vertex_count, [&](Index i) {
-    Scalar t = 0;
-    if (!m.fixed[i])
-      for (int r = 0; r < d; ++r) {
-        const Index q = i * d + r;
-        t -= (adjoint.v[q] + dt * adjoint.x[q]) * dt * damp * after.v[q];
-      }
-    return t;
+  params.damping = -free_dof_sum(m, [&](Index, Index q, int) {
+    return (adjoint.v[q] + dt * adjoint.x[q]) * dt * damp * after.v[q];
   });
   parallel_for(m.vertex_count, [&](Index i) {
     for (int r = 0; r < d; ++r) {
@@ -238,26 +238,13 @@ void Solver::adjoint_implicit(const State& before, const State& after, Scalar dt
 
   elastic_parameter_gradient(after.x.data(), lambda.data(), -scale, params);
   // dG/drho = (M/rho) ((x - y) + h c (x - x_n) - h^2 g) with y = x_n + h v_n; dG/dc = h M (x - x_n).
-  params.density = parallel_sum(m.vertex_count, [&](Index i) {
-    Scalar t = 0;
-    if (!m.fixed[i])
-      for (int r = 0; r < d; ++r) {
-        const Index q = i * d + r;
-        const Scalar step = after.x[q] - before.x[q];
-        const Scalar dG = (step - dt * before.v[q]) + dt * c * step -
-                          (gravity ? scale * m.gravity()[r] : 0);
-        t -= lambda[q] * m.mass[i] / rho * dG;
-      }
-    return t;
+  params.density = -free_dof_sum(m, [&](Index i, Index q, int r) {
+    const Scalar step = after.x[q] - before.x[q];
+    const Scalar dG = (step - dt * before.v[q]) + dt * c * step - (gravity ? scale * m.gravity()[r] : 0);
+    return lambda[q] * m.mass[i] / rho * dG;
   });
-  params.damping = parallel_sum(m.vertex_count, [&](Index i) {
-    Scalar t = 0;
-    if (!m.fixed[i])
-      for (int r = 0; r < d; ++r) {
-        const Index q = i * d + r;
-        t -= lambda[q] * dt * m.mass[i] * (after.x[q] - before.x[q]);
-      }
-    return t;
+  params.damping = -free_dof_sum(m, [&](Index i, Index q, int) {
+    return lambda[q] * dt * m.mass[i] * (after.x[q] - before.x[q]);
   });
   std::vector<Scalar> K_lambda;
   if (m.fixed_count > 0) {
