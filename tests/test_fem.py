@@ -375,19 +375,9 @@ def test_static_without_fixed_vertices_is_refused():
         body.solve_static()
 
 
-def test_deform_demo_smoke(tmp_path):
-    from kinema import demo_deform
-    assert demo_deform.main(["--out", str(tmp_path), "--frames", "3", "--cloth", "6",
-                             "--cells", "5", "--no-video"]) == 0
-    assert len(list((tmp_path / "body").glob("*.vtk"))) == 3
-    text = (tmp_path / "cloth" / "frame_0002.vtk").read_text()
-    assert text.startswith("# vtk DataFile") and "CELL_TYPES" in text
-    obj = (tmp_path / "body" / "frame_0002.obj").read_text().splitlines()
-    assert sum(line.startswith("f ") for line in obj) > 0 and len(list((tmp_path / "cloth").glob("*.obj"))) == 3
-
-
-def test_demo_boundary_surface_is_closed_and_outward():
-    from kinema.demo_deform import boundary_faces
+def test_boundary_surface_is_closed_and_outward():
+    # The demo that drew this surface is examples/cloth_and_beam.py (tests/test_examples.py).
+    from kinema.scenes.preview import boundary_faces
     V, T = km.fem.box_mesh([0, 0, 0], [1.0, 0.5, 0.25], (4, 3, 2), tets_per_cell=5)
     F = boundary_faces(T)
     assert len(F) == 2 * 2 * (4 * 3 + 4 * 2 + 3 * 2)  # two triangles per boundary cell face

@@ -1,19 +1,23 @@
-// kinema._core.fem: the finite-element body (model + state + solver in one object) and the
-// pointwise material functions. The Python layer (kinema/fem.py) checks shapes and names; the
-// state arrays x, v are zero-copy views of the body's own buffers, kept alive by the body.
+// kinema._core.fem: the finite-element body as Config / Parameters / Model / State / Solver
+// (fem/model.h, fem/solver.h) and the pointwise material functions. The Python layer
+// (kinema/fem.py) converts shapes and names; values are checked here, where they enter C++.
+// State.x and State.v are zero-copy flat views of the state's own buffers, kept alive by the
+// state (the buffers are never reallocated: steps and set_state copy into them).
+#include <optional>
 #include <string>
 #include <type_traits>
 
 #include "bindings/common.h"
 #include "core/errors.h"
 #include "core/parallel.h"
-#include "fem/body.h"
+#include "fem/solver.h"
 
 namespace kinema::bind {
 
 namespace {
 
-using fem::Body;
+using fem::Solver;
+using fem::State;
 
 fem::Material parse_material(const std::string& name) {
   if (name == "linear") return fem::Material::Linear;
@@ -24,43 +28,29 @@ fem::Material parse_material(const std::string& name) {
                         name + "'");
 }
 
-fem::Definiteness parse_definiteness(const std::string& name) {
-  if (name == "adaptive") return fem::Definiteness::Adaptive;
-  if (name == "project") return fem::Definiteness::Project;
-  if (name == "none") return fem::Definiteness::None;
-  throw InvalidArgument("definiteness: expected 'adaptive', 'project' or 'none', got '" + name + "'");
+// A flat writable view of a state buffer owned by the state behind `self`.
+py::array view(py::object self, std::vector<Scalar>& buffer) {
+  return py::array_t<Scalar>(static_cast<py::ssize_t>(buffer.size()), buffer.data(), self);
 }
 
-fem::LinearSolver parse_solver(const std::string& name) {
-  if (name == "cholmod") return fem::LinearSolver::Cholmod;
-  if (name == "cg") return fem::LinearSolver::CG;
-  if (name == "cholmod_direct") return fem::LinearSolver::CholmodDirect;
-  if (name == "cholmod_pcg") return fem::LinearSolver::CholmodPcg;
-  throw InvalidArgument("linear_solver: expected 'cholmod', 'cholmod_direct', 'cholmod_pcg' or "
-                        "'cg', got '" + name + "'");
+// Copies a flat array of the buffer's size into it (in place: views stay valid).
+void assign(std::vector<Scalar>& buffer, const ScalarArray& a, const char* name) {
+  if (static_cast<std::size_t>(a.size()) != buffer.size())
+    throw InvalidArgument(std::string(name) + ": expected " + std::to_string(buffer.size()) +
+                          " values, got " + std::to_string(a.size()));
+  std::copy(a.data(), a.data() + a.size(), buffer.begin());
 }
 
-py::dict stats_dict(const fem::NewtonStats& s) {
-  py::dict d;
-  d["iterations"] = s.iterations;
-  d["converged"] = s.converged;
-  d["gradient_norm"] = s.gradient_norm;
-  d["step_length"] = s.step_length;
-  d["projected_elements"] = s.projected_elements;
-  d["cg_iterations"] = s.cg_iterations;
-  d["factorizations"] = s.factorizations;
-  d["seconds_assembly"] = s.seconds_assembly;
-  d["seconds_factor"] = s.seconds_factor;
-  d["seconds_solve"] = s.seconds_solve;
-  d["seconds_line_search"] = s.seconds_line_search;
-  d["seconds"] = s.seconds;
-  return d;
-}
-
-// A (rows, d) view of a state buffer owned by the body behind `self`.
-py::array view(py::object self, std::vector<Scalar>& buffer, Index d) {
-  const Index rows = static_cast<Index>(buffer.size()) / d;
-  return py::array_t<Scalar>({rows, d}, buffer.data(), self);
+// A control or gradient argument: None, or exactly the model's n d values.
+const Scalar* optional_dofs(const std::optional<ScalarArray>& a, const fem::Model& m,
+                            const char* name) {
+  if (!a) return nullptr;
+  const Index size = m.vertex_count * m.dim;
+  if (a->size() != size)
+    throw InvalidArgument(std::string(name) + ": expected shape (" +
+                          std::to_string(m.vertex_count) + ", " + std::to_string(m.dim) +
+                          "), got " + std::to_string(a->size()) + " values");
+  return a->data();
 }
 
 // Applies a pointwise function to F of shape (k, D, D) (row-major, as numpy gives it).
@@ -75,129 +65,216 @@ void pointwise(const Scalar* F, Index count, Scalar* out, Index out_size, Fn&& f
 }  // namespace
 
 void bind_fem(py::module_& m) {
-  py::class_<Body>(m, "Body")
+  py::enum_<fem::Integrator>(m, "Integrator")
+      .value("implicit", fem::Integrator::Implicit)
+      .value("symplectic", fem::Integrator::Symplectic);
+  py::enum_<fem::Definiteness>(m, "Definiteness")
+      .value("adaptive", fem::Definiteness::Adaptive)
+      .value("project", fem::Definiteness::Project)
+      .value("none", fem::Definiteness::None);
+  py::enum_<fem::Material>(m, "Material")
+      .value("linear", fem::Material::Linear)
+      .value("stvk", fem::Material::StVK)
+      .value("corotated", fem::Material::Corotated)
+      .value("neohookean", fem::Material::NeoHookean);
+
+  py::class_<fem::Config>(m, "Config", "How a step is taken (fem/model.h).")
+      .def(py::init<>())
+      .def_readwrite("integrator", &fem::Config::integrator)
+      .def_readwrite("tol", &fem::Config::tol, "Newton: ||grad g|| <= tol ||grad g(x0)||")
+      .def_readwrite("max_newton", &fem::Config::max_newton)
+      .def_readwrite("linear_solver", &fem::Config::linear_solver)
+      .def_readwrite("cg_tol", &fem::Config::cg_tol)
+      .def_readwrite("definiteness", &fem::Config::definiteness);
+
+  py::class_<fem::Parameters>(m, "Parameters", "Material inputs of a Model.")
+      .def(py::init<>())
+      .def_readwrite("material", &fem::Parameters::material)
+      .def_readwrite("youngs_modulus", &fem::Parameters::youngs_modulus, "[Pa], 1 or m values")
+      .def_readwrite("poisson_ratio", &fem::Parameters::poisson_ratio, "1 or m values")
+      .def_readwrite("density", &fem::Parameters::density, "[kg/m^d]")
+      .def_readwrite("damping", &fem::Parameters::damping, "[1/s]")
+      .def_readwrite("gravity", &fem::Parameters::gravity, "[m/s^2], empty or d values");
+
+  py::class_<fem::Model>(m, "Model")
       .def(py::init([](const ScalarArray& vertices, const IndexArray& elements,
-                       const std::string& material, Scalar E, Scalar nu, Scalar rho,
-                       const IndexArray& fixed, std::vector<Scalar> gravity, Scalar damping) {
+                       const fem::Parameters& parameters, const IndexArray& fixed) {
              if (vertices.ndim() != 2) throw InvalidArgument("vertices: expected shape (n, d)");
              const int d = static_cast<int>(vertices.shape(1));
              if (elements.ndim() != 2 || elements.shape(1) != d + 1)
                throw InvalidArgument("elements: expected shape (m, " + std::to_string(d + 1) + ")");
-             fem::BodyConfig config;
-             config.material = parse_material(material);
-             config.youngs_modulus = E;
-             config.poisson_ratio = nu;
-             config.density = rho;
-             config.damping = damping;
-             config.gravity = std::move(gravity);
              ReleaseGil release;
-             fem::BodyModel model =
-                 fem::make_model(d, vertices.data(), vertices.shape(0), elements.data(),
-                                 elements.shape(0), config, fixed.data(), fixed.size());
-             return std::make_unique<Body>(std::move(model), config);
+             return fem::make_model(d, vertices.data(), vertices.shape(0), elements.data(),
+                                    elements.shape(0), parameters, fixed.data(), fixed.size());
            }),
-           py::arg("vertices"), py::arg("elements"), py::arg("model"), py::arg("youngs_modulus"),
-           py::arg("poisson_ratio"), py::arg("density"), py::arg("fixed"), py::arg("gravity"),
-           py::arg("damping"))
-      .def_property_readonly("x", [](py::object self) {
-        Body& b = self.cast<Body&>();
-        return view(self, b.state().x, b.model().dim);
+           py::arg("vertices"), py::arg("elements"), py::arg("parameters"), py::arg("fixed"))
+      .def_readonly("dim", &fem::Model::dim)
+      .def_readonly("vertex_count", &fem::Model::vertex_count)
+      .def_readonly("element_count", &fem::Model::element_count)
+      .def_readonly("fixed_count", &fem::Model::fixed_count)
+      .def_readonly("parameters", &fem::Model::parameters)
+      .def_property_readonly("rest", [](const fem::Model& b) {
+        return py::array_t<Scalar>({b.vertex_count, static_cast<Index>(b.dim)}, b.rest.data());
       })
-      .def_property_readonly("v", [](py::object self) {
-        Body& b = self.cast<Body&>();
-        return view(self, b.state().v, b.model().dim);
+      .def_property_readonly("mass", [](const fem::Model& b) {
+        return py::array_t<Scalar>(b.vertex_count, b.mass.data());
       })
-      .def_property_readonly("rest", [](const Body& b) {
-        const auto& r = b.model().rest;
-        const Index d = b.model().dim;
-        return py::array_t<Scalar>({static_cast<Index>(r.size()) / d, d}, r.data());  // a copy
+      .def_property_readonly("volume", [](const fem::Model& b) {
+        return py::array_t<Scalar>(b.element_count, b.volume.data());
       })
-      .def_property_readonly("mass", [](const Body& b) {
-        return py::array_t<Scalar>(b.model().vertex_count, b.model().mass.data());
+      .def_property_readonly("mu", [](const fem::Model& b) {
+        return py::array_t<Scalar>(b.element_count, b.mu.data());
       })
-      .def_property_readonly("volume", [](const Body& b) {
-        return py::array_t<Scalar>(b.model().element_count, b.model().volume.data());
+      .def_property_readonly("lam", [](const fem::Model& b) {
+        return py::array_t<Scalar>(b.element_count, b.lam.data());
       })
-      .def_property_readonly("mu", [](const Body& b) { return b.model().mu; })
-      .def_property_readonly("lam", [](const Body& b) { return b.model().lam; })
-      // Settable for checkpoints (km.Scene resumes a run bit for bit).
-      .def_property("time", [](const Body& b) { return b.state().time; },
-                    [](Body& b, Scalar t) { b.state().time = t; })
-      .def_property("step_count", [](const Body& b) { return b.state().step; },
-                    [](Body& b, Index n) { b.state().step = n; })
-      .def_property_readonly("explicit_dt_limit", &Body::explicit_dt_limit)
-      .def("step_implicit",
-           [](Body& b, Scalar dt, Scalar tol, Index max_newton, const std::string& solver,
-              Scalar cg_tol, const std::string& definiteness) {
-             fem::NewtonOptions options;
-             options.definiteness = parse_definiteness(definiteness);
-             options.tol = tol;
-             options.max_iter = max_newton;
-             options.linear_solver = parse_solver(solver);
-             options.cg_tol = cg_tol;
-             Interrupt interrupt = python_interrupt();
-             fem::NewtonStats stats;
-             {
-               ReleaseGil release;
-               stats = with_rollback(b.state(), [&] { return b.step_implicit(dt, options, interrupt); });
-             }
-             return stats_dict(stats);
-           },
-           py::arg("dt"), py::arg("tol"), py::arg("max_newton"), py::arg("linear_solver"),
-           py::arg("cg_tol"), py::arg("definiteness"))
-      .def("step_symplectic",
-           [](Body& b, Scalar dt, Index steps) {
+      .def("initial_state", &fem::initial_state);
+
+  py::class_<State>(m, "State", "x, v: flat (n d) views [m], [m/s]; time [s]; step; the "
+                                "record of the lagged CHOLMOD factor (fem/model.h).")
+      .def(py::init<const State&>())
+      .def_property("x", [](py::object self) { return view(self, self.cast<State&>().x); },
+                    [](State& s, const ScalarArray& a) { assign(s.x, a, "x"); })
+      .def_property("v", [](py::object self) { return view(self, self.cast<State&>().v); },
+                    [](State& s, const ScalarArray& a) { assign(s.v, a, "v"); })
+      .def_readwrite("time", &State::time)
+      .def_readwrite("step", &State::step)
+      .def_property("factor_x",
+                    [](const State& s) {
+                      return py::array_t<Scalar>(static_cast<py::ssize_t>(s.factor.x.size()),
+                                                 s.factor.x.data());
+                    },
+                    [](State& s, const ScalarArray& a) {
+                      if (a.size() != 0 && static_cast<std::size_t>(a.size()) != s.x.size())
+                        throw InvalidArgument("factor_x: expected " + std::to_string(s.x.size()) +
+                                              " values or none, got " + std::to_string(a.size()));
+                      s.factor.x.assign(a.data(), a.data() + a.size());
+                    })
+      .def_property("factor_weight", [](const State& s) { return s.factor.weight; },
+                    [](State& s, Scalar w) { s.factor.weight = w; })
+      .def_property("factor_scale", [](const State& s) { return s.factor.scale; },
+                    [](State& s, Scalar w) { s.factor.scale = w; })
+      .def_property("factor_projected", [](const State& s) { return s.factor.projected; },
+                    [](State& s, bool p) { s.factor.projected = p; })
+      .def_property("refactor_pending", [](const State& s) { return s.factor.refactor_pending; },
+                    [](State& s, bool p) { s.factor.refactor_pending = p; });
+
+  py::class_<fem::StepStats, StepStatsBase>(m, "StepStats",
+                                             "Statistics of one step or static solve.")
+      .def_readonly("iterations", &fem::StepStats::iterations, "Newton iterations")
+      .def_readonly("converged", &fem::StepStats::converged)
+      .def_readonly("gradient_norm", &fem::StepStats::gradient_norm,
+                    "||grad g|| at every iterate (absolute: [kg m] for a step, [N] static)")
+      .def_readonly("step_length", &fem::StepStats::step_length,
+                    "accepted line-search step of each iteration (1 = full Newton step)")
+      .def_readonly("projected_elements", &fem::StepStats::projected_elements,
+                    "elements whose dP/dF was clamped in the last iteration")
+      .def_readonly("cg_iterations", &fem::StepStats::cg_iterations)
+      .def_readonly("factorizations", &fem::StepStats::factorizations)
+      .def_readonly("seconds_assembly", &fem::StepStats::seconds_assembly)
+      .def_readonly("seconds_factor", &fem::StepStats::seconds_factor)
+      .def_readonly("seconds_solve", &fem::StepStats::seconds_solve)
+      .def_readonly("seconds_line_search", &fem::StepStats::seconds_line_search)
+      .def_property_readonly("residual", [](const fem::StepStats& s) {
+        const auto& g = s.gradient_norm;
+        return !g.empty() && g[0] > 0 ? g.back() / g[0] : 0.0;
+      }, "final relative gradient norm ||grad|| / ||grad_0||")
+      .def("__repr__", [](const fem::StepStats& s) {
+        return "StepStats(iterations=" + std::to_string(s.iterations) +
+               ", converged=" + (s.converged ? "True" : "False") +
+               ", factorizations=" + std::to_string(s.factorizations) +
+               ", cg_iterations=" + std::to_string(s.cg_iterations) +
+               ", seconds=" + format_real(s.seconds) + ")";
+      });
+
+  py::class_<fem::ParameterGradient>(m, "ParameterGradient")
+      .def_property_readonly("youngs_modulus", [](const fem::ParameterGradient& g) {
+        return py::array_t<Scalar>(static_cast<py::ssize_t>(g.youngs_modulus.size()),
+                                   g.youngs_modulus.data());
+      })
+      .def_property_readonly("poisson_ratio", [](const fem::ParameterGradient& g) {
+        return py::array_t<Scalar>(static_cast<py::ssize_t>(g.poisson_ratio.size()),
+                                   g.poisson_ratio.data());
+      })
+      .def_readonly("density", &fem::ParameterGradient::density)
+      .def_readonly("damping", &fem::ParameterGradient::damping);
+
+  py::class_<Solver>(m, "Solver")
+      .def(py::init([](const fem::Model& model, const fem::Config& config) {
+             ReleaseGil release;
+             return std::make_unique<Solver>(model, config);
+           }),
+           py::arg("model"), py::arg("config"), py::keep_alive<1, 2>())
+      .def_property("config", [](Solver& s) { return s.config(); },
+                    [](Solver& s, const fem::Config& c) { s.config() = c; })
+      .def_property_readonly("explicit_dt_limit", &Solver::explicit_dt_limit)
+      .def("step",
+           [](Solver& s, State& state, Scalar dt, const std::optional<ScalarArray>& control) {
+             const Scalar* u = optional_dofs(control, s.model(), "control");
              Interrupt interrupt = python_interrupt();
              ReleaseGil release;
-             for (Index s = 0; s < steps; ++s) {
-               interrupt.check();
-               with_rollback(b.state(), [&] { b.step_symplectic(dt); });
-             }
+             return with_rollback(state, [&] { return s.step(state, dt, interrupt, u); });
            },
-           py::arg("dt"), py::arg("steps"))
+           py::arg("state"), py::arg("dt"), py::arg("control") = py::none())
       .def("solve_static",
-           [](Body& b, Scalar tol, Index max_iter, Index load_steps, const std::string& solver,
-              const std::string& definiteness) {
-             fem::NewtonOptions options;
-             options.definiteness = parse_definiteness(definiteness);
-             options.tol = tol;
-             options.max_iter = max_iter;
-             options.linear_solver = parse_solver(solver);
+           [](Solver& s, State& state, Index load_steps) {
              Interrupt interrupt = python_interrupt();
-             fem::NewtonStats stats;
+             ReleaseGil release;
+             return with_rollback(state, [&] { return s.solve_static(state, load_steps, interrupt); });
+           },
+           py::arg("state"), py::arg("load_steps"))
+      .def("step_adjoint",
+           [](Solver& s, const State& before, const State& after, Scalar dt,
+              const std::optional<ScalarArray>& control, const ScalarArray& grad_x,
+              const ScalarArray& grad_v) {
+             const fem::Model& md = s.model();
+             const Scalar* u = optional_dofs(control, md, "control");
+             State adjoint;
+             adjoint.x.resize(md.rest.size());
+             adjoint.v.resize(md.rest.size());
+             assign(adjoint.x, grad_x, "grad x");
+             assign(adjoint.v, grad_v, "grad v");
+             std::vector<Scalar> grad_control(control ? md.rest.size() : 0);
+             fem::ParameterGradient params;
+             Interrupt interrupt = python_interrupt();
              {
                ReleaseGil release;
-               stats = with_rollback(b.state(), [&] { return b.solve_static(options, load_steps, interrupt); });
+               s.step_adjoint(before, after, dt, u, adjoint, params,
+                              control ? grad_control.data() : nullptr, interrupt);
              }
-             return stats_dict(stats);
+             const Index n = md.vertex_count, d = md.dim;
+             py::object gc = py::none();
+             if (control) gc = to_numpy(std::move(grad_control), {n, d});
+             return py::make_tuple(to_numpy(std::move(adjoint.x), {n, d}),
+                                   to_numpy(std::move(adjoint.v), {n, d}), params, gc);
            },
-           py::arg("tol"), py::arg("max_iter"), py::arg("load_steps"), py::arg("linear_solver"),
-           py::arg("definiteness"))
-      .def("elastic_energy", [](const Body& b) { return b.elastic_energy(b.state().x.data()); })
-      .def("kinetic_energy", &Body::kinetic_energy)
-      .def("gravity_energy", [](const Body& b) { return b.gravity_energy(b.state().x.data()); })
-      .def("forces", [](Body& b) {
-        std::vector<Scalar> f(b.state().x.size());
+           py::arg("before"), py::arg("after"), py::arg("dt"), py::arg("control"),
+           py::arg("grad_x"), py::arg("grad_v"))
+      .def("elastic_energy", [](const Solver& s, const State& st) { return s.elastic_energy(st.x.data()); })
+      .def("kinetic_energy", [](const Solver& s, const State& st) { return s.kinetic_energy(st.v.data()); })
+      .def("gravity_energy", [](const Solver& s, const State& st) { return s.gravity_energy(st.x.data()); })
+      .def("forces", [](Solver& s, const State& st) {
+        std::vector<Scalar> f(st.x.size());
         {
           ReleaseGil release;
-          b.forces(b.state().x.data(), f.data());
+          s.forces(st.x.data(), f.data());
         }
-        const Index d = b.model().dim;
+        const Index d = s.model().dim;
         const Index n = static_cast<Index>(f.size()) / d;
         return to_numpy(std::move(f), {n, d});
       })
-      .def("hessian", [](Body& b, bool project) {
-        const ElementAssembly& p = b.pattern();
+      .def("hessian", [](Solver& s, const State& st, bool project) {
+        const ElementAssembly& p = s.pattern();
         std::vector<Scalar> values(p.nonzeros());
         {
           ReleaseGil release;
-          b.projected_hessian(b.state().x.data(), project, values.data());
+          s.projected_hessian(st.x.data(), project, values.data());
         }
         std::vector<Index> row_ptr = p.row_ptr(), col = p.col_index();
         const Index nnz = p.nonzeros();
         return py::make_tuple(to_numpy(std::move(row_ptr), {p.dof_count() + 1}),
                               to_numpy(std::move(col), {nnz}), to_numpy(std::move(values), {nnz}));
-      }, py::arg("project"));
+      }, py::arg("state"), py::arg("project"));
 
   // Pointwise material functions on F of shape (k, d, d): psi -> (k,), P -> (k, d, d),
   // dP/dF -> (k, d*d, d*d) on vec(F) column-major.

@@ -220,6 +220,44 @@ Mat<D> piola(const Mat<D>& F, Material m, Scalar mu, Scalar lam) {
   return Mat<D>::Zero();
 }
 
+// P is linear in the Lame parameters for every model here: P = mu A(F) + lam B(F) (for the
+// stable neo-Hookean through lam' = lam + mu and alpha = 1 + mu/lam', whose product
+// lam' (J - alpha) = lam (J - 1) + mu (J - 1) - mu is linear too). Returns (A, B) = (dP/dmu,
+// dP/dlam), the parameter derivatives of the adjoint step.
+template <int D>
+void piola_lame_derivatives(const Mat<D>& F, Material m, Mat<D>& A, Mat<D>& B) {
+  const Mat<D> I = Mat<D>::Identity();
+  switch (m) {
+    case Material::Linear: {
+      const Mat<D> eps = (F + F.transpose()) / 2 - I;
+      A = 2 * eps;
+      B = eps.trace() * I;
+      return;
+    }
+    case Material::StVK: {
+      const Mat<D> H = F - I;
+      const Mat<D> E = (H + H.transpose() + H.transpose() * H) / 2;
+      A = 2 * F * E;
+      B = E.trace() * F;
+      return;
+    }
+    case Material::Corotated: {
+      Mat<D> U, V;
+      Eigen::Matrix<Scalar, D, 1> s;
+      rotation_svd<D>(F, U, s, V);
+      A = 2 * (F - U * V.transpose());
+      B = (s.prod() - 1) * cofactor<D>(F);
+      return;
+    }
+    case Material::NeoHookean: {
+      const Mat<D> H = F - I;
+      B = det_minus_one<D>(H) * cofactor<D>(F);
+      A = H - cofactor_minus_identity<D>(H) + B;
+      return;
+    }
+  }
+}
+
 // dP/dF on vec(F) (symmetric: it is the Hessian of psi).
 template <int D>
 HessF<D> piola_derivative(const Mat<D>& F, Material m, Scalar mu, Scalar lam) {

@@ -39,6 +39,8 @@ class LaggedCholesky {
              LaggedSolveStats& stats);
 
   bool has_factor() const { return factor_ && valid_; }
+  // The next reuse = true solve refactorises first (PCG needed many iterations last time).
+  bool refactor_pending() const { return refactor_next_; }
 
   // x = L^-T L^-1 b with the current factor (requires has_factor()): the exact solve of the
   // matrix last factorised.

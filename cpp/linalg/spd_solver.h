@@ -43,6 +43,9 @@ class SpdSolver {
   bool solve_exact(const CsrView& A, const Scalar* b, Scalar* x, bool factor_is_current,
                    SpdSolveStats& stats);
 
+  // The lagged factor's own history, for callers that record it in their State (bitwise resume).
+  bool refactor_pending() const { return lagged_.refactor_pending(); }
+
  private:
   LaggedCholesky lagged_;
 };

@@ -257,3 +257,32 @@ def simulation_object(cls):
     cls.__deepcopy__ = refuse_copy
     cls.__reduce_ex__ = refuse_copy
     return cls
+
+
+# ---------------------------------------------------------------------------- meshes and vertices
+def indices(value, name, n, shape_tail=None):
+    """``value`` as a C-contiguous int64 array of vertex indices in [0, n), of shape
+    (m, *shape_tail) when ``shape_tail`` is given (ValueError naming ``name`` otherwise)."""
+    a = np.asarray(value)
+    if a.size == 0:
+        a = a.reshape((0,) + (shape_tail or ()))
+    if a.dtype.kind not in "iu":
+        raise ValueError(f"{name}: expected integer indices, got dtype {a.dtype}")
+    a = np.ascontiguousarray(a, dtype=np.int64)
+    if shape_tail is not None and (a.ndim != 1 + len(shape_tail) or a.shape[1:] != shape_tail):
+        raise ValueError(f"{name}: expected shape (m, {', '.join(map(str, shape_tail))}), "
+                         f"got {a.shape}")
+    if a.size and (a.min() < 0 or a.max() >= n):
+        bad = int(a.ravel()[np.flatnonzero((a.ravel() < 0) | (a.ravel() >= n))[0]])
+        raise ValueError(f"{name}: index {bad} outside [0, {n})")
+    return a
+
+
+def gravity_vector(gravity, d):
+    """``gravity`` (None: no gravity) as a list of d floats [m/s^2]."""
+    if gravity is None:
+        return []
+    g = as_float_array(gravity, "gravity", ndim=1)
+    if g.shape != (d,):
+        raise ValueError(f"gravity: expected {d} components, got shape {g.shape}")
+    return [float(c) for c in g]

@@ -25,57 +25,32 @@ path (no Hessian is assembled). The damping c [1/s] is mass-proportional.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
 
 from kinema import _core
 from kinema._checks import (
-    as_float_array, choice, finite, finite_result, non_negative, positive, positive_int,
-    simulation_object, time_step)
+    as_float_array, checked_state, choice, finite, finite_result, gravity_vector, indices,
+    integer, positive, positive_int, real, simulation_object)
 from kinema._state import state_property
-from kinema.massspring import _gravity, _indices
 
-__all__ = ["Body", "NewtonInfo", "MODELS", "lame", "psi", "piola", "piola_derivative",
+__all__ = ["Body", "StepStats", "MODELS", "lame", "psi", "piola", "piola_derivative",
            "rectangle_mesh", "box_mesh"]
 
 MODELS = ("linear", "stvk", "corotated", "neohookean")
 _SOLVERS = ("cholmod", "cholmod_direct", "cholmod_pcg", "cg")
 _DEFINITENESS = ("adaptive", "project", "none")
+_INTEGRATORS = ("implicit", "symplectic")
 
-
-@dataclass(frozen=True)
-class NewtonInfo:
-    """Statistics of one implicit step or static solve.
-
-    iterations: Newton iterations; converged: whether ||grad|| <= tol ||grad_0||.
-    gradient_norm: ||grad g|| at every iterate (absolute, [kg m] for a step, [N] static).
-    step_length: accepted line-search step of each iteration (1 = full Newton step).
-    projected_elements: elements whose dP/dF was clamped in the last iteration.
-    cg_iterations: (P)CG iterations; factorizations: CHOLMOD numeric factorisations.
-    seconds_assembly (gradient + Hessian), seconds_factor, seconds_solve,
-    seconds_line_search, seconds: wall times [s].
-    """
-
-    iterations: int
-    converged: bool
-    gradient_norm: list = field(repr=False)
-    step_length: list = field(repr=False)
-    projected_elements: int
-    cg_iterations: int
-    factorizations: int
-    seconds_assembly: float
-    seconds_factor: float
-    seconds_solve: float
-    seconds_line_search: float
-    seconds: float
-
-    @property
-    def residual(self) -> float:
-        """Final relative gradient norm ||grad|| / ||grad_0||."""
-        g = self.gradient_norm
-        return g[-1] / g[0] if g and g[0] > 0 else 0.0
+#: Statistics of one step or static solve (a C++ record): ``iterations`` (Newton),
+#: ``converged``, ``gradient_norm`` (||grad g|| at every iterate, absolute: [kg m] for a step,
+#: [N] static), ``step_length`` (accepted line-search steps), ``projected_elements`` (elements
+#: whose dP/dF was clamped in the last iteration), ``cg_iterations``, ``factorizations``
+#: (CHOLMOD numeric factorisations), ``seconds_assembly``, ``seconds_factor``, ``seconds_solve``,
+#: ``seconds_line_search``, and the fields every method shares: ``time`` [s] after the step,
+#: ``dt`` [s], ``seconds`` (wall time). ``residual`` is ||grad|| / ||grad_0|| at the end.
+StepStats = _core.fem.StepStats
 
 
 def lame(E, nu):
@@ -125,22 +100,42 @@ def piola_derivative(F, model, mu, lam, *, project=False):
     return _pointwise(F, "dpdf", model, mu, lam, project)
 
 
+def _per_element(value, name, m):
+    """A scalar parameter as a float, or one value per element as an (m,) array (values are
+    checked in C++)."""
+    if np.ndim(value) == 0:
+        return real(value, name)
+    a = as_float_array(value, name, ndim=1, finite=False)
+    if a.shape != (m,):
+        raise ValueError(f"{name}: expected a scalar or shape ({m},) (one per element), got {a.shape}")
+    return a.copy()
+
+
+_STEP_OPTIONS = ("integrator", "tol", "max_newton", "linear_solver", "cg_tol", "definiteness")
+_FACTOR_KEYS = ("factor_x", "factor_weight", "factor_scale", "factor_projected", "refactor_pending")
+
+
 @simulation_object
 class Body:
     """An elastic body of linear triangles (2D, plane strain) or tetrahedra (3D).
 
     vertices: (n, d) rest positions [m]; elements: (m, d + 1) vertex indices, positively
         oriented (degenerate or inverted rest elements raise ValueError naming the element).
-    model: one of MODELS; youngs_modulus [Pa]; poisson_ratio in (-1, 0.5); density [kg/m^d].
-    fixed: vertex indices held in place; gravity: (d,) [m/s^2] or None; damping: c [1/s].
+    model: one of MODELS; youngs_modulus [Pa] and poisson_ratio in (-1, 0.5): scalars or one
+        value per element (m,); density [kg/m^d].
+    fixed: vertex indices held in place; gravity: (d,) [m/s^2] or None (no gravity);
+        damping: c [1/s], mass-proportional.
     orient: re-orient negatively oriented elements (by :func:`kinema.mesh.orient`) instead of
         refusing them; ``flipped`` then lists the indices of the elements swapped. Flat
         elements (slivers) are still refused: remove them with :func:`kinema.mesh.clean`.
 
     Attributes: x (n, d) [m] and v (n, d) [m/s] are writable zero-copy views of the body's
     state (valid as long as the body); rest (n, d) [m] is a copy of the rest shape;
-    mass (n,) [kg] the lumped vertex masses.
+    mass (n,) [kg] the lumped vertex masses; time [s].
+    ``parameters`` names what km.diff can differentiate (:mod:`kinema.diff`).
     """
+
+    parameters = ("youngs_modulus", "poisson_ratio", "density", "damping")
 
     def __init__(self, vertices, elements, *, model="neohookean", youngs_modulus, poisson_ratio,
                  density, fixed=(), gravity=None, damping=0.0, orient=False):
@@ -148,25 +143,30 @@ class Body:
         n, d = vertices.shape
         if d not in (2, 3):
             raise ValueError(f"vertices: expected shape (n, 2) or (n, 3), got {vertices.shape}")
-        elements = _indices(elements, "elements", n, (d + 1,))
+        elements = indices(elements, "elements", n, (d + 1,))
         if elements.shape[0] == 0:
             raise ValueError("elements: expected at least one element")
         choice(model, "model", MODELS)
-        E = positive(youngs_modulus, "youngs_modulus")
-        nu = finite(poisson_ratio, "poisson_ratio")
-        if not -1 < nu < 0.5:
-            raise ValueError(f"poisson_ratio: expected a value in (-1, 0.5), got {nu}")
-        rho = positive(density, "density")
-        fixed = _indices(np.asarray(fixed).ravel() if np.size(fixed) else np.zeros(0, np.int64),
-                         "fixed", n)
+        fixed = indices(np.asarray(fixed).ravel() if np.size(fixed) else np.zeros(0, np.int64),
+                        "fixed", n)
         self.flipped = np.zeros(0, np.int64)
         if orient:
             from kinema import mesh
 
             elements, self.flipped = mesh.orient(vertices, elements)
+        m = elements.shape[0]
+        self._vertices = vertices
+        self._values = {"youngs_modulus": _per_element(youngs_modulus, "youngs_modulus", m),
+                        "poisson_ratio": _per_element(poisson_ratio, "poisson_ratio", m),
+                        "density": real(density, "density"), "damping": real(damping, "damping")}
+        self._gravity = gravity_vector(gravity, d)
+        self.elements = elements
+        self.model = model
+        self.fixed = fixed
+        self._config = _core.fem.Config()
+        self._config_key = None
         try:
-            self._core = _core.fem.Body(vertices, elements, model, E, nu, rho, fixed,
-                                        _gravity(gravity, d), non_negative(damping, "damping"))
+            self._build()
         except ValueError as exc:
             hint = {"inverted": "; or pass orient=True (km.mesh.orient) to re-orient such elements",
                     "degenerate": "; km.mesh.clean(vertices, elements) removes flat elements (slivers) "
@@ -175,32 +175,80 @@ class Body:
                 if word in str(exc):
                     raise type(exc)(f"{exc}{extra}") from None
             raise
-        self.elements = elements
-        self.model = model
-        self.fixed = fixed
+        self._state = self._model.initial_state()
 
-    x = state_property(lambda self: self._core.x, "x", "(n, d) positions [m] (assigning copies in)")
-    v = state_property(lambda self: self._core.v, "v", "(n, d) velocities [m/s] (assigning copies in)")
-    rest = property(lambda self: self._core.rest)
-    mass = property(lambda self: self._core.mass)
-    time = property(lambda self: self._core.time, doc="Simulated time [s].")
-    mu = property(lambda self: self._core.mu)
-    lam = property(lambda self: self._core.lam)
+    def _build(self):
+        """(Re)builds the C++ model and solver from the current parameter values."""
+        p = _core.fem.Parameters()
+        p.material = _core.fem.Material.__members__[self.model]
+        p.youngs_modulus = np.atleast_1d(self._values["youngs_modulus"]).tolist()
+        p.poisson_ratio = np.atleast_1d(self._values["poisson_ratio"]).tolist()
+        p.density = self._values["density"]
+        p.damping = self._values["damping"]
+        p.gravity = self._gravity
+        model = _core.fem.Model(self._vertices, self.elements, p, self.fixed)
+        self._solver = _core.fem.Solver(model, self._config)
+        self._model = model
+
+    def _flat_shape(self):
+        return (self._model.vertex_count, self._model.dim)
+
+    x = state_property(lambda self: self._state.x.reshape(self._flat_shape()), "x",
+                       "(n, d) positions [m] (assigning copies in)")
+    v = state_property(lambda self: self._state.v.reshape(self._flat_shape()), "v",
+                       "(n, d) velocities [m/s] (assigning copies in)")
+    rest = property(lambda self: self._model.rest, doc="(n, d) rest positions [m] (a copy).")
+    mass = property(lambda self: self._model.mass, doc="(n,) lumped vertex masses [kg].")
+    volume = property(lambda self: self._model.volume, doc="(m,) rest element volumes [m^d].")
+    time = property(lambda self: self._state.time, doc="Simulated time [s].")
+
+    @property
+    def mu(self):
+        """Lame's mu [Pa]: a float for a uniform body, else (m,) per element."""
+        mu = self._model.mu
+        return float(mu[0]) if np.ndim(self._values["youngs_modulus"]) == 0 and \
+            np.ndim(self._values["poisson_ratio"]) == 0 else mu
+
+    @property
+    def lam(self):
+        """Lame's lambda [Pa]: a float for a uniform body, else (m,) per element."""
+        lam = self._model.lam
+        return float(lam[0]) if np.ndim(self._values["youngs_modulus"]) == 0 and \
+            np.ndim(self._values["poisson_ratio"]) == 0 else lam
 
     @property
     def explicit_dt_limit(self) -> float:
         """2 / omega_max [s], omega_max^2 bounded by Gershgorin on M^-1 K at rest: a conservative
         limit of the symplectic step."""
-        return self._core.explicit_dt_limit
+        return self._solver.explicit_dt_limit
+
+    def _configure(self, integrator="implicit", tol=1e-6, max_newton=50, linear_solver="cholmod",
+                   cg_tol=1e-4, definiteness="adaptive"):
+        """Sets the solver's Config from step options (names converted here, values checked in
+        C++ at the step)."""
+        key = (integrator, tol, max_newton, linear_solver, cg_tol, definiteness)
+        if key == self._config_key:
+            return
+        c = _core.fem.Config()
+        c.integrator = _core.fem.Integrator.__members__[choice(integrator, "integrator", _INTEGRATORS)]
+        c.tol = real(tol, "tol")
+        c.max_newton = integer(max_newton, "max_newton")
+        c.linear_solver = _core.LinearSolver.__members__[choice(linear_solver, "linear_solver", _SOLVERS)]
+        c.cg_tol = real(cg_tol, "cg_tol")
+        c.definiteness = _core.fem.Definiteness.__members__[choice(definiteness, "definiteness",
+                                                                   _DEFINITENESS)]
+        self._solver.config = c
+        self._config, self._config_key = c, key
 
     def step(self, dt, integrator="implicit", tol=1e-6, max_newton=50, linear_solver="cholmod",
              *, cg_tol=1e-4, definiteness="adaptive", steps=1):
-        """Advances ``steps`` steps of ``dt`` [s].
+        """Advances ``steps`` steps of ``dt`` [s]; returns the StepStats of the last one.
 
-        implicit: backward Euler by projected Newton (see the module docstring); returns the
-        NewtonInfo of the last step. Raises km.ConvergenceError when Newton does not reach
-        ``tol`` in ``max_newton`` iterations (the state is then left at the last completed
-        step). symplectic: returns None.
+        implicit: backward Euler by projected Newton (see the module docstring). Raises
+        km.ConvergenceError when Newton does not reach ``tol`` in ``max_newton`` iterations
+        (the state is then left at the last completed step).
+        symplectic: explicit (stable below about :attr:`explicit_dt_limit`; a diverging run
+        raises km.DivergenceError).
         definiteness: "adaptive" (the exact Hessian while CHOLMOD finds it positive definite,
         else the per-element projection: quadratic convergence where possible), "project"
         (always project) or "none" (exact Newton; km.NotPositiveDefiniteError if indefinite).
@@ -212,56 +260,166 @@ class Body:
         direction; Newton's stopping test on the gradient is the same for every solver),
         "cholmod_direct" (factorise every Newton iteration, analysis reused), "cholmod_pcg"
         (the lagged factor with the fixed PCG tolerance cg_tol) or "cg" (Jacobi-preconditioned
-        CG to cg_tol).
+        CG to cg_tol). The lagged factor is part of :meth:`state`, so a resumed run is
+        bitwise the same.
         """
-        dt = time_step(dt)
-        choice(integrator, "integrator", ("implicit", "symplectic"))
         steps = positive_int(steps, "steps")
-        if integrator == "symplectic":
-            self._core.step_symplectic(dt, steps)
-            return None
-        tol = positive(tol, "tol")
-        max_newton = positive_int(max_newton, "max_newton")
-        choice(linear_solver, "linear_solver", _SOLVERS)
-        cg_tol = positive(cg_tol, "cg_tol")
-        choice(definiteness, "definiteness", _DEFINITENESS)
-        info = None
+        return self._step(dt, None, steps, integrator=integrator, tol=tol, max_newton=max_newton,
+                          linear_solver=linear_solver, cg_tol=cg_tol, definiteness=definiteness)
+
+    def _step(self, dt, control, steps=1, **options):
+        self._configure(**options)
+        dt = real(dt, "dt")
+        stats = None
         for _ in range(steps):
-            info = self._core.step_implicit(dt, tol, max_newton, linear_solver, cg_tol, definiteness)
-        return NewtonInfo(**info)
+            stats = self._solver.step(self._state, dt, control)
+        return stats
 
     def solve_static(self, tol=1e-8, max_iter=100, load_steps=1, *, linear_solver="cholmod",
                      definiteness="adaptive"):
         """Static equilibrium under gravity and the fixed vertices, from the current x, by
         projected Newton with gravity ramped over ``load_steps``; sets x and v = 0.
-        Returns a NewtonInfo (iterations summed over load steps)."""
-        info = self._core.solve_static(positive(tol, "tol"), positive_int(max_iter, "max_iter"),
-                                       positive_int(load_steps, "load_steps"),
-                                       choice(linear_solver, "linear_solver", _SOLVERS),
-                                       choice(definiteness, "definiteness", _DEFINITENESS))
-        return NewtonInfo(**info)
+        Returns a StepStats (iterations summed over load steps)."""
+        self._configure(tol=tol, max_newton=max_iter, linear_solver=linear_solver,
+                        definiteness=definiteness)
+        return self._solver.solve_static(self._state, integer(load_steps, "load_steps"))
 
+    # ------------------------------------------------------------------ state
+    def state(self) -> dict:
+        """Copies of everything that evolves: x (n, d) [m], v (n, d) [m/s], time [s], steps,
+        and the record of the lagged CHOLMOD factor (``factor_*``, ``refactor_pending``) that
+        the next implicit step preconditions with."""
+        s = self._state
+        return {"x": self.x.copy(), "v": self.v.copy(), "time": np.array(s.time),
+                "steps": np.array(s.step), "factor_x": s.factor_x.reshape(-1, self._model.dim),
+                "factor_weight": np.array(s.factor_weight), "factor_scale": np.array(s.factor_scale),
+                "factor_projected": np.array(s.factor_projected),
+                "refactor_pending": np.array(s.refactor_pending)}
+
+    def set_state(self, state: dict) -> None:
+        """Restores a :meth:`state` exactly (the resumed run is bitwise the uninterrupted one).
+        A dict without the ``factor_*`` entries restores x, v, time and steps and lets the next
+        implicit step factorise afresh. A refused dict changes nothing."""
+        x, v, time, steps = checked_state(state, ("x", "v"), self.x.shape)
+        factor = None
+        if any(k in state for k in _FACTOR_KEYS):
+            missing = [k for k in _FACTOR_KEYS if k not in state]
+            if missing:
+                raise ValueError(f"state: missing {missing[0]!r}")
+            fx = as_float_array(state["factor_x"], "state['factor_x']")
+            if fx.size not in (0, x.size):
+                raise ValueError(f"state['factor_x']: expected shape {x.shape} or empty, got {fx.shape}")
+            factor = (fx.ravel(), finite(state["factor_weight"], "state['factor_weight']"),
+                      finite(state["factor_scale"], "state['factor_scale']"),
+                      bool(state["factor_projected"]), bool(state["refactor_pending"]))
+        s = self._state
+        self.x[...] = x
+        self.v[...] = v
+        s.time, s.step = time, steps
+        fx, w, sc, proj, pending = factor or (np.zeros(0), 0.0, 0.0, False, False)
+        s.factor_x, s.factor_weight, s.factor_scale = np.ascontiguousarray(fx), w, sc
+        s.factor_projected, s.refactor_pending = proj, pending
+
+    # ------------------------------------------------------------------ energies
     def energy(self) -> float:
         """Kinetic + elastic + gravitational energy [J] (per unit thickness in 2D)."""
-        c = self._core
-        return finite_result(c.kinetic_energy() + c.elastic_energy() + c.gravity_energy(), "energy")
+        c, s = self._solver, self._state
+        return finite_result(c.kinetic_energy(s) + c.elastic_energy(s) + c.gravity_energy(s), "energy")
 
     def elastic_energy(self) -> float:
-        return finite_result(self._core.elastic_energy(), "elastic_energy")
+        return finite_result(self._solver.elastic_energy(self._state), "elastic_energy")
 
     def kinetic_energy(self) -> float:
-        return finite_result(self._core.kinetic_energy(), "kinetic_energy")
+        return finite_result(self._solver.kinetic_energy(self._state), "kinetic_energy")
 
     def forces(self) -> np.ndarray:
         """(n, d) forces [N] = -d(elastic + gravity potential)/dx at x, fixed vertices included."""
-        return finite_result(self._core.forces(), "forces")
+        return finite_result(self._solver.forces(self._state), "forces")
 
     def hessian(self, project=False) -> sp.csr_matrix:
         """d^2 E_elastic/dx^2 at x as a (n d, n d) CSR matrix (dof i*d + r); ``project`` applies
         the per-element definiteness fix."""
-        indptr, indices, data = self._core.hessian(bool(project))
+        indptr, idx, data = self._solver.hessian(self._state, bool(project))
         n = indptr.shape[0] - 1
-        return sp.csr_matrix((data, indices, indptr), shape=(n, n))
+        return sp.csr_matrix((data, idx, indptr), shape=(n, n))
+
+    # ------------------------------------------------------------------ km.diff protocol
+    _diff_state_names = ("x", "v")
+
+    def _diff_check(self, wrt, step_options):
+        for key, value in step_options.items():
+            if key == "steps":
+                if value != 1:
+                    raise ValueError(f"steps: km.diff takes one step per call; got steps={value!r} "
+                                     "(use the rollout's steps instead)")
+            elif key not in _STEP_OPTIONS:
+                raise ValueError(f"{key}: not an option of km.fem.Body.step (expected one of "
+                                 f"{', '.join(_STEP_OPTIONS)})")
+        options = {k: v for k, v in step_options.items() if k != "steps"}
+        self._configure(**options)
+        known = (*self._diff_state_names, *self.parameters, "controls")
+        for name in wrt:
+            if name not in known:
+                raise ValueError(f"wrt: {name!r} is not differentiable for km.fem.Body (expected "
+                                 f"one of {', '.join(known)})")
+
+    def _diff_control_shape(self):
+        return self._flat_shape()
+
+    def _diff_get(self, name):
+        if name in ("x", "v"):
+            return getattr(self, name).copy()
+        if name in self.parameters:
+            value = self._values[name]
+            return value.copy() if isinstance(value, np.ndarray) else value
+        raise ValueError(f"name: {name!r} is neither a state array nor a parameter of km.fem.Body")
+
+    def _diff_set(self, name, value):
+        if name in ("x", "v"):
+            setattr(self, name, value)
+            return
+        if name not in self.parameters:
+            raise ValueError(f"name: {name!r} is neither a state array nor a parameter of km.fem.Body")
+        old = self._values[name]
+        if name in ("youngs_modulus", "poisson_ratio"):
+            value = _per_element(value, name, self.elements.shape[0])
+        else:
+            value = real(value, name)
+        self._values[name] = value
+        try:
+            self._build()
+        except ValueError:
+            self._values[name] = old
+            raise
+
+    def _diff_step(self, dt, control, step_options):
+        options = {k: v for k, v in step_options.items() if k != "steps"}
+        if control is not None:
+            control = np.ascontiguousarray(control, dtype=np.float64).reshape(-1)
+        self._step(dt, control, **options)
+
+    def _diff_step_adjoint(self, dt, before, after, control, grad_after, step_options):
+        options = {k: v for k, v in step_options.items() if k != "steps"}
+        self._configure(**options)
+
+        def core_state(s):
+            c = self._model.initial_state()
+            c.x = np.ascontiguousarray(s["x"], dtype=np.float64).reshape(-1)
+            c.v = np.ascontiguousarray(s["v"], dtype=np.float64).reshape(-1)
+            c.time, c.step = float(s["time"]), int(s["steps"])
+            return c
+
+        flat = lambda a: np.ascontiguousarray(a, dtype=np.float64).reshape(-1)  # noqa: E731
+        u = None if control is None else flat(control)
+        gx, gv, gp, gu = self._solver.step_adjoint(core_state(before), core_state(after), real(dt, "dt"),
+                                                   u, flat(grad_after["x"]), flat(grad_after["v"]))
+        params = {}
+        for name in ("youngs_modulus", "poisson_ratio"):
+            g = np.array(getattr(gp, name))
+            params[name] = float(g.sum()) if np.ndim(self._values[name]) == 0 else g
+        params["density"] = float(gp.density)
+        params["damping"] = float(gp.damping)
+        return {"x": gx, "v": gv}, params, gu
 
 
 def _cells(n, d, name):

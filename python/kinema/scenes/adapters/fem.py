@@ -87,5 +87,19 @@ class FEMSimulation(DeformableSimulation):
     def diagnostics(self):
         return {"energy": self.body.energy(), "newton_iterations": float(self.newton)}
 
+    # The body's own state() (its lagged factor included, so that a resumed scene is bitwise
+    # the uninterrupted one), with the scene's frame counter beside it.
+    def get_state(self):
+        state = self.body.state()
+        state["solver_steps"] = state.pop("steps")
+        state["steps"] = np.int64(self.steps)
+        return state
+
+    def set_state(self, state):
+        state = dict(state)
+        self.steps = int(state.pop("steps"))
+        state["steps"] = state.pop("solver_steps")
+        self.body.set_state(state)
+
 
 Simulation = FEMSimulation
