@@ -146,6 +146,11 @@ void bind_contact(py::module_& m) {
       .def_readonly("ccd_seconds", &contact::StepStats::ccd_seconds)
       .def_readonly("ccd_share", &contact::StepStats::ccd_share)
       .def_readonly("barrier_stiffness", &contact::StepStats::barrier_stiffness)
+      .def_readonly("assemble_seconds", &contact::StepStats::assemble_seconds)
+      .def_readonly("solve_seconds", &contact::StepStats::solve_seconds)
+      .def_readonly("line_search_seconds", &contact::StepStats::line_search_seconds)
+      .def_readonly("newton_history", &contact::StepStats::newton_history)
+      .def_readonly("step_history", &contact::StepStats::step_history)
       .def("__repr__", [](const contact::StepStats& s) {
         return "StepStats(time=" + format_real(s.time) + ", newton_iterations=" + std::to_string(s.newton_iterations) +
                ", contact_count=" + std::to_string(s.contact_count) + ", min_distance=" + format_real(s.min_distance) +

@@ -100,7 +100,7 @@ bool all_fixed(const Model& model, std::initializer_list<Index> vs) {
 }
 
 // The reduced constraint of a pair given by its four vertices (point-triangle: p, t0, t1, t2;
-// edge-edge: a0, a1, b0, b1) with canonical vertex order for deduplication.
+// edge-edge: a0, a1, b0, b1), vertices in a canonical order.
 Constraint reduce(const Reduced& r, const Index* ids) {
   Constraint c;
   c.kind = r.kind;
@@ -167,12 +167,6 @@ std::vector<Constraint> find_constraints(const Model& model, const Scalar* x, Sc
         c.d = d;
         out.push_back(c);
       });
-  std::sort(out.begin(), out.end(), [](const Constraint& a, const Constraint& b) {
-    return a.kind != b.kind ? a.kind < b.kind : a.v < b.v;
-  });
-  out.erase(std::unique(out.begin(), out.end(),
-                        [](const Constraint& a, const Constraint& b) { return a.kind == b.kind && a.v == b.v; }),
-            out.end());
   // Vertices against planes: every dynamic vertex (a solid's interior vertices cannot reach a
   // plane before its surface, so checking them costs little and needs no surface lookup).
   for (size_t pl = 0; pl < model.planes.size(); ++pl) {

@@ -1,7 +1,11 @@
 // Collision queries on the model's collision mesh at given positions: the active constraint set
-// of IPC (every primitive pair closer than dhat, reduced to its closest-point formula and
-// deduplicated, Li et al. 2020 sec. 4), the largest safe step along a displacement (ACCD over
-// the pairs whose swept boxes overlap), and exact checks (minimum distance, edge-triangle
+// of IPC (every point-triangle and edge-edge pair closer than dhat, each reduced to the formula
+// of its closest-point region, Li et al. 2020 sec. 4). Pairs are not merged when two reduce to
+// the same vertices (a vertex near an edge seen from both of its triangles): each term is the
+// exact distance of its own pair, continuous across region switches, so the barrier sum is
+// continuous, where merging makes terms appear with a non-zero value at region boundaries.
+// Also: the largest safe step along a displacement (ACCD over the pairs whose swept boxes
+// overlap), and exact checks (minimum distance, edge-triangle
 // intersections) for validation. Broad phase: geometry/bvh.h over the faces and the edges.
 #pragma once
 
@@ -23,7 +27,7 @@ struct Constraint {
 };
 
 // Every pair of non-adjacent primitives with squared distance < dhat2 at x (planes included),
-// deduplicated and sorted (deterministic). Pairs made only of fixed vertices are skipped.
+// in a deterministic order. Pairs made only of fixed vertices are skipped.
 std::vector<Constraint> find_constraints(const Model& model, const Scalar* x, Scalar dhat2);
 
 // Squared distance of a constraint at x, and its gradient/Hessian over its vertices.

@@ -68,6 +68,15 @@ Index Model::add_solid(const Scalar* x, Index n, const Index* elements, Index m,
   if (m <= 0) throw InvalidArgument("tets: expected at least one tetrahedron");
   check_indices(elements, 4 * m, n, "tets");
   check_indices(fixed_ids, fixed_count, n, "fixed");
+  // Every check before the model changes, so a refused body leaves the scene as it was.
+  for (Index e = 0; e < m; ++e) {
+    fem::Mat<3> dm_inv;
+    const Scalar vol = fem::rest_shape<3>(x, &elements[4 * e], dm_inv);
+    if (!(vol > 0))
+      throw InvalidArgument("tets: tetrahedron " + std::to_string(e) +
+                            " is inverted or degenerate in the rest shape (signed volume " + format_real(vol) +
+                            "); expected positively oriented elements");
+  }
   const Index start = append_vertices(x, n, "vertices");
   Scalar mu, lam;
   fem::lame(youngs_modulus, poisson_ratio, mu, lam);
@@ -77,10 +86,6 @@ Index Model::add_solid(const Scalar* x, Index n, const Index* elements, Index m,
     for (int a = 0; a < 4; ++a) t[a] = start + elements[4 * e + a];
     fem::Mat<3> dm_inv;
     const Scalar vol = fem::rest_shape<3>(rest.data(), t, dm_inv);
-    if (!(vol > 0))
-      throw InvalidArgument("tets: tetrahedron " + std::to_string(e) +
-                            " is inverted or degenerate in the rest shape (signed volume " + format_real(vol) +
-                            "); expected positively oriented elements");
     tets.insert(tets.end(), t, t + 4);
     tet_dm_inv.push_back(dm_inv);
     tet_volume.push_back(vol);
@@ -116,6 +121,16 @@ Index Model::add_cloth(const Scalar* x, Index n, const Index* triangles, Index m
   check_indices(triangles, 3 * m, n, "triangles");
   check_indices(spring_ids, 2 * spring_count, n, "springs");
   check_indices(fixed_ids, fixed_count, n, "fixed");
+  for (Index f = 0; f < m; ++f) {
+    const Vec3 a = Eigen::Map<const Vec3>(x + 3 * triangles[3 * f]);
+    const Vec3 b = Eigen::Map<const Vec3>(x + 3 * triangles[3 * f + 1]);
+    const Vec3 c = Eigen::Map<const Vec3>(x + 3 * triangles[3 * f + 2]);
+    if (!((b - a).cross(c - a).norm() > 0))
+      throw InvalidArgument("triangles: triangle " + std::to_string(f) + " has zero area in the rest shape");
+  }
+  for (Index s = 0; s < spring_count; ++s)
+    if (spring_ids[2 * s] == spring_ids[2 * s + 1])
+      throw InvalidArgument("springs: spring " + std::to_string(s) + " joins a vertex to itself");
   const Index start = append_vertices(x, n, "vertices");
   std::vector<Index> tris(triangles, triangles + 3 * m);
   for (Index& v : tris) v += start;
@@ -124,13 +139,10 @@ Index Model::add_cloth(const Scalar* x, Index n, const Index* triangles, Index m
     const Vec3 b = Eigen::Map<const Vec3>(&rest[3 * tris[3 * f + 1]]);
     const Vec3 c = Eigen::Map<const Vec3>(&rest[3 * tris[3 * f + 2]]);
     const Scalar area = (b - a).cross(c - a).norm() / 2;
-    if (!(area > 0))
-      throw InvalidArgument("triangles: triangle " + std::to_string(f) + " has zero area in the rest shape");
     for (int k = 0; k < 3; ++k) mass[static_cast<size_t>(tris[3 * f + k])] += density * area / 3;
   }
   for (Index s = 0; s < spring_count; ++s) {
     const Index i = start + spring_ids[2 * s], j = start + spring_ids[2 * s + 1];
-    if (i == j) throw InvalidArgument("springs: spring " + std::to_string(s) + " joins a vertex to itself");
     springs.push_back(i);
     springs.push_back(j);
     spring_stiffness.push_back(stiffness);

@@ -20,8 +20,8 @@ struct Config {
   Scalar barrier_stiffness = 0;      // kappa [J/m^4]; 0: chosen from the masses (Li et al. 2020, sec. 4.3)
   Scalar friction = 0;               // Coulomb coefficient mu
   Scalar friction_velocity = 1e-3;   // eps_v: slip speed below which friction is smoothed [m/s]
-  Scalar tol = 1e-3;                 // Newton stops when max |dx| / dt < tol * bbox diagonal [1/s]
-  Index max_newton = 200;
+  Scalar tol = 1e-2;                 // Newton stops when max |dx| / dt < tol * bbox diagonal [1/s]
+  Index max_newton = 500;
   LinearSolver linear_solver = LinearSolver::CholmodDirect;
 };
 

@@ -353,6 +353,7 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
   for (Index it = 0; it < config_.max_newton; ++it) {
     interrupt.check();
     // Projected Newton direction: H p = -grad Phi.
+    Stopwatch phase;
     const std::vector<Constraint> constraints = find_constraints(model_, x.data(), dhat2_);
     assemble(x, h, kappa, constraints, g, triplets);
     H.setFromTriplets(triplets.begin(), triplets.end());
@@ -364,6 +365,8 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
       pattern_ptr_ = ptr;
       pattern_col_ = col;
     }
+    stats.assemble_seconds += phase.seconds();
+    phase.restart();
     const CsrView view{3 * n, 3 * n, pattern_ptr_.data(), pattern_col_.data(), H.valuePtr()};
     std::vector<Scalar> rhs(g.size());
     for (size_t k = 0; k < g.size(); ++k) rhs[k] = -g[k];
@@ -371,9 +374,11 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
     SpdSolveStats solve_stats;
     if (!linear_->solve(config_.linear_solver, view, rhs.data(), p.data(), 1e-10, false, interrupt, solve_stats))
       throw NotPositiveDefinite("contact: the projected Newton matrix is not positive definite", -1);
+    stats.solve_seconds += phase.seconds();
     stats.newton_iterations = it + 1;
     Scalar p_max = 0;
     for (Scalar v : p) p_max = std::max(p_max, std::abs(v));
+    stats.newton_history.push_back(p_max / (h * diag));
     if (!std::isfinite(p_max)) throw DivergenceError("contact: non-finite Newton step at time " + format_real(state.time));
     if (p_max < config_.tol * diag * h) {
       converged = true;
@@ -385,6 +390,7 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
     Scalar alpha = max_safe_step(model_, x.data(), p.data(), ccd);
     stats.ccd_seconds += ccd_timer.seconds();
     stats.min_step_fraction = std::min(stats.min_step_fraction, alpha);
+    phase.restart();
     const Scalar phi0 = potential(x, h, kappa);
     bool accepted = false;
     for (int ls = 0; ls < 60; ++ls) {
@@ -396,6 +402,8 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
       alpha /= 2;
       ++stats.line_search_halvings;
     }
+    stats.line_search_seconds += phase.seconds();
+    stats.step_history.push_back(accepted ? alpha : 0);
     if (!accepted) {
       // No decrease along a descent direction: Phi is at its minimum to rounding.
       converged = true;
@@ -410,10 +418,16 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
     if (prev_min < eps_d && dmin < eps_d && dmin < prev_min) kappa *= 2;
     prev_min = dmin;
   }
-  if (!converged)
+  if (!converged) {
+    std::string last;
+    const size_t k = stats.newton_history.size();
+    for (size_t i = k > 4 ? k - 4 : 0; i < k; ++i)
+      last += (last.empty() ? "" : ", ") + format_real(stats.newton_history[i]) + " (step " +
+              format_real(stats.step_history[std::min(i, stats.step_history.size() - 1)]) + ")";
     throw ConvergenceError("contact: Newton did not reach tol = " + format_real(config_.tol) + " in " +
                            std::to_string(config_.max_newton) + " iterations at time " + format_real(state.time) +
-                           "; try a smaller dt or a larger max_newton");
+                           " (last max|dx|/(dt diag): " + last + "); try a smaller dt or a larger max_newton");
+  }
 
   // Velocities from the displacement (implicit Euler).
   for (size_t k = 0; k < x.size(); ++k) state.v[k] = (x[k] - xn_[k]) / h;

@@ -29,6 +29,10 @@ struct StepStats : StepStatsBase {
   double ccd_seconds = 0;          // wall time in continuous collision detection [s]
   Scalar ccd_share = 0;            // ccd_seconds / seconds
   Scalar barrier_stiffness = 0;    // kappa of the step [kg/m^2] (Phi units)
+  double assemble_seconds = 0, solve_seconds = 0, line_search_seconds = 0;  // wall time per phase [s]
+  // Per Newton iteration: max |dx| / (dt * bbox diagonal) (the quantity tol bounds) and the
+  // step length accepted by the line search.
+  std::vector<Scalar> newton_history, step_history;
 };
 
 // One friction contact lagged at x_n: relative motion u = P^T sum_a w_a (x_a - x_n,a).

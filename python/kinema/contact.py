@@ -174,7 +174,7 @@ class Scene:
     """
 
     def __init__(self, *, gravity=None, dhat=1e-3, friction=0.0, friction_velocity=1e-3,
-                 barrier_stiffness=None, tol=1e-3, max_newton=200, linear_solver="cholmod"):
+                 barrier_stiffness=None, tol=1e-2, max_newton=500, linear_solver="cholmod"):
         cfg = _core.contact.Config()
         cfg.gravity = (0.0, 0.0, 0.0) if gravity is None else tuple(_vec3(gravity, "gravity"))
         cfg.dhat = positive(dhat, "dhat")
