@@ -208,9 +208,14 @@ def test_state_round_trip_resumes_bitwise():
 def test_intersecting_start_is_refused_naming_the_elements():
     scene = km.contact.Scene(dhat=1e-3)
     cube(scene, (0, 0, 0), 0.1)
-    cube(scene, (0.05, 0.05, 0.05), 0.1)
+    cube(scene, (0.051, 0.047, 0.043), 0.1)
     with pytest.raises(ValueError, match=r"intersects.*edge \(\d+, \d+\) crosses triangle"):
         scene.step(0.01)
+    touching = km.contact.Scene(dhat=1e-3)
+    cube(touching, (0, 0, 0), 0.1)
+    cube(touching, (0, 0.1, 0), 0.1)  # resting exactly on the first: distance 0
+    with pytest.raises(ValueError, match="touch"):
+        touching.step(0.01)
     plane = km.contact.Scene(dhat=1e-3)
     cube(plane, (0, -0.01, 0), 0.1)
     plane.add_collider("plane", point=(0, 0, 0), normal=(0, 1, 0))
@@ -244,3 +249,18 @@ def test_bad_input_is_refused_clearly():
         scene.step(-1.0)
     with pytest.raises(ValueError, match="dt"):
         scene.step(float("nan"))
+
+
+def test_contact_examples_run_small(tmp_path):
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parent.parent / "examples" / "contact_scenes.py"
+    spec = importlib.util.spec_from_file_location("contact_scenes", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    results = module.main(["--out", str(tmp_path), "--small", "--frames", "6"])
+    for name in ("cloth", "pile", "stairs"):
+        assert (tmp_path / f"contact_{name}.png").stat().st_size > 0
+        scene, history = results[name]
+        assert len(history) == 6 and all(s.newton_iterations >= 1 for s in history)

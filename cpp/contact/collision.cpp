@@ -128,8 +128,16 @@ Constraint reduce(const Reduced& r, const Index* ids) {
   return c;
 }
 
-Scalar orient(const Vec3& a, const Vec3& b, const Vec3& c, const Vec3& d) {
-  return (b - a).cross(c - a).dot(d - a);
+// Sign of the orientation of (a, b, c, d): +1, -1, or 0 when the determinant is within
+// rounding of zero (relative to the product of the edge lengths), so that nearly coplanar
+// configurations are never taken for a crossing. A touching pair is caught by the distance
+// checks instead.
+int orient(const Vec3& a, const Vec3& b, const Vec3& c, const Vec3& d) {
+  const Vec3 u = b - a, v = c - a, w = d - a;
+  const Scalar det = u.cross(v).dot(w);
+  const Scalar scale = u.norm() * v.norm() * w.norm();
+  if (std::abs(det) <= 1e-12 * scale) return 0;
+  return det > 0 ? 1 : -1;
 }
 
 }  // namespace
@@ -282,19 +290,12 @@ std::vector<std::string> find_intersections(const Model& model, const Scalar* x,
         if (a == t0 || a == t1 || a == t2 || b == t0 || b == t1 || b == t2) return;
         if (all_fixed(model, {a, b, t0, t1, t2})) return;
         const Vec3 pa = at(x, a), pb = at(x, b), q0 = at(x, t0), q1 = at(x, t1), q2 = at(x, t2);
-        const Scalar sa = orient(q0, q1, q2, pa), sb = orient(q0, q1, q2, pb);
-        if ((sa > 0 && sb > 0) || (sa < 0 && sb < 0)) return;
-        if (sa == 0 && sb == 0) {
-          // Coplanar: touching counts as intersecting only at zero distance.
-          if (edge_edge_distance(pa, pb, q0, q1) > 0 && edge_edge_distance(pa, pb, q1, q2) > 0 &&
-              edge_edge_distance(pa, pb, q2, q0) > 0 && point_triangle_distance(pa, q0, q1, q2) > 0 &&
-              point_triangle_distance(pb, q0, q1, q2) > 0)
-            return;
-        } else {
-          const Scalar w0 = orient(pa, pb, q0, q1), w1 = orient(pa, pb, q1, q2), w2 = orient(pa, pb, q2, q0);
-          const bool pos = w0 >= 0 && w1 >= 0 && w2 >= 0, neg = w0 <= 0 && w1 <= 0 && w2 <= 0;
-          if (!pos && !neg) return;
-        }
+        // A strict crossing: the endpoints strictly on both sides of the plane, and the
+        // segment strictly inside the three edge planes.
+        const int sa = orient(q0, q1, q2, pa), sb = orient(q0, q1, q2, pb);
+        if (sa == 0 || sb == 0 || sa == sb) return;
+        const int w0 = orient(pa, pb, q0, q1), w1 = orient(pa, pb, q1, q2), w2 = orient(pa, pb, q2, q0);
+        if (w0 == 0 || w0 != w1 || w1 != w2) return;
         out.push_back("edge (" + std::to_string(a) + ", " + std::to_string(b) + ") crosses triangle (" +
                       std::to_string(t0) + ", " + std::to_string(t1) + ", " + std::to_string(t2) + ")");
       });
