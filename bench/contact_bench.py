@@ -1,4 +1,4 @@
-"""km.contact benchmarks: time per step against contact count (cube pile, cloth on a sphere) with
+"""km.contact benchmarks: time per step against contact count (the cube pile and the cloth on a sphere of examples/contact_scenes.py) with
 Newton iterations and the CCD's share, and the contact kernels side by side with the IPC
 toolkit's Python bindings (``ipctk``, the ``bench`` extra) on the same meshes and positions.
 
@@ -29,33 +29,23 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+import contact_scenes  # noqa: E402
 import harness  # noqa: E402
 
 import kinema as km  # noqa: E402
 
 
-def pile(count, n, steps):
-    scene = km.contact.Scene(gravity=(0, -9.81, 0), dhat=1e-3, friction=0.4)
-    scene.add_collider("plane", point=(0, 0, 0), normal=(0, 1, 0))
-    rng = np.random.default_rng(1)
-    for k in range(count):
-        lo = np.array([rng.uniform(-0.03, 0.03), 0.002 + 0.102 * k, rng.uniform(-0.03, 0.03)])
-        v, t = km.fem.box_mesh(lo, lo + 0.1, n)
-        scene.add_solid(v, t, youngs_modulus=5e4, poisson_ratio=0.4, density=500)
-    return scene, 1 / 100
+def pile(count, n):
+    return contact_scenes.pile_scene(False, count, n)
 
 
-def cloth(n, steps):
-    scene = km.contact.Scene(gravity=(0, -9.81, 0), dhat=2e-3, friction=0.3)
-    x, tri, springs = km.contact.cloth_mesh(n, n, 0.8, origin=(-0.4, 0.305, -0.4))
-    scene.add_cloth(x, tri, springs=springs, stiffness=1500, density=0.2)
-    scene.add_collider("sphere", center=(0, 0, 0), radius=0.3, subdivisions=3)
-    return scene, 1 / 50
+def cloth(n):
+    return contact_scenes.cloth_scene(False, n)
 
 
 def solver_sweep(rec, quick):
-    cases = [("pile", lambda c=c, n=n: pile(c, n, 0), f"{c} cubes n={n}") for c, n in ((2, 2), (4, 2), (4, 3))]
-    cases += [("cloth", lambda n=n: cloth(n, 0), f"cloth {n}x{n}") for n in ((8, 12) if quick else (8, 12, 16))]
+    cases = [("pile", lambda c=c, n=n: pile(c, n), f"{c} cubes n={n}") for c, n in ((2, 2), (4, 2), (4, 3))]
+    cases += [("cloth", lambda n=n: cloth(n), f"cloth {n}x{n}") for n in ((8, 12) if quick else (8, 12, 16))]
     steps = 15 if quick else 40
     for name, make, label in cases:
         scene, dt = make()
@@ -95,9 +85,9 @@ def kernel_case(scene, dt, warm_steps):
 def kernels_side_by_side(rec, quick):
     import ipctk
 
-    cases = [("pile 4 cubes n=3", lambda: pile(4, 3, 0), 12), ("cloth 16x16 on sphere", lambda: cloth(16, 0), 6)]
+    cases = [("pile 4 cubes n=3", lambda: pile(4, 3), 40), ("cloth 16x16 on sphere", lambda: cloth(16), 10)]
     if quick:
-        cases = [("pile 4 cubes n=2", lambda: pile(4, 2, 0), 12), ("cloth 12x12 on sphere", lambda: cloth(12, 0), 6)]
+        cases = [("pile 4 cubes n=2", lambda: pile(4, 2), 40), ("cloth 12x12 on sphere", lambda: cloth(12), 10)]
     for label, make, warm in cases:
         scene, dt = make()
         x0, x1 = kernel_case(scene, dt, warm)

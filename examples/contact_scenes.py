@@ -29,8 +29,8 @@ def rotation_z(deg):
     return np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
 
 
-def cloth_scene(small):
-    n = 8 if small else 24
+def cloth_scene(small, n=None):
+    n = n or (8 if small else 24)
     scene = km.contact.Scene(gravity=G, dhat=2e-3, friction=0.3)
     x, tri, springs = km.contact.cloth_mesh(n, n, 0.8, origin=(-0.4, 0.33, -0.4))
     scene.add_cloth(x, tri, springs=springs, stiffness=1500, density=0.2)
@@ -40,8 +40,8 @@ def cloth_scene(small):
     return scene, 1 / 50
 
 
-def pile_scene(small):
-    count, n = (3, 1) if small else (6, 2)
+def pile_scene(small, count=None, n=None):
+    count, n = count or (3 if small else 6), n or (1 if small else 2)
     scene = km.contact.Scene(gravity=G, dhat=1e-3, friction=0.4)
     scene.add_collider("plane", point=(0, 0, 0), normal=(0, 1, 0))
     rng = np.random.default_rng(1)

@@ -59,44 +59,64 @@ void edge_box(const Scalar* x, const Scalar* dx, Index i, Index j, Scalar r, Sca
   }
 }
 
+bool all_fixed(const Model& model, std::initializer_list<Index> vs) {
+  for (Index v : vs)
+    if (!model.fixed[static_cast<size_t>(v)]) return false;
+  return true;
+}
+
 // Calls pt(p, face) for every surface point and face whose boxes meet (p not in the face), and
-// ee(e, f) for every pair of edges e < f whose boxes meet and that share no vertex.
+// ee(e, f) once for every pair of edges whose boxes meet and that share no vertex; pairs made
+// only of fixed vertices (obstacle against obstacle) are never visited: moving points query
+// every face and fixed points only the faces that move, moving edges query every edge.
 template <class PT, class EE>
 void candidate_pairs(const Model& model, const Scalar* x, const Scalar* dx, Scalar r, PT&& pt, EE&& ee) {
   const auto& F = model.faces;
   const auto& E = model.edges;
+  auto moving = [&](Index v) { return !model.fixed[static_cast<size_t>(v)]; };
   if (!F.empty()) {
     const geometry::Bvh faces = primitive_bvh(F, 3, x, dx, r);
+    std::vector<Index> moving_faces, moving_face_ids;
+    bool any_fixed_point = false;
+    for (Index p : model.points) any_fixed_point |= !moving(p);
+    if (any_fixed_point) {
+      for (Index f = 0; f < static_cast<Index>(F.size() / 3); ++f)
+        if (moving(F[3 * f]) || moving(F[3 * f + 1]) || moving(F[3 * f + 2])) {
+          moving_faces.insert(moving_faces.end(), &F[3 * f], &F[3 * f] + 3);
+          moving_face_ids.push_back(f);
+        }
+    }
+    const geometry::Bvh moving_bvh = primitive_bvh(moving_faces, 3, x, dx, r);
     for (Index p : model.points) {
       Scalar lo[3], hi[3];
       point_box(x, dx, p, 0, lo, hi);
-      faces.query(lo, hi, [&](Index f) {
+      auto visit = [&](Index f) {
         const Index a = F[3 * f], b = F[3 * f + 1], c = F[3 * f + 2];
         if (p == a || p == b || p == c) return;
         pt(p, f);
-      });
+      };
+      if (moving(p))
+        faces.query(lo, hi, visit);
+      else
+        moving_bvh.query(lo, hi, [&](Index k) { visit(moving_face_ids[static_cast<size_t>(k)]); });
     }
   }
   if (!E.empty()) {
     const geometry::Bvh edges = primitive_bvh(E, 2, x, dx, r);
     const Index edge_count = static_cast<Index>(E.size() / 2);
     for (Index e = 0; e < edge_count; ++e) {
+      if (!moving(E[2 * e]) && !moving(E[2 * e + 1])) continue;
       Scalar lo[3], hi[3];
       edge_box(x, dx, E[2 * e], E[2 * e + 1], 0, lo, hi);
       edges.query(lo, hi, [&](Index f) {
-        if (f <= e) return;
         const Index a0 = E[2 * e], a1 = E[2 * e + 1], b0 = E[2 * f], b1 = E[2 * f + 1];
+        const bool f_moves = moving(b0) || moving(b1);
+        if (f_moves && f <= e) return;  // a pair of moving edges is visited from the lower one
         if (a0 == b0 || a0 == b1 || a1 == b0 || a1 == b1) return;
         ee(e, f);
       });
     }
   }
-}
-
-bool all_fixed(const Model& model, std::initializer_list<Index> vs) {
-  for (Index v : vs)
-    if (!model.fixed[static_cast<size_t>(v)]) return false;
-  return true;
 }
 
 // The reduced constraint of a pair given by its four vertices (point-triangle: p, t0, t1, t2;
@@ -147,33 +167,28 @@ std::vector<Constraint> find_constraints(const Model& model, const Scalar* x, Sc
   const Scalar dhat = std::sqrt(dhat2);
   const auto& F = model.faces;
   const auto& E = model.edges;
+  // Reduces a pair given by its four vertices to its closest-point formula; keeps it if close.
+  auto consider = [&](const Index ids[4], bool edge_edge) {
+    if (all_fixed(model, {ids[0], ids[1], ids[2], ids[3]})) return;
+    const Vec3 y[4] = {at(x, ids[0]), at(x, ids[1]), at(x, ids[2]), at(x, ids[3])};
+    const Reduced r = edge_edge ? edge_edge_region(y[0], y[1], y[2], y[3]) : point_triangle_region(y[0], y[1], y[2], y[3]);
+    Vec3 v[4];
+    for (int k = 0; k < vertex_count(r.kind); ++k) v[k] = y[r.slot[k]];
+    const Scalar d = reduced_distance(r.kind, v);
+    if (d >= dhat2) return;
+    Constraint c = reduce(r, ids);
+    c.d = d;
+    out.push_back(c);
+  };
   candidate_pairs(
       model, x, nullptr, dhat,
       [&](Index p, Index f) {
         const Index ids[4] = {p, F[3 * f], F[3 * f + 1], F[3 * f + 2]};
-        if (all_fixed(model, {ids[0], ids[1], ids[2], ids[3]})) return;
-        const Vec3 y[4] = {at(x, ids[0]), at(x, ids[1]), at(x, ids[2]), at(x, ids[3])};
-        const Reduced r = point_triangle_region(y[0], y[1], y[2], y[3]);
-        Vec3 v[4];
-        for (int k = 0; k < vertex_count(r.kind); ++k) v[k] = y[r.slot[k]];
-        const Scalar d = reduced_distance(r.kind, v);
-        if (d >= dhat2) return;
-        Constraint c = reduce(r, ids);
-        c.d = d;
-        out.push_back(c);
+        consider(ids, false);
       },
       [&](Index e, Index f) {
         const Index ids[4] = {E[2 * e], E[2 * e + 1], E[2 * f], E[2 * f + 1]};
-        if (all_fixed(model, {ids[0], ids[1], ids[2], ids[3]})) return;
-        const Vec3 y[4] = {at(x, ids[0]), at(x, ids[1]), at(x, ids[2]), at(x, ids[3])};
-        const Reduced r = edge_edge_region(y[0], y[1], y[2], y[3]);
-        Vec3 v[4];
-        for (int k = 0; k < vertex_count(r.kind); ++k) v[k] = y[r.slot[k]];
-        const Scalar d = reduced_distance(r.kind, v);
-        if (d >= dhat2) return;
-        Constraint c = reduce(r, ids);
-        c.d = d;
-        out.push_back(c);
+        consider(ids, true);
       });
   // Vertices against planes: every dynamic vertex (a solid's interior vertices cannot reach a
   // plane before its surface, so checking them costs little and needs no surface lookup).

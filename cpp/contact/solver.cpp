@@ -19,11 +19,26 @@ namespace {
 
 Vec3 at(const Scalar* x, Index i) { return Eigen::Map<const Vec3>(x + 3 * i); }
 
-// Nearest positive semidefinite matrix (negative eigenvalues clamped to zero).
-void project_psd(Eigen::Ref<MatrixX> H) {
-  Eigen::SelfAdjointEigenSolver<MatrixX> eig(H);
+// Nearest positive semidefinite matrix (negative eigenvalues clamped to zero). Fixed 12 x 12:
+// a pair with fewer vertices has zero rows and columns beyond, whose eigenvalues stay zero.
+void project_psd(Mat<12>& H) {
+  Eigen::SelfAdjointEigenSolver<Mat<12>> eig(H);
   if (eig.eigenvalues().minCoeff() >= 0) return;
   H = eig.eigenvectors() * eig.eigenvalues().cwiseMax(Scalar(0)).asDiagonal() * eig.eigenvectors().transpose();
+}
+
+// Adds an element matrix over `count` vertices into triplets, skipping fixed vertices.
+template <class Matrix>
+void add_block(const Model& model, std::vector<Eigen::Triplet<Scalar, Index>>& t, const Index* verts, int count,
+               const Matrix& H) {
+  for (int a = 0; a < count; ++a) {
+    if (model.fixed[static_cast<size_t>(verts[a])]) continue;
+    for (int b = 0; b < count; ++b) {
+      if (model.fixed[static_cast<size_t>(verts[b])]) continue;
+      for (int r = 0; r < 3; ++r)
+        for (int s = 0; s < 3; ++s) t.emplace_back(3 * verts[a] + r, 3 * verts[b] + s, H(3 * a + r, 3 * b + s));
+    }
+  }
 }
 
 Eigen::Matrix<Scalar, 3, 2> tangent_basis(const Vec3& n) {
@@ -78,6 +93,16 @@ void closest_weights(const Model& model, const Constraint& c, const Scalar* x, F
   Vec3 r = Vec3::Zero();
   for (int a = 0; a < k; ++a) r += f.w[a] * y[a];
   n = r.normalized();
+}
+
+// Sliding displacement u = P^T sum_a w_a (x_a - x_n,a) of a lagged friction contact.
+Eigen::Matrix<Scalar, 2, 1> sliding(const FrictionContact& f, const Scalar* x, const Scalar* xn) {
+  Vec3 rel = Vec3::Zero();
+  for (int a = 0; a < f.count; ++a) {
+    const Index v = f.v[static_cast<size_t>(a)];
+    rel += f.w[a] * (at(x, v) - at(xn, v));
+  }
+  return f.P.transpose() * rel;
 }
 
 }  // namespace
@@ -154,8 +179,7 @@ SparseMatrix Solver::barrier_hessian(const Scalar* x, bool project) const {
     Mat<12> Hd;
     constraint_derivatives(model_, c, x, gd, Hd);
     const int k = c.plane >= 0 ? 1 : vertex_count(c.kind);
-    MatrixX H = barrier_second(c.d, dhat2_) * gd.head(3 * k) * gd.head(3 * k).transpose() +
-                barrier_first(c.d, dhat2_) * Hd.topLeftCorner(3 * k, 3 * k);
+    Mat<12> H = barrier_second(c.d, dhat2_) * gd * gd.transpose() + barrier_first(c.d, dhat2_) * Hd;
     if (project) project_psd(H);
     for (int a = 0; a < 3 * k; ++a)
       for (int b = 0; b < 3 * k; ++b)
@@ -196,17 +220,6 @@ void Solver::lag_friction(const std::vector<Scalar>& x, Scalar kappa, Scalar h) 
   }
 }
 
-void Solver::add_block(Triplets& t, const Index* verts, int count, const Eigen::Ref<const MatrixX>& H) const {
-  for (int a = 0; a < count; ++a) {
-    if (model_.fixed[static_cast<size_t>(verts[a])]) continue;
-    for (int b = 0; b < count; ++b) {
-      if (model_.fixed[static_cast<size_t>(verts[b])]) continue;
-      for (int r = 0; r < 3; ++r)
-        for (int s = 0; s < 3; ++s) t.emplace_back(3 * verts[a] + r, 3 * verts[b] + s, H(3 * a + r, 3 * b + s));
-    }
-  }
-}
-
 Scalar Solver::potential(const std::vector<Scalar>& x, Scalar h, Scalar kappa) const {
   Scalar inertia = 0;
   for (Index i = 0; i < model_.vertex_count; ++i) {
@@ -218,10 +231,7 @@ Scalar Solver::potential(const std::vector<Scalar>& x, Scalar h, Scalar kappa) c
   Scalar friction = 0;
   const Scalar mu = config_.friction, eps_v = config_.friction_velocity;
   for (const FrictionContact& f : friction_) {
-    Vec3 rel = Vec3::Zero();
-    for (int a = 0; a < f.count; ++a)
-      rel += f.w[a] * (at(x.data(), f.v[static_cast<size_t>(a)]) - at(xn_.data(), f.v[static_cast<size_t>(a)]));
-    const Eigen::Matrix<Scalar, 2, 1> u = f.P.transpose() * rel;
+    const Eigen::Matrix<Scalar, 2, 1> u = sliding(f, x.data(), xn_.data());
     friction += mu * f.normal_force * h * friction_f0(u.norm() / h, eps_v);
   }
   return inertia + h * h * (elastic_energy(x.data()) + friction) + kappa * b;
@@ -260,7 +270,7 @@ void Solver::assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, cons
     add_grad(tet, 4, h2 * fem::element_gradient<3>(fem::piola<3>(F, mat, mu, lam), dm_inv, vol));
     fem::HessF<3> dPdF = fem::piola_derivative<3>(F, mat, mu, lam);
     fem::project_psd<3>(dPdF);
-    add_block(t, tet, 4, h2 * fem::element_hessian<3>(dPdF, dm_inv, vol));
+    add_block(model_, t, tet, 4, h2 * fem::element_hessian<3>(dPdF, dm_inv, vol));
   }
   const Index spring_count = static_cast<Index>(model_.spring_rest.size());
   for (Index s = 0; s < spring_count; ++s) {
@@ -274,7 +284,7 @@ void Solver::assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, cons
     const Mat3 S = h2 * k * massspring::spring_jacobian<3>(d, L, true);
     Eigen::Matrix<Scalar, 6, 6> He;
     He << S, -S, -S, S;
-    add_block(t, ij, 2, He);
+    add_block(model_, t, ij, 2, He);
   }
   // Barrier: kappa (b' grad d, b'' grad d grad d^T + b' Hess d), projected per contact.
   for (const Constraint& c : constraints) {
@@ -284,17 +294,14 @@ void Solver::assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, cons
     const int k = c.plane >= 0 ? 1 : vertex_count(c.kind);
     const Scalar b1 = barrier_first(c.d, dhat2_), b2 = barrier_second(c.d, dhat2_);
     add_grad(c.v.data(), k, kappa * b1 * gd.head(3 * k));
-    MatrixX H = kappa * (b2 * gd.head(3 * k) * gd.head(3 * k).transpose() + b1 * Hd.topLeftCorner(3 * k, 3 * k));
+    Mat<12> H = kappa * (b2 * gd * gd.transpose() + b1 * Hd);
     project_psd(H);
-    add_block(t, c.v.data(), k, H);
+    add_block(model_, t, c.v.data(), k, H);
   }
   // Friction: h^2 mu lambda (f1(y)/y u/h through T, and the PSD tangent Hessian).
   const Scalar mu = config_.friction, eps_v = config_.friction_velocity;
   for (const FrictionContact& f : friction_) {
-    Vec3 rel = Vec3::Zero();
-    for (int a = 0; a < f.count; ++a)
-      rel += f.w[a] * (at(x.data(), f.v[static_cast<size_t>(a)]) - at(xn_.data(), f.v[static_cast<size_t>(a)]));
-    const Eigen::Matrix<Scalar, 2, 1> u = f.P.transpose() * rel;
+    const Eigen::Matrix<Scalar, 2, 1> u = sliding(f, x.data(), xn_.data());
     const Scalar y = u.norm() / h;
     const Scalar scale = h2 * mu * f.normal_force;
     const Scalar phi = friction_f1_over_y(y, eps_v);
@@ -313,7 +320,7 @@ void Solver::assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, cons
       for (int b = 0; b < f.count; ++b) He.block<3, 3>(3 * a, 3 * b) = f.w[a] * f.w[b] * H3;
     }
     add_grad(f.v.data(), f.count, ge);
-    add_block(t, f.v.data(), f.count, He);
+    add_block(model_, t, f.v.data(), f.count, He);
   }
   for (Index i = 0; i < n; ++i)
     if (model_.fixed[static_cast<size_t>(i)])
@@ -440,10 +447,7 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
   stats.min_distance = std::numeric_limits<Scalar>::infinity();
   for (const Constraint& c : final_set) stats.min_distance = std::min(stats.min_distance, std::sqrt(c.d));
   for (const FrictionContact& f : friction_) {
-    Vec3 rel = Vec3::Zero();
-    for (int a = 0; a < f.count; ++a)
-      rel += f.w[a] * (at(x.data(), f.v[static_cast<size_t>(a)]) - at(xn_.data(), f.v[static_cast<size_t>(a)]));
-    if ((f.P.transpose() * rel).norm() / h < config_.friction_velocity)
+    if (sliding(f, x.data(), xn_.data()).norm() / h < config_.friction_velocity)
       ++stats.sticking_count;
     else
       ++stats.sliding_count;

@@ -72,7 +72,6 @@ class Solver {
                 std::vector<Scalar>& g, Triplets& triplets) const;
   void lag_friction(const std::vector<Scalar>& x, Scalar kappa, Scalar h);
   Scalar initial_kappa(Scalar h) const;
-  void add_block(Triplets& t, const Index* verts, int count, const Eigen::Ref<const MatrixX>& H) const;
 
   const Model& model_;
   Config config_;
