@@ -17,6 +17,7 @@
 namespace kinema::render {
 
 using geometry::Bvh;
+using geometry::hit_box;
 
 enum class MaterialKind { lambertian, metal, dielectric };
 
