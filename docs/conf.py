@@ -40,6 +40,8 @@ API_MODULES = [
     "kinema.vortex",
     "kinema.nbody",
     "kinema.mpm",
+    "kinema.diff",
+    "kinema.torch",
     "kinema.mesh",
     "kinema.render",
     "kinema.io",
@@ -49,7 +51,7 @@ API_MODULES = [
     "kinema.errors",
 ]
 #: modules that are programs or internals, not API
-NOT_API = {"kinema.cli", "kinema.demo", "kinema.demo_deform", "kinema.smoke_demo"}
+NOT_API = {"kinema.cli"}
 
 
 def api_modules():

@@ -10,5 +10,5 @@ bash scripts/setup.sh
 out="${1:-demo_output}"
 shift || true
 .venv/bin/kinema run smoke_plume --out "$out/smoke_plume" "$@"
-.venv/bin/python -m kinema.demo --out "$out/numerics"
+.venv/bin/python examples/poisson_heat.py --out "$out/numerics"
 echo "[kinema demo] the scene's video: $out/smoke_plume/video.mp4; numerics: $out/numerics"

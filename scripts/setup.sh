@@ -29,7 +29,7 @@ if [ ! -x "$venv/bin/python" ]; then
 fi
 py="$venv/bin/python"
 
-extras="test,demo,sweep,docs,viewer,surface${1:+,$1}"
+extras="test,demo,sweep,docs,viewer,surface,torch${1:+,$1}"
 dep_stamp="$venv/.kinema-deps-$(echo "$extras" | tr ',' '-')"
 dep_hash=$(sha1sum pyproject.toml | cut -d' ' -f1)
 if [ ! -f "$dep_stamp" ] || [ "$(cat "$dep_stamp")" != "$dep_hash" ]; then

@@ -1,6 +1,6 @@
 """kinema's default OpenMP waiting policy (python/kinema/__init__.py): a bounded spin set before
 the OpenMP runtime starts when the user set none, and the user's own setting left alone. The
-speed it buys on a loaded machine is measured in bench/omp_wait_policy.py (bench/RESULTS.md),
+speed it buys on a loaded machine is measured in bench/common/omp_wait_policy.py (bench/RESULTS.md),
 not here. Each case runs in a fresh interpreter: the runtime reads its environment once."""
 
 import json

@@ -225,3 +225,37 @@ def test_3d_grid_run_drawn_as_a_volume_with_a_slice(display, tmp_path):
         assert (np.abs(inside - background).sum(axis=2) > 30).mean() > 0.3
     finally:
         v.close()
+
+
+def test_2d_velocity_drawn_as_arrows_on_a_coarse_lattice(display):
+    # A solid rotation about the grid's centre: every arrow but the centre's has length.
+    from kinema.scenes.adapters.base import GridData
+
+    nx, ny, h = 64, 48, 1.0 / 64
+    xc, yc = np.meshgrid((np.arange(nx) + 0.5) * h, (np.arange(ny) + 0.5) * h, indexing="ij")
+    velocity = np.stack([-(yc - ny * h / 2), xc - nx * h / 2], axis=-1)
+    speed = np.linalg.norm(velocity, axis=-1)
+    source = kv.CallbackSource(lambda: 1, lambda: [GridData("grid", {"speed": speed, "velocity": velocity}, h)])
+    v = kv.Viewer(source, width=320, height=240)
+    try:
+        arrows = [k for k in v._structures if k.endswith("arrows")]
+        assert arrows == ["grid velocity arrows"], list(v._structures)
+        stride = max(nx, ny) // kv.ARROWS_ACROSS
+        cloud = v._structures[arrows[0]][1]
+        assert cloud.n_points() == len(range(stride // 2, nx, stride)) * len(range(stride // 2, ny, stride))
+        with_arrows = v.screenshot().astype(int)
+        cloud.set_enabled(False)
+        without = v.screenshot().astype(int)
+        col, row = v.project(np.array([[0, 0], [nx * h, ny * h]], float))
+        c0, c1 = sorted(col.astype(int))
+        r0, r1 = sorted(row.astype(int))
+        changed = np.abs(with_arrows - without).sum(axis=2) > 30
+        # 32 x 24 arrows, the longest a stride (5 pixels here) long: a few per cent of the grid.
+        assert changed[r0:r1, c0:c1].mean() > 0.01, changed[r0:r1, c0:c1].mean()
+        # Nothing beyond the grid by more than an arrow's length (stride cells) and its head.
+        pad = int(2 * stride * (c1 - c0) / nx) + 2
+        outside = changed.copy()
+        outside[max(r0 - pad, 0):r1 + pad, max(c0 - pad, 0):c1 + pad] = False
+        assert not outside.any()
+    finally:
+        v.close()

@@ -1,7 +1,7 @@
 // Google Benchmark of km.grid's advection stage as a 3D smoke step runs it: MacCormack with RK2
 // back-traces of two cell-centred scalars (density and temperature, one shared trace) and of the
 // three MAC velocity components, on n^3 cells of a closed free-slip box, by each implementation
-// of fluid/kernels.h (node-wise, rows, rows with AVX2; they give the same bits). The velocity is
+// of grid/kernels.h (node-wise, rows, rows with AVX2; they give the same bits). The velocity is
 // a smooth field of up to 1.5 cells per step, so departure points reach across cells and walls.
 #include <benchmark/benchmark.h>
 
@@ -11,10 +11,10 @@
 
 #include "core/parallel.h"
 #include "core/simd.h"
-#include "fluid/advect_rows.h"
-#include "fluid/kernels.h"
+#include "grid/advect_rows.h"
+#include "grid/kernels.h"
 
-namespace kinema::fluid {
+namespace kinema::grid {
 namespace {
 
 void BM_AdvectStage(benchmark::State& state) {
@@ -70,4 +70,4 @@ BENCHMARK(BM_AdvectStage)
     ->UseRealTime();
 
 }  // namespace
-}  // namespace kinema::fluid
+}  // namespace kinema::grid

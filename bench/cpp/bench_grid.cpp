@@ -13,7 +13,7 @@
 
 #include "core/parallel.h"
 #include "core/simd.h"
-#include "grid/multigrid.h"
+#include "poisson/multigrid.h"
 
 #if KINEMA_HAVE_AVX2_CLONES
 #include <immintrin.h>
@@ -115,7 +115,7 @@ void BM_PoissonApplyStores(benchmark::State& state) {
 // A reference for the 3D apply: the plain 7-point loop with the same operations, written by
 // hand with non-temporal stores, on every row (the domain faces read across them, so the result
 // is not the operator's; only its time matters). What kinema's apply at 256^3 should come close
-// to: the library ran 25% behind it before session 7 (bench/RESULTS.md).
+// to (the comparison that found the faults recorded in bench/RESULTS.md, appendix A.1).
 void BM_ApplyHandLoop(benchmark::State& state) {
   const Index n = state.range(0), s1 = n, s0 = n * n, size = n * n * n;
   BenchArray x(size, 1.0), y(size, 0.0);

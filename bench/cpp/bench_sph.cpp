@@ -5,7 +5,7 @@
 // (Solver::density_error at unchanged positions: lists filter, density sum, mean compression).
 // Items processed are neighbour entries (2 per pair), so items/s reads as entries per second.
 // The grid search of a DFSPH step on the dam break's column (fluid and boundary lists).
-// Whole time steps (WCSPH, DFSPH) on the 3D dam break of bench/sph_bench.py: a column
+// Whole time steps (WCSPH, DFSPH) on the 3D dam break of bench/sph/sph_bench.py: a column
 // a x 2a x a (a = 0.5 m) in the box 4a x 3a x a, timed after 0.02 s of simulated start-up.
 #include <benchmark/benchmark.h>
 
@@ -134,7 +134,7 @@ void BM_DamBreakSearch(benchmark::State& state) {
   state.counters["avx2"] = avx2;
 }
 
-// The dam break of bench/sph_bench.py with about n particles, advanced through the start-up in
+// The dam break of bench/sph/sph_bench.py with about n particles, advanced through the start-up in
 // CFL steps (cfl 0.4) as Fluid.advance does, then timed step by step at the Python benchmark's
 // dt (DFSPH: the CFL step at the surge-front speed sqrt(2 g 2a); WCSPH: the acoustic CFL step).
 // Counters: the DFSPH solvers' iterations per step.

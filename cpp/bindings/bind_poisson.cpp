@@ -4,31 +4,18 @@
 
 #include "bindings/common.h"
 #include "core/parallel.h"
-#include "grid/poisson_solver.h"
+#include "poisson/poisson_solver.h"
 
 namespace kinema::bind {
 
 namespace {
 
-Boundary parse_bc(const std::string& bc) {
-  if (bc == "dirichlet") return Boundary::Dirichlet;
-  if (bc == "neumann") return Boundary::Neumann;
-  if (bc == "periodic") return Boundary::Periodic;
-  throw InvalidArgument("bc: expected 'dirichlet', 'neumann' or 'periodic', got '" + bc + "'");
-}
-
 // Owns the solver and a copy-free reference to nothing else: the solid mask is read once.
 struct PySolver {
-  PySolver(const std::vector<Index>& shape, Scalar h, const std::string& bc,
+  PySolver(const std::vector<Index>& shape, Scalar h, Boundary bc,
            std::optional<py::array_t<std::uint8_t, py::array::c_style>> solid, Scalar shift,
-           const std::string& method, int pre_smooth, int post_smooth)
+           const PoissonConfig& config)
       : shape_(shape), user_shape_(shape) {
-    PoissonConfig config;
-    config.method = parse_poisson_method(method);
-    config.multigrid.pre_smooth = pre_smooth;
-    config.multigrid.post_smooth = post_smooth;
-    if (pre_smooth < 0 || post_smooth < 0 || pre_smooth + post_smooth < 1)
-      throw InvalidArgument("pre_smooth, post_smooth: expected counts >= 0 with a positive sum");
     const std::uint8_t* mask = nullptr;
     if (solid) {
       if (solid->size() != shape_.size())
@@ -36,7 +23,7 @@ struct PySolver {
       mask = solid->data();
     }
     ReleaseGil release;
-    solver_ = std::make_unique<PoissonSolver>(shape_, h, parse_bc(bc), mask, shift, config);
+    solver_ = std::make_unique<PoissonSolver>(shape_, h, bc, mask, shift, config);
   }
 
   py::object solve(py::array b, py::array x, Scalar tol, Index max_iter) {
@@ -139,12 +126,33 @@ struct PySolver {
 }  // namespace
 
 void bind_poisson(py::module_& m) {
+  py::enum_<PoissonMethod>(m, "Method", "Solver of the grid Poisson problem.")
+      .value("jacobi", PoissonMethod::Jacobi)
+      .value("gauss_seidel", PoissonMethod::GaussSeidel)
+      .value("cg", PoissonMethod::CG)
+      .value("multigrid", PoissonMethod::Multigrid)
+      .value("mgpcg", PoissonMethod::MGPCG);
+  py::enum_<Boundary>(m, "Boundary", "Boundary condition on the grid's faces.")
+      .value("dirichlet", Boundary::Dirichlet)
+      .value("neumann", Boundary::Neumann)
+      .value("periodic", Boundary::Periodic);
+  py::class_<PoissonConfig>(m, "Config", "How the Poisson problem is solved (poisson/poisson_solver.h).")
+      .def(py::init<>())
+      .def_readwrite("method", &PoissonConfig::method)
+      .def_readwrite("jacobi_omega", &PoissonConfig::jacobi_omega, "damping of the Jacobi iteration")
+      .def_property(
+          "pre_smooth", [](const PoissonConfig& c) { return c.multigrid.pre_smooth; },
+          [](PoissonConfig& c, int n) { c.multigrid.pre_smooth = n; }, "red-black sweeps before the coarse correction")
+      .def_property(
+          "post_smooth", [](const PoissonConfig& c) { return c.multigrid.post_smooth; },
+          [](PoissonConfig& c, int n) { c.multigrid.post_smooth = n; }, "red-black sweeps after it")
+      .def_property(
+          "coarsest_cells", [](const PoissonConfig& c) { return c.multigrid.coarsest_cells; },
+          [](PoissonConfig& c, Index n) { c.multigrid.coarsest_cells = n; }, "stop coarsening at this many cells");
   py::class_<PySolver>(m, "Solver")
-      .def(py::init<const std::vector<Index>&, Scalar, const std::string&,
-                    std::optional<py::array_t<std::uint8_t, py::array::c_style>>, Scalar,
-                    const std::string&, int, int>(),
-           py::arg("shape"), py::arg("h"), py::arg("bc"), py::arg("solid"), py::arg("shift"),
-           py::arg("method"), py::arg("pre_smooth"), py::arg("post_smooth"))
+      .def(py::init<const std::vector<Index>&, Scalar, Boundary,
+                    std::optional<py::array_t<std::uint8_t, py::array::c_style>>, Scalar, const PoissonConfig&>(),
+           py::arg("shape"), py::arg("h"), py::arg("bc"), py::arg("solid"), py::arg("shift"), py::arg("config"))
       .def("solve", &PySolver::solve, py::arg("b"), py::arg("x"), py::arg("tol"), py::arg("max_iter"))
       .def("apply", &PySolver::apply, py::arg("x"), py::arg("b") = py::none())
       .def("vcycle", &PySolver::vcycle, py::arg("b"))

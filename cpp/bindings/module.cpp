@@ -16,7 +16,6 @@ namespace kinema::bind {
 
 void bind_sparse(py::module_& m);
 void bind_poisson(py::module_& m);
-void bind_diffusion(py::module_& m);
 void bind_fmm(py::module_& m);
 void bind_grid(py::module_& m);
 void bind_massspring(py::module_& m);
@@ -106,8 +105,6 @@ PYBIND11_MODULE(_core, m) {
   bind::bind_sparse(sparse);
   auto poisson = m.def_submodule("poisson");
   bind::bind_poisson(poisson);
-  auto diffusion = m.def_submodule("diffusion");
-  bind::bind_diffusion(diffusion);
   auto fmm = m.def_submodule("fmm");
   bind::bind_fmm(fmm);
   auto grid = m.def_submodule("grid");

@@ -2,8 +2,8 @@
 // transparent huge pages where Linux offers them. Its default THP mode, "madvise", backs memory
 // by 2 MiB pages only on request, as numpy requests them for its large arrays; kinema's grid
 // kernels stream several planes at once, and on 4 KB pages they paid for the page walks (the
-// 3D apply and sweep ran 4-16% slower on them in an interleaved A/B, bench/RESULTS.md,
-// session 6). Blocks below kHugeThreshold come from operator new as usual.
+// 3D apply and sweep ran 4-16% slower on them in an interleaved A/B; bench/RESULTS.md, appendix A.1,
+// "Huge pages"). Blocks below kHugeThreshold come from operator new as usual.
 #pragma once
 
 #include <cstddef>

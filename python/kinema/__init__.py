@@ -13,7 +13,7 @@ import os as _os
 # libgomp's default lets an idle thread spin ~3 ms before it sleeps: on a machine where another
 # process keeps a core busy that spinning starves the thread it waits for, and a CG solve took
 # 60x longer. A short bounded spin keeps most of the quiet-machine speed and the loaded-machine
-# speed (bench/omp_wait_policy.py, bench/RESULTS.md). A user's own setting of either variable
+# speed (bench/common/omp_wait_policy.py, bench/RESULTS.md). A user's own setting of either variable
 # wins; this has no effect when another library started the OpenMP runtime first.
 #: GOMP_SPINCOUNT kinema sets when the user set neither it nor OMP_WAIT_POLICY.
 DEFAULT_GOMP_SPINCOUNT = "1000"
@@ -35,6 +35,7 @@ from kinema import mesh, mpm, nbody
 from kinema import contact
 from kinema.scenes import Scene, SceneError
 from kinema import io
+from kinema import diff
 from kinema import surface, viewer
 from kinema.notebook import show
 
@@ -64,6 +65,8 @@ __all__ = [
     "sph",
     "mpm",
     "contact",
+    "diff",
+    "torch",
     "render",
     "Scene",
     "SceneError",
@@ -72,6 +75,14 @@ __all__ = [
     "viewer",
     "show",
 ]
+
+
+def __getattr__(name):
+    # km.torch imports PyTorch (an optional extra, slow to import): only on first use.
+    if name == "torch":
+        import importlib
+        return importlib.import_module("kinema.torch")
+    raise AttributeError(f"module 'kinema' has no attribute {name!r}")
 
 
 def set_num_threads(n: int) -> None:

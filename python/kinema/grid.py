@@ -21,15 +21,12 @@ and inflows from Python, as scene files' ``source`` objects do. Example: example
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 import numpy as np
 
 from kinema import _core
 from kinema._checks import (
-    as_float_array, choice, finite, finite_result, grid_shape, non_negative, positive,
-    positive_int, simulation_object, spacing, time_step)
-from kinema._info import SolveInfo
+    as_float_array, checked_state, choice, finite, finite_result, grid_shape, positive_int, real,
+    simulation_object, spacing, time_step)
 from kinema._state import assign
 
 __all__ = ["Fluid", "StepInfo", "advect", "SCHEMES", "ADVECTION_KERNELS"]
@@ -40,21 +37,10 @@ _PROJECTIONS = ("mgpcg", "multigrid", "cg")
 _SIDES = {"x-": (0, 0), "x+": (0, 1), "y-": (1, 0), "y+": (1, 1), "z-": (2, 0), "z+": (2, 1)}
 
 
-@dataclass
-class StepInfo:
-    """What one step did: the pressure solve, the step size and the CFL number
-    max|u| dt / h before it, CG iterations of the viscosity solves, and wall-clock seconds
-    per stage (keys "advect", "forces", "viscosity", "projection", "total")."""
-
-    pressure: SolveInfo
-    dt: float
-    cfl: float
-    viscosity_iterations: int
-    seconds: dict = field(default_factory=dict)
-
-
-def _step_info(d):
-    return StepInfo(d["pressure"], d["dt"], d["cfl"], d["viscosity_iterations"], dict(d["seconds"]))
+#: What one step did (kinema._core.StepStats: time, dt, seconds; and the pressure SolveInfo,
+#: cfl = max|u| dt / h before the step, viscosity_iterations and per-phase advect_seconds,
+#: forces_seconds, viscosity_seconds, projection_seconds).
+StepInfo = _core.grid.StepStats
 
 
 def _rk(rk_order):
@@ -63,6 +49,9 @@ def _rk(rk_order):
     return int(rk_order)
 
 
+def _internal(vector, dim):
+    """A user d-vector on the solver's internal axes (a 2D grid is the 3D grid (1, nx, ny))."""
+    return [0.0] * (3 - dim) + [float(x) for x in vector]
 
 
 @simulation_object
@@ -73,7 +62,7 @@ class Fluid:
     rk_order: 1, 2 or 3 (back-trace). projection: "mgpcg" (default), "multigrid" or "cg";
     tol: relative residual of the pressure solve. viscosity: kinematic nu [m^2/s] (implicit).
     boundary: "closed" or "periodic"; walls: "free_slip" or "no_slip" (closed boundaries).
-    gravity: None or a d-vector [m/s^2]. density, temperature: enable the passive scalars;
+    gravity: a d-vector [m/s^2], or None for no gravity. density, temperature: enable the passive scalars;
     buoyancy = (alpha, beta): force (-alpha*density + beta*temperature) * up [m/s^2], up
     opposite to gravity (or +y without gravity). vorticity_confinement: epsilon >= 0.
     advection_kernel: which implementation advects, all with bitwise the same results: "auto"
@@ -106,10 +95,8 @@ class Fluid:
         self.advection = choice(advection, "advection", SCHEMES)
         self.rk_order = _rk(rk_order)
         self.projection = choice(projection, "projection", _PROJECTIONS)
-        self.tol = positive(tol, "tol")
-        if self.tol >= 1:
-            raise ValueError(f"tol: expected a relative tolerance < 1, got {self.tol}")
-        self.viscosity = non_negative(viscosity, "viscosity")
+        self.tol = real(tol, "tol")
+        self.viscosity = real(viscosity, "viscosity")
         self.boundary = choice(boundary, "boundary", ("closed", "periodic"))
         self.walls = choice(walls, "walls", ("free_slip", "no_slip"))
         if gravity is None:
@@ -127,18 +114,30 @@ class Fluid:
             alpha, beta = buoyancy
         except (TypeError, ValueError):
             raise ValueError(f"buoyancy: expected a pair (alpha, beta), got {buoyancy!r}") from None
-        alpha, beta = finite(alpha, "buoyancy"), finite(beta, "buoyancy")
+        alpha, beta = real(alpha, "buoyancy"), real(beta, "buoyancy")
         self.buoyancy = (alpha, beta)
-        self.vorticity_confinement = non_negative(vorticity_confinement, "vorticity_confinement")
+        self.vorticity_confinement = real(vorticity_confinement, "vorticity_confinement")
         max_iter = positive_int(max_iter, "max_iter", allow_none=True) or 0
         self.advection_kernel = choice(advection_kernel, "advection_kernel", ADVECTION_KERNELS)
         self.open = self._sides(open)
-        if self.open and self.boundary == "periodic":
-            raise ValueError("open: a periodic domain has no open sides (boundary='periodic')")
-        self._core = _core.grid.Fluid(
-            list(self.shape), self.h, self.advection, self.rk_order, self.projection, self.tol, max_iter,
-            self.viscosity, self.boundary, self.walls, g, bool(density), bool(temperature), alpha, beta,
-            self.vorticity_confinement, self.advection_kernel, list(self.open))
+        config = _core.grid.Config()
+        config.advection = getattr(_core.grid.AdvectionScheme, self.advection)
+        config.rk_order = self.rk_order
+        config.advection_kernel = getattr(_core.grid.AdvectionKernel, self.advection_kernel)
+        config.projection = getattr(_core.poisson.Method, self.projection)
+        config.tol, config.max_iter, config.viscosity = self.tol, max_iter, self.viscosity
+        config.periodic, config.no_slip = self.boundary == "periodic", self.walls == "no_slip"
+        open_walls = [False] * 6
+        for side in self.open:
+            axis, s = _SIDES[side]
+            open_walls[2 * (axis + 3 - self.dim) + s] = True
+        config.open = open_walls
+        if g:
+            config.gravity = _internal(g, self.dim)
+        config.density, config.temperature = bool(density), bool(temperature)
+        config.alpha, config.beta = alpha, beta
+        config.vorticity_confinement = self.vorticity_confinement
+        self._core = _core.grid.Fluid(list(self.shape), self.h, config)
 
     def _sides(self, sides):
         names = tuple(s for s in _SIDES if self.dim == 3 or not s.startswith("z"))
@@ -259,21 +258,14 @@ class Fluid:
         m = np.asarray(region)
         if m.shape != self.shape or m.dtype != np.bool_:
             raise ValueError(f"region: expected a bool array of shape {self.shape}, got {m.dtype} {m.shape}")
-        if density is None and temperature is None and velocity is None:
-            raise ValueError("add_source: give at least one of density, temperature, velocity")
-        for value, name in ((density, "density"), (temperature, "temperature")):
-            if value is not None:
-                finite(value, name)
-                if self._core.scalar(name) is None:
-                    raise ValueError(f"{name}: the fluid carries no {name} field; create it with {name}=True")
         vel = None
         if velocity is not None:
             vel = as_float_array(velocity, "velocity", ndim=1)
             if vel.shape != (self.dim,):
                 raise ValueError(f"velocity: expected {self.dim} components, got shape {vel.shape}")
             vel = [float(x) for x in vel]
-        return self._core.add_source(m.astype(np.uint8), None if density is None else float(density),
-                                     None if temperature is None else float(temperature), vel)
+        return self._core.add_source(m.astype(np.uint8), None if density is None else real(density, "density"),
+                                     None if temperature is None else real(temperature, "temperature"), vel)
 
     def clear_sources(self) -> None:
         """Removes every source added by :meth:`add_source`."""
@@ -290,19 +282,62 @@ class Fluid:
 
     @property
     def steps(self) -> int:
+        """Steps taken since the start."""
         return self._core.steps
+
+    #: The differentiable parameters (km.diff).
+    parameters = ("viscosity",)
+
+    def _state_arrays(self):
+        arrays = dict(zip("uvw", self.velocity))
+        arrays["pressure"] = self.pressure
+        for name in ("density", "temperature"):
+            q = self._core.scalar(name)
+            if q is not None:
+                arrays[name] = q
+        return arrays
+
+    def state(self) -> dict:
+        """Everything a step evolves, as copies: u, v[, w] [m/s], pressure [m^2/s^2] (the warm
+        start of the next projection), density and temperature when enabled, time [s] and
+        steps. :meth:`set_state` of this dict resumes bit for bit."""
+        out = {name: view.copy() for name, view in self._state_arrays().items()}
+        out["time"], out["steps"] = np.float64(self.time), np.int64(self.steps)
+        return out
+
+    def set_state(self, state) -> None:
+        """Restores a :meth:`state` dict of a Fluid of the same shape and options (copies into
+        the state's arrays, so views taken before stay valid). Obstacles, walls and sources are
+        the model's, not the state's: they stay as set. A refused dict changes nothing."""
+        arrays = self._state_arrays()
+        time, steps = checked_state(state, (), None)
+        values = {}
+        for name, view in arrays.items():  # every entry checked before anything is restored
+            if name not in state:
+                raise ValueError(f"state: missing {name!r}")
+            values[name] = as_float_array(state[name], f"state[{name!r}]")
+            if values[name].shape != view.shape:
+                raise ValueError(f"state[{name!r}]: expected shape {view.shape}, got {values[name].shape}")
+        for name, view in arrays.items():
+            view[...] = values[name]
+        self._core.time, self._core.steps = time, steps
 
     # ------------------------------------------------------------------ stepping
     def step(self, dt) -> StepInfo:
         """Advances by dt [s] (any dt > 0; accuracy needs a CFL number of a few at most)."""
-        return _step_info(self._core.step(time_step(dt)))
+        return self._core.step(time_step(dt))
 
-    def advance(self, duration, cfl=1.0) -> int:
-        """Advances by ``duration`` [s] in steps of dt = cfl*h/u_max; returns the step count.
-        The last step's StepInfo is kept in ``self.last_step``."""
-        duration = non_negative(duration, "duration")
-        steps, info = self._core.advance(duration, positive(cfl, "cfl"))
-        self.last_step = _step_info(info) if info is not None else None
+    def stable_dt(self, cfl=1.0, *, max_dt=None) -> float:
+        """The CFL step cfl * h / u_max [s], at most ``max_dt``, where u_max = max|u| +
+        sqrt(5 h |g|) (Bridson 2015, Sec. 3.2: the speed gravity adds in one step) also counts
+        moving walls and velocity sources; ``inf`` when nothing moves and no max_dt is given."""
+        return self._core.stable_dt(real(cfl, "cfl"), _max_dt(max_dt))
+
+    def advance(self, duration, cfl=1.0, *, max_dt=None) -> int:
+        """Advances by ``duration`` [s] in steps of :meth:`stable_dt`, the last one landing on the
+        end; returns the step count. The last step's StepInfo is kept in ``self.last_step``."""
+        steps, info = self._core.advance(real(duration, "duration"), real(cfl, "cfl"), _max_dt(max_dt))
+        self.last_step = info
         return steps
 
     def set_wall_velocity(self, side, velocity):
@@ -338,6 +373,10 @@ class Fluid:
         return finite_result(self._core.max_speed(), "max_speed")
 
 
+def _max_dt(max_dt):
+    return float("inf") if max_dt is None else real(max_dt, "max_dt")
+
+
 def advect(q, velocity, dt, h, scheme="maccormack", rk_order=2, *, periodic=False):
     """Advects the cell-centred scalar ``q`` through the MAC ``velocity = (u, v[, w])`` over dt
     [s] on cells of size h [m], as :class:`Fluid` does (closed domain: back-traces are clamped
@@ -354,5 +393,5 @@ def advect(q, velocity, dt, h, scheme="maccormack", rk_order=2, *, periodic=Fals
             raise ValueError(f"velocity[{c}]: expected shape {want}, got {a.shape}")
         comps.append(a)
     dt = finite(dt, "dt")
-    return _core.grid.advect(qa, comps, dt, spacing(h, "h"), choice(scheme, "scheme", SCHEMES),
-                             _rk(rk_order), bool(periodic))
+    scheme = getattr(_core.grid.AdvectionScheme, choice(scheme, "scheme", SCHEMES))
+    return _core.grid.advect(qa, comps, dt, spacing(h, "h"), scheme, _rk(rk_order), bool(periodic))

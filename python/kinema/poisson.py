@@ -77,10 +77,12 @@ class Solver:
             raise ValueError(f"shift: expected a finite number >= 0, got {shift}")
         self.shift = shift
         mask = _solid_mask(solid, self.shape)
-        core_method = "cg" if method == "cholmod" else method
-        self._core = _core.poisson.Solver(list(self.shape), self.h, bc, mask, shift, core_method,
-                                          integer(pre_smooth, "pre_smooth", low=0, high=64),
-                                          integer(post_smooth, "post_smooth", low=0, high=64))
+        config = _core.poisson.Config()
+        config.method = getattr(_core.poisson.Method, "cg" if method == "cholmod" else method)
+        config.pre_smooth = integer(pre_smooth, "pre_smooth", low=0, high=64)
+        config.post_smooth = integer(post_smooth, "post_smooth", low=0, high=64)
+        self._core = _core.poisson.Solver(list(self.shape), self.h, getattr(_core.poisson.Boundary, bc), mask,
+                                          shift, config)
         self._factor = None
         self._free = None
         if method == "cholmod":

@@ -5,7 +5,7 @@
     mesh.write("surface_00010.ply")                               # or .obj
     scene.add_mesh(mesh.vertices, mesh.triangles, km.render.dielectric(1.33))
 
-Two methods (``pip install kinema[surface]``; measured side by side in bench/surface_bench.py):
+Two methods (``pip install kinema[surface]``; measured side by side in bench/render/surface_bench.py):
 
 * ``"splashsurf"``: the SPlisHSPlasH group's reconstruction (Löschner, Böttcher, Jeske, Bender,
   "Weighted Laplacian smoothing for surface reconstruction of particle-based fluids", VMV 2023)

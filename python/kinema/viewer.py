@@ -7,7 +7,8 @@
 
 What it draws, from what the scene's solver reports each frame (its VTU/PLY/VTI data):
 particles as spheres coloured by a quantity (2D and 3D), triangle surfaces (cloth, soft bodies,
-fluid surfaces) with their vertex quantities, 2D grid fields as colour-mapped images and 3D
+fluid surfaces) with their vertex quantities, 2D grid fields as colour-mapped images with the
+velocity as arrows on a coarse lattice of cells (about ARROWS_ACROSS across), and 3D
 grids as a volume with a slice plane. The camera orbits (left drag), pans (right drag) and
 zooms (wheel). A panel holds Run/Pause, Step, Reset, the quantity picker and the simulated
 time, frame and step rate. Keys: space pauses or runs, N (or the right arrow) takes one frame,
@@ -39,6 +40,9 @@ BACKGROUND = (0.1, 0.1, 0.12)
 FLUID_COLOR = (0.2, 0.45, 0.9)
 SOLID_COLOR = (0.6, 0.6, 0.6)
 NONE = "(none)"
+#: Arrows across a 2D grid's longer side for its vector field; their colour.
+ARROWS_ACROSS = 32
+ARROW_COLOR = (0.95, 0.95, 0.95)
 #: Particle counts above which points are drawn as flat quads (not sphere impostors).
 QUAD_ABOVE = 20_000
 
@@ -612,6 +616,33 @@ class Viewer:
             v = values if values.ndim == 2 else np.linalg.norm(values, axis=-1)
             mesh.add_scalar_quantity(key, v.reshape(-1), defined_on="faces", enabled=(key == self._quantity),
                                      cmap=self.cmap)
+        self._draw_arrows(item, nx, ny, h)
+
+    def _draw_arrows(self, item, nx, ny, h):
+        """Arrows of a 2D grid's vector field (the velocity) at every `stride`-th cell centre,
+        about ARROWS_ACROSS of them across the grid: one arrow per cell would be a carpet."""
+        key = next((k for k, f in item.fields.items() if f.ndim == 3 and f.shape[-1] == 2), None)
+        if key is None:
+            return
+        field = item.fields[key]
+        stride = max(1, max(nx, ny) // ARROWS_ACROSS)
+        sub = field[stride // 2::stride, stride // 2::stride]
+        ci, cj = np.meshgrid(np.arange(stride // 2, nx, stride), np.arange(stride // 2, ny, stride),
+                             indexing="ij")
+        centres = np.c_[(ci.ravel() + 0.5) * h, (cj.ravel() + 0.5) * h, np.full(ci.size, 1e-3 * h)]
+        name = f"{item.name} {key} arrows"
+        entry = self._structures.get(name)
+        if entry and entry[1].n_points() == len(centres):
+            cloud = entry[1]
+        else:
+            cloud = self.ps.register_point_cloud(name, centres, radius=1e-6, color=SOLID_COLOR)
+            self._structures[name] = ("point_cloud", cloud)
+        vectors = _pad3(sub.reshape(-1, 2))
+        # Drawn at their own length ("ambient"), scaled so that the longest spans the stride.
+        top = float(np.linalg.norm(vectors, axis=1).max()) if vectors.size else 0.0
+        scaled = vectors * (stride * h / top) if top > 0 else vectors
+        cloud.add_vector_quantity(key, scaled, enabled=True, color=ARROW_COLOR, vectortype="ambient",
+                                  radius=0.1 * stride * h / self._lengths())
 
     def _home(self):
         """Looks at the scene from the front, a little from above and the right; 2D scenes

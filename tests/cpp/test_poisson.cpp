@@ -10,7 +10,7 @@
 #include <vector>
 
 #include "core/simd.h"
-#include "grid/poisson_solver.h"
+#include "poisson/poisson_solver.h"
 
 namespace kinema {
 namespace {

@@ -22,13 +22,8 @@ import numpy as np
 
 from kinema.io import atomic_path, write_grid
 
-__all__ = ["atomic_path", "write_png", "write_vti", "write_mp4", "save_checkpoint", "load_checkpoint",
+__all__ = ["atomic_path", "write_png", "write_mp4", "save_checkpoint", "load_checkpoint",
            "CheckpointError"]
-
-
-def write_vti(path, fields, h, origin=(0.0, 0.0, 0.0)):
-    """Cell-centred fields as VTK image data: :func:`kinema.io.write_grid` under its older name."""
-    return write_grid(path, fields, h, origin)
 
 
 def write_png(path, rgb):

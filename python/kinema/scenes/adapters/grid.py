@@ -2,8 +2,8 @@
 
 Objects: ``obstacle`` (solid cells in a region), ``source`` (density/temperature/velocity
 imposed in a region before every step), ``block`` (initial density/temperature/velocity in a
-region) and ``wall`` (a moving no-slip wall). Time steps: dt = cfl * h / max(u_max,
-sqrt(5 h |g|)) (Bridson 2015, Sec. 3.2), at most ``max_dt``, ending exactly on each frame.
+region) and ``wall`` (a moving no-slip wall). Time steps: km.grid.Fluid.stable_dt (the CFL rule
+of Bridson 2015, Sec. 3.2), at most ``max_dt``, ending exactly on each frame.
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ import numpy as np
 
 import kinema as km
 from kinema.scenes import preview, regions, render3d
-from kinema.scenes.adapters.base import ArrayStateSimulation, GridData
+from kinema.scenes.adapters.base import GridData, Simulation
 from kinema.scenes.schema import REGION, Bool, Field, Int, ListOf, Real, Str, Table, Vec
 
 SOLVER = Table({
@@ -58,7 +58,7 @@ def dimension(solver, objects):
     return len(solver["resolution"])
 
 
-class GridSimulation(ArrayStateSimulation):
+class GridSimulation(Simulation):
     DIAGNOSTICS = ("kinetic_energy", "max_divergence", "smoke_mass")
 
     def __init__(self, scene):
@@ -67,7 +67,6 @@ class GridSimulation(ArrayStateSimulation):
         shape = tuple(o["resolution"])
         self.dim, self.h = len(shape), o["size"] / shape[0]
         self.cfl, self.max_dt = o["cfl"], o["max_dt"]
-        self.gravity = np.array(o["gravity"] or [0.0] * self.dim)
         self.fluid = km.grid.Fluid(
             shape, self.h, advection=o["advection"], rk_order=o["rk_order"], projection=o["projection"],
             tol=o["tol"], viscosity=o["viscosity"], boundary=o["boundary"], walls=o["walls"],
@@ -76,7 +75,6 @@ class GridSimulation(ArrayStateSimulation):
             open=tuple(o["open"]))
         centres = np.stack(np.meshgrid(*[(np.arange(n) + 0.5) * self.h for n in shape], indexing="ij"), -1)
         centres = centres.reshape(-1, self.dim)
-        self.sources = []
         for k, obj in enumerate(scene.config["objects"]):
             kind = obj["type"]
             if kind == "obstacle":
@@ -90,11 +88,15 @@ class GridSimulation(ArrayStateSimulation):
                         raise scene.error(f"objects[{k}].{name}", f"the solver carries no {name} field; "
                                           f"set solver.{name} = true")
                 if kind == "source":
-                    self.sources.append((cells, obj))
+                    if all(obj[name] is None for name in ("density", "temperature", "velocity")):
+                        continue
+                    self.fluid.add_source(cells, density=obj["density"], temperature=obj["temperature"],
+                                          velocity=obj["velocity"])
                 else:
                     self._impose(cells, obj)
 
     def _impose(self, cells, obj):
+        """The initial values of a ``block`` object."""
         f = self.fluid
         for name in ("density", "temperature"):
             if obj[name] is not None:
@@ -115,31 +117,16 @@ class GridSimulation(ArrayStateSimulation):
         return self.fluid.time
 
     def advance_to(self, t_end):
-        f, taken = self.fluid, 0
-        floor = np.sqrt(5 * self.h * np.linalg.norm(self.gravity))
-        while t_end - f.time > 1e-12 * max(t_end, 1.0):
-            speed = max(f.max_speed(), floor)
-            dt = min(self.max_dt, self.cfl * self.h / speed if speed > 0 else self.max_dt)
-            if f.time + dt >= t_end - 1e-3 * dt:
-                dt = t_end - f.time
-            for cells, obj in self.sources:
-                self._impose(cells, obj)
-            f.step(dt)
-            taken += 1
+        taken = self.fluid.advance(max(t_end - self.fluid.time, 0.0), self.cfl, max_dt=self.max_dt)
         self.steps += taken
         return taken
 
-    def _arrays(self):
-        f = self.fluid
-        out = {name: c for name, c in zip("uvw", f.velocity)}
-        out["pressure"] = f.pressure
-        for name in ("density", "temperature"):
-            if self.scene.config["solver"][name]:
-                out[name] = getattr(f, name)
-        return out
+    def get_state(self):
+        return self.fluid.state() | {"scene_steps": np.int64(self.steps)}
 
-    def _core(self):
-        return self.fluid._core
+    def set_state(self, state):
+        self.fluid.set_state(state)
+        self.steps = int(state["scene_steps"])
 
     def diagnostics(self):
         f = self.fluid
@@ -188,7 +175,10 @@ class GridSimulation(ArrayStateSimulation):
                                    width=output["width"])
 
     def data(self):
-        fields = {k: np.asarray(v) for k, v in self._arrays().items() if k in ("density", "temperature", "pressure")}
+        fields = {"pressure": np.asarray(self.fluid.pressure)}
+        for name in ("density", "temperature"):
+            if self.scene.config["solver"][name]:
+                fields[name] = np.asarray(getattr(self.fluid, name))
         fields["velocity"] = self._cell_velocity()
         fields["solid"] = self.fluid.solid.astype(float)
         return [GridData("grid", fields, self.h)]

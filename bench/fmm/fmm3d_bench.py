@@ -1,0 +1,157 @@
+"""km.fmm.laplace3d beside the direct sum and Flatiron's FMM3D (issue 23, "Speed").
+
+    .venv/bin/python bench/fmm/fmm3d_bench.py --quick       # wiring check, N = 1e5 (~2 min)
+    .venv/bin/python bench/fmm/fmm3d_bench.py               # crossover, eps sweep at N = 1e6
+    .venv/bin/python bench/fmm/fmm3d_bench.py --large       # also N = 1e7 at eps 1e-6
+
+Problem: N points uniform in the unit cube (seed 0), charges uniform in [-1, 1]; potential AND
+gradient at the sources (self term left out), float64: km.fmm.laplace3d(gradient=True) and
+fmm3dpy.lfmm3d(pg=2) (whose kernel carries 1/(4 pi), removed before comparing). Errors are
+measured, never assumed: relative 2-norm errors of phi and grad against km.fmm.direct3d on a
+fixed random subset of 1000 targets. The fmm3dpy wheel on PyPI is built without OpenMP: it
+runs on one core whatever the thread count (its source release needs a Fortran toolchain,
+which the package index cannot supply); kinema runs with all threads (2 here), and both
+figures are recorded with their CPU seconds. Rows go to bench/out/fmm3d.csv through
+harness.measure (repeated while other processes load the machine).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "common"))  # harness.py
+import harness  # noqa: E402
+import kinema as km  # noqa: E402
+
+HERE = Path(__file__).resolve().parent
+OUT = HERE.parent / "out"
+TRIES = 2
+EPS = (1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-8, 1e-9, 1e-10, 1e-11, 1e-12)
+
+
+def problem(n, seed=0):
+    rng = np.random.default_rng(seed)
+    return rng.random((n, 3)), rng.uniform(-1.0, 1.0, n)
+
+
+def reference(x, q, idx):
+    return km.fmm.direct3d(x, q, x[idx], gradient=True)
+
+
+def errors(phi, grad, ref, idx):
+    e_phi = np.linalg.norm(phi[idx] - ref[0]) / np.linalg.norm(ref[0])
+    e_grad = np.linalg.norm(grad[idx] - ref[1]) / np.linalg.norm(ref[1])
+    return float(e_phi), float(e_grad)
+
+
+def run_kinema(x, q, eps):
+    return km.fmm.laplace3d(x, q, eps=eps, gradient=True)
+
+
+def run_fmm3d(x, q, eps):
+    import fmm3dpy
+
+    out = fmm3dpy.lfmm3d(eps=eps, sources=np.ascontiguousarray(x.T), charges=q, pg=2)
+    return out.pot * (4 * np.pi), out.grad.T * (4 * np.pi)
+
+
+def sweep(rec, n, eps_list, peer, max_seconds):
+    x, q = problem(n)
+    idx = np.sort(np.random.default_rng(1).choice(n, min(n, 1000), replace=False))
+    ref = reference(x, q, idx)
+    rows = []
+    for name, fn in (("kinema", run_kinema),) + ((("fmm3dpy", run_fmm3d),) if peer else ()):
+        for eps in eps_list:
+            m = harness.measure(harness.with_cpu(lambda: fn(x, q, eps)), max_tries=TRIES, quiet_timeout=10)
+            (phi, grad), cpu = m.value
+            e_phi, e_grad = errors(phi, grad, ref, idx)
+            threads = harness.default_threads() if name == "kinema" else 1
+            info = km.fmm.last_info() if name == "kinema" else {}
+            rec.record(f"{name} eps={eps:g}", n, m.seconds, error=max(e_phi, e_grad), threads=threads,
+                       measurement=m, notes={"err_phi": f"{e_phi:.2e}", "err_grad": f"{e_grad:.2e}",
+                                             "cpu_s": f"{cpu:.2f}", "order": info.get("order", "")})
+            rows.append((name, eps, m.seconds, cpu, e_phi, e_grad, m.other_load))
+            print(f"{name:8s} N={n:.0e} eps={eps:.0e}: {m.seconds:8.2f} s (cpu {cpu:7.2f} s)  "
+                  f"err phi {e_phi:.2e} grad {e_grad:.2e}  load {m.other_load:.2f}"
+                  f"{' order ' + str(info['order']) if info else ''}", flush=True)
+            if m.seconds > max_seconds:
+                print(f"  ({name}: stopping the sweep, {m.seconds:.0f} s > {max_seconds:.0f} s)")
+                break
+    return rows
+
+
+def crossover(rec):
+    """FMM against the direct sum (both with all threads) for N = 1e3 .. 1e4 at eps 1e-6."""
+    print("direct-sum crossover (eps 1e-6, phi and gradient):")
+    found = None
+    for n in (1000, 2000, 3000, 4000, 5000, 7000, 10000):
+        x, q = problem(n)
+        f = harness.measure(harness.with_cpu(lambda: km.fmm._eval3d(x, q, None, eps=1e-6, derivatives=1)),
+                            min_of=3, max_tries=3 * TRIES, quiet_timeout=10)
+        d = harness.measure(harness.with_cpu(lambda: km.fmm._eval3d(x, q, None, eps=1e-6, derivatives=1, direct=True)),
+                            min_of=3, max_tries=3 * TRIES, quiet_timeout=10)
+        fc, dc = f.value[1], d.value[1]
+        rec.record("fmm crossover", n, f.seconds, measurement=f, notes={"cpu_s": f"{fc:.4f}"})
+        rec.record("direct crossover", n, d.seconds, measurement=d, notes={"cpu_s": f"{dc:.4f}"})
+        print(f"  N={n:6d}: fmm {f.seconds * 1e3:8.2f} ms (cpu {fc * 1e3:8.2f})  direct {d.seconds * 1e3:8.2f} ms "
+              f"(cpu {dc * 1e3:8.2f})  load {f.other_load:.2f}/{d.other_load:.2f}", flush=True)
+        if found is None and fc < dc:
+            found = n
+    print(f"  FMM faster from N = {found}" if found else "  FMM not faster up to N = 1e4")
+
+
+def summary(rows):
+    """kinema's time at each of the peer's measured errors (log-log interpolation)."""
+    kin = sorted([(max(r[4], r[5]), r[2]) for r in rows if r[0] == "kinema"])
+    peer = [(max(r[4], r[5]), r[2], r[1]) for r in rows if r[0] == "fmm3dpy"]
+    if not kin or not peer:
+        return
+    print("at equal measured error (max of phi and grad), CPU seconds (the work; kinema's wall time on "
+          "T quiet cores is about its CPU time / T, fmm3dpy's equals its CPU time):")
+    kin = sorted([(max(r[4], r[5]), r[3]) for r in rows if r[0] == "kinema"])
+    peer = [(max(r[4], r[5]), r[3], r[1]) for r in rows if r[0] == "fmm3dpy"]
+    le = np.log([k[0] for k in kin])
+    lt = np.log([k[1] for k in kin])
+    for err, t, eps in peer:
+        if not (le.min() <= math.log(err) <= le.max()):
+            print(f"  fmm3dpy eps={eps:.0e} err {err:.1e}: outside kinema's measured range")
+            continue
+        tk = math.exp(np.interp(math.log(err), le, lt))
+        print(f"  err {err:.1e}: fmm3dpy {t:8.2f} s, kinema {tk:8.2f} s, ratio {t / tk:5.2f}x")
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--large", action="store_true")
+    ap.add_argument("--no-peer", action="store_true")
+    ap.add_argument("--no-crossover", action="store_true")
+    ap.add_argument("--size", type=float, default=1e6)
+    ap.add_argument("--eps", type=float, nargs="*")
+    ap.add_argument("--max-seconds", type=float, default=300)
+    ap.add_argument("--tries", type=int, default=2, help="timed calls per figure while the machine is loaded")
+    args = ap.parse_args()
+    global TRIES
+    TRIES = args.tries
+    rec = harness.Recorder(OUT / "fmm3d.csv", "fmm3d")
+    print(f"commit {rec.commit}, threads {rec.threads}, load average {os.getloadavg()}")
+    if not (args.quick or args.no_crossover):
+        crossover(rec)
+    n = int(1e5 if args.quick else args.size)
+    eps_list = args.eps or ((1e-3, 1e-6, 1e-9) if args.quick else EPS)
+    rows = sweep(rec, n, eps_list, not args.no_peer, args.max_seconds)
+    summary(rows)
+    if args.large:
+        sweep(rec, int(1e7), (1e-6,), False, 1e9)
+    print(f"load average at the end: {os.getloadavg()}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,332 @@
+"""Gradients of whole simulation runs (reverse mode).
+
+``rollout`` advances a simulation by a number of steps and records what the backward pass needs;
+``Rollout.backward`` turns the gradient of a loss with respect to the final state into gradients
+with respect to the initial state, the solver's parameters and per-step controls::
+
+    sim = km.massspring.System(x, springs, stiffness=1e3, mass=0.1, gravity=(0, -9.81))
+    run = km.diff.rollout(sim, steps=100, dt=1e-3, wrt=("v", "stiffness"))
+    target = ...
+    grads = run.backward({"x": 2 * (run.outputs["x"] - target)})   # L = |x_T - target|^2
+    grads["v"]          # dL/dv_0, shape (n, d)
+    grads["stiffness"]  # dL/dk, a float (stiffness was given as a scalar)
+
+The gradients are those of the discrete simulation as run: each step's vector-Jacobian product is
+computed by the solver's own adjoint (linear and Newton solves differentiated as if solved
+exactly, by the implicit function theorem). Where the forward step switched branch (a clamp, a
+limiter, a definiteness fix), the gradient is that of the branch taken; each solver's guide page
+says where that happens.
+
+Memory. By default every state of the run is stored (T + 1 states for T steps). With
+``checkpoints=K`` at most K states are held (the initial one included) and the others are
+recomputed from the nearest stored one by binomial checkpointing (Griewank 1992; Griewank and
+Walther 2000, "Revolve", ACM TOMS 26): with s free slots and r forward sweeps,
+beta(s, r) = C(s + r, s) steps can be reversed, so K = 2 sqrt(T) recomputes each step at most
+about twice. The gradients equal the stored run's to rounding (bitwise, as the forward steps are
+deterministic).
+
+Chaining. A loss on intermediate states is written by splitting the run: the gradient a later
+rollout returns for its initial state is the ``grads`` of the earlier one, and the parameter
+gradients of consecutive rollouts add up to those of the one long rollout.
+
+Which simulations are differentiable: a class that implements the protocol below. Its guide page
+lists its parameters (``sim.parameters``) and what its adjoint covers.
+
+The protocol (private methods; nothing else is called):
+
+- ``parameters``: tuple of names; ``state() -> dict`` and ``set_state(dict)`` (exact).
+- ``_diff_state_names``: the state() keys that are differentiable inputs and outputs.
+- ``_diff_check(wrt, step_options)``: raises ValueError for what the adjoint cannot do.
+- ``_diff_control_shape()``: the shape of one step's control.
+- ``_diff_get(name)`` / ``_diff_set(name, value)``: a state array's or parameter's value.
+- ``_diff_step(dt, control, step_options)``: ``step(dt, **step_options)`` plus the control.
+- ``_diff_step_adjoint(dt, before, after, control, grad_after, step_options)
+  -> (grad_before, grad_params, grad_control)``: the vector-Jacobian product of one step.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+
+import numpy as np
+
+__all__ = ["rollout", "Rollout"]
+
+_PROTOCOL = ("parameters", "state", "set_state", "_diff_state_names", "_diff_check",
+             "_diff_control_shape", "_diff_get", "_diff_set", "_diff_step", "_diff_step_adjoint")
+
+
+def _beta(free: int, sweeps: int) -> int:
+    """Steps reversible with `free` checkpoint slots and `sweeps` forward sweeps: C(s + r, s)."""
+    return math.comb(free + sweeps, free)
+
+
+def _split(length: int, free: int) -> int:
+    """Where to place the next checkpoint in a segment of `length` steps (> 1) with `free` > 0
+    slots: the smallest offset a >= 1 such that the right part length - a is reversible with
+    free - 1 slots in the fewest sweeps r that reverse the whole segment (beta(free, r) >= length)."""
+    sweeps = 1
+    while _beta(free, sweeps) < length:
+        sweeps += 1
+    return min(max(1, length - _beta(free - 1, sweeps)), length - 1)
+
+
+def _copy_state(state: dict) -> dict:
+    return {k: (np.array(v, copy=True) if isinstance(v, np.ndarray) else v) for k, v in state.items()}
+
+
+def _as_names(wrt) -> tuple:
+    if isinstance(wrt, str):
+        return (wrt,)
+    try:
+        names = tuple(wrt)
+    except TypeError:
+        raise ValueError(f"wrt: expected a name or a sequence of names, got {type(wrt).__name__}") from None
+    for name in names:
+        if not isinstance(name, str):
+            raise ValueError(f"wrt: expected names (str), got {name!r}")
+    if not names:
+        raise ValueError("wrt: expected at least one name")
+    if len(set(names)) != len(names):
+        raise ValueError(f"wrt: repeated names in {names}")
+    return names
+
+
+def _check_run(steps, dt) -> tuple:
+    """(steps, dt) checked: an int >= 0 and a finite step > 0."""
+    if isinstance(steps, bool) or not isinstance(steps, numbers.Integral) or steps < 0:
+        raise ValueError(f"steps: expected an int >= 0, got {steps!r}")
+    try:
+        dt = float(dt)
+    except (TypeError, ValueError):
+        raise ValueError(f"dt: expected a number, got {type(dt).__name__}") from None
+    if not (math.isfinite(dt) and dt > 0):
+        raise ValueError(f"dt: expected a finite step > 0 [s], got {dt!r}")
+    return int(steps), dt
+
+
+def rollout(sim, steps, dt, *, wrt, controls=None, checkpoints=None, **step_options) -> "Rollout":
+    """Advances ``sim`` by ``steps`` calls of ``sim.step(dt, **step_options)`` (plus the per-step
+    ``controls``) and returns a :class:`Rollout` whose ``backward`` gives gradients.
+
+    Args:
+        sim: a differentiable simulation (km.massspring.System, km.fem.Body, ...).
+        steps: number of steps (int >= 0).
+        dt: step [s] (> 0).
+        wrt: names to differentiate with respect to: state names of ``sim`` (their values at the
+            start of the rollout, e.g. "x", "v"), names in ``sim.parameters``, or "controls".
+        controls: None or an array of shape (steps, *control_shape): per-step external forcing
+            (forces [N] on particles and vertices; accelerations [m/s^2] on grid cells).
+        checkpoints: None (store every state) or an int K >= 1: hold at most K states and
+            recompute the rest (binomial checkpointing).
+        **step_options: passed to every step (e.g. integrator="implicit").
+
+    Raises:
+        ValueError: naming the argument: an unknown ``wrt`` name, "controls" in ``wrt`` without
+        ``controls``, a wrongly shaped ``controls``, or an option the adjoint cannot handle.
+    """
+    missing = [m for m in _PROTOCOL if not hasattr(sim, m)]
+    if missing:
+        raise ValueError(f"sim: a {type(sim).__name__} is not differentiable (km.diff needs "
+                         f"{', '.join(missing)})")
+    steps, dt = _check_run(steps, dt)
+    names = _as_names(wrt)
+    state_names = tuple(sim._diff_state_names)
+    parameters = tuple(sim.parameters)
+    known = state_names + parameters + ("controls",)
+    for name in names:
+        if name not in known:
+            raise ValueError(f"wrt: unknown name {name!r}; expected one of {known}")
+    if controls is None:
+        if "controls" in names:
+            raise ValueError("controls: 'controls' is in wrt but no controls were given")
+    else:
+        shape = (steps,) + tuple(sim._diff_control_shape())
+        try:
+            controls = np.ascontiguousarray(controls, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"controls: expected a real array of shape {shape}") from None
+        if controls.shape != shape:
+            raise ValueError(f"controls: expected shape {shape}, got {controls.shape}")
+        if not np.isfinite(controls).all():
+            raise ValueError("controls: contains NaN or inf")
+    if checkpoints is not None:
+        if isinstance(checkpoints, bool) or not isinstance(checkpoints, numbers.Integral) or checkpoints < 1:
+            raise ValueError(f"checkpoints: expected None or an int >= 1, got {checkpoints!r}")
+        checkpoints = int(checkpoints)
+    step_options = dict(step_options)
+    sim._diff_check(names, step_options)
+    return Rollout(sim, steps, dt, names, controls, checkpoints, step_options)
+
+
+class Rollout:
+    """A recorded run (made by :func:`rollout`).
+
+    Attributes:
+        outputs: dict name -> array: copies of the differentiable state arrays after the run (the
+            simulation itself is left in that state).
+        wrt: the names ``backward`` differentiates with respect to.
+        steps, dt: the run's step count and step [s].
+        checkpoints: None (every state stored) or the checkpoint budget K.
+        peak_states: the most states held at once by the last forward or backward pass
+            (checkpoints, the initial state and the one a step is being reversed into).
+        recomputed_steps: forward steps the last ``backward`` recomputed (0 when stored).
+    """
+
+    def __init__(self, sim, steps, dt, wrt, controls, checkpoints, step_options):
+        self._sim = sim
+        self.steps = steps
+        self.dt = dt
+        self.wrt = wrt
+        self.checkpoints = checkpoints
+        self._controls = controls
+        self._options = step_options
+        self._state_names = tuple(sim._diff_state_names)
+        self._scalar_parameters = {
+            name: np.ndim(sim._diff_get(name)) == 0 for name in sim.parameters}
+        self.peak_states = 0
+        self.recomputed_steps = 0
+        self._held = 0
+        start = _copy_state(sim.state())
+        self._start = start
+        if checkpoints is None or checkpoints > steps:
+            self._stored = [start]
+            self._hold(1)
+            for k in range(steps):
+                self._step(k)
+                self._stored.append(_copy_state(sim.state()))
+                self._hold(1)
+            self._spine = {}
+        else:
+            # Store where the first descent of the backward recursion will want checkpoints (the
+            # "spine"), so the first backward call does not redo this forward sweep.
+            self._stored = None
+            self._spine = {}
+            self._hold(1)
+            offsets, i, free = [], 0, checkpoints - 1
+            while self.steps - i > 1 and free > 0:
+                i += _split(self.steps - i, free)
+                offsets.append(i)
+                free -= 1
+            marks = set(offsets)
+            for k in range(steps):
+                self._step(k)
+                if k + 1 in marks:
+                    self._spine[k + 1] = _copy_state(sim.state())
+                    self._hold(1)
+        self._end = _copy_state(sim.state())
+        self.outputs = {name: np.array(self._end[name], copy=True) for name in self._state_names}
+
+    # -- bookkeeping of the states held, to verify the memory bound
+    def _hold(self, count: int):
+        self._held += count
+        self.peak_states = max(self.peak_states, self._held)
+
+    def _step(self, k: int):
+        control = None if self._controls is None else self._controls[k]
+        self._sim._diff_step(self.dt, control, self._options)
+
+    def _advance(self, state: dict, first: int, count: int) -> dict:
+        """The state `count` steps after `state` (which is the state before step `first`)."""
+        self._sim.set_state(state)
+        for k in range(first, first + count):
+            self._step(k)
+            self.recomputed_steps += 1
+        return _copy_state(self._sim.state())
+
+    def backward(self, grads: dict) -> dict:
+        """dL/d(input) for every name in ``wrt`` from ``grads``: name -> dL/d(final value) for
+        names of ``outputs`` (names left out count as zero). Returns arrays of the inputs'
+        shapes (a float for a scalar parameter). May be called more than once."""
+        if not isinstance(grads, dict):
+            raise ValueError(f"grads: expected a dict name -> array, got {type(grads).__name__}")
+        g = {}
+        for name in self._state_names:
+            shape = self.outputs[name].shape
+            if name in grads:
+                try:
+                    a = np.ascontiguousarray(grads[name], dtype=np.float64)
+                except (TypeError, ValueError):
+                    raise ValueError(f"grads[{name!r}]: expected a real array of shape {shape}") from None
+                if a.shape != shape:
+                    raise ValueError(f"grads[{name!r}]: expected shape {shape}, got {a.shape}")
+                if not np.isfinite(a).all():
+                    raise ValueError(f"grads[{name!r}]: contains NaN or inf")
+                g[name] = a.copy()
+            else:
+                g[name] = np.zeros(shape)
+        for name in grads:
+            if name not in self._state_names:
+                raise ValueError(f"grads: unknown name {name!r}; expected names of the outputs "
+                                 f"{self._state_names}")
+        self._params = {}
+        self._grad_controls = None if self._controls is None else np.zeros_like(self._controls)
+        self.recomputed_steps = 0
+        base = 1 + len(self._spine) if self._stored is None else len(self._stored)
+        self._held = base
+        self.peak_states = base
+        try:
+            if self._stored is not None:
+                for k in reversed(range(self.steps)):
+                    g = self._adjoint(k, self._stored[k], self._stored[k + 1], g)
+            elif self.steps > 0:
+                g = self._reverse(0, self._start, self.steps, self.checkpoints - 1, g)
+        finally:
+            self._sim.set_state(self._end)
+        self._spine = {}  # used up by the first backward call; later calls recompute it
+        out = {}
+        for name in self.wrt:
+            if name == "controls":
+                out[name] = self._grad_controls.copy()
+            elif name in self._state_names:
+                out[name] = g[name]
+            else:
+                value = self._params.get(name)
+                if value is None:
+                    value = 0.0 if self._scalar_parameters[name] else np.zeros(
+                        np.shape(self._sim._diff_get(name)))
+                out[name] = float(value) if self._scalar_parameters[name] else np.asarray(value)
+        return out
+
+    def _adjoint(self, k: int, before: dict, after: dict, g: dict) -> dict:
+        control = None if self._controls is None else self._controls[k]
+        gb, gp, gc = self._sim._diff_step_adjoint(self.dt, before, after, control, g, self._options)
+        for name, value in gp.items():
+            self._params[name] = value if name not in self._params else self._params[name] + value
+        if control is not None and gc is not None:
+            self._grad_controls[k] = gc
+        return {name: gb[name] for name in self._state_names}
+
+    def _reverse(self, i: int, state_i: dict, j: int, free: int, g: dict) -> dict:
+        """Reverses steps i..j-1 from the held state before step i, with `free` more slots."""
+        while j > i:
+            length = j - i
+            if length == 1:
+                after = self._advance(state_i, i, 1)
+                self._hold(1)
+                g = self._adjoint(i, state_i, after, g)
+                self._held -= 1
+                return g
+            if free == 0:
+                # No slot left: recompute the state before the last step from state_i.
+                before = self._advance(state_i, i, length - 1) if length > 1 else state_i
+                self._hold(1)
+                after = self._advance(before, j - 1, 1)
+                self._hold(1)
+                g = self._adjoint(j - 1, before, after, g)
+                self._held -= 2
+                j -= 1
+                continue
+            m = i + _split(length, free)
+            if m in self._spine:
+                state_m = self._spine.pop(m)
+                self._held -= 1  # moves from the spine to this recursion's slot
+            else:
+                state_m = self._advance(state_i, i, m - i)
+            self._hold(1)
+            g = self._reverse(m, state_m, j, free - 1, g)
+            del state_m
+            self._held -= 1
+            j = m
+        return g
