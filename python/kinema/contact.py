@@ -10,7 +10,7 @@
     scene.x[cube]          # the cube's vertices, (n, 3) [m]
 
 Each step is one implicit Euler step written as a minimisation (the course's ninth lecture,
-Li et al. 2020 eq. 3):
+Li et al. 2020 eq. 3)::
 
     x_{n+1} = argmin 1/2 |x - (x_n + h v_n + h^2 g)|_M^2 + h^2 (Psi(x) + D(x)) + kappa B(x)
 
@@ -163,7 +163,7 @@ class Scene:
       than eps_v).
     * ``barrier_stiffness``: kappa [J/m^4]; None picks IPC's mass-based value and raises it
       when contacts get closer than 1e-9 of the scene size.
-    * ``tol``: Newton stops when max |dx| / dt < tol * (bounding-box diagonal) [1/s];
+    * ``tol``: Newton stops when ``max |dx| / dt < tol * (bounding-box diagonal)`` [1/s];
       ``max_newton``: its iteration cap (``km.ConvergenceError`` beyond it).
     * ``linear_solver``: "cholmod" (direct) or "cg".
 
@@ -354,7 +354,7 @@ class Scene:
         return self._core.intersections(self.x if x is None else _points(x, "x"), int(limit))
 
     def kinetic_energy(self) -> float:
-        """1/2 sum m |v|^2 [J]."""
+        """``1/2 sum m |v|^2`` [J]."""
         return 0.5 * float(np.sum(self.mass * np.sum(self.v ** 2, axis=1)))
 
     def momentum(self) -> np.ndarray:
