@@ -59,6 +59,22 @@ void edge_box(const Scalar* x, const Scalar* dx, Index i, Index j, Scalar r, Sca
   }
 }
 
+// Whether the box of the vertices `vs` (swept by dx when given, grown by r) meets [lo, hi]:
+// the BVH reports whole leaves, this keeps the narrow phase to the pairs whose boxes meet.
+bool boxes_meet(const Scalar* x, const Scalar* dx, std::initializer_list<Index> vs, Scalar r, const Scalar lo[3],
+                const Scalar hi[3]) {
+  for (int c = 0; c < 3; ++c) {
+    Scalar l = std::numeric_limits<Scalar>::infinity(), h = -l;
+    for (Index v : vs) {
+      const Scalar a = x[3 * v + c], b = dx ? a + dx[3 * v + c] : a;
+      l = std::min(l, std::min(a, b));
+      h = std::max(h, std::max(a, b));
+    }
+    if (l - r > hi[c] || h + r < lo[c]) return false;
+  }
+  return true;
+}
+
 bool all_fixed(const Model& model, std::initializer_list<Index> vs) {
   for (Index v : vs)
     if (!model.fixed[static_cast<size_t>(v)]) return false;
@@ -93,6 +109,7 @@ void candidate_pairs(const Model& model, const Scalar* x, const Scalar* dx, Scal
       auto visit = [&](Index f) {
         const Index a = F[3 * f], b = F[3 * f + 1], c = F[3 * f + 2];
         if (p == a || p == b || p == c) return;
+        if (!boxes_meet(x, dx, {a, b, c}, r, lo, hi)) return;
         pt(p, f);
       };
       if (moving(p))
@@ -113,6 +130,7 @@ void candidate_pairs(const Model& model, const Scalar* x, const Scalar* dx, Scal
         const bool f_moves = moving(b0) || moving(b1);
         if (f_moves && f <= e) return;  // a pair of moving edges is visited from the lower one
         if (a0 == b0 || a0 == b1 || a1 == b0 || a1 == b1) return;
+        if (!boxes_meet(x, dx, {b0, b1}, r, lo, hi)) return;
         ee(e, f);
       });
     }

@@ -100,8 +100,10 @@ class Bvh {
     return t_max;
   }
 
-  // Calls `visit(primitive)` for every primitive whose box overlaps [lo, hi] (closed boxes, so
-  // touching boxes count: the contact broad phase must never drop a pair at the threshold).
+  // Calls `visit(primitive)` for every primitive of every leaf whose box overlaps [lo, hi]
+  // (closed boxes, so touching boxes count: the contact broad phase must never drop a pair at
+  // the threshold). A superset of the primitives whose own boxes overlap: the tree keeps no
+  // per-primitive boxes, so callers test their primitives themselves.
   template <class Visit>
   void query(const Scalar lo[3], const Scalar hi[3], Visit&& visit) const {
     if (nodes_.empty()) return;
