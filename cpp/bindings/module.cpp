@@ -24,6 +24,7 @@ void bind_fem(py::module_& m);
 void bind_sph(py::module_& m);
 void bind_render(py::module_& m);
 void bind_mpm(py::module_& m);
+void bind_contact(py::module_& m);
 
 std::vector<Index> shape_of(const py::array& a) {
   return std::vector<Index>(a.shape(), a.shape() + a.ndim());
@@ -129,4 +130,6 @@ PYBIND11_MODULE(_core, m) {
   bind::bind_render(render);
   auto mpm = m.def_submodule("mpm");
   bind::bind_mpm(mpm);
+  auto contact = m.def_submodule("contact");
+  bind::bind_contact(contact);
 }

@@ -125,28 +125,6 @@ inline Scalar intersect_plane(const Ray& ray, const Vec3& point, const Vec3& nor
   return (t > t_min && t < t_max) ? t : kInfinity;
 }
 
-// 1 + 2 gamma_3 with gamma_n = n u / (1 - n u): widening the far slab distance by this factor
-// makes the slab test conservative under rounding (PBRT 3rd ed., sec. 3.9.2), so a BVH never
-// misses a hit that the brute-force loop finds.
-constexpr Scalar kSlabWiden = 1 + 2 * (3 * 0x1p-53 / (1 - 3 * 0x1p-53));
-
-// Slab test of the box [lo, hi] against a ray given by its origin and inverse direction; true
-// when the ray meets the box for some t in (t_min, t_max). NaNs (0 * inf when the origin lies
-// on a slab plane) fail every comparison and leave the interval unchanged, as in PBRT.
-inline bool hit_box(const Scalar lo[3], const Scalar hi[3], const Vec3& origin, const Vec3& inv_dir,
-                    Scalar t_min, Scalar t_max) {
-  for (int a = 0; a < 3; ++a) {
-    Scalar t_near = (lo[a] - origin[a]) * inv_dir[a];
-    Scalar t_far = (hi[a] - origin[a]) * inv_dir[a];
-    if (t_near > t_far) std::swap(t_near, t_far);
-    t_far *= kSlabWiden;
-    t_min = t_near > t_min ? t_near : t_min;
-    t_max = t_far < t_max ? t_far : t_max;
-    if (t_min > t_max) return false;
-  }
-  return true;
-}
-
 // ------------------------------------------------------------------ sampling
 
 // An orthonormal basis (t, b, n) around the unit vector n, branch-free except for the sign

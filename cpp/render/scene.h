@@ -1,5 +1,5 @@
 // The scene model of the path tracer: materials, spheres (particles), triangle meshes and
-// infinite planes, plus the closest-hit query. Spheres and triangles share one BVH (bvh.h);
+// infinite planes, plus the closest-hit query. Spheres and triangles share one BVH (geometry/bvh.h);
 // planes, which have no bounds, are tested one by one after it.
 //
 // Primitive ids: spheres 0..S-1, then triangles S..S+T-1, then planes S+T..S+T+P-1, in the order
@@ -11,10 +11,13 @@
 #include <memory>
 #include <vector>
 
-#include "render/bvh.h"
+#include "geometry/bvh.h"
 #include "render/kernels.h"
 
 namespace kinema::render {
+
+using geometry::Bvh;
+using geometry::hit_box;
 
 enum class MaterialKind { lambertian, metal, dielectric };
 

@@ -32,6 +32,7 @@ from kinema.errors import (
 )
 from kinema import diffusion, fem, fmm, grid, massspring, poisson, render, sparse, sph, vortex
 from kinema import mesh, mpm, nbody
+from kinema import contact
 from kinema.scenes import Scene, SceneError
 from kinema import io
 from kinema import diff
@@ -63,6 +64,7 @@ __all__ = [
     "mesh",
     "sph",
     "mpm",
+    "contact",
     "diff",
     "torch",
     "render",

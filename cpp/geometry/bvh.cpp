@@ -1,12 +1,12 @@
 // Binned-SAH BVH construction (Wald 2007; PBRT 3rd ed., sec. 4.3.2).
-#include "render/bvh.h"
+#include "geometry/bvh.h"
 
 #include <algorithm>
 #include <array>
 
 #include "core/errors.h"
 
-namespace kinema::render {
+namespace kinema::geometry {
 
 namespace {
 
@@ -34,7 +34,7 @@ constexpr Scalar kTraversalCost = 0.125;
 Bvh::Bvh(const std::vector<Scalar>& lo, const std::vector<Scalar>& hi) {
   const Index n = static_cast<Index>(lo.size() / 3);
   if (n == 0) return;
-  if (n > (Index(1) << 29)) throw InvalidArgument("scene: more than 2^29 spheres and triangles");
+  if (n > (Index(1) << 29)) throw InvalidArgument("bvh: more than 2^29 primitives");
   std::vector<Scalar> centroid(lo.size());
   for (size_t i = 0; i < lo.size(); ++i) centroid[i] = 0.5 * (lo[i] + hi[i]);
   order_.resize(static_cast<size_t>(n));
@@ -144,4 +144,4 @@ std::int32_t Bvh::build(Index begin, Index end, int depth, const std::vector<Sca
   return self;
 }
 
-}  // namespace kinema::render
+}  // namespace kinema::geometry

@@ -1,0 +1,294 @@
+// kinema._core.contact: the IPC contact solver behind km.contact.Scene, plus its kernels
+// (distances, barrier, CCD) for tests and benchmarks. State arrays are zero-copy views whose
+// owner is the C++ State (a shared pointer in the view's capsule); adding a body builds a new
+// State, so views taken before an add stay valid memory but are detached from the scene.
+#include <memory>
+
+#include "bindings/common.h"
+#include "contact/barrier.h"
+#include "contact/solver.h"
+#include "core/errors.h"
+#include "core/rollback.h"
+
+namespace kinema::bind {
+
+namespace {
+
+using contact::Vec3;
+
+fem::Material contact_material(const std::string& name) {
+  if (name == "linear") return fem::Material::Linear;
+  if (name == "stvk") return fem::Material::StVK;
+  if (name == "corotated") return fem::Material::Corotated;
+  if (name == "neohookean") return fem::Material::NeoHookean;
+  throw InvalidArgument("model: expected 'linear', 'stvk', 'corotated' or 'neohookean', got '" + name + "'");
+}
+
+LinearSolver contact_linear_solver(const std::string& name) {
+  if (name == "cholmod") return LinearSolver::CholmodDirect;
+  if (name == "cg") return LinearSolver::CG;
+  throw InvalidArgument("linear_solver: expected 'cholmod' or 'cg', got '" + name + "'");
+}
+
+Index rows_of(const py::array& a, Index cols, const char* name) {
+  if (a.ndim() != 2 || a.shape(1) != cols)
+    throw InvalidArgument(std::string(name) + ": expected shape (n, " + std::to_string(cols) + "), got " +
+                          std::to_string(a.ndim()) + " dimensions");
+  return a.shape(0);
+}
+
+const Index* index_data(const IndexArray& a) { return a.data(); }
+
+struct PyScene {
+  explicit PyScene(const contact::Config& c) : config(c), model(std::make_shared<contact::Model>()) {
+    state = std::make_shared<contact::State>(contact::make_state(*model));
+  }
+
+  // Grows the state by the vertices just added (at their given positions, at rest).
+  Index grown(Index start) {
+    auto next = std::make_shared<contact::State>(*state);
+    next->x.insert(next->x.end(), model->rest.begin() + 3 * start, model->rest.end());
+    next->v.resize(next->x.size(), 0);
+    next->kappa = 0;
+    state = std::move(next);
+    solver.reset();
+    return start;
+  }
+
+  Index add_solid(py::array vertices, const IndexArray& tets, const std::string& material, Scalar E, Scalar nu,
+                  Scalar density, const IndexArray& fixed) {
+    const Index n = rows_of(vertices, 3, "vertices");
+    const Index m = rows_of(tets, 4, "tets");
+    const Scalar* x = checked_data(vertices, "vertices", 3 * n, false);
+    return grown(model->add_solid(x, n, index_data(tets), m, contact_material(material), E, nu, density,
+                                  index_data(fixed), fixed.size()));
+  }
+
+  Index add_cloth(py::array vertices, const IndexArray& triangles, const IndexArray& springs, Scalar stiffness,
+                  Scalar density, const IndexArray& fixed) {
+    const Index n = rows_of(vertices, 3, "vertices");
+    const Index m = rows_of(triangles, 3, "triangles");
+    const Index s = rows_of(springs, 2, "springs");
+    const Scalar* x = checked_data(vertices, "vertices", 3 * n, false);
+    return grown(model->add_cloth(x, n, index_data(triangles), m, index_data(springs), s, stiffness, density,
+                                  index_data(fixed), fixed.size()));
+  }
+
+  Index add_obstacle(py::array vertices, const IndexArray& triangles) {
+    const Index n = rows_of(vertices, 3, "vertices");
+    const Index m = rows_of(triangles, 3, "triangles");
+    const Scalar* x = checked_data(vertices, "vertices", 3 * n, false);
+    return grown(model->add_obstacle(x, n, index_data(triangles), m));
+  }
+
+  void add_plane(const std::array<Scalar, 3>& point, const std::array<Scalar, 3>& normal) {
+    model->add_plane(Vec3(point[0], point[1], point[2]), Vec3(normal[0], normal[1], normal[2]));
+    state->kappa = 0;
+    solver.reset();
+  }
+
+  contact::Solver& ready() {
+    if (model->vertex_count == 0) throw InvalidArgument("scene: add a body before stepping");
+    if (!solver) solver = std::make_unique<contact::Solver>(*model, config);
+    return *solver;
+  }
+
+  contact::StepStats step(Scalar dt) {
+    contact::Solver& s = ready();
+    Interrupt interrupt = python_interrupt();
+    ReleaseGil release;
+    return with_rollback(*state, [&] { return s.step(*state, dt, interrupt); });
+  }
+
+  py::array_t<Scalar> view(std::vector<Scalar>& buffer) {
+    auto* owner = new std::shared_ptr<contact::State>(state);
+    py::capsule capsule(owner, [](void* p) { delete static_cast<std::shared_ptr<contact::State>*>(p); });
+    return py::array_t<Scalar>({static_cast<py::ssize_t>(buffer.size() / 3), py::ssize_t(3)}, buffer.data(), capsule);
+  }
+
+  const Scalar* positions(py::array& x) {
+    return checked_data(x, "x", 3 * model->vertex_count, false);
+  }
+
+  contact::Config config;
+  std::shared_ptr<contact::Model> model;
+  std::shared_ptr<contact::State> state;
+  std::unique_ptr<contact::Solver> solver;
+};
+
+}  // namespace
+
+void bind_contact(py::module_& m) {
+  py::class_<contact::Config>(m, "Config")
+      .def(py::init<>())
+      .def_property(
+          "gravity", [](const contact::Config& c) { return std::array<Scalar, 3>{c.gravity[0], c.gravity[1], c.gravity[2]}; },
+          [](contact::Config& c, const std::array<Scalar, 3>& g) { c.gravity = Vec3(g[0], g[1], g[2]); })
+      .def_readwrite("dhat", &contact::Config::dhat)
+      .def_readwrite("barrier_stiffness", &contact::Config::barrier_stiffness)
+      .def_readwrite("friction", &contact::Config::friction)
+      .def_readwrite("friction_velocity", &contact::Config::friction_velocity)
+      .def_readwrite("tol", &contact::Config::tol)
+      .def_readwrite("max_newton", &contact::Config::max_newton)
+      .def_property(
+          "linear_solver",
+          [](const contact::Config& c) { return c.linear_solver == LinearSolver::CG ? "cg" : "cholmod"; },
+          [](contact::Config& c, const std::string& s) { c.linear_solver = contact_linear_solver(s); });
+
+  py::class_<contact::StepStats, StepStatsBase>(m, "StepStats")
+      .def_readonly("newton_iterations", &contact::StepStats::newton_iterations)
+      .def_readonly("line_search_halvings", &contact::StepStats::line_search_halvings)
+      .def_readonly("contact_count", &contact::StepStats::contact_count)
+      .def_readonly("min_distance", &contact::StepStats::min_distance)
+      .def_readonly("sticking_count", &contact::StepStats::sticking_count)
+      .def_readonly("sliding_count", &contact::StepStats::sliding_count)
+      .def_readonly("min_step_fraction", &contact::StepStats::min_step_fraction)
+      .def_readonly("ccd_seconds", &contact::StepStats::ccd_seconds)
+      .def_readonly("ccd_share", &contact::StepStats::ccd_share)
+      .def_readonly("barrier_stiffness", &contact::StepStats::barrier_stiffness)
+      .def_readonly("assemble_seconds", &contact::StepStats::assemble_seconds)
+      .def_readonly("solve_seconds", &contact::StepStats::solve_seconds)
+      .def_readonly("line_search_seconds", &contact::StepStats::line_search_seconds)
+      .def_readonly("newton_history", &contact::StepStats::newton_history)
+      .def_readonly("step_history", &contact::StepStats::step_history)
+      .def("__repr__", [](const contact::StepStats& s) {
+        return "StepStats(time=" + format_real(s.time) + ", newton_iterations=" + std::to_string(s.newton_iterations) +
+               ", contact_count=" + std::to_string(s.contact_count) + ", min_distance=" + format_real(s.min_distance) +
+               ", sticking=" + std::to_string(s.sticking_count) + ", sliding=" + std::to_string(s.sliding_count) +
+               ", ccd_share=" + format_real(s.ccd_share) + ")";
+      });
+
+  py::class_<PyScene>(m, "Scene")
+      .def(py::init<const contact::Config&>())
+      .def("add_solid", &PyScene::add_solid)
+      .def("add_cloth", &PyScene::add_cloth)
+      .def("add_obstacle", &PyScene::add_obstacle)
+      .def("add_plane", &PyScene::add_plane)
+      .def("step", &PyScene::step)
+      .def_property_readonly("vertex_count", [](const PyScene& s) { return s.model->vertex_count; })
+      .def_property_readonly("x", [](PyScene& s) { return s.view(s.state->x); })
+      .def_property_readonly("v", [](PyScene& s) { return s.view(s.state->v); })
+      .def_property("time", [](const PyScene& s) { return s.state->time; },
+                    [](PyScene& s, Scalar t) { s.state->time = t; })
+      .def_property("kappa", [](const PyScene& s) { return s.state->kappa; },
+                    [](PyScene& s, Scalar k) { s.state->kappa = k; })
+      .def_property_readonly("mass", [](const PyScene& s) { return s.model->mass; })
+      .def_property_readonly("fixed", [](const PyScene& s) { return std::vector<bool>(s.model->fixed.begin(), s.model->fixed.end()); })
+      .def_property_readonly("faces", [](const PyScene& s) {
+        return to_numpy(std::vector<Index>(s.model->faces), {static_cast<Index>(s.model->faces.size() / 3), 3});
+      })
+      .def_property_readonly("edges", [](const PyScene& s) {
+        return to_numpy(std::vector<Index>(s.model->edges), {static_cast<Index>(s.model->edges.size() / 2), 2});
+      })
+      .def_property_readonly("body", [](const PyScene& s) { return s.model->body; })
+      .def("check_intersection_free", [](PyScene& s, py::array x) {
+        s.ready().check_intersection_free(s.positions(x), "x");
+      })
+      .def("min_distance", [](PyScene& s, py::array x, Scalar radius) {
+        return contact::min_distance(*s.model, s.positions(x), radius);
+      })
+      .def("intersections", [](PyScene& s, py::array x, Index limit) {
+        return contact::find_intersections(*s.model, s.positions(x), limit);
+      })
+      .def("constraint_count", [](PyScene& s, py::array x) {
+        return static_cast<Index>(contact::find_constraints(*s.model, s.positions(x), s.config.dhat * s.config.dhat).size());
+      })
+      .def("elastic_energy", [](PyScene& s, py::array x) { return s.ready().elastic_energy(s.positions(x)); })
+      .def("barrier_energy", [](PyScene& s, py::array x) {
+        const Scalar* p = s.positions(x);
+        contact::Solver& solver = s.ready();
+        ReleaseGil release;
+        return solver.barrier_energy(p);
+      })
+      .def("barrier_gradient", [](PyScene& s, py::array x) {
+        const Scalar* p = s.positions(x);
+        contact::Solver& solver = s.ready();
+        std::vector<Scalar> g(static_cast<size_t>(3 * s.model->vertex_count));
+        {
+          ReleaseGil release;
+          solver.barrier_gradient(p, g.data());
+        }
+        return to_numpy(std::move(g), {s.model->vertex_count, 3});
+      })
+      .def("barrier_hessian", [](PyScene& s, py::array x, bool project) {
+        const Scalar* p = s.positions(x);
+        contact::Solver& solver = s.ready();
+        SparseMatrix H;
+        {
+          ReleaseGil release;
+          H = solver.barrier_hessian(p, project);
+        }
+        H.makeCompressed();
+        std::vector<Index> ptr(H.outerIndexPtr(), H.outerIndexPtr() + H.outerSize() + 1);
+        std::vector<Index> col(H.innerIndexPtr(), H.innerIndexPtr() + H.nonZeros());
+        std::vector<Scalar> val(H.valuePtr(), H.valuePtr() + H.nonZeros());
+        const Index nnz = H.nonZeros();
+        return py::make_tuple(to_numpy(std::move(val), {nnz}), to_numpy(std::move(col), {nnz}),
+                              to_numpy(std::move(ptr), {H.outerSize() + 1}));
+      })
+      .def("max_safe_step", [](PyScene& s, py::array x, py::array dx) {
+        const Scalar* p = s.positions(x);
+        const Scalar* d = checked_data(dx, "dx", 3 * s.model->vertex_count, false);
+        ReleaseGil release;
+        return contact::max_safe_step(*s.model, p, d, contact::CcdOptions{});
+      });
+
+  // Kernels of one pair, for gradient tests.
+  m.def("pair_distance", [](const std::string& kind, const ScalarArray& v) {
+    contact::PairKind pk;
+    if (kind == "pp") pk = contact::PairKind::PP;
+    else if (kind == "pe") pk = contact::PairKind::PE;
+    else if (kind == "pt") pk = contact::PairKind::PT;
+    else if (kind == "ee") pk = contact::PairKind::EE;
+    else throw InvalidArgument("kind: expected 'pp', 'pe', 'pt' or 'ee', got '" + kind + "'");
+    const int k = contact::vertex_count(pk);
+    if (v.size() != 3 * k) throw InvalidArgument("vertices: expected " + std::to_string(k) + " points");
+    contact::Vec3 y[4];
+    for (int a = 0; a < k; ++a) y[a] = contact::Vec3(v.data()[3 * a], v.data()[3 * a + 1], v.data()[3 * a + 2]);
+    contact::Vec<12> g;
+    contact::Mat<12> H;
+    contact::reduced_derivatives(pk, y, g, H);
+    const Scalar d = contact::reduced_distance(pk, y);
+    std::vector<Scalar> gv(g.data(), g.data() + 3 * k), Hv(static_cast<size_t>(9 * k * k));
+    for (int a = 0; a < 3 * k; ++a)
+      for (int b = 0; b < 3 * k; ++b) Hv[static_cast<size_t>(a * 3 * k + b)] = H(a, b);
+    return py::make_tuple(d, to_numpy(std::move(gv), {3 * k}), to_numpy(std::move(Hv), {3 * k, 3 * k}));
+  });
+  m.def("point_triangle_distance", [](const ScalarArray& p, const ScalarArray& t0, const ScalarArray& t1,
+                                      const ScalarArray& t2) {
+    const Index n = p.size() / 3;
+    if (t0.size() != 3 * n || t1.size() != 3 * n || t2.size() != 3 * n)
+      throw InvalidArgument("t0, t1, t2: expected the shape of p");
+    std::vector<Scalar> out(static_cast<size_t>(n));
+    auto v = [](const ScalarArray& a, Index i) { return Eigen::Map<const Vec3>(a.data() + 3 * i); };
+    for (Index i = 0; i < n; ++i) out[static_cast<size_t>(i)] = contact::point_triangle_distance(v(p, i), v(t0, i), v(t1, i), v(t2, i));
+    return to_numpy(std::move(out), {n});
+  });
+  m.def("edge_edge_distance", [](const ScalarArray& a0, const ScalarArray& a1, const ScalarArray& b0,
+                                 const ScalarArray& b1) {
+    const Index n = a0.size() / 3;
+    if (a1.size() != 3 * n || b0.size() != 3 * n || b1.size() != 3 * n)
+      throw InvalidArgument("a1, b0, b1: expected the shape of a0");
+    std::vector<Scalar> out(static_cast<size_t>(n));
+    auto v = [](const ScalarArray& a, Index i) { return Eigen::Map<const Vec3>(a.data() + 3 * i); };
+    for (Index i = 0; i < n; ++i) out[static_cast<size_t>(i)] = contact::edge_edge_distance(v(a0, i), v(a1, i), v(b0, i), v(b1, i));
+    return to_numpy(std::move(out), {n});
+  });
+  m.def("ccd", [](const std::string& kind, const ScalarArray& x0, const ScalarArray& x1, Scalar t_max) {
+    // x0, x1: (4, 3) positions at t = 0 and t = 1.
+    if (x0.size() != 12 || x1.size() != 12) throw InvalidArgument("x0, x1: expected shape (4, 3)");
+    Vec3 y[4], d[4];
+    for (int a = 0; a < 4; ++a) {
+      y[a] = Eigen::Map<const Vec3>(x0.data() + 3 * a);
+      d[a] = Eigen::Map<const Vec3>(x1.data() + 3 * a) - y[a];
+    }
+    if (kind == "pt") return contact::point_triangle_ccd(y[0], y[1], y[2], y[3], d[0], d[1], d[2], d[3], t_max);
+    if (kind == "ee") return contact::edge_edge_ccd(y[0], y[1], y[2], y[3], d[0], d[1], d[2], d[3], t_max);
+    throw InvalidArgument("kind: expected 'pt' or 'ee', got '" + kind + "'");
+  });
+  m.def("barrier", [](Scalar d, Scalar dhat2) {
+    return py::make_tuple(contact::barrier(d, dhat2), contact::barrier_first(d, dhat2), contact::barrier_second(d, dhat2));
+  });
+}
+
+}  // namespace kinema::bind

@@ -1,0 +1,333 @@
+// Squared distances between the primitives of triangle meshes, with their gradients and
+// Hessians, as Incremental Potential Contact uses them (Li et al., "Incremental Potential
+// Contact", ACM TOG 39(4), 2020, section 4 and supplement): the closest-point region of a pair
+// picks one smooth formula,
+//   PP: |p - q|^2
+//   PE: |(e0 - p) x (e1 - p)|^2 / |e1 - e0|^2                 (point to the edge's line)
+//   PT: ((t1 - t0) x (t2 - t0) . (p - t0))^2 / |(t1 - t0) x (t2 - t0)|^2   (point to the plane)
+//   EE: ((a1 - a0) x (b1 - b0) . (b0 - a0))^2 / |(a1 - a0) x (b1 - b0)|^2 (line to line)
+// and each formula is differentiated in closed form: PT and EE are a^2 / b with a a triple
+// product and b a squared cross product, PE is b / c with c a squared length. Every distance
+// is squared (no square roots, smooth where it is positive).
+// Edge-edge pairs that are parallel to rounding fall back to the point-edge formulas: IPC's
+// mollifier, which makes the barrier C^1 across that switch, is left out (so a Newton solve can
+// meet a kink there; the line search still only accepts decreases).
+#pragma once
+
+#include <Eigen/Core>
+#include <Eigen/Geometry>
+#include <algorithm>
+#include <cmath>
+
+#include "core/types.h"
+
+namespace kinema::contact {
+
+using Vec3 = Eigen::Matrix<Scalar, 3, 1>;
+using Mat3 = Eigen::Matrix<Scalar, 3, 3>;
+template <int N>
+using Vec = Eigen::Matrix<Scalar, N, 1>;
+template <int N>
+using Mat = Eigen::Matrix<Scalar, N, N>;
+
+// The primitive pair a distance reduces to, with its vertices in formula order.
+enum class PairKind { PP = 2, PE = 3, PT = 4, EE = 5 };
+
+// Vertices a reduced pair's formula reads.
+inline int vertex_count(PairKind kind) { return kind == PairKind::EE ? 4 : static_cast<int>(kind); }
+
+inline Mat3 cross_matrix(const Vec3& v) {
+  Mat3 m;
+  m << 0, -v.z(), v.y(), v.z(), 0, -v.x(), -v.y(), v.x(), 0;
+  return m;
+}
+
+// ----------------------------------------------------------------- closest-point regions
+
+// Parameter of the point of segment [a, b] closest to p, in [0, 1].
+inline Scalar segment_parameter(const Vec3& p, const Vec3& a, const Vec3& b) {
+  const Vec3 e = b - a;
+  const Scalar ee = e.squaredNorm();
+  if (ee <= 0) return 0;
+  return std::clamp((p - a).dot(e) / ee, Scalar(0), Scalar(1));
+}
+
+// The reduced pair of a point and a triangle: kind and the local vertex slots (0 = p, 1..3 =
+// t0..t2) that the formula uses, in its order.
+struct Reduced {
+  PairKind kind;
+  int slot[4];
+};
+
+inline Reduced point_triangle_region(const Vec3& p, const Vec3& t0, const Vec3& t1, const Vec3& t2) {
+  const Vec3 e1 = t1 - t0, e2 = t2 - t0, r = p - t0;
+  // Barycentric coordinates of p's projection on the plane (Gram system of e1, e2).
+  const Scalar a11 = e1.dot(e1), a12 = e1.dot(e2), a22 = e2.dot(e2);
+  const Scalar b1 = e1.dot(r), b2 = e2.dot(r);
+  const Scalar det = a11 * a22 - a12 * a12;
+  if (det > 0) {
+    const Scalar u = (a22 * b1 - a12 * b2) / det, v = (a11 * b2 - a12 * b1) / det;
+    if (u >= 0 && v >= 0 && u + v <= 1) return {PairKind::PT, {0, 1, 2, 3}};
+  }
+  // Outside (or a degenerate triangle): the nearest of the three edges.
+  const Vec3* t[3] = {&t0, &t1, &t2};
+  Scalar best = -1;
+  Reduced out{PairKind::PP, {0, 1, -1, -1}};
+  for (int k = 0; k < 3; ++k) {
+    const Vec3& a = *t[k];
+    const Vec3& b = *t[(k + 1) % 3];
+    const Scalar s = segment_parameter(p, a, b);
+    const Scalar d = (p - (a + s * (b - a))).squaredNorm();
+    if (best < 0 || d < best) {
+      best = d;
+      if (s <= 0)
+        out = {PairKind::PP, {0, 1 + k, -1, -1}};
+      else if (s >= 1)
+        out = {PairKind::PP, {0, 1 + (k + 1) % 3, -1, -1}};
+      else
+        out = {PairKind::PE, {0, 1 + k, 1 + (k + 1) % 3, -1}};
+    }
+  }
+  return out;
+}
+
+// Edge-edge: slots 0, 1 = a0, a1 and 2, 3 = b0, b1. Closest parameters of two segments
+// (Ericson, "Real-Time Collision Detection", 2005, sec. 5.1.9), then the region they lie in.
+inline Reduced edge_edge_region(const Vec3& a0, const Vec3& a1, const Vec3& b0, const Vec3& b1) {
+  const Vec3 d1 = a1 - a0, d2 = b1 - b0, r = a0 - b0;
+  const Scalar a = d1.dot(d1), e = d2.dot(d2), f = d2.dot(r);
+  const Scalar c = d1.dot(r), b = d1.dot(d2);
+  const Scalar denom = a * e - b * b;
+  // Parallel to rounding: the line-line formula is 0/0, use the nearest endpoint-edge pair.
+  const bool parallel = !(denom > 1e-12 * a * e);
+  if (!parallel) {
+    Scalar s = std::clamp((b * f - c * e) / denom, Scalar(0), Scalar(1));
+    Scalar t = (b * s + f) / e;
+    if (t < 0) {
+      t = 0;
+      s = std::clamp(-c / a, Scalar(0), Scalar(1));
+    } else if (t > 1) {
+      t = 1;
+      s = std::clamp((b - c) / a, Scalar(0), Scalar(1));
+    }
+    const bool s_in = s > 0 && s < 1, t_in = t > 0 && t < 1;
+    if (s_in && t_in) return {PairKind::EE, {0, 1, 2, 3}};
+    if (!s_in && !t_in) return {PairKind::PP, {s <= 0 ? 0 : 1, t <= 0 ? 2 : 3, -1, -1}};
+    if (!s_in) return {PairKind::PE, {s <= 0 ? 0 : 1, 2, 3, -1}};
+    return {PairKind::PE, {t <= 0 ? 2 : 3, 0, 1, -1}};
+  }
+  // Nearest of the four endpoint-to-segment pairs.
+  const Vec3* v[4] = {&a0, &a1, &b0, &b1};
+  Reduced best{PairKind::PP, {0, 2, -1, -1}};
+  Scalar best_d = -1;
+  for (int k = 0; k < 4; ++k) {
+    const int e0 = k < 2 ? 2 : 0;
+    const Vec3& p = *v[k];
+    const Scalar s = segment_parameter(p, *v[e0], *v[e0 + 1]);
+    const Scalar d = (p - (*v[e0] + s * (*v[e0 + 1] - *v[e0]))).squaredNorm();
+    if (best_d < 0 || d < best_d) {
+      best_d = d;
+      if (s <= 0)
+        best = {PairKind::PP, {k, e0, -1, -1}};
+      else if (s >= 1)
+        best = {PairKind::PP, {k, e0 + 1, -1, -1}};
+      else
+        best = {PairKind::PE, {k, e0, e0 + 1, -1}};
+    }
+  }
+  return best;
+}
+
+// ----------------------------------------------------------------- values
+
+inline Scalar pp_distance(const Vec3& p, const Vec3& q) { return (p - q).squaredNorm(); }
+
+inline Scalar pe_distance(const Vec3& p, const Vec3& e0, const Vec3& e1) {
+  const Scalar len = (e1 - e0).squaredNorm();
+  if (len <= 0) return (p - e0).squaredNorm();
+  return (e0 - p).cross(e1 - p).squaredNorm() / len;
+}
+
+// Squared distance from p to the plane of the triangle.
+inline Scalar pt_distance(const Vec3& p, const Vec3& t0, const Vec3& t1, const Vec3& t2) {
+  const Vec3 n = (t1 - t0).cross(t2 - t0);
+  const Scalar a = n.dot(p - t0);
+  return a * a / n.squaredNorm();
+}
+
+// Squared distance between the lines of the two edges.
+inline Scalar ee_distance(const Vec3& a0, const Vec3& a1, const Vec3& b0, const Vec3& b1) {
+  const Vec3 n = (a1 - a0).cross(b1 - b0);
+  const Scalar a = n.dot(b0 - a0);
+  return a * a / n.squaredNorm();
+}
+
+// Squared distance of a reduced pair; v holds its vertices in formula order.
+inline Scalar reduced_distance(PairKind kind, const Vec3* v) {
+  switch (kind) {
+    case PairKind::PP: return pp_distance(v[0], v[1]);
+    case PairKind::PE: return pe_distance(v[0], v[1], v[2]);
+    case PairKind::PT: return pt_distance(v[0], v[1], v[2], v[3]);
+    case PairKind::EE: return ee_distance(v[0], v[1], v[2], v[3]);
+  }
+  return 0;
+}
+
+// Exact (unsigned, squared) point-triangle and segment-segment distances, whatever the region.
+inline Scalar point_triangle_distance(const Vec3& p, const Vec3& t0, const Vec3& t1, const Vec3& t2) {
+  const Reduced r = point_triangle_region(p, t0, t1, t2);
+  const Vec3 all[4] = {p, t0, t1, t2};
+  Vec3 v[4];
+  for (int k = 0; k < vertex_count(r.kind); ++k) v[k] = all[r.slot[k]];
+  return reduced_distance(r.kind, v);
+}
+
+inline Scalar edge_edge_distance(const Vec3& a0, const Vec3& a1, const Vec3& b0, const Vec3& b1) {
+  const Reduced r = edge_edge_region(a0, a1, b0, b1);
+  const Vec3 all[4] = {a0, a1, b0, b1};
+  Vec3 v[4];
+  for (int k = 0; k < vertex_count(r.kind); ++k) v[k] = all[r.slot[k]];
+  return reduced_distance(r.kind, v);
+}
+
+// ----------------------------------------------------------------- derivatives
+
+namespace detail {
+
+// Value, gradient and Hessian of b = |e1 x e2|^2 over (e1, e2).
+inline void cross_sq(const Vec3& e1, const Vec3& e2, Scalar& b, Vec<6>& g, Mat<6>& H) {
+  const Vec3 n = e1.cross(e2);
+  b = n.squaredNorm();
+  g.head<3>() = 2 * e2.cross(n);
+  g.tail<3>() = 2 * n.cross(e1);
+  Eigen::Matrix<Scalar, 3, 6> J;  // dn / d(e1, e2)
+  J.leftCols<3>() = -cross_matrix(e2);
+  J.rightCols<3>() = cross_matrix(e1);
+  H = 2 * J.transpose() * J;
+  const Mat3 N = cross_matrix(n);
+  H.block<3, 3>(0, 3) -= 2 * N;
+  H.block<3, 3>(3, 0) += 2 * N;
+}
+
+// d = a^2 / b with a = (e1 x e2) . r and b = |e1 x e2|^2, over y = (e1, e2, r).
+inline void triple_over_cross(const Vec3& e1, const Vec3& e2, const Vec3& r, Scalar& d, Vec<9>& g,
+                              Mat<9>& H) {
+  const Vec3 n = e1.cross(e2);
+  const Scalar a = n.dot(r);
+  Vec<9> ga;
+  ga << e2.cross(r), r.cross(e1), n;
+  Mat<9> Ha = Mat<9>::Zero();
+  Ha.block<3, 3>(0, 3) = -cross_matrix(r);
+  Ha.block<3, 3>(0, 6) = cross_matrix(e2);
+  Ha.block<3, 3>(3, 6) = -cross_matrix(e1);
+  Ha.block<3, 3>(3, 0) = Ha.block<3, 3>(0, 3).transpose();
+  Ha.block<3, 3>(6, 0) = Ha.block<3, 3>(0, 6).transpose();
+  Ha.block<3, 3>(6, 3) = Ha.block<3, 3>(3, 6).transpose();
+  Scalar b;
+  Vec<6> gb6;
+  Mat<6> Hb6;
+  cross_sq(e1, e2, b, gb6, Hb6);
+  Vec<9> gb = Vec<9>::Zero();
+  gb.head<6>() = gb6;
+  Mat<9> Hb = Mat<9>::Zero();
+  Hb.topLeftCorner<6, 6>() = Hb6;
+  d = a * a / b;
+  g = (2 * a / b) * ga - (a * a / (b * b)) * gb;
+  H = (2 / b) * ga * ga.transpose() + (2 * a / b) * Ha -
+      (2 * a / (b * b)) * (ga * gb.transpose() + gb * ga.transpose()) +
+      (2 * a * a / (b * b * b)) * gb * gb.transpose() - (a * a / (b * b)) * Hb;
+}
+
+}  // namespace detail
+
+// Gradient and Hessian of each formula with respect to its vertices (3 entries per vertex, in
+// formula order); N = 3 * vertex count.
+inline void pp_derivatives(const Vec3& p, const Vec3& q, Vec<6>& g, Mat<6>& H) {
+  const Vec3 r = p - q;
+  g << 2 * r, -2 * r;
+  H.setZero();
+  H.block<3, 3>(0, 0) = H.block<3, 3>(3, 3) = 2 * Mat3::Identity();
+  H.block<3, 3>(0, 3) = H.block<3, 3>(3, 0) = -2 * Mat3::Identity();
+}
+
+inline void pe_derivatives(const Vec3& p, const Vec3& e0, const Vec3& e1, Vec<9>& g, Mat<9>& H) {
+  // d = b / c over y = (u, w) = (e0 - p, e1 - p), b = |u x w|^2, c = |w - u|^2.
+  const Vec3 u = e0 - p, w = e1 - p, e = w - u;
+  Scalar b;
+  Vec<6> gb;
+  Mat<6> Hb;
+  detail::cross_sq(u, w, b, gb, Hb);
+  const Scalar c = e.squaredNorm();
+  Vec<6> gc;
+  gc << -2 * e, 2 * e;
+  Mat<6> Hc;
+  Hc << 2 * Mat3::Identity(), -2 * Mat3::Identity(), -2 * Mat3::Identity(), 2 * Mat3::Identity();
+  const Vec<6> gy = gb / c - (b / (c * c)) * gc;
+  const Mat<6> Hy = Hb / c - (gb * gc.transpose() + gc * gb.transpose()) / (c * c) +
+                    (2 * b / (c * c * c)) * gc * gc.transpose() - (b / (c * c)) * Hc;
+  // y = J x with x = (p, e0, e1): u = e0 - p, w = e1 - p.
+  Eigen::Matrix<Scalar, 6, 9> J = Eigen::Matrix<Scalar, 6, 9>::Zero();
+  J.block<3, 3>(0, 0) = J.block<3, 3>(3, 0) = -Mat3::Identity();
+  J.block<3, 3>(0, 3) = J.block<3, 3>(3, 6) = Mat3::Identity();
+  g = J.transpose() * gy;
+  H = J.transpose() * Hy * J;
+}
+
+inline void pt_derivatives(const Vec3& p, const Vec3& t0, const Vec3& t1, const Vec3& t2, Vec<12>& g,
+                           Mat<12>& H) {
+  Scalar d;
+  Vec<9> gy;
+  Mat<9> Hy;
+  detail::triple_over_cross(t1 - t0, t2 - t0, p - t0, d, gy, Hy);
+  // y = (t1 - t0, t2 - t0, p - t0), x = (p, t0, t1, t2).
+  Eigen::Matrix<Scalar, 9, 12> J = Eigen::Matrix<Scalar, 9, 12>::Zero();
+  for (int k = 0; k < 3; ++k) J.block<3, 3>(3 * k, 3) = -Mat3::Identity();
+  J.block<3, 3>(0, 6) = J.block<3, 3>(3, 9) = J.block<3, 3>(6, 0) = Mat3::Identity();
+  g = J.transpose() * gy;
+  H = J.transpose() * Hy * J;
+}
+
+inline void ee_derivatives(const Vec3& a0, const Vec3& a1, const Vec3& b0, const Vec3& b1, Vec<12>& g,
+                           Mat<12>& H) {
+  Scalar d;
+  Vec<9> gy;
+  Mat<9> Hy;
+  detail::triple_over_cross(a1 - a0, b1 - b0, b0 - a0, d, gy, Hy);
+  // y = (a1 - a0, b1 - b0, b0 - a0), x = (a0, a1, b0, b1).
+  Eigen::Matrix<Scalar, 9, 12> J = Eigen::Matrix<Scalar, 9, 12>::Zero();
+  J.block<3, 3>(0, 0) = J.block<3, 3>(6, 0) = -Mat3::Identity();
+  J.block<3, 3>(0, 3) = Mat3::Identity();
+  J.block<3, 3>(3, 6) = -Mat3::Identity();
+  J.block<3, 3>(3, 9) = J.block<3, 3>(6, 6) = Mat3::Identity();
+  g = J.transpose() * gy;
+  H = J.transpose() * Hy * J;
+}
+
+// Gradient (first 3k entries of g) and Hessian (top-left 3k x 3k of H) of a reduced pair.
+inline void reduced_derivatives(PairKind kind, const Vec3* v, Vec<12>& g, Mat<12>& H) {
+  g.setZero();
+  H.setZero();
+  switch (kind) {
+    case PairKind::PP: {
+      Vec<6> g6;
+      Mat<6> H6;
+      pp_derivatives(v[0], v[1], g6, H6);
+      g.head<6>() = g6;
+      H.topLeftCorner<6, 6>() = H6;
+      break;
+    }
+    case PairKind::PE: {
+      Vec<9> g9;
+      Mat<9> H9;
+      pe_derivatives(v[0], v[1], v[2], g9, H9);
+      g.head<9>() = g9;
+      H.topLeftCorner<9, 9>() = H9;
+      break;
+    }
+    case PairKind::PT: pt_derivatives(v[0], v[1], v[2], v[3], g, H); break;
+    case PairKind::EE: ee_derivatives(v[0], v[1], v[2], v[3], g, H); break;
+  }
+}
+
+
+}  // namespace kinema::contact

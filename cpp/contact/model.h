@@ -1,0 +1,86 @@
+// Config, Model and State of the contact solver (solver.h): several deformable bodies
+// (tetrahedral solids, triangle cloths with springs), static triangle-mesh obstacles and
+// half-space colliders, all sharing one vertex array so that body-body, self and obstacle
+// contact are one collision mesh (Li et al., "Incremental Potential Contact", 2020).
+#pragma once
+
+#include <string>
+#include <vector>
+
+#include "contact/distance.h"
+#include "core/types.h"
+#include "fem/kernels.h"
+#include "linalg/spd_solver.h"
+
+namespace kinema::contact {
+
+struct Config {
+  Vec3 gravity = Vec3::Zero();       // [m/s^2]
+  Scalar dhat = 1e-3;                // barrier activation distance [m]
+  Scalar barrier_stiffness = 0;      // kappa [J/m^4]; 0: chosen from the masses (Li et al. 2020, sec. 4.3)
+  Scalar friction = 0;               // Coulomb coefficient mu
+  Scalar friction_velocity = 1e-3;   // eps_v: slip speed below which friction is smoothed [m/s]
+  Scalar tol = 1e-2;                 // Newton stops when max |dx| / dt < tol * bbox diagonal [1/s]
+  Index max_newton = 500;
+  LinearSolver linear_solver = LinearSolver::CholmodDirect;
+};
+
+struct Plane {
+  Vec3 point, normal;  // normal: unit, pointing into the allowed side
+};
+
+struct Model {
+  // Vertices of every body and obstacle, in the order they were added.
+  Index vertex_count = 0;
+  std::vector<Scalar> rest;   // (n, 3) initial positions [m]
+  std::vector<Scalar> mass;   // (n,) lumped masses [kg]; 0 for obstacle vertices
+  std::vector<char> fixed;    // (n,) not a degree of freedom (obstacles, pinned vertices)
+  std::vector<Index> body;    // (n,) body id of each vertex
+
+  // Tetrahedral elasticity: Sifakis & Barbic 2012 (fem/kernels.h).
+  std::vector<Index> tets;                     // (T, 4)
+  std::vector<fem::Mat<3>> tet_dm_inv;
+  std::vector<Scalar> tet_volume, tet_mu, tet_lambda;
+  std::vector<fem::Material> tet_material;
+
+  // Springs (cloth stretch, shear and bending): massspring/kernels.h.
+  std::vector<Index> springs;                  // (S, 2)
+  std::vector<Scalar> spring_stiffness, spring_rest;
+
+  // Collision mesh: triangles (tet boundaries, cloths, obstacles), their unique edges and the
+  // vertices they use.
+  std::vector<Index> faces, edges, points;
+  std::vector<Plane> planes;
+
+  Index body_count = 0;
+
+  // Each adder returns the index of its first vertex; inputs are validated with messages
+  // naming the argument.
+  Index add_solid(const Scalar* x, Index n, const Index* tets, Index m, fem::Material material,
+                  Scalar youngs_modulus, Scalar poisson_ratio, Scalar density, const Index* fixed_ids,
+                  Index fixed_count);
+  Index add_cloth(const Scalar* x, Index n, const Index* triangles, Index m, const Index* springs,
+                  Index spring_count, Scalar stiffness, Scalar density, const Index* fixed_ids,
+                  Index fixed_count);
+  Index add_obstacle(const Scalar* x, Index n, const Index* triangles, Index m);
+  void add_plane(const Vec3& point, const Vec3& normal);
+
+  Scalar total_mass() const;
+  Scalar bbox_diagonal(const Scalar* x) const;
+
+ private:
+  Index append_vertices(const Scalar* x, Index n, const char* name);
+  void add_surface(const std::vector<Index>& triangles);
+};
+
+// What evolves: positions, velocities, time, and the barrier stiffness (raised during a step
+// when contacts get too close, Li et al. 2020 sec. 4.3, so a copy resumes exactly).
+struct State {
+  std::vector<Scalar> x, v;  // (n, 3) [m], [m/s]
+  Scalar time = 0;           // [s]
+  Scalar kappa = 0;          // barrier stiffness in use [J/m^4]; 0 until the first step
+};
+
+State make_state(const Model& model);
+
+}  // namespace kinema::contact

@@ -1,0 +1,463 @@
+// Projected Newton on the incremental potential with barrier, lagged friction and a
+// CCD-clamped backtracking line search (Li et al. 2020, algorithm 1).
+#include "contact/solver.h"
+
+#include <Eigen/Eigenvalues>
+#include <Eigen/SparseCore>
+#include <algorithm>
+#include <cmath>
+#include <limits>
+
+#include "contact/barrier.h"
+#include "core/errors.h"
+#include "core/timer.h"
+#include "massspring/kernels.h"
+
+namespace kinema::contact {
+
+namespace {
+
+Vec3 at(const Scalar* x, Index i) { return Eigen::Map<const Vec3>(x + 3 * i); }
+
+// Nearest positive semidefinite matrix (negative eigenvalues clamped to zero). Fixed 12 x 12:
+// a pair with fewer vertices has zero rows and columns beyond, whose eigenvalues stay zero.
+void project_psd(Mat<12>& H) {
+  Eigen::SelfAdjointEigenSolver<Mat<12>> eig(H);
+  if (eig.eigenvalues().minCoeff() >= 0) return;
+  H = eig.eigenvectors() * eig.eigenvalues().cwiseMax(Scalar(0)).asDiagonal() * eig.eigenvectors().transpose();
+}
+
+// Adds an element matrix over `count` vertices into triplets, skipping fixed vertices.
+template <class Matrix>
+void add_block(const Model& model, std::vector<Eigen::Triplet<Scalar, Index>>& t, const Index* verts, int count,
+               const Matrix& H) {
+  for (int a = 0; a < count; ++a) {
+    if (model.fixed[static_cast<size_t>(verts[a])]) continue;
+    for (int b = 0; b < count; ++b) {
+      if (model.fixed[static_cast<size_t>(verts[b])]) continue;
+      for (int r = 0; r < 3; ++r)
+        for (int s = 0; s < 3; ++s) t.emplace_back(3 * verts[a] + r, 3 * verts[b] + s, H(3 * a + r, 3 * b + s));
+    }
+  }
+}
+
+Eigen::Matrix<Scalar, 3, 2> tangent_basis(const Vec3& n) {
+  const Vec3 a = std::abs(n.x()) < 0.9 ? Vec3::UnitX() : Vec3::UnitY();
+  const Vec3 t1 = n.cross(a).normalized();
+  Eigen::Matrix<Scalar, 3, 2> P;
+  P.col(0) = t1;
+  P.col(1) = n.cross(t1);
+  return P;
+}
+
+// Weights w of the closest points of a constraint at x (relative position r = sum w_a x_a)
+// and the contact normal.
+void closest_weights(const Model& model, const Constraint& c, const Scalar* x, FrictionContact& f, Vec3& n) {
+  f.v = c.v;
+  if (c.plane >= 0) {
+    f.count = 1;
+    f.w[0] = 1;
+    n = model.planes[static_cast<size_t>(c.plane)].normal;
+    return;
+  }
+  const int k = vertex_count(c.kind);
+  f.count = k;
+  Vec3 y[4];
+  for (int a = 0; a < k; ++a) y[a] = at(x, c.v[static_cast<size_t>(a)]);
+  switch (c.kind) {
+    case PairKind::PP:
+      f.w[0] = 1, f.w[1] = -1;
+      break;
+    case PairKind::PE: {
+      const Scalar s = segment_parameter(y[0], y[1], y[2]);
+      f.w[0] = 1, f.w[1] = -(1 - s), f.w[2] = -s;
+      break;
+    }
+    case PairKind::PT: {
+      const Vec3 e1 = y[2] - y[1], e2 = y[3] - y[1], r = y[0] - y[1];
+      const Scalar a11 = e1.dot(e1), a12 = e1.dot(e2), a22 = e2.dot(e2), b1 = e1.dot(r), b2 = e2.dot(r);
+      const Scalar det = a11 * a22 - a12 * a12;
+      const Scalar u = (a22 * b1 - a12 * b2) / det, v = (a11 * b2 - a12 * b1) / det;
+      f.w[0] = 1, f.w[1] = -(1 - u - v), f.w[2] = -u, f.w[3] = -v;
+      break;
+    }
+    case PairKind::EE: {
+      const Vec3 d1 = y[1] - y[0], d2 = y[3] - y[2], r = y[0] - y[2];
+      const Scalar a = d1.dot(d1), e = d2.dot(d2), b = d1.dot(d2), cc = d1.dot(r), ff = d2.dot(r);
+      const Scalar denom = a * e - b * b;
+      const Scalar s = (b * ff - cc * e) / denom, t = (a * ff - b * cc) / denom;
+      f.w[0] = 1 - s, f.w[1] = s, f.w[2] = -(1 - t), f.w[3] = -t;
+      break;
+    }
+  }
+  Vec3 r = Vec3::Zero();
+  for (int a = 0; a < k; ++a) r += f.w[a] * y[a];
+  n = r.normalized();
+}
+
+// Sliding displacement u = P^T sum_a w_a (x_a - x_n,a) of a lagged friction contact.
+Eigen::Matrix<Scalar, 2, 1> sliding(const FrictionContact& f, const Scalar* x, const Scalar* xn) {
+  Vec3 rel = Vec3::Zero();
+  for (int a = 0; a < f.count; ++a) {
+    const Index v = f.v[static_cast<size_t>(a)];
+    rel += f.w[a] * (at(x, v) - at(xn, v));
+  }
+  return f.P.transpose() * rel;
+}
+
+}  // namespace
+
+Solver::Solver(const Model& model, const Config& config) : model_(model), config_(config) {
+  if (!(std::isfinite(config.dhat) && config.dhat > 0))
+    throw InvalidArgument("dhat: expected a finite value > 0, got " + format_real(config.dhat));
+  if (!(std::isfinite(config.friction) && config.friction >= 0))
+    throw InvalidArgument("friction: expected a finite value >= 0, got " + format_real(config.friction));
+  if (!(std::isfinite(config.friction_velocity) && config.friction_velocity > 0))
+    throw InvalidArgument("friction_velocity: expected a finite value > 0, got " +
+                          format_real(config.friction_velocity));
+  if (!(std::isfinite(config.barrier_stiffness) && config.barrier_stiffness >= 0))
+    throw InvalidArgument("barrier_stiffness: expected a finite value >= 0, got " +
+                          format_real(config.barrier_stiffness));
+  if (!(std::isfinite(config.tol) && config.tol > 0))
+    throw InvalidArgument("tol: expected a finite value > 0, got " + format_real(config.tol));
+  if (config.max_newton < 1) throw InvalidArgument("max_newton: expected >= 1");
+  if (!config.gravity.allFinite()) throw InvalidArgument("gravity: contains non-finite values");
+  dhat2_ = config.dhat * config.dhat;
+}
+
+void Solver::check_intersection_free(const Scalar* x, const char* name) const {
+  const std::vector<std::string> hits = find_intersections(model_, x, 5);
+  if (hits.empty()) {
+    const Scalar d = min_distance(model_, x, config_.dhat);
+    if (d > 0) return;
+    throw InvalidArgument(std::string(name) + ": two non-adjacent primitives touch (distance " + format_real(d) +
+                          "); contact needs a start that is strictly free of intersections");
+  }
+  std::string msg = std::string(name) + ": the configuration intersects (vertex indices are global): ";
+  for (size_t k = 0; k < hits.size(); ++k) msg += (k ? "; " : "") + hits[k];
+  throw InvalidArgument(msg + "; contact needs a start that is free of intersections");
+}
+
+Scalar Solver::elastic_energy(const Scalar* x) const {
+  Scalar e = 0;
+  const Index tet_count = static_cast<Index>(model_.tet_volume.size());
+  for (Index t = 0; t < tet_count; ++t) {
+    const fem::Mat<3> F = fem::deformation_gradient<3>(x, &model_.tets[4 * t], model_.tet_dm_inv[t]);
+    e += model_.tet_volume[t] * fem::psi<3>(F, model_.tet_material[t], model_.tet_mu[t], model_.tet_lambda[t]);
+  }
+  const Index spring_count = static_cast<Index>(model_.spring_rest.size());
+  for (Index s = 0; s < spring_count; ++s) {
+    const Vec3 d = at(x, model_.springs[2 * s + 1]) - at(x, model_.springs[2 * s]);
+    e += massspring::spring_energy<3>(d, model_.spring_stiffness[s], model_.spring_rest[s]);
+  }
+  return e;
+}
+
+Scalar Solver::barrier_energy(const Scalar* x) const {
+  Scalar e = 0;
+  for (const Constraint& c : find_constraints(model_, x, dhat2_)) e += barrier(c.d, dhat2_);
+  return e;
+}
+
+void Solver::barrier_gradient(const Scalar* x, Scalar* g) const {
+  std::fill(g, g + 3 * model_.vertex_count, Scalar(0));
+  for (const Constraint& c : find_constraints(model_, x, dhat2_)) {
+    Vec<12> gd;
+    Mat<12> Hd;
+    constraint_derivatives(model_, c, x, gd, Hd);
+    const Scalar b1 = barrier_first(c.d, dhat2_);
+    const int k = c.plane >= 0 ? 1 : vertex_count(c.kind);
+    for (int a = 0; a < k; ++a)
+      for (int r = 0; r < 3; ++r) g[3 * c.v[static_cast<size_t>(a)] + r] += b1 * gd[3 * a + r];
+  }
+}
+
+SparseMatrix Solver::barrier_hessian(const Scalar* x, bool project) const {
+  Triplets t;
+  for (const Constraint& c : find_constraints(model_, x, dhat2_)) {
+    Vec<12> gd;
+    Mat<12> Hd;
+    constraint_derivatives(model_, c, x, gd, Hd);
+    const int k = c.plane >= 0 ? 1 : vertex_count(c.kind);
+    Mat<12> H = barrier_second(c.d, dhat2_) * gd * gd.transpose() + barrier_first(c.d, dhat2_) * Hd;
+    if (project) project_psd(H);
+    for (int a = 0; a < 3 * k; ++a)
+      for (int b = 0; b < 3 * k; ++b)
+        t.emplace_back(3 * c.v[static_cast<size_t>(a / 3)] + a % 3, 3 * c.v[static_cast<size_t>(b / 3)] + b % 3,
+                       H(a, b));
+  }
+  SparseMatrix A(3 * model_.vertex_count, 3 * model_.vertex_count);
+  A.setFromTriplets(t.begin(), t.end());
+  return A;
+}
+
+Scalar Solver::initial_kappa(Scalar h) const {
+  if (config_.barrier_stiffness > 0) return config_.barrier_stiffness * h * h;
+  // Li et al. 2020 sec. 4.3 (as in the IPC toolkit): the stiffness at which the barrier's
+  // curvature at a gap of 1e-8 of the scene size matches 1e11 times the average vertex mass.
+  Index dynamic = 0;
+  for (Index i = 0; i < model_.vertex_count; ++i) dynamic += model_.fixed[static_cast<size_t>(i)] ? 0 : 1;
+  const Scalar average_mass = dynamic > 0 ? model_.total_mass() / static_cast<Scalar>(dynamic) : 1;
+  const Scalar diag = std::max(model_.bbox_diagonal(model_.rest.data()), config_.dhat);
+  Scalar d0 = 1e-8 * diag;
+  d0 *= d0;
+  if (d0 >= dhat2_) d0 = 0.5 * dhat2_;
+  return 1e11 * average_mass / (4 * d0 * barrier_second(d0, dhat2_));
+}
+
+void Solver::lag_friction(const std::vector<Scalar>& x, Scalar kappa, Scalar h) {
+  friction_.clear();
+  if (config_.friction <= 0) return;
+  for (const Constraint& c : find_constraints(model_, x.data(), dhat2_)) {
+    FrictionContact f;
+    Vec3 n;
+    closest_weights(model_, c, x.data(), f, n);
+    // Normal force of the barrier: -d(kappa b)/d(distance) / h^2 (kappa carries the h^2 of Phi).
+    f.normal_force = -kappa / (h * h) * barrier_first(c.d, dhat2_) * 2 * std::sqrt(c.d);
+    if (!(f.normal_force > 0)) continue;
+    f.P = tangent_basis(n);
+    friction_.push_back(f);
+  }
+}
+
+Scalar Solver::potential(const std::vector<Scalar>& x, Scalar h, Scalar kappa) const {
+  Scalar inertia = 0;
+  for (Index i = 0; i < model_.vertex_count; ++i) {
+    if (model_.fixed[static_cast<size_t>(i)]) continue;
+    inertia += 0.5 * model_.mass[static_cast<size_t>(i)] * (at(x.data(), i) - at(xhat_.data(), i)).squaredNorm();
+  }
+  Scalar b = 0;
+  for (const Constraint& c : find_constraints(model_, x.data(), dhat2_)) b += barrier(c.d, dhat2_);
+  Scalar friction = 0;
+  const Scalar mu = config_.friction, eps_v = config_.friction_velocity;
+  for (const FrictionContact& f : friction_) {
+    const Eigen::Matrix<Scalar, 2, 1> u = sliding(f, x.data(), xn_.data());
+    friction += mu * f.normal_force * h * friction_f0(u.norm() / h, eps_v);
+  }
+  return inertia + h * h * (elastic_energy(x.data()) + friction) + kappa * b;
+}
+
+void Solver::assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, const std::vector<Constraint>& constraints,
+                      std::vector<Scalar>& g, Triplets& t) const {
+  const Index n = model_.vertex_count;
+  g.assign(static_cast<size_t>(3 * n), 0);
+  t.clear();
+  const Scalar h2 = h * h;
+  auto add_grad = [&](const Index* verts, int count, const Eigen::Ref<const VectorX>& ge) {
+    for (int a = 0; a < count; ++a)
+      for (int r = 0; r < 3; ++r) g[static_cast<size_t>(3 * verts[a] + r)] += ge[3 * a + r];
+  };
+  // Inertia: M (x - xhat).
+  for (Index i = 0; i < n; ++i) {
+    if (model_.fixed[static_cast<size_t>(i)]) {
+      for (int r = 0; r < 3; ++r) t.emplace_back(3 * i + r, 3 * i + r, 1);
+      continue;
+    }
+    const Scalar m = model_.mass[static_cast<size_t>(i)];
+    for (int r = 0; r < 3; ++r) {
+      g[static_cast<size_t>(3 * i + r)] += m * (x[static_cast<size_t>(3 * i + r)] - xhat_[static_cast<size_t>(3 * i + r)]);
+      t.emplace_back(3 * i + r, 3 * i + r, m);
+    }
+  }
+  // Elasticity: h^2 grad Psi, h^2 (projected) Hessian per element.
+  const Index tet_count = static_cast<Index>(model_.tet_volume.size());
+  for (Index e = 0; e < tet_count; ++e) {
+    const Index* tet = &model_.tets[4 * e];
+    const fem::Mat<3>& dm_inv = model_.tet_dm_inv[e];
+    const fem::Mat<3> F = fem::deformation_gradient<3>(x.data(), tet, dm_inv);
+    const fem::Material mat = model_.tet_material[e];
+    const Scalar mu = model_.tet_mu[e], lam = model_.tet_lambda[e], vol = model_.tet_volume[e];
+    add_grad(tet, 4, h2 * fem::element_gradient<3>(fem::piola<3>(F, mat, mu, lam), dm_inv, vol));
+    fem::HessF<3> dPdF = fem::piola_derivative<3>(F, mat, mu, lam);
+    fem::project_psd<3>(dPdF);
+    add_block(model_, t, tet, 4, h2 * fem::element_hessian<3>(dPdF, dm_inv, vol));
+  }
+  const Index spring_count = static_cast<Index>(model_.spring_rest.size());
+  for (Index s = 0; s < spring_count; ++s) {
+    const Index* ij = &model_.springs[2 * s];
+    const Vec3 d = at(x.data(), ij[1]) - at(x.data(), ij[0]);
+    const Scalar k = model_.spring_stiffness[s], L = model_.spring_rest[s];
+    const Vec3 f = massspring::spring_force<3>(d, Vec3::Zero(), k, L, 0);  // force on ij[0]
+    Eigen::Matrix<Scalar, 6, 1> ge;
+    ge << -h2 * f, h2 * f;
+    add_grad(ij, 2, ge);
+    const Mat3 S = h2 * k * massspring::spring_jacobian<3>(d, L, true);
+    Eigen::Matrix<Scalar, 6, 6> He;
+    He << S, -S, -S, S;
+    add_block(model_, t, ij, 2, He);
+  }
+  // Barrier: kappa (b' grad d, b'' grad d grad d^T + b' Hess d), projected per contact.
+  for (const Constraint& c : constraints) {
+    Vec<12> gd;
+    Mat<12> Hd;
+    constraint_derivatives(model_, c, x.data(), gd, Hd);
+    const int k = c.plane >= 0 ? 1 : vertex_count(c.kind);
+    const Scalar b1 = barrier_first(c.d, dhat2_), b2 = barrier_second(c.d, dhat2_);
+    add_grad(c.v.data(), k, kappa * b1 * gd.head(3 * k));
+    Mat<12> H = kappa * (b2 * gd * gd.transpose() + b1 * Hd);
+    project_psd(H);
+    add_block(model_, t, c.v.data(), k, H);
+  }
+  // Friction: h^2 mu lambda (f1(y)/y u/h through T, and the PSD tangent Hessian).
+  const Scalar mu = config_.friction, eps_v = config_.friction_velocity;
+  for (const FrictionContact& f : friction_) {
+    const Eigen::Matrix<Scalar, 2, 1> u = sliding(f, x.data(), xn_.data());
+    const Scalar y = u.norm() / h;
+    const Scalar scale = h2 * mu * f.normal_force;
+    const Scalar phi = friction_f1_over_y(y, eps_v);
+    const Eigen::Matrix<Scalar, 2, 1> gu = scale * phi * u / h;
+    Eigen::Matrix<Scalar, 2, 2> Hu = scale / h * phi * Eigen::Matrix<Scalar, 2, 2>::Identity();
+    if (y > 0) {
+      const Eigen::Matrix<Scalar, 2, 1> uh = u / u.norm();
+      Hu += scale / h * (friction_f1_derivative(y, eps_v) - phi) * uh * uh.transpose();
+    }
+    const Eigen::Matrix<Scalar, 3, 1> g3 = f.P * gu;
+    const Mat3 H3 = f.P * Hu * f.P.transpose();
+    VectorX ge(3 * f.count);
+    MatrixX He(3 * f.count, 3 * f.count);
+    for (int a = 0; a < f.count; ++a) {
+      ge.segment<3>(3 * a) = f.w[a] * g3;
+      for (int b = 0; b < f.count; ++b) He.block<3, 3>(3 * a, 3 * b) = f.w[a] * f.w[b] * H3;
+    }
+    add_grad(f.v.data(), f.count, ge);
+    add_block(model_, t, f.v.data(), f.count, He);
+  }
+  for (Index i = 0; i < n; ++i)
+    if (model_.fixed[static_cast<size_t>(i)])
+      for (int r = 0; r < 3; ++r) g[static_cast<size_t>(3 * i + r)] = 0;
+}
+
+StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
+  Stopwatch timer;
+  if (!(std::isfinite(dt) && dt > 0)) throw InvalidArgument("dt: expected a finite value > 0, got " + format_real(dt));
+  const Index n = model_.vertex_count;
+  if (static_cast<Index>(state.x.size()) != 3 * n || static_cast<Index>(state.v.size()) != 3 * n)
+    throw InvalidArgument("state: expected " + std::to_string(n) + " vertices");
+  StepStats stats;
+  const Scalar h = dt;
+  if (state.kappa <= 0) {
+    check_intersection_free(state.x.data(), "x");
+    state.kappa = initial_kappa(h);
+  }
+  const Scalar diag = std::max(model_.bbox_diagonal(state.x.data()), config_.dhat);
+
+  // Inertia target xhat = x_n + h v_n + h^2 g and friction lagged at x_n (Li et al. 2020, eq. 17).
+  xn_ = state.x;
+  xhat_.resize(xn_.size());
+  for (Index i = 0; i < n; ++i)
+    for (int r = 0; r < 3; ++r) {
+      const size_t k = static_cast<size_t>(3 * i + r);
+      xhat_[k] = model_.fixed[static_cast<size_t>(i)] ? xn_[k] : xn_[k] + h * state.v[k] + h * h * config_.gravity[r];
+    }
+  Scalar kappa = state.kappa;
+  lag_friction(xn_, kappa, h);
+
+  std::vector<Scalar> x = xn_, g, p(static_cast<size_t>(3 * n)), trial(static_cast<size_t>(3 * n));
+  Triplets triplets;
+  SparseMatrix H(3 * n, 3 * n);
+  Scalar prev_min = std::numeric_limits<Scalar>::infinity();
+  bool converged = false;
+  for (Index it = 0; it < config_.max_newton; ++it) {
+    interrupt.check();
+    // Projected Newton direction: H p = -grad Phi.
+    Stopwatch phase;
+    const std::vector<Constraint> constraints = find_constraints(model_, x.data(), dhat2_);
+    assemble(x, h, kappa, constraints, g, triplets);
+    H.setFromTriplets(triplets.begin(), triplets.end());
+    H.makeCompressed();
+    const std::vector<Index> ptr(H.outerIndexPtr(), H.outerIndexPtr() + H.outerSize() + 1);
+    const std::vector<Index> col(H.innerIndexPtr(), H.innerIndexPtr() + H.nonZeros());
+    if (!linear_ || ptr != pattern_ptr_ || col != pattern_col_) {
+      linear_ = std::make_unique<SpdSolver>();
+      pattern_ptr_ = ptr;
+      pattern_col_ = col;
+    }
+    stats.assemble_seconds += phase.seconds();
+    phase.restart();
+    const CsrView view{3 * n, 3 * n, pattern_ptr_.data(), pattern_col_.data(), H.valuePtr()};
+    std::vector<Scalar> rhs(g.size());
+    for (size_t k = 0; k < g.size(); ++k) rhs[k] = -g[k];
+    std::fill(p.begin(), p.end(), Scalar(0));
+    SpdSolveStats solve_stats;
+    if (!linear_->solve(config_.linear_solver, view, rhs.data(), p.data(), 1e-10, false, interrupt, solve_stats))
+      throw NotPositiveDefinite("contact: the projected Newton matrix is not positive definite", -1);
+    stats.solve_seconds += phase.seconds();
+    stats.newton_iterations = it + 1;
+    Scalar p_max = 0;
+    for (Scalar v : p) p_max = std::max(p_max, std::abs(v));
+    stats.newton_history.push_back(p_max / (h * diag));
+    if (!std::isfinite(p_max)) throw DivergenceError("contact: non-finite Newton step at time " + format_real(state.time));
+    if (p_max < config_.tol * diag * h) {
+      converged = true;
+      break;
+    }
+    // Largest intersection-free step by CCD, then backtracking until Phi decreases.
+    Stopwatch ccd_timer;
+    CcdOptions ccd;
+    Scalar alpha = max_safe_step(model_, x.data(), p.data(), ccd);
+    stats.ccd_seconds += ccd_timer.seconds();
+    stats.min_step_fraction = std::min(stats.min_step_fraction, alpha);
+    phase.restart();
+    const Scalar phi0 = potential(x, h, kappa);
+    bool accepted = false;
+    for (int ls = 0; ls < 60; ++ls) {
+      for (size_t k = 0; k < x.size(); ++k) trial[k] = x[k] + alpha * p[k];
+      if (potential(trial, h, kappa) <= phi0) {
+        accepted = true;
+        break;
+      }
+      alpha /= 2;
+      ++stats.line_search_halvings;
+    }
+    stats.line_search_seconds += phase.seconds();
+    stats.step_history.push_back(accepted ? alpha : 0);
+    if (!accepted) {
+      // No decrease along a descent direction: Phi is at its minimum to rounding.
+      converged = true;
+      break;
+    }
+    x.swap(trial);
+    // Raise kappa when contacts keep closing in below 1e-9 of the scene size (Li et al. 2020,
+    // sec. 4.3), so the gap stays resolvable in floating point.
+    Scalar dmin = std::numeric_limits<Scalar>::infinity();
+    for (const Constraint& c : find_constraints(model_, x.data(), dhat2_)) dmin = std::min(dmin, std::sqrt(c.d));
+    const Scalar eps_d = 1e-9 * diag;
+    if (prev_min < eps_d && dmin < eps_d && dmin < prev_min) kappa *= 2;
+    prev_min = dmin;
+  }
+  if (!converged) {
+    std::string last;
+    const size_t k = stats.newton_history.size();
+    for (size_t i = k > 4 ? k - 4 : 0; i < k; ++i)
+      last += (last.empty() ? "" : ", ") + format_real(stats.newton_history[i]) + " (step " +
+              format_real(stats.step_history[std::min(i, stats.step_history.size() - 1)]) + ")";
+    throw ConvergenceError("contact: Newton did not reach tol = " + format_real(config_.tol) + " in " +
+                           std::to_string(config_.max_newton) + " iterations at time " + format_real(state.time) +
+                           " (last max|dx|/(dt diag): " + last + "); try a smaller dt or a larger max_newton");
+  }
+
+  // Velocities from the displacement (implicit Euler).
+  for (size_t k = 0; k < x.size(); ++k) state.v[k] = (x[k] - xn_[k]) / h;
+  state.x = x;
+  state.time += h;
+  state.kappa = kappa;
+
+  const std::vector<Constraint> final_set = find_constraints(model_, x.data(), dhat2_);
+  stats.contact_count = static_cast<Index>(final_set.size());
+  stats.min_distance = std::numeric_limits<Scalar>::infinity();
+  for (const Constraint& c : final_set) stats.min_distance = std::min(stats.min_distance, std::sqrt(c.d));
+  for (const FrictionContact& f : friction_) {
+    if (sliding(f, x.data(), xn_.data()).norm() / h < config_.friction_velocity)
+      ++stats.sticking_count;
+    else
+      ++stats.sliding_count;
+  }
+  stats.barrier_stiffness = kappa;
+  stats.time = state.time;
+  stats.dt = h;
+  stats.seconds = timer.seconds();
+  stats.ccd_share = stats.seconds > 0 ? stats.ccd_seconds / stats.seconds : 0;
+  return stats;
+}
+
+}  // namespace kinema::contact

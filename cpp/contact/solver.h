@@ -1,0 +1,86 @@
+// Implicit Euler with Incremental Potential Contact (Li et al., "Incremental Potential
+// Contact", ACM TOG 39(4), 2020, algorithm 1): each step minimises
+//   Phi(x) = 1/2 |x - xhat|_M^2 + h^2 (Psi(x) + D(x)) + kappa sum_k b(d_k(x)),   xhat = x_n + h v_n + h^2 g
+// (Psi: tetrahedral and spring elasticity; b: the log barrier on every pair closer than dhat;
+// D: friction lagged at x_n) by projected Newton (per-element and per-contact PSD projection)
+// with a backtracking line search clamped by continuous collision detection, so every
+// accepted iterate, and the straight path to it, is free of intersections.
+#pragma once
+
+#include <memory>
+#include <vector>
+
+#include "contact/collision.h"
+#include "contact/model.h"
+#include "core/interrupt.h"
+#include "core/step_stats.h"
+#include "linalg/spd_solver.h"
+
+namespace kinema::contact {
+
+struct StepStats : StepStatsBase {
+  Index newton_iterations = 0;
+  Index line_search_halvings = 0;  // total over the Newton iterations
+  Index contact_count = 0;         // active pairs (closer than dhat) at the end of the step
+  Scalar min_distance = 0;         // smallest distance among them [m]; inf when there is none
+  Index sticking_count = 0;        // friction contacts slipping slower than friction_velocity
+  Index sliding_count = 0;         // ... and faster
+  Scalar min_step_fraction = 1;    // smallest CCD clamp of a Newton step (1: never clamped)
+  double ccd_seconds = 0;          // wall time in continuous collision detection [s]
+  Scalar ccd_share = 0;            // ccd_seconds / seconds
+  Scalar barrier_stiffness = 0;    // kappa of the step [kg/m^2] (Phi units)
+  double assemble_seconds = 0, solve_seconds = 0, line_search_seconds = 0;  // wall time per phase [s]
+  // Per Newton iteration: max |dx| / (dt * bbox diagonal) (the quantity tol bounds) and the
+  // step length accepted by the line search.
+  std::vector<Scalar> newton_history, step_history;
+};
+
+// One friction contact lagged at x_n: relative motion u = P^T sum_a w_a (x_a - x_n,a).
+struct FrictionContact {
+  std::array<Index, 4> v;
+  int count = 0;
+  Scalar w[4] = {0, 0, 0, 0};
+  Eigen::Matrix<Scalar, 3, 2> P;
+  Scalar normal_force = 0;  // lambda [N]
+};
+
+class Solver {
+ public:
+  Solver(const Model& model, const Config& config);
+
+  // Advances by dt; throws InvalidArgument when the state intersects (naming the elements),
+  // ConvergenceError when Newton does not reach tol within max_newton iterations.
+  StepStats step(State& state, Scalar dt, Interrupt& interrupt);
+
+  // Elastic energy Psi(x) [J] (tests and diagnostics).
+  Scalar elastic_energy(const Scalar* x) const;
+  // Barrier energy sum_k b(d_k(x)) [m^4] and its gradient (3n) and Hessian (projected or not).
+  Scalar barrier_energy(const Scalar* x) const;
+  void barrier_gradient(const Scalar* x, Scalar* g) const;
+  SparseMatrix barrier_hessian(const Scalar* x, bool project) const;
+
+  // Throws InvalidArgument when x intersects (edges through triangles, vertices behind planes).
+  void check_intersection_free(const Scalar* x, const char* name) const;
+
+  const Model& model() const { return model_; }
+  const Config& config() const { return config_; }
+
+ private:
+  using Triplets = std::vector<Eigen::Triplet<Scalar, Index>>;
+  Scalar potential(const std::vector<Scalar>& x, Scalar h, Scalar kappa) const;
+  void assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, const std::vector<Constraint>& constraints,
+                std::vector<Scalar>& g, Triplets& triplets) const;
+  void lag_friction(const std::vector<Scalar>& x, Scalar kappa, Scalar h);
+  Scalar initial_kappa(Scalar h) const;
+
+  const Model& model_;
+  Config config_;
+  Scalar dhat2_;
+  // Per-step scratch: the inertia target, the state at the step's start and lagged friction.
+  std::vector<Scalar> xhat_, xn_;
+  std::vector<FrictionContact> friction_;
+  std::unique_ptr<SpdSolver> linear_;
+  std::vector<Index> pattern_ptr_, pattern_col_;
+};
+
+}  // namespace kinema::contact

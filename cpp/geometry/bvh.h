@@ -1,0 +1,140 @@
+// Bounding volume hierarchy over axis-aligned boxes of primitives (the renderer's spheres and
+// triangles, the contact solver's points, edges and faces), built top-down with the binned
+// surface area heuristic. Two queries: a ray walk, near child first (rendering), and all boxes
+// overlapping a given box (contact broad phase).
+//
+//   SAH cost of a split: C = C_trav + (A_L / A) N_L C_isect + (A_R / A) N_R C_isect
+// evaluated at the boundaries of 16 centroid bins along the widest centroid axis (Wald, "On fast
+// construction of SAH-based bounding volume hierarchies", IEEE RT 2007; PBRT 3rd ed., sec. 4.3).
+// Nodes are stored depth-first: a node's first child follows it, the second is at `second`.
+#pragma once
+
+#include <Eigen/Core>
+#include <algorithm>
+#include <cstdint>
+#include <limits>
+#include <vector>
+
+#include "core/types.h"
+
+namespace kinema::geometry {
+
+using Vec3 = Eigen::Matrix<Scalar, 3, 1>;
+constexpr Scalar kInfinity = std::numeric_limits<Scalar>::infinity();
+
+// 1 + 2 gamma_3 with gamma_n = n u / (1 - n u): widening the far slab distance by this factor
+// makes the slab test conservative under rounding (PBRT 3rd ed., sec. 3.9.2), so a BVH never
+// misses a hit that the brute-force loop finds.
+constexpr Scalar kSlabWiden = 1 + 2 * (3 * 0x1p-53 / (1 - 3 * 0x1p-53));
+
+// Slab test of the box [lo, hi] against a ray given by its origin and inverse direction; true
+// when the ray meets the box for some t in (t_min, t_max). NaNs (0 * inf when the origin lies
+// on a slab plane) fail every comparison and leave the interval unchanged, as in PBRT.
+inline bool hit_box(const Scalar lo[3], const Scalar hi[3], const Vec3& origin, const Vec3& inv_dir,
+                    Scalar t_min, Scalar t_max) {
+  for (int a = 0; a < 3; ++a) {
+    Scalar t_near = (lo[a] - origin[a]) * inv_dir[a];
+    Scalar t_far = (hi[a] - origin[a]) * inv_dir[a];
+    if (t_near > t_far) std::swap(t_near, t_far);
+    t_far *= kSlabWiden;
+    t_min = t_near > t_min ? t_near : t_min;
+    t_max = t_far < t_max ? t_far : t_max;
+    if (t_min > t_max) return false;
+  }
+  return true;
+}
+
+
+struct BvhNode {
+  Scalar lo[3], hi[3];
+  std::int32_t second;  // interior: index of the second child; leaf: -1
+  std::int32_t axis;    // interior: split axis (the near child is chosen by the ray's sign)
+  std::int32_t first;   // leaf: first entry in Bvh::order
+  std::int32_t count;   // leaf: number of primitives (0 for interior nodes)
+};
+
+class Bvh {
+ public:
+  static constexpr int kMaxLeafSize = 4;
+  static constexpr int kBins = 16;
+  // Beyond this depth a node is split at the median: bounds the depth (and the traversal stack)
+  // even for adversarial inputs where the SAH peels off one primitive at a time.
+  static constexpr int kMaxSahDepth = 40;
+  static constexpr int kStackSize = 128;
+
+  // lo, hi: 3n values, the bounds of primitive i at [3i, 3i + 3).
+  Bvh(const std::vector<Scalar>& lo, const std::vector<Scalar>& hi);
+
+  const std::vector<BvhNode>& nodes() const { return nodes_; }
+  const std::vector<Index>& order() const { return order_; }
+  int depth() const { return depth_; }
+
+  // Visits the leaves whose boxes the ray meets within (t_min, t_max), near first; `leaf(first,
+  // count, t_max)` tests those primitives and returns the (possibly shrunk) t_max.
+  template <class Leaf>
+  Scalar traverse(const Vec3& origin, const Vec3& direction, Scalar t_min, Scalar t_max,
+                  Leaf&& leaf) const {
+    if (nodes_.empty()) return t_max;
+    const Vec3 inv_dir = direction.cwiseInverse();
+    std::int32_t stack[kStackSize];
+    int top = 0;
+    std::int32_t node = 0;
+    for (;;) {
+      const BvhNode& n = nodes_[static_cast<size_t>(node)];
+      if (hit_box(n.lo, n.hi, origin, inv_dir, t_min, t_max)) {
+        if (n.count > 0) {
+          t_max = leaf(n.first, n.count, t_max);
+        } else if (direction[n.axis] < 0) {
+          stack[top++] = node + 1;
+          node = n.second;
+          continue;
+        } else {
+          stack[top++] = n.second;
+          node = node + 1;
+          continue;
+        }
+      }
+      if (top == 0) break;
+      node = stack[--top];
+    }
+    return t_max;
+  }
+
+  // Calls `visit(primitive)` for every primitive of every leaf whose box overlaps [lo, hi]
+  // (closed boxes, so touching boxes count: the contact broad phase must never drop a pair at
+  // the threshold). A superset of the primitives whose own boxes overlap: the tree keeps no
+  // per-primitive boxes, so callers test their primitives themselves.
+  template <class Visit>
+  void query(const Scalar lo[3], const Scalar hi[3], Visit&& visit) const {
+    if (nodes_.empty()) return;
+    std::int32_t stack[kStackSize];
+    int top = 0;
+    std::int32_t node = 0;
+    for (;;) {
+      const BvhNode& n = nodes_[static_cast<size_t>(node)];
+      const bool overlap = n.lo[0] <= hi[0] && lo[0] <= n.hi[0] && n.lo[1] <= hi[1] &&
+                           lo[1] <= n.hi[1] && n.lo[2] <= hi[2] && lo[2] <= n.hi[2];
+      if (overlap) {
+        if (n.count > 0) {
+          for (std::int32_t i = 0; i < n.count; ++i) visit(order_[static_cast<size_t>(n.first + i)]);
+        } else {
+          stack[top++] = n.second;
+          node = node + 1;
+          continue;
+        }
+      }
+      if (top == 0) break;
+      node = stack[--top];
+    }
+  }
+
+ private:
+  std::int32_t build(Index begin, Index end, int depth, const std::vector<Scalar>& lo,
+                     const std::vector<Scalar>& hi, const std::vector<Scalar>& centroid);
+
+  std::vector<BvhNode> nodes_;
+  std::vector<Index> order_;
+  int depth_ = 0;
+};
+
+}  // namespace kinema::geometry
