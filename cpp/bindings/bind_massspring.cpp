@@ -226,7 +226,7 @@ void bind_massspring(py::module_& m) {
                ReleaseGil release;
                for (Index k = 0; k < steps; ++k) {
                  interrupt.check();
-                 last = with_rollback(s.state, [&] { return s.solver->step(s.state, dt, u, interrupt); });
+                 last = with_rollback(s.state, [&] { return s.solver->step(s.state, dt, interrupt, u); });
                  stats.clamped = stats.clamped || last.clamped;
                  stats.refactored = stats.refactored || last.refactored;
                  stats.cg_iterations += last.cg_iterations;

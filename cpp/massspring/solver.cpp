@@ -213,7 +213,7 @@ void Solver::record_solve(FactorRecord& r, const State& state, Scalar dt, bool c
 
 // ---------------------------------------------------------------- step
 
-StepStats Solver::step(State& state, Scalar dt, const Scalar* control, Interrupt& interrupt) {
+StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt, const Scalar* control) {
   check_dt(dt);
   check_config(config_);
   Stopwatch clock, phase;

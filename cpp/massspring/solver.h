@@ -103,10 +103,7 @@ class Solver {
   State initial_state(const Scalar* x0) const;
 
   // control: n d forces [N] added where gravity is (fixed vertices ignore them), or null.
-  StepStats step(State& state, Scalar dt, const Scalar* control, Interrupt& interrupt);
-  StepStats step(State& state, Scalar dt, Interrupt& interrupt) {
-    return step(state, dt, nullptr, interrupt);
-  }
+  StepStats step(State& state, Scalar dt, Interrupt& interrupt, const Scalar* control = nullptr);
 
   // Vector-Jacobian product of step(before, dt, control) -> after. On entry adjoint.x, adjoint.v
   // hold dL/dx', dL/dv'; on exit dL/dx, dL/dv of `before`. dL/d(parameters) of this step are

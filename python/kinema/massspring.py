@@ -36,7 +36,8 @@ import numpy as np
 
 from kinema import _core
 from kinema._checks import (
-    as_float_array, choice, finite_result, positive_int, real, simulation_object, spacing)
+    as_float_array, choice, finite_result, gravity_vector, indices, positive_int, real, simulation_object,
+    spacing)
 from kinema._state import assign
 
 __all__ = ["System", "Config", "StepStats", "Integrator", "cloth", "INTEGRATORS"]
@@ -61,31 +62,6 @@ def _per_item(value, count, name):
     elif a.shape != (count,):
         raise ValueError(f"{name}: expected a scalar or shape ({count},), got {a.shape}")
     return np.ascontiguousarray(a)
-
-
-def _indices(value, name, n, shape_tail=None):
-    a = np.asarray(value)
-    if a.size == 0:
-        a = a.reshape((0,) + (shape_tail or ()))
-    if a.dtype.kind not in "iu":
-        raise ValueError(f"{name}: expected integer indices, got dtype {a.dtype}")
-    a = np.ascontiguousarray(a, dtype=np.int64)
-    if shape_tail is not None and (a.ndim != 1 + len(shape_tail) or a.shape[1:] != shape_tail):
-        raise ValueError(f"{name}: expected shape (m, {', '.join(map(str, shape_tail))}), "
-                         f"got {a.shape}")
-    if a.size and (a.min() < 0 or a.max() >= n):
-        bad = int(a.ravel()[np.flatnonzero((a.ravel() < 0) | (a.ravel() >= n))[0]])
-        raise ValueError(f"{name}: index {bad} outside [0, {n})")
-    return a
-
-
-def _gravity(gravity, d):
-    if gravity is None:
-        return []
-    g = as_float_array(gravity, "gravity", ndim=1)
-    if g.shape != (d,):
-        raise ValueError(f"gravity: expected {d} components, got shape {g.shape}")
-    return [float(c) for c in g]
 
 
 def _enum(value, name, enum, options):
@@ -124,7 +100,7 @@ class System:
             raise ValueError(f"x: expected shape (n, 2) or (n, 3), got {x.shape}")
         if n < 1:
             raise ValueError("x: expected at least one vertex")
-        springs = _indices(springs, "springs", n, (2,))
+        springs = indices(springs, "springs", n, (2,))
         m = springs.shape[0]
         if m and (springs[:, 0] == springs[:, 1]).any():
             s = int(np.flatnonzero(springs[:, 0] == springs[:, 1])[0])
@@ -137,8 +113,8 @@ class System:
         self._core = _core.massspring.System(
             x, springs, _per_item(stiffness, m, "stiffness"), _per_item(rest_length, m, "rest_length"),
             _per_item(damping, m, "damping"), _per_item(mass, n, "mass"),
-            _indices(np.asarray(fixed).ravel() if np.size(fixed) else np.zeros(0, np.int64), "fixed", n),
-            _gravity(gravity, d))
+            indices(np.asarray(fixed).ravel() if np.size(fixed) else np.zeros(0, np.int64), "fixed", n),
+            gravity_vector(gravity, d))
         self.springs = springs
 
     @property
