@@ -229,11 +229,16 @@ class Rollout:
 
     def _advance(self, state: dict, first: int, count: int) -> dict:
         """The state `count` steps after `state` (which is the state before step `first`)."""
-        self._sim.set_state(state)
+        # set_state can be costly (an implicit solver rebuilds the factor its state records);
+        # it is skipped when the simulation already holds `state` (it was the last one made).
+        if self._current is not state:
+            self._sim.set_state(state)
         for k in range(first, first + count):
             self._step(k)
             self.recomputed_steps += 1
-        return _copy_state(self._sim.state())
+        after = _copy_state(self._sim.state())
+        self._current = after
+        return after
 
     def backward(self, grads: dict) -> dict:
         """dL/d(input) for every name in ``wrt`` from ``grads``: name -> dL/d(final value) for
@@ -263,6 +268,7 @@ class Rollout:
         self._params = {}
         self._grad_controls = None if self._controls is None else np.zeros_like(self._controls)
         self.recomputed_steps = 0
+        self._current = None
         base = 1 + len(self._spine) if self._stored is None else len(self._stored)
         self._held = base
         self.peak_states = base
@@ -290,6 +296,7 @@ class Rollout:
         return out
 
     def _adjoint(self, k: int, before: dict, after: dict, g: dict) -> dict:
+        self._current = None  # an adjoint step may leave the simulation in any state
         control = None if self._controls is None else self._controls[k]
         gb, gp, gc = self._sim._diff_step_adjoint(self.dt, before, after, control, g, self._options)
         for name, value in gp.items():
