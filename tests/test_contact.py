@@ -269,6 +269,8 @@ def test_bad_input_is_refused_clearly():
         scene.step(-1.0)
     with pytest.raises(ValueError, match="dt"):
         scene.step(float("nan"))
+    with pytest.raises(ValueError, match="dt: .*finite square"):
+        scene.step(1e308)
 
 
 def test_contact_examples_run_small(tmp_path):

@@ -329,7 +329,9 @@ void Solver::assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, cons
 
 StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
   Stopwatch timer;
-  if (!(std::isfinite(dt) && dt > 0)) throw InvalidArgument("dt: expected a finite value > 0, got " + format_real(dt));
+  // The incremental potential weighs the elastic and barrier energies by dt^2: that must be finite.
+  if (!(std::isfinite(dt) && dt > 0 && std::isfinite(dt * dt)))
+    throw InvalidArgument("dt: expected a finite value > 0 with a finite square, got " + format_real(dt));
   const Index n = model_.vertex_count;
   if (static_cast<Index>(state.x.size()) != 3 * n || static_cast<Index>(state.v.size()) != 3 * n)
     throw InvalidArgument("state: expected " + std::to_string(n) + " vertices");
