@@ -157,7 +157,7 @@ def test_errors_name_the_argument():
         diff.rollout(make(), 3, 0.1, wrt=("controls",))
     with pytest.raises(ValueError, match=r"controls: expected shape \(3, 5, 2\)"):
         diff.rollout(make(), 3, 0.1, wrt=("x",), controls=np.zeros((3, 5, 3)))
-    with pytest.raises(ValueError, match="controls: contains NaN"):
+    with pytest.raises(ValueError, match=r"controls: contains .*NaN"):
         diff.rollout(make(), 1, 0.1, wrt=("x",), controls=np.full((1, 5, 2), np.nan))
     with pytest.raises(ValueError, match="checkpoints"):
         diff.rollout(make(), 3, 0.1, wrt=("x",), checkpoints=0)
@@ -176,7 +176,7 @@ def test_errors_name_the_argument():
         run.backward({"x": np.zeros(3)})
     with pytest.raises(ValueError, match="grads: unknown name 'w'"):
         run.backward({"w": np.zeros((5, 2))})
-    with pytest.raises(ValueError, match=r"grads\['v'\]: contains NaN"):
+    with pytest.raises(ValueError, match=r"grads\['v'\]: contains .*NaN"):
         run.backward({"v": np.full((5, 2), np.inf)})
 
 

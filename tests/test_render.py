@@ -337,6 +337,62 @@ def test_preview_function_and_shading():
     assert np.isclose(floor_only, 0.5).mean() > 0.3  # many floor pixels are not covered
 
 
+def test_splat_spheres_sees_what_the_preview_sees():
+    """The splat's visible sphere at every pixel is the preview's (itself the tracer's primary
+    hit), its depth that distance in float32, and its normal the sphere's at the hit point."""
+    rng = np.random.default_rng(11)
+    centers = rng.uniform(-1, 1, (3000, 3))
+    radii = rng.uniform(0.01, 0.08, 3000)
+    cam = R.Camera((0.4, 0.9, 3.2), (0, 0, 0), vfov=50, width=120, height=90)
+    scene = R.Scene()
+    scene.add_spheres(centers, radii, R.lambertian(0.5))
+    _, ids_ref, depth_ref = scene.preview(cam, return_ids=True)
+    depth, normals, ids, hits = R.splat_spheres(cam, centers, radii)
+    assert depth.dtype == np.float32 and normals.dtype == np.float32 and ids.dtype == np.int32
+    assert np.array_equal(ids, ids_ref), f"{np.count_nonzero(ids != ids_ref)} pixels differ"
+    hit = ids >= 0
+    assert hits == hit.sum() > 0.3 * hit.size
+    assert np.isinf(depth[~hit]).all() and (normals[~hit] == 0).all()
+    # float32 holds the distance to half an ulp of ~4: 2.4e-7 relative.
+    np.testing.assert_allclose(depth[hit], depth_ref[hit], rtol=2.4e-7)
+    # The normal is (p - c) / r at the hit p on the ray through the pixel centre.
+    frame_rows, frame_cols = np.nonzero(hit)
+    p = np.asarray(cam.look_from) + depth_ref[hit][:, None] * camera_rays(cam, 0.5, 0.5)[frame_rows, frame_cols]
+    expected = (p - centers[ids[hit]]) / radii[ids[hit]][:, None]
+    np.testing.assert_allclose(normals[hit], expected, atol=2e-5)
+    np.testing.assert_allclose(np.linalg.norm(normals[hit], axis=1), 1, atol=2e-5)
+
+
+def test_splat_spheres_one_radius_threads_and_bad_input():
+    rng = np.random.default_rng(3)
+    centers = rng.normal(size=(20000, 3))
+    cam = R.Camera((0, 0.5, 6), (0, 0, 0), width=160, height=120)
+    old = km.get_num_threads()
+    try:
+        km.set_num_threads(1)
+        one = R.splat_spheres(cam, centers, 0.05)
+        km.set_num_threads(2)
+        two = R.splat_spheres(cam, centers, np.full(20000, 0.05))
+    finally:
+        km.set_num_threads(old)
+    for a, b in zip(one[:3], two[:3]):
+        assert np.array_equal(a, b)
+    empty = R.splat_spheres(cam, np.zeros((0, 3)), 0.1)
+    assert empty[3] == 0 and (empty[2] == -1).all()
+    behind = R.splat_spheres(cam, [[0, 0, 20]], 0.5)  # behind the camera
+    assert behind[3] == 0
+    with pytest.raises(ValueError, match="radii"):
+        R.splat_spheres(cam, centers, 0.0)
+    with pytest.raises(ValueError, match="radii"):
+        R.splat_spheres(cam, centers, np.ones(3))
+    with pytest.raises(ValueError, match="centers"):
+        R.splat_spheres(cam, np.ones((4, 2)), 0.1)
+    with pytest.raises(ValueError, match="centers"):
+        R.splat_spheres(cam, [[0, 0, np.nan]], 0.1)
+    with pytest.raises(ValueError, match="camera"):
+        R.splat_spheres("camera", centers, 0.1)
+
+
 # ------------------------------------------------------------------ determinism and output
 
 

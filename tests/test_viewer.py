@@ -64,8 +64,9 @@ def _bluish(img):
     return (rgb[..., 2] > rgb[..., 0] + 60) & (rgb[..., 2] > 90)
 
 
-def test_screenshot_shows_the_particles_inside_their_projected_box(display):
-    v = kv.Viewer("dam_break", quick=True, quantity=kv.NONE, width=640, height=480)
+@pytest.mark.parametrize("points", ["polyscope", "splat"])
+def test_screenshot_shows_the_particles_inside_their_projected_box(display, points):
+    v = kv.Viewer("dam_break", quick=True, quantity=kv.NONE, width=640, height=480, points=points)
     try:
         v.step(3)
         img = v.screenshot()
@@ -117,8 +118,9 @@ def test_pause_step_reset_and_keys_change_the_state_as_they_should(display):
         v.close()
 
 
-def test_quantity_picker_recolours_the_particles(display):
-    v = kv.Viewer("dam_break", quick=True, paused=True, width=320, height=240)
+@pytest.mark.parametrize("points", ["polyscope", "splat"])
+def test_quantity_picker_recolours_the_particles(display, points):
+    v = kv.Viewer("dam_break", quick=True, paused=True, width=320, height=240, points=points)
     try:
         assert v.quantities[0] == kv.NONE and {"velocity", "density"} <= set(v.quantities)
         v.step(4)
@@ -133,6 +135,46 @@ def test_quantity_picker_recolours_the_particles(display):
             v.quantity = "no such thing"
     finally:
         v.close()
+
+
+def test_splatted_particles_follow_the_camera_and_hide_behind_each_other(display):
+    """Splats are made for the camera of the frame: orbiting while paused redraws them where the
+    particles now project; the particle nearest the eye is the one seen where two overlap."""
+    v = kv.Viewer("dam_break", quick=True, paused=True, quantity=kv.NONE, width=320, height=240,
+                  points="splat")
+    try:
+        before = _bluish(v.screenshot())
+        v.ps.look_at((3.0, 2.0, -2.5), (0.4, 0.2, 0.2))  # from behind, the other side
+        after = _bluish(v.screenshot())
+        x = v.source.sim.fluid.x
+        col, row = v.project(x)
+        inside = (col >= 0) & (col < 320) & (row >= 0) & (row < 240)
+        seen = after[row[inside].astype(int), col[inside].astype(int)]
+        # Most particle centres land on blue pixels in the new view, and the view changed.
+        assert seen.mean() > 0.8, seen.mean()
+        assert (before != after).mean() > 0.02
+    finally:
+        v.close()
+    # Two particles on the view axis: the nearer, a solid one (grey), hides the fluid (blue).
+    near = kv.CallbackSource(lambda: 1, lambda: {"fluid": (np.array([[0.0, 0.0, 0.0]]), {"speed": np.ones(1)}),
+                                                  "wall": (np.array([[0.0, 0.0, 0.5]]), {})}, name="pair")
+    v = kv.Viewer(near, quantity=kv.NONE, point_radius=0.2, width=200, height=200, points="splat")
+    try:
+        v.ps.look_at((0.0, 0.0, 3.0), (0.0, 0.0, 0.0))
+        img = v.screenshot()
+        col, row = v.project(np.array([[0.0, 0.0, 0.5]]))
+        centre = img[int(row[0]), int(col[0])].astype(int)
+        assert not _bluish(img[int(row[0]) - 2:int(row[0]) + 3, int(col[0]) - 2:int(col[0]) + 3]).any()
+        assert abs(centre[0] - centre[2]) < 40 and centre.sum() > 150, centre  # grey, lit
+    finally:
+        v.close()
+
+
+def test_viewer_point_options_are_checked():
+    with pytest.raises(ValueError, match="points"):
+        kv.Viewer("dam_break", quick=True, points="quads")
+    with pytest.raises(ValueError, match="splat_scale"):
+        kv.Viewer("dam_break", quick=True, splat_scale=0)
 
 
 def test_2d_grid_field_drawn_as_an_image(display):

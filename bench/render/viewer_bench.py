@@ -3,12 +3,14 @@ whatever OpenGL the display offers (here: Mesa's llvmpipe software rasteriser un
 
     python bench/render/viewer_bench.py                   # 1e4, 1e5, 1e6 particles, 1024x768
     python bench/render/viewer_bench.py --sizes 100000 --width 640 --height 480
+    python bench/render/viewer_bench.py --points splat --splat-scale 0.5
 
 A frame is what the window does while a simulation runs: new positions and a new colour
 quantity (speed) uploaded, then drawn and presented (Viewer.tick with a CallbackSource that
 moves the particles: a ball of n particles rotating about the vertical axis, so the work per
-frame does not change). Particles are drawn as shaded sphere impostors up to 2e4 and as flat
-quads beyond (Viewer's choice, kv.QUAD_ABOVE). Before a time is recorded, a screenshot must show the particles'
+frame does not change). Each size is drawn both ways, in the same run: Polyscope's own sphere
+impostors (points="polyscope") and kinema's CPU splat composited by depth (points="splat", the
+viewer's choice above kv.SPLAT_ABOVE particles). Before a time is recorded, a screenshot must show the particles'
 colours inside the ball's projection. The time of 20 frames after 3 warm-up frames is timed by
 bench/common/harness.py (other processes' load recorded, disturbed runs retried). Starts an Xvfb when
 no DISPLAY is set. CSV: bench/out/viewer.csv.
@@ -80,14 +82,16 @@ def main(argv=None):
     p.add_argument("--width", type=int, default=1024)
     p.add_argument("--height", type=int, default=768)
     p.add_argument("--frames", type=int, default=20)
+    p.add_argument("--points", nargs="*", default=["polyscope", "splat"], choices=["polyscope", "splat"])
+    p.add_argument("--splat-scale", type=float, default=1.0)
     args = p.parse_args(argv)
     xvfb = ensure_display()
     rec = harness.Recorder(OUT / "viewer.csv", "viewer_fps", threads=km.get_num_threads())
     try:
-        for n in args.sizes:
+        for n, points in ((n, points) for n in args.sizes for points in args.points):
             ball = Ball(n)
             v = kv.Viewer(kv.CallbackSource(ball.step, ball.items, name="ball"), point_radius=0.6 / n ** (1 / 3),
-                          width=args.width, height=args.height)
+                          width=args.width, height=args.height, points=points, splat_scale=args.splat_scale)
             renderer = v.ps.get_render_engine_backend_name() if hasattr(v.ps, "get_render_engine_backend_name") else ""
             v.tick(3)
             img = v.screenshot()
@@ -97,10 +101,11 @@ def main(argv=None):
                 raise AssertionError(f"n={n}: the ball's centre shows the background; not recording")
             m = harness.measure(lambda: v.tick(args.frames), min_of=2, max_tries=3)
             fps = args.frames / m.seconds
-            rec.record("polyscope-" + ("sphere" if n <= kv.QUAD_ABOVE else "quad"), n, m.seconds / args.frames,
+            rec.record(f"viewer-{points}", n, m.seconds / args.frames,
                        measurement=m, notes={"fps": f"{fps:.2f}", "window": f"{args.width}x{args.height}",
-                                             "gl": "mesa-llvmpipe-xvfb", "backend": renderer})
-            print(f"{n:9d} particles  {fps:7.2f} fps  ({m.seconds / args.frames * 1e3:7.1f} ms/frame, "
+                                             "gl": "mesa-llvmpipe-xvfb", "backend": renderer,
+                                             "splat_scale": args.splat_scale})
+            print(f"{n:9d} particles  {points:9s} {fps:7.2f} fps  ({m.seconds / args.frames * 1e3:7.1f} ms/frame, "
                   f"other load {m.other_load:.2f} cores{', disturbed' if m.disturbed else ''})", flush=True)
             v.close()
     finally:

@@ -5,6 +5,7 @@
 
 #include "bindings/common.h"
 #include "render/preview.h"
+#include "render/splat.h"
 #include "render/tracer.h"
 
 namespace kinema::bind {
@@ -48,6 +49,27 @@ Index rows3(py::array& a, const char* name) {
 }  // namespace
 
 void bind_render(py::module_& m) {
+  m.def(
+      "splat_spheres",
+      [](py::array centers, py::array radii, const Triple& look_from, const Triple& look_at,
+         const Triple& up, Scalar vfov, Index width, Index height) {
+        const render::Camera cam = camera(look_from, look_at, up, vfov, width, height);
+        const Index n = rows3(centers, "centers");
+        const Index radius_count = radii.size() == 1 ? 1 : n;
+        const Scalar* c = checked_data(centers, "centers", 3 * n, false);
+        const Scalar* r = checked_data(radii, "radii", radius_count, false);
+        render::SplatResult out;
+        {
+          Interrupt interrupt = python_interrupt();
+          ReleaseGil release;
+          out = render::splat_spheres(c, n, r, radius_count, cam, interrupt);
+        }
+        return py::make_tuple(to_numpy(std::move(out.depth), {height, width}),
+                              to_numpy(std::move(out.normal), {height, width, 3}),
+                              to_numpy(std::move(out.ids), {height, width}), out.hits);
+      },
+      py::arg("centers"), py::arg("radii"), py::arg("look_from"), py::arg("look_at"),
+      py::arg("up"), py::arg("vfov"), py::arg("width"), py::arg("height"));
   py::class_<render::Scene>(m, "Scene")
       .def(py::init<>())
       .def(

@@ -51,6 +51,8 @@ import numbers
 
 import numpy as np
 
+from kinema._checks import as_float_array
+
 __all__ = ["rollout", "Rollout"]
 
 _PROTOCOL = ("parameters", "state", "set_state", "_diff_state_names", "_diff_check",
@@ -99,8 +101,8 @@ def _check_run(steps, dt) -> tuple:
         raise ValueError(f"steps: expected an int >= 0, got {steps!r}")
     try:
         dt = float(dt)
-    except (TypeError, ValueError):
-        raise ValueError(f"dt: expected a number, got {type(dt).__name__}") from None
+    except (TypeError, ValueError, OverflowError):
+        raise ValueError(f"dt: expected a finite step > 0 [s], got {dt!r:.60}") from None
     if not (math.isfinite(dt) and dt > 0):
         raise ValueError(f"dt: expected a finite step > 0 [s], got {dt!r}")
     return int(steps), dt
@@ -143,14 +145,9 @@ def rollout(sim, steps, dt, *, wrt, controls=None, checkpoints=None, **step_opti
             raise ValueError("controls: 'controls' is in wrt but no controls were given")
     else:
         shape = (steps,) + tuple(sim._diff_control_shape())
-        try:
-            controls = np.ascontiguousarray(controls, dtype=np.float64)
-        except (TypeError, ValueError):
-            raise ValueError(f"controls: expected a real array of shape {shape}") from None
+        controls = as_float_array(controls, "controls")
         if controls.shape != shape:
             raise ValueError(f"controls: expected shape {shape}, got {controls.shape}")
-        if not np.isfinite(controls).all():
-            raise ValueError("controls: contains NaN or inf")
     if checkpoints is not None:
         if isinstance(checkpoints, bool) or not isinstance(checkpoints, numbers.Integral) or checkpoints < 1:
             raise ValueError(f"checkpoints: expected None or an int >= 1, got {checkpoints!r}")
@@ -250,14 +247,9 @@ class Rollout:
         for name in self._state_names:
             shape = self.outputs[name].shape
             if name in grads:
-                try:
-                    a = np.ascontiguousarray(grads[name], dtype=np.float64)
-                except (TypeError, ValueError):
-                    raise ValueError(f"grads[{name!r}]: expected a real array of shape {shape}") from None
+                a = as_float_array(grads[name], f"grads[{name!r}]")
                 if a.shape != shape:
                     raise ValueError(f"grads[{name!r}]: expected shape {shape}, got {a.shape}")
-                if not np.isfinite(a).all():
-                    raise ValueError(f"grads[{name!r}]: contains NaN or inf")
                 g[name] = a.copy()
             else:
                 g[name] = np.zeros(shape)

@@ -43,8 +43,14 @@ NONE = "(none)"
 #: Arrows across a 2D grid's longer side for its vector field; their colour.
 ARROWS_ACROSS = 32
 ARROW_COLOR = (0.95, 0.95, 0.95)
-#: Particle counts above which points are drawn as flat quads (not sphere impostors).
-QUAD_ABOVE = 20_000
+#: Particle counts above which particles are not Polyscope point clouds but spheres splatted on
+#: the CPU by km.render.splat_spheres (depth, normal and quantity per pixel) and composited into
+#: Polyscope's view by depth (its render-image quantities), with points="auto". Polyscope expands
+#: every point in a geometry shader, which Mesa's software OpenGL (llvmpipe, what a machine
+#: without a GPU has) runs on the CPU: about 100 ms per 1e5 points, against milliseconds for the
+#: splat (bench/render/viewer_bench.py). On a GPU, points="polyscope" is the faster choice.
+SPLAT_ABOVE = 20_000
+SPLAT_NAME = "particles (splatted)"
 
 
 class ViewerUnavailable(KinemaError):
@@ -336,10 +342,23 @@ class Viewer:
     quantity: the quantity to colour by at start (default: the first one, e.g. velocity).
     point_radius: sphere radius of particles [m] (default: from the scene's spacing, or 0.4%
     of the scene's size). paused: start paused. width, height: window size [pixels].
+    points: how particles are drawn: "polyscope" (Polyscope's sphere impostors, best on a GPU),
+    "splat" (spheres splatted on the CPU and composited by depth, best on a software renderer)
+    or "auto" (splat above SPLAT_ABOVE particles). splat_scale: resolution of the splat relative
+    to the window, in (0, 1] (0.5 renders a quarter of the pixels).
     """
 
     def __init__(self, source, *, quantity=None, point_radius=None, paused=False, width=1024, height=768,
-                 quick=False, overrides=(), cmap="viridis"):
+                 quick=False, overrides=(), cmap="viridis", points="auto", splat_scale=1.0):
+        if points not in ("auto", "polyscope", "splat"):
+            raise ValueError(f"points: expected 'auto', 'polyscope' or 'splat', got {points!r}")
+        if isinstance(splat_scale, bool) or not isinstance(splat_scale, (int, float)) or \
+                not 0 < splat_scale <= 1:
+            raise ValueError(f"splat_scale: expected a number in (0, 1], got {splat_scale!r}")
+        self.points = points
+        self.splat_scale = float(splat_scale)
+        self._splats = {}  # name -> (points, radius, point data, solid) of splatted particles
+        self._splat_view = None  # camera and size the splats were made for
         self.ps = _polyscope()
         self.source = _source(source, quick, overrides)
         _init(self.ps, width, height, f"kinema: {self.source.name}")
@@ -424,6 +443,7 @@ class Viewer:
         """Back to the start: a scene is rebuilt, a run shows its first frame."""
         self.source.reset()
         self.ps.remove_all_structures()
+        self._remove_splats()
         self._structures = {}
         self._rates = []
         self.steps_per_second = 0.0
@@ -453,6 +473,7 @@ class Viewer:
                 self.frames_per_second = 0.8 * self.frames_per_second + 0.2 / (now - self._last_tick) \
                     if self.frames_per_second else 1.0 / (now - self._last_tick)
             self._last_tick = now
+            self._refresh_splats()
             self.ps.frame_tick()
 
     def show(self):
@@ -463,6 +484,7 @@ class Viewer:
 
     def screenshot(self, path=None):
         """The view (without the panel) as an (H, W, 3) uint8 array; also a PNG at ``path``."""
+        self._refresh_splats()
         self.ps.frame_tick()
         rgba = np.asarray(self.ps.screenshot_to_buffer(transparent_bg=False, include_UI=False))
         rgb = np.ascontiguousarray(rgba[..., :3])
@@ -491,6 +513,7 @@ class Viewer:
         """Removes what this viewer drew (Polyscope's window stays for the next viewer)."""
         self.ps.set_user_callback(None)
         self.ps.remove_all_structures()
+        self._remove_splats()
         self._structures = {}
 
     def _draw(self):
@@ -537,34 +560,87 @@ class Viewer:
             kwargs = {"defined_on": defined_on} if defined_on else {}
             structure.add_scalar_quantity(key, _scalars(values), enabled=(key == q), cmap=self.cmap, **kwargs)
 
+    def _point_radius(self, n):
+        if self.point_radius is not None:
+            return float(self.point_radius)
+        sim = getattr(self.source, "sim", None)
+        spacing = getattr(sim, "spacing", None)
+        return 0.5 * spacing if spacing else 0.004 * self._lengths()
+
     def _draw_points(self, item):
         ps = self.ps
         pts = _pad3(item.points)
         solid = not item.point_data
+        if self.points == "splat" or (self.points == "auto" and len(pts) > SPLAT_ABOVE):
+            radius = self._splats[item.name][1] if item.name in self._splats else self._point_radius(len(pts))
+            self._splats[item.name] = (pts, radius, item.point_data, solid)
+            self._splat_view = None  # redrawn before the next frame
+            # Polyscope's ground plane writes depth where its shadow is drawn, which would cut the
+            # composited spheres at the floor: no ground plane with splats.
+            ps.set_ground_plane_mode("none")
+            return
         entry = self._structures.get(item.name)
         if entry and entry[0] == "point_cloud" and entry[1].n_points() == len(pts):
             pc = entry[1]
             pc.update_point_positions(pts)
         else:
-            if self.point_radius is not None:
-                radius = float(self.point_radius)
-            else:
-                sim = getattr(self.source, "sim", None)
-                spacing = getattr(sim, "spacing", None)
-                radius = 0.5 * spacing if spacing else 0.004 * self._lengths()
-            # Shaded sphere impostors cost llvmpipe ~5x the flat quads (measured: bench/RESULTS.md);
-            # beyond QUAD_ABOVE particles the quads and no ground shadow keep the window usable.
-            big = len(pts) > QUAD_ABOVE
-            pc = ps.register_point_cloud(item.name, pts, color=SOLID_COLOR if solid else FLUID_COLOR,
-                                         point_render_mode="quad" if big else "sphere")
-            if big:
-                ps.set_ground_plane_mode("none")
-            pc.set_radius(radius, relative=False)
+            pc = ps.register_point_cloud(item.name, pts, color=SOLID_COLOR if solid else FLUID_COLOR)
+            pc.set_radius(self._point_radius(len(pts)), relative=False)
             self._structures[item.name] = ("point_cloud", pc)
         self._colour(pc, item.point_data)
         v = item.point_data.get("velocity")
         if v is not None and np.ndim(v) == 2 and len(pts) <= 20_000:
             pc.add_vector_quantity("velocity vectors", _pad3(v), enabled=False)
+
+    def _refresh_splats(self):
+        """Splats the particles again when they, the quantity or the camera changed since the
+        last splat. All splatted items go into one image (one depth buffer: they hide each other
+        correctly), coloured per particle by the quantity's colormap or their solid colour."""
+        if not self._splats:
+            return
+        from kinema.render import Camera, splat_spheres
+
+        ps = self.ps
+        params = ps.get_view_camera_parameters()
+        width, height = ps.get_buffer_size()
+        w, h = max(1, round(width * self.splat_scale)), max(1, round(height * self.splat_scale))
+        view = (np.asarray(params.get_view_mat()).tobytes(), params.get_fov_vertical_deg(), w, h, self._quantity)
+        if view == self._splat_view:
+            return
+        eye, look, up = (np.asarray(v, float) for v in (params.get_position(), params.get_look_dir(),
+                                                          params.get_up_dir()))
+        camera = Camera(tuple(eye), tuple(eye + look), tuple(up), params.get_fov_vertical_deg(), width=w, height=h)
+        points, radii, colours = [], [], []
+        for pts, radius, data, solid in self._splats.values():
+            points.append(pts)
+            radii.append(np.full(len(pts), radius))
+            colours.append(self._particle_colours(data, solid, len(pts)))
+        depth, normals, ids, _ = splat_spheres(camera, np.concatenate(points), np.concatenate(radii))
+        table = np.concatenate(colours + [np.zeros((1, 3), np.float32)])  # ids of -1: the last row
+        ps.add_color_render_image_quantity(SPLAT_NAME, depth, normals, table[ids], enabled=True,
+                                           allow_fullscreen_compositing=True)
+        self._splat_view = view
+
+    def _particle_colours(self, data, solid, n):
+        """(n, 3) float32 colours of splatted particles: the picked quantity through the colormap
+        (scaled to its range in this frame, as Polyscope's point clouds do), else a solid colour."""
+        q = self._quantity
+        if q not in data:
+            return np.tile(np.asarray(SOLID_COLOR if solid else FLUID_COLOR, np.float32), (n, 1))
+        import matplotlib
+
+        values = _scalars(data[q])
+        lo, hi = float(values.min()), float(values.max())
+        t = (values - lo) / (hi - lo) if hi > lo else np.full(n, 0.5)
+        return matplotlib.colormaps[self.cmap](t)[:, :3].astype(np.float32)
+
+    def _remove_splats(self):
+        if self._splats:
+            from polyscope.global_floating_quantity_structure import FloatingQuantityStructure
+
+            FloatingQuantityStructure().remove_quantity(SPLAT_NAME, error_if_absent=False)
+        self._splats = {}
+        self._splat_view = None
 
     def _draw_surface(self, item):
         ps = self.ps

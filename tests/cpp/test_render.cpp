@@ -10,7 +10,9 @@
 #include "core/parallel.h"
 #include "render/camera.h"
 #include "render/kernels.h"
+#include "render/preview.h"
 #include "render/scene.h"
+#include "render/splat.h"
 #include "render/tracer.h"
 
 namespace kinema::render {
@@ -314,6 +316,46 @@ TEST(RenderTracer, ImageIndependentOfThreadCount) {
   EXPECT_EQ(one.image, two.image);
   EXPECT_EQ(one.stats.rays, two.stats.rays);
   EXPECT_GT(one.stats.rays, cam.width * cam.height * 3);
+}
+
+// The splat's visible sphere per pixel is the preview's (a sphere in front of another hides it;
+// the eye inside a sphere sees none of that sphere), its depth the preview's in float32.
+TEST(RenderSplat, SameVisibleSphereAsThePreview) {
+  std::mt19937_64 g(7);
+  std::uniform_real_distribution<Scalar> u(-1, 1), r(0.02, 0.2);
+  const Index n = 400;
+  std::vector<Scalar> centers(3 * n), radii(n);
+  for (Index i = 0; i < n; ++i) {
+    for (int a = 0; a < 3; ++a) centers[static_cast<size_t>(3 * i + a)] = u(g);
+    radii[static_cast<size_t>(i)] = r(g);
+  }
+  Scene scene;
+  scene.add_spheres(centers.data(), radii.data(), n, scene.add_material(Material{}));
+  Camera cam;
+  cam.look_from = Vec3(0.3, 0.6, 3.5);
+  cam.width = 48;
+  cam.height = 36;
+  Interrupt none;
+  const PreviewResult ref = preview(scene, cam, Sky{}, PreviewConfig{}, none);
+  const SplatResult s = splat_spheres(centers.data(), n, radii.data(), n, cam, none);
+  Index hits = 0;
+  for (size_t px = 0; px < s.ids.size(); ++px) {
+    ASSERT_EQ(s.ids[px], ref.ids[px]) << "pixel " << px;
+    if (s.ids[px] < 0) {
+      EXPECT_TRUE(std::isinf(s.depth[px]));
+      continue;
+    }
+    ++hits;
+    EXPECT_NEAR(s.depth[px], ref.depth[px], 4e-7 * ref.depth[px]);
+    const Scalar len = std::hypot(s.normal[3 * px], s.normal[3 * px + 1], s.normal[3 * px + 2]);
+    EXPECT_NEAR(len, 1, 1e-6);
+  }
+  EXPECT_EQ(hits, s.hits);
+  EXPECT_GT(hits, cam.width * cam.height / 4);
+  // One shared radius; the eye inside the only sphere: nothing seen.
+  const Scalar eye[3] = {0.3, 0.6, 3.5}, big = 1;
+  const SplatResult inside = splat_spheres(eye, 1, &big, 1, cam, none);
+  EXPECT_EQ(inside.hits, 0);
 }
 
 }  // namespace kinema::render

@@ -62,6 +62,11 @@ MPM_SIM = ("_m = km.mpm.Simulation((16, 16), 1/16); "
            "_m.add_particles(MPM_X, 'elastic', density=1000.0, youngs_modulus=1e4, poisson_ratio=0.3); ")
 NB_SYS = "_n = km.nbody.System(NB_X, NB_V, NB_M, softening=0.05); "
 VX_SYS = "_w = km.vortex.VortexParticles3D(VR_X, VR_A, 0.3); "
+CONTACT = ("_c = km.contact.Scene(gravity=[0, -9.81, 0]); "
+           "_c.add_solid(TET_V + [0.0, 0.05, 0.0], TET_E, youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0); "
+           "_c.add_collider('plane', point=[0.0, 0.0, 0.0], normal=[0.0, 1.0, 0.0]); ")
+DIFF = "_d = km.massspring.System(MS_X, [[0, 1], [1, 2]], stiffness=100.0, gravity=[0, -9.8, 0]); "
+TORCH = "_t = __import__('torch'); "
 
 # entry point -> (base call template with {name} slots, {name: (kind, base source)})
 ENTRIES = {
@@ -227,6 +232,46 @@ NEW_ENTRIES = {
                              "method": ("name", "'marching_cubes'"), "cell": ("real", "None"),
                              "iso": ("real", "None"), "smoothing": ("real", "None")}),
 }
+
+# km.contact, km.diff, km.torch and the viewer's splatter (added after the first fuzz rounds).
+NEW_ENTRIES.update({
+    "contact.Scene": ("_c = km.contact.Scene(gravity={gravity}, dhat={dhat}, friction={friction}, "
+                      "friction_velocity={fv}); _c.add_solid(TET_V + [0.0, 0.05, 0.0], TET_E, youngs_modulus=1e5, "
+                      "poisson_ratio=0.3, density=1000.0); _c.add_collider('plane'); _c.step(1e-2); _c.x",
+                      {"gravity": ("vector", "[0.0, -9.81, 0.0]"), "dhat": ("real", "1e-3"),
+                       "friction": ("real", "0.3"), "fv": ("real", "1e-3")}),
+    "contact.add_solid": ("_c = km.contact.Scene(); _c.add_solid({vertices}, {tets}, youngs_modulus={E}, "
+                          "poisson_ratio={nu}, density={rho}); _c.step(1e-2); _c.x",
+                          {"vertices": ("array", "TET_V"), "tets": ("index", "TET_E"), "E": ("real", "1e5"),
+                           "nu": ("real", "0.3"), "rho": ("real", "1000.0")}),
+    "contact.add_collider.plane": (CONTACT.replace("_c.add_collider('plane', point=[0.0, 0.0, 0.0], "
+                                                   "normal=[0.0, 1.0, 0.0]); ", "")
+                                   + "_c.add_collider('plane', point={point}, normal={normal}); _c.step(1e-2); _c.x",
+                                   {"point": ("vector", "[0.0, 0.0, 0.0]"), "normal": ("vector", "[0.0, 1.0, 0.0]")}),
+    "contact.add_collider.sphere": ("_c = km.contact.Scene(); _c.add_solid(TET_V + [0.0, 2.0, 0.0], TET_E, "
+                                    "youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0); "
+                                    "_c.add_collider('sphere', center={center}, radius={radius}); _c.step(1e-2); _c.x",
+                                    {"center": ("vector", "[0.0, -1.0, 0.0]"), "radius": ("real", "1.0")}),
+    "contact.step": (CONTACT + "_c.step({dt}); (_c.x, _c.min_distance(radius=10.0))", {"dt": ("real", "1e-2")}),
+    "contact.advance": (CONTACT + "_c.advance({duration}, {dt}); _c.x",
+                        {"duration": ("real", "2e-2"), "dt": ("real", "1e-2")}),
+    "diff.rollout": (DIFF + "_r = km.diff.rollout(_d, {steps}, {dt}, wrt={wrt}, checkpoints={checkpoints}, "
+                     "integrator={integrator}); _r.backward({{'x': np.ones((3, 3))}})",
+                     {"steps": ("count", "4"), "dt": ("real", "1e-2"), "wrt": ("name", "('x', 'v', 'stiffness')"),
+                      "checkpoints": ("count", "None"), "integrator": ("name", "'symplectic'")}),
+    "diff.controls": (DIFF + "_r = km.diff.rollout(_d, 4, 1e-2, wrt=('controls',), controls={controls}, "
+                      "integrator='implicit'); _r.backward({{'v': np.ones((3, 3))}})",
+                      {"controls": ("array", "np.zeros((4, 3, 3))")}),
+    "diff.backward": (DIFF + "_r = km.diff.rollout(_d, 3, 1e-2, wrt=('x', 'mass')); _r.backward({{'x': {g}}})",
+                      {"g": ("array", "np.ones((3, 3))")}),
+    "torch.rollout": (DIFF + TORCH + "_x = _t.tensor(MS_X, requires_grad=True); "
+                      "_o = km.torch.rollout(_d, {steps}, {dt}, {{'x': _x}}, integrator='symplectic'); "
+                      "_o['x'].sum().backward(); _x.grad.numpy()",
+                      {"steps": ("count", "3"), "dt": ("real", "1e-2")}),
+    # depth is inf where no sphere is hit (the documented sentinel): the ids and the hit count
+    "render.splat_spheres": ("km.render.splat_spheres(CAM, {centers}, {radii})[2:]",
+                             {"centers": ("array", "rng.random((50, 3))"), "radii": ("real", "0.1")}),
+})
 
 NEW_SCENARIOS = {
     "mpm.nan_view.x.step": MPM_SIM + "_m.x[0, 0] = np.nan; _m.step(1e-4); _m.x",
@@ -417,6 +462,30 @@ NEW_INTERRUPTIBLE = {"mpm.advance.huge", "nbody.advance.huge", "nbody.advance.dt
                      "nbody.plummer.huge", "vortex.ring.huge_n", "vortex.thick_ring.huge_layers", "mpm.huge_grid",
                      "surface.tiny_cell", "surface.far_apart", "surface.huge_extent", "mpm.sphere.huge",
                      "mpm.block.denormal", "fmm3d.leaf_size.huge"}
+
+NEW_SCENARIOS.update({
+    "contact.start_intersecting": ("_c = km.contact.Scene(); _c.add_solid(TET_V, TET_E, youngs_modulus=1e5, "
+                                   "poisson_ratio=0.3, density=1000.0); _c.add_solid(TET_V + 0.5, TET_E, "
+                                   "youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0); _c.step(1e-2)"),
+    "contact.nan_view.x": CONTACT + "_c.x[0, 0] = np.nan; _c.step(1e-2); _c.x",
+    "contact.set_state.nan": CONTACT + "_st = _c.state(); _st['x'][0, 0] = np.nan; _c.set_state(_st); _c.x",
+    "contact.huge_velocity": CONTACT + "_c.v = np.full_like(_c.v, 1e300); _c.step(1e-2); _c.x",
+    "contact.copy": CONTACT + "__import__('copy').copy(_c)",
+    "contact.advance.huge": CONTACT + "_c.advance(1e300, 1e-2)",
+    "diff.rollout.not_a_sim": "km.diff.rollout(object(), 3, 1e-2, wrt=('x',))",
+    "diff.rollout.steps_huge": DIFF + "km.diff.rollout(_d, 2**40, 1e-2, wrt=('x',), checkpoints=3)",
+    "diff.backward.unknown_name": DIFF + "km.diff.rollout(_d, 2, 1e-2, wrt=('x',)).backward({'q': np.ones(3)})",
+    "diff.backward.nan_state": (DIFF + "_d.x[0, 0] = np.nan; "
+                                "km.diff.rollout(_d, 2, 1e-2, wrt=('x',)).backward({'x': np.ones((3, 3))})"),
+    "torch.rollout.bad_input_name": DIFF + TORCH + "km.torch.rollout(_d, 2, 1e-2, {'nope': _t.ones(3)})",
+    "torch.rollout.int_tensor": DIFF + TORCH + "km.torch.rollout(_d, 2, 1e-2, {'x': _t.ones((3, 3), dtype=_t.int64)})",
+    "render.splat_spheres.huge_image": ("km.render.splat_spheres(km.render.Camera([0, 0, 5], [0, 0, 0], "
+                                        "width=2**31, height=2**31), rng.random((5, 3)), 0.1)[2:]"),
+    "render.splat_spheres.eye_inside": "km.render.splat_spheres(CAM, [[0.0, 0.0, 5.0]], 1.0)[2:]",
+})
+NEW_FAST |= {"contact.start_intersecting", "diff.backward.nan_state", "torch.rollout.int_tensor",
+             "render.splat_spheres.eye_inside"}
+NEW_INTERRUPTIBLE |= {"contact.advance.huge", "diff.rollout.steps_huge", "render.splat_spheres.huge_image"}
 
 # Whole scenarios: degenerate-but-legal inputs, NaN written into views, copies, absurd sizes.
 SCENARIOS = {

@@ -143,6 +143,11 @@ def run(selected, timeout, log=None):
     import numpy  # noqa: F401 - imported before forking so that children start fast
     import scipy.sparse  # noqa: F401
     import kinema  # noqa: F401
+    if any("torch" in case["expr"] for case in selected):
+        try:  # the torch bridge's cases: a 2-3 s import, done once here, not in every child
+            import torch  # noqa: F401
+        except ImportError:
+            pass
     results = {}
     for case in selected:
         res = run_case(case, timeout)

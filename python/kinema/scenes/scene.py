@@ -196,7 +196,9 @@ class Scene:
         if view is not None and (max(view) >= self.dim or view[0] == view[1]):
             raise self.error("output.view", f"expected two different axes in 0..{self.dim - 1}, got {view}")
         out = config["output"]
-        geometric = self.dim == 3 and hasattr(self.adapter.Simulation, "geometry")
+        # 3D scenes drawn through km.render: a Geometry per frame, or their own perspective image
+        geometric = self.dim == 3 and (hasattr(self.adapter.Simulation, "geometry")
+                                       or getattr(self.adapter.Simulation, "PERSPECTIVE", False))
         if out["render"] is None:
             out["render"] = "preview" if geometric else "flat"
         elif out["render"] != "flat" and not geometric:

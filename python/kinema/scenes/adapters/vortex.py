@@ -134,6 +134,9 @@ class Vortex3DSimulation(SubstepSimulation):
         xs, alphas = zip(*(km.vortex.ring(obj["radius"], core, obj["circulation"], obj["particles"],
                                           center=obj["center"], axis=obj["axis"]) for obj in objects))
         self.sim = km.vortex.VortexParticles3D(np.concatenate(xs), np.concatenate(alphas), core, eps=o["eps"])
+        self.ring_of = np.concatenate([np.full(len(x), k) for k, x in enumerate(xs)])
+        self.core = core
+        self.ring_radius = max(obj["radius"] for obj in objects)
         self.impulse0 = self.sim.linear_impulse()
         x0 = self.sim.x
         lo, hi = x0.min(axis=0), x0.max(axis=0)
@@ -143,12 +146,45 @@ class Vortex3DSimulation(SubstepSimulation):
     def diagnostics(self):
         return {"impulse_drift": float(np.linalg.norm(self.sim.linear_impulse() - self.impulse0))}
 
+    #: Colours of the rings in a "preview"/"pathtrace" frame, in the order of the scene's objects.
+    RING_COLOURS = ((0.95, 0.55, 0.15), (0.2, 0.55, 0.95), (0.35, 0.8, 0.35), (0.85, 0.3, 0.6))
+
     def image(self, output):
+        if output["render"] != "flat":
+            return self._image_3d(output)
         cam = view_camera(output, 3, *self.view, (0, 2))
         w = np.linalg.norm(self.sim.strength, axis=1)
         lo, hi = output["range"] or (0.0, float(w.max()) or 1.0)
         colors = preview.colormap(w, output["colormap"], lo, hi).astype(float)
         return preview.splat(cam, self.sim.x, colors, 1.5)
+
+    def _image_3d(self, output):
+        """The rings as tubes of shaded spheres (radius half the core) in perspective, one colour
+        per ring, seen obliquely from a camera that follows their centroid (they travel)."""
+        from kinema.scenes import render3d
+
+        x = self.sim.x
+        centre = x.mean(axis=0)
+        travel = self.sim.linear_impulse()
+        axis = travel / np.linalg.norm(travel) if np.linalg.norm(travel) > 0 else np.array([0.0, 0.0, 1.0])
+        side = np.cross(axis, [0.0, 1.0, 0.0] if abs(axis[1]) < 0.9 else [1.0, 0.0, 0.0])
+        side /= np.linalg.norm(side)
+        up = np.cross(side, axis)
+        eye = centre + self.ring_radius * (3.2 * side + 1.6 * up + 1.2 * axis)
+        width = output["width"]
+        height = output["height"] or round(0.6 * width)
+        cam = km.render.Camera(tuple(eye), tuple(centre), tuple(up), 40.0, width=width, height=height)
+        scene = km.render.Scene()
+        for k in range(int(self.ring_of.max()) + 1):
+            colour = self.RING_COLOURS[k % len(self.RING_COLOURS)]
+            scene.add_spheres(x[self.ring_of == k], 0.5 * self.core, km.render.lambertian(colour))
+        sky = render3d.NIGHT_SKY
+        if output["render"] == "pathtrace":
+            linear = scene.render(cam, spp=output["spp"], max_depth=output["max_depth"], seed=output["seed"], sky=sky)
+        else:
+            linear = scene.preview(cam, sky=sky, light=tuple(up + 0.5 * side + 0.3 * axis), ambient=0.25,
+                                   specular=0.35, shininess=48.0)
+        return km.render.tone_map(linear)
 
     def data(self):
         return [PointData("vortices", self.sim.x.copy(), point_data={"strength": self.sim.strength.copy()})]
@@ -158,6 +194,7 @@ class Simulation(BaseSimulation):
     """The 2D or the 3D simulation, as the scene's objects ask (a scene with rings is 3D)."""
 
     DIAGNOSTICS = VortexSimulation.DIAGNOSTICS
+    PERSPECTIVE = True  # 3D scenes (rings) draw "preview"/"pathtrace" frames of their own
 
     def __new__(cls, scene):
         return Vortex3DSimulation(scene) if scene.dim == 3 else VortexSimulation(scene)
