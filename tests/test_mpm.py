@@ -345,7 +345,13 @@ def test_too_large_step_raises_divergence_not_nan(d):
     dt = 50 * sim.stable_dt()
     with pytest.raises(km.DivergenceError, match="stable_dt"):
         for _ in range(200):
+            before = sim.state()
             sim.step(dt)
+    # The failed step left the state bitwise as it was (G2P restores what it overwrote).
+    after = sim.state()
+    for name, value in before.items():
+        assert np.array_equal(np.asarray(after[name]), np.asarray(value)), name
+    assert np.isfinite(sim.x).all()
 
 
 def test_views_are_zero_copy_and_state_roundtrips():

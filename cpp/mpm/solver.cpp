@@ -176,6 +176,7 @@ class SolverD final : public Solver::Impl {
   void sort(const State& state) {
     const Index n = state.n;
     particle_count_ = n;
+    backup_.resize(static_cast<size_t>(n * kRow));
     for (Index key : slot_key_) table_[static_cast<size_t>(key)] = -1;
     slot_key_.clear();
     particle_key_.resize(static_cast<size_t>(n));
@@ -522,13 +523,23 @@ class SolverD final : public Solver::Impl {
       Boundary boundary;
       Scalar friction;
     };
-    std::vector<Applied> applied;
+    // At most d walls and every collider apply; a node meets few, so the record lives on the
+    // stack (this runs for every node with mass).
+    constexpr size_t kInline = 8;
+    Applied on_stack[kInline];
+    std::vector<Applied> on_heap;
+    Applied* applied = on_stack;
+    if (D + model_.colliders.size() > kInline) {
+      on_heap.resize(D + model_.colliders.size());
+      applied = on_heap.data();
+    }
+    int count = 0;
     conditions(i, [&](const Vec<D>& n, Boundary b, Scalar friction) {
-      applied.push_back({n, v, b, friction});
+      applied[count++] = {n, v, b, friction};
       apply_boundary<D>(v, n, b, friction);
     });
-    for (auto c = applied.rbegin(); c != applied.rend(); ++c)
-      v_bar = apply_boundary_vjp<D>(c->v, c->n, c->boundary, c->friction, v_bar);
+    for (int c = count - 1; c >= 0; --c)
+      v_bar = apply_boundary_vjp<D>(applied[c].v, applied[c].n, applied[c].boundary, applied[c].friction, v_bar);
     return v_bar;
   }
 
@@ -584,6 +595,7 @@ class SolverD final : public Solver::Impl {
       for (Index q = block_start_[s]; q < block_start_[s + 1]; ++q) {
         const Index p = order_[static_cast<size_t>(q)];
         const size_t pd = static_cast<size_t>(p * D);
+        save_row(state, p);
         const Stencil st = stencil(&state.x[pd], o);
         Vec<D> v = Vec<D>::Zero();
         Mat<D> Bm = Mat<D>::Zero();  // sum w v_i (node offset in cells)^T
@@ -603,13 +615,38 @@ class SolverD final : public Solver::Impl {
         vmax = std::max(vmax, v.norm());
       }
     }
-    if (!finite || !(vmax * dt <= config_.max_cells_per_step * h))
+    if (!finite || !(vmax * dt <= config_.max_cells_per_step * h)) {
+      parallel_for(state.n, [&](Index p) { restore_row(state, p); });
       throw DivergenceError(
           "mpm: " + std::string(finite ? "particles moved " + format_real(vmax * dt / h) + " cells in one step"
                                        : "a velocity or deformation gradient became non-finite") +
           " at step " + std::to_string(state.steps) + " (t = " + format_real(state.time) + " s, dt = " +
           format_real(dt) + " s); use a dt below stable_dt() (CFL on speed and elastic wave speed)");
+    }
     return vmax;
+  }
+
+  // G2P is the only phase that writes the State, and it can fail (a blow-up): it saves the
+  // values it overwrites, particle by particle while they are in cache, so that a step that
+  // throws leaves the State as it was without a copy of the whole State before every step.
+  static constexpr int kRow = 2 * D + 2 * D * D + 1;  // x, v, F, C, Jp
+  void save_row(const State& state, Index p) {
+    Scalar* r = &backup_[static_cast<size_t>(p * kRow)];
+    const size_t pd = static_cast<size_t>(p * D);
+    r = std::copy_n(&state.x[pd], D, r);
+    r = std::copy_n(&state.v[pd], D, r);
+    r = std::copy_n(&state.F[pd * D], D * D, r);
+    r = std::copy_n(&state.C[pd * D], D * D, r);
+    *r = state.Jp[static_cast<size_t>(p)];
+  }
+  void restore_row(State& state, Index p) const {
+    const Scalar* r = &backup_[static_cast<size_t>(p * kRow)];
+    const size_t pd = static_cast<size_t>(p * D);
+    std::copy_n(r, D, &state.x[pd]);
+    std::copy_n(r + D, D, &state.v[pd]);
+    std::copy_n(r + 2 * D, D * D, &state.F[pd * D]);
+    std::copy_n(r + 2 * D + D * D, D * D, &state.C[pd * D]);
+    state.Jp[static_cast<size_t>(p)] = r[kRow - 1];
   }
 
   // Copies components first..S-1 of the nodes a block's tile covers from `source`.
@@ -699,6 +736,7 @@ class SolverD final : public Solver::Impl {
   std::vector<Scalar> tiles_;                // (particle blocks, (B + 2)^d, d + 1): P2G's tiles
   Index particle_count_ = 0;                 // n of the last sort
   std::vector<Scalar> grid_;                 // (slots, B^d, d + 1): mass, momentum -> velocity
+  std::vector<Scalar> backup_;               // (n, kRow): what G2P overwrote, for a failed step
   std::vector<Scalar> pre_;                  // (slots, B^d, d): velocity before the boundary conditions
   std::vector<Scalar> adjoint_grid_;         // (slots, B^d, d + 1): dL/d(mass, momentum)
 };

@@ -61,7 +61,8 @@ class Solver {
   // Advances state by dt. `forces` (n, d) [N] (or null) are external particle forces, added
   // where gravity is (the P2G momentum gains dt f_p). Throws InvalidArgument for particles
   // outside the domain or a bad dt, DivergenceError when a value turns non-finite or a particle
-  // crosses more than config.max_cells_per_step cells in one step.
+  // crosses more than config.max_cells_per_step cells in one step. A step that throws leaves
+  // the state unchanged (it is transactional by itself; callers need no copy of the State).
   StepStats step(State& state, Scalar dt, Interrupt& interrupt, const Scalar* forces = nullptr);
 
   // The vector-Jacobian product of step(before -> after) with the same dt and forces.
