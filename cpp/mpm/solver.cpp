@@ -387,12 +387,14 @@ class SolverD final : public Solver::Impl {
     particle_lame(state, m, p, mu, lambda);
     switch (m.kind) {
       case MaterialKind::Elastic:
-        return corotated_tau<D>(F, svd(F), mu, lambda);
+        if constexpr (D == 2) return corotated_tau(F, mu, lambda);
+        else return corotated_tau<D>(F, svd(F), mu, lambda);
       case MaterialKind::NeoHookean:
         return neohookean_tau<D>(F, mu, lambda);
       case MaterialKind::Snow: {
         const Scalar harden = std::exp(m.hardening * (1 - state.Jp[static_cast<size_t>(p)]));
-        return corotated_tau<D>(F, svd(F), mu * harden, lambda * harden);
+        if constexpr (D == 2) return corotated_tau(F, mu * harden, lambda * harden);
+        else return corotated_tau<D>(F, svd(F), mu * harden, lambda * harden);
       }
       case MaterialKind::Sand:
         return hencky_tau<D>(svd(F), mu, lambda);
