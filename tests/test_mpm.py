@@ -230,6 +230,22 @@ def test_two_elastic_disks_collide_sulsky():
     assert losses[1] < 0.1 and order > 0.8, f"energy lost {losses} at 40, 80 cells: order {order:.2f}"
 
 
+def test_elastic_disks_example_runs_small(tmp_path):
+    # examples/mpm_elastic_disks.py (the energy-history picture of the docs) on a coarse grid up
+    # to just after the collision: momentum zero to rounding, energy exchanged and mostly kept.
+    from pathlib import Path
+
+    from load_script import load_script
+
+    example = load_script(Path(__file__).resolve().parents[1] / "examples" / "mpm_elastic_disks.py")
+    results = example.main(["--out", str(tmp_path), "--cells", "32", "--duration", "2.0"])
+    t, ke, se, momentum = results[32]
+    assert (tmp_path / "mpm_elastic_disks.png").stat().st_size > 0
+    assert momentum < 1e-15 and t[-1] == pytest.approx(2.0)
+    assert se.max() > 0.5 * ke[0], "the disks squash (kinetic into strain energy)"
+    assert 0.5 * ke[0] < ke[-1] + se[-1] <= ke[0] * (1 + 1e-12), "total energy is kept up to APIC's loss"
+
+
 def _dam_break_front(h_cells, T_end=2.6, K=4e5):
     """2D dam break of Martin and Moyce (1952): a water column of width a and height 2a
     released against the wall x = 0; returns the front positions Z = z/a at times T."""
