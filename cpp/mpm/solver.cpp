@@ -805,8 +805,9 @@ void SolverD<D>::step_adjoint(const State& before, const State& after, Scalar dt
           const Eigen::Map<const Vec<D>> u(velocity + t * S + 1);
           const Vec<D> g = v_bar + apic * (C_bar * offset);
           Eigen::Map<Vec<D>>(tile + t * S + 1) += w * g;
-          fx_bar += u.dot(g) * grad_w - w * (C_bar_t * u);
+          fx_bar += u.dot(g) * grad_w;
         });
+        fx_bar -= C_bar_t * Eigen::Map<const Vec<D>>(&after.v[pd]);  // sum over nodes of w C_bar^T u_i: v' = sum w u_i
         // x and F of `before` also reach the step through P2G, which adds to these; v and C
         // only through P2G, which sets theirs.
         Eigen::Map<Vec<D>>(&adjoint.x[pd]) = x_bar + fx_bar / h;
@@ -875,8 +876,9 @@ void SolverD<D>::step_adjoint(const State& before, const State& after, Scalar dt
         const Eigen::Map<const Vec<D>> P_bar(tile + t * S + 1);
         P_bar_sum += w * P_bar;
         A_bar += (w * P_bar) * offset.transpose();
-        fx_bar += (P_bar.dot(momentum + A * offset) + M_bar * m) * grad_w - w * (A.transpose() * P_bar);
+        fx_bar += (P_bar.dot(momentum + A * offset) + M_bar * m) * grad_w;
       });
+      fx_bar -= A.transpose() * P_bar_sum;  // sum over nodes of w A^T P_bar_i
       Eigen::Map<Vec<D>>(&adjoint.v[pd]) = m * P_bar_sum;
       if (adjoint_forces) Eigen::Map<Vec<D>>(adjoint_forces + pd) = dt * P_bar_sum;
       RowMap(&adjoint.C[pd * D]) = (m * h) * A_bar;
