@@ -1,6 +1,8 @@
 """km.mpm: exact properties of the MLS-MPM/APIC transfers, references (Sulsky's disks, Martin and
 Moyce's dam break, granular column runout) and bad input, in 2D and 3D."""
 
+import functools
+
 import numpy as np
 import pytest
 
@@ -184,13 +186,19 @@ def test_collider_stops_and_friction_holds():
 
 
 # ---------------------------------------------------------------- references
+@functools.lru_cache(maxsize=None)
+def _disks_example():
+    """examples/mpm_elastic_disks.py, whose strain energy and picture these tests share."""
+    from pathlib import Path
+
+    from load_script import load_script
+
+    return load_script(Path(__file__).resolve().parents[1] / "examples" / "mpm_elastic_disks.py")
+
+
 def _strain_energy(sim):
     """Fixed-corotated energy sum V0 [mu |Sigma - I|^2 + lambda/2 (J - 1)^2] of the particles."""
-    m = sim.materials[0]
-    s = np.linalg.svd(sim.F, compute_uv=False)
-    J = np.prod(s, axis=1)
-    psi = m.mu * ((s - 1) ** 2).sum(axis=1) + 0.5 * m.lambda_ * (J - 1) ** 2
-    return float((sim.volume * psi).sum())
+    return _disks_example().strain_energy(sim)
 
 
 def _disks(n):
@@ -233,12 +241,7 @@ def test_two_elastic_disks_collide_sulsky():
 def test_elastic_disks_example_runs_small(tmp_path):
     # examples/mpm_elastic_disks.py (the energy-history picture of the docs) on a coarse grid up
     # to just after the collision: momentum zero to rounding, energy exchanged and mostly kept.
-    from pathlib import Path
-
-    from load_script import load_script
-
-    example = load_script(Path(__file__).resolve().parents[1] / "examples" / "mpm_elastic_disks.py")
-    results = example.main(["--out", str(tmp_path), "--cells", "32", "--duration", "2.0"])
+    results = _disks_example().main(["--out", str(tmp_path), "--cells", "32", "--duration", "2.0"])
     t, ke, se, momentum = results[32]
     assert (tmp_path / "mpm_elastic_disks.png").stat().st_size > 0
     assert momentum < 1e-15 and t[-1] == pytest.approx(2.0)
