@@ -36,6 +36,10 @@ constexpr int ipow(int b, int e) { return e == 0 ? 1 : b * ipow(b, e - 1); }
 // them costs more than it saves.
 constexpr Index kParallelParticles = 1024;
 
+// Row chunks of the parallel counting sort (a constant, so the order is the same for any
+// thread count).
+constexpr Index kSortChunks = 16;
+
 // Interleaves the low 21 bits of each coordinate (z fastest), the order blocks are stored in.
 std::uint64_t morton(const std::array<Index, 3>& c) {
   std::uint64_t code = 0;
@@ -212,16 +216,32 @@ class SolverD final : public Solver::Impl {
                             std::to_string(model_.materials.size()) +
                             " materials, or its youngs_modulus is not > 0 or poisson_ratio not in (-1, 0.5))");
     }
-    // The distinct particle blocks, in Morton order, take the first slots.
+    // The distinct particle blocks, in Morton order, take the first slots. Each thread lists
+    // the keys it finds unmarked; a key two threads both found is listed twice and dropped
+    // after the sort, so the list does not depend on the thread count.
+    const bool parallel = n > kParallelParticles;
     std::vector<std::pair<std::uint64_t, Index>> found;
-    for (Index p = 0; p < n; ++p) {
-      const Index key = particle_key_[static_cast<size_t>(p)];
-      if (table_[static_cast<size_t>(key)] < 0) {
-        table_[static_cast<size_t>(key)] = 0;
-        found.emplace_back(morton(coords_of(key)), key);
+#pragma omp parallel if (parallel)
+    {
+      std::vector<std::pair<std::uint64_t, Index>> mine;
+#pragma omp for schedule(static) nowait
+      for (Index p = 0; p < n; ++p) {
+        const Index key = particle_key_[static_cast<size_t>(p)];
+        std::int32_t& mark = table_[static_cast<size_t>(key)];
+        std::int32_t seen;
+#pragma omp atomic read
+        seen = mark;
+        if (seen < 0) {
+#pragma omp atomic write
+          mark = 0;
+          mine.emplace_back(morton(coords_of(key)), key);
+        }
       }
+#pragma omp critical(mpm_found_blocks)
+      found.insert(found.end(), mine.begin(), mine.end());
     }
     std::sort(found.begin(), found.end());
+    found.erase(std::unique(found.begin(), found.end()), found.end());
     particle_blocks_ = static_cast<Index>(found.size());
     for (const auto& f : found) {
       table_[static_cast<size_t>(f.second)] = static_cast<std::int32_t>(slot_key_.size());
@@ -250,13 +270,38 @@ class SolverD final : public Solver::Impl {
         neighbor_slot_[static_cast<size_t>(s * NEIGHBORS + o)] = table_[static_cast<size_t>(key_of(nc))];
       }
     }
-    // Counting sort of the particles by block slot (stable: by row within a block).
-    block_start_.assign(static_cast<size_t>(particle_blocks_ + 1), 0);
-    for (Index p = 0; p < n; ++p) ++block_start_[static_cast<size_t>(table_[particle_key_[p]] + 1)];
-    for (Index s = 0; s < particle_blocks_; ++s) block_start_[s + 1] += block_start_[s];
+    // Counting sort of the particles by block slot, stable (by row within a block): the rows
+    // are cut into a fixed number of chunks (not one per thread, so that the order does not
+    // depend on the thread count), counted per chunk, and each chunk fills its own ranges.
+    const Index chunks = parallel ? kSortChunks : 1, pb = particle_blocks_;
+    fill_.assign(static_cast<size_t>(chunks * pb), 0);
+    auto chunk_rows = [&](Index c) { return std::make_pair(n * c / chunks, n * (c + 1) / chunks); };
+#pragma omp parallel for schedule(static) if (parallel)
+    for (Index c = 0; c < chunks; ++c) {
+      const auto [first, last] = chunk_rows(c);
+      Index* count = &fill_[static_cast<size_t>(c * pb)];
+      for (Index p = first; p < last; ++p) ++count[table_[static_cast<size_t>(particle_key_[static_cast<size_t>(p)])]];
+    }
+    block_start_.assign(static_cast<size_t>(pb + 1), 0);
+    Index running = 0;
+    for (Index s = 0; s < pb; ++s) {
+      block_start_[static_cast<size_t>(s)] = running;
+      for (Index c = 0; c < chunks; ++c) {
+        Index& at = fill_[static_cast<size_t>(c * pb + s)];
+        const Index count = at;
+        at = running;
+        running += count;
+      }
+    }
+    block_start_[static_cast<size_t>(pb)] = running;
     order_.resize(static_cast<size_t>(n));
-    fill_.assign(block_start_.begin(), block_start_.end() - 1);
-    for (Index p = 0; p < n; ++p) order_[static_cast<size_t>(fill_[table_[particle_key_[p]]]++)] = p;
+#pragma omp parallel for schedule(static) if (parallel)
+    for (Index c = 0; c < chunks; ++c) {
+      const auto [first, last] = chunk_rows(c);
+      Index* at = &fill_[static_cast<size_t>(c * pb)];
+      for (Index p = first; p < last; ++p)
+        order_[static_cast<size_t>(at[table_[static_cast<size_t>(particle_key_[static_cast<size_t>(p)])]]++)] = p;
+    }
     // For every slot, the particle blocks whose tiles reach it: the block itself and its -1
     // neighbours (offset o of source_slot_ is the block at c - o), -1 where there is none.
     source_slot_.resize(static_cast<size_t>(slots * NEIGHBORS));
@@ -732,7 +777,7 @@ class SolverD final : public Solver::Impl {
   std::vector<std::int32_t> neighbor_slot_;  // (particle block, 2^d) -> slot of the +{0,1}^d block
   std::vector<Index> particle_key_;          // (n,) block key of each particle
   std::vector<Index> block_start_;           // CSR of order_ by particle block
-  std::vector<Index> fill_;
+  std::vector<Index> fill_;                  // (sort chunks, particle blocks): counts, then write positions
   std::vector<Index> order_;                 // particle rows sorted by block
   std::vector<std::int32_t> source_slot_;   // (slot, 2^d) -> particle block at c - o (or -1)
   std::vector<Scalar> tiles_;                // (particle blocks, (B + 2)^d, d + 1): P2G's tiles
