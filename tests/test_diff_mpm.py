@@ -243,3 +243,34 @@ def test_torch_bridge_gives_the_rollout_gradient():
     g = run.backward({"x": np.column_stack([np.ones(sim.count), np.zeros(sim.count)])})["youngs_modulus"]
     assert np.array_equal(E.grad.numpy(), g), "km.torch's gradient differs from km.diff's"
     assert np.abs(g).max() > 0
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_one_step_adjoint_is_bitwise_identical_for_1_and_2_threads(d):
+    # Enough particles for the parallel transfers (above 1,024): G2P's transpose scatters into
+    # per-block tiles that are summed per node in a fixed order, so the gradient is the same
+    # bits whatever the thread count.
+    sim = km.mpm.Simulation((32,) * d, 1 / 32, gravity=[0.0, -9.81, 0.0][:d], boundary="separate", friction=0.3)
+    x = km.mpm.block([0.2] + [0.02] * (d - 1), [0.7] + [0.3] * (d - 1), 1 / 128 if d == 2 else 1 / 40)
+    rng = np.random.default_rng(3)
+    sim.add_particles(x, "elastic", density=1000.0, youngs_modulus=2e3, poisson_ratio=0.3,
+                      velocity=rng.normal(0, 0.3, x.shape))
+    assert sim.count > 1024, "enough particles for the parallel paths"
+    dt = 1e-3
+    before = sim.state()
+    sim._diff_step(dt, None, {})
+    after = sim.state()
+    grads = {k: rng.normal(size=np.shape(after[k])) for k in sim._diff_state_names}
+    old = km.get_num_threads()
+    results = []
+    try:
+        for threads in (1, 2):
+            km.set_num_threads(threads)
+            results.append(sim._diff_step_adjoint(dt, before, after, None, grads, {}))
+    finally:
+        km.set_num_threads(old)
+    (g1, p1, _), (g2, p2, _) = results
+    for k in g1:
+        assert np.array_equal(g1[k], g2[k]), f"dL/d{k} differs between 1 and 2 threads"
+    for k in p1:
+        assert np.array_equal(np.asarray(p1[k]), np.asarray(p2[k])), f"dL/d{k} differs between 1 and 2 threads"

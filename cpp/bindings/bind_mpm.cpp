@@ -8,7 +8,6 @@
 #include "bindings/common.h"
 #include "core/advance.h"
 #include "core/errors.h"
-#include "core/rollback.h"
 #include "mpm/kernels.h"
 #include "mpm/solver.h"
 
@@ -141,7 +140,7 @@ struct PySimulation {
     const Scalar* f = forces_of(forces);
     Interrupt interrupt = python_interrupt();
     ReleaseGil release;
-    return with_rollback(*state, [&] { return solver->step(*state, dt, interrupt, f); });
+    return solver->step(*state, dt, interrupt, f);  // transactional by itself (solver.h)
   }
 
   // Steps of stable_dt(cfl) until `duration` has passed (core/advance.h); returns the step
@@ -155,7 +154,7 @@ struct PySimulation {
       ReleaseGil release;
       result = advance_to(
           *state, duration, [&](const mpm::State& s) { return solver->stable_dt(s, cfl); },
-          [&](mpm::State& s, Scalar dt) { return with_rollback(s, [&] { return solver->step(s, dt, interrupt); }); },
+          [&](mpm::State& s, Scalar dt) { return solver->step(s, dt, interrupt); },
           [&](const mpm::StepStats& stats) {
             last = stats;
             sum.sort_seconds += stats.sort_seconds;

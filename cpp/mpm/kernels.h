@@ -113,6 +113,20 @@ Mat<D> corotated_tau(const Mat<D>& F, const Svd<D>& s, Scalar mu, Scalar lambda)
   return tau;
 }
 
+// The same stress in 2D from the polar rotation alone: U Sigma U^T = F R^T with R = U V^T the
+// rotation of F's polar decomposition, whose cosine and sine are the normalised
+// (F00 + F11, F10 - F01) (as in svd above), and J = det F: no eigenvectors needed.
+inline Mat<2> corotated_tau(const Mat<2>& F, Scalar mu, Scalar lambda) {
+  const Scalar a = F(0, 0) + F(1, 1), b = F(1, 0) - F(0, 1), r = std::sqrt(a * a + b * b);
+  const Scalar c = r > 0 ? a / r : 1, s = r > 0 ? b / r : 0;
+  Mat<2> R;
+  R << c, -s, s, c;
+  const Scalar J = F.determinant();
+  Mat<2> tau = 2 * mu * (F - R) * F.transpose();
+  tau.diagonal().array() += lambda * (J - 1) * J;
+  return tau;
+}
+
 // Stable neo-Hookean (Smith, de Goes and Kim 2018, eq. 13 without the log barrier):
 //   Psi = mu/2 (tr(F^T F) - d) + lambda_s/2 (J - a)^2, a = 1 + mu/lambda_s, lambda_s = lambda + mu
 // (the remapping that gives the Lame parameters' linear response, their Sec. 3.4), so

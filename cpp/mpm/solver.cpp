@@ -31,9 +31,14 @@ namespace {
 
 constexpr int ipow(int b, int e) { return e == 0 ? 1 : b * ipow(b, e - 1); }
 
-// Fewer particles than this run the transfers on one thread: waking the team for P2G's 2^d
-// colour phases costs more than the work (a step is ~0.2 us per particle and thread).
-constexpr Index kParallelParticles = 8192;
+// Fewer particles than this run the transfers on one thread: a step is three parallel loops
+// (P2G, grid, G2P), and below about a thousand particles (~50 us of work) waking the team for
+// them costs more than it saves.
+constexpr Index kParallelParticles = 1024;
+
+// Row chunks of the parallel counting sort (a constant, so the order is the same for any
+// thread count).
+constexpr Index kSortChunks = 16;
 
 // Interleaves the low 21 bits of each coordinate (z fastest), the order blocks are stored in.
 std::uint64_t morton(const std::array<Index, 3>& c) {
@@ -127,11 +132,12 @@ class SolverD final : public Solver::Impl {
     stats.active_blocks = static_cast<Index>(slot_key_.size());
     stats.sort_seconds = watch.seconds();
     interrupt.check();
-    // 2. P2G (Hu et al. 2018, eq. 16-17).
+    // 2. P2G (Hu et al. 2018, eq. 16-17) into one tile per particle block.
     watch.restart();
     p2g(state, dt, forces);
     stats.p2g_seconds = watch.seconds();
-    // 3. Grid velocities, gravity, walls and colliders.
+    // 3. Each node's mass and momentum summed from the tiles over it, then its velocity,
+    //    gravity, walls and colliders.
     watch.restart();
     grid_update(dt);
     stats.grid_seconds = watch.seconds();
@@ -173,6 +179,8 @@ class SolverD final : public Solver::Impl {
 
   void sort(const State& state) {
     const Index n = state.n;
+    particle_count_ = n;
+    backup_.resize(static_cast<size_t>(n * kRow));
     for (Index key : slot_key_) table_[static_cast<size_t>(key)] = -1;
     slot_key_.clear();
     particle_key_.resize(static_cast<size_t>(n));
@@ -208,16 +216,32 @@ class SolverD final : public Solver::Impl {
                             std::to_string(model_.materials.size()) +
                             " materials, or its youngs_modulus is not > 0 or poisson_ratio not in (-1, 0.5))");
     }
-    // The distinct particle blocks, in Morton order, take the first slots.
+    // The distinct particle blocks, in Morton order, take the first slots. Each thread lists
+    // the keys it finds unmarked; a key two threads both found is listed twice and dropped
+    // after the sort, so the list does not depend on the thread count.
+    const bool parallel = n > kParallelParticles;
     std::vector<std::pair<std::uint64_t, Index>> found;
-    for (Index p = 0; p < n; ++p) {
-      const Index key = particle_key_[static_cast<size_t>(p)];
-      if (table_[static_cast<size_t>(key)] < 0) {
-        table_[static_cast<size_t>(key)] = 0;
-        found.emplace_back(morton(coords_of(key)), key);
+#pragma omp parallel if (parallel)
+    {
+      std::vector<std::pair<std::uint64_t, Index>> mine;
+#pragma omp for schedule(static) nowait
+      for (Index p = 0; p < n; ++p) {
+        const Index key = particle_key_[static_cast<size_t>(p)];
+        std::int32_t& mark = table_[static_cast<size_t>(key)];
+        std::int32_t seen;
+#pragma omp atomic read
+        seen = mark;
+        if (seen < 0) {
+#pragma omp atomic write
+          mark = 0;
+          mine.emplace_back(morton(coords_of(key)), key);
+        }
       }
+#pragma omp critical(mpm_found_blocks)
+      found.insert(found.end(), mine.begin(), mine.end());
     }
     std::sort(found.begin(), found.end());
+    found.erase(std::unique(found.begin(), found.end()), found.end());
     particle_blocks_ = static_cast<Index>(found.size());
     for (const auto& f : found) {
       table_[static_cast<size_t>(f.second)] = static_cast<std::int32_t>(slot_key_.size());
@@ -246,33 +270,60 @@ class SolverD final : public Solver::Impl {
         neighbor_slot_[static_cast<size_t>(s * NEIGHBORS + o)] = table_[static_cast<size_t>(key_of(nc))];
       }
     }
-    // Counting sort of the particles by block slot (stable: by row within a block).
-    block_start_.assign(static_cast<size_t>(particle_blocks_ + 1), 0);
-    for (Index p = 0; p < n; ++p) ++block_start_[static_cast<size_t>(table_[particle_key_[p]] + 1)];
-    for (Index s = 0; s < particle_blocks_; ++s) block_start_[s + 1] += block_start_[s];
+    // Counting sort of the particles by block slot, stable (by row within a block): the rows
+    // are cut into a fixed number of chunks (not one per thread, so that the order does not
+    // depend on the thread count), counted per chunk, and each chunk fills its own ranges.
+    const Index chunks = parallel ? kSortChunks : 1, pb = particle_blocks_;
+    fill_.assign(static_cast<size_t>(chunks * pb), 0);
+    auto chunk_rows = [&](Index c) { return std::make_pair(n * c / chunks, n * (c + 1) / chunks); };
+#pragma omp parallel for schedule(static) if (parallel)
+    for (Index c = 0; c < chunks; ++c) {
+      const auto [first, last] = chunk_rows(c);
+      Index* count = &fill_[static_cast<size_t>(c * pb)];
+      for (Index p = first; p < last; ++p) ++count[table_[static_cast<size_t>(particle_key_[static_cast<size_t>(p)])]];
+    }
+    block_start_.assign(static_cast<size_t>(pb + 1), 0);
+    Index running = 0;
+    for (Index s = 0; s < pb; ++s) {
+      block_start_[static_cast<size_t>(s)] = running;
+      for (Index c = 0; c < chunks; ++c) {
+        Index& at = fill_[static_cast<size_t>(c * pb + s)];
+        const Index count = at;
+        at = running;
+        running += count;
+      }
+    }
+    block_start_[static_cast<size_t>(pb)] = running;
     order_.resize(static_cast<size_t>(n));
-    fill_.assign(block_start_.begin(), block_start_.end() - 1);
-    for (Index p = 0; p < n; ++p) order_[static_cast<size_t>(fill_[table_[particle_key_[p]]]++)] = p;
-    // Colour phases: blocks whose coordinates have the same parities.
-    colour_start_.assign(NEIGHBORS + 1, 0);
-    colour_blocks_.resize(static_cast<size_t>(particle_blocks_));
-    for (Index s = 0; s < particle_blocks_; ++s) ++colour_start_[colour_of(s) + 1];
-    for (int c = 0; c < NEIGHBORS; ++c) colour_start_[c + 1] += colour_start_[c];
-    std::vector<Index> next(colour_start_.begin(), colour_start_.end() - 1);
-    for (Index s = 0; s < particle_blocks_; ++s) colour_blocks_[static_cast<size_t>(next[colour_of(s)]++)] = s;
+#pragma omp parallel for schedule(static) if (parallel)
+    for (Index c = 0; c < chunks; ++c) {
+      const auto [first, last] = chunk_rows(c);
+      Index* at = &fill_[static_cast<size_t>(c * pb)];
+      for (Index p = first; p < last; ++p)
+        order_[static_cast<size_t>(at[table_[static_cast<size_t>(particle_key_[static_cast<size_t>(p)])]]++)] = p;
+    }
+    // For every slot, the particle blocks whose tiles reach it: the block itself and its -1
+    // neighbours (offset o of source_slot_ is the block at c - o), -1 where there is none.
+    source_slot_.resize(static_cast<size_t>(slots * NEIGHBORS));
+    for (Index s = 0; s < slots; ++s) {
+      const auto c = coords_of(slot_key_[static_cast<size_t>(s)]);
+      for (int o = 0; o < NEIGHBORS; ++o) {
+        std::array<Index, 3> nc = c;
+        bool valid = true;
+        for (int a = 0; a < D; ++a) {
+          nc[a] -= (o >> a) & 1;
+          valid = valid && nc[a] >= 0;
+        }
+        const std::int32_t slot = valid ? table_[static_cast<size_t>(key_of(nc))] : -1;
+        source_slot_[static_cast<size_t>(s * NEIGHBORS + o)] = slot < particle_blocks_ ? slot : -1;
+      }
+    }
     grid_.resize(static_cast<size_t>(slots * BN * S));
-    parallel_for(slots, [&](Index s) { std::fill_n(&grid_[static_cast<size_t>(s * BN * S)], BN * S, 0.0); });
+    tiles_.resize(static_cast<size_t>(particle_blocks_ * TN * S));
   }
 
   std::array<Index, 3> coords_of(Index key) const {
     return {key / (blocks_[1] * blocks_[2]), (key / blocks_[2]) % blocks_[1], key % blocks_[2]};
-  }
-
-  int colour_of(Index slot) const {
-    const auto c = coords_of(slot_key_[static_cast<size_t>(slot)]);
-    int colour = 0;
-    for (int a = 0; a < D; ++a) colour |= static_cast<int>(c[a] & 1) << a;
-    return colour;
   }
 
   // Lower node (ghost-shifted) of a block.
@@ -282,20 +333,41 @@ class SolverD final : public Solver::Impl {
     return c;
   }
 
-  // The tile node t's (slot-relative) address in the grid: which of the 2^d blocks, and where.
-  static void tile_to_block(int t, int& neighbor, int& local) {
-    int tc[3] = {0, 0, 0};
-    for (int a = D - 1; a >= 0; --a) {
-      tc[a] = t % T;
-      t /= T;
+  // Where tile node t lies in the grid: which of the 2^d blocks from the tile's own (bit a set:
+  // the +1 neighbour along axis a) and which node of it.
+  struct TileNode {
+    int neighbor, local;
+  };
+  static std::array<TileNode, TN> make_tile_nodes() {
+    std::array<TileNode, TN> nodes{};
+    for (int t = 0; t < TN; ++t) {
+      int tc[3] = {0, 0, 0}, rest = t;
+      for (int a = D - 1; a >= 0; --a) {
+        tc[a] = rest % T;
+        rest /= T;
+      }
+      int neighbor = 0, local = 0;
+      for (int a = 0; a < D; ++a) {
+        const int over = tc[a] >= B;
+        neighbor |= over << a;
+        local = local * B + (tc[a] - over * B);
+      }
+      nodes[static_cast<size_t>(t)] = {neighbor, local};
     }
-    neighbor = 0;
-    local = 0;
-    for (int a = 0; a < D; ++a) {
-      const int over = tc[a] >= B;
-      neighbor |= over << a;
-      local = local * B + (tc[a] - over * B);
-    }
+    return nodes;
+  }
+  // overlaps[o]: the (block node, tile node) pairs where the tile of the block at c - o covers
+  // the block at c, in tile order.
+  struct Overlap {
+    int node, tile;
+  };
+  static std::array<std::vector<Overlap>, NEIGHBORS> make_overlaps() {
+    std::array<std::vector<Overlap>, NEIGHBORS> overlaps;
+    const auto nodes = make_tile_nodes();
+    for (int t = 0; t < TN; ++t)
+      overlaps[static_cast<size_t>(nodes[static_cast<size_t>(t)].neighbor)].push_back(
+          {nodes[static_cast<size_t>(t)].local, t});
+    return overlaps;
   }
 
   // Per-particle weights and tile-relative base of particle p in a block whose lower node is o.
@@ -360,12 +432,14 @@ class SolverD final : public Solver::Impl {
     particle_lame(state, m, p, mu, lambda);
     switch (m.kind) {
       case MaterialKind::Elastic:
-        return corotated_tau<D>(F, svd(F), mu, lambda);
+        if constexpr (D == 2) return corotated_tau(F, mu, lambda);
+        else return corotated_tau<D>(F, svd(F), mu, lambda);
       case MaterialKind::NeoHookean:
         return neohookean_tau<D>(F, mu, lambda);
       case MaterialKind::Snow: {
         const Scalar harden = std::exp(m.hardening * (1 - state.Jp[static_cast<size_t>(p)]));
-        return corotated_tau<D>(F, svd(F), mu * harden, lambda * harden);
+        if constexpr (D == 2) return corotated_tau(F, mu * harden, lambda * harden);
+        else return corotated_tau<D>(F, svd(F), mu * harden, lambda * harden);
       }
       case MaterialKind::Sand:
         return hencky_tau<D>(svd(F), mu, lambda);
@@ -375,34 +449,50 @@ class SolverD final : public Solver::Impl {
     return Mat<D>::Zero();
   }
 
+  // Each particle block scatters into its own tile of tiles_ (no two threads write one value).
   void p2g(const State& state, Scalar dt, const Scalar* forces) {
     const Scalar h = model_.h, stress_scale = 4 * dt / (h * h);
-    const bool parallel = state.n > kParallelParticles;
-    for (int colour = 0; colour < NEIGHBORS; ++colour) {
-      const Index begin = colour_start_[colour], end = colour_start_[colour + 1];
-#pragma omp parallel for schedule(dynamic, 1) if (parallel)
-      for (Index k = begin; k < end; ++k) {
-        const Index s = colour_blocks_[static_cast<size_t>(k)];
-        const auto o = block_origin(s);
-        alignas(64) Scalar tile[TN * S];
-        std::fill_n(tile, TN * S, 0.0);
-        for (Index q = block_start_[s]; q < block_start_[s + 1]; ++q) {
-          const Index p = order_[static_cast<size_t>(q)];
-          const size_t pd = static_cast<size_t>(p * D);
-          const Stencil st = stencil(&state.x[pd], o);
-          const Scalar m = state.mass[static_cast<size_t>(p)];
-          const Eigen::Map<const Eigen::Matrix<Scalar, D, D, Eigen::RowMajor>> F(&state.F[pd * D]);
-          const Eigen::Map<const Eigen::Matrix<Scalar, D, D, Eigen::RowMajor>> C(&state.C[pd * D]);
-          const Eigen::Map<const Vec<D>> v(&state.v[pd]);
-          // Affine momentum per unit offset, in cells: (m C - 4 dt V / h^2 tau) h.
-          const Mat<D> A = (m * C - (stress_scale * state.volume[static_cast<size_t>(p)]) * tau(state, p, F)) * h;
-          // Momentum at offset 0 (the base node); an external force adds dt f, as gravity would.
-          const Vec<D> q0 = forces ? Vec<D>(m * v + dt * Eigen::Map<const Vec<D>>(forces + pd) - A * st.fx)
-                                   : Vec<D>(m * v - A * st.fx);
-          scatter(tile, st, m, q0, A);
-        }
-        flush(tile, s, grid_, true);
+#pragma omp parallel for schedule(dynamic, 1) if (state.n > kParallelParticles)
+    for (Index s = 0; s < particle_blocks_; ++s) {
+      const auto o = block_origin(s);
+      Scalar* tile = &tiles_[static_cast<size_t>(s * TN * S)];
+      std::fill_n(tile, TN * S, 0.0);
+      for (Index q = block_start_[s]; q < block_start_[s + 1]; ++q) {
+        const Index p = order_[static_cast<size_t>(q)];
+        const size_t pd = static_cast<size_t>(p * D);
+        const Stencil st = stencil(&state.x[pd], o);
+        const Scalar m = state.mass[static_cast<size_t>(p)];
+        const Eigen::Map<const Eigen::Matrix<Scalar, D, D, Eigen::RowMajor>> F(&state.F[pd * D]);
+        const Eigen::Map<const Eigen::Matrix<Scalar, D, D, Eigen::RowMajor>> C(&state.C[pd * D]);
+        const Eigen::Map<const Vec<D>> v(&state.v[pd]);
+        // Affine momentum per unit offset, in cells: (m C - 4 dt V / h^2 tau) h.
+        const Mat<D> A = (m * C - (stress_scale * state.volume[static_cast<size_t>(p)]) * tau(state, p, F)) * h;
+        // Momentum at offset 0 (the base node); an external force adds dt f, as gravity would.
+        const Vec<D> q0 = forces ? Vec<D>(m * v + dt * Eigen::Map<const Vec<D>>(forces + pd) - A * st.fx)
+                                 : Vec<D>(m * v - A * st.fx);
+        scatter(tile, st, m, q0, A);
       }
+    }
+  }
+
+  // For every slot, in parallel: sums the tiles over its nodes (the sources in the fixed order
+  // of source_slot_, so a node's sum does not depend on the thread count) into
+  // `sum` (B^d (d + 1)) and calls node_fn(slot, sum).
+  template <class Fn>
+  void reduce_tiles(const std::vector<Scalar>& tiles, bool parallel, Fn&& node_fn) const {
+    const Index slots = static_cast<Index>(slot_key_.size());
+#pragma omp parallel for schedule(static) if (parallel)
+    for (Index s = 0; s < slots; ++s) {
+      alignas(64) Scalar sum[BN * S];
+      std::fill_n(sum, BN * S, 0.0);
+      for (int o = 0; o < NEIGHBORS; ++o) {
+        const std::int32_t src = source_slot_[static_cast<size_t>(s * NEIGHBORS + o)];
+        if (src < 0) continue;
+        const Scalar* tile = &tiles[static_cast<size_t>(src) * TN * S];
+        for (const Overlap& ov : overlaps_[static_cast<size_t>(o)])
+          for (int c = 0; c < S; ++c) sum[ov.node * S + c] += tile[ov.tile * S + c];
+      }
+      node_fn(s, sum);
     }
   }
 
@@ -440,39 +530,32 @@ class SolverD final : public Solver::Impl {
     }
   }
 
-  // Adds a block's tile into `target` (nodes without mass skipped when `massive_only`).
-  void flush(const Scalar* tile, Index s, std::vector<Scalar>& target, bool massive_only) {
-    const std::int32_t* nb = &neighbor_slot_[static_cast<size_t>(s * NEIGHBORS)];
-    for (int t = 0; t < TN; ++t) {
-      if (massive_only && tile[t * S] == 0) continue;
-      int neighbor, local;
-      tile_to_block(t, neighbor, local);
-      Scalar* node = &target[static_cast<size_t>((static_cast<Index>(nb[neighbor]) * BN + local) * S)];
-      for (int c = 0; c < S; ++c) node[c] += tile[t * S + c];
-    }
-  }
-
-  // `pre` (slots B^d d, or null) receives each node's velocity before the wall and collider
-  // conditions, which their adjoint needs.
+  // The grid pass: each node's mass and momentum summed from the tiles, then
+  // v = (m v) / m + dt g and the wall and collider conditions. `pre` (slots B^d d, or null)
+  // receives each node's velocity before the conditions, which their adjoint needs.
   void grid_update(Scalar dt, Scalar* pre = nullptr) {
-    const Index slots = static_cast<Index>(slot_key_.size());
     Vec<D> g;
     for (int a = 0; a < D; ++a) g(a) = config_.gravity[a];
-#pragma omp parallel for schedule(static) if (slots * BN > kParallelGrain * 4)
-    for (Index s = 0; s < slots; ++s) {
+    reduce_tiles(tiles_, particle_count_ > kParallelParticles, [&](Index s, const Scalar* sum) {
       const auto o = block_origin(s);
+      Scalar* out = &grid_[static_cast<size_t>(s * BN * S)];
       for (int l = 0; l < BN; ++l) {
-        Scalar* node = &grid_[static_cast<size_t>((s * BN + l) * S)];
-        if (node[0] <= 0) continue;
+        const Scalar* in = sum + l * S;
+        Scalar* node = out + l * S;
+        node[0] = in[0];
+        if (in[0] <= 0) {
+          for (int a = 0; a < D; ++a) node[a + 1] = 0;
+          continue;
+        }
         Vec<D> v;
-        for (int a = 0; a < D; ++a) v(a) = node[a + 1] / node[0] + dt * g(a);
+        for (int a = 0; a < D; ++a) v(a) = in[a + 1] / in[0] + dt * g(a);
         if (pre) Eigen::Map<Vec<D>>(pre + (s * BN + l) * D) = v;
         Index i[3] = {0, 0, 0};
         node_index(o, l, i);
         boundary(v, i);
         for (int a = 0; a < D; ++a) node[a + 1] = v(a);
       }
-    }
+    });
   }
 
   void boundary(Vec<D>& v, const Index* i) const {
@@ -487,13 +570,23 @@ class SolverD final : public Solver::Impl {
       Boundary boundary;
       Scalar friction;
     };
-    std::vector<Applied> applied;
+    // At most d walls and every collider apply; a node meets few, so the record lives on the
+    // stack (this runs for every node with mass).
+    constexpr size_t kInline = 8;
+    Applied on_stack[kInline];
+    std::vector<Applied> on_heap;
+    Applied* applied = on_stack;
+    if (D + model_.colliders.size() > kInline) {
+      on_heap.resize(D + model_.colliders.size());
+      applied = on_heap.data();
+    }
+    int count = 0;
     conditions(i, [&](const Vec<D>& n, Boundary b, Scalar friction) {
-      applied.push_back({n, v, b, friction});
+      applied[count++] = {n, v, b, friction};
       apply_boundary<D>(v, n, b, friction);
     });
-    for (auto c = applied.rbegin(); c != applied.rend(); ++c)
-      v_bar = apply_boundary_vjp<D>(c->v, c->n, c->boundary, c->friction, v_bar);
+    for (int c = count - 1; c >= 0; --c)
+      v_bar = apply_boundary_vjp<D>(applied[c].v, applied[c].n, applied[c].boundary, applied[c].friction, v_bar);
     return v_bar;
   }
 
@@ -549,6 +642,7 @@ class SolverD final : public Solver::Impl {
       for (Index q = block_start_[s]; q < block_start_[s + 1]; ++q) {
         const Index p = order_[static_cast<size_t>(q)];
         const size_t pd = static_cast<size_t>(p * D);
+        save_row(state, p);
         const Stencil st = stencil(&state.x[pd], o);
         Vec<D> v = Vec<D>::Zero();
         Mat<D> Bm = Mat<D>::Zero();  // sum w v_i (node offset in cells)^T
@@ -568,22 +662,46 @@ class SolverD final : public Solver::Impl {
         vmax = std::max(vmax, v.norm());
       }
     }
-    if (!finite || !(vmax * dt <= config_.max_cells_per_step * h))
+    if (!finite || !(vmax * dt <= config_.max_cells_per_step * h)) {
+      parallel_for(state.n, [&](Index p) { restore_row(state, p); });
       throw DivergenceError(
           "mpm: " + std::string(finite ? "particles moved " + format_real(vmax * dt / h) + " cells in one step"
                                        : "a velocity or deformation gradient became non-finite") +
           " at step " + std::to_string(state.steps) + " (t = " + format_real(state.time) + " s, dt = " +
           format_real(dt) + " s); use a dt below stable_dt() (CFL on speed and elastic wave speed)");
+    }
     return vmax;
+  }
+
+  // G2P is the only phase that writes the State, and it can fail (a blow-up): it saves the
+  // values it overwrites, particle by particle while they are in cache, so that a step that
+  // throws leaves the State as it was without a copy of the whole State before every step.
+  static constexpr int kRow = 2 * D + 2 * D * D + 1;  // x, v, F, C, Jp
+  void save_row(const State& state, Index p) {
+    Scalar* r = &backup_[static_cast<size_t>(p * kRow)];
+    const size_t pd = static_cast<size_t>(p * D);
+    r = std::copy_n(&state.x[pd], D, r);
+    r = std::copy_n(&state.v[pd], D, r);
+    r = std::copy_n(&state.F[pd * D], D * D, r);
+    r = std::copy_n(&state.C[pd * D], D * D, r);
+    *r = state.Jp[static_cast<size_t>(p)];
+  }
+  void restore_row(State& state, Index p) const {
+    const Scalar* r = &backup_[static_cast<size_t>(p * kRow)];
+    const size_t pd = static_cast<size_t>(p * D);
+    std::copy_n(r, D, &state.x[pd]);
+    std::copy_n(r + D, D, &state.v[pd]);
+    std::copy_n(r + 2 * D, D * D, &state.F[pd * D]);
+    std::copy_n(r + 2 * D + D * D, D * D, &state.C[pd * D]);
+    state.Jp[static_cast<size_t>(p)] = r[kRow - 1];
   }
 
   // Copies components first..S-1 of the nodes a block's tile covers from `source`.
   void gather(Scalar* tile, Index s, const std::vector<Scalar>& source, int first) const {
     const std::int32_t* nb = &neighbor_slot_[static_cast<size_t>(s * NEIGHBORS)];
     for (int t = 0; t < TN; ++t) {
-      int neighbor, local;
-      tile_to_block(t, neighbor, local);
-      const Scalar* node = &source[static_cast<size_t>((static_cast<Index>(nb[neighbor]) * BN + local) * S)];
+      const TileNode& tn = tile_nodes_[static_cast<size_t>(t)];
+      const Scalar* node = &source[static_cast<size_t>((static_cast<Index>(nb[tn.neighbor]) * BN + tn.local) * S)];
       for (int c = first; c < S; ++c) tile[t * S + c] = node[c];
     }
   }
@@ -649,6 +767,8 @@ class SolverD final : public Solver::Impl {
   Model model_;
   Config config_;
   Scalar inv_h_ = 1 / model_.h;
+  const std::array<TileNode, TN> tile_nodes_ = make_tile_nodes();
+  const std::array<std::vector<Overlap>, NEIGHBORS> overlaps_ = make_overlaps();
   std::array<Index, 3> blocks_{};
   Index block_count_ = 0;
   std::vector<std::int32_t> table_;          // dense block key -> slot (or -1)
@@ -657,10 +777,13 @@ class SolverD final : public Solver::Impl {
   std::vector<std::int32_t> neighbor_slot_;  // (particle block, 2^d) -> slot of the +{0,1}^d block
   std::vector<Index> particle_key_;          // (n,) block key of each particle
   std::vector<Index> block_start_;           // CSR of order_ by particle block
-  std::vector<Index> fill_;
+  std::vector<Index> fill_;                  // (sort chunks, particle blocks): counts, then write positions
   std::vector<Index> order_;                 // particle rows sorted by block
-  std::vector<Index> colour_start_, colour_blocks_;
+  std::vector<std::int32_t> source_slot_;   // (slot, 2^d) -> particle block at c - o (or -1)
+  std::vector<Scalar> tiles_;                // (particle blocks, (B + 2)^d, d + 1): P2G's tiles
+  Index particle_count_ = 0;                 // n of the last sort
   std::vector<Scalar> grid_;                 // (slots, B^d, d + 1): mass, momentum -> velocity
+  std::vector<Scalar> backup_;               // (n, kRow): what G2P overwrote, for a failed step
   std::vector<Scalar> pre_;                  // (slots, B^d, d): velocity before the boundary conditions
   std::vector<Scalar> adjoint_grid_;         // (slots, B^d, d + 1): dL/d(mass, momentum)
 };
@@ -688,22 +811,19 @@ void SolverD<D>::step_adjoint(const State& before, const State& after, Scalar dt
   grid_update(dt, pre_.data());
   interrupt.check();
   adjoint_grid_.resize(grid_.size());
-  parallel_for(slots, [&](Index s) { std::fill_n(&adjoint_grid_[static_cast<size_t>(s * BN * S)], BN * S, 0.0); });
   const Scalar h = model_.h, apic = 4 / h, stress_scale = 4 * dt / (h * h);
   const bool parallel = n > kParallelParticles;
   adjoint_params.youngs_modulus.assign(static_cast<size_t>(n), 0.0);
   adjoint_params.poisson_ratio.assign(static_cast<size_t>(n), 0.0);
 
   // 2. G2P transposed: v' = sum w u_i, C' = 4/h sum w u_i d_i^T, F' = (I + dt C') F,
-  //    x' = clamp(x + dt v'). Scatters dL/du_i into the grid in P2G's colour phases.
-  for (int colour = 0; colour < NEIGHBORS; ++colour) {
-    const Index begin = colour_start_[colour], end = colour_start_[colour + 1];
+  //    x' = clamp(x + dt v'). Scatters dL/du_i into each particle block's tile, as P2G.
+  {
 #pragma omp parallel for schedule(dynamic, 1) if (parallel)
-    for (Index k = begin; k < end; ++k) {
-      const Index s = colour_blocks_[static_cast<size_t>(k)];
+    for (Index s = 0; s < particle_blocks_; ++s) {
       const auto o = block_origin(s);
       alignas(64) Scalar velocity[TN * S];
-      alignas(64) Scalar tile[TN * S];
+      Scalar* tile = &tiles_[static_cast<size_t>(s * TN * S)];
       gather(velocity, s, grid_, 1);
       std::fill_n(tile, TN * S, 0.0);
       for (Index q = block_start_[s]; q < block_start_[s + 1]; ++q) {
@@ -730,22 +850,23 @@ void SolverD<D>::step_adjoint(const State& before, const State& after, Scalar dt
           const Eigen::Map<const Vec<D>> u(velocity + t * S + 1);
           const Vec<D> g = v_bar + apic * (C_bar * offset);
           Eigen::Map<Vec<D>>(tile + t * S + 1) += w * g;
-          fx_bar += u.dot(g) * grad_w - w * (C_bar_t * u);
+          fx_bar += u.dot(g) * grad_w;
         });
+        fx_bar -= C_bar_t * Eigen::Map<const Vec<D>>(&after.v[pd]);  // sum over nodes of w C_bar^T u_i: v' = sum w u_i
         // x and F of `before` also reach the step through P2G, which adds to these; v and C
         // only through P2G, which sets theirs.
         Eigen::Map<Vec<D>>(&adjoint.x[pd]) = x_bar + fx_bar / h;
         RowMap(&adjoint.F[pd * D]) = (Mat<D>::Identity() + dt * C_after).transpose() * F_bar;
       }
-      flush(tile, s, adjoint_grid_, false);
     }
   }
   interrupt.check();
 
-  // 3. Grid update transposed, node by node: u = P / M + dt g, then the boundary conditions.
+  // 3. Grid update transposed, node by node (on dL/du_i summed from the tiles):
+  //    u = P / M + dt g, then the boundary conditions.
   Vec<D> g;
   for (int a = 0; a < D; ++a) g(a) = config_.gravity[a];
-  parallel_for(slots, [&](Index s) {
+  reduce_tiles(tiles_, parallel, [&](Index s, const Scalar* sum) {
     const auto o = block_origin(s);
     for (int l = 0; l < BN; ++l) {
       const size_t at = static_cast<size_t>((s * BN + l) * S);
@@ -758,7 +879,7 @@ void SolverD<D>::step_adjoint(const State& before, const State& after, Scalar dt
       Index i[3] = {0, 0, 0};
       node_index(o, l, i);
       const Vec<D> u = Eigen::Map<const Vec<D>>(&pre_[static_cast<size_t>((s * BN + l) * D)]);
-      const Vec<D> u_bar = boundary_vjp(u, i, Eigen::Map<const Vec<D>>(node + 1));
+      const Vec<D> u_bar = boundary_vjp(u, i, Eigen::Map<const Vec<D>>(sum + l * S + 1));
       node[0] = -u_bar.dot(u - dt * g) / M;
       Eigen::Map<Vec<D>>(node + 1) = u_bar / M;
     }
@@ -800,8 +921,9 @@ void SolverD<D>::step_adjoint(const State& before, const State& after, Scalar dt
         const Eigen::Map<const Vec<D>> P_bar(tile + t * S + 1);
         P_bar_sum += w * P_bar;
         A_bar += (w * P_bar) * offset.transpose();
-        fx_bar += (P_bar.dot(momentum + A * offset) + M_bar * m) * grad_w - w * (A.transpose() * P_bar);
+        fx_bar += (P_bar.dot(momentum + A * offset) + M_bar * m) * grad_w;
       });
+      fx_bar -= A.transpose() * P_bar_sum;  // sum over nodes of w A^T P_bar_i
       Eigen::Map<Vec<D>>(&adjoint.v[pd]) = m * P_bar_sum;
       if (adjoint_forces) Eigen::Map<Vec<D>>(adjoint_forces + pd) = dt * P_bar_sum;
       RowMap(&adjoint.C[pd * D]) = (m * h) * A_bar;

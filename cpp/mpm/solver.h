@@ -10,10 +10,10 @@
 // km.diff): it rebuilds the step's grid from `before`, then G2P^T (a scatter, coloured as P2G),
 // the grid update's transpose node by node, and P2G^T (a gather, per particle).
 // The grid is sparse: storage and work exist only for the blocks of nodes that particles reach.
-// P2G needs no atomics and is deterministic for any thread count: each block scatters into a
-// private tile of (B + 2)^d nodes and the tiles are added to the grid in 2^d colour phases
-// (blocks of one colour are two blocks apart, so their tiles never overlap), each node
-// receiving its contributions in a fixed order.
+// P2G needs no atomics and is deterministic for any thread count: each particle block scatters
+// into its own tile of (B + 2)^d nodes, and the grid pass then gives every node the sum of the
+// 2^d tiles over it in a fixed order (the block's own tile first), fused with the node's
+// velocity update: a step is three parallel loops and two barriers, whatever the dimension.
 #pragma once
 
 #include <memory>
@@ -61,7 +61,8 @@ class Solver {
   // Advances state by dt. `forces` (n, d) [N] (or null) are external particle forces, added
   // where gravity is (the P2G momentum gains dt f_p). Throws InvalidArgument for particles
   // outside the domain or a bad dt, DivergenceError when a value turns non-finite or a particle
-  // crosses more than config.max_cells_per_step cells in one step.
+  // crosses more than config.max_cells_per_step cells in one step. A step that throws leaves
+  // the state unchanged (it is transactional by itself; callers need no copy of the State).
   StepStats step(State& state, Scalar dt, Interrupt& interrupt, const Scalar* forces = nullptr);
 
   // The vector-Jacobian product of step(before -> after) with the same dt and forces.
