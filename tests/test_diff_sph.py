@@ -315,11 +315,11 @@ def test_rollout_gradients_match_central_differences(d, kind):
 
 
 def test_rollout_with_default_neighbour_lists_and_reordering():
-    """20 steps with the default Verlet skin (lists kept over several steps) and Morton
+    """100 steps with the default Verlet skin (lists kept over several steps) and Morton
     reordering at a rebuild at least 16 steps after the last: the adjoint's fresh pair search
     and the ids still give the derivative of the run."""
     sim = _scene(2, "defaults", seed=30)
-    steps = 20
+    steps = 100
     run_ids = []
     sim.set_state(sim.state())
     s0 = sim.state()
@@ -328,7 +328,7 @@ def test_rollout_with_default_neighbour_lists_and_reordering():
         run_ids.append(sim.ids.copy())
     assert not np.array_equal(run_ids[-1], run_ids[0]), "the run was expected to reorder its rows"
     sim.set_state(s0)
-    _check(sim, steps, ALL, seed=31, where="2D droplet, default lists, 20 steps")
+    _check(sim, steps, ALL, seed=31, where="2D droplet, default lists, 100 steps")
 
 
 def test_checkpointed_backward_equals_stored():
