@@ -51,6 +51,17 @@ def test_cloth_and_beam_writes_meshes(tmp_path):
     assert (tmp_path / "summary.txt").read_text().startswith("frames 3")
 
 
+@pytest.mark.parametrize("dim", [2, 3])
+def test_diff_sph_droplet_hits_its_target(tmp_path, dim):
+    """examples/diff_sph_droplet.py, small: the centre of mass's distance to the target falls by
+    1 - lr = 0.3 per iteration (the loss by 0.09) and the plots are written."""
+    losses = load("diff_sph_droplet").main(["--out", str(tmp_path), "--iterations", "3", "--steps", "60",
+                                           "--dim", str(dim)])
+    assert len(losses) == 4 and losses[-1] < 2e-3 * losses[0], losses
+    for name in ("sph_droplet_loss.png", "sph_droplet_flight.png"):
+        assert (tmp_path / name).stat().st_size > 0, name
+
+
 def test_every_example_is_smoke_tested():
     """Each examples/*.py is named by a test module (here or beside its method's tests)."""
     tests = "\n".join(p.read_text() for p in Path(__file__).parent.glob("test_*.py"))

@@ -10,6 +10,7 @@
 #include "core/advance.h"
 #include "core/errors.h"
 #include "particles/neighbor_grid.h"
+#include "sph/adjoint.h"
 #include "sph/kernels.h"
 #include "sph/solver.h"
 
@@ -63,16 +64,74 @@ struct PyFluid {
     solver.emplace(model, config);
   }
 
-  sph::StepStats step(Scalar dt) {
+  // forces: None or (n, d) external forces [N] by particle id (km.diff's controls).
+  sph::StepStats step(Scalar dt, py::object forces) {
+    const Scalar* f = forces_of(forces);
     Interrupt interrupt = python_interrupt();
     ReleaseGil release;
-    return step_or_rollback(dt, interrupt);
+    return step_or_rollback(dt, interrupt, f);
   }
 
   // One step; a failing step leaves the state as it was.
-  sph::StepStats step_or_rollback(Scalar dt, Interrupt& interrupt) {
+  sph::StepStats step_or_rollback(Scalar dt, Interrupt& interrupt, const Scalar* forces = nullptr) {
     check_ids();
-    return with_rollback(state, backup, [&] { return solver->step(state, dt, interrupt); });
+    return with_rollback(state, backup, [&] { return solver->step(state, dt, interrupt, forces); });
+  }
+
+  const Scalar* forces_of(py::object forces) {
+    if (forces.is_none()) return nullptr;
+    py::array a = forces.cast<py::array>();
+    const Index n = state.n, d = state.dim;
+    if (a.ndim() != 2 || a.shape(0) != n || a.shape(1) != d)
+      throw InvalidArgument("controls: expected one step's forces of shape (" + std::to_string(n) + ", " +
+                            std::to_string(d) + ") [N]");
+    const Scalar* f = checked_data(a, "controls", n * d, false);
+    forces_copy.assign(f, f + n * d);  // the array may be a temporary of the conversion
+    return forces_copy.data();
+  }
+
+  // The rows of state()'s dict `src` (x, v, ids) as a State (named `name` in errors).
+  sph::State state_from(const py::dict& src, const char* name) const {
+    sph::State s(state.dim, state.n);
+    for (const char* key : {"x", "v", "ids"})
+      if (!src.contains(key)) throw InvalidArgument(std::string(name) + ": missing '" + key + "'");
+    copy_into(s.x, src, "x");
+    copy_into(s.v, src, "v");
+    copy_into(s.ids, src, "ids");
+    return s;
+  }
+
+  // The vector-Jacobian product of one step (Solver::step_adjoint): `before`/`after` are state()
+  // dicts around step(dt, forces); grad_x, grad_v are dL/d(after). Returns (dL/dx, dL/dv of
+  // before, dL/dnu, dL/dforces (n, d) by particle id or None when with_forces is false).
+  py::tuple step_adjoint(Scalar dt, const py::dict& before_dict, const py::dict& after_dict, py::array grad_x,
+                         py::array grad_v, bool with_forces) {
+    const sph::State before = state_from(before_dict, "before");
+    const sph::State after = state_from(after_dict, "after");
+    const Index n = state.n, d = state.dim;
+    sph::State adjoint(state.dim, state.n);
+    const Scalar* gx = checked_data(grad_x, "grads['x']", n * d, false);
+    const Scalar* gv = checked_data(grad_v, "grads['v']", n * d, false);
+    adjoint.x.assign(gx, gx + n * d);
+    adjoint.v.assign(gv, gv + n * d);
+    sph::ParamsAdjoint params;
+    std::vector<Scalar> forces_bar(with_forces ? static_cast<size_t>(n * d) : 0);
+    {
+      Interrupt interrupt = python_interrupt();
+      ReleaseGil release;
+      solver->step_adjoint(before, after, dt, adjoint, params, with_forces ? forces_bar.data() : nullptr, interrupt);
+    }
+    py::object fb = py::none();
+    if (with_forces) fb = to_numpy(std::move(forces_bar), {n, d});
+    return py::make_tuple(to_numpy(std::move(adjoint.x), {n, d}), to_numpy(std::move(adjoint.v), {n, d}),
+                          params.viscosity, fb);
+  }
+
+  // A new kinematic viscosity nu [m^2/s] (checked as the Config is); the state is kept.
+  void set_viscosity(Scalar nu) {
+    sph::Config config = solver->config();
+    config.viscosity = nu;
+    solver = sph::Solver(solver->model(), config);  // built before the old one goes: a refused nu changes nothing
   }
 
   // Steps of CFL-limited dt until `duration` has passed; Ctrl-C is checked between steps.
@@ -174,6 +233,7 @@ struct PyFluid {
   sph::State state;
   sph::State backup{2, 0};       // the state before the current step (step_or_rollback)
   std::vector<char> ids_seen;    // check_ids' scratch, kept so that a step allocates nothing
+  std::vector<Scalar> forces_copy;  // the current step's forces
   std::optional<sph::Solver> solver;
 };
 
@@ -235,7 +295,10 @@ void bind_sph(py::module_& m) {
                     std::optional<std::vector<Scalar>>, std::optional<std::vector<Scalar>>>(),
            py::arg("positions"), py::arg("velocity"), py::arg("spacing"), py::arg("config"),
            py::arg("boundary"), py::arg("lower"), py::arg("upper"))
-      .def("step", &PyFluid::step, py::arg("dt"))
+      .def("step", &PyFluid::step, py::arg("dt"), py::arg("forces") = py::none())
+      .def("step_adjoint", &PyFluid::step_adjoint, py::arg("dt"), py::arg("before"), py::arg("after"),
+           py::arg("grad_x"), py::arg("grad_v"), py::arg("with_forces"))
+      .def("set_viscosity", &PyFluid::set_viscosity, py::arg("viscosity"))
       .def("advance", &PyFluid::advance, py::arg("duration"), py::arg("cfl"))
       .def("stable_dt", [](const PyFluid& f, Scalar cfl) { return f.solver->stable_dt(f.state, cfl); },
            py::arg("cfl"))

@@ -21,7 +21,7 @@ namespace kinema::sph {
 struct Solver::Impl {
   Impl(const Model& model, const Config& config) : model_(model), config_(config) {}
   virtual ~Impl() = default;
-  virtual StepStats step(State& state, Scalar dt, Interrupt& interrupt) = 0;
+  virtual StepStats step(State& state, Scalar dt, Interrupt& interrupt, const Scalar* forces) = 0;
   virtual Scalar stable_dt(const State& state, Scalar cfl) const = 0;
   virtual Scalar density_error(State& state) = 0;
   virtual std::vector<Index> neighbor_pairs_in_use(State& state, std::vector<Index>& boundary_pairs) = 0;
@@ -45,10 +45,11 @@ class SolverD final : public Solver::Impl {
     B_ = config.rho0 * c_ * c_ / config.gamma;
   }
 
-  StepStats step(State& s, Scalar dt, Interrupt& interrupt) override {
+  StepStats step(State& s, Scalar dt, Interrupt& interrupt, const Scalar* forces) override {
     if (!(dt > 0) || !std::isfinite(dt))
       throw InvalidArgument("dt: expected a finite number > 0, got " + format_real(dt));
     prepare(s);
+    forces_ = forces;
     Stopwatch watch;
     StepStats stats;
     stats.dt = dt;
@@ -602,12 +603,13 @@ class SolverD final : public Solver::Impl {
     parallel_for(s.n, [&](Index i) { s.pressure[i] = tait_pressure(s.density[i], config_.rho0, B_, config_.gamma); });
   }
 
-  // accel_ = g + viscosity (fluid-fluid; walls are free-slip).
+  // accel_ = g + external forces / m + viscosity (fluid-fluid; walls are free-slip).
   void non_pressure_accelerations(const State& s) {
     const Scalar nu = config_.viscosity;
     const Pairs f = fluid_pairs();
     parallel_for(s.n, [&](Index i) {
       Vec a = g_;
+      if (forces_) a += CMap(forces_ + s.ids[i] * D) / model_.mass;
       if (nu > 0) {
         const Vec xi = CMap(s.x.data() + i * D);
         const Vec vi = CMap(s.v.data() + i * D);
@@ -717,6 +719,7 @@ class SolverD final : public Solver::Impl {
   NeighborLists fluid_exact_, boundary_exact_;  // their entries within h (kernel_pass; with a skin)
   RowSums<D> rows_;                             // the light passes' row sums (AVX2 or baseline)
   bool rebuilt_ = false;                        // the step rebuilt the lists
+  const Scalar* forces_ = nullptr;              // the step's external forces (n, d) by particle id, or null
   std::vector<Scalar> accel_;      // (n, d) accelerations
   std::vector<Scalar> aux_;        // DFSPH: predicted densities or density rates; WCSPH: p_i / rho_i^2
   std::vector<Scalar> warm_left_;  // DFSPH: warm-start stiffness a solve may still give back
@@ -745,7 +748,9 @@ Solver::~Solver() = default;
 Solver::Solver(Solver&&) noexcept = default;
 Solver& Solver::operator=(Solver&&) noexcept = default;
 
-StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) { return impl_->step(state, dt, interrupt); }
+StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt, const Scalar* forces) {
+  return impl_->step(state, dt, interrupt, forces);
+}
 Scalar Solver::stable_dt(const State& state, Scalar cfl) const { return impl_->stable_dt(state, cfl); }
 Scalar Solver::density_error(State& state) { return impl_->density_error(state); }
 std::vector<Index> Solver::neighbor_pairs_in_use(State& state, std::vector<Index>& boundary_pairs) {

@@ -20,6 +20,9 @@
 
 namespace kinema::sph {
 
+struct ParamsAdjoint;  // adjoint.h
+struct AdjointScratch;  // adjoint.cpp
+
 struct StepStats : StepStatsBase {
   int iterations = 0;             // DFSPH constant-density iterations
   int divergence_iterations = 0;  // DFSPH divergence-free iterations
@@ -39,10 +42,23 @@ class Solver {
   Solver(Solver&&) noexcept;
   Solver& operator=(Solver&&) noexcept;
 
-  // Advances state by dt. Throws InvalidArgument for a bad dt or a state of another model,
-  // DivergenceError on non-finite values or runaway speeds (the state is then partly advanced:
-  // callers that go on keep a copy, as the bindings do).
-  StepStats step(State& state, Scalar dt, Interrupt& interrupt);
+  // Advances state by dt. `forces` (n, d) [N] (or null) are external particle forces, added
+  // where gravity is; row i is the force on particle i of the initial positions (state.ids),
+  // so that it follows the particle through Morton reorderings. Throws InvalidArgument for a
+  // bad dt or a state of another model, DivergenceError on non-finite values or runaway speeds
+  // (the state is then partly advanced: callers that go on keep a copy, as the bindings do).
+  StepStats step(State& state, Scalar dt, Interrupt& interrupt, const Scalar* forces = nullptr);
+
+  // The vector-Jacobian product of one WCSPH step(before -> after) with the same dt (adjoint.cpp;
+  // the forces enter additively, so their values are not needed). On entry adjoint.x and
+  // adjoint.v ((n, d), the rows of `after`) hold dL/d(after); on return they hold dL/d(before)
+  // (the rows of `before`). adjoint_params receives dL/d(viscosity) of this step and
+  // adjoint_forces (n, d, rows by particle id as `forces`) dL/d(forces) when not null. The
+  // neighbour set is the step's (the pairs within h at before's positions), not differentiated;
+  // where the forward switched branch (Tait's clamp of negative pressures, the domain clamp)
+  // this is the derivative of the branch taken. DFSPH is refused (InvalidArgument naming method).
+  void step_adjoint(const State& before, const State& after, Scalar dt, State& adjoint,
+                    ParamsAdjoint& adjoint_params, Scalar* adjoint_forces, Interrupt& interrupt);
 
   // The CFL time step cfl * spacing / (c + v_max) (WCSPH) or cfl * spacing / v_max (DFSPH),
   // also bounded by the viscous limit 0.05 spacing^2 / nu, sqrt(0.1 cfl spacing / |g|) and
@@ -70,6 +86,7 @@ class Solver {
 
  private:
   std::unique_ptr<Impl> impl_;
+  std::shared_ptr<AdjointScratch> adjoint_;  // step_adjoint's buffers and neighbour search
 };
 
 }  // namespace kinema::sph

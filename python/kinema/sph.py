@@ -399,6 +399,57 @@ class Fluid:
         ``density``, and for WCSPH ``pressure``)."""
         return finite_result(self._core.density_error(), "density_error")
 
+    # ------------------------------------------------------------------ km.diff protocol
+    # Gradients of WCSPH steps with respect to x, v, the per-step particle forces (controls) and
+    # viscosity (docs/guide/diff.md). The neighbour set of each step is the forward's (not
+    # differentiated); Tait's clamp of negative pressures and the domain clamp are differentiated
+    # on the branch taken. A control row is the force [N] on a particle by its id (row i acts on
+    # the particle given as row i of ``positions``), so it follows the particle through Morton
+    # reorderings; gradients of x and v are by row of the state they belong to, as ``x`` is.
+    _diff_state_names = ("x", "v")
+
+    def _diff_check(self, wrt, step_options):
+        for option in step_options:
+            raise ValueError(f"{option}: km.sph.Fluid.step takes no option besides dt")
+        if self.method != "wcsph":
+            raise ValueError(f"method: gradients need method='wcsph', this fluid is {self.method!r} (DFSPH's "
+                             "pressure solves are projected Jacobi iterations stopped at a tolerance, with clamped "
+                             "increments and a warm start: not differentiable as run, see docs/guide/diff.md)")
+        allowed = self._diff_state_names + self.parameters + ("controls",)
+        for name in wrt:
+            if name not in allowed:
+                raise ValueError(f"wrt: {name!r} is not differentiable in km.sph.Fluid (expected one of {allowed})")
+
+    def _diff_control_shape(self):
+        return (self.n, self.dim)
+
+    def _diff_get(self, name):
+        if name in self._diff_state_names:
+            return getattr(self, name).copy()
+        if name == "viscosity":
+            return self.viscosity
+        raise ValueError(f"name: {name!r} is neither a state array nor a parameter of km.sph.Fluid")
+
+    def _diff_set(self, name, value):
+        if name in self._diff_state_names:
+            setattr(self, name, value)
+        elif name == "viscosity":
+            self._core.set_viscosity(real(value, "viscosity"))
+        else:
+            raise ValueError(f"name: {name!r} is neither a state array nor a parameter of km.sph.Fluid")
+
+    def _diff_step(self, dt, control, step_options):
+        self._diff_check((), step_options)
+        return self._core.step(time_step(dt), control)
+
+    def _diff_step_adjoint(self, dt, before, after, control, grad_after, step_options):
+        self._diff_check((), step_options)
+        gx = as_float_array(grad_after["x"], "grads['x']")
+        gv = as_float_array(grad_after["v"], "grads['v']")
+        gx_before, gv_before, g_nu, g_control = self._core.step_adjoint(
+            time_step(dt), before, after, gx, gv, control is not None)
+        return {"x": gx_before, "v": gv_before}, {"viscosity": g_nu}, g_control
+
 
 # ---------------------------------------------------------------------- obstacle sampling
 # Boundary samples of solids other than boxes, for Fluid(boundary=...). Like box_boundary they
