@@ -668,8 +668,9 @@ class BodyContact:
         if integrator == "implicit":
             if float(beta) != 1.0:
                 raise ValueError(f"beta: implicit steps with colliders are backward Euler (beta = 1), got {beta}")
+            if self._scene is not None and self._scene.time != self.sim.time:
+                self._scene = None  # the body's time was set (a restored state): colliders re-placed
             scene = self.scene()
-            scene._core.time = self.sim.time
             for _ in range(steps):
                 stats = scene.step(dt)
             return stats
