@@ -142,10 +142,18 @@ class MassSpringSimulation(DeformableSimulation):
         return g
 
     def _step(self, dt):
-        self.body.step(dt, self.integrator, self.beta, linear_solver=self.solver)
+        self.last = self.body.step(dt, self.integrator, self.beta, linear_solver=self.solver)
 
     def diagnostics(self):
-        return {"energy": self.body.energy(), "kinetic_energy": self.body.kinetic_energy()}
+        out = {"energy": self.body.energy(), "kinetic_energy": self.body.kinetic_energy()}
+        if self.contact is not None:  # the last step's contact diagnostics (none before the first)
+            i = getattr(self, "last", None)
+            out.update(contact_count=float(i.contact_count) if i else 0.0,
+                       min_distance=float(i.min_distance) if i else float("inf"))
+            if self.integrator == "implicit":
+                out.update(sticking=float(i.sticking_count) if i else 0.0,
+                           sliding=float(i.sliding_count) if i else 0.0)
+        return out
 
 
 Simulation = MassSpringSimulation
