@@ -359,6 +359,8 @@ class Body:
     _diff_state_names = ("x", "v")
 
     def _diff_check(self, wrt, step_options):
+        if self.contact is not None and self.contact.colliders:
+            raise ValueError("sim: a km.fem.Body with colliders is not differentiable (km.contact has no adjoint)")
         for key, value in step_options.items():
             if key == "steps":
                 if value != 1:

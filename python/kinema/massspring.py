@@ -223,6 +223,8 @@ class System:
     # ------------------------------------------------------------ km.diff protocol
 
     def _diff_check(self, wrt, step_options):
+        if self.contact is not None and self.contact.colliders:
+            raise ValueError("sim: a km.massspring.System with colliders is not differentiable (km.contact has no adjoint)")
         for key in step_options:
             if key not in _DIFF_OPTIONS:
                 raise ValueError(f"{key}: not an option of km.massspring.System under km.diff "
