@@ -156,3 +156,84 @@ def test_attach_options_are_set_once():
         km.contact.attach(body, friction=0.5)
     body.step(1e-2)
     assert body.contact.scene().config.dhat == 2e-4 and body.contact.scene().config.friction == 0.3
+
+
+SCENE = """
+[scene]
+name = "t"
+duration = 0.04
+fps = 50
+
+[solver]
+type = "{solver}"
+gravity = [0.0, -9.81, 0.0]
+friction = 0.2
+dhat = 1e-3
+
+{body}
+
+[[objects]]
+type = "collider"
+shape = "mesh"
+file = "bowl.obj"
+
+[[objects]]
+type = "obstacle"
+shape = "box"
+lower = [-0.3, 0.5, -0.3]
+upper = [0.3, 0.6, 0.3]
+velocity = [0.0, 0.5, 0.0]
+
+[output]
+png = false
+mp4 = false
+vtu = false
+ply = false
+"""
+BODIES = {
+    "fem": """[[objects]]
+type = "box"
+lower = [0.0, 0.05, 0.0]
+upper = [0.1, 0.15, 0.1]
+cells = [1, 1, 1]
+youngs_modulus = 1e5
+poisson_ratio = 0.3
+density = 500.0
+
+[[objects]]
+type = "box"
+lower = [0.0, 0.2, 0.0]
+upper = [0.1, 0.3, 0.1]
+cells = [1, 1, 1]
+youngs_modulus = 1e5
+poisson_ratio = 0.3
+density = 500.0""",
+    "massspring": """[[objects]]
+type = "cloth"
+resolution = [4, 4]
+size = [0.3, 0.3]
+origin = [-0.1, 0.2, -0.1]
+plane = "xz"
+stiffness = 200.0
+mass = 0.05""",
+}
+
+
+@pytest.mark.parametrize("solver", ["fem", "massspring"])
+def test_scene_files_take_mesh_and_moving_colliders(tmp_path, solver):
+    import meshio
+
+    v, t = km.contact.box_surface((-0.5, -0.1, -0.5), (0.5, 0.0, 0.5))
+    meshio.write(tmp_path / "bowl.obj", meshio.Mesh(v, [("triangle", t)]))
+    path = tmp_path / "scene.toml"
+    path.write_text(SCENE.format(solver=solver, body=BODIES[solver]))
+    scene = km.Scene.load(path)
+    result = scene.run(tmp_path / "out", 3, progress=False)
+    assert result.frames == 3
+    with open(tmp_path / "out" / "diagnostics.csv") as fh:
+        header = fh.readline()
+    assert "min_distance" in header and "contact_count" in header
+    bad = path.read_text().replace('file = "bowl.obj"', "")
+    path.write_text(bad)
+    with pytest.raises(ValueError, match="file"):
+        km.Scene.load(path).build()

@@ -5,11 +5,10 @@ axis-aligned boxes and spheres only), and drawn grey in the frames."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
 import kinema as km
+from kinema.scenes.adapters.deformable import read_mesh
 from kinema.scenes.schema import Field, Real, Str, Table, Vec
 
 COLLIDER = Table({
@@ -64,20 +63,7 @@ def collider_args(scene, k, obj):
         c = v.mean(axis=0)
         shape, kw["vertices"], kw["triangles"] = "mesh", (v - c) @ _rotation(obj["rotation"]).T + c, t
     else:
-        import meshio
-
-        path = Path(obj["file"])
-        if not path.is_absolute():
-            path = Path(scene.path).parent / path
-        try:
-            m = meshio.read(path)
-        except Exception as exc:  # meshio raises several types for unreadable files
-            raise scene.error(f"objects[{k}].file", f"cannot read {path}: {exc}") from None
-        tris = [b.data for b in m.cells if b.type == "triangle"]
-        if not tris:
-            raise scene.error(f"objects[{k}].file", f"{path} has no triangle cells")
-        v = m.points[:, :3] * obj["scale"] + (0 if obj["offset"] is None else np.asarray(obj["offset"]))
-        kw["vertices"], kw["triangles"] = v, np.concatenate(tris)
+        kw["vertices"], kw["triangles"] = read_mesh(scene, k, obj, ("triangle",))
     return shape, kw
 
 
