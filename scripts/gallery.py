@@ -22,7 +22,8 @@ import numpy as np
 
 #: The fraction of each scene's duration at which its picture is taken.
 MOMENT = {"dam_break": 0.27, "hanging_cloth": 0.67, "smoke_plume": 0.6, "smoke_plume_3d": 0.6,
-          "soft_body": 0.2, "vortex_merge": 0.5, "vortex_sheet": 0.5}
+          "soft_body": 0.2, "vortex_merge": 0.5, "vortex_sheet": 0.5,
+          "soft_cube_pile": 0.7, "jelly_stairs": 0.4, "cloth_drape": 0.5}
 OFF = ["output.mp4=false", "output.vtu=false", "output.ply=false", "output.vti=false", "output.png=true"]
 
 

@@ -203,7 +203,7 @@ def test_example_scene_writes_real_files(tmp_path, name):
 # ----------------------------------------------------------------------------- resume
 
 @pytest.mark.parametrize("name", ["smoke_plume", "dam_break", "hanging_cloth", "soft_body", "vortex_sheet",
-                                  "snowball_jelly"])
+                                  "snowball_jelly", "soft_cube_pile", "cloth_drape", "jelly_stairs"])
 def test_resume_is_bit_for_bit(tmp_path, name):
     frames = 5
     scene = km.Scene.load(EXAMPLES[name], quick=True, overrides=[("output.mp4", False)])

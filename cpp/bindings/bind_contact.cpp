@@ -5,6 +5,7 @@
 #include <memory>
 
 #include "bindings/common.h"
+#include "bindings/fem_material.h"
 #include "contact/barrier.h"
 #include "contact/solver.h"
 #include "core/errors.h"
@@ -15,14 +16,6 @@ namespace kinema::bind {
 namespace {
 
 using contact::Vec3;
-
-fem::Material contact_material(const std::string& name) {
-  if (name == "linear") return fem::Material::Linear;
-  if (name == "stvk") return fem::Material::StVK;
-  if (name == "corotated") return fem::Material::Corotated;
-  if (name == "neohookean") return fem::Material::NeoHookean;
-  throw InvalidArgument("model: expected 'linear', 'stvk', 'corotated' or 'neohookean', got '" + name + "'");
-}
 
 LinearSolver contact_linear_solver(const std::string& name) {
   if (name == "cholmod") return LinearSolver::CholmodDirect;
@@ -49,19 +42,39 @@ struct PyScene {
     auto next = std::make_shared<contact::State>(*state);
     next->x.insert(next->x.end(), model->rest.begin() + 3 * start, model->rest.end());
     next->v.resize(next->x.size(), 0);
+    next->target.insert(next->target.end(), model->rest.begin() + 3 * start, model->rest.end());
     next->kappa = 0;
     state = std::move(next);
     solver.reset();
     return start;
   }
 
-  Index add_solid(py::array vertices, const IndexArray& tets, const std::string& material, Scalar E, Scalar nu,
-                  Scalar density, const IndexArray& fixed) {
+  Index add_solid(py::array vertices, const IndexArray& tets, const std::string& material, const ScalarArray& E,
+                  const ScalarArray& nu, Scalar density, Scalar damping, const IndexArray& fixed) {
     const Index n = rows_of(vertices, 3, "vertices");
     const Index m = rows_of(tets, 4, "tets");
     const Scalar* x = checked_data(vertices, "vertices", 3 * n, false);
-    return grown(model->add_solid(x, n, index_data(tets), m, contact_material(material), E, nu, density,
-                                  index_data(fixed), fixed.size()));
+    if (nu.size() != E.size())
+      throw InvalidArgument("poisson_ratio: expected as many values as youngs_modulus (" + std::to_string(E.size()) + ")");
+    return grown(model->add_solid(x, n, index_data(tets), m, parse_material(material), E.data(), nu.data(),
+                                  E.size(), density, damping, index_data(fixed), fixed.size()));
+  }
+
+  Index add_springs(py::array vertices, const IndexArray& springs, const ScalarArray& stiffness,
+                    const ScalarArray& rest_length, const ScalarArray& damping, const ScalarArray& mass,
+                    const IndexArray& triangles, const IndexArray& fixed) {
+    const Index n = rows_of(vertices, 3, "vertices");
+    const Index s = rows_of(springs, 2, "springs");
+    const Index m = triangles.size() ? rows_of(triangles, 3, "triangles") : 0;
+    const Scalar* x = checked_data(vertices, "vertices", 3 * n, false);
+    auto per_spring = [&](const ScalarArray& a, const char* name) {
+      if (a.size() != s) throw InvalidArgument(std::string(name) + ": expected " + std::to_string(s) + " values");
+      return a.data();
+    };
+    if (mass.size() != n) throw InvalidArgument("mass: expected " + std::to_string(n) + " values");
+    return grown(model->add_springs(x, n, index_data(springs), s, per_spring(stiffness, "stiffness"),
+                                    per_spring(rest_length, "rest_length"), per_spring(damping, "damping"), mass.data(),
+                                    index_data(triangles), m, index_data(fixed), fixed.size()));
   }
 
   Index add_cloth(py::array vertices, const IndexArray& triangles, const IndexArray& springs, Scalar stiffness,
@@ -74,11 +87,11 @@ struct PyScene {
                                   index_data(fixed), fixed.size()));
   }
 
-  Index add_obstacle(py::array vertices, const IndexArray& triangles) {
+  Index add_obstacle(py::array vertices, const IndexArray& triangles, bool moving) {
     const Index n = rows_of(vertices, 3, "vertices");
     const Index m = rows_of(triangles, 3, "triangles");
     const Scalar* x = checked_data(vertices, "vertices", 3 * n, false);
-    return grown(model->add_obstacle(x, n, index_data(triangles), m));
+    return grown(model->add_obstacle(x, n, index_data(triangles), m, moving));
   }
 
   void add_plane(const std::array<Scalar, 3>& point, const std::array<Scalar, 3>& normal) {
@@ -162,12 +175,14 @@ void bind_contact(py::module_& m) {
       .def(py::init<const contact::Config&>())
       .def("add_solid", &PyScene::add_solid)
       .def("add_cloth", &PyScene::add_cloth)
+      .def("add_springs", &PyScene::add_springs)
       .def("add_obstacle", &PyScene::add_obstacle)
       .def("add_plane", &PyScene::add_plane)
       .def("step", &PyScene::step)
       .def_property_readonly("vertex_count", [](const PyScene& s) { return s.model->vertex_count; })
       .def_property_readonly("x", [](PyScene& s) { return s.view(s.state->x); })
       .def_property_readonly("v", [](PyScene& s) { return s.view(s.state->v); })
+      .def_property_readonly("target", [](PyScene& s) { return s.view(s.state->target); })
       .def_property("time", [](const PyScene& s) { return s.state->time; },
                     [](PyScene& s, Scalar t) { s.state->time = t; })
       .def_property("kappa", [](const PyScene& s) { return s.state->kappa; },

@@ -8,6 +8,7 @@
 #include <type_traits>
 
 #include "bindings/common.h"
+#include "bindings/fem_material.h"
 #include "core/errors.h"
 #include "core/parallel.h"
 #include "fem/solver.h"
@@ -18,15 +19,6 @@ namespace {
 
 using fem::Solver;
 using fem::State;
-
-fem::Material parse_material(const std::string& name) {
-  if (name == "linear") return fem::Material::Linear;
-  if (name == "stvk") return fem::Material::StVK;
-  if (name == "corotated") return fem::Material::Corotated;
-  if (name == "neohookean") return fem::Material::NeoHookean;
-  throw InvalidArgument("model: expected 'linear', 'stvk', 'corotated' or 'neohookean', got '" +
-                        name + "'");
-}
 
 // A flat writable view of a state buffer owned by the state behind `self`.
 py::array view(py::object self, std::vector<Scalar>& buffer) {

@@ -34,6 +34,8 @@ Index Model::append_vertices(const Scalar* x, Index n, const char* name) {
   rest.insert(rest.end(), x, x + 3 * n);
   mass.resize(static_cast<size_t>(start + n), 0);
   fixed.resize(static_cast<size_t>(start + n), 0);
+  driven.resize(static_cast<size_t>(start + n), 0);
+  damping.resize(static_cast<size_t>(start + n), 0);
   body.resize(static_cast<size_t>(start + n), body_count);
   vertex_count += n;
   ++body_count;
@@ -59,13 +61,20 @@ void Model::add_surface(const std::vector<Index>& triangles) {
 }
 
 Index Model::add_solid(const Scalar* x, Index n, const Index* elements, Index m, fem::Material material,
-                       Scalar youngs_modulus, Scalar poisson_ratio, Scalar density, const Index* fixed_ids,
-                       Index fixed_count) {
-  check_positive(youngs_modulus, "youngs_modulus");
-  check_positive(density, "density");
-  if (!(poisson_ratio > -1 && poisson_ratio < 0.5))
-    throw InvalidArgument("poisson_ratio: expected a value in (-1, 0.5), got " + format_real(poisson_ratio));
+                       const Scalar* youngs_modulus, const Scalar* poisson_ratio, Index param_count,
+                       Scalar density, Scalar damping_coefficient, const Index* fixed_ids, Index fixed_count) {
   if (m <= 0) throw InvalidArgument("tets: expected at least one tetrahedron");
+  if (param_count != 1 && param_count != m)
+    throw InvalidArgument("youngs_modulus, poisson_ratio: expected 1 or " + std::to_string(m) + " values, got " +
+                          std::to_string(param_count));
+  for (Index k = 0; k < param_count; ++k) {
+    check_positive(youngs_modulus[k], "youngs_modulus");
+    if (!(poisson_ratio[k] > -1 && poisson_ratio[k] < 0.5))
+      throw InvalidArgument("poisson_ratio: expected a value in (-1, 0.5), got " + format_real(poisson_ratio[k]));
+  }
+  check_positive(density, "density");
+  if (!(std::isfinite(damping_coefficient) && damping_coefficient >= 0))
+    throw InvalidArgument("damping: expected a finite value >= 0, got " + format_real(damping_coefficient));
   check_indices(elements, 4 * m, n, "tets");
   check_indices(fixed_ids, fixed_count, n, "fixed");
   // Every check before the model changes, so a refused body leaves the scene as it was.
@@ -78,14 +87,16 @@ Index Model::add_solid(const Scalar* x, Index n, const Index* elements, Index m,
                             "); expected positively oriented elements");
   }
   const Index start = append_vertices(x, n, "vertices");
-  Scalar mu, lam;
-  fem::lame(youngs_modulus, poisson_ratio, mu, lam);
+  for (Index i = start; i < start + n; ++i) damping[static_cast<size_t>(i)] = damping_coefficient;
   std::map<std::array<Index, 3>, std::pair<int, std::array<Index, 3>>> face_count;
   for (Index e = 0; e < m; ++e) {
     Index t[4];
     for (int a = 0; a < 4; ++a) t[a] = start + elements[4 * e + a];
     fem::Mat<3> dm_inv;
     const Scalar vol = fem::rest_shape<3>(rest.data(), t, dm_inv);
+    const Index k = param_count == 1 ? 0 : e;
+    Scalar mu, lam;
+    fem::lame(youngs_modulus[k], poisson_ratio[k], mu, lam);
     tets.insert(tets.end(), t, t + 4);
     tet_dm_inv.push_back(dm_inv);
     tet_volume.push_back(vol);
@@ -146,6 +157,7 @@ Index Model::add_cloth(const Scalar* x, Index n, const Index* triangles, Index m
     springs.push_back(i);
     springs.push_back(j);
     spring_stiffness.push_back(stiffness);
+    spring_damping.push_back(0);
     const Vec3 d = Eigen::Map<const Vec3>(&rest[3 * j]) - Eigen::Map<const Vec3>(&rest[3 * i]);
     spring_rest.push_back(d.norm());
   }
@@ -154,11 +166,49 @@ Index Model::add_cloth(const Scalar* x, Index n, const Index* triangles, Index m
   return start;
 }
 
-Index Model::add_obstacle(const Scalar* x, Index n, const Index* triangles, Index m) {
+Index Model::add_springs(const Scalar* x, Index n, const Index* spring_ids, Index spring_count,
+                         const Scalar* stiffness, const Scalar* rest_length, const Scalar* spring_damping_values,
+                         const Scalar* masses, const Index* triangles, Index m, const Index* fixed_ids,
+                         Index fixed_count) {
+  check_indices(spring_ids, 2 * spring_count, n, "springs");
+  check_indices(triangles, 3 * m, n, "triangles");
+  check_indices(fixed_ids, fixed_count, n, "fixed");
+  for (Index s = 0; s < spring_count; ++s) {
+    if (spring_ids[2 * s] == spring_ids[2 * s + 1])
+      throw InvalidArgument("springs: spring " + std::to_string(s) + " joins a vertex to itself");
+    if (!(std::isfinite(stiffness[s]) && stiffness[s] >= 0))
+      throw InvalidArgument("stiffness: expected finite values >= 0, got " + format_real(stiffness[s]));
+    if (!(std::isfinite(rest_length[s]) && rest_length[s] >= 0))
+      throw InvalidArgument("rest_length: expected finite values >= 0, got " + format_real(rest_length[s]));
+    if (!(std::isfinite(spring_damping_values[s]) && spring_damping_values[s] >= 0))
+      throw InvalidArgument("damping: expected finite values >= 0, got " + format_real(spring_damping_values[s]));
+  }
+  for (Index i = 0; i < n; ++i) check_positive(masses[i], "mass");
+  const Index start = append_vertices(x, n, "vertices");
+  for (Index i = 0; i < n; ++i) mass[static_cast<size_t>(start + i)] = masses[i];
+  for (Index s = 0; s < spring_count; ++s) {
+    springs.push_back(start + spring_ids[2 * s]);
+    springs.push_back(start + spring_ids[2 * s + 1]);
+    spring_stiffness.push_back(stiffness[s]);
+    spring_rest.push_back(rest_length[s]);
+    spring_damping.push_back(spring_damping_values[s]);
+  }
+  if (m > 0) {
+    std::vector<Index> tris(triangles, triangles + 3 * m);
+    for (Index& v : tris) v += start;
+    add_surface(tris);
+  } else {
+    for (Index i = start; i < start + n; ++i) points.push_back(i);
+  }
+  for (Index k = 0; k < fixed_count; ++k) fixed[static_cast<size_t>(start + fixed_ids[k])] = 1;
+  return start;
+}
+
+Index Model::add_obstacle(const Scalar* x, Index n, const Index* triangles, Index m, bool moving) {
   if (m <= 0) throw InvalidArgument("triangles: expected at least one triangle");
   check_indices(triangles, 3 * m, n, "triangles");
   const Index start = append_vertices(x, n, "vertices");
-  for (Index k = start; k < start + n; ++k) fixed[static_cast<size_t>(k)] = 1;
+  for (Index k = start; k < start + n; ++k) fixed[static_cast<size_t>(k)] = 1, driven[static_cast<size_t>(k)] = moving;
   std::vector<Index> tris(triangles, triangles + 3 * m);
   for (Index& v : tris) v += start;
   add_surface(tris);
@@ -192,6 +242,7 @@ State make_state(const Model& model) {
   State s;
   s.x = model.rest;
   s.v.assign(model.rest.size(), 0);
+  s.target = model.rest;
   return s;
 }
 

@@ -36,6 +36,10 @@ struct Model {
   std::vector<Scalar> mass;   // (n,) lumped masses [kg]; 0 for obstacle vertices
   std::vector<char> fixed;    // (n,) not a degree of freedom (obstacles, pinned vertices)
   std::vector<Index> body;    // (n,) body id of each vertex
+  std::vector<Scalar> damping;  // (n,) mass-proportional damping c [1/s] (force -c m v)
+  // (n,) obstacle vertices moved by a script: degrees of freedom held to State::target by an
+  // augmented-Lagrangian spring, so the collider's motion is inside the CCD-clamped solve.
+  std::vector<char> driven;
 
   // Tetrahedral elasticity: Sifakis & Barbic 2012 (fem/kernels.h).
   std::vector<Index> tets;                     // (T, 4)
@@ -46,6 +50,7 @@ struct Model {
   // Springs (cloth stretch, shear and bending): massspring/kernels.h.
   std::vector<Index> springs;                  // (S, 2)
   std::vector<Scalar> spring_stiffness, spring_rest;
+  std::vector<Scalar> spring_damping;          // c [N s/m] along the spring (direction lagged at x_n)
 
   // Collision mesh: triangles (tet boundaries, cloths, obstacles), their unique edges and the
   // vertices they use.
@@ -56,13 +61,21 @@ struct Model {
 
   // Each adder returns the index of its first vertex; inputs are validated with messages
   // naming the argument.
+  // youngs_modulus, poisson_ratio: one value (param_count 1) or one per tet (param_count m);
+  // damping: mass-proportional c [1/s].
   Index add_solid(const Scalar* x, Index n, const Index* tets, Index m, fem::Material material,
-                  Scalar youngs_modulus, Scalar poisson_ratio, Scalar density, const Index* fixed_ids,
-                  Index fixed_count);
+                  const Scalar* youngs_modulus, const Scalar* poisson_ratio, Index param_count, Scalar density,
+                  Scalar damping, const Index* fixed_ids, Index fixed_count);
   Index add_cloth(const Scalar* x, Index n, const Index* triangles, Index m, const Index* springs,
                   Index spring_count, Scalar stiffness, Scalar density, const Index* fixed_ids,
                   Index fixed_count);
-  Index add_obstacle(const Scalar* x, Index n, const Index* triangles, Index m);
+  // A mass-spring body (km.massspring): per-spring stiffness [N/m], rest length [m] and
+  // damping [N s/m], per-vertex mass [kg]; its collision surface is `triangles` (m may be 0:
+  // then its vertices collide as points only).
+  Index add_springs(const Scalar* x, Index n, const Index* spring_ids, Index spring_count, const Scalar* stiffness,
+                    const Scalar* rest_length, const Scalar* spring_damping, const Scalar* masses,
+                    const Index* triangles, Index m, const Index* fixed_ids, Index fixed_count);
+  Index add_obstacle(const Scalar* x, Index n, const Index* triangles, Index m, bool moving = false);
   void add_plane(const Vec3& point, const Vec3& normal);
 
   Scalar total_mass() const;
@@ -79,6 +92,9 @@ struct State {
   std::vector<Scalar> x, v;  // (n, 3) [m], [m/s]
   Scalar time = 0;           // [s]
   Scalar kappa = 0;          // barrier stiffness in use [J/m^4]; 0 until the first step
+  // (n, 3) positions the driven (scripted) obstacle vertices reach at the end of the next step
+  // [m]; an input set before each step, ignored for every other vertex.
+  std::vector<Scalar> target;
 };
 
 State make_state(const Model& model);

@@ -27,14 +27,19 @@ void project_psd(Mat<12>& H) {
   H = eig.eigenvectors() * eig.eigenvalues().cwiseMax(Scalar(0)).asDiagonal() * eig.eigenvectors().transpose();
 }
 
-// Adds an element matrix over `count` vertices into triplets, skipping fixed vertices.
+// A degree of freedom of the solve: a body vertex that is not pinned, or a driven obstacle vertex.
+bool is_dof(const Model& model, Index i) {
+  return !model.fixed[static_cast<size_t>(i)] || model.driven[static_cast<size_t>(i)];
+}
+
+// Adds an element matrix over `count` vertices into triplets, skipping what is not a dof.
 template <class Matrix>
 void add_block(const Model& model, std::vector<Eigen::Triplet<Scalar, Index>>& t, const Index* verts, int count,
                const Matrix& H) {
   for (int a = 0; a < count; ++a) {
-    if (model.fixed[static_cast<size_t>(verts[a])]) continue;
+    if (!is_dof(model, verts[a])) continue;
     for (int b = 0; b < count; ++b) {
-      if (model.fixed[static_cast<size_t>(verts[b])]) continue;
+      if (!is_dof(model, verts[b])) continue;
       for (int r = 0; r < 3; ++r)
         for (int s = 0; s < 3; ++s) t.emplace_back(3 * verts[a] + r, 3 * verts[b] + s, H(3 * a + r, 3 * b + s));
     }
@@ -223,8 +228,27 @@ void Solver::lag_friction(const std::vector<Scalar>& x, Scalar kappa, Scalar h) 
 Scalar Solver::potential(const std::vector<Scalar>& x, Scalar h, Scalar kappa) const {
   Scalar inertia = 0;
   for (Index i = 0; i < model_.vertex_count; ++i) {
-    if (model_.fixed[static_cast<size_t>(i)]) continue;
-    inertia += 0.5 * model_.mass[static_cast<size_t>(i)] * (at(x.data(), i) - at(xhat_.data(), i)).squaredNorm();
+    const size_t k = static_cast<size_t>(i);
+    if (model_.driven[k]) {
+      // Augmented Lagrangian hold of a driven vertex on its target.
+      const Vec3 c = at(x.data(), i) - at(target_.data(), i);
+      inertia += 0.5 * driven_stiffness_ * c.squaredNorm() - Eigen::Map<const Vec3>(&driven_lambda_[3 * k]).dot(c);
+      continue;
+    }
+    if (model_.fixed[k]) continue;
+    const Scalar m = model_.mass[k];
+    inertia += 0.5 * m * (at(x.data(), i) - at(xhat_.data(), i)).squaredNorm();
+    // Mass-proportional damping c m v as the dissipation h c/2 |x - x_n|_M^2.
+    if (model_.damping[k] > 0) inertia += 0.5 * h * model_.damping[k] * m * (at(x.data(), i) - at(xn_.data(), i)).squaredNorm();
+  }
+  // Spring damping c (v_rel . d)^2 / 2 along the direction d lagged at x_n, as a dissipation h c/2 (du . d)^2.
+  const Index spring_count = static_cast<Index>(model_.spring_rest.size());
+  for (Index s = 0; s < spring_count; ++s) {
+    if (model_.spring_damping[static_cast<size_t>(s)] <= 0) continue;
+    const Index i = model_.springs[2 * s], j = model_.springs[2 * s + 1];
+    const Scalar du = spring_direction_[static_cast<size_t>(s)].dot((at(x.data(), j) - at(xn_.data(), j)) -
+                                                                    (at(x.data(), i) - at(xn_.data(), i)));
+    inertia += 0.5 * h * model_.spring_damping[static_cast<size_t>(s)] * du * du;
   }
   Scalar b = 0;
   for (const Constraint& c : find_constraints(model_, x.data(), dhat2_)) b += barrier(c.d, dhat2_);
@@ -247,16 +271,27 @@ void Solver::assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, cons
     for (int a = 0; a < count; ++a)
       for (int r = 0; r < 3; ++r) g[static_cast<size_t>(3 * verts[a] + r)] += ge[3 * a + r];
   };
-  // Inertia: M (x - xhat).
+  // Inertia: M (x - xhat), mass-proportional damping h c M (x - x_n); driven obstacle vertices:
+  // the augmented-Lagrangian spring k (x - target) - lambda.
   for (Index i = 0; i < n; ++i) {
-    if (model_.fixed[static_cast<size_t>(i)]) {
+    const size_t iv = static_cast<size_t>(i);
+    if (model_.driven[iv]) {
+      for (int r = 0; r < 3; ++r) {
+        const size_t k = static_cast<size_t>(3 * i + r);
+        g[k] += driven_stiffness_ * (x[k] - target_[k]) - driven_lambda_[k];
+        t.emplace_back(3 * i + r, 3 * i + r, driven_stiffness_);
+      }
+      continue;
+    }
+    if (model_.fixed[iv]) {
       for (int r = 0; r < 3; ++r) t.emplace_back(3 * i + r, 3 * i + r, 1);
       continue;
     }
-    const Scalar m = model_.mass[static_cast<size_t>(i)];
+    const Scalar m = model_.mass[iv], mc = h * model_.damping[iv] * m;
     for (int r = 0; r < 3; ++r) {
-      g[static_cast<size_t>(3 * i + r)] += m * (x[static_cast<size_t>(3 * i + r)] - xhat_[static_cast<size_t>(3 * i + r)]);
-      t.emplace_back(3 * i + r, 3 * i + r, m);
+      const size_t k = static_cast<size_t>(3 * i + r);
+      g[k] += m * (x[k] - xhat_[k]) + mc * (x[k] - xn_[k]);
+      t.emplace_back(3 * i + r, 3 * i + r, m + mc);
     }
   }
   // Elasticity: h^2 grad Psi, h^2 (projected) Hessian per element.
@@ -281,7 +316,16 @@ void Solver::assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, cons
     Eigen::Matrix<Scalar, 6, 1> ge;
     ge << -h2 * f, h2 * f;
     add_grad(ij, 2, ge);
-    const Mat3 S = h2 * k * massspring::spring_jacobian<3>(d, L, true);
+    Mat3 S = h2 * k * massspring::spring_jacobian<3>(d, L, true);
+    const Scalar c = model_.spring_damping[static_cast<size_t>(s)];
+    if (c > 0) {
+      const Vec3& dir = spring_direction_[static_cast<size_t>(s)];
+      const Scalar du = dir.dot((at(x.data(), ij[1]) - at(xn_.data(), ij[1])) - (at(x.data(), ij[0]) - at(xn_.data(), ij[0])));
+      Eigen::Matrix<Scalar, 6, 1> gd;
+      gd << -h * c * du * dir, h * c * du * dir;
+      add_grad(ij, 2, gd);
+      S += h * c * dir * dir.transpose();
+    }
     Eigen::Matrix<Scalar, 6, 6> He;
     He << S, -S, -S, S;
     add_block(model_, t, ij, 2, He);
@@ -323,7 +367,7 @@ void Solver::assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, cons
     add_block(model_, t, f.v.data(), f.count, He);
   }
   for (Index i = 0; i < n; ++i)
-    if (model_.fixed[static_cast<size_t>(i)])
+    if (!is_dof(model_, i))
       for (int r = 0; r < 3; ++r) g[static_cast<size_t>(3 * i + r)] = 0;
 }
 
@@ -353,6 +397,34 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
     }
   Scalar kappa = state.kappa;
   lag_friction(xn_, kappa, h);
+  // Spring damping acts along the spring directions at x_n.
+  const Index spring_count = static_cast<Index>(model_.spring_rest.size());
+  spring_direction_.assign(static_cast<size_t>(spring_count), Vec3::Zero());
+  for (Index s = 0; s < spring_count; ++s) {
+    const Vec3 d = at(xn_.data(), model_.springs[2 * s + 1]) - at(xn_.data(), model_.springs[2 * s]);
+    if (d.norm() > 0) spring_direction_[static_cast<size_t>(s)] = d.normalized();
+  }
+  // Driven obstacle vertices: held to their targets by k/2 |x - target|^2 - lambda . (x - target)
+  // (augmented Lagrangian, as IPC holds Dirichlet conditions, Li et al. 2020 sec. 5), with
+  // lambda updated whenever Newton converges short of the target.
+  bool any_driven = false;
+  for (Index i = 0; i < n; ++i) any_driven |= model_.driven[static_cast<size_t>(i)] != 0;
+  if (any_driven && static_cast<Index>(state.target.size()) != 3 * n)
+    throw InvalidArgument("target: expected " + std::to_string(n) + " positions");
+  target_ = any_driven ? state.target : xn_;
+  driven_lambda_.assign(static_cast<size_t>(3 * n), 0);
+  {
+    Index dynamic = 0;
+    for (Index i = 0; i < n; ++i) dynamic += model_.fixed[static_cast<size_t>(i)] ? 0 : 1;
+    driven_stiffness_ = 1e8 * (dynamic > 0 ? model_.total_mass() / static_cast<Scalar>(dynamic) : 1);
+  }
+  const Scalar track_tol = config_.tol * diag * h;
+  auto driven_gap = [&](const std::vector<Scalar>& y) {
+    Scalar worst = 0;
+    for (Index i = 0; i < n; ++i)
+      if (model_.driven[static_cast<size_t>(i)]) worst = std::max(worst, (at(y.data(), i) - at(target_.data(), i)).norm());
+    return worst;
+  };
 
   std::vector<Scalar> x = xn_, g, p(static_cast<size_t>(3 * n)), trial(static_cast<size_t>(3 * n));
   Triplets triplets;
@@ -390,8 +462,18 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
     stats.newton_history.push_back(p_max / (h * diag));
     if (!std::isfinite(p_max)) throw DivergenceError("contact: non-finite Newton step at time " + format_real(state.time));
     if (p_max < config_.tol * diag * h) {
-      converged = true;
-      break;
+      if (!any_driven || driven_gap(x) <= track_tol) {
+        converged = true;
+        break;
+      }
+      // Short of a driven target: move the multipliers towards the reaction and go on.
+      for (Index i = 0; i < n; ++i)
+        if (model_.driven[static_cast<size_t>(i)])
+          for (int r = 0; r < 3; ++r) {
+            const size_t k = static_cast<size_t>(3 * i + r);
+            driven_lambda_[k] -= driven_stiffness_ * (x[k] - target_[k]);
+          }
+      continue;
     }
     // Largest intersection-free step by CCD, then backtracking until Phi decreases.
     Stopwatch ccd_timer;
@@ -415,7 +497,7 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
     stats.step_history.push_back(accepted ? alpha : 0);
     if (!accepted) {
       // No decrease along a descent direction: Phi is at its minimum to rounding.
-      converged = true;
+      converged = !any_driven || driven_gap(x) <= track_tol;
       break;
     }
     x.swap(trial);
@@ -433,11 +515,24 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
     for (size_t i = k > 4 ? k - 4 : 0; i < k; ++i)
       last += (last.empty() ? "" : ", ") + format_real(stats.newton_history[i]) + " (step " +
               format_real(stats.step_history[std::min(i, stats.step_history.size() - 1)]) + ")";
+    if (any_driven && driven_gap(x) > track_tol)
+      throw ConvergenceError("contact: a moving collider could not reach its scripted position at time " +
+                             format_real(state.time + h) + " (off by " + format_real(driven_gap(x)) +
+                             " m): something is squeezed between colliders; try a smaller dt");
     throw ConvergenceError("contact: Newton did not reach tol = " + format_real(config_.tol) + " in " +
                            std::to_string(config_.max_newton) + " iterations at time " + format_real(state.time) +
                            " (last max|dx|/(dt diag): " + last + "); try a smaller dt or a larger max_newton");
   }
 
+  // Driven vertices land exactly on their targets where that last move is intersection-free.
+  if (any_driven) {
+    std::vector<Scalar> rest_move(x.size(), 0);
+    for (Index i = 0; i < n; ++i)
+      if (model_.driven[static_cast<size_t>(i)])
+        for (int r = 0; r < 3; ++r) rest_move[static_cast<size_t>(3 * i + r)] = target_[static_cast<size_t>(3 * i + r)] - x[static_cast<size_t>(3 * i + r)];
+    if (max_safe_step(model_, x.data(), rest_move.data(), CcdOptions{}) >= 1)
+      for (size_t k = 0; k < x.size(); ++k) x[k] += rest_move[k];
+  }
   // Velocities from the displacement (implicit Euler).
   for (size_t k = 0; k < x.size(); ++k) state.v[k] = (x[k] - xn_[k]) / h;
   state.x = x;

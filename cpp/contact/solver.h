@@ -78,6 +78,9 @@ class Solver {
   Scalar dhat2_;
   // Per-step scratch: the inertia target, the state at the step's start and lagged friction.
   std::vector<Scalar> xhat_, xn_;
+  std::vector<Scalar> target_, driven_lambda_;  // driven vertices' targets and multipliers (3n)
+  Scalar driven_stiffness_ = 0;                 // k of the augmented Lagrangian [kg]
+  std::vector<Vec3> spring_direction_;          // unit spring directions at x_n
   std::vector<FrictionContact> friction_;
   std::unique_ptr<SpdSolver> linear_;
   std::vector<Index> pattern_ptr_, pattern_col_;

@@ -40,7 +40,7 @@ import numpy as np
 from kinema import _core
 from kinema._checks import as_float_array, choice, finite, non_negative, positive
 
-__all__ = ["Scene", "StepStats", "icosphere", "box_surface", "cloth_mesh", "MODELS"]
+__all__ = ["Scene", "BodyContact", "attach", "StepStats", "icosphere", "box_surface", "cloth_mesh", "MODELS"]
 
 MODELS = ("linear", "stvk", "corotated", "neohookean")
 StepStats = _core.contact.StepStats
@@ -189,6 +189,8 @@ class Scene:
         self._core = _core.contact.Scene(cfg)
         self.config = cfg
         self.planes = []
+        self.colliders = []  # dicts: shape, options, rows, rest, pivot, motion
+        self._bodies = []
 
     # ------------------------------------------------------------------ building
 
@@ -196,16 +198,65 @@ class Scene:
         return slice(int(start), int(start) + int(count))
 
     def add_solid(self, vertices, tets, *, youngs_modulus, poisson_ratio, density, model="neohookean",
-                  fixed=()) -> slice:
+                  fixed=(), damping=0.0) -> slice:
         """A tetrahedral solid (positively oriented tets, e.g. from ``km.fem.box_mesh``) with
-        the given fem ``model``, Young's modulus [Pa], Poisson ratio and density [kg/m^3];
+        the given fem ``model``, Young's modulus [Pa] and Poisson ratio (scalars or one per
+        tet), density [kg/m^3] and mass-proportional ``damping`` c [1/s] (as km.fem.Body);
         ``fixed``: indices (into ``vertices``) held in place. Returns its rows of ``x``."""
         v = _points(vertices, "vertices")
         t = _indices(tets, "tets", 4)
-        start = self._core.add_solid(v, t, choice(model, "model", MODELS), finite(youngs_modulus, "youngs_modulus"),
-                                     finite(poisson_ratio, "poisson_ratio"), finite(density, "density"),
-                                     _indices(fixed, "fixed", None))
+        E = np.ascontiguousarray(np.atleast_1d(as_float_array(youngs_modulus, "youngs_modulus")).ravel())
+        nu = np.ascontiguousarray(np.atleast_1d(as_float_array(poisson_ratio, "poisson_ratio")).ravel())
+        if nu.size == 1 and E.size > 1:
+            nu = np.full(E.size, nu[0])
+        if E.size == 1 and nu.size > 1:
+            E = np.full(nu.size, E[0])
+        start = self._core.add_solid(v, t, choice(model, "model", MODELS), E, nu, finite(density, "density"),
+                                     finite(damping, "damping"), _indices(fixed, "fixed", None))
         return self._slice(start, len(v))
+
+    def add_body(self, body, *, triangles=None) -> slice:
+        """A ``km.fem.Body`` (3D tetrahedra) or ``km.massspring.System`` (3D) with its own
+        material, masses, fixed vertices and damping; after every step of the scene its ``x``
+        and ``v`` (and time) hold the body's part of the result, and values written into them
+        before a step are what the step starts from. ``triangles`` (mass-spring only): the
+        collision surface (e.g. ``km.massspring.cloth(...).triangles``); without it the
+        vertices collide as points. The body's gravity must be the scene's. Returns its rows."""
+        from kinema import fem, massspring
+
+        if isinstance(body, fem.Body):
+            if body.x.shape[1] != 3:
+                raise ValueError("body: contact is 3D only; got a 2D km.fem.Body")
+            if triangles is not None:
+                raise ValueError("triangles: a km.fem.Body collides with its boundary surface; do not pass triangles")
+            self._check_gravity(body._gravity, "body")
+            vals = body._values
+            rows = self.add_solid(body.rest, body.elements, youngs_modulus=vals["youngs_modulus"],
+                                  poisson_ratio=vals["poisson_ratio"], density=vals["density"], model=body.model,
+                                  fixed=body.fixed, damping=vals["damping"])
+        elif isinstance(body, massspring.System):
+            if body.x.shape[1] != 3:
+                raise ValueError("body: contact is 3D only; got a 2D km.massspring.System")
+            self._check_gravity(body.gravity, "body")
+            p = {k: np.ascontiguousarray(body._core.parameter(k), dtype=float)
+                 for k in ("stiffness", "rest_length", "damping", "mass")}
+            tri = np.zeros((0, 3), np.int64) if triangles is None else _indices(triangles, "triangles", 3)
+            start = self._core.add_springs(_points(body.x, "body.x"), _indices(body.springs, "springs", 2),
+                                           p["stiffness"], p["rest_length"], p["damping"], p["mass"], tri,
+                                           _indices(body.fixed, "fixed", None))
+            rows = self._slice(start, len(body.x))
+        else:
+            raise ValueError(f"body: expected a km.fem.Body or km.massspring.System, got {type(body).__name__}")
+        self._core.x[rows] = body.x
+        self._core.v[rows] = body.v
+        self._bodies.append((body, rows))
+        return rows
+
+    def _check_gravity(self, g, name):
+        g = np.zeros(3) if g is None or len(g) == 0 else np.asarray(g, float)
+        if not np.allclose(g, self.config.gravity, rtol=0, atol=0):
+            raise ValueError(f"{name}: its gravity {g.tolist()} differs from the scene's "
+                             f"{list(self.config.gravity)}; a scene has one gravity")
 
     def add_cloth(self, vertices, triangles, *, stiffness, density, springs=None, fixed=()) -> slice:
         """A cloth: triangles (collision surface and mass, ``density`` in kg/m^2) and springs of
@@ -220,17 +271,30 @@ class Scene:
                                      finite(density, "density"), _indices(fixed, "fixed", None))
         return self._slice(start, len(v))
 
-    def add_collider(self, shape, **kw):
-        """A static collider. ``shape``:
+    def add_collider(self, shape, *, motion=None, velocity=None, angular_velocity=None, **kw):
+        """A collider, static or moving. ``shape``:
 
-        * "plane": ``point``, ``normal`` (pointing to the free side): an exact half-space;
+        * "plane": ``point``, ``normal`` (pointing to the free side): an exact half-space
+          (static only);
         * "box": ``lower``, ``upper``: a solid box (12 triangles);
         * "sphere": ``center``, ``radius``, ``subdivisions`` (default 3): an icosphere;
         * "mesh": ``vertices`` and ``triangles``, or ``path`` to a file meshio reads
           (triangle cells).
 
+        Moving (scripted) colliders: ``velocity`` (3,) [m/s] and/or ``angular_velocity``
+        (3,) [rad/s] about the collider's centre, or ``motion``: a function of the time t [s]
+        returning a translation (3,) or a pair (R (3, 3), translation): the collider's vertices
+        at t are ``R (x0 - c) + c + translation`` with x0 the given vertices and c their
+        centre. Each step moves the collider's vertices from where they are to their place at
+        the step's end inside the CCD-clamped solve (a stiff augmented-Lagrangian hold), so
+        nothing passes through a moving collider either; what it pushes is pushed.
+
         Returns the collider's rows of ``x`` (None for a plane)."""
         shape = choice(shape, "shape", ("plane", "box", "sphere", "mesh"))
+        moving = motion is not None or velocity is not None or angular_velocity is not None
+        if moving and shape == "plane":
+            raise ValueError("motion: a plane collider is static; use a large box for a moving floor or wall")
+        motion = _motion(motion, velocity, angular_velocity)
         allowed = {"plane": {"point", "normal"}, "box": {"lower", "upper"},
                    "sphere": {"center", "radius", "subdivisions"}, "mesh": {"vertices", "triangles", "path"}}[shape]
         unknown = set(kw) - allowed
@@ -242,6 +306,8 @@ class Scene:
                 raise ValueError("normal: expected a non-zero vector")
             self._core.add_plane(tuple(point), tuple(normal))
             self.planes.append((point, normal / np.linalg.norm(normal)))
+            self.colliders.append({"shape": "plane", "point": point, "normal": normal / np.linalg.norm(normal),
+                                   "rows": None, "motion": None})
             return None
         if shape == "box":
             v, t = box_surface(kw["lower"], kw["upper"])
@@ -257,8 +323,26 @@ class Scene:
         else:
             v, t = kw["vertices"], kw["triangles"]
         v = _points(v, "vertices")
-        start = self._core.add_obstacle(v, _indices(t, "triangles", 3))
-        return self._slice(start, len(v))
+        start = self._core.add_obstacle(v, _indices(t, "triangles", 3), motion is not None)
+        rows = self._slice(start, len(v))
+        spec = {"shape": shape, "rows": rows, "rest": v.copy(), "motion": motion,
+                "pivot": 0.5 * (v.min(axis=0) + v.max(axis=0))}
+        if shape == "box":
+            spec.update(lower=_vec3(kw["lower"], "lower"), upper=_vec3(kw["upper"], "upper"))
+        elif shape == "sphere":
+            spec.update(center=_vec3(kw.get("center", (0, 0, 0)), "center"), radius=float(kw["radius"]))
+        self.colliders.append(spec)
+        if motion is not None:
+            self._core.x[rows] = _place(spec, self.time)
+        return rows
+
+    def collider_positions(self, index, time=None):
+        """(k, 3) vertices [m] of collider ``index`` (in the order added) at ``time`` (default:
+        now) by its script."""
+        spec = self.colliders[index]
+        if spec["rows"] is None:
+            raise ValueError(f"index: collider {index} is a plane (no vertices)")
+        return _place(spec, self.time if time is None else float(time))
 
     # ------------------------------------------------------------------ stepping
 
@@ -266,7 +350,22 @@ class Scene:
         """One implicit Euler step of ``dt`` [s]: returns the StepStats (Newton iterations,
         contact count, minimum distance [m], sticking and sliding friction contacts, CCD share
         of the wall time)."""
-        return self._core.step(positive(dt, "dt"))
+        dt = positive(dt, "dt")
+        for body, rows in self._bodies:  # what the user wrote into a body's arrays counts
+            if not np.array_equal(self._core.x[rows], body.x):
+                self._core.x[rows] = body.x
+                self._core.kappa = 0.0  # re-check for intersections
+            self._core.v[rows] = body.v
+        target = self._core.target
+        for spec in self.colliders:
+            if spec["motion"] is not None:
+                target[spec["rows"]] = _place(spec, self.time + dt)
+        stats = self._core.step(dt)
+        for body, rows in self._bodies:
+            body.x[...] = self._core.x[rows]
+            body.v[...] = self._core.v[rows]
+            _set_time(body, self.time)
+        return stats
 
     def advance(self, duration, dt, *, on_step=None) -> int:
         """Steps of ``dt`` until ``duration`` has passed (the last one shortened to land on it);
@@ -390,3 +489,319 @@ class Scene:
         """Largest t in [0, 1] for which moving x -> x + t dx is intersection-free (additive
         CCD, conservative)."""
         return self._core.max_safe_step(self.x if x is None else _points(x, "x"), _points(dx, "dx"))
+
+
+# ---------------------------------------------------------------------- moving colliders
+
+def _rotation(w, t):
+    """exp(t [w]x) by Rodrigues' formula."""
+    theta = np.linalg.norm(w) * t
+    if theta == 0:
+        return np.eye(3)
+    k = w / np.linalg.norm(w)
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(theta) * K + (1 - np.cos(theta)) * K @ K
+
+
+def _motion(motion, velocity, angular_velocity):
+    """The script t -> (R, translation) of a moving collider, or None for a static one."""
+    if motion is None and velocity is None and angular_velocity is None:
+        return None
+    if motion is not None:
+        if velocity is not None or angular_velocity is not None:
+            raise ValueError("motion: give either motion or velocity/angular_velocity, not both")
+        if not callable(motion):
+            raise ValueError(f"motion: expected a function of the time, got {type(motion).__name__}")
+
+        def script(t):
+            out = motion(t)
+            if isinstance(out, tuple) and len(out) == 2:
+                R = np.asarray(out[0], float)
+                if R.shape != (3, 3) or not np.isfinite(R).all():
+                    raise ValueError(f"motion: R at t = {t} is not a finite (3, 3) matrix")
+                return R, _vec3(out[1], "motion")
+            return np.eye(3), _vec3(out, "motion")
+        return script
+    v = np.zeros(3) if velocity is None else _vec3(velocity, "velocity")
+    w = np.zeros(3) if angular_velocity is None else _vec3(angular_velocity, "angular_velocity")
+    return lambda t: (_rotation(w, t), v * t)
+
+
+def _place(spec, t):
+    """A collider's vertices at time t by its script."""
+    if spec["motion"] is None:
+        return spec["rest"]
+    R, c = spec["motion"](t)
+    p = spec["pivot"]
+    return (spec["rest"] - p) @ R.T + p + c
+
+
+def _set_time(body, t):
+    if hasattr(body, "_state"):  # km.fem.Body
+        body._state.time = t
+    else:
+        body._core.time = t
+
+
+# ---------------------------------------------------------------------- colliders on one body
+
+def attach(sim, *, dhat=None, friction=0.0, friction_velocity=1e-3, tol=1e-2, max_newton=500, triangles=None,
+           barrier_stiffness=None):
+    """The :class:`BodyContact` of a ``km.fem.Body`` or ``km.massspring.System`` (made on first
+    use; its options are set when it is made and may be given again only with the same
+    values). ``sim.add_collider(...)`` is ``attach(sim).add_collider(...)``.
+
+    * ``dhat`` [m]: barrier distance of the implicit (IPC) steps; default 1e-3 of the body's
+      bounding-box diagonal (at least 1e-4 of its smallest spring or edge).
+    * ``friction`` (Coulomb mu of the implicit steps), ``friction_velocity``, ``tol``,
+      ``max_newton``, ``barrier_stiffness``: as :class:`Scene`.
+    * ``triangles`` (mass-spring only): the collision surface (cloth triangles), so that
+      collider edges cannot slip between its vertices.
+    """
+    options = dict(dhat=dhat, friction=friction, friction_velocity=friction_velocity, tol=tol,
+                   max_newton=max_newton, triangles=triangles, barrier_stiffness=barrier_stiffness)
+    if sim.contact is None:
+        sim.contact = BodyContact(sim, **options)
+    else:
+        given = {k: v for k, v in options.items() if v is not None and not _same(v, sim.contact.options[k])}
+        defaults = dict(friction=0.0, friction_velocity=1e-3, tol=1e-2, max_newton=500)
+        given = {k: v for k, v in given.items() if not (k in defaults and _same(v, defaults[k]))}
+        if given:
+            name = sorted(given)[0]
+            raise ValueError(f"{name}: the contact options of this body are already set "
+                             f"({name}={sim.contact.options[name]!r}); pass them on the first attach")
+    return sim.contact
+
+
+def _same(a, b):
+    try:
+        return bool(np.array_equal(np.asarray(a), np.asarray(b)))
+    except (TypeError, ValueError):
+        return a is b
+
+
+class BodyContact:
+    """Colliders of one ``km.fem.Body`` or ``km.massspring.System`` (see :func:`attach`).
+
+    * Implicit steps (``integrator="implicit"``) are solved as one :class:`Scene` holding the
+      body and its colliders: implicit Euler with IPC (barrier, lagged friction, CCD-clamped
+      Newton), intersection-free by construction. The body's own Newton options (``tol``,
+      ``linear_solver`` of km.fem; ``linear_solver``, ``cg_tol`` of km.massspring) do not
+      apply there; the scene's ``tol`` does. km.massspring needs ``beta=1``. 3D only.
+    * Symplectic steps (``integrator="symplectic"``) take the body's own explicit step and
+      then project: every vertex inside a collider is moved to the nearest point of its
+      surface, its normal velocity relative to the collider is removed (perfectly inelastic)
+      and its tangential one reduced by ``friction`` times the removed normal speed (Coulomb,
+      never reversed). Projection adds no stiffness, so the stable step is the body's own
+      ``explicit_dt_limit``; what it adds is a tunnelling limit, checked before each step:
+      a vertex must not travel more than half the thickness of the thinnest collider in one
+      step (``max|v| dt + |g| dt^2 <= min thickness / 2``; planes are infinitely thick), or
+      the step raises ValueError naming dt. Planes, boxes and spheres, in 2D and 3D (a 2D
+      box or sphere is a rectangle or disc in the body's plane); mesh colliders need the
+      implicit steps.
+    """
+
+    def __init__(self, sim, **options):
+        self.sim = sim
+        self.options = options
+        self.colliders = []  # (shape, options) as given
+        self._scene = None
+        self._specs = None
+
+    @property
+    def dim(self):
+        return self.sim.x.shape[1]
+
+    def add_collider(self, shape, *, friction=None, **options):
+        """Adds a collider: ``shape`` and its options as :meth:`Scene.add_collider` (in 2D:
+        "plane" with 2D ``point`` and ``normal``, "box" with 2D ``lower``/``upper``, "sphere"
+        with a 2D ``center``; ``velocity`` (d,) moves it). ``friction``: this collider's
+        Coulomb mu for the symplectic projection (default: the body's ``friction``; the
+        implicit steps use the body's one coefficient). Returns the number of colliders."""
+        shape = choice(shape, "shape", ("plane", "box", "sphere", "mesh"))
+        mu = self.options["friction"] if friction is None else non_negative(friction, "friction")
+        if self.dim == 2:
+            unknown = set(options) - {"point", "normal", "lower", "upper", "center", "radius", "velocity"}
+            if unknown or shape == "mesh":
+                what = "mesh" if shape == "mesh" else sorted(unknown)[0]
+                raise ValueError(f"{what}: a 2D body takes plane, box and sphere colliders with point, normal, "
+                                 "lower, upper, center, radius and velocity")
+        non_negative(self.options["friction"], "friction")
+        self.colliders.append((shape, dict(options), mu))
+        self._scene = None
+        self._specs = None
+        return len(self.colliders)
+
+    # ------------------------------------------------------------------ implicit: one IPC scene
+
+    def scene(self) -> Scene:
+        """The :class:`Scene` behind the implicit steps (rebuilt when a collider is added)."""
+        if self._scene is None:
+            if self.dim != 3:
+                raise ValueError("integrator: implicit contact (IPC) is 3D only; a 2D body takes "
+                                 "integrator='symplectic' with colliders")
+            o = self.options
+            x = self.sim.x
+            diag = float(np.linalg.norm(x.max(axis=0) - x.min(axis=0)))
+            dhat = o["dhat"] if o["dhat"] is not None else 1e-3 * max(diag, 1e-9)
+            scene = Scene(gravity=None if not np.any(self._gravity()) else self._gravity(), dhat=dhat,
+                          friction=o["friction"], friction_velocity=o["friction_velocity"], tol=o["tol"],
+                          max_newton=o["max_newton"], barrier_stiffness=o["barrier_stiffness"])
+            scene._core.time = self.sim.time
+            scene.add_body(self.sim, triangles=o["triangles"])
+            for shape, kw, _ in self.colliders:
+                scene.add_collider(shape, **kw)
+            self._scene = scene
+        return self._scene
+
+    def _gravity(self):
+        g = self.sim._gravity if hasattr(self.sim, "_gravity") else self.sim.gravity
+        return np.zeros(self.dim) if g is None or len(g) == 0 else np.asarray(g, float)
+
+    def step(self, dt, integrator, steps=1, *, beta=1.0):
+        """``steps`` steps of ``dt`` with contact; returns the last step's stats (a
+        :class:`StepStats` for implicit steps, the body's own stats for symplectic ones, with
+        ``contact_count`` and ``min_distance`` attributes of the projection added)."""
+        dt = positive(dt, "dt")
+        integrator = choice(integrator, "integrator", ("implicit", "symplectic", "explicit"))
+        stats = None
+        if integrator == "implicit":
+            if float(beta) != 1.0:
+                raise ValueError(f"beta: implicit steps with colliders are backward Euler (beta = 1), got {beta}")
+            if self._scene is not None and self._scene.time != self.sim.time:
+                self._scene = None  # the body's time was set (a restored state): colliders re-placed
+            scene = self.scene()
+            for _ in range(steps):
+                stats = scene.step(dt)
+            return stats
+        for _ in range(steps):
+            stats = self._projected_step(dt, integrator)
+        return stats
+
+    # ------------------------------------------------------------------ symplectic: projection
+
+    def _shapes(self):
+        if self._specs is None:
+            specs = []
+            d = self.dim
+            for shape, kw, mu in self.colliders:
+                if shape == "mesh":
+                    raise ValueError("integrator: a mesh collider needs the implicit integrator (IPC)")
+                extra = set(kw) - {"velocity", "point", "normal", "lower", "upper", "center", "radius",
+                                   "subdivisions"}
+                if extra:
+                    raise ValueError(f"{sorted(extra)[0]}: symplectic steps move colliders by a constant "
+                                     "velocity only (motion and angular_velocity need the implicit integrator)")
+                vel = np.zeros(d) if kw.get("velocity") is None else _vecd(kw["velocity"], "velocity", d)
+                spec = {"shape": shape, "mu": mu, "velocity": vel}
+                if shape == "plane":
+                    n = _vecd(kw.get("normal", np.eye(d)[1]), "normal", d)
+                    if np.linalg.norm(n) == 0:
+                        raise ValueError("normal: expected a non-zero vector")
+                    spec.update(point=_vecd(kw.get("point", np.zeros(d)), "point", d), normal=n / np.linalg.norm(n),
+                                thickness=np.inf)
+                elif shape == "box":
+                    lo, hi = _vecd(kw["lower"], "lower", d), _vecd(kw["upper"], "upper", d)
+                    if not (hi > lo).all():
+                        raise ValueError("lower, upper: expected lower < upper on every axis")
+                    spec.update(lower=lo, upper=hi, thickness=float((hi - lo).min()))
+                else:
+                    r = positive(kw["radius"], "radius")
+                    spec.update(center=_vecd(kw.get("center", np.zeros(d)), "center", d), radius=r, thickness=2 * r)
+                specs.append(spec)
+            self._specs = specs
+        return self._specs
+
+    def _projected_step(self, dt, integrator):
+        sim = self.sim
+        specs = self._shapes()
+        t0 = sim.time
+        # Tunnelling limit: no vertex may cross half the thinnest collider in one step.
+        thin = min(s["thickness"] for s in specs)
+        if np.isfinite(thin):
+            rel = max(float(np.abs(sim.v - s["velocity"]).max()) * np.sqrt(self.dim) for s in specs)
+            travel = rel * dt + float(np.linalg.norm(self._gravity())) * dt * dt
+            if travel > 0.5 * thin:
+                raise ValueError(f"dt: {dt} lets a vertex travel {travel:.3g} m in one step, more than half the "
+                                 f"thinnest collider ({thin:.3g} m): it could pass through; use dt <= "
+                                 f"{0.5 * thin / max(travel / dt, 1e-300):.3g}")
+        sim.contact, keep = None, sim.contact  # the body's own step, without this hook
+        try:
+            stats = sim.step(dt, integrator)
+        finally:
+            sim.contact = keep
+        x, v = sim.x, sim.v
+        t1 = t0 + dt
+        free = np.ones(len(x), bool)
+        fixed = getattr(sim, "fixed", ())
+        if len(fixed):
+            free[np.asarray(fixed, np.int64)] = False
+        count = 0
+        dmin = np.inf
+        for s in specs:
+            shift = s["velocity"] * t1
+            depth, normal = _signed_distance(s, x - shift)
+            inside = (depth < 0) & free
+            dmin = min(dmin, float(depth[free].min()) if free.any() else np.inf)
+            if not inside.any():
+                continue
+            count += int(inside.sum())
+            n = normal[inside]
+            x[inside] -= depth[inside, None] * n
+            vr = v[inside] - s["velocity"]
+            vn = np.einsum("ij,ij->i", vr, n)
+            approaching = vn < 0
+            vt = vr - vn[:, None] * n
+            speed = np.linalg.norm(vt, axis=1)
+            scale = np.where(speed > 0, np.maximum(0.0, 1 - s["mu"] * np.abs(vn) / np.where(speed > 0, speed, 1)),
+                             0.0)
+            new = np.where(approaching[:, None], vt * scale[:, None], vr)
+            v[inside] = new + s["velocity"]
+        stats_contact = _ProjectionStats(stats, count, dmin)
+        return stats_contact
+
+
+class _ProjectionStats:
+    """The body's step stats with the projection's ``contact_count`` (vertices projected) and
+    ``min_distance`` (smallest signed distance [m] of a vertex to a collider before the
+    projection: negative means it had entered one)."""
+
+    def __init__(self, stats, count, dmin):
+        self.stats, self.contact_count, self.min_distance = stats, count, dmin
+
+    def __getattr__(self, name):
+        return getattr(self.stats, name)
+
+    def __repr__(self):
+        return f"ProjectionStats(contact_count={self.contact_count}, min_distance={self.min_distance:.3g}, {self.stats!r})"
+
+
+def _vecd(a, name, d):
+    arr = as_float_array(a, name).reshape(-1)
+    if arr.size != d or not np.isfinite(arr).all():
+        raise ValueError(f"{name}: expected {d} finite coordinates, got {np.asarray(a).tolist()!r}")
+    return arr
+
+
+def _signed_distance(spec, x):
+    """Signed distance (n,) [m] of points to a collider (negative inside) and the outward
+    normal (n, d) of the nearest surface point."""
+    if spec["shape"] == "plane":
+        n = spec["normal"]
+        return (x - spec["point"]) @ n, np.broadcast_to(n, x.shape)
+    if spec["shape"] == "sphere":
+        r = x - spec["center"]
+        dist = np.linalg.norm(r, axis=1)
+        safe = np.where(dist > 0, dist, 1.0)
+        n = np.where(dist[:, None] > 0, r / safe[:, None], np.eye(x.shape[1])[1])
+        return dist - spec["radius"], n
+    lo, hi = spec["lower"], spec["upper"]
+    c, half = (lo + hi) / 2, (hi - lo) / 2
+    q = np.abs(x - c) - half
+    outside = np.linalg.norm(np.maximum(q, 0), axis=1)
+    inside = np.minimum(q.max(axis=1), 0)
+    axis = q.argmax(axis=1)
+    n = np.zeros_like(x)
+    n[np.arange(len(x)), axis] = np.sign(x - c)[np.arange(len(x)), axis]
+    n[n.sum(axis=1) == 0, axis[n.sum(axis=1) == 0]] = 1  # a point on a symmetry plane
+    return outside + inside, n

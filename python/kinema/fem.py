@@ -34,8 +34,9 @@ from kinema._checks import (
     as_float_array, checked_state, choice, finite, finite_result, gravity_vector, indices,
     integer, positive, positive_int, real, simulation_object)
 from kinema._state import state_property
+from kinema.contact import Scene  # several bodies (fem, massspring) in contact: Scene.add_body
 
-__all__ = ["Body", "StepStats", "MODELS", "lame", "psi", "piola", "piola_derivative",
+__all__ = ["Body", "Scene", "StepStats", "MODELS", "lame", "psi", "piola", "piola_derivative",
            "rectangle_mesh", "box_mesh"]
 
 MODELS = ("linear", "stvk", "corotated", "neohookean")
@@ -176,6 +177,15 @@ class Body:
                     raise type(exc)(f"{exc}{extra}") from None
             raise
         self._state = self._model.initial_state()
+        self.contact = None  # km.contact.BodyContact once a collider is added
+
+    def add_collider(self, shape, **options):
+        """A collider (plane, box, sphere, mesh; static or moving) this body cannot pass:
+        implicit steps solve contact by IPC, symplectic steps project. See
+        :meth:`kinema.contact.BodyContact.add_collider`."""
+        from kinema import contact
+
+        return contact.attach(self).add_collider(shape, **options)
 
     def _build(self):
         """(Re)builds the C++ model and solver from the current parameter values."""
@@ -268,6 +278,8 @@ class Body:
                           linear_solver=linear_solver, cg_tol=cg_tol, definiteness=definiteness)
 
     def _step(self, dt, control, steps=1, **options):
+        if self.contact is not None and self.contact.colliders and control is None:
+            return self.contact.step(dt, options.get("integrator", "implicit"), steps)
         self._configure(**options)
         dt = real(dt, "dt")
         stats = None
@@ -347,6 +359,8 @@ class Body:
     _diff_state_names = ("x", "v")
 
     def _diff_check(self, wrt, step_options):
+        if self.contact is not None and self.contact.colliders:
+            raise ValueError("sim: a km.fem.Body with colliders is not differentiable (km.contact has no adjoint)")
         for key, value in step_options.items():
             if key == "steps":
                 if value != 1:

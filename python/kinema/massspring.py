@@ -110,12 +110,13 @@ class System:
         given = dict(stiffness=stiffness, rest_length=rest_length, damping=damping, mass=mass)
         # Whether each parameter was given as one number: its gradient is then one number too.
         self._scalar = {k: np.ndim(v) == 0 for k, v in given.items()}
+        self.fixed = indices(np.asarray(fixed).ravel() if np.size(fixed) else np.zeros(0, np.int64), "fixed", n)
+        self.gravity = gravity_vector(gravity, d)
         self._core = _core.massspring.System(
             x, springs, _per_item(stiffness, m, "stiffness"), _per_item(rest_length, m, "rest_length"),
-            _per_item(damping, m, "damping"), _per_item(mass, n, "mass"),
-            indices(np.asarray(fixed).ravel() if np.size(fixed) else np.zeros(0, np.int64), "fixed", n),
-            gravity_vector(gravity, d))
+            _per_item(damping, m, "damping"), _per_item(mass, n, "mass"), self.fixed, self.gravity)
         self.springs = springs
+        self.contact = None  # km.contact.BodyContact once a collider is added
 
     @property
     def x(self) -> np.ndarray:
@@ -181,8 +182,18 @@ class System:
         return self._step(dt, None, integrator=integrator, beta=beta, linear_solver=linear_solver,
                           cg_tol=cg_tol, steps=steps)
 
+    def add_collider(self, shape, **options):
+        """A collider (plane, box, sphere, mesh; static or moving) that this system's vertices
+        (and its ``triangles``, see :func:`kinema.contact.attach`) cannot pass: implicit steps
+        solve contact by IPC, symplectic steps project. See :meth:`kinema.contact.BodyContact.add_collider`."""
+        from kinema import contact
+
+        return contact.attach(self).add_collider(shape, **options)
+
     def _step(self, dt, control, *, integrator="implicit", beta=1.0, linear_solver="cholmod",
               cg_tol=1e-8, steps=1):
+        if self.contact is not None and self.contact.colliders and control is None:
+            return self.contact.step(dt, integrator, positive_int(steps, "steps"), beta=beta)
         self._configure(integrator, beta, linear_solver, cg_tol)
         dt = real(dt, "dt")
         try:
@@ -212,6 +223,8 @@ class System:
     # ------------------------------------------------------------ km.diff protocol
 
     def _diff_check(self, wrt, step_options):
+        if self.contact is not None and self.contact.colliders:
+            raise ValueError("sim: a km.massspring.System with colliders is not differentiable (km.contact has no adjoint)")
         for key in step_options:
             if key not in _DIFF_OPTIONS:
                 raise ValueError(f"{key}: not an option of km.massspring.System under km.diff "

@@ -91,10 +91,15 @@ class DeformableSimulation(ArrayStateSimulation):
         reach = (hi - lo).max()
         lo, hi = lo - 0.15 * reach, hi + 0.15 * reach
         lo[axes[1]] = self.rest_box[0][axes[1]] - 1.1 * reach
+        lo, hi = self._frame_box(lo, hi, axes[1])
         # A checker fixed to the material, so that stretching and folds show.
         odd = render3d.checker_split(self.rest, self.surface)
         return render3d.Geometry(lo, hi, meshes=[(self.body.x, self.surface[~odd], self.MATERIAL),
                                                  (self.body.x, self.surface[odd], self.CHECKER)])
+
+    def _frame_box(self, lo, hi, up):
+        """Subclasses with colliders grow the frame to hold them."""
+        return lo, hi
 
     def image(self, output):
         if output["render"] != "flat":

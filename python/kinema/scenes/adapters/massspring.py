@@ -2,7 +2,9 @@
 
 Objects, all joined into one system: ``cloth`` (km.massspring.cloth: structural, shear and
 bending springs on an nx x ny grid, placed in a plane through ``origin``) and ``mesh`` (a
-mesh file whose cell edges become springs). Steps: ``substeps`` equal steps per frame.
+mesh file whose cell edges become springs), and ``collider`` (or ``obstacle``): planes, boxes,
+spheres and meshes the cloth cannot pass (km.contact: implicit steps by IPC with friction,
+symplectic steps by projection). Steps: ``substeps`` equal steps per frame.
 The linear solver is "cholmod" or "cg": both depend on the state only, so a run resumed from
 a checkpoint repeats the straight run bit for bit ("cholmod_pcg" keeps a preconditioner from
 earlier steps and is left out).
@@ -13,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 
 import kinema as km
+from kinema.scenes.adapters import colliders as coll
 from kinema.scenes.adapters.deformable import FIXED, MESH_FIELDS, DeformableSimulation, fixed_vertices, read_mesh
 from kinema.scenes.schema import Field, Int, Real, Str, Table, Vec
 
@@ -26,6 +29,8 @@ SOLVER = Table({
     "linear_solver": Field(Str(("cholmod_direct", "cholmod", "cg")), "cholmod_direct"),
     "substeps": Field(Int(ge=1), 1, "steps per frame"),
     "gravity": Field(Vec(spatial=True), None, "[m/s^2]"),
+    "friction": Field(Real(ge=0), 0.0, "Coulomb mu against colliders and between cloth parts"),
+    "dhat": Field(Real(gt=0), None, "contact barrier distance [m] (default: 1e-3 of the cloth's size)"),
 })
 
 _MATERIAL = {
@@ -43,6 +48,8 @@ OBJECTS = {
         "bending_stiffness": Field(Real(gt=0), None, "stiffness of the bending springs (default: stiffness)"),
         **_MATERIAL}, "a rectangular cloth"),
     "mesh": Table({**MESH_FIELDS, **_MATERIAL}, "a spring along every cell edge of a mesh file"),
+    "collider": coll.COLLIDER,
+    "obstacle": coll.COLLIDER,
 }
 
 _PLANES = {"xy": (0, 1), "xz": (0, 2), "yz": (1, 2)}
@@ -77,6 +84,8 @@ class MassSpringSimulation(DeformableSimulation):
         xs, springs, stiff, damp, mass, fixed, tris, cells = [], [], [], [], [], [], [], []
         offset = 0
         for k, obj in enumerate(scene.config["objects"]):
+            if obj["type"] in ("collider", "obstacle"):
+                continue
             if obj["type"] == "cloth":
                 nx, ny = obj["resolution"]
                 x2, s, kinds = km.massspring.cloth(nx, ny, obj["size"], dim=2, return_kinds=True)
@@ -112,12 +121,39 @@ class MassSpringSimulation(DeformableSimulation):
         self.cells = [("triangle", self.surface)]
         self.rest = x.copy()
         self.rest_box = (x.min(axis=0), x.max(axis=0))
+        self.contact = None
+        _, found = coll.split(scene.config["objects"])
+        if found:
+            self.contact = km.contact.attach(self.body, triangles=self.surface, friction=o["friction"], dhat=o["dhat"])
+            for k, obj in found:
+                shape, kw = coll.collider_args(scene, k, obj)
+                try:
+                    self.body.add_collider(shape, **kw)
+                except ValueError as exc:
+                    raise scene.error(f"objects[{k}]", str(exc)) from None
+
+    def _frame_box(self, lo, hi, up):
+        return (lo, hi) if self.contact is None else coll.frame_box(lo, hi, self.contact.scene(), up)
+
+    def geometry(self, axes):
+        g = super().geometry(axes)
+        if self.contact is not None and self.integrator == "implicit":
+            g.meshes += coll.meshes(self.contact.scene())
+        return g
 
     def _step(self, dt):
-        self.body.step(dt, self.integrator, self.beta, linear_solver=self.solver)
+        self.last = self.body.step(dt, self.integrator, self.beta, linear_solver=self.solver)
 
     def diagnostics(self):
-        return {"energy": self.body.energy(), "kinetic_energy": self.body.kinetic_energy()}
+        out = {"energy": self.body.energy(), "kinetic_energy": self.body.kinetic_energy()}
+        if self.contact is not None:  # the last step's contact diagnostics (none before the first)
+            i = getattr(self, "last", None)
+            out.update(contact_count=float(i.contact_count) if i else 0.0,
+                       min_distance=float(i.min_distance) if i else float("inf"))
+            if self.integrator == "implicit":
+                out.update(sticking=float(i.sticking_count) if i else 0.0,
+                           sliding=float(i.sliding_count) if i else 0.0)
+        return out
 
 
 Simulation = MassSpringSimulation
