@@ -21,8 +21,11 @@ Memory. By default every state of the run is stored (T + 1 states for T steps). 
 ``checkpoints=K`` at most K states are held (the initial one included) and the others are
 recomputed from the nearest stored one by binomial checkpointing (Griewank 1992; Griewank and
 Walther 2000, "Revolve", ACM TOMS 26): with s free slots and r forward sweeps,
-beta(s, r) = C(s + r, s) steps can be reversed, so K = 2 sqrt(T) recomputes each step at most
-about twice. The gradients equal the stored run's to rounding (bitwise, as the forward steps are
+beta(s, r) = C(s + r, s) steps can be reversed, so K = 2 sqrt(T) needs two sweeps: the rollout's
+own, which leaves the first checkpoints in place, and at most T more recomputed steps in the
+backward pass (a step's adjoint needs the states before and after it; the state before the step
+reversed last is kept as the next one's after rather than recomputed, so at most K + 2 states are
+held). The gradients equal the stored run's to rounding (bitwise, as the forward steps are
 deterministic).
 
 Chaining. A loss on intermediate states is written by splitting the run: the gradient a later
@@ -277,7 +280,8 @@ class Rollout:
                 for k in reversed(range(self.steps)):
                     g = self._adjoint(k, self._stored[k], self._stored[k + 1], g)
             elif self.steps > 0:
-                g = self._reverse(0, self._start, self.steps, self.checkpoints - 1, g)
+                self._hold(1)  # the final state, handed to the recursion as the last step's after
+                g = self._reverse(0, self._start, self.steps, self.checkpoints - 1, g, self._end)
         finally:
             self._sim.set_state(self._end)
         self._spine = {}  # used up by the first backward call; later calls recompute it
@@ -305,24 +309,33 @@ class Rollout:
             self._grad_controls[k] = gc
         return {name: gb[name] for name in self._state_names}
 
-    def _reverse(self, i: int, state_i: dict, j: int, free: int, g: dict) -> dict:
-        """Reverses steps i..j-1 from the held state before step i, with `free` more slots."""
+    def _reverse(self, i: int, state_i: dict, j: int, free: int, g: dict, after=None) -> dict:
+        """Reverses steps i..j-1 from the held state before step i, with `free` more slots.
+
+        `after`: the state after step j - 1 when it is held (this call then owns it and lets it
+        go), else None (it is recomputed). A step's adjoint needs the states before and after
+        it; the state before the step reversed last is the state after the next one, so it is
+        kept instead of recomputed: one forward step fewer per step reversed, for one more state
+        held (Revolve counts the step's forward re-run into its reversal)."""
         while j > i:
             length = j - i
             if length == 1:
-                after = self._advance(state_i, i, 1)
-                self._hold(1)
+                if after is None:
+                    after = self._advance(state_i, i, 1)
+                    self._hold(1)
                 g = self._adjoint(i, state_i, after, g)
                 self._held -= 1
                 return g
             if free == 0:
                 # No slot left: recompute the state before the last step from state_i.
-                before = self._advance(state_i, i, length - 1) if length > 1 else state_i
+                before = self._advance(state_i, i, length - 1)
                 self._hold(1)
-                after = self._advance(before, j - 1, 1)
-                self._hold(1)
+                if after is None:
+                    after = self._advance(before, j - 1, 1)
+                    self._hold(1)
                 g = self._adjoint(j - 1, before, after, g)
-                self._held -= 2
+                self._held -= 1
+                after = before
                 j -= 1
                 continue
             m = i + _split(length, free)
@@ -332,8 +345,7 @@ class Rollout:
             else:
                 state_m = self._advance(state_i, i, m - i)
             self._hold(1)
-            g = self._reverse(m, state_m, j, free - 1, g)
-            del state_m
-            self._held -= 1
+            g = self._reverse(m, state_m, j, free - 1, g, after)
+            after = state_m  # still held: the state after step m - 1, reversed next
             j = m
         return g
