@@ -44,7 +44,17 @@ The protocol (private methods; nothing else is called):
 - ``_diff_get(name)`` / ``_diff_set(name, value)``: a state array's or parameter's value.
 - ``_diff_step(dt, control, step_options)``: ``step(dt, **step_options)`` plus the control.
 - ``_diff_step_adjoint(dt, before, after, control, grad_after, step_options)
-  -> (grad_before, grad_params, grad_control)``: the vector-Jacobian product of one step.
+  -> (grad_before, grad_params, grad_control)``: the vector-Jacobian product of one step. A
+  scalar parameter's gradient may be a float or the array of its per-item contributions
+  (km.diff sums over the steps first and over the items last).
+
+Optional (a faster path for runs stored whole; km.diff falls back to the steps without it):
+
+- ``_diff_record(dt, steps, controls, step_options) -> record or None``: the same as ``steps``
+  calls of ``_diff_step``, with every state kept by the simulation; ``record.backward(grad_after,
+  params) -> (grad_before, grad_params, grad_controls)``: the steps' ``_diff_step_adjoint`` in
+  sequence, last step first, grad_params for the names in ``params`` summed over the steps in
+  that order (per item), grad_controls of shape (steps, *control_shape) or None.
 """
 
 from __future__ import annotations
@@ -75,8 +85,23 @@ def _split(length: int, free: int) -> int:
     return min(max(1, length - _beta(free - 1, sweeps)), length - 1)
 
 
-def _copy_state(state: dict) -> dict:
-    return {k: (np.array(v, copy=True) if isinstance(v, np.ndarray) else v) for k, v in state.items()}
+def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
+    return (a.shape == b.shape and a.dtype == b.dtype and
+            np.array_equal(np.ascontiguousarray(a).view(np.uint8), np.ascontiguousarray(b).view(np.uint8)))
+
+
+def _copy_state(state: dict, previous: dict | None = None) -> dict:
+    """A copy of `state` whose arrays are new, except those bitwise equal to the same entry of
+    `previous` (an earlier copy), which are shared: what did not change between two copies (a
+    lagged factor's record, a static field) is held once. Held copies are never written."""
+    out = {}
+    for k, v in state.items():
+        if not isinstance(v, np.ndarray):
+            out[k] = v
+            continue
+        p = None if previous is None else previous.get(k)
+        out[k] = p if isinstance(p, np.ndarray) and _same_bits(p, v) else np.array(v, copy=True)
+    return out
 
 
 def _as_names(wrt) -> tuple:
@@ -191,16 +216,25 @@ class Rollout:
         self.peak_states = 0
         self.recomputed_steps = 0
         self._held = 0
-        start = _copy_state(sim.state())
+        self._last = None
+        start = self._copy(sim.state())
         self._start = start
+        self._record = None
         if checkpoints is None or checkpoints > steps:
-            self._stored = [start]
-            self._hold(1)
-            for k in range(steps):
-                self._step(k)
-                self._stored.append(_copy_state(sim.state()))
-                self._hold(1)
             self._spine = {}
+            recorder = getattr(sim, "_diff_record", None)
+            if recorder is not None:
+                self._record = recorder(dt, steps, controls, step_options)
+            if self._record is not None:
+                self._stored = None
+                self._hold(steps + 1)  # held by the simulation's record
+            else:
+                self._stored = [start]
+                self._hold(1)
+                for k in range(steps):
+                    self._step(k)
+                    self._stored.append(self._copy(sim.state()))
+                    self._hold(1)
         else:
             # Store where the first descent of the backward recursion will want checkpoints (the
             # "spine"), so the first backward call does not redo this forward sweep.
@@ -216,10 +250,14 @@ class Rollout:
             for k in range(steps):
                 self._step(k)
                 if k + 1 in marks:
-                    self._spine[k + 1] = _copy_state(sim.state())
+                    self._spine[k + 1] = self._copy(sim.state())
                     self._hold(1)
-        self._end = _copy_state(sim.state())
+        self._end = self._copy(sim.state())
         self.outputs = {name: np.array(self._end[name], copy=True) for name in self._state_names}
+
+    def _copy(self, state: dict) -> dict:
+        self._last = _copy_state(state, self._last)
+        return self._last
 
     # -- bookkeeping of the states held, to verify the memory bound
     def _hold(self, count: int):
@@ -239,7 +277,7 @@ class Rollout:
         for k in range(first, first + count):
             self._step(k)
             self.recomputed_steps += 1
-        after = _copy_state(self._sim.state())
+        after = self._copy(self._sim.state())
         self._current = after
         return after
 
@@ -272,11 +310,21 @@ class Rollout:
         self._grad_controls = None if self._controls is None else np.zeros_like(self._controls)
         self.recomputed_steps = 0
         self._current = None
-        base = 1 + len(self._spine) if self._stored is None else len(self._stored)
+        if self._record is not None:
+            base = self.steps + 1
+        else:
+            base = 1 + len(self._spine) if self._stored is None else len(self._stored)
         self._held = base
         self.peak_states = base
         try:
-            if self._stored is not None:
+            if self._record is not None:
+                wanted = tuple(name for name in self.wrt if name in self._scalar_parameters)
+                gb, gp, gc = self._record.backward(g, wanted)
+                g = {name: gb[name] for name in self._state_names}
+                self._params = dict(gp)
+                if self._grad_controls is not None and gc is not None:
+                    self._grad_controls[...] = gc
+            elif self._stored is not None:
                 for k in reversed(range(self.steps)):
                     g = self._adjoint(k, self._stored[k], self._stored[k + 1], g)
             elif self.steps > 0:
@@ -296,7 +344,7 @@ class Rollout:
                 if value is None:
                     value = 0.0 if self._scalar_parameters[name] else np.zeros(
                         np.shape(self._sim._diff_get(name)))
-                out[name] = float(value) if self._scalar_parameters[name] else np.asarray(value)
+                out[name] = float(np.sum(value)) if self._scalar_parameters[name] else np.asarray(value)
         return out
 
     def _adjoint(self, k: int, before: dict, after: dict, g: dict) -> dict:
