@@ -28,6 +28,8 @@ exactly: one adjoint solve with the step's matrix per step, by PCG to the relati
 with a CHOLMOD factor lagged across the backward pass; the forward's ``cg_tol`` is not
 differentiated. Where the exact Jacobian was indefinite and the step clamped it, the gradient is
 that of the clamped step; zero-length springs (no force direction) contribute no gradient.
+A run km.diff stores whole is stepped and reversed in C++ (``_diff_record``), bitwise the same
+gradients as the step-by-step path of a checkpointed run.
 """
 
 from __future__ import annotations
