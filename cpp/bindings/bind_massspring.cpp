@@ -321,15 +321,26 @@ void bind_massspring(py::module_& m) {
              t->dt = dt;
              t->controlled = !forces.empty();
              Interrupt interrupt = python_interrupt();
+             // What step_adjoint reads of a state; the lagged factor's record is not (it would
+             // add a third array to every state held).
+             const auto kept = [](const State& from) {
+               State to;
+               to.x = from.x;
+               to.v = from.v;
+               to.time = from.time;
+               to.step = from.step;
+               to.clamped = from.clamped;
+               return to;
+             };
              {
                ReleaseGil release;
                t->states.reserve(static_cast<std::size_t>(steps) + 1);
-               t->states.push_back(s.state);
+               t->states.push_back(kept(s.state));
                for (Index k = 0; k < steps; ++k) {
                  interrupt.check();
                  const Scalar* u = forces.empty() ? nullptr : forces.data() + k * n;
                  with_rollback(s.state, [&] { return s.solver->step(s.state, dt, interrupt, u); });
-                 t->states.push_back(s.state);
+                 t->states.push_back(kept(s.state));
                }
              }
              return t;
