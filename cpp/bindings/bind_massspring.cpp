@@ -24,6 +24,15 @@ struct System {
   Params params;
 };
 
+// A run stored for reverse mode in C++ (System.record): the states before and after every step.
+struct Trajectory {
+  py::object owner;  // the System, kept alive
+  System* system;
+  Scalar dt;
+  std::vector<State> states;
+  bool controlled;
+};
+
 py::array view(py::object self, std::vector<Scalar>& buffer, Index d) {
   const Index rows = static_cast<Index>(buffer.size()) / d;
   return py::array_t<Scalar>({rows, d}, buffer.data(), self);
@@ -152,6 +161,55 @@ void bind_massspring(py::module_& m) {
                ", seconds=" + format_real(s.seconds) + ")";
       });
 
+  py::class_<Trajectory>(m, "Trajectory", "A run System.record stored for reverse mode.")
+      .def_property_readonly("steps", [](const Trajectory& t) {
+        return static_cast<Index>(t.states.size()) - 1;
+      })
+      .def("backward",
+           [](Trajectory& t, const py::object& grad_x, const py::object& grad_v, bool with_params) {
+             System& s = *t.system;
+             const Index n = s.model.vertex_count * s.model.dim;
+             const int d = s.model.dim;
+             const Index steps = static_cast<Index>(t.states.size()) - 1;
+             py::dict grads;
+             grads["x"] = grad_x;
+             grads["v"] = grad_v;
+             State adjoint;
+             read_array(grads, "x", adjoint.x, n, d);
+             read_array(grads, "v", adjoint.v, n, d);
+             Params p;
+             if (with_params) {
+               p.stiffness.assign(s.model.spring_count, 0);
+               p.rest_length.assign(s.model.spring_count, 0);
+               p.damping.assign(s.model.spring_count, 0);
+               p.mass.assign(s.model.vertex_count, 0);
+             }
+             std::vector<Scalar> gu(t.controlled ? steps * n : 0);
+             Interrupt interrupt = python_interrupt();
+             {
+               ReleaseGil release;
+               s.solver->run_adjoint(t.states, t.dt, adjoint, p, t.controlled ? gu.data() : nullptr,
+                                     interrupt);
+             }
+             py::object params = py::none();
+             if (with_params) {
+               py::dict out;
+               out["stiffness"] = to_numpy(std::move(p.stiffness), {s.model.spring_count});
+               out["rest_length"] = to_numpy(std::move(p.rest_length), {s.model.spring_count});
+               out["damping"] = to_numpy(std::move(p.damping), {s.model.spring_count});
+               out["mass"] = to_numpy(std::move(p.mass), {s.model.vertex_count});
+               params = out;
+             }
+             py::object gcontrols = py::none();
+             if (t.controlled) gcontrols = to_numpy(std::move(gu), {steps, s.model.vertex_count, d});
+             return py::make_tuple(to_numpy(std::move(adjoint.x), {s.model.vertex_count, d}),
+                                   to_numpy(std::move(adjoint.v), {s.model.vertex_count, d}),
+                                   params, gcontrols);
+           },
+           py::arg("grad_x"), py::arg("grad_v"), py::arg("with_params"),
+           "dL/dx_0, dL/dv_0, the parameters' gradients summed over the steps (per item; None "
+           "unless with_params) and dL/d(controls) (None without controls) from dL/dx_T, dL/dv_T.");
+
   py::class_<System>(m, "System")
       .def(py::init([](const ScalarArray& x, const IndexArray& springs, const ScalarArray& stiffness,
                        const ScalarArray& rest_length, const ScalarArray& damping,
@@ -242,6 +300,54 @@ void bind_massspring(py::module_& m) {
              return stats;
            },
            py::arg("dt"), py::arg("steps") = 1, py::arg("control") = py::none())
+      .def("record",
+           [](py::object self, Scalar dt, Index steps, const py::object& controls) {
+             System& s = self.cast<System&>();
+             const Index n = s.model.vertex_count * s.model.dim;
+             std::vector<Scalar> forces;
+             if (!controls.is_none()) {
+               const auto a =
+                   py::array_t<Scalar, py::array::c_style | py::array::forcecast>::ensure(controls);
+               if (!a || a.size() != steps * n)
+                 throw InvalidArgument("controls: expected a (steps, n, d) float array of " +
+                                       std::to_string(steps * n) + " values");
+               forces.assign(a.data(), a.data() + a.size());
+               for (Scalar u : forces)
+                 if (!std::isfinite(u)) throw InvalidArgument("controls: expected finite forces");
+             }
+             auto t = std::make_unique<Trajectory>();
+             t->owner = self;
+             t->system = &s;
+             t->dt = dt;
+             t->controlled = !forces.empty();
+             Interrupt interrupt = python_interrupt();
+             // What step_adjoint reads of a state; the lagged factor's record is not (it would
+             // add a third array to every state held).
+             const auto kept = [](const State& from) {
+               State to;
+               to.x = from.x;
+               to.v = from.v;
+               to.time = from.time;
+               to.step = from.step;
+               to.clamped = from.clamped;
+               return to;
+             };
+             {
+               ReleaseGil release;
+               t->states.reserve(static_cast<std::size_t>(steps) + 1);
+               t->states.push_back(kept(s.state));
+               for (Index k = 0; k < steps; ++k) {
+                 interrupt.check();
+                 const Scalar* u = forces.empty() ? nullptr : forces.data() + k * n;
+                 with_rollback(s.state, [&] { return s.solver->step(s.state, dt, interrupt, u); });
+                 t->states.push_back(kept(s.state));
+               }
+             }
+             return t;
+           },
+           py::arg("dt"), py::arg("steps"), py::arg("controls") = py::none(),
+           "Takes `steps` steps of dt (controls: None or (steps, n, d) forces) and returns the "
+           "Trajectory of every state, for Trajectory.backward.")
       .def("step_adjoint",
            [](System& s, Scalar dt, const py::dict& before, const py::dict& after,
               const py::object& control, const py::object& grad_x, const py::object& grad_v) {

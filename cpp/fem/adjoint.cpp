@@ -194,28 +194,40 @@ void Solver::adjoint_implicit(const State& before, const State& after, Scalar dt
   });
   if (values_.empty()) values_.resize(assembly_.nonzeros());
   const CsrView A{n, n, assembly_.row_ptr().data(), assembly_.col_index().data(), values_.data()};
-  // PCG preconditioned by the factor the forward step itself preconditioned with (the State's
-  // record: a matrix of a nearby step, so a few iterations reach rounding), else, or when PCG
-  // stalls, a factorisation of H. The adjoint keeps its own factor, so that the forward one
-  // survives a backward pass, and a step's answer depends on its states only (not on which
-  // adjoint steps ran before it): checkpointed and repeated backward passes agree bitwise.
+  // PCG preconditioned by the factor the forward step ended with (the State's record: the
+  // projected Hessian of a nearby x, so a few iterations reach rounding), else, or when PCG
+  // stalls, a factorisation of H. That factor is the forward solver's own when its record is
+  // the forward's current one (read only: the forward's survives the backward pass); else the
+  // adjoint rebuilds it into a factor of its own. Either is the same matrix's factor, so a
+  // step's answer depends on its states only (not on which steps ran before it): checkpointed
+  // and repeated backward passes agree bitwise.
   SpdSolveStats s;
-  FactorRecord key = before.factor;
+  FactorRecord key = after.factor.x.empty() ? before.factor : after.factor;
   key.refactor_pending = false;
   const bool lagged = config_.linear_solver != LinearSolver::CholmodDirect && !key.x.empty() &&
-                      key.x.size() == before.x.size();
-  if (lagged && !(adjoint_factor_ == key)) {
-    assemble_newton_matrix(key.x.data(), key.weight, key.scale, key.projected);
-    std::vector<Scalar> zero(n, 0), out(n);
-    adjoint_factor_.x.clear();
-    if (adjoint_spd_.solve_exact(A, zero.data(), out.data(), false, s)) adjoint_factor_ = key;
+                      key.x.size() == after.x.size();
+  const auto same_matrix = [&](const FactorRecord& r) {
+    return r.x == key.x && r.weight == key.weight && r.scale == key.scale &&
+           r.projected == key.projected;
+  };
+  SpdSolver* preconditioner = nullptr;
+  if (lagged && spd_.has_factor() && same_matrix(factor_)) {
+    preconditioner = &spd_;
+  } else if (lagged) {
+    if (!(adjoint_factor_ == key)) {
+      assemble_newton_matrix(key.x.data(), key.weight, key.scale, key.projected);
+      std::vector<Scalar> zero(n, 0), out(n);
+      adjoint_factor_.x.clear();
+      if (adjoint_spd_.solve_exact(A, zero.data(), out.data(), false, s)) adjoint_factor_ = key;
+    }
+    if (!adjoint_factor_.x.empty()) preconditioner = &adjoint_spd_;
   }
   assemble_newton_matrix(after.x.data(), weight, scale, false);
   bool ok = false;
-  if (lagged && !adjoint_factor_.x.empty()) {
+  if (preconditioner) {
     const LinearOperator op = [&](const Scalar* v, Scalar* y) { spmv(A, v, y); };
     const LinearOperator pre = [&](const Scalar* r, Scalar* z) {
-      adjoint_spd_.solve_exact(A, r, z, true, s);
+      preconditioner->solve_exact(A, r, z, true, s);
     };
     try {
       ok = pcg(n, op, pre, rhs.data(), lambda.data(), IterativeOptions{kAdjointTolerance, 50},

@@ -45,6 +45,8 @@ class SpdSolver {
 
   // The lagged factor's own history, for callers that record it in their State (bitwise resume).
   bool refactor_pending() const { return lagged_.refactor_pending(); }
+  // A valid CHOLMOD factor is held (solve_exact with factor_is_current = true uses it).
+  bool has_factor() const { return lagged_.has_factor(); }
 
  private:
   LaggedCholesky lagged_;

@@ -51,12 +51,25 @@ void check_adjoint_shapes(const Model& m, const State& before, const State& afte
                           " vertices");
   if (adjoint.x.size() != n || adjoint.v.size() != n)
     throw InvalidArgument("grad_after: expected (n, d) arrays for x and v");
-  if (p.stiffness.size() != sc || p.rest_length.size() != sc || p.damping.size() != sc ||
-      p.mass.size() != vc)
-    throw InvalidArgument("adjoint_params: expected arrays sized like the model's");
+  const bool none = p.stiffness.empty() && p.rest_length.empty() && p.damping.empty() &&
+                    p.mass.empty();
+  if (!none && (p.stiffness.size() != sc || p.rest_length.size() != sc ||
+                p.damping.size() != sc || p.mass.size() != vc))
+    throw InvalidArgument("adjoint_params: expected arrays sized like the model's, or all empty");
 }
 
+bool wanted(const Params& p) { return !p.stiffness.empty(); }
+
 }  // namespace
+
+void Solver::run_adjoint(const std::vector<State>& states, Scalar dt, State& adjoint,
+                         Params& params, Scalar* adjoint_controls, Interrupt& interrupt) {
+  const Index steps = static_cast<Index>(states.size()) - 1;
+  const Index n = assembly_.dof_count();
+  for (Index k = steps - 1; k >= 0; --k)
+    step_adjoint(states[k], states[k + 1], dt, adjoint, params,
+                 adjoint_controls ? adjoint_controls + k * n : nullptr, interrupt);
+}
 
 void Solver::step_adjoint(const State& before, const State& after, Scalar dt, State& adjoint,
                           Params& params, Scalar* adjoint_control,
@@ -85,8 +98,8 @@ void Solver::adjoint_explicit_d(const State& before, const State& after, Scalar 
   const Scalar* v_old = before.v.data();
   // lambda = dL/df = h M^-1 dL/dv'_total; dL/dv = dL/dv'_total (+ h dL/dx' for explicit Euler).
   std::vector<Scalar>& lambda = scratch(adj_lambda_, n);
-  std::vector<Scalar>& gx = adj_gx_;
-  gx = adjoint.x;
+  // dL/dx' is read and overwritten vertex by vertex (each reads only its own).
+  const std::vector<Scalar>& gx = adjoint.x;
   std::vector<Scalar>& gv = adjoint.v;
   parallel_for(m.vertex_count, [&](Index i) {
     for (int r = 0; r < D; ++r) {
@@ -101,49 +114,62 @@ void Solver::adjoint_explicit_d(const State& before, const State& after, Scalar 
       gv[q] = vbar + (symplectic ? 0 : dt * gx[q]);
     }
   });
-  parallel_for(m.vertex_count, [&](Index i) {
-    Scalar s = 0;
-    for (int r = 0; r < D; ++r) {
-      const Index q = i * D + r;
-      const Scalar g = m.gravity.empty() ? 0 : m.gravity[r];
-      s += lambda[q] * (g - (v_new[q] - v_old[q]) / dt);
-    }
-    if (!m.fixed[i]) params.mass[i] += s;
-  });
+  const bool with_params = wanted(params);
+  if (with_params)
+    parallel_for(m.vertex_count, [&](Index i) {
+      Scalar s = 0;
+      for (int r = 0; r < D; ++r) {
+        const Index q = i * D + r;
+        const Scalar g = m.gravity.empty() ? 0 : m.gravity[r];
+        s += lambda[q] * (g - (v_new[q] - v_old[q]) / dt);
+      }
+      if (!m.fixed[i]) params.mass[i] += s;
+    });
   if (adjoint_control) std::copy(lambda.begin(), lambda.end(), adjoint_control);
-  // psi = -mu . f_i per spring, in d (-> x), dv (-> v) and the parameters.
-  std::vector<Scalar>& ex = scratch(adj_ex_, m.spring_count * 2 * D);
-  std::vector<Scalar>& ev = scratch(adj_ev_, m.spring_count * 2 * D);
+  // psi = -mu . f_i per spring, in d (-> x), dv (-> v) and the parameters; each vertex sums
+  // its springs' terms in spring order (as ElementAssembly's gather), the spring's first vertex
+  // writes its parameter terms.
   const Scalar* x = before.x.data();
   const Scalar* v = before.v.data();
-  parallel_for(m.spring_count, [&](Index s) {
-    const Index i = m.springs[2 * s], j = m.springs[2 * s + 1];
-    const Vec<D> dd = vertex<D>(x, j) - vertex<D>(x, i);
-    const Vec<D> dv = vertex<D>(v, j) - vertex<D>(v, i);
-    const Vec<D> mu = vertex<D>(lambda.data(), j) - vertex<D>(lambda.data(), i);
-    const Scalar l = dd.norm();
-    Vec<D> gd = Vec<D>::Zero(), gdv = Vec<D>::Zero();
-    if (l > 0) {
-      const Vec<D> nv = dd / l;
-      const Scalar k = m.stiffness[s], L = m.rest_length[s], c = m.damping[s];
-      const Scalar mn = mu.dot(nv), vn = dv.dot(nv), F = k * (l - L) + c * vn;
-      const Vec<D> dv_perp = dv - vn * nv, mu_perp = mu - mn * nv;
-      gd = -((k * nv + c * dv_perp / l) * mn + F * mu_perp / l);
-      gdv = -c * mn * nv;
-      params.stiffness[s] += -(l - L) * mn;
-      params.rest_length[s] += k * mn;
-      params.damping[s] += -vn * mn;
+  parallel_for(m.vertex_count, [&](Index vi) {
+    Vec<D> sx = Vec<D>::Zero(), sv = Vec<D>::Zero();
+    for (Index p = incidence_ptr_[vi]; p < incidence_ptr_[vi + 1]; ++p) {
+      const Index s = incidence_[p] / 2;
+      const bool first = incidence_[p] % 2 == 0;
+      const Index i = m.springs[2 * s], j = m.springs[2 * s + 1];
+      const Vec<D> dd = vertex<D>(x, j) - vertex<D>(x, i);
+      const Vec<D> dv = vertex<D>(v, j) - vertex<D>(v, i);
+      const Vec<D> mu = vertex<D>(lambda.data(), j) - vertex<D>(lambda.data(), i);
+      const Scalar l = dd.norm();
+      Vec<D> gd = Vec<D>::Zero(), gdv = Vec<D>::Zero();
+      if (l > 0) {
+        const Vec<D> nv = dd / l;
+        const Scalar k = m.stiffness[s], L = m.rest_length[s], c = m.damping[s];
+        const Scalar mn = mu.dot(nv), vn = dv.dot(nv), F = k * (l - L) + c * vn;
+        const Vec<D> dv_perp = dv - vn * nv, mu_perp = mu - mn * nv;
+        gd = -((k * nv + c * dv_perp / l) * mn + F * mu_perp / l);
+        gdv = -c * mn * nv;
+        if (with_params && first) {
+          params.stiffness[s] += -(l - L) * mn;
+          params.rest_length[s] += k * mn;
+          params.damping[s] += -vn * mn;
+        }
+      }
+      // d = x_j - x_i: dL/dx_i = -gd, dL/dx_j = +gd (the same for v).
+      if (first) {
+        sx += -gd;
+        sv += -gdv;
+      } else {
+        sx += gd;
+        sv += gdv;
+      }
     }
-    // d = x_j - x_i: the j slot gets +gd; put() writes (i: a, j: -a).
-    put<D>(ex.data() + s * 2 * D, Vec<D>(-gd));
-    put<D>(ev.data() + s * 2 * D, Vec<D>(-gdv));
+    for (int r = 0; r < D; ++r) {
+      adjoint.x[vi * D + r] += sx(r);
+      // A fixed vertex's velocity still damps its springs (its own v' is 0 whatever v is).
+      gv[vi * D + r] += sv(r);
+    }
   });
-  std::vector<Scalar>& sum = scratch(adj_sum_, n);
-  assembly_.gather_vector(ex.data(), sum.data());
-  parallel_for(n, [&](Index q) { adjoint.x[q] = gx[q] + sum[q]; });
-  assembly_.gather_vector(ev.data(), sum.data());
-  // A fixed vertex's velocity still damps its springs (its own v' is 0 whatever v is).
-  parallel_for(n, [&](Index q) { gv[q] += sum[q]; });
 }
 
 template <int D>
@@ -182,6 +208,7 @@ void Solver::adjoint_implicit_d(const State& before, const State& after, Scalar 
                               "(its forward solve converged on an indefinite matrix)", -1);
   const Scalar* vn = after.v.data();
   const Scalar* v = before.v.data();
+  const bool with_params = wanted(params);
   // dL/dv = M lambda, dL/du = h lambda, dL/dm_i = lambda_i . (v_i + h g - v'_i) (free vertices).
   parallel_for(m.vertex_count, [&](Index i) {
     Scalar s = 0;
@@ -192,7 +219,7 @@ void Solver::adjoint_implicit_d(const State& before, const State& after, Scalar 
       if (adjoint_control) adjoint_control[q] = dt * lambda[q];
       s += lambda[q] * (v[q] + dt * g - vn[q]);
     }
-    params.mass[i] += s;
+    if (with_params) params.mass[i] += s;
   });
   // Per spring: lambda . h df/d(.) (the right-hand side's exact force) minus
   // d/d(.) [mu^T B w], B = beta h^2 k S + h c n n^T the spring's block of A, w = v'_j - v'_i.
@@ -214,9 +241,11 @@ void Solver::adjoint_implicit_d(const State& before, const State& after, Scalar 
       const Scalar bh = beta * dt * dt;
       gi = dt * k * (S * mu) + bh * k * spring_jacobian_vjp<D>(dd, L, clamp, mu, w) +
            dt * c * spring_damping_vjp<D>(dd, mu, w);
-      params.stiffness[s] += -dt * (l - L) * mn - bh * mu.dot(Sc * w);
-      params.rest_length[s] += dt * k * mn - bh * k * spring_jacobian_dL<D>(dd, L, clamp, mu, w);
-      params.damping[s] += -dt * mn * wn;
+      if (with_params) {
+        params.stiffness[s] += -dt * (l - L) * mn - bh * mu.dot(Sc * w);
+        params.rest_length[s] += dt * k * mn - bh * k * spring_jacobian_dL<D>(dd, L, clamp, mu, w);
+        params.damping[s] += -dt * mn * wn;
+      }
     }
     put<D>(ex.data() + s * 2 * D, gi);
   });

@@ -44,6 +44,12 @@ Solver::Solver(const Model& model, const Config& config)
   check_config(config_);
   element_vectors_.resize(model_.spring_count * assembly_.element_vector_size());
   f_.resize(assembly_.dof_count());
+  incidence_ptr_.assign(model_.vertex_count + 1, 0);
+  for (Index q = 0; q < 2 * model_.spring_count; ++q) ++incidence_ptr_[model_.springs[q] + 1];
+  for (Index i = 0; i < model_.vertex_count; ++i) incidence_ptr_[i + 1] += incidence_ptr_[i];
+  incidence_.resize(2 * model_.spring_count);
+  std::vector<Index> next(incidence_ptr_.begin(), incidence_ptr_.end() - 1);
+  for (Index q = 0; q < 2 * model_.spring_count; ++q) incidence_[next[model_.springs[q]]++] = q;
 }
 
 State Solver::initial_state(const Scalar* x0) const {
@@ -106,6 +112,45 @@ void Solver::forces_d(const State& st, const Scalar* control, bool with_damping,
     });
   if (control)
     parallel_for(m.vertex_count * D, [&](Index q) { f[q] += control[q]; });
+}
+
+template <int D>
+void Solver::explicit_step_d(const State& st, Scalar dt, const Scalar* control) {
+  const Model& m = model_;
+  const Scalar* x = st.x.data();
+  const Scalar* v = st.v.data();
+  const bool symplectic = config_.integrator == Integrator::Symplectic;
+  const bool gravity = !m.gravity.empty();
+  x_new_.resize(st.x.size());
+  v_new_.resize(st.v.size());
+  // f(x_n, v_n) per vertex from its springs (as forces_d + gather, term for term), then
+  // explicit Euler moves x with v_n, symplectic Euler with v_{n+1}.
+  parallel_for(m.vertex_count, [&](Index i) {
+    Vec<D> f = Vec<D>::Zero();
+    for (Index p = incidence_ptr_[i]; p < incidence_ptr_[i + 1]; ++p) {
+      const Index s = incidence_[p] / 2;
+      const Index a = m.springs[2 * s], b = m.springs[2 * s + 1];
+      const Vec<D> fi = spring_force<D>(vertex<D>(x, b) - vertex<D>(x, a),
+                                        vertex<D>(v, b) - vertex<D>(v, a), m.stiffness[s],
+                                        m.rest_length[s], m.damping[s]);
+      if (incidence_[p] % 2 == 0) f += fi;
+      else f += -fi;
+    }
+    for (int r = 0; r < D; ++r) {
+      const Index q = i * D + r;
+      if (m.fixed[i]) {
+        x_new_[q] = x[q];
+        v_new_[q] = 0;
+        continue;
+      }
+      Scalar fq = f(r);
+      if (gravity) fq += m.mass[i] * m.gravity[r];
+      if (control) fq += control[q];
+      const Scalar vq = v[q] + dt * fq / m.mass[i];
+      x_new_[q] = x[q] + dt * (symplectic ? vq : v[q]);
+      v_new_[q] = vq;
+    }
+  });
 }
 
 void Solver::forces(const State& s, Scalar* f) {
@@ -221,27 +266,21 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt, const Scal
   const Model& m = model_;
   const int d = m.dim;
   const Index n = assembly_.dof_count();
+  if (config_.integrator != Integrator::Implicit) {
+    if (d == 2) explicit_step_d<2>(state, dt, control);
+    else explicit_step_d<3>(state, dt, control);
+    check_finite(v_new_, "v", state.step);
+    check_finite(x_new_, "x", state.step);
+    accept_step(state, x_new_, v_new_, dt);
+    state.clamped = false;
+    stats.time = state.time;
+    stats.dt = dt;
+    stats.seconds = clock.seconds();
+    return stats;
+  }
   std::vector<Scalar> x = state.x, v = state.v;
   bool clamped = false;
-
-  if (config_.integrator != Integrator::Implicit) {
-    // f(x_n, v_n); explicit Euler moves x with v_n, symplectic Euler with v_{n+1}.
-    if (d == 2) forces_d<2>(state, control, true, f_.data());
-    else forces_d<3>(state, control, true, f_.data());
-    const bool symplectic = config_.integrator == Integrator::Symplectic;
-    parallel_for(m.vertex_count, [&](Index i) {
-      for (int r = 0; r < d; ++r) {
-        const Index q = i * d + r;
-        if (m.fixed[i]) {
-          v[q] = 0;
-          continue;
-        }
-        const Scalar v_new = v[q] + dt * f_[q] / m.mass[i];
-        x[q] += dt * (symplectic ? v_new : v[q]);
-        v[q] = v_new;
-      }
-    });
-  } else {
+  {
     // Elastic, gravity and control forces at x_n; damping enters the matrix, implicitly in v'.
     if (d == 2) forces_d<2>(state, control, false, f_.data());
     else forces_d<3>(state, control, false, f_.data());

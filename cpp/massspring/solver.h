@@ -111,8 +111,17 @@ class Solver {
   // (n d, when not null). The control's value is not needed: forces enter the step linearly. The implicit step is differentiated as if solved exactly (implicit
   // function theorem: one solve with the step's matrix to Config::adjoint_tol), on the branch
   // the step took (after.clamped).
+  // adjoint_params with every array empty: no parameter gradient is wanted (none is computed).
   void step_adjoint(const State& before, const State& after, Scalar dt, State& adjoint,
                     Params& adjoint_params, Scalar* adjoint_control, Interrupt& interrupt);
+
+  // step_adjoint over a stored run, last step first, without a round trip per step: states[k]
+  // is the state before step k (k = 0..T; states[T] the end; the controls' values are not
+  // needed: forces enter every step linearly). adjoint: dL/d(states[T]) on entry, dL/d(states[0]) on exit; adjoint_params accumulates the
+  // steps' gradients (per item, last step first: the sums a caller adding step by step forms);
+  // adjoint_controls (T n d, or null) receives each step's dL/du.
+  void run_adjoint(const std::vector<State>& states, Scalar dt, State& adjoint,
+                   Params& adjoint_params, Scalar* adjoint_controls, Interrupt& interrupt);
 
   // The model's parameters were changed in place: cached matrices are stale.
   void model_changed() { factor_known_ = false; }
@@ -127,6 +136,8 @@ class Solver {
 
  private:
   template <int D> void forces_d(const State& s, const Scalar* control, bool with_damping, Scalar* f);
+  // The explicit and symplectic steps into x_new_, v_new_, one pass over the vertices.
+  template <int D> void explicit_step_d(const State& s, Scalar dt, const Scalar* control);
   template <int D> void assemble_d(const Scalar* x, Scalar dt, Scalar beta, bool clamp);
   void assemble(const Scalar* x, Scalar dt, Scalar beta, bool clamp);
   CsrView matrix() const;
@@ -142,7 +153,11 @@ class Solver {
   const Model& model_;
   Config config_;
   ElementAssembly assembly_;
-  std::vector<Scalar> element_vectors_, element_matrices_, values_, f_, rhs_;
+  std::vector<Scalar> element_vectors_, element_matrices_, values_, f_, rhs_, x_new_, v_new_;
+  // The springs at each vertex, 2 s + a (a: the vertex's slot in spring s), in spring order:
+  // the order ElementAssembly::gather_vector sums a vertex's contributions in, so a vertex
+  // summing its springs' terms itself (no per-spring buffer, one pass) gives the same bits.
+  std::vector<Index> incidence_ptr_, incidence_;
   SpdSolver linear_;
   SpdSolver adjoint_linear_;  // its own factor, so a backward pass leaves the forward's alone
   // The step index of the last adjoint: a backward pass visits steps in decreasing order, so
@@ -150,7 +165,7 @@ class Solver {
   // sees the same sequence of matrices and gives the same gradients bit for bit (stored,
   // checkpointed, chained or repeated).
   Index adjoint_last_step_ = -1;
-  std::vector<Scalar> adj_lambda_, adj_gx_, adj_rhs_, adj_ex_, adj_ev_, adj_sum_;  // step_adjoint's
+  std::vector<Scalar> adj_lambda_, adj_gx_, adj_rhs_, adj_ex_, adj_sum_;  // step_adjoint's
   FactorRecord factor_;       // what linear_'s lagged factor is (valid while factor_known_)
   bool factor_known_ = true;
 };

@@ -21,8 +21,11 @@ Memory. By default every state of the run is stored (T + 1 states for T steps). 
 ``checkpoints=K`` at most K states are held (the initial one included) and the others are
 recomputed from the nearest stored one by binomial checkpointing (Griewank 1992; Griewank and
 Walther 2000, "Revolve", ACM TOMS 26): with s free slots and r forward sweeps,
-beta(s, r) = C(s + r, s) steps can be reversed, so K = 2 sqrt(T) recomputes each step at most
-about twice. The gradients equal the stored run's to rounding (bitwise, as the forward steps are
+beta(s, r) = C(s + r, s) steps can be reversed, so K = 2 sqrt(T) needs two sweeps: the rollout's
+own, which leaves the first checkpoints in place, and at most T more recomputed steps in the
+backward pass (a step's adjoint needs the states before and after it; the state before the step
+reversed last is kept as the next one's after rather than recomputed, so at most K + 2 states are
+held). The gradients equal the stored run's to rounding (bitwise, as the forward steps are
 deterministic).
 
 Chaining. A loss on intermediate states is written by splitting the run: the gradient a later
@@ -41,7 +44,17 @@ The protocol (private methods; nothing else is called):
 - ``_diff_get(name)`` / ``_diff_set(name, value)``: a state array's or parameter's value.
 - ``_diff_step(dt, control, step_options)``: ``step(dt, **step_options)`` plus the control.
 - ``_diff_step_adjoint(dt, before, after, control, grad_after, step_options)
-  -> (grad_before, grad_params, grad_control)``: the vector-Jacobian product of one step.
+  -> (grad_before, grad_params, grad_control)``: the vector-Jacobian product of one step. A
+  scalar parameter's gradient may be a float or the array of its per-item contributions
+  (km.diff sums over the steps first and over the items last).
+
+Optional (a faster path for runs stored whole; km.diff falls back to the steps without it):
+
+- ``_diff_record(dt, steps, controls, step_options) -> record or None``: the same as ``steps``
+  calls of ``_diff_step``, with every state kept by the simulation; ``record.backward(grad_after,
+  params) -> (grad_before, grad_params, grad_controls)``: the steps' ``_diff_step_adjoint`` in
+  sequence, last step first, grad_params for the names in ``params`` summed over the steps in
+  that order (per item), grad_controls of shape (steps, *control_shape) or None.
 """
 
 from __future__ import annotations
@@ -74,8 +87,23 @@ def _split(length: int, free: int) -> int:
     return min(max(1, length - _beta(free - 1, sweeps)), length - 1)
 
 
-def _copy_state(state: dict) -> dict:
-    return {k: (np.array(v, copy=True) if isinstance(v, np.ndarray) else v) for k, v in state.items()}
+def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
+    return (a.shape == b.shape and a.dtype == b.dtype and
+            np.array_equal(np.ascontiguousarray(a).view(np.uint8), np.ascontiguousarray(b).view(np.uint8)))
+
+
+def _copy_state(state: dict, previous: dict | None = None) -> dict:
+    """A copy of `state` whose arrays are new, except those bitwise equal to the same entry of
+    `previous` (an earlier copy), which are shared: what did not change between two copies (a
+    lagged factor's record, a static field) is held once. Held copies are never written."""
+    out = {}
+    for k, v in state.items():
+        if not isinstance(v, np.ndarray):
+            out[k] = v
+            continue
+        p = None if previous is None else previous.get(k)
+        out[k] = p if isinstance(p, np.ndarray) and _same_bits(p, v) else np.array(v, copy=True)
+    return out
 
 
 def _as_names(wrt) -> tuple:
@@ -185,16 +213,25 @@ class Rollout:
         self.peak_states = 0
         self.recomputed_steps = 0
         self._held = 0
-        start = _copy_state(sim.state())
+        self._last = None
+        start = self._copy(sim.state())
         self._start = start
+        self._record = None
         if checkpoints is None or checkpoints > steps:
-            self._stored = [start]
-            self._hold(1)
-            for k in range(steps):
-                self._step(k)
-                self._stored.append(_copy_state(sim.state()))
-                self._hold(1)
             self._spine = {}
+            recorder = getattr(sim, "_diff_record", None)
+            if recorder is not None:
+                self._record = recorder(dt, steps, controls, step_options)
+            if self._record is not None:
+                self._stored = None
+                self._hold(steps + 1)  # held by the simulation's record
+            else:
+                self._stored = [start]
+                self._hold(1)
+                for k in range(steps):
+                    self._step(k)
+                    self._stored.append(self._copy(sim.state()))
+                    self._hold(1)
         else:
             # Store where the first descent of the backward recursion will want checkpoints (the
             # "spine"), so the first backward call does not redo this forward sweep.
@@ -210,10 +247,14 @@ class Rollout:
             for k in range(steps):
                 self._step(k)
                 if k + 1 in marks:
-                    self._spine[k + 1] = _copy_state(sim.state())
+                    self._spine[k + 1] = self._copy(sim.state())
                     self._hold(1)
-        self._end = _copy_state(sim.state())
+        self._end = self._copy(sim.state())
         self.outputs = {name: np.array(self._end[name], copy=True) for name in self._state_names}
+
+    def _copy(self, state: dict) -> dict:
+        self._last = _copy_state(state, self._last)
+        return self._last
 
     # -- bookkeeping of the states held, to verify the memory bound
     def _hold(self, count: int):
@@ -233,7 +274,7 @@ class Rollout:
         for k in range(first, first + count):
             self._step(k)
             self.recomputed_steps += 1
-        after = _copy_state(self._sim.state())
+        after = self._copy(self._sim.state())
         self._current = after
         return after
 
@@ -261,15 +302,26 @@ class Rollout:
         self._grad_controls = None if self._controls is None else np.zeros_like(self._controls)
         self.recomputed_steps = 0
         self._current = None
-        base = 1 + len(self._spine) if self._stored is None else len(self._stored)
+        if self._record is not None:
+            base = self.steps + 1
+        else:
+            base = 1 + len(self._spine) if self._stored is None else len(self._stored)
         self._held = base
         self.peak_states = base
         try:
-            if self._stored is not None:
+            if self._record is not None:
+                wanted = tuple(name for name in self.wrt if name in self._scalar_parameters)
+                gb, gp, gc = self._record.backward(g, wanted)
+                g = {name: gb[name] for name in self._state_names}
+                self._params = dict(gp)
+                if self._grad_controls is not None and gc is not None:
+                    self._grad_controls[...] = gc
+            elif self._stored is not None:
                 for k in reversed(range(self.steps)):
                     g = self._adjoint(k, self._stored[k], self._stored[k + 1], g)
             elif self.steps > 0:
-                g = self._reverse(0, self._start, self.steps, self.checkpoints - 1, g)
+                self._hold(1)  # the final state, handed to the recursion as the last step's after
+                g = self._reverse(0, self._start, self.steps, self.checkpoints - 1, g, self._end)
         finally:
             self._sim.set_state(self._end)
         self._spine = {}  # used up by the first backward call; later calls recompute it
@@ -284,7 +336,7 @@ class Rollout:
                 if value is None:
                     value = 0.0 if self._scalar_parameters[name] else np.zeros(
                         np.shape(self._sim._diff_get(name)))
-                out[name] = float(value) if self._scalar_parameters[name] else np.asarray(value)
+                out[name] = float(np.sum(value)) if self._scalar_parameters[name] else np.asarray(value)
         return out
 
     def _adjoint(self, k: int, before: dict, after: dict, g: dict) -> dict:
@@ -297,24 +349,33 @@ class Rollout:
             self._grad_controls[k] = gc
         return {name: gb[name] for name in self._state_names}
 
-    def _reverse(self, i: int, state_i: dict, j: int, free: int, g: dict) -> dict:
-        """Reverses steps i..j-1 from the held state before step i, with `free` more slots."""
+    def _reverse(self, i: int, state_i: dict, j: int, free: int, g: dict, after=None) -> dict:
+        """Reverses steps i..j-1 from the held state before step i, with `free` more slots.
+
+        `after`: the state after step j - 1 when it is held (this call then owns it and lets it
+        go), else None (it is recomputed). A step's adjoint needs the states before and after
+        it; the state before the step reversed last is the state after the next one, so it is
+        kept instead of recomputed: one forward step fewer per step reversed, for one more state
+        held (Revolve counts the step's forward re-run into its reversal)."""
         while j > i:
             length = j - i
             if length == 1:
-                after = self._advance(state_i, i, 1)
-                self._hold(1)
+                if after is None:
+                    after = self._advance(state_i, i, 1)
+                    self._hold(1)
                 g = self._adjoint(i, state_i, after, g)
                 self._held -= 1
                 return g
             if free == 0:
                 # No slot left: recompute the state before the last step from state_i.
-                before = self._advance(state_i, i, length - 1) if length > 1 else state_i
+                before = self._advance(state_i, i, length - 1)
                 self._hold(1)
-                after = self._advance(before, j - 1, 1)
-                self._hold(1)
+                if after is None:
+                    after = self._advance(before, j - 1, 1)
+                    self._hold(1)
                 g = self._adjoint(j - 1, before, after, g)
-                self._held -= 2
+                self._held -= 1
+                after = before
                 j -= 1
                 continue
             m = i + _split(length, free)
@@ -324,8 +385,7 @@ class Rollout:
             else:
                 state_m = self._advance(state_i, i, m - i)
             self._hold(1)
-            g = self._reverse(m, state_m, j, free - 1, g)
-            del state_m
-            self._held -= 1
+            g = self._reverse(m, state_m, j, free - 1, g, after)
+            after = state_m  # still held: the state after step m - 1, reversed next
             j = m
         return g

@@ -421,6 +421,13 @@ class Body:
             c.x = np.ascontiguousarray(s["x"], dtype=np.float64).reshape(-1)
             c.v = np.ascontiguousarray(s["v"], dtype=np.float64).reshape(-1)
             c.time, c.step = float(s["time"]), int(s["steps"])
+            if "factor_x" in s:
+                # The lagged factor's record: the adjoint solve preconditions with that factor
+                # (without it, every adjoint step would factorise the Hessian afresh).
+                c.factor_x = np.ascontiguousarray(s["factor_x"], dtype=np.float64).reshape(-1)
+                c.factor_weight, c.factor_scale = float(s["factor_weight"]), float(s["factor_scale"])
+                c.factor_projected = bool(s["factor_projected"])
+                c.refactor_pending = bool(s["refactor_pending"])
             return c
 
         flat = lambda a: np.ascontiguousarray(a, dtype=np.float64).reshape(-1)  # noqa: E731

@@ -28,6 +28,8 @@ exactly: one adjoint solve with the step's matrix per step, by PCG to the relati
 with a CHOLMOD factor lagged across the backward pass; the forward's ``cg_tol`` is not
 differentiated. Where the exact Jacobian was indefinite and the step clamped it, the gradient is
 that of the clamped step; zero-length springs (no force direction) contribute no gradient.
+A run km.diff stores whole is stepped and reversed in C++ (``_diff_record``), bitwise the same
+gradients as the step-by-step path of a checkpointed run.
 """
 
 from __future__ import annotations
@@ -263,8 +265,36 @@ class System:
         self._configure(**(_DEFAULTS | step_options))
         gx, gv, params, gcontrol = self._core.step_adjoint(
             real(dt, "dt"), before, after, control, grad_after["x"], grad_after["v"])
-        grads = {k: float(g.sum()) if self._scalar[k] else g for k, g in params.items()}
-        return {"x": gx, "v": gv}, grads, gcontrol
+        # Per item even for a scalar parameter: km.diff sums over the steps, then over the items,
+        # as _diff_record's run does (the two agree bitwise).
+        return {"x": gx, "v": gv}, params, gcontrol
+
+    def _diff_record(self, dt, steps, controls, step_options):
+        """km.diff's path for a run stored whole: the steps and their adjoints in C++."""
+        options = {k: v for k, v in step_options.items() if k != "adjoint_tol"}
+        self._configure(**(_DEFAULTS | options))
+        dt = real(dt, "dt")
+        try:
+            trajectory = self._core.record(dt, steps, controls)
+        except ValueError as exc:
+            if not str(exc).startswith("A:"):
+                raise
+            raise ValueError(f"dt: {dt} makes the implicit matrix M - dt C - beta dt^2 K non-finite "
+                             f"({exc}); use a smaller dt") from None
+        return _Record(self, trajectory, step_options)
+
+
+class _Record:
+    """A run kept by km.massspring for km.diff (System._diff_record)."""
+
+    def __init__(self, system, trajectory, step_options):
+        self._system, self._trajectory, self._options = system, trajectory, step_options
+
+    def backward(self, grad_after, params):
+        self._system._configure(**(_DEFAULTS | self._options))
+        gx, gv, grads, gcontrols = self._trajectory.backward(grad_after["x"], grad_after["v"], bool(params))
+        grads = {} if grads is None else {k: grads[k] for k in params}
+        return {"x": gx, "v": gv}, grads, gcontrols
 
 
 class ClothMesh(tuple):
