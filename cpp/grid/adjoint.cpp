@@ -52,37 +52,55 @@ struct Stencil {
   }
 };
 
+// One axis of a stencil: the bracketing nodes, the weight of i1 and d w / d x (1 inside; 0 where
+// bracket() clamped the coordinate to the domain, or read a NaN as 0).
+struct AxisWeight {
+  Index i0 = 0, i1 = 0;
+  Scalar w = 0, d = 0;
+};
+
+inline AxisWeight axis_weight(Scalar s, Index n, Index period) {
+  const Bracket br = bracket(s, n, period);
+  return AxisWeight{br.i0, br.i1, br.w,
+                    period > 0 || (n > 1 && s >= 0 && s <= static_cast<Scalar>(n - 1)) ? Scalar(1) : Scalar(0)};
+}
+
 template <bool ThreeD>
-Stencil stencil(const FieldLayout& L, const Vec3& x) {
-  Index i0[3] = {0, 0, 0}, i1[3] = {0, 0, 0};
-  Scalar w[3] = {0, 0, 0}, d[3] = {0, 0, 0};
-  for (int b = ThreeD ? 0 : 1; b < 3; ++b) {
-    const Scalar s = x[b] - L.offset[b];
-    const Bracket br = bracket(s, L.n[b], L.period[b]);
-    i0[b] = br.i0, i1[b] = br.i1, w[b] = br.w;
-    // d w / d s: 1 inside; 0 where bracket() clamped s to the domain (or read a NaN as 0)
-    d[b] = L.period[b] > 0 || (L.n[b] > 1 && s >= 0 && s <= static_cast<Scalar>(L.n[b] - 1)) ? 1 : 0;
-  }
+Stencil stencil_of(const FieldLayout& L, const AxisWeight& x0, const AxisWeight& x1, const AxisWeight& x2) {
   Stencil st;
   st.count = ThreeD ? 8 : 4;
+  const Index s0 = L.stride(0), s1 = L.stride(1);
   int m = 0;
-  for (int a0 = 0; a0 < (ThreeD ? 2 : 1); ++a0)
-    for (int a1 = 0; a1 < 2; ++a1)
+  for (int a0 = 0; a0 < (ThreeD ? 2 : 1); ++a0) {
+    const Scalar f0 = ThreeD ? (a0 ? x0.w : 1 - x0.w) : 1;
+    const Scalar d0 = ThreeD ? (a0 ? x0.d : -x0.d) : 0;
+    const Index n0 = ThreeD ? (a0 ? x0.i1 : x0.i0) * s0 : 0;
+    for (int a1 = 0; a1 < 2; ++a1) {
+      const Scalar f1 = a1 ? x1.w : 1 - x1.w, d1 = a1 ? x1.d : -x1.d;
+      const Index n1 = n0 + (a1 ? x1.i1 : x1.i0) * s1;
       for (int a2 = 0; a2 < 2; ++a2, ++m) {
-        const Scalar f0 = ThreeD ? (a0 ? w[0] : 1 - w[0]) : 1;
-        const Scalar f1 = a1 ? w[1] : 1 - w[1], f2 = a2 ? w[2] : 1 - w[2];
-        const Scalar d0 = ThreeD ? (a0 ? d[0] : -d[0]) : 0;
-        const Scalar d1 = a1 ? d[1] : -d[1], d2 = a2 ? d[2] : -d[2];
-        st.node[m] = L.index(ThreeD ? (a0 ? i1[0] : i0[0]) : 0, a1 ? i1[1] : i0[1], a2 ? i1[2] : i0[2]);
+        const Scalar f2 = a2 ? x2.w : 1 - x2.w, d2 = a2 ? x2.d : -x2.d;
+        st.node[m] = n1 + (a2 ? x2.i1 : x2.i0);
         st.w[m] = f0 * f1 * f2;
         st.dw[m] = Vec3{d0 * f1 * f2, f0 * d1 * f2, f0 * f1 * d2};
       }
+    }
+  }
   return st;
+}
+
+// The stencil of point x (grid units) in layout L.
+template <bool ThreeD>
+Stencil stencil(const FieldLayout& L, const Vec3& x) {
+  AxisWeight a[3];
+  for (int b = ThreeD ? 0 : 1; b < 3; ++b) a[b] = axis_weight(x[b] - L.offset[b], L.n[b], L.period[b]);
+  return stencil_of<ThreeD>(L, a[0], a[1], a[2]);
 }
 
 // Deterministic scatter-add into a set of target arrays over the nodes of a layout: each thread
 // takes a fixed contiguous range of rows and adds into its own zeroed copy of the targets; the
-// copies are then summed into the targets in thread order.
+// copies are then added into the targets in thread order (thread 0 adds into the targets
+// themselves).
 class Scatter {
  public:
   // The id of target `data` (n values); the same pointer twice is one target.
@@ -101,8 +119,9 @@ class Scatter {
   void run(const FieldLayout& L, Body&& body) {
     const int targets = static_cast<int>(data_.size());
     const int threads = L.size() > 8 * kParallelGrain ? omp_get_max_threads() : 1;
+    // thread 0 adds into the targets themselves, the others into zeroed copies
     copies_.resize(static_cast<size_t>(threads) * targets);
-    for (int t = 0; t < threads; ++t)
+    for (int t = 1; t < threads; ++t)
       for (int id = 0; id < targets; ++id) copies_[t * targets + id].assign(static_cast<size_t>(size_[id]), 0);
     int used = 1;
     const Index rows = L.rows(), n1 = L.n[1], nk = L.n[2];
@@ -112,7 +131,7 @@ class Scatter {
 #pragma omp single
       used = team;
       Scalar* acc[kMaxTargets];
-      for (int id = 0; id < targets; ++id) acc[id] = copies_[t * targets + id].data();
+      for (int id = 0; id < targets; ++id) acc[id] = t == 0 ? data_[id] : copies_[t * targets + id].data();
       const Index first = rows * t / team, last = rows * (t + 1) / team;
       for (Index row = first; row < last; ++row) {
         const Index i = row / n1, j = row % n1;
@@ -120,12 +139,12 @@ class Scatter {
         for (Index k = 0; k < nk; ++k, ++flat) body(i, j, k, flat, acc);
       }
     }
-    for (int id = 0; id < targets; ++id) {
+    for (int id = 0; id < targets && used > 1; ++id) {
       Scalar* out = data_[id];
       parallel_for(size_[id], [&](Index e) {
-        Scalar s = 0;
-        for (int t = 0; t < used; ++t) s += copies_[t * targets + id][e];
-        out[e] += s;
+        Scalar s = out[e];
+        for (int t = 1; t < used; ++t) s += copies_[t * targets + id][e];
+        out[e] = s;
       });
     }
   }
@@ -147,11 +166,7 @@ struct Tracer {
     Vec3 x, y1, y2, p;
   };
 
-  Vec3 velocity(const Vec3& x) const {
-    Vec3 v{0, 0, 0};
-    for (int a = ThreeD ? 0 : 1; a < 3; ++a) v[a] = stencil<ThreeD>(u.layout[a], x).value(u.comp[a]);
-    return v;
-  }
+  Vec3 velocity(const Vec3& x) const { return u.template at_lean<ThreeD>(x); }
 
   Stages trace(const Vec3& x, Scalar dt) const {
     Stages s;
@@ -179,9 +194,17 @@ struct Tracer {
   // dL/du += (d u(y) / d u)^T g; returns (d u(y) / d y)^T g.
   Vec3 velocity_adjoint(const Vec3& y, const Vec3& g, Scalar* const* acc) const {
     Vec3 gy{0, 0, 0};
+    // the face brackets along axis b serve component b, the cell brackets the others
+    AxisWeight face[3], cell[3];
+    for (int b = ThreeD ? 0 : 1; b < 3; ++b) {
+      const Index n = u.layout[b].n[b] - 1, p = u.layout[b].period[b];
+      face[b] = axis_weight(y[b], n + 1, p);
+      cell[b] = axis_weight(y[b] - 0.5, n, p);
+    }
     for (int a = ThreeD ? 0 : 1; a < 3; ++a) {
       if (g[a] == 0) continue;
-      const Stencil st = stencil<ThreeD>(u.layout[a], y);
+      const Stencil st = stencil_of<ThreeD>(u.layout[a], a == 0 ? face[0] : cell[0], a == 1 ? face[1] : cell[1],
+                                            a == 2 ? face[2] : cell[2]);
       Scalar* gu = acc[u_id[a]];
       for (int n = 0; n < st.count; ++n) gu[st.node[n]] += g[a] * st.w[n];
       const Vec3 d = st.gradient(u.comp[a]);

@@ -10,7 +10,8 @@
 //
 // The scatters are deterministic: each thread adds into its own copy of the targets over a
 // fixed contiguous range of rows, and the copies are summed in thread order, so the result is
-// bitwise the same run to run for a fixed thread count.
+// bitwise the same run to run for a fixed thread count (not across thread counts: the sums
+// are grouped differently).
 //
 // No-slip walls in the interpolation (MacVelocity::walls) are not handled; the Solver refuses to
 // differentiate them (Solver::check_differentiable).
