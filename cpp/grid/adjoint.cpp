@@ -191,8 +191,8 @@ struct Tracer {
     return s;
   }
 
-  // dL/du += (d u(y) / d u)^T g; returns (d u(y) / d y)^T g.
-  Vec3 velocity_adjoint(const Vec3& y, const Vec3& g, Scalar* const* acc) const {
+  // dL/du += (d u(y) / d u)^T g; returns (d u(y) / d y)^T g when `moves` (else 0: y is fixed).
+  Vec3 velocity_adjoint(const Vec3& y, const Vec3& g, Scalar* const* acc, bool moves = true) const {
     Vec3 gy{0, 0, 0};
     // the face brackets along axis b serve component b, the cell brackets the others
     AxisWeight face[3], cell[3];
@@ -207,6 +207,7 @@ struct Tracer {
                                             a == 2 ? face[2] : cell[2]);
       Scalar* gu = acc[u_id[a]];
       for (int n = 0; n < st.count; ++n) gu[st.node[n]] += g[a] * st.w[n];
+      if (!moves) continue;
       const Vec3 d = st.gradient(u.comp[a]);
       for (int b = 0; b < 3; ++b) gy[b] += g[a] * d[b];
     }
@@ -231,7 +232,7 @@ struct Tracer {
       const Vec3 gy1 = velocity_adjoint(s.y1, g2, acc);
       for (int b = 0; b < 3; ++b) g1[b] -= 0.5 * dt * gy1[b];
     }
-    velocity_adjoint(s.x, g1, acc);  // the node itself does not move
+    velocity_adjoint(s.x, g1, acc, false);  // the node itself does not move
   }
 };
 

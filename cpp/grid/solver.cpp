@@ -714,23 +714,30 @@ void Solver::confinement_force(const State& state, bool buoyant) {
 void Solver::apply_viscosity_operator(int axis, Scalar c, const Scalar* x, Scalar* y) const {
   const FieldLayout& L = faces_[axis];
   const std::vector<std::uint8_t>& fixed = fixed_[axis];
+  // Neighbours by stride, as neighbour() finds them: across a periodic seam node idx -+ 1 wraps
+  // by the period (a face axis's duplicate node is never a neighbour), else it must exist.
+  Index stride[3], count[3], period[3];
+  for (int b = 0; b < 3; ++b) stride[b] = L.stride(b), count[b] = L.n[b], period[b] = L.period[b];
   for_each_node(L, [&](Index i, Index j, Index k, Index f) {
     if (fixed[f]) {
       y[f] = x[f];
       return;
     }
-    const std::array<Index, 3> idx{i, j, k};
+    const Index idx[3] = {i, j, k};
     Scalar diag = 1, off = 0;
     for (int b = 0; b < 3; ++b) {
       if (!active_[b]) continue;
       for (int side = 0; side < 2; ++side) {
-        const Index g = neighbour(L, idx, b, side ? 1 : -1);
-        if (g >= 0) {
-          diag += c;
-          if (!fixed[g]) off += x[g];
-        } else if (walls_.no_slip[2 * b + side]) {  // no slip or moving; not open
-          diag += 2 * c;
+        Index m = idx[b] + (side ? 1 : -1);
+        if (period[b] > 0) {
+          m = m < 0 ? m + period[b] : (m >= period[b] ? m - period[b] : m);
+        } else if (m < 0 || m >= count[b]) {
+          if (walls_.no_slip[2 * b + side]) diag += 2 * c;  // no slip or moving; not open
+          continue;
         }
+        const Index g = f + (m - idx[b]) * stride[b];
+        diag += c;
+        if (!fixed[g]) off += x[g];
       }
     }
     y[f] = diag * x[f] - c * off;
