@@ -1,6 +1,7 @@
 """Gradient cost of km.grid through km.diff: the smoke-control gradient (per-step cell
 accelerations -> final density) on a 2D 256^2 and a 3D 64^3 grid, stored and checkpointed, and
-side by side in one run with PhiFlow's gradient of the same 2D smoke task (PyTorch CPU backend).
+side by side in one run with PhiFlow's gradient of the same 2D smoke task (PyTorch CPU backend)
+and with a DiffTaichi-style Taichi tape gradient (bench/grid/diff_grid_taichi_peer.py).
 
     .venv/bin/python bench/grid/diff_grid_bench.py [--threads 2] [--csv bench/out/diff_grid.csv]
         [--no-phiflow] [--quick]
@@ -19,13 +20,17 @@ Part 2 (PhiFlow 3, `phiflow` on PyPI, phi.torch.flow in float64): the same task 
 128^2, T = 16, with semi-Lagrangian (Euler back-trace) advection on both sides and CG pressure
 solves to a relative residual of 1e-8 (kinema: MGPCG). Seconds per gradient (forward + backward;
 PhiFlow timed after one warm-up call that traces the graph) and each side's agreement with its
-own central difference.
+own central difference. Part 3 (Taichi, its own process): the same task with DiffTaichi's smoke
+discretization (collocated grid, 50 Jacobi iterations per projection, every level on the tape).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -195,6 +200,7 @@ def main():
     ap.add_argument("--csv", type=Path, default=CSV)
     ap.add_argument("--max-load", type=float, default=harness.DEFAULT_MAX_LOAD)
     ap.add_argument("--no-phiflow", action="store_true")
+    ap.add_argument("--no-taichi", action="store_true")
     ap.add_argument("--quick", action="store_true", help="small sizes (a check that the script runs)")
     opts = ap.parse_args()
     km.set_num_threads(opts.threads)
@@ -213,6 +219,30 @@ def main():
         t_km, err_km = res["stored"][0].seconds, res["stored"][1]
         print(f"=> {n}x{n}: kinema {t_km:.3f} s per gradient (|adj - FD|/|FD| {err_km:.1e}) vs PhiFlow "
               f"{t_phi:.3f} s ({err_phi:.1e}): {t_phi / t_km:.1f}x", flush=True)
+        if not opts.no_taichi:
+            t_ti, err_ti, jacobi = taichi_part(rec, n, steps, opts)
+            print(f"=> {n}x{n}: kinema {t_km:.3f} s vs Taichi {t_ti:.3f} s ({err_ti:.1e}, {jacobi} Jacobi "
+                  f"iterations per projection): {t_ti / t_km:.1f}x", flush=True)
+
+
+def taichi_part(rec, n, steps, opts):
+    """DiffTaichi-style smoke gradient on Taichi's CPU backend, in its own process."""
+    h, dt, rho0, controls, weights, direction = task((n, n), steps)
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "task.npz"
+        np.savez(path, rho0=rho0, controls=controls, weights=weights, direction=direction, h=h, dt=dt)
+        peer = Path(__file__).resolve().parent / "diff_grid_taichi_peer.py"
+        before = harness.sample_cpu()
+        out = subprocess.run([sys.executable, str(peer), str(path), "--threads", str(opts.threads)],
+                             capture_output=True, text=True, check=True)
+        load = harness.other_load(before, harness.sample_cpu())
+    res = json.loads(out.stdout.strip().splitlines()[-1])
+    err = abs(res["adjoint"] - res["fd"]) / abs(res["fd"])
+    rec.record("taichi-tape-f64", (n, n), res["gradient_seconds"], error=err,
+               notes={"steps": steps, "jacobi": res["jacobi"], "process_other_load": f"{load:.2f}"})
+    print(f"Taichi {n}x{n} T={steps}: per gradient {res['gradient_seconds']:.3f} s, |adj - FD|/|FD| {err:.1e} "
+          f"(Jacobi {res['jacobi']}; other load over its process {load:.2f})", flush=True)
+    return res["gradient_seconds"], err, res["jacobi"]
 
 
 if __name__ == "__main__":
