@@ -299,8 +299,10 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
     else return false;
     return true;
   };
-  if (scheme == AdvectionScheme::MacCormack) {
-    // out = clamp(q^ + (q - q~)/2), q~ = SL(q^, -dt).
+  // The adjoint of the round trip q~ = SL(q^, -dt) of both schemes: direct(f, c, st, acc, q_id,
+  // fwd_id) adds the terms that do not go through q~ and returns dL/dq~[f][c] (st: the stencil of
+  // q~'s departure point).
+  auto round_trip = [&](auto&& direct) {
     Scatter sc;
     int q_ids[kMaxAdvectedFields], fwd_ids[kMaxAdvectedFields];
     const Tracer<ThreeD> tr = make(sc, g_q, q_ids);
@@ -310,19 +312,26 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
       const Stencil st = stencil<ThreeD>(L, s.p);
       Vec3 gp{0, 0, 0};
       for (int f = 0; f < count; ++f) {
-        const Scalar g = g_out[f][c];
-        if (g == 0) continue;
-        const Scalar back = st.value(fwd_p[f]);
-        const Scalar v = fwd_p[f][c] + 0.5 * (q[f][c] - back);
-        if (clamped(f, c, v, g, acc[q_ids[f]])) continue;
-        acc[fwd_ids[f]][c] += g;
-        acc[q_ids[f]][c] += 0.5 * g;
+        const Scalar g_back = direct(f, c, st, acc, q_ids[f], fwd_ids[f]);
+        if (g_back == 0) continue;
         Scalar* gf = acc[fwd_ids[f]];
-        for (int m = 0; m < st.count; ++m) gf[st.node[m]] -= 0.5 * g * st.w[m];
+        for (int m = 0; m < st.count; ++m) gf[st.node[m]] += g_back * st.w[m];
         const Vec3 d = st.gradient(fwd_p[f]);
-        for (int b = 0; b < 3; ++b) gp[b] -= 0.5 * g * d[b];
+        for (int b = 0; b < 3; ++b) gp[b] += g_back * d[b];
       }
       if (gp != Vec3{0, 0, 0}) tr.trace_adjoint(s, -dt, gp, acc);
+    });
+  };
+  if (scheme == AdvectionScheme::MacCormack) {
+    // out = clamp(q^ + (q - q~)/2)
+    round_trip([&](int f, Index c, const Stencil& st, Scalar* const* acc, int q_id, int fwd_id) -> Scalar {
+      const Scalar g = g_out[f][c];
+      if (g == 0) return 0;
+      const Scalar v = fwd_p[f][c] + 0.5 * (q[f][c] - st.value(fwd_p[f]));
+      if (clamped(f, c, v, g, acc[q_id])) return 0;
+      acc[fwd_id][c] += g;
+      acc[q_id][c] += 0.5 * g;
+      return -0.5 * g;
     });
     semi_lagrangian(q, g_fwd_p, g_q, dt);
     return;
@@ -356,27 +365,12 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
       if (gp != Vec3{0, 0, 0}) tr.trace_adjoint(s, dt, gp, acc);
     });
   }
-  {
-    Scatter sc;
-    int q_ids[kMaxAdvectedFields], fwd_ids[kMaxAdvectedFields];
-    const Tracer<ThreeD> tr = make(sc, g_q, q_ids);
-    for (int f = 0; f < count; ++f) fwd_ids[f] = sc.target(g_fwd_p[f], n);
-    sc.run(L, [&](Index i, Index j, Index k, Index c, Scalar* const* acc) {
-      const auto s = tr.trace(node(i, j, k), -dt);
-      const Stencil st = stencil<ThreeD>(L, s.p);
-      Vec3 gp{0, 0, 0};
-      for (int f = 0; f < count; ++f) {
-        const Scalar g = g_bar_p[f][c];
-        if (g == 0) continue;
-        acc[q_ids[f]][c] += 1.5 * g;
-        Scalar* gf = acc[fwd_ids[f]];
-        for (int m = 0; m < st.count; ++m) gf[st.node[m]] -= 0.5 * g * st.w[m];
-        const Vec3 d = st.gradient(fwd_p[f]);
-        for (int b = 0; b < 3; ++b) gp[b] -= 0.5 * g * d[b];
-      }
-      if (gp != Vec3{0, 0, 0}) tr.trace_adjoint(s, -dt, gp, acc);
-    });
-  }
+  // q_bar = 1.5 q - 0.5 q~
+  round_trip([&](int f, Index c, const Stencil&, Scalar* const* acc, int q_id, int) -> Scalar {
+    const Scalar g = g_bar_p[f][c];
+    acc[q_id][c] += 1.5 * g;
+    return -0.5 * g;
+  });
   semi_lagrangian(q, g_fwd_p, g_q, dt);
 }
 
