@@ -46,30 +46,21 @@ def main():
         return ti.max(0, ti.min(n - 1, i))
 
     @ti.func
-    def bilerp_smoke(t: ti.i32, x, y):
+    def bilerp(f: ti.template(), t: ti.i32, x, y):
         x = ti.max(0.0, ti.min(n - 1.0, x))
         y = ti.max(0.0, ti.min(n - 1.0, y))
         i, j = ti.min(int(ti.floor(x)), n - 2), ti.min(int(ti.floor(y)), n - 2)
         fx, fy = x - i, y - j
-        return ((1 - fx) * (1 - fy) * smoke[t, i, j] + fx * (1 - fy) * smoke[t, i + 1, j]
-                + (1 - fx) * fy * smoke[t, i, j + 1] + fx * fy * smoke[t, i + 1, j + 1])
-
-    @ti.func
-    def bilerp_v(t: ti.i32, x, y):
-        x = ti.max(0.0, ti.min(n - 1.0, x))
-        y = ti.max(0.0, ti.min(n - 1.0, y))
-        i, j = ti.min(int(ti.floor(x)), n - 2), ti.min(int(ti.floor(y)), n - 2)
-        fx, fy = x - i, y - j
-        return ((1 - fx) * (1 - fy) * v[t, i, j] + fx * (1 - fy) * v[t, i + 1, j]
-                + (1 - fx) * fy * v[t, i, j + 1] + fx * fy * v[t, i + 1, j + 1])
+        return ((1 - fx) * (1 - fy) * f[t, i, j] + fx * (1 - fy) * f[t, i + 1, j]
+                + (1 - fx) * fy * f[t, i, j + 1] + fx * fy * f[t, i + 1, j + 1])
 
     @ti.kernel
     def advect(t: ti.i32):
         for i, j in ti.ndrange(n, n):
             x = i - dt / h * v[t, i, j][0]
             y = j - dt / h * v[t, i, j][1]
-            smoke[t + 1, i, j] = bilerp_smoke(t, x, y)
-            va[t, i, j] = bilerp_v(t, x, y) + dt * ctrl[t, i, j]
+            smoke[t + 1, i, j] = bilerp(smoke, t, x, y)
+            va[t, i, j] = bilerp(v, t, x, y) + dt * ctrl[t, i, j]
 
     @ti.kernel
     def divergence(t: ti.i32):
