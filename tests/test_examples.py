@@ -75,3 +75,23 @@ def test_example_documents_its_command(path):
     """Each example's docstring shows the command that runs it from the repository root."""
     doc = path.read_text().split('"""')[1]
     assert f"examples/{path.name}" in doc, f"{path.name}: no 'examples/{path.name}' command in its docstring"
+
+
+def test_diff_smoke_target_learns(tmp_path):
+    """examples/diff_smoke_target.py, tiny: its plots are written and learning lowers the loss."""
+    example = load("diff_smoke_target")
+    losses, initial, final = example.main(["--out", str(tmp_path), "--cells", "16", "--steps", "8",
+                                           "--iterations", "6", "--learning-rate", "1.0"])
+    assert final < 0.8 * initial, (initial, final)
+    for name in ("loss.png", "frames.png", "smoke_target.npz"):
+        assert (tmp_path / name).stat().st_size > 0, name
+
+
+def test_diff_smoke_puff_3d_learns(tmp_path):
+    """examples/diff_smoke_puff_3d.py, tiny: the puff's centre ends nearer the target."""
+    example = load("diff_smoke_puff_3d")
+    losses, before, after = example.main(["--out", str(tmp_path), "--cells", "8", "--steps", "8",
+                                          "--iterations", "5", "--learning-rate", "4.0"])
+    assert after < 0.8 * before, (before, after)
+    for name in ("loss.png", "puff.png"):
+        assert (tmp_path / name).stat().st_size > 0, name

@@ -47,10 +47,100 @@ struct PyFluid {
     state_ = solver_->make_state();
   }
 
-  grid::StepStats step(Scalar dt) {
+  grid::StepStats step(Scalar dt, const py::object& control) {
+    std::vector<Scalar> buffer;
+    const Scalar* u = read_control(control, buffer);
     Interrupt interrupt = python_interrupt();
     ReleaseGil release;
-    return solver_->step(state_, dt, interrupt);
+    return solver_->step(state_, dt, interrupt, u);
+  }
+
+  // A control of one value per cell and velocity component, or nullptr for None.
+  const Scalar* read_control(const py::object& control, std::vector<Scalar>& buffer) const {
+    if (control.is_none()) return nullptr;
+    const Index size = shape_.size() * shape_.dim;
+    const auto a = py::array_t<Scalar, py::array::c_style | py::array::forcecast>::ensure(control);
+    if (!a || a.size() != size)
+      throw InvalidArgument("control: expected a float array of shape (*shape, " + std::to_string(shape_.dim) +
+                            ") with " + std::to_string(size) + " values");
+    buffer.assign(a.data(), a.data() + size);
+    for (Scalar x : buffer)
+      if (!std::isfinite(x)) throw InvalidArgument("control: expected finite accelerations");
+    return buffer.data();
+  }
+
+  // Copies the arrays named in `d` (u, v[, w], pressure, density, temperature: user names and
+  // shapes) into a state made by the solver; names left out are zero when `missing_zero`.
+  grid::State read_state(const py::dict& d, bool missing_zero) const {
+    grid::State out = solver_->make_state();
+    const int dim = shape_.dim;
+    auto read = [&](const std::string& key, std::vector<Scalar>& dst) {
+      if (dst.empty()) return;
+      if (!d.contains(key)) {
+        if (missing_zero) return;
+        throw InvalidArgument("state: missing key '" + key + "'");
+      }
+      const auto a = py::array_t<Scalar, py::array::c_style | py::array::forcecast>::ensure(d[key.c_str()]);
+      if (!a || static_cast<size_t>(a.size()) != dst.size())
+        throw InvalidArgument("state['" + key + "']: expected " + std::to_string(dst.size()) + " float values");
+      std::copy(a.data(), a.data() + a.size(), dst.begin());
+    };
+    for (int c = 0; c < dim; ++c) read(std::string(1, "uvw"[c]), out.velocity[internal_axis(dim, c)]);
+    read("pressure", out.pressure);
+    read("density", out.density);
+    read("temperature", out.temperature);
+    if (!missing_zero) {
+      if (d.contains("time")) out.time = d["time"].cast<Scalar>();
+      if (d.contains("steps")) out.steps = d["steps"].cast<Index>();
+    }
+    return out;
+  }
+
+  py::dict write_state(const grid::State& s) const {
+    py::dict out;
+    const int dim = shape_.dim;
+    for (int c = 0; c < dim; ++c) {
+      const int a = internal_axis(dim, c);
+      out[py::str(std::string(1, "uvw"[c]))] =
+          to_numpy(std::vector<Scalar>(s.velocity[a]), user_dims(solver_->face(a), dim));
+    }
+    if (!s.density.empty()) out["density"] = to_numpy(std::vector<Scalar>(s.density), shape_.user_shape());
+    if (!s.temperature.empty())
+      out["temperature"] = to_numpy(std::vector<Scalar>(s.temperature), shape_.user_shape());
+    return out;
+  }
+
+  // (dL/d(before) as a dict, dL/dviscosity, dL/dcontrol or None) of one step from `before`.
+  py::tuple step_adjoint(Scalar dt, const py::dict& before, const py::object& control, const py::dict& grads) {
+    const grid::State b = read_state(before, false);
+    grid::State adjoint = read_state(grads, true);
+    std::vector<Scalar> buffer;
+    const Scalar* u = read_control(control, buffer);
+    std::vector<Scalar> grad_control(u ? buffer.size() : 0);
+    Scalar grad_viscosity = 0;
+    {
+      Interrupt interrupt = python_interrupt();
+      ReleaseGil release;
+      solver_->step_adjoint(b, dt, u, adjoint, grad_viscosity, u ? grad_control.data() : nullptr, interrupt);
+    }
+    py::object gc = py::none();
+    if (u) {
+      std::vector<Index> dims = shape_.user_shape();
+      dims.push_back(shape_.dim);
+      gc = to_numpy(std::move(grad_control), dims);
+    }
+    return py::make_tuple(write_state(adjoint), grad_viscosity, gc);
+  }
+
+  // The projection's transpose applied to the velocity gradients of `grads` (tests).
+  py::dict projection_adjoint(Scalar dt, const py::dict& grads) {
+    grid::State adjoint = read_state(grads, true);
+    {
+      Interrupt interrupt = python_interrupt();
+      ReleaseGil release;
+      solver_->projection_adjoint(adjoint.velocity, dt, interrupt);
+    }
+    return write_state(adjoint);
   }
 
   py::tuple advance(Scalar duration, Scalar cfl, Scalar max_dt) {
@@ -169,7 +259,21 @@ void bind_grid(py::module_& m) {
       .def(py::init<const std::vector<Index>&, Scalar, const Config&>(), py::arg("shape"), py::arg("h"),
            py::arg("config"))
       .def_property_readonly("config", [](const PyFluid& f) { return f.solver_->config(); })
-      .def("step", &PyFluid::step, py::arg("dt"))
+      .def("step", &PyFluid::step, py::arg("dt"), py::arg("control") = py::none())
+      .def("step_adjoint", &PyFluid::step_adjoint, py::arg("dt"), py::arg("before"), py::arg("control"),
+           py::arg("grads"))
+      .def("check_differentiable", [](const PyFluid& f) { f.solver_->check_differentiable(); })
+      .def("set_viscosity", [](PyFluid& f, Scalar nu) { f.solver_->set_viscosity(nu); }, py::arg("viscosity"))
+      .def("project", [](PyFluid& f, Scalar dt) {
+        Interrupt interrupt = python_interrupt();
+        SolveInfo info;
+        {
+          ReleaseGil release;
+          info = f.solver_->apply_projection(f.state_, dt, interrupt);
+        }
+        return to_python(info);
+      }, py::arg("dt"))
+      .def("projection_adjoint", &PyFluid::projection_adjoint, py::arg("dt"), py::arg("grads"))
       .def("advance", &PyFluid::advance, py::arg("duration"), py::arg("cfl"),
            py::arg("max_dt") = std::numeric_limits<Scalar>::infinity())
       .def("stable_dt", [](const PyFluid& f, Scalar cfl, Scalar max_dt) {

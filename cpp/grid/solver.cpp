@@ -355,13 +355,13 @@ void Solver::check_state(const State& state) const {
     throw InvalidArgument("state: its arrays do not fit this grid and configuration (make it with make_state)");
 }
 
-StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
+StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt, const Scalar* control) {
   if (!(dt > 0) || !std::isfinite(dt)) throw InvalidArgument("dt: expected a finite time step > 0, got " + format_real(dt));
   check_state(state);
-  return with_rollback(state, [&] { return step_phases(state, dt, interrupt); });
+  return with_rollback(state, [&] { return step_phases(state, dt, interrupt, control); });
 }
 
-StepStats Solver::step_phases(State& state, Scalar dt, Interrupt& interrupt) {
+StepStats Solver::step_phases(State& state, Scalar dt, Interrupt& interrupt, const Scalar* control) {
   SerialBelow serial(cells_.size());
   Stopwatch total, clock;
   StepStats stats;
@@ -376,8 +376,9 @@ StepStats Solver::step_phases(State& state, Scalar dt, Interrupt& interrupt) {
   advect(state, dt);
   stats.advect_seconds = clock.seconds();
   clock.restart();
-  // 2. Body forces: gravity, buoyancy, vorticity confinement (Fedkiw et al. 2001, Sec. 3-4).
-  add_forces(state, dt);
+  // 2. Body forces: gravity, buoyancy, vorticity confinement (Fedkiw et al. 2001, Sec. 3-4),
+  // and the caller's control accelerations.
+  add_forces(state, dt, control);
   stats.forces_seconds = clock.seconds();
   clock.restart();
   interrupt.check();
@@ -512,7 +513,7 @@ void Solver::inflow_ambient(const State& state, Scalar* const* fields, int count
 
 // --------------------------------------------------------------------------------- forces
 
-void Solver::add_cell_force(State& state, int axis, const Scalar* f, Scalar dt, Scalar du) const {
+void Solver::add_cell_force(State& state, int axis, const Scalar* f, Index fs, Scalar dt, Scalar du) const {
   const FieldLayout& L = faces_[axis];
   Scalar* u = state.velocity[axis].data();
   const std::vector<std::uint8_t>& fixed = fixed_[axis];
@@ -525,17 +526,17 @@ void Solver::add_cell_force(State& state, int axis, const Scalar* f, Scalar dt, 
     if (!periodic && (ia == 0 || ia == n_axis)) {  // a face of an open side: the one cell inside
       std::array<Index, 3> c{i, j, k};
       if (ia == n_axis) --c[axis];
-      u[face] += dt * f[cells_.index(c[0], c[1], c[2])] + du;
+      u[face] += dt * f[cells_.index(c[0], c[1], c[2]) * fs] + du;
       return;
     }
     // other free faces are interior (or a periodic face 0): cell (i, j, k) is the upper neighbour
     const Index hi = cells_.index(i, j, k);
     const Index lo = ia == 0 ? hi + (n_axis - 1) * stride : hi - stride;
-    u[face] += dt * 0.5 * (f[lo] + f[hi]) + du;
+    u[face] += dt * 0.5 * (f[lo * fs] + f[hi * fs]) + du;
   });
 }
 
-void Solver::add_forces(State& state, Scalar dt) {
+void Solver::add_forces(State& state, Scalar dt, const Scalar* control) {
   // One pass per component: the cell-centred forces (buoyancy and vorticity confinement, summed
   // per cell into force_) averaged to the faces, plus gravity, uniform on every free face.
   const bool rho = !state.density.empty() && config_.alpha != 0;
@@ -561,7 +562,7 @@ void Solver::add_forces(State& state, Scalar dt) {
     if (!active_[a]) continue;
     const Scalar du = dt * config_.gravity[a];
     if (confined || (buoyant && config_.up[a] != 0)) {
-      add_cell_force(state, a, force_[a].data(), dt, du);
+      add_cell_force(state, a, force_[a].data(), 1, dt, du);
     } else if (du != 0) {
       Scalar* u = state.velocity[a].data();
       const std::uint8_t* fixed = fixed_[a].data();
@@ -569,6 +570,7 @@ void Solver::add_forces(State& state, Scalar dt) {
         if (!fixed[f]) u[f] += du;
       });
     }
+    if (control) add_cell_force(state, a, control + (a - (3 - model_.shape.dim)), model_.shape.dim, dt, 0);
   }
   // Prescribed and duplicate faces were skipped above; a periodic duplicate must follow its face
   // 0, or the seam carries a spurious divergence that the projection cannot remove.
@@ -712,23 +714,30 @@ void Solver::confinement_force(const State& state, bool buoyant) {
 void Solver::apply_viscosity_operator(int axis, Scalar c, const Scalar* x, Scalar* y) const {
   const FieldLayout& L = faces_[axis];
   const std::vector<std::uint8_t>& fixed = fixed_[axis];
+  // Neighbours by stride, as neighbour() finds them: across a periodic seam node idx -+ 1 wraps
+  // by the period (a face axis's duplicate node is never a neighbour), else it must exist.
+  Index stride[3], count[3], period[3];
+  for (int b = 0; b < 3; ++b) stride[b] = L.stride(b), count[b] = L.n[b], period[b] = L.period[b];
   for_each_node(L, [&](Index i, Index j, Index k, Index f) {
     if (fixed[f]) {
       y[f] = x[f];
       return;
     }
-    const std::array<Index, 3> idx{i, j, k};
+    const Index idx[3] = {i, j, k};
     Scalar diag = 1, off = 0;
     for (int b = 0; b < 3; ++b) {
       if (!active_[b]) continue;
       for (int side = 0; side < 2; ++side) {
-        const Index g = neighbour(L, idx, b, side ? 1 : -1);
-        if (g >= 0) {
-          diag += c;
-          if (!fixed[g]) off += x[g];
-        } else if (walls_.no_slip[2 * b + side]) {  // no slip or moving; not open
-          diag += 2 * c;
+        Index m = idx[b] + (side ? 1 : -1);
+        if (period[b] > 0) {
+          m = m < 0 ? m + period[b] : (m >= period[b] ? m - period[b] : m);
+        } else if (m < 0 || m >= count[b]) {
+          if (walls_.no_slip[2 * b + side]) diag += 2 * c;  // no slip or moving; not open
+          continue;
         }
+        const Index g = f + (m - idx[b]) * stride[b];
+        diag += c;
+        if (!fixed[g]) off += x[g];
       }
     }
     y[f] = diag * x[f] - c * off;

@@ -52,7 +52,23 @@ class Solver {
   State make_state() const;
 
   // One splitting step of size dt [s]. When it throws, the state is as it was before.
-  StepStats step(State& state, Scalar dt, Interrupt& interrupt);
+  // `control` (nullable): per-cell accelerations [m/s^2], (cells, dim) in user component order,
+  // averaged to the free faces and added with the body forces (km.diff's controls).
+  StepStats step(State& state, Scalar dt, Interrupt& interrupt, const Scalar* control = nullptr);
+
+  // The vector-Jacobian product of step(before, dt, control) (adjoint.cpp): `adjoint` holds
+  // dL/d(after) on entry (velocity, density, temperature; pressure ignored) and dL/d(before) on
+  // return (pressure 0: it is only a warm start). grad_viscosity receives dL/dnu of this step,
+  // grad_control (nullable, the control's shape) dL/dcontrol. Throws InvalidArgument naming the
+  // option when the configuration is not differentiable (check_differentiable).
+  void step_adjoint(const State& before, Scalar dt, const Scalar* control, State& adjoint,
+                    Scalar& grad_viscosity, Scalar* grad_control, Interrupt& interrupt);
+  void check_differentiable() const;
+  // The projection alone (u -= dt grad p with the pressure solve) and its transpose, for tests.
+  SolveInfo apply_projection(State& state, Scalar dt, Interrupt& interrupt) { return project(state, dt, interrupt); }
+  void projection_adjoint(std::array<std::vector<Scalar>, 3>& grad, Scalar dt, Interrupt& interrupt);
+  // Sets the kinematic viscosity nu [m^2/s] (a differentiable parameter).
+  void set_viscosity(Scalar viscosity);
   // The CFL step dt = cfl h / u_max, at most max_dt, where u_max = max |u| + sqrt(5 h |g|)
   // (Bridson 2015, Sec. 3.2: what gravity adds in one step) also counts the speeds of moving
   // walls and velocity sources, which accelerate a fluid at rest.
@@ -83,10 +99,10 @@ class Solver {
   const FieldLayout& cells() const { return cells_; }
 
  private:
-  StepStats step_phases(State& state, Scalar dt, Interrupt& interrupt);  // step() without the rollback
+  StepStats step_phases(State& state, Scalar dt, Interrupt& interrupt, const Scalar* control);  // step() without the rollback
   // The five phases of a step, in order.
   void advect(State& state, Scalar dt);
-  void add_forces(State& state, Scalar dt);
+  void add_forces(State& state, Scalar dt, const Scalar* control);
   Index diffuse(State& state, Scalar dt, Interrupt& interrupt);
   SolveInfo project(State& state, Scalar dt, Interrupt& interrupt);
   void check(const State& state, Scalar dt, Index step) const;  // throws DivergenceError naming field and step
@@ -100,8 +116,13 @@ class Solver {
   void inflow_ambient(const State& state, Scalar* const* fields, int count) const;
   bool any_open() const { return config_.open != std::array<bool, 6>{}; }
   void enforce_boundary(State& state) const;  // fixed faces to their values, periodic copies in sync
-  // u_a += dt * (face average of f) + du on the free faces
-  void add_cell_force(State& state, int axis, const Scalar* f, Scalar dt, Scalar du) const;
+  // u_a += dt * (face average of f[c * stride]) + du on the free faces
+  void add_cell_force(State& state, int axis, const Scalar* f, Index stride, Scalar dt, Scalar du) const;
+  // The transpose of add_cell_force's face average: out[c * stride] = sum over the free faces of
+  // cell c of the face's weight times g[face].
+  void cell_force_adjoint(int axis, const Scalar* g, Scalar* out, Index stride) const;
+  // The adjoint of enforce_boundary: pinned faces get 0, a duplicate's gradient moves to face 0.
+  void enforce_boundary_adjoint(std::array<std::vector<Scalar>, 3>& grad) const;
   // Fedkiw et al. 2001, Eq. (9)-(11), plus the buoyancy when `buoyant`, into force_
   void confinement_force(const State& state, bool buoyant);
   void apply_viscosity_operator(int axis, Scalar c, const Scalar* x, Scalar* y) const;

@@ -327,6 +327,48 @@ class Fluid:
         """Advances by dt [s] (any dt > 0; accuracy needs a CFL number of a few at most)."""
         return self._core.step(time_step(dt))
 
+    # ------------------------------------------------------------ km.diff protocol
+    @property
+    def _diff_state_names(self):
+        names = tuple("uvw"[:self.dim])
+        return names + tuple(n for n in ("density", "temperature") if self._core.scalar(n) is not None)
+
+    def _diff_check(self, wrt, step_options):
+        for key in step_options:
+            raise ValueError(f"{key}: km.grid.Fluid.step takes no options (km.diff passes none)")
+        self._core.check_differentiable()
+        names = self._diff_state_names + self.parameters + ("controls",)
+        for name in wrt:
+            if name not in names:
+                raise ValueError(f"wrt: {name!r} is not differentiable in this km.grid.Fluid "
+                                 f"(expected one of {', '.join(names)})")
+
+    def _diff_control_shape(self):
+        return self.shape + (self.dim,)
+
+    def _diff_get(self, name):
+        if name in self._diff_state_names:
+            return getattr(self, name).copy()
+        if name == "viscosity":
+            return float(self.viscosity)
+        raise ValueError(f"name: {name!r} is neither a state array nor a parameter of km.grid.Fluid")
+
+    def _diff_set(self, name, value):
+        if name in self._diff_state_names:
+            setattr(self, name, value)
+        elif name == "viscosity":
+            self._core.set_viscosity(real(value, "viscosity"))
+            self.viscosity = float(value)
+        else:
+            raise ValueError(f"name: {name!r} is neither a state array nor a parameter of km.grid.Fluid")
+
+    def _diff_step(self, dt, control, step_options):
+        self._core.step(time_step(dt), control)
+
+    def _diff_step_adjoint(self, dt, before, after, control, grad_after, step_options):
+        grads, g_nu, g_control = self._core.step_adjoint(time_step(dt), before, control, grad_after)
+        return grads, {"viscosity": g_nu}, g_control
+
     def stable_dt(self, cfl=1.0, *, max_dt=None) -> float:
         """The CFL step cfl * h / u_max [s], at most ``max_dt``, where u_max = max|u| +
         sqrt(5 h |g|) (Bridson 2015, Sec. 3.2: the speed gravity adds in one step) also counts

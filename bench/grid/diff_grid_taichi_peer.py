@@ -1,0 +1,140 @@
+"""Taichi's autodiff (ti.ad.Tape) of a 2D smoke-control gradient in the manner of DiffTaichi's
+smoke example (Hu et al. 2020, "smoke_taichi"): a collocated velocity grid, semi-Lagrangian
+advection (Euler back-trace, bilinear), a fixed number of Jacobi iterations for the pressure,
+every time level stored for the tape. Run in its own process by bench/grid/diff_grid_bench.py
+on the task it writes to an .npz file; prints one JSON line.
+
+    .venv/bin/python bench/grid/diff_grid_taichi_peer.py TASK.npz --threads 2 [--jacobi 50]
+
+TASK.npz holds rho0 (n, n), controls (T, n, n, 2), weights (n, n), direction (T, n, n, 2), h, dt.
+The loss is <weights, density_T>, the gradient dL/d(controls); reported: seconds per gradient
+(forward + backward on the tape, after one warm-up call that compiles the kernels), and the
+directional derivative along `direction` with its own central difference.
+"""
+
+import argparse
+import json
+import time
+
+import numpy as np
+import taichi as ti
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("task")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--jacobi", type=int, default=50)
+    opts = ap.parse_args()
+    data = np.load(opts.task)
+    rho0, controls, weights, direction = data["rho0"], data["controls"], data["weights"], data["direction"]
+    h, dt = float(data["h"]), float(data["dt"])
+    ti.init(arch=ti.cpu, default_fp=ti.f64, cpu_max_num_threads=opts.threads, log_level=ti.ERROR)
+    T, n = controls.shape[0], controls.shape[1]
+    J = opts.jacobi
+    v = ti.Vector.field(2, ti.f64, shape=(T + 1, n, n), needs_grad=True)
+    va = ti.Vector.field(2, ti.f64, shape=(T, n, n), needs_grad=True)
+    ctrl = ti.Vector.field(2, ti.f64, shape=(T, n, n), needs_grad=True)
+    smoke = ti.field(ti.f64, shape=(T + 1, n, n), needs_grad=True)
+    div = ti.field(ti.f64, shape=(T, n, n), needs_grad=True)
+    p = ti.field(ti.f64, shape=(T, J + 1, n, n), needs_grad=True)
+    W = ti.field(ti.f64, shape=(n, n))
+    loss = ti.field(ti.f64, shape=(), needs_grad=True)
+
+    @ti.func
+    def clamp_index(i):
+        return ti.max(0, ti.min(n - 1, i))
+
+    @ti.func
+    def bilerp(f: ti.template(), t: ti.i32, x, y):
+        x = ti.max(0.0, ti.min(n - 1.0, x))
+        y = ti.max(0.0, ti.min(n - 1.0, y))
+        i, j = ti.min(int(ti.floor(x)), n - 2), ti.min(int(ti.floor(y)), n - 2)
+        fx, fy = x - i, y - j
+        return ((1 - fx) * (1 - fy) * f[t, i, j] + fx * (1 - fy) * f[t, i + 1, j]
+                + (1 - fx) * fy * f[t, i, j + 1] + fx * fy * f[t, i + 1, j + 1])
+
+    @ti.kernel
+    def advect(t: ti.i32):
+        for i, j in ti.ndrange(n, n):
+            x = i - dt / h * v[t, i, j][0]
+            y = j - dt / h * v[t, i, j][1]
+            smoke[t + 1, i, j] = bilerp(smoke, t, x, y)
+            va[t, i, j] = bilerp(v, t, x, y) + dt * ctrl[t, i, j]
+
+    @ti.kernel
+    def divergence(t: ti.i32):
+        for i, j in ti.ndrange(n, n):
+            # closed walls: the normal velocity beyond the box is the negative of the inside one
+            vl = va[t, i - 1, j][0] if i > 0 else -va[t, i, j][0]
+            vr = va[t, i + 1, j][0] if i < n - 1 else -va[t, i, j][0]
+            vb = va[t, i, j - 1][1] if j > 0 else -va[t, i, j][1]
+            vt = va[t, i, j + 1][1] if j < n - 1 else -va[t, i, j][1]
+            div[t, i, j] = (vr - vl + vt - vb) / (2 * h)
+
+    @ti.kernel
+    def jacobi(t: ti.i32, k: ti.i32):
+        for i, j in ti.ndrange(n, n):
+            s = (p[t, k, clamp_index(i - 1), j] + p[t, k, clamp_index(i + 1), j]
+                 + p[t, k, i, clamp_index(j - 1)] + p[t, k, i, clamp_index(j + 1)])
+            p[t, k + 1, i, j] = (s - h * h * div[t, i, j]) / 4
+
+    @ti.kernel
+    def project(t: ti.i32):
+        for i, j in ti.ndrange(n, n):
+            gx = (p[t, J, clamp_index(i + 1), j] - p[t, J, clamp_index(i - 1), j]) / (2 * h)
+            gy = (p[t, J, i, clamp_index(j + 1)] - p[t, J, i, clamp_index(j - 1)]) / (2 * h)
+            v[t + 1, i, j] = va[t, i, j] - ti.Vector([gx, gy])
+
+    @ti.kernel
+    def compute_loss():
+        for i, j in ti.ndrange(n, n):
+            loss[None] += W[i, j] * smoke[T, i, j]
+
+    W.from_numpy(weights)
+
+    smoke_np = np.zeros((T + 1, n, n))
+    smoke_np[0] = rho0
+
+    def reset(c):  # outside the tape: these kernels are not differentiated
+        ctrl.from_numpy(c)
+        smoke.from_numpy(smoke_np)
+        v.fill(0)
+        p.fill(0)
+        loss[None] = 0
+
+    def forward():
+        for t in range(T):
+            advect(t)
+            divergence(t)
+            for k in range(J):
+                jacobi(t, k)
+            project(t)
+        compute_loss()
+
+    def gradient():
+        reset(controls)
+        with ti.ad.Tape(loss=loss):
+            forward()
+        return ctrl.grad.to_numpy(), loss[None]
+
+    gradient()  # compiles the kernels
+    times = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        g, _ = gradient()
+        times.append(time.perf_counter() - t0)
+    e = 1e-4
+
+    def value(c):
+        reset(c)
+        forward()
+        return loss[None]
+
+    fd = (value(controls + e * direction) - value(controls - e * direction)) / (2 * e)
+    adj = float(np.sum(g * direction))
+    print(json.dumps({"gradient_seconds": min(times), "adjoint": adj, "fd": fd, "jacobi": J}))
+
+
+if __name__ == "__main__":
+    main()

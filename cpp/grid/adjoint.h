@@ -1,0 +1,32 @@
+// Reverse-mode derivative (vector-Jacobian product) of the advection schemes of kernels.h.
+// A semi-Lagrangian step out(x) = q(p(x; u)), p the Runge-Kutta back-trace, has the adjoint
+//   dL/dq += W^T g          (the transpose of the interpolation: a scatter onto the stencil),
+//   dL/du += (dp/du)^T (grad q)(p) g   (the trace moves with the velocity it reads),
+// where dp/du follows the Runge-Kutta stages back (each stage's velocity is read at a point that
+// depends on the previous stages). MacCormack and BFECC are differentiated on the branch their
+// clamp took at each node (Selle et al. 2008): a clamped node's value is a stencil node of q,
+// so its gradient goes to that node only. Interpolation weights are differentiated where the
+// back-trace stays inside the domain; a clamped (outside) coordinate has zero derivative.
+//
+// The scatters are deterministic: each thread adds into its own copy of the targets over a
+// fixed contiguous range of rows, and the copies are summed in thread order, so the result is
+// bitwise the same run to run for a fixed thread count (not across thread counts: the sums
+// are grouped differently).
+//
+// No-slip walls in the interpolation (MacVelocity::walls) are not handled; the Solver refuses to
+// differentiate them (Solver::check_differentiable).
+#pragma once
+
+#include "grid/kernels.h"
+
+namespace kinema::grid {
+
+// The adjoint of advect_fields(scheme, u, L, count, q, out, dt, rk_order): given
+// g_out[f] = dL/d(out[f]), adds dL/d(q[f]) into g_q[f] and dL/du into g_u[a] (one array per
+// active component of u, on u.layout[a]). g_q[f] may alias g_u[a] (a velocity component advected
+// through itself). u.walls must be null.
+void advect_adjoint(AdvectionScheme scheme, const MacVelocity& u, const FieldLayout& L, int count,
+                    const Scalar* const* q, const Scalar* const* g_out, Scalar* const* g_q,
+                    const std::array<Scalar*, 3>& g_u, Scalar dt, int rk_order);
+
+}  // namespace kinema::grid
