@@ -81,6 +81,11 @@ class Solver {
   std::vector<FrictionContact> friction_;
   std::unique_ptr<SpdSolver> linear_;
   std::vector<Index> pattern_ptr_, pattern_col_;
+  // Broad phase kept between queries (its trees are refit), and the candidate pairs of the
+  // current Newton iteration: boxes swept over x -> x + p grown by dhat, so every trial of the
+  // line search (x + alpha p, alpha <= 1) finds its active pairs among them.
+  mutable BroadPhase broad_phase_;
+  Candidates candidates_;
 };
 
 }  // namespace kinema::contact

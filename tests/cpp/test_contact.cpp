@@ -73,6 +73,52 @@ TEST(ContactDistance, PointTriangleAndEdgeEdgeDerivativesMatchCentralDifferences
   }
 }
 
+TEST(GeometryBvh, RefitQueriesStayExactAfterTheBoxesMove) {
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<Scalar> u(0, 1), w(0, 0.05), step(-0.2, 0.2);
+  const int n = 1500;
+  std::vector<Scalar> lo(3 * n), hi(3 * n);
+  for (int i = 0; i < 3 * n; ++i) {
+    lo[i] = u(rng);
+    hi[i] = lo[i] + w(rng);
+  }
+  geometry::Bvh bvh(lo, hi);
+  const std::vector<geometry::BvhNode> built = bvh.nodes();
+  const Scalar built_ratio = bvh.area_ratio();
+  // Refitting to the boxes it was built from reproduces every node box exactly.
+  bvh.refit(lo, hi);
+  for (size_t k = 0; k < built.size(); ++k)
+    for (int a = 0; a < 3; ++a) {
+      ASSERT_EQ(bvh.nodes()[k].lo[a], built[k].lo[a]) << "node " << k;
+      ASSERT_EQ(bvh.nodes()[k].hi[a], built[k].hi[a]) << "node " << k;
+    }
+  EXPECT_EQ(bvh.area_ratio(), built_ratio);
+  // Move every box at random: the refit tree still finds every overlapping box.
+  for (int i = 0; i < n; ++i)
+    for (int a = 0; a < 3; ++a) {
+      const Scalar d = step(rng);
+      lo[3 * i + a] += d;
+      hi[3 * i + a] += d;
+    }
+  bvh.refit(lo, hi);
+  EXPECT_GT(bvh.area_ratio(), built_ratio);  // the old grouping fits the moved boxes worse
+  for (int q = 0; q < 50; ++q) {
+    Scalar qlo[3], qhi[3];
+    for (int a = 0; a < 3; ++a) {
+      qlo[a] = u(rng);
+      qhi[a] = qlo[a] + 0.1 * u(rng);
+    }
+    std::vector<Index> found;
+    bvh.query(qlo, qhi, [&](Index i) { found.push_back(i); });
+    std::sort(found.begin(), found.end());
+    for (int i = 0; i < n; ++i) {
+      bool overlap = true;
+      for (int a = 0; a < 3; ++a) overlap = overlap && lo[3 * i + a] <= qhi[a] && qlo[a] <= hi[3 * i + a];
+      if (overlap) EXPECT_TRUE(std::binary_search(found.begin(), found.end(), i)) << "query " << q << " box " << i;
+    }
+  }
+}
+
 TEST(ContactCcd, PointThroughTriangleStopsBeforeThePlane) {
   const Vec3 t0(-1, -1, 0), t1(2, -1, 0), t2(-1, 2, 0), zero = Vec3::Zero();
   const Scalar t = point_triangle_ccd(Vec3(0.1, 0.1, 1), t0, t1, t2, Vec3(0, 0, -2), zero, zero, zero, 1.0);

@@ -1,0 +1,125 @@
+"""The edge-edge barrier term m(s) b(d) with IPC's mollifier (Li et al. 2020, sec. 4.1) on
+exactly parallel, parallel-to-rounding and nearly parallel edges: its gradient against central
+differences of its energy and its Hessian against central differences of its gradient.
+
+Why orders and not one tolerance: the segment distance d has a kink where two overlapping edges
+turn parallel (the closest points jump from one end to the other), and the mollifier
+m(s) = (2 - s / eps_x) s / eps_x on s = |(a1 - a0) x (b1 - b0)|^2 cancels it: along any line
+x0 + t u through a parallel configuration s = O(t^2), so m b is C^2 in t with a bounded (one-sided)
+third derivative. Central differences of the energy then err by O(eps^2), and of the gradient by
+O(eps) at an exactly parallel pair (the second derivative of the gradient may jump there) and by
+O(eps^2) off it. Each test measures the error at eps, eps/2, eps/4, eps/8 and asserts the fitted
+log-log slope within 0.2 of that order; the unmollified term fails the same check (its gradient
+jumps), which the last test asserts so the check is known to bite.
+"""
+
+import numpy as np
+import pytest
+
+import kinema as km
+
+C = km._core.contact
+DHAT2 = 0.01  # dhat = 0.1 [m]: the pairs below sit at distance 0.05
+EPS_X = 1e-3  # 1e-3 |a1 - a0|^2 |b1 - b0|^2 for unit rest lengths
+STEPS = 1e-3 / 2.0 ** np.arange(4)
+
+
+def rotation(seed):
+    q, _ = np.linalg.qr(np.random.default_rng(seed).normal(size=(3, 3)))
+    return q
+
+
+def parallel():
+    # Exactly parallel and overlapping: (1, 0, 0) x (0.8, 0, 0) is exactly 0.
+    return np.array([[0.0, 0, 0], [1, 0, 0], [0.1, 0.05, 0], [0.9, 0.05, 0]])
+
+
+def parallel_rotated():
+    # The same pair turned by a random rotation: parallel to rounding (s ~ 1e-33).
+    return parallel() @ rotation(11).T + np.array([0.3, -0.2, 0.7])
+
+
+def nearly_parallel():
+    # Skew by theta with s = 0.64 sin^2(theta) = eps_x / 4: inside the mollified zone, the closest
+    # points of the two lines interior to both segments (the line-line formula).
+    theta = np.arcsin(np.sqrt(EPS_X / 4 / 0.64))
+    c, d = np.array([0.5, 0.05, 0]), np.array([np.cos(theta), 0, np.sin(theta)])
+    return np.array([[0.0, 0, 0], [1, 0, 0], c - 0.4 * d, c + 0.4 * d])
+
+
+CASES = {"parallel": (parallel, 1), "parallel rotated": (parallel_rotated, 1), "nearly parallel": (nearly_parallel, 2)}
+
+
+def errors(v, eps_x, directions):
+    """Central-difference errors of the gradient and Hessian along `directions`, per step."""
+    _, g, H = C.edge_edge_barrier(v, eps_x, DHAT2)
+    eg, eh = [], []
+    for h in STEPS:
+        e1 = e2 = 0.0
+        for u in directions:
+            ep, gp, _ = C.edge_edge_barrier(v + h * u, eps_x, DHAT2)
+            em, gm, _ = C.edge_edge_barrier(v - h * u, eps_x, DHAT2)
+            e1 = max(e1, abs((ep - em) / (2 * h) - g @ u.ravel()))
+            e2 = max(e2, np.abs((gp - gm) / (2 * h) - H @ u.ravel()).max())
+        eg.append(e1)
+        eh.append(e2)
+    return np.array(eg), np.array(eh), g, H
+
+
+def slope(err):
+    return np.polyfit(np.log(STEPS), np.log(err), 1)[0]
+
+
+def unit_directions(seed, count=6):
+    u = np.random.default_rng(seed).normal(size=(count, 4, 3))
+    return u / np.linalg.norm(u, axis=(1, 2), keepdims=True)
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_mollified_edge_barrier_derivatives_converge_at_their_order(case):
+    make, hessian_order = CASES[case]
+    v = make()
+    # The pair is active (closer than dhat: the barrier without mollifier is positive).
+    assert C.edge_edge_barrier(v, 0.0, DHAT2)[0] > 0, case
+    eg, eh, g, H = errors(v, EPS_X, unit_directions(1))
+    # Rounding floor of the differences (energy ~1e-4, gradient ~1e-2 at most, divided by the
+    # smallest step) is ~1e-13: far below every error measured here, so the slopes are truncation.
+    assert eg.min() > 1e-13 and eh.min() > 1e-13, (case, eg, eh)
+    assert slope(eg) >= 2 - 0.2, (case, "gradient", eg, slope(eg))
+    assert slope(eh) >= hessian_order - 0.2, (case, "hessian", eh, slope(eh))
+    # The errors are small against the quantities themselves (the largest step is 1e-3 on unit
+    # edges): the finite differences see the derivative returned, not another.
+    scale_g = max(np.abs(g).max(), np.abs(H).max() * STEPS[0])
+    assert eg[-1] <= 1e-3 * scale_g, (case, eg, scale_g)
+    assert eh[-1] <= 1e-2 * np.abs(H).max(), (case, eh, np.abs(H).max())
+    # Structure: symmetric Hessian, translation invariance.
+    assert np.abs(H - H.T).max() <= 1e-12 * np.abs(H).max()
+    assert np.abs(g.reshape(4, 3).sum(0)).max() <= 1e-12 * max(np.abs(g).max(), 1e-300) + 1e-300
+    assert np.abs(H @ np.tile([1.0, -2.0, 0.5], 4)).max() <= 1e-10 * np.abs(H).max()
+
+
+def test_mollified_edge_barrier_vanishes_with_its_gradient_at_exactly_parallel_edges():
+    e, g, H = C.edge_edge_barrier(parallel(), EPS_X, DHAT2)
+    assert e == 0 and np.all(g == 0), (e, g)
+    # The Hessian there is m'(0) b(d) Hess(s): not zero, positive semidefinite (Hess s = 2 J^T J).
+    w = np.linalg.eigvalsh(H)
+    assert w.max() > 0 and w.min() >= -1e-12 * w.max(), w
+
+
+def test_mollifier_is_continuous_with_its_slope_at_the_threshold():
+    # Across s = eps_x the term switches from m(s) b(d) to b(d): value and gradient must agree.
+    v = nearly_parallel()
+    s_of = lambda y: np.sum(np.cross(y[1] - y[0], y[3] - y[2]) ** 2)  # noqa: E731
+    s = s_of(v)
+    lo, hi = (C.edge_edge_barrier(v, eps_x, DHAT2) for eps_x in (s * (1 + 1e-9), s * (1 - 1e-9)))
+    assert abs(lo[0] - hi[0]) <= 1e-12 * hi[0], (lo[0], hi[0])
+    assert np.abs(lo[1] - hi[1]).max() <= 1e-7 * np.abs(hi[1]).max(), np.abs(lo[1] - hi[1]).max()
+
+
+def test_unmollified_edge_barrier_fails_the_same_check_at_parallel_edges():
+    # Without the mollifier (eps_x = 0) the gradient at the parallel pair is the one-sided
+    # point-edge gradient; central differences see the average of both sides, so the error does
+    # not shrink with the step: this is the kink the mollifier removes.
+    v = parallel()
+    eg, _, g, _ = errors(v, 0.0, unit_directions(1))
+    assert slope(eg) < 0.5 and eg[-1] > 1e-2 * np.abs(g).max(), (eg, np.abs(g).max())
