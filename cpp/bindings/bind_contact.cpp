@@ -191,7 +191,10 @@ void bind_contact(py::module_& m) {
         return contact::find_intersections(*s.model, s.positions(x), limit);
       })
       .def("constraint_count", [](PyScene& s, py::array x) {
-        return static_cast<Index>(contact::find_constraints(*s.model, s.positions(x), s.config.dhat * s.config.dhat).size());
+        const Scalar* p = s.positions(x);
+        contact::Solver& solver = s.ready();
+        ReleaseGil release;
+        return static_cast<Index>(solver.constraints(p).size());
       })
       .def("elastic_energy", [](PyScene& s, py::array x) { return s.ready().elastic_energy(s.positions(x)); })
       .def("barrier_energy", [](PyScene& s, py::array x) {
@@ -229,8 +232,9 @@ void bind_contact(py::module_& m) {
       .def("max_safe_step", [](PyScene& s, py::array x, py::array dx) {
         const Scalar* p = s.positions(x);
         const Scalar* d = checked_data(dx, "dx", 3 * s.model->vertex_count, false);
+        contact::Solver& solver = s.ready();
         ReleaseGil release;
-        return contact::max_safe_step(*s.model, p, d, contact::CcdOptions{});
+        return solver.max_safe_step(p, d);
       });
 
   // Kernels of one pair, for gradient tests.

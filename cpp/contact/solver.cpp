@@ -179,6 +179,14 @@ SparseMatrix Solver::barrier_hessian(const Scalar* x, bool project) const {
   return A;
 }
 
+std::vector<Constraint> Solver::constraints(const Scalar* x) const {
+  return find_constraints(model_, broad_phase_, x, dhat2_);
+}
+
+Scalar Solver::max_safe_step(const Scalar* x, const Scalar* dx) const {
+  return contact::max_safe_step(model_, broad_phase_, x, dx, CcdOptions{});
+}
+
 Scalar Solver::initial_kappa(Scalar h) const {
   if (config_.barrier_stiffness > 0) return config_.barrier_stiffness * h * h;
   // Li et al. 2020 sec. 4.3 (as in the IPC toolkit): the stiffness at which the barrier's
@@ -387,7 +395,7 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
     // One broad phase per iteration: boxes swept over x -> x + p and grown by dhat hold the CCD
     // pairs, every line-search trial's active pairs and the next iteration's.
     broad_phase_.find(model_, x.data(), p.data(), config_.dhat, candidates_);
-    Scalar alpha = max_safe_step(model_, candidates_, x.data(), p.data(), ccd);
+    Scalar alpha = contact::max_safe_step(model_, candidates_, x.data(), p.data(), ccd);
     stats.ccd_seconds += ccd_timer.seconds();
     stats.min_step_fraction = std::min(stats.min_step_fraction, alpha);
     phase.restart();

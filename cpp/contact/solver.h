@@ -58,6 +58,10 @@ class Solver {
   Scalar barrier_energy(const Scalar* x) const;
   void barrier_gradient(const Scalar* x, Scalar* g) const;
   SparseMatrix barrier_hessian(const Scalar* x, bool project) const;
+  // The active pairs at x and the largest collision-free fraction of the move x -> x + dx,
+  // on the solver's broad phase (its trees refit, not rebuilt).
+  std::vector<Constraint> constraints(const Scalar* x) const;
+  Scalar max_safe_step(const Scalar* x, const Scalar* dx) const;
 
   // Throws InvalidArgument when x intersects (edges through triangles, vertices behind planes).
   void check_intersection_free(const Scalar* x, const char* name) const;
