@@ -123,3 +123,28 @@ def test_unmollified_edge_barrier_fails_the_same_check_at_parallel_edges():
     v = parallel()
     eg, _, g, _ = errors(v, 0.0, unit_directions(1))
     assert slope(eg) < 0.5 and eg[-1] > 1e-2 * np.abs(g).max(), (eg, np.abs(g).max())
+
+
+def clamp_psd(H):
+    w, V = np.linalg.eigh(H)
+    return (V * np.maximum(w, 0)) @ V.T
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_projection_on_the_translation_free_subspace_equals_the_full_eigen_clamp(case):
+    # The barrier term is invariant under translating its four vertices, so its Hessian vanishes
+    # on translations; projecting its 9 x 9 restriction to their complement must give the
+    # nearest PSD matrix of the full 12 x 12 one (to rounding of the eigen solves, ~1e-14
+    # relative to the largest entry). Random skew pairs too, where the line-line formula holds.
+    rng = np.random.default_rng(2)
+    configs = [CASES[case][0]()]
+    for _ in range(5):
+        v = rng.normal(size=(4, 3))
+        v[2:] = v[:2].mean(0) + rng.normal(size=(2, 3)) * 0.1 + np.array([0, 0, 0.03])
+        configs.append(v)
+    for v in configs:
+        _, _, H = C.edge_edge_barrier(v, EPS_X, DHAT2)
+        _, _, Hp = C.edge_edge_barrier(v, EPS_X, DHAT2, project=True)
+        scale = max(np.abs(H).max(), 1e-300)
+        assert np.abs(Hp - clamp_psd(H)).max() <= 1e-10 * scale, (case, np.abs(Hp - clamp_psd(H)).max(), scale)
+        assert np.linalg.eigvalsh(Hp).min() >= -1e-12 * scale

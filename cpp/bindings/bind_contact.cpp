@@ -290,7 +290,7 @@ void bind_contact(py::module_& m) {
     if (kind == "ee") return contact::edge_edge_ccd(y[0], y[1], y[2], y[3], d[0], d[1], d[2], d[3], t_max);
     throw InvalidArgument("kind: expected 'pt' or 'ee', got '" + kind + "'");
   });
-  m.def("edge_edge_barrier", [](const ScalarArray& v, Scalar eps_x, Scalar dhat2) {
+  m.def("edge_edge_barrier", [](const ScalarArray& v, Scalar eps_x, Scalar dhat2, bool project) {
     // v: (4, 3) = a0, a1, b0, b1; the mollified barrier term with its gradient and Hessian.
     if (v.size() != 12) throw InvalidArgument("vertices: expected shape (4, 3)");
     contact::Vec3 y[4];
@@ -299,11 +299,12 @@ void bind_contact(py::module_& m) {
     contact::Mat<12> H;
     const contact::Reduced r = contact::edge_edge_region(y[0], y[1], y[2], y[3]);
     const Scalar e = contact::pair_barrier(r, y, eps_x, dhat2, &g, &H);
+    if (project) contact::project_psd_translation_free<4>(H);
     std::vector<Scalar> gv(g.data(), g.data() + 12), Hv(144);
     for (int a = 0; a < 12; ++a)
       for (int b = 0; b < 12; ++b) Hv[static_cast<size_t>(12 * a + b)] = H(a, b);
     return py::make_tuple(e, to_numpy(std::move(gv), {12}), to_numpy(std::move(Hv), {12, 12}));
-  });
+  }, py::arg("vertices"), py::arg("eps_x"), py::arg("dhat2"), py::arg("project") = false);
   m.def("barrier", [](Scalar d, Scalar dhat2) {
     return py::make_tuple(contact::barrier(d, dhat2), contact::barrier_first(d, dhat2), contact::barrier_second(d, dhat2));
   });

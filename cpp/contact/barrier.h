@@ -16,6 +16,7 @@
 // f1'(y) along u and f1(y) / y across it), so no projection is needed.
 #pragma once
 
+#include <Eigen/Eigenvalues>
 #include <cmath>
 
 #include "contact/distance.h"
@@ -119,6 +120,36 @@ inline Scalar pair_barrier(const Reduced& r, const Vec3* y, Scalar eps_x, Scalar
     }
   }
   return m * b;
+}
+
+// Nearest positive semidefinite matrix of the leading 3K x 3K block (negative eigenvalues
+// clamped to zero); the rest of H is zero. A barrier term is invariant under translating all
+// its K vertices, so its Hessian vanishes on translations and lives on their orthogonal
+// complement: with Q (3K x 3(K-1)) an orthonormal basis of that complement, H = Q (Q^T H Q) Q^T
+// exactly, and projecting the smaller Q^T H Q gives the same matrix at about half the cost
+// (9 x 9 instead of 12 x 12 eigenproblems).
+template <int K>
+inline void project_psd_translation_free(Mat<12>& H) {
+  constexpr int N = 3 * K, R = 3 * (K - 1);
+  // Rows orthonormal and orthogonal to (1, ..., 1): a Hadamard basis (K = 4, 2) or Helmert's (K = 3).
+  Eigen::Matrix<Scalar, K - 1, K> B;
+  if constexpr (K == 4) {
+    B << 1, 1, -1, -1, 1, -1, 1, -1, 1, -1, -1, 1;
+    B *= 0.5;
+  } else if constexpr (K == 3) {
+    B << 1 / std::sqrt(2.0), -1 / std::sqrt(2.0), 0, 1 / std::sqrt(6.0), 1 / std::sqrt(6.0), -2 / std::sqrt(6.0);
+  } else {
+    B << 1 / std::sqrt(2.0), -1 / std::sqrt(2.0);
+  }
+  Eigen::Matrix<Scalar, N, R> Q = Eigen::Matrix<Scalar, N, R>::Zero();
+  for (int a = 0; a < K; ++a)
+    for (int b = 0; b < K - 1; ++b) Q.template block<3, 3>(3 * a, 3 * b) = B(b, a) * Mat3::Identity();
+  const Mat<N> A = H.topLeftCorner<N, N>();
+  const Mat<R> Ar = Q.transpose() * A * Q;
+  Eigen::SelfAdjointEigenSolver<Mat<R>> eig(Ar);
+  if (eig.eigenvalues().minCoeff() >= 0) return;
+  const Eigen::Matrix<Scalar, N, R> V = Q * eig.eigenvectors();
+  H.topLeftCorner<N, N>() = V * eig.eigenvalues().cwiseMax(Scalar(0)).asDiagonal() * V.transpose();
 }
 
 }  // namespace kinema::contact

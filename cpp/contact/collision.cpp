@@ -2,7 +2,6 @@
 // distance.h, ACCD for the safe step.
 #include "contact/collision.h"
 
-#include <Eigen/Eigenvalues>
 
 #include <algorithm>
 #include <cmath>
@@ -303,21 +302,6 @@ void constraint_derivatives(const Model& model, const Constraint& c, const Scala
   reduced_derivatives(c.kind, v, g, H);
 }
 
-namespace {
-
-// Nearest positive semidefinite matrix of the leading n x n block (negative eigenvalues clamped
-// to zero); the rest of H is zero.
-template <int N>
-void project_psd_block(Mat<12>& H) {
-  const Mat<N> A = H.topLeftCorner<N, N>();
-  Eigen::SelfAdjointEigenSolver<Mat<N>> eig(A);
-  if (eig.eigenvalues().minCoeff() >= 0) return;
-  H.topLeftCorner<N, N>() =
-      eig.eigenvectors() * eig.eigenvalues().cwiseMax(Scalar(0)).asDiagonal() * eig.eigenvectors().transpose();
-}
-
-}  // namespace
-
 Scalar constraint_barrier(const Model& model, const Constraint& c, const Scalar* x, Scalar dhat2, Vec<12>* g,
                           Mat<12>* H, bool project) {
   if (c.plane >= 0) {
@@ -347,11 +331,11 @@ Scalar constraint_barrier(const Model& model, const Constraint& c, const Scalar*
   const Scalar e = pair_barrier(r, y, c.eps_x, dhat2, g, H);
   if (H && project) {
     if (n == 4)
-      project_psd_block<12>(*H);
+      project_psd_translation_free<4>(*H);
     else if (n == 3)
-      project_psd_block<9>(*H);
+      project_psd_translation_free<3>(*H);
     else
-      project_psd_block<6>(*H);
+      project_psd_translation_free<2>(*H);
   }
   return e;
 }
