@@ -13,10 +13,16 @@ log-log slope within 0.2 of that order; the unmollified term fails the same chec
 jumps), which the last test asserts so the check is known to bite.
 """
 
+import sys
+from pathlib import Path
+
 import numpy as np
 import pytest
 
 import kinema as km
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "examples"))
+import contact_scenes  # noqa: E402
 
 C = km._core.contact
 DHAT2 = 0.01  # dhat = 0.1 [m]: the pairs below sit at distance 0.05
@@ -178,3 +184,32 @@ def test_barrier_gradient_of_two_aligned_cubes_converges_under_central_differenc
             continue
         assert np.polyfit(np.log(steps), np.log(np.maximum(err, floor)), 1)[0] >= 0.8, (err, scale)
         assert err[-1] <= 1e-3 * scale, (err, scale)
+
+
+@pytest.mark.slow  # about 10 s on a quiet machine (14 cloth steps twice), a minute on a busy one
+def test_steps_are_bitwise_the_same_for_any_thread_count_and_after_a_resume():
+    # The broad phase keeps refit trees between queries and the narrow phase, CCD and barrier
+    # terms run in parallel; neither may change a result: candidates are ordered by primitive,
+    # not by tree, and sums run in constraint order.
+    before = km.get_num_threads()
+
+    def run(threads):
+        km.set_num_threads(threads)
+        try:
+            # The cloth draped on the sphere: enough points, edges, candidates (> 256) and
+            # contacts (> 64) for every parallel loop to run on more than one thread.
+            scene, dt = contact_scenes.cloth_scene(False, 12)
+            for _ in range(10):
+                scene.step(dt)
+            assert scene._core.constraint_count(scene.x) > 64
+            saved = scene.state()
+            scene.step(dt)
+            x = scene.x.copy()
+            scene.set_state(saved)
+            scene.step(dt)
+            assert np.array_equal(x, scene.x), "a resumed step differs"
+            return x
+        finally:
+            km.set_num_threads(before)
+
+    assert np.array_equal(run(1), run(2))
