@@ -276,32 +276,6 @@ std::vector<Constraint> find_constraints(const Model& model, const Scalar* x, Sc
   return find_constraints(model, broad, x, dhat2);
 }
 
-Scalar constraint_distance(const Model& model, const Constraint& c, const Scalar* x) {
-  if (c.plane >= 0) {
-    const Plane& plane = model.planes[static_cast<size_t>(c.plane)];
-    const Scalar s = plane.normal.dot(at(x, c.v[0]) - plane.point);
-    return s * s;
-  }
-  Vec3 v[4];
-  for (int k = 0; k < vertex_count(c.kind); ++k) v[k] = at(x, c.v[static_cast<size_t>(k)]);
-  return reduced_distance(c.kind, v);
-}
-
-void constraint_derivatives(const Model& model, const Constraint& c, const Scalar* x, Vec<12>& g, Mat<12>& H) {
-  if (c.plane >= 0) {
-    const Plane& plane = model.planes[static_cast<size_t>(c.plane)];
-    const Scalar s = plane.normal.dot(at(x, c.v[0]) - plane.point);
-    g.setZero();
-    H.setZero();
-    g.head<3>() = 2 * s * plane.normal;
-    H.topLeftCorner<3, 3>() = 2 * plane.normal * plane.normal.transpose();
-    return;
-  }
-  Vec3 v[4];
-  for (int k = 0; k < vertex_count(c.kind); ++k) v[k] = at(x, c.v[static_cast<size_t>(k)]);
-  reduced_derivatives(c.kind, v, g, H);
-}
-
 Scalar constraint_barrier(const Model& model, const Constraint& c, const Scalar* x, Scalar dhat2, Vec<12>* g,
                           Mat<12>* H, bool project) {
   if (c.plane >= 0) {

@@ -4,9 +4,10 @@
 // the same vertices (a vertex near an edge seen from both of its triangles): each term is the
 // exact distance of its own pair, continuous across region switches, so the barrier sum is
 // continuous, where merging makes terms appear with a non-zero value at region boundaries.
-// Also: the largest safe step along a displacement (ACCD over the pairs whose swept boxes
-// overlap), and exact checks (minimum distance, edge-triangle
-// intersections) for validation. Broad phase: geometry/bvh.h over the faces and the edges.
+// Also: the barrier terms of the active pairs (barrier.h, with the edge-edge mollifier), the
+// largest safe step along a displacement (ACCD over the pairs whose swept boxes overlap), and
+// exact checks (minimum distance, edge-triangle intersections) for validation. Broad phase:
+// geometry/bvh.h over the faces and the edges, kept and refit between queries (BroadPhase).
 #pragma once
 
 #include <array>
@@ -39,9 +40,6 @@ struct Constraint {
 // with the lower edge first; pairs made only of fixed vertices are left out.
 struct Candidates {
   std::vector<std::array<Index, 2>> point_face, edge_edge;
-  // Positions the boxes were taken over (x to x + dx) and their growth r, for the soundness
-  // argument of a reuse: any positions inside those boxes find their pairs closer than r here.
-  Scalar radius = 0;
 };
 
 // The broad phase: BVHs over the boxes of the faces and the edges, kept between queries. Built
@@ -82,10 +80,6 @@ std::vector<Constraint> find_constraints(const Model& model, const Candidates& c
 // vectors are given (H projected when `project`).
 Scalar evaluate_barriers(const Model& model, const std::vector<Constraint>& constraints, const Scalar* x,
                          Scalar dhat2, std::vector<Vec<12>>* g, std::vector<Mat<12>>* H, bool project);
-
-// Squared distance of a constraint at x, and its gradient/Hessian over its vertices.
-Scalar constraint_distance(const Model& model, const Constraint& c, const Scalar* x);
-void constraint_derivatives(const Model& model, const Constraint& c, const Scalar* x, Vec<12>& g, Mat<12>& H);
 
 // Barrier term m(s) b(d) of a constraint at x (barrier.h; m = 1 but for edge pairs) and, when g
 // is given, its gradient over c.stencil(); when H is given too, its Hessian, projected to the
