@@ -206,7 +206,10 @@ void bind_contact(py::module_& m) {
         return contact::find_intersections(*s.model, s.positions(x), limit);
       })
       .def("constraint_count", [](PyScene& s, py::array x) {
-        return static_cast<Index>(contact::find_constraints(*s.model, s.positions(x), s.config.dhat * s.config.dhat).size());
+        const Scalar* p = s.positions(x);
+        contact::Solver& solver = s.ready();
+        ReleaseGil release;
+        return static_cast<Index>(solver.constraints(p).size());
       })
       .def("elastic_energy", [](PyScene& s, py::array x) { return s.ready().elastic_energy(s.positions(x)); })
       .def("barrier_energy", [](PyScene& s, py::array x) {
@@ -244,8 +247,9 @@ void bind_contact(py::module_& m) {
       .def("max_safe_step", [](PyScene& s, py::array x, py::array dx) {
         const Scalar* p = s.positions(x);
         const Scalar* d = checked_data(dx, "dx", 3 * s.model->vertex_count, false);
+        contact::Solver& solver = s.ready();
         ReleaseGil release;
-        return contact::max_safe_step(*s.model, p, d, contact::CcdOptions{});
+        return solver.max_safe_step(p, d);
       });
 
   // Kernels of one pair, for gradient tests.
@@ -301,6 +305,21 @@ void bind_contact(py::module_& m) {
     if (kind == "ee") return contact::edge_edge_ccd(y[0], y[1], y[2], y[3], d[0], d[1], d[2], d[3], t_max);
     throw InvalidArgument("kind: expected 'pt' or 'ee', got '" + kind + "'");
   });
+  m.def("edge_edge_barrier", [](const ScalarArray& v, Scalar eps_x, Scalar dhat2, bool project) {
+    // v: (4, 3) = a0, a1, b0, b1; the mollified barrier term with its gradient and Hessian.
+    if (v.size() != 12) throw InvalidArgument("vertices: expected shape (4, 3)");
+    contact::Vec3 y[4];
+    for (int a = 0; a < 4; ++a) y[a] = Eigen::Map<const contact::Vec3>(v.data() + 3 * a);
+    contact::Vec<12> g;
+    contact::Mat<12> H;
+    const contact::Reduced r = contact::edge_edge_region(y[0], y[1], y[2], y[3]);
+    const Scalar e = contact::pair_barrier(r, y, eps_x, dhat2, &g, &H);
+    if (project) contact::project_psd_translation_free<4>(H);
+    std::vector<Scalar> gv(g.data(), g.data() + 12), Hv(144);
+    for (int a = 0; a < 12; ++a)
+      for (int b = 0; b < 12; ++b) Hv[static_cast<size_t>(12 * a + b)] = H(a, b);
+    return py::make_tuple(e, to_numpy(std::move(gv), {12}), to_numpy(std::move(Hv), {12, 12}));
+  }, py::arg("vertices"), py::arg("eps_x"), py::arg("dhat2"), py::arg("project") = false);
   m.def("barrier", [](Scalar d, Scalar dhat2) {
     return py::make_tuple(contact::barrier(d, dhat2), contact::barrier_first(d, dhat2), contact::barrier_second(d, dhat2));
   });

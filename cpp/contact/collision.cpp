@@ -2,10 +2,13 @@
 // distance.h, ACCD for the safe step.
 #include "contact/collision.h"
 
+
 #include <algorithm>
 #include <cmath>
 #include <limits>
 
+#include "contact/barrier.h"
+#include "core/parallel.h"
 #include "geometry/bvh.h"
 
 namespace kinema::contact {
@@ -14,65 +17,44 @@ namespace {
 
 Vec3 at(const Scalar* x, Index i) { return Eigen::Map<const Vec3>(x + 3 * i); }
 
-// Boxes of the primitives (k vertices each) at x, swept to x + dx when dx is given, grown by r.
-geometry::Bvh primitive_bvh(const std::vector<Index>& prims, int k, const Scalar* x, const Scalar* dx,
-                            Scalar r) {
-  const size_t count = prims.size() / static_cast<size_t>(k);
-  std::vector<Scalar> lo(3 * count), hi(3 * count);
-  for (size_t p = 0; p < count; ++p) {
-    Vec3 l = Vec3::Constant(std::numeric_limits<Scalar>::infinity()), h = -l;
+// Box of the primitive (k vertices at prim) at x, swept to x + dx when dx is given, grown by r.
+void primitive_box(const Index* prim, int k, const Scalar* x, const Scalar* dx, Scalar r, Scalar* lo, Scalar* hi) {
+  for (int c = 0; c < 3; ++c) {
+    Scalar l = std::numeric_limits<Scalar>::infinity(), h = -l;
     for (int a = 0; a < k; ++a) {
-      const Index v = prims[p * static_cast<size_t>(k) + static_cast<size_t>(a)];
-      const Vec3 y = at(x, v);
-      l = l.cwiseMin(y);
-      h = h.cwiseMax(y);
+      const Scalar y = x[3 * prim[a] + c];
+      l = std::min(l, y);
+      h = std::max(h, y);
       if (dx) {
-        const Vec3 z = y + at(dx, v);
-        l = l.cwiseMin(z);
-        h = h.cwiseMax(z);
+        const Scalar z = y + dx[3 * prim[a] + c];
+        l = std::min(l, z);
+        h = std::max(h, z);
       }
     }
-    for (int c = 0; c < 3; ++c) {
-      lo[3 * p + c] = l[c] - r;
-      hi[3 * p + c] = h[c] + r;
-    }
+    lo[c] = l - r;
+    hi[c] = h + r;
   }
+}
+
+geometry::Bvh primitive_bvh(const std::vector<Index>& prims, int k, const Scalar* x, const Scalar* dx, Scalar r) {
+  const size_t count = prims.size() / static_cast<size_t>(k);
+  std::vector<Scalar> lo(3 * count), hi(3 * count);
+  for (size_t p = 0; p < count; ++p) primitive_box(&prims[p * static_cast<size_t>(k)], k, x, dx, r, &lo[3 * p], &hi[3 * p]);
   return geometry::Bvh(lo, hi);
 }
 
 void point_box(const Scalar* x, const Scalar* dx, Index v, Scalar r, Scalar lo[3], Scalar hi[3]) {
-  for (int c = 0; c < 3; ++c) {
-    Scalar a = x[3 * v + c], b = a;
-    if (dx) b += dx[3 * v + c];
-    lo[c] = std::min(a, b) - r;
-    hi[c] = std::max(a, b) + r;
-  }
+  primitive_box(&v, 1, x, dx, r, lo, hi);
 }
 
 void edge_box(const Scalar* x, const Scalar* dx, Index i, Index j, Scalar r, Scalar lo[3], Scalar hi[3]) {
-  Scalar l1[3], h1[3], l2[3], h2[3];
-  point_box(x, dx, i, r, l1, h1);
-  point_box(x, dx, j, r, l2, h2);
-  for (int c = 0; c < 3; ++c) {
-    lo[c] = std::min(l1[c], l2[c]);
-    hi[c] = std::max(h1[c], h2[c]);
-  }
+  const Index e[2] = {i, j};
+  primitive_box(e, 2, x, dx, r, lo, hi);
 }
 
-// Whether the box of the vertices `vs` (swept by dx when given, grown by r) meets [lo, hi]:
-// the BVH reports whole leaves, this keeps the narrow phase to the pairs whose boxes meet.
-bool boxes_meet(const Scalar* x, const Scalar* dx, std::initializer_list<Index> vs, Scalar r, const Scalar lo[3],
-                const Scalar hi[3]) {
-  for (int c = 0; c < 3; ++c) {
-    Scalar l = std::numeric_limits<Scalar>::infinity(), h = -l;
-    for (Index v : vs) {
-      const Scalar a = x[3 * v + c], b = dx ? a + dx[3 * v + c] : a;
-      l = std::min(l, std::min(a, b));
-      h = std::max(h, std::max(a, b));
-    }
-    if (l - r > hi[c] || h + r < lo[c]) return false;
-  }
-  return true;
+bool overlap(const Scalar* lo, const Scalar* hi, const Scalar* lo2, const Scalar* hi2) {
+  return lo[0] <= hi2[0] && lo2[0] <= hi[0] && lo[1] <= hi2[1] && lo2[1] <= hi[1] && lo[2] <= hi2[2] &&
+         lo2[2] <= hi[2];
 }
 
 bool all_fixed(const Model& model, std::initializer_list<Index> vs) {
@@ -81,61 +63,111 @@ bool all_fixed(const Model& model, std::initializer_list<Index> vs) {
   return true;
 }
 
-// Calls pt(p, face) for every surface point and face whose boxes meet (p not in the face), and
-// ee(e, f) once for every pair of edges whose boxes meet and that share no vertex; pairs made
-// only of fixed vertices (obstacle against obstacle) are never visited: moving points query
-// every face and fixed points only the faces that move, moving edges query every edge.
-template <class PT, class EE>
-void candidate_pairs(const Model& model, const Scalar* x, const Scalar* dx, Scalar r, PT&& pt, EE&& ee) {
+using Pairs = std::vector<std::array<Index, 2>>;
+
+// out = the pairs body(i, part) appends for i = 0, 1, ..., n - 1, in that order: threads fill
+// contiguous blocks of i (static schedule) and the blocks are joined in order, so the result
+// is the serial one for any thread count.
+template <class T, class Body>
+void collect_in_order(Index n, std::vector<T>& out, Body&& body) {
+  out.clear();
+  const int threads = n > 256 ? num_threads() : 1;
+  if (threads == 1) {
+    for (Index i = 0; i < n; ++i) body(i, out);
+    return;
+  }
+  std::vector<std::vector<T>> parts(static_cast<size_t>(threads));
+#pragma omp parallel num_threads(threads)
+  {
+    std::vector<T>& part = parts[static_cast<size_t>(omp_get_thread_num())];
+#pragma omp for schedule(static)
+    for (Index i = 0; i < n; ++i) body(i, part);
+  }
+  for (const std::vector<T>& part : parts) out.insert(out.end(), part.begin(), part.end());
+}
+
+}  // namespace
+
+void BroadPhase::update(Tree& tree, const std::vector<Index>& prims, int k, const Scalar* x, const Scalar* dx,
+                        Scalar r) {
+  const Index count = static_cast<Index>(prims.size()) / k;
+  tree.lo.resize(static_cast<size_t>(3 * count));
+  tree.hi.resize(static_cast<size_t>(3 * count));
+  parallel_for(count, [&](Index p) {
+    primitive_box(&prims[static_cast<size_t>(k * p)], k, x, dx, r, &tree.lo[static_cast<size_t>(3 * p)],
+                  &tree.hi[static_cast<size_t>(3 * p)]);
+  });
+  if (count == 0) return;
+  if (tree.bvh.nodes().empty()) {
+    tree.bvh = geometry::Bvh(tree.lo, tree.hi);
+    tree.built_ratio = tree.bvh.area_ratio();
+    return;
+  }
+  tree.bvh.refit(tree.lo, tree.hi);
+  if (tree.bvh.area_ratio() > 2 * tree.built_ratio) {
+    tree.bvh = geometry::Bvh(tree.lo, tree.hi);
+    tree.built_ratio = tree.bvh.area_ratio();
+  }
+}
+
+// Point-face pairs: moving points query every face, fixed points only the faces that move;
+// edge pairs: moving edges query every edge, a pair of moving edges is kept once (lower
+// first). Hits of one query are sorted, so the order does not depend on the trees' state.
+void BroadPhase::find(const Model& model, const Scalar* x, const Scalar* dx, Scalar r, Candidates& out) {
   const auto& F = model.faces;
   const auto& E = model.edges;
   auto moving = [&](Index v) { return !model.fixed[static_cast<size_t>(v)]; };
-  if (!F.empty()) {
-    const geometry::Bvh faces = primitive_bvh(F, 3, x, dx, r);
-    std::vector<Index> moving_faces, moving_face_ids;
-    bool any_fixed_point = false;
-    for (Index p : model.points) any_fixed_point |= !moving(p);
-    if (any_fixed_point) {
+  if (!ready_) {
+    for (Index p : model.points) any_fixed_point_ |= !moving(p);
+    if (any_fixed_point_)
       for (Index f = 0; f < static_cast<Index>(F.size() / 3); ++f)
-        if (moving(F[3 * f]) || moving(F[3 * f + 1]) || moving(F[3 * f + 2])) {
-          moving_faces.insert(moving_faces.end(), &F[3 * f], &F[3 * f] + 3);
-          moving_face_ids.push_back(f);
-        }
-    }
-    const geometry::Bvh moving_bvh = primitive_bvh(moving_faces, 3, x, dx, r);
-    for (Index p : model.points) {
-      Scalar lo[3], hi[3];
-      point_box(x, dx, p, 0, lo, hi);
-      auto visit = [&](Index f) {
-        const Index a = F[3 * f], b = F[3 * f + 1], c = F[3 * f + 2];
-        if (p == a || p == b || p == c) return;
-        if (!boxes_meet(x, dx, {a, b, c}, r, lo, hi)) return;
-        pt(p, f);
-      };
-      if (moving(p))
-        faces.query(lo, hi, visit);
-      else
-        moving_bvh.query(lo, hi, [&](Index k) { visit(moving_face_ids[static_cast<size_t>(k)]); });
-    }
+        if (moving(F[3 * f]) || moving(F[3 * f + 1]) || moving(F[3 * f + 2])) moving_face_ids_.push_back(f);
+    ready_ = true;
   }
-  if (!E.empty()) {
-    const geometry::Bvh edges = primitive_bvh(E, 2, x, dx, r);
-    const Index edge_count = static_cast<Index>(E.size() / 2);
-    for (Index e = 0; e < edge_count; ++e) {
-      if (!moving(E[2 * e]) && !moving(E[2 * e + 1])) continue;
-      Scalar lo[3], hi[3];
-      edge_box(x, dx, E[2 * e], E[2 * e + 1], 0, lo, hi);
-      edges.query(lo, hi, [&](Index f) {
-        const Index a0 = E[2 * e], a1 = E[2 * e + 1], b0 = E[2 * f], b1 = E[2 * f + 1];
-        const bool f_moves = moving(b0) || moving(b1);
-        if (f_moves && f <= e) return;  // a pair of moving edges is visited from the lower one
-        if (a0 == b0 || a0 == b1 || a1 == b0 || a1 == b1) return;
-        if (!boxes_meet(x, dx, {b0, b1}, r, lo, hi)) return;
-        ee(e, f);
-      });
-    }
-  }
+  std::vector<Index> moving_faces;
+  moving_faces.reserve(3 * moving_face_ids_.size());
+  for (Index f : moving_face_ids_) moving_faces.insert(moving_faces.end(), &F[3 * f], &F[3 * f] + 3);
+  update(faces_, F, 3, x, dx, r);
+  update(moving_faces_, moving_faces, 3, x, dx, r);
+  update(edges_, E, 2, x, dx, r);
+
+  const Index point_count = static_cast<Index>(model.points.size());
+  collect_in_order(point_count, out.point_face, [&](Index i, Pairs& part) {
+    const Index p = model.points[static_cast<size_t>(i)];
+    Scalar lo[3], hi[3];
+    point_box(x, dx, p, 0, lo, hi);
+    const size_t first = part.size();
+    auto visit = [&](const Tree& tree, Index k, Index f) {
+      const Index a = F[3 * f], b = F[3 * f + 1], c = F[3 * f + 2];
+      if (p == a || p == b || p == c) return;
+      if (!overlap(lo, hi, &tree.lo[static_cast<size_t>(3 * k)], &tree.hi[static_cast<size_t>(3 * k)])) return;
+      part.push_back({p, f});
+    };
+    if (moving(p))
+      faces_.bvh.query(lo, hi, [&](Index f) { visit(faces_, f, f); });
+    else
+      moving_faces_.bvh.query(lo, hi, [&](Index k) { visit(moving_faces_, k, moving_face_ids_[static_cast<size_t>(k)]); });
+    std::sort(part.begin() + static_cast<std::ptrdiff_t>(first), part.end());
+  });
+  const Index edge_count = static_cast<Index>(E.size() / 2);
+  collect_in_order(edge_count, out.edge_edge, [&](Index e, Pairs& part) {
+    const Index a0 = E[2 * e], a1 = E[2 * e + 1];
+    if (!moving(a0) && !moving(a1)) return;
+    Scalar lo[3], hi[3];
+    edge_box(x, dx, a0, a1, 0, lo, hi);
+    const size_t first = part.size();
+    edges_.bvh.query(lo, hi, [&](Index f) {
+      const Index b0 = E[2 * f], b1 = E[2 * f + 1];
+      if ((moving(b0) || moving(b1)) && f <= e) return;
+      if (a0 == b0 || a0 == b1 || a1 == b0 || a1 == b1) return;
+      if (!overlap(lo, hi, &edges_.lo[static_cast<size_t>(3 * f)], &edges_.hi[static_cast<size_t>(3 * f)])) return;
+      part.push_back({e, f});
+    });
+    std::sort(part.begin() + static_cast<std::ptrdiff_t>(first), part.end());
+  });
 }
+
+namespace {
 
 // The reduced constraint of a pair given by its four vertices (point-triangle: p, t0, t1, t2;
 // edge-edge: a0, a1, b0, b1), vertices in a canonical order.
@@ -180,34 +212,40 @@ int orient(const Vec3& a, const Vec3& b, const Vec3& c, const Vec3& d) {
 
 }  // namespace
 
-std::vector<Constraint> find_constraints(const Model& model, const Scalar* x, Scalar dhat2) {
-  std::vector<Constraint> out;
-  const Scalar dhat = std::sqrt(dhat2);
+std::vector<Constraint> find_constraints(const Model& model, const Candidates& candidates, const Scalar* x,
+                                         Scalar dhat2) {
   const auto& F = model.faces;
   const auto& E = model.edges;
   // Reduces a pair given by its four vertices to its closest-point formula; keeps it if close.
-  auto consider = [&](const Index ids[4], bool edge_edge) {
-    if (all_fixed(model, {ids[0], ids[1], ids[2], ids[3]})) return;
+  auto consider = [&](const Index ids[4], bool edge_edge, std::vector<Constraint>& out) {
     const Vec3 y[4] = {at(x, ids[0]), at(x, ids[1]), at(x, ids[2]), at(x, ids[3])};
     const Reduced r = edge_edge ? edge_edge_region(y[0], y[1], y[2], y[3]) : point_triangle_region(y[0], y[1], y[2], y[3]);
     Vec3 v[4];
     for (int k = 0; k < vertex_count(r.kind); ++k) v[k] = y[r.slot[k]];
     const Scalar d = reduced_distance(r.kind, v);
-    if (d >= dhat2) return;
+    if (!(d < dhat2)) return;
     Constraint c = reduce(r, ids);
     c.d = d;
+    if (edge_edge) {
+      c.edges = {ids[0], ids[1], ids[2], ids[3]};
+      const Scalar* X = model.rest.data();
+      c.eps_x = edge_mollifier_threshold((at(X, ids[1]) - at(X, ids[0])).squaredNorm(),
+                                         (at(X, ids[3]) - at(X, ids[2])).squaredNorm());
+    }
     out.push_back(c);
   };
-  candidate_pairs(
-      model, x, nullptr, dhat,
-      [&](Index p, Index f) {
-        const Index ids[4] = {p, F[3 * f], F[3 * f + 1], F[3 * f + 2]};
-        consider(ids, false);
-      },
-      [&](Index e, Index f) {
-        const Index ids[4] = {E[2 * e], E[2 * e + 1], E[2 * f], E[2 * f + 1]};
-        consider(ids, true);
-      });
+  std::vector<Constraint> out, ee;
+  collect_in_order(static_cast<Index>(candidates.point_face.size()), out, [&](Index i, std::vector<Constraint>& part) {
+    const auto [p, f] = candidates.point_face[static_cast<size_t>(i)];
+    const Index ids[4] = {p, F[3 * f], F[3 * f + 1], F[3 * f + 2]};
+    consider(ids, false, part);
+  });
+  collect_in_order(static_cast<Index>(candidates.edge_edge.size()), ee, [&](Index i, std::vector<Constraint>& part) {
+    const auto [e, f] = candidates.edge_edge[static_cast<size_t>(i)];
+    const Index ids[4] = {E[2 * e], E[2 * e + 1], E[2 * f], E[2 * f + 1]};
+    consider(ids, true, part);
+  });
+  out.insert(out.end(), ee.begin(), ee.end());
   // Vertices against planes: every dynamic vertex (a solid's interior vertices cannot reach a
   // plane before its surface, so checking them costs little and needs no surface lookup).
   for (size_t pl = 0; pl < model.planes.size(); ++pl) {
@@ -227,48 +265,114 @@ std::vector<Constraint> find_constraints(const Model& model, const Scalar* x, Sc
   return out;
 }
 
-Scalar constraint_distance(const Model& model, const Constraint& c, const Scalar* x) {
-  if (c.plane >= 0) {
-    const Plane& plane = model.planes[static_cast<size_t>(c.plane)];
-    const Scalar s = plane.normal.dot(at(x, c.v[0]) - plane.point);
-    return s * s;
-  }
-  Vec3 v[4];
-  for (int k = 0; k < vertex_count(c.kind); ++k) v[k] = at(x, c.v[static_cast<size_t>(k)]);
-  return reduced_distance(c.kind, v);
+std::vector<Constraint> find_constraints(const Model& model, BroadPhase& broad, const Scalar* x, Scalar dhat2) {
+  Candidates candidates;
+  broad.find(model, x, nullptr, std::sqrt(dhat2), candidates);
+  return find_constraints(model, candidates, x, dhat2);
 }
 
-void constraint_derivatives(const Model& model, const Constraint& c, const Scalar* x, Vec<12>& g, Mat<12>& H) {
-  if (c.plane >= 0) {
-    const Plane& plane = model.planes[static_cast<size_t>(c.plane)];
-    const Scalar s = plane.normal.dot(at(x, c.v[0]) - plane.point);
-    g.setZero();
-    H.setZero();
-    g.head<3>() = 2 * s * plane.normal;
-    H.topLeftCorner<3, 3>() = 2 * plane.normal * plane.normal.transpose();
-    return;
-  }
-  Vec3 v[4];
-  for (int k = 0; k < vertex_count(c.kind); ++k) v[k] = at(x, c.v[static_cast<size_t>(k)]);
-  reduced_derivatives(c.kind, v, g, H);
+std::vector<Constraint> find_constraints(const Model& model, const Scalar* x, Scalar dhat2) {
+  BroadPhase broad;
+  return find_constraints(model, broad, x, dhat2);
 }
 
-Scalar max_safe_step(const Model& model, const Scalar* x, const Scalar* dx, const CcdOptions& options) {
-  Scalar t = 1;
+Scalar constraint_barrier(const Model& model, const Constraint& c, const Scalar* x, Scalar dhat2, Vec<12>* g,
+                          Mat<12>* H, bool project) {
+  if (c.plane >= 0) {
+    const Plane& plane = model.planes[static_cast<size_t>(c.plane)];
+    const Scalar s = plane.normal.dot(at(x, c.v[0]) - plane.point), d = s * s;
+    if (g) {
+      g->setZero();
+      g->head<3>() = barrier_first(d, dhat2) * 2 * s * plane.normal;
+    }
+    if (H) {
+      // b'' (2 s n)(2 s n)^T + b' 2 n n^T: rank one along n.
+      Scalar k = 4 * d * barrier_second(d, dhat2) + 2 * barrier_first(d, dhat2);
+      if (project) k = std::max(k, Scalar(0));
+      H->setZero();
+      H->topLeftCorner<3, 3>() = k * plane.normal * plane.normal.transpose();
+    }
+    return barrier(d, dhat2);
+  }
+  const int n = c.stencil_size();
+  const Index* ids = c.stencil();
+  Vec3 y[4];
+  for (int a = 0; a < n; ++a) y[a] = at(x, ids[a]);
+  Reduced r{c.kind, {0, 1, 2, 3}};
+  if (c.eps_x > 0)
+    for (int a = 0; a < vertex_count(c.kind); ++a)
+      r.slot[a] = static_cast<int>(std::find(ids, ids + 4, c.v[static_cast<size_t>(a)]) - ids);
+  const Scalar e = pair_barrier(r, y, c.eps_x, dhat2, g, H);
+  if (H && project) {
+    if (n == 4)
+      project_psd_translation_free<4>(*H);
+    else if (n == 3)
+      project_psd_translation_free<3>(*H);
+    else
+      project_psd_translation_free<2>(*H);
+  }
+  return e;
+}
+
+Scalar evaluate_barriers(const Model& model, const std::vector<Constraint>& constraints, const Scalar* x,
+                         Scalar dhat2, std::vector<Vec<12>>* g, std::vector<Mat<12>>* H, bool project) {
+  const Index n = static_cast<Index>(constraints.size());
+  if (g) g->resize(static_cast<size_t>(n));
+  if (H) H->resize(static_cast<size_t>(n));
+  std::vector<Scalar> energy(static_cast<size_t>(n));
+#pragma omp parallel for schedule(dynamic, 16) if (n > 64)
+  for (Index i = 0; i < n; ++i) {
+    const size_t k = static_cast<size_t>(i);
+    energy[k] = constraint_barrier(model, constraints[k], x, dhat2, g ? &(*g)[k] : nullptr,
+                                   g && H ? &(*H)[k] : nullptr, project);
+  }
+  Scalar sum = 0;
+  for (Scalar e : energy) sum += e;
+  return sum;
+}
+
+Scalar max_safe_step(const Model& model, const Candidates& candidates, const Scalar* x, const Scalar* dx,
+                     const CcdOptions& options) {
   const auto& F = model.faces;
   const auto& E = model.edges;
-  candidate_pairs(
-      model, x, dx, 0,
-      [&](Index p, Index f) {
-        const Index a = F[3 * f], b = F[3 * f + 1], c = F[3 * f + 2];
-        t = std::min(t, point_triangle_ccd(at(x, p), at(x, a), at(x, b), at(x, c), at(dx, p), at(dx, a),
-                                           at(dx, b), at(dx, c), t, options));
-      },
-      [&](Index e, Index f) {
-        const Index a0 = E[2 * e], a1 = E[2 * e + 1], b0 = E[2 * f], b1 = E[2 * f + 1];
-        t = std::min(t, edge_edge_ccd(at(x, a0), at(x, a1), at(x, b0), at(x, b1), at(dx, a0), at(dx, a1),
-                                      at(dx, b0), at(dx, b1), t, options));
-      });
+  // The minimum over pairs does not depend on their order (each pair's time of impact below the
+  // running minimum is found exactly), so threads may share the running bound.
+  Scalar t = 1;
+  const Index pf = static_cast<Index>(candidates.point_face.size());
+  const Index ee = static_cast<Index>(candidates.edge_edge.size());
+#pragma omp parallel if (pf + ee > 256)
+  {
+  Scalar local = 1;
+#pragma omp for schedule(dynamic, 32) nowait
+  for (Index i = 0; i < pf + ee; ++i) {
+    Index ids[4];
+    int k;
+    if (i < pf) {
+      const auto [p, f] = candidates.point_face[static_cast<size_t>(i)];
+      ids[0] = p, ids[1] = F[3 * f], ids[2] = F[3 * f + 1], ids[3] = F[3 * f + 2];
+      k = 1;
+    } else {
+      const auto [e, f] = candidates.edge_edge[static_cast<size_t>(i - pf)];
+      ids[0] = E[2 * e], ids[1] = E[2 * e + 1], ids[2] = E[2 * f], ids[3] = E[2 * f + 1];
+      k = 2;
+    }
+    // Candidates may be grown for the barrier: CCD needs only pairs whose swept boxes meet.
+    Scalar lo[3], hi[3], lo2[3], hi2[3];
+    primitive_box(ids, k, x, dx, 0, lo, hi);
+    primitive_box(ids + k, 4 - k, x, dx, 0, lo2, hi2);
+    if (!overlap(lo, hi, lo2, hi2)) continue;
+    const Scalar bound = local;
+    const Scalar s = k == 1 ? point_triangle_ccd(at(x, ids[0]), at(x, ids[1]), at(x, ids[2]), at(x, ids[3]),
+                                                 at(dx, ids[0]), at(dx, ids[1]), at(dx, ids[2]), at(dx, ids[3]),
+                                                 bound, options)
+                            : edge_edge_ccd(at(x, ids[0]), at(x, ids[1]), at(x, ids[2]), at(x, ids[3]),
+                                            at(dx, ids[0]), at(dx, ids[1]), at(dx, ids[2]), at(dx, ids[3]),
+                                            bound, options);
+    local = std::min(local, s);
+  }
+#pragma omp critical(kinema_contact_ccd)
+  t = std::min(t, local);
+  }
   for (const Plane& plane : model.planes)
     for (Index v : model.points) {
       if (model.fixed[static_cast<size_t>(v)]) continue;
@@ -278,23 +382,34 @@ Scalar max_safe_step(const Model& model, const Scalar* x, const Scalar* dx, cons
   return t;
 }
 
+Scalar max_safe_step(const Model& model, BroadPhase& broad, const Scalar* x, const Scalar* dx,
+                     const CcdOptions& options) {
+  Candidates candidates;
+  broad.find(model, x, dx, 0, candidates);
+  return max_safe_step(model, candidates, x, dx, options);
+}
+
+Scalar max_safe_step(const Model& model, const Scalar* x, const Scalar* dx, const CcdOptions& options) {
+  BroadPhase broad;
+  return max_safe_step(model, broad, x, dx, options);
+}
+
 Scalar min_distance(const Model& model, const Scalar* x, Scalar radius) {
   Scalar best = std::numeric_limits<Scalar>::infinity();
   const Scalar r2 = radius * radius;
   const auto& F = model.faces;
   const auto& E = model.edges;
-  candidate_pairs(
-      model, x, nullptr, radius,
-      [&](Index p, Index f) {
-        if (all_fixed(model, {p, F[3 * f], F[3 * f + 1], F[3 * f + 2]})) return;
-        const Scalar d = point_triangle_distance(at(x, p), at(x, F[3 * f]), at(x, F[3 * f + 1]), at(x, F[3 * f + 2]));
-        if (d < r2) best = std::min(best, d);
-      },
-      [&](Index e, Index f) {
-        if (all_fixed(model, {E[2 * e], E[2 * e + 1], E[2 * f], E[2 * f + 1]})) return;
-        const Scalar d = edge_edge_distance(at(x, E[2 * e]), at(x, E[2 * e + 1]), at(x, E[2 * f]), at(x, E[2 * f + 1]));
-        if (d < r2) best = std::min(best, d);
-      });
+  BroadPhase broad;
+  Candidates candidates;
+  broad.find(model, x, nullptr, radius, candidates);
+  for (const auto& [p, f] : candidates.point_face) {
+    const Scalar d = point_triangle_distance(at(x, p), at(x, F[3 * f]), at(x, F[3 * f + 1]), at(x, F[3 * f + 2]));
+    if (d < r2) best = std::min(best, d);
+  }
+  for (const auto& [e, f] : candidates.edge_edge) {
+    const Scalar d = edge_edge_distance(at(x, E[2 * e]), at(x, E[2 * e + 1]), at(x, E[2 * f]), at(x, E[2 * f + 1]));
+    if (d < r2) best = std::min(best, d);
+  }
   best = std::sqrt(best);
   for (const Plane& plane : model.planes)
     for (Index v : model.points) {

@@ -4,9 +4,10 @@
 // the same vertices (a vertex near an edge seen from both of its triangles): each term is the
 // exact distance of its own pair, continuous across region switches, so the barrier sum is
 // continuous, where merging makes terms appear with a non-zero value at region boundaries.
-// Also: the largest safe step along a displacement (ACCD over the pairs whose swept boxes
-// overlap), and exact checks (minimum distance, edge-triangle
-// intersections) for validation. Broad phase: geometry/bvh.h over the faces and the edges.
+// Also: the barrier terms of the active pairs (barrier.h, with the edge-edge mollifier), the
+// largest safe step along a displacement (ACCD over the pairs whose swept boxes overlap), and
+// exact checks (minimum distance, edge-triangle intersections) for validation. Broad phase:
+// geometry/bvh.h over the faces and the edges, kept and refit between queries (BroadPhase).
 #pragma once
 
 #include <array>
@@ -15,6 +16,7 @@
 
 #include "contact/ccd.h"
 #include "contact/model.h"
+#include "geometry/bvh.h"
 
 namespace kinema::contact {
 
@@ -24,18 +26,74 @@ struct Constraint {
   std::array<Index, 4> v;
   Index plane = -1;  // >= 0: vertex v[0] against model.planes[plane] (kind PP unused)
   Scalar d = 0;      // squared distance at the positions it was found at
+  // Edge-edge pairs, whatever formula they reduce to: the two edges (a0, a1, b0, b1) and the
+  // mollifier threshold eps_x > 0 (barrier.h); other pairs: -1 and 0.
+  std::array<Index, 4> edges{{-1, -1, -1, -1}};
+  Scalar eps_x = 0;
+
+  // The vertices the barrier term reads; its gradient and Hessian are over these, 3 entries each.
+  int stencil_size() const { return eps_x > 0 ? 4 : plane >= 0 ? 1 : vertex_count(kind); }
+  const Index* stencil() const { return eps_x > 0 ? edges.data() : v.data(); }
+};
+
+// Pairs of non-adjacent primitives whose boxes meet: (surface point, face) and (edge, edge)
+// with the lower edge first; pairs made only of fixed vertices are left out.
+struct Candidates {
+  std::vector<std::array<Index, 2>> point_face, edge_edge;
+};
+
+// The broad phase: BVHs over the boxes of the faces and the edges, kept between queries. Built
+// with the binned SAH on first use, then refit to each query's boxes (O(n)); rebuilt when the
+// refit tree's area ratio (bvh.h) exceeds twice its build's. The trees only group primitives,
+// so a query's result is the same whatever their state. A Solver owns one; not thread-safe.
+class BroadPhase {
+ public:
+  // Pairs whose boxes, swept over x -> x + dx (dx may be null) and grown by r, meet, in a
+  // deterministic order (the same for any thread count).
+  void find(const Model& model, const Scalar* x, const Scalar* dx, Scalar r, Candidates& out);
+
+ private:
+  struct Tree {
+    geometry::Bvh bvh;
+    std::vector<Index> ids;        // primitive k of the tree is faces/edges[ids[k]]
+    std::vector<Scalar> lo, hi;    // its current boxes
+    Scalar built_ratio = 0;
+  };
+  void update(Tree& tree, const std::vector<Index>& prims, int k, const Scalar* x, const Scalar* dx, Scalar r);
+
+  Tree faces_, moving_faces_, edges_;
+  std::vector<Index> moving_face_ids_;
+  bool ready_ = false;
+  bool any_fixed_point_ = false;
 };
 
 // Every pair of non-adjacent primitives with squared distance < dhat2 at x (planes included),
 // in a deterministic order. Pairs made only of fixed vertices are skipped.
 std::vector<Constraint> find_constraints(const Model& model, const Scalar* x, Scalar dhat2);
+std::vector<Constraint> find_constraints(const Model& model, BroadPhase& broad, const Scalar* x, Scalar dhat2);
+// The same from candidates whose boxes, grown by at least dhat, contain x (narrow phase only).
+std::vector<Constraint> find_constraints(const Model& model, const Candidates& candidates, const Scalar* x,
+                                         Scalar dhat2);
 
-// Squared distance of a constraint at x, and its gradient/Hessian over its vertices.
-Scalar constraint_distance(const Model& model, const Constraint& c, const Scalar* x);
-void constraint_derivatives(const Model& model, const Constraint& c, const Scalar* x, Vec<12>& g, Mat<12>& H);
+// Barrier terms of many constraints at once (in parallel, in the constraints' order): the sum of
+// the energies, and per constraint its gradient (g) and Hessian (H) over c.stencil() when the
+// vectors are given (H projected when `project`).
+Scalar evaluate_barriers(const Model& model, const std::vector<Constraint>& constraints, const Scalar* x,
+                         Scalar dhat2, std::vector<Vec<12>>* g, std::vector<Mat<12>>* H, bool project);
+
+// Barrier term m(s) b(d) of a constraint at x (barrier.h; m = 1 but for edge pairs) and, when g
+// is given, its gradient over c.stencil(); when H is given too, its Hessian, projected to the
+// nearest positive semidefinite matrix when `project` (Li et al. 2020, sec. 4.2).
+Scalar constraint_barrier(const Model& model, const Constraint& c, const Scalar* x, Scalar dhat2, Vec<12>* g,
+                          Mat<12>* H, bool project);
 
 // Largest t in [0, 1] such that moving x -> x + t dx keeps every pair apart (conservative).
 Scalar max_safe_step(const Model& model, const Scalar* x, const Scalar* dx, const CcdOptions& options);
+Scalar max_safe_step(const Model& model, BroadPhase& broad, const Scalar* x, const Scalar* dx,
+                     const CcdOptions& options);
+// The same over candidates whose boxes were swept over (at least) x -> x + dx.
+Scalar max_safe_step(const Model& model, const Candidates& candidates, const Scalar* x, const Scalar* dx,
+                     const CcdOptions& options);
 
 // Smallest exact distance [m] between non-adjacent primitives (point-triangle, edge-edge) and
 // from vertices to planes, over the pairs closer than `radius`; +inf when none is.

@@ -9,9 +9,10 @@
 // and each formula is differentiated in closed form: PT and EE are a^2 / b with a a triple
 // product and b a squared cross product, PE is b / c with c a squared length. Every distance
 // is squared (no square roots, smooth where it is positive).
-// Edge-edge pairs that are parallel to rounding fall back to the point-edge formulas: IPC's
-// mollifier, which makes the barrier C^1 across that switch, is left out (so a Newton solve can
-// meet a kink there; the line search still only accepts decreases).
+// Edge-edge pairs that are parallel to rounding fall back to the point-edge formulas; the
+// distance of two segments has a kink where they turn parallel (the closest points jump from one
+// end to the other), which the barrier's mollifier on s = |(a1 - a0) x (b1 - b0)|^2 removes
+// (barrier.h, edge_mollifier; ee_cross_derivatives below gives s and its derivatives).
 #pragma once
 
 #include <Eigen/Core>
@@ -301,6 +302,24 @@ inline void ee_derivatives(const Vec3& a0, const Vec3& a1, const Vec3& b0, const
   J.block<3, 3>(3, 9) = J.block<3, 3>(6, 6) = Mat3::Identity();
   g = J.transpose() * gy;
   H = J.transpose() * Hy * J;
+}
+
+// s = |(a1 - a0) x (b1 - b0)|^2 of an edge pair with its gradient and Hessian over
+// (a0, a1, b0, b1): the quantity the edge-edge mollifier is a function of.
+inline Scalar ee_cross_derivatives(const Vec3& a0, const Vec3& a1, const Vec3& b0, const Vec3& b1, Vec<12>& g,
+                                   Mat<12>& H) {
+  Scalar s;
+  Vec<6> g6;
+  Mat<6> H6;
+  detail::cross_sq(a1 - a0, b1 - b0, s, g6, H6);
+  // (e1, e2) = (a1 - a0, b1 - b0): d/da0 = -d/de1, d/da1 = d/de1, likewise for b.
+  const int sign[4] = {-1, 1, -1, 1};
+  for (int a = 0; a < 4; ++a) {
+    g.segment<3>(3 * a) = sign[a] * g6.segment<3>(3 * (a / 2));
+    for (int b = 0; b < 4; ++b)
+      H.block<3, 3>(3 * a, 3 * b) = (sign[a] * sign[b]) * H6.block<3, 3>(3 * (a / 2), 3 * (b / 2));
+  }
+  return s;
 }
 
 // Gradient (first 3k entries of g) and Hessian (top-left 3k x 3k of H) of a reduced pair.

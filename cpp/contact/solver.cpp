@@ -19,14 +19,6 @@ namespace {
 
 Vec3 at(const Scalar* x, Index i) { return Eigen::Map<const Vec3>(x + 3 * i); }
 
-// Nearest positive semidefinite matrix (negative eigenvalues clamped to zero). Fixed 12 x 12:
-// a pair with fewer vertices has zero rows and columns beyond, whose eigenvalues stay zero.
-void project_psd(Mat<12>& H) {
-  Eigen::SelfAdjointEigenSolver<Mat<12>> eig(H);
-  if (eig.eigenvalues().minCoeff() >= 0) return;
-  H = eig.eigenvectors() * eig.eigenvalues().cwiseMax(Scalar(0)).asDiagonal() * eig.eigenvectors().transpose();
-}
-
 // A degree of freedom of the solve: a body vertex that is not pinned, or a driven obstacle vertex.
 bool is_dof(const Model& model, Index i) {
   return !model.fixed[static_cast<size_t>(i)] || model.driven[static_cast<size_t>(i)];
@@ -159,41 +151,45 @@ Scalar Solver::elastic_energy(const Scalar* x) const {
 }
 
 Scalar Solver::barrier_energy(const Scalar* x) const {
-  Scalar e = 0;
-  for (const Constraint& c : find_constraints(model_, x, dhat2_)) e += barrier(c.d, dhat2_);
-  return e;
+  return evaluate_barriers(model_, find_constraints(model_, broad_phase_, x, dhat2_), x, dhat2_, nullptr, nullptr,
+                           false);
 }
 
 void Solver::barrier_gradient(const Scalar* x, Scalar* g) const {
   std::fill(g, g + 3 * model_.vertex_count, Scalar(0));
-  for (const Constraint& c : find_constraints(model_, x, dhat2_)) {
-    Vec<12> gd;
-    Mat<12> Hd;
-    constraint_derivatives(model_, c, x, gd, Hd);
-    const Scalar b1 = barrier_first(c.d, dhat2_);
-    const int k = c.plane >= 0 ? 1 : vertex_count(c.kind);
-    for (int a = 0; a < k; ++a)
-      for (int r = 0; r < 3; ++r) g[3 * c.v[static_cast<size_t>(a)] + r] += b1 * gd[3 * a + r];
+  const std::vector<Constraint> constraints = find_constraints(model_, broad_phase_, x, dhat2_);
+  std::vector<Vec<12>> gb;
+  evaluate_barriers(model_, constraints, x, dhat2_, &gb, nullptr, false);
+  for (size_t k = 0; k < constraints.size(); ++k) {
+    const Constraint& c = constraints[k];
+    for (int a = 0; a < c.stencil_size(); ++a)
+      for (int r = 0; r < 3; ++r) g[3 * c.stencil()[a] + r] += gb[k][3 * a + r];
   }
 }
 
 SparseMatrix Solver::barrier_hessian(const Scalar* x, bool project) const {
   Triplets t;
-  for (const Constraint& c : find_constraints(model_, x, dhat2_)) {
-    Vec<12> gd;
-    Mat<12> Hd;
-    constraint_derivatives(model_, c, x, gd, Hd);
-    const int k = c.plane >= 0 ? 1 : vertex_count(c.kind);
-    Mat<12> H = barrier_second(c.d, dhat2_) * gd * gd.transpose() + barrier_first(c.d, dhat2_) * Hd;
-    if (project) project_psd(H);
+  const std::vector<Constraint> constraints = find_constraints(model_, broad_phase_, x, dhat2_);
+  std::vector<Vec<12>> gb;
+  std::vector<Mat<12>> Hb;
+  evaluate_barriers(model_, constraints, x, dhat2_, &gb, &Hb, project);
+  for (size_t i = 0; i < constraints.size(); ++i) {
+    const int k = constraints[i].stencil_size();
+    const Index* v = constraints[i].stencil();
     for (int a = 0; a < 3 * k; ++a)
-      for (int b = 0; b < 3 * k; ++b)
-        t.emplace_back(3 * c.v[static_cast<size_t>(a / 3)] + a % 3, 3 * c.v[static_cast<size_t>(b / 3)] + b % 3,
-                       H(a, b));
+      for (int b = 0; b < 3 * k; ++b) t.emplace_back(3 * v[a / 3] + a % 3, 3 * v[b / 3] + b % 3, Hb[i](a, b));
   }
   SparseMatrix A(3 * model_.vertex_count, 3 * model_.vertex_count);
   A.setFromTriplets(t.begin(), t.end());
   return A;
+}
+
+std::vector<Constraint> Solver::constraints(const Scalar* x) const {
+  return find_constraints(model_, broad_phase_, x, dhat2_);
+}
+
+Scalar Solver::max_safe_step(const Scalar* x, const Scalar* dx) const {
+  return contact::max_safe_step(model_, broad_phase_, x, dx, CcdOptions{});
 }
 
 Scalar Solver::initial_kappa(Scalar h) const {
@@ -213,7 +209,7 @@ Scalar Solver::initial_kappa(Scalar h) const {
 void Solver::lag_friction(const std::vector<Scalar>& x, Scalar kappa, Scalar h) {
   friction_.clear();
   if (config_.friction <= 0) return;
-  for (const Constraint& c : find_constraints(model_, x.data(), dhat2_)) {
+  for (const Constraint& c : find_constraints(model_, broad_phase_, x.data(), dhat2_)) {
     FrictionContact f;
     Vec3 n;
     closest_weights(model_, c, x.data(), f, n);
@@ -251,7 +247,8 @@ Scalar Solver::potential(const std::vector<Scalar>& x, Scalar h, Scalar kappa) c
     inertia += 0.5 * h * model_.spring_damping[static_cast<size_t>(s)] * du * du;
   }
   Scalar b = 0;
-  for (const Constraint& c : find_constraints(model_, x.data(), dhat2_)) b += barrier(c.d, dhat2_);
+  b = evaluate_barriers(model_, find_constraints(model_, candidates_, x.data(), dhat2_), x.data(), dhat2_, nullptr,
+                        nullptr, false);
   Scalar friction = 0;
   const Scalar mu = config_.friction, eps_v = config_.friction_velocity;
   for (const FrictionContact& f : friction_) {
@@ -331,16 +328,14 @@ void Solver::assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, cons
     add_block(model_, t, ij, 2, He);
   }
   // Barrier: kappa (b' grad d, b'' grad d grad d^T + b' Hess d), projected per contact.
-  for (const Constraint& c : constraints) {
-    Vec<12> gd;
-    Mat<12> Hd;
-    constraint_derivatives(model_, c, x.data(), gd, Hd);
-    const int k = c.plane >= 0 ? 1 : vertex_count(c.kind);
-    const Scalar b1 = barrier_first(c.d, dhat2_), b2 = barrier_second(c.d, dhat2_);
-    add_grad(c.v.data(), k, kappa * b1 * gd.head(3 * k));
-    Mat<12> H = kappa * (b2 * gd * gd.transpose() + b1 * Hd);
-    project_psd(H);
-    add_block(model_, t, c.v.data(), k, H);
+  std::vector<Vec<12>> gb;
+  std::vector<Mat<12>> Hb;
+  evaluate_barriers(model_, constraints, x.data(), dhat2_, &gb, &Hb, true);
+  for (size_t i = 0; i < constraints.size(); ++i) {
+    const Constraint& c = constraints[i];
+    const int k = c.stencil_size();
+    add_grad(c.stencil(), k, kappa * gb[i].head(3 * k));
+    add_block(model_, t, c.stencil(), k, (kappa * Hb[i]).eval());
   }
   // Friction: h^2 mu lambda (f1(y)/y u/h through T, and the PSD tangent Hessian).
   const Scalar mu = config_.friction, eps_v = config_.friction_velocity;
@@ -427,6 +422,7 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
   };
 
   std::vector<Scalar> x = xn_, g, p(static_cast<size_t>(3 * n)), trial(static_cast<size_t>(3 * n));
+  broad_phase_.find(model_, x.data(), nullptr, config_.dhat, candidates_);
   Triplets triplets;
   SparseMatrix H(3 * n, 3 * n);
   Scalar prev_min = std::numeric_limits<Scalar>::infinity();
@@ -435,7 +431,7 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
     interrupt.check();
     // Projected Newton direction: H p = -grad Phi.
     Stopwatch phase;
-    const std::vector<Constraint> constraints = find_constraints(model_, x.data(), dhat2_);
+    const std::vector<Constraint> constraints = find_constraints(model_, candidates_, x.data(), dhat2_);
     assemble(x, h, kappa, constraints, g, triplets);
     H.setFromTriplets(triplets.begin(), triplets.end());
     H.makeCompressed();
@@ -478,7 +474,10 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
     // Largest intersection-free step by CCD, then backtracking until Phi decreases.
     Stopwatch ccd_timer;
     CcdOptions ccd;
-    Scalar alpha = max_safe_step(model_, x.data(), p.data(), ccd);
+    // One broad phase per iteration: boxes swept over x -> x + p and grown by dhat hold the CCD
+    // pairs, every line-search trial's active pairs and the next iteration's.
+    broad_phase_.find(model_, x.data(), p.data(), config_.dhat, candidates_);
+    Scalar alpha = contact::max_safe_step(model_, candidates_, x.data(), p.data(), ccd);
     stats.ccd_seconds += ccd_timer.seconds();
     stats.min_step_fraction = std::min(stats.min_step_fraction, alpha);
     phase.restart();
@@ -504,7 +503,7 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
     // Raise kappa when contacts keep closing in below 1e-9 of the scene size (Li et al. 2020,
     // sec. 4.3), so the gap stays resolvable in floating point.
     Scalar dmin = std::numeric_limits<Scalar>::infinity();
-    for (const Constraint& c : find_constraints(model_, x.data(), dhat2_)) dmin = std::min(dmin, std::sqrt(c.d));
+    for (const Constraint& c : find_constraints(model_, candidates_, x.data(), dhat2_)) dmin = std::min(dmin, std::sqrt(c.d));
     const Scalar eps_d = 1e-9 * diag;
     if (prev_min < eps_d && dmin < eps_d && dmin < prev_min) kappa *= 2;
     prev_min = dmin;
@@ -539,7 +538,7 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
   state.time += h;
   state.kappa = kappa;
 
-  const std::vector<Constraint> final_set = find_constraints(model_, x.data(), dhat2_);
+  const std::vector<Constraint> final_set = find_constraints(model_, candidates_, x.data(), dhat2_);
   stats.contact_count = static_cast<Index>(final_set.size());
   stats.min_distance = std::numeric_limits<Scalar>::infinity();
   for (const Constraint& c : final_set) stats.min_distance = std::min(stats.min_distance, std::sqrt(c.d));

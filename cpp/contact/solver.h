@@ -58,6 +58,10 @@ class Solver {
   Scalar barrier_energy(const Scalar* x) const;
   void barrier_gradient(const Scalar* x, Scalar* g) const;
   SparseMatrix barrier_hessian(const Scalar* x, bool project) const;
+  // The active pairs at x and the largest collision-free fraction of the move x -> x + dx,
+  // on the solver's broad phase (its trees refit, not rebuilt).
+  std::vector<Constraint> constraints(const Scalar* x) const;
+  Scalar max_safe_step(const Scalar* x, const Scalar* dx) const;
 
   // Throws InvalidArgument when x intersects (edges through triangles, vertices behind planes).
   void check_intersection_free(const Scalar* x, const char* name) const;
@@ -84,6 +88,11 @@ class Solver {
   std::vector<FrictionContact> friction_;
   std::unique_ptr<SpdSolver> linear_;
   std::vector<Index> pattern_ptr_, pattern_col_;
+  // Broad phase kept between queries (its trees are refit), and the candidate pairs of the
+  // current Newton iteration: boxes swept over x -> x + p grown by dhat, so every trial of the
+  // line search (x + alpha p, alpha <= 1) finds its active pairs among them.
+  mutable BroadPhase broad_phase_;
+  Candidates candidates_;
 };
 
 }  // namespace kinema::contact

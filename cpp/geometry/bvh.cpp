@@ -144,4 +144,40 @@ std::int32_t Bvh::build(Index begin, Index end, int depth, const std::vector<Sca
   return self;
 }
 
+void Bvh::refit(const std::vector<Scalar>& lo, const std::vector<Scalar>& hi) {
+  if (lo.size() != 3 * order_.size() || hi.size() != lo.size())
+    throw InvalidArgument("bvh: refit needs the bounds of the same primitives");
+  // Children follow their parent in the depth-first layout, so a reverse sweep sees them first.
+  for (size_t k = nodes_.size(); k-- > 0;) {
+    BvhNode& node = nodes_[k];
+    Box b;
+    if (node.count > 0) {
+      for (std::int32_t i = 0; i < node.count; ++i) {
+        const size_t p = 3 * static_cast<size_t>(order_[static_cast<size_t>(node.first + i)]);
+        b.grow(&lo[p], &hi[p]);
+      }
+    } else {
+      const BvhNode& left = nodes_[k + 1];
+      const BvhNode& right = nodes_[static_cast<size_t>(node.second)];
+      b.grow(left.lo, left.hi);
+      b.grow(right.lo, right.hi);
+    }
+    std::copy(b.lo, b.lo + 3, node.lo);
+    std::copy(b.hi, b.hi + 3, node.hi);
+  }
+}
+
+Scalar Bvh::area_ratio() const {
+  if (nodes_.empty()) return 0;
+  auto area = [](const BvhNode& n) {
+    Box b;
+    b.grow(n.lo, n.hi);
+    return b.area();
+  };
+  Scalar sum = 0;
+  for (const BvhNode& n : nodes_) sum += area(n);
+  const Scalar root = area(nodes_[0]);
+  return root > 0 ? sum / root : 0;
+}
+
 }  // namespace kinema::geometry

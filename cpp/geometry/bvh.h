@@ -62,8 +62,17 @@ class Bvh {
   static constexpr int kMaxSahDepth = 40;
   static constexpr int kStackSize = 128;
 
+  Bvh() = default;
   // lo, hi: 3n values, the bounds of primitive i at [3i, 3i + 3).
   Bvh(const std::vector<Scalar>& lo, const std::vector<Scalar>& hi);
+
+  // Recomputes every node's box from new bounds of the same primitives, keeping the tree: O(n),
+  // and every query stays exact (only its speed depends on how well the old grouping fits).
+  void refit(const std::vector<Scalar>& lo, const std::vector<Scalar>& hi);
+  // Sum of the nodes' surface areas over the root's: the SAH's expected number of nodes a query
+  // visits, up to constants. A refit tree whose ratio has grown well past its build's is worth
+  // rebuilding.
+  Scalar area_ratio() const;
 
   const std::vector<BvhNode>& nodes() const { return nodes_; }
   const std::vector<Index>& order() const { return order_; }

@@ -12,6 +12,28 @@
 
 namespace kinema::contact {
 
+// A random query box, the primitives the BVH reports for it (sorted) and those whose boxes
+// overlap it by brute force.
+template <class Rng>
+void query_and_brute_force(const geometry::Bvh& bvh, const std::vector<Scalar>& lo, const std::vector<Scalar>& hi,
+                           Rng& rng, std::vector<Index>& found, std::vector<Index>& expected) {
+  std::uniform_real_distribution<Scalar> u(0, 1);
+  Scalar qlo[3], qhi[3];
+  for (int a = 0; a < 3; ++a) {
+    qlo[a] = u(rng);
+    qhi[a] = qlo[a] + 0.1 * u(rng);
+  }
+  found.clear();
+  expected.clear();
+  bvh.query(qlo, qhi, [&](Index i) { found.push_back(i); });
+  std::sort(found.begin(), found.end());
+  for (size_t i = 0; i < lo.size() / 3; ++i) {
+    bool overlap = true;
+    for (size_t a = 0; a < 3; ++a) overlap = overlap && lo[3 * i + a] <= qhi[a] && qlo[a] <= hi[3 * i + a];
+    if (overlap) expected.push_back(static_cast<Index>(i));
+  }
+}
+
 TEST(GeometryBvh, BoxQueryFindsEveryOverlappingBoxAndPrunesTheRest) {
   std::mt19937 rng(3);
   std::uniform_real_distribution<Scalar> u(0, 1), w(0, 0.05);
@@ -22,21 +44,9 @@ TEST(GeometryBvh, BoxQueryFindsEveryOverlappingBoxAndPrunesTheRest) {
     hi[i] = lo[i] + w(rng);
   }
   const geometry::Bvh bvh(lo, hi);
+  std::vector<Index> found, expected;
   for (int q = 0; q < 50; ++q) {
-    Scalar qlo[3], qhi[3];
-    for (int a = 0; a < 3; ++a) {
-      qlo[a] = u(rng);
-      qhi[a] = qlo[a] + 0.1 * u(rng);
-    }
-    std::vector<Index> found;
-    bvh.query(qlo, qhi, [&](Index i) { found.push_back(i); });
-    std::sort(found.begin(), found.end());
-    std::vector<Index> expected;
-    for (int i = 0; i < n; ++i) {
-      bool overlap = true;
-      for (int a = 0; a < 3; ++a) overlap = overlap && lo[3 * i + a] <= qhi[a] && qlo[a] <= hi[3 * i + a];
-      if (overlap) expected.push_back(i);
-    }
+    query_and_brute_force(bvh, lo, hi, rng, found, expected);
     // Every overlapping box is found (the leaves' other primitives may come along), and the
     // tree prunes: a leaf holds at most kMaxLeafSize primitives.
     EXPECT_TRUE(std::includes(found.begin(), found.end(), expected.begin(), expected.end())) << "query " << q;
@@ -70,6 +80,42 @@ TEST(ContactDistance, PointTriangleAndEdgeEdgeDerivativesMatchCentralDifferences
       for (int j = 0; j < 3 * k; ++j)
         EXPECT_NEAR((gp[j] - gm[j]) / (2 * eps), H(j, i), 1e-5 * H.cwiseAbs().maxCoeff());
     }
+  }
+}
+
+TEST(GeometryBvh, RefitQueriesStayExactAfterTheBoxesMove) {
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<Scalar> u(0, 1), w(0, 0.05), step(-0.2, 0.2);
+  const int n = 1500;
+  std::vector<Scalar> lo(3 * n), hi(3 * n);
+  for (int i = 0; i < 3 * n; ++i) {
+    lo[i] = u(rng);
+    hi[i] = lo[i] + w(rng);
+  }
+  geometry::Bvh bvh(lo, hi);
+  const std::vector<geometry::BvhNode> built = bvh.nodes();
+  const Scalar built_ratio = bvh.area_ratio();
+  // Refitting to the boxes it was built from reproduces every node box exactly.
+  bvh.refit(lo, hi);
+  for (size_t k = 0; k < built.size(); ++k)
+    for (int a = 0; a < 3; ++a) {
+      ASSERT_EQ(bvh.nodes()[k].lo[a], built[k].lo[a]) << "node " << k;
+      ASSERT_EQ(bvh.nodes()[k].hi[a], built[k].hi[a]) << "node " << k;
+    }
+  EXPECT_EQ(bvh.area_ratio(), built_ratio);
+  // Move every box at random: the refit tree still finds every overlapping box.
+  for (int i = 0; i < n; ++i)
+    for (int a = 0; a < 3; ++a) {
+      const Scalar d = step(rng);
+      lo[3 * i + a] += d;
+      hi[3 * i + a] += d;
+    }
+  bvh.refit(lo, hi);
+  EXPECT_GT(bvh.area_ratio(), built_ratio);  // the old grouping fits the moved boxes worse
+  std::vector<Index> found, expected;
+  for (int q = 0; q < 50; ++q) {
+    query_and_brute_force(bvh, lo, hi, rng, found, expected);
+    EXPECT_TRUE(std::includes(found.begin(), found.end(), expected.begin(), expected.end())) << "query " << q;
   }
 }
 
