@@ -10,6 +10,7 @@
 #include <Eigen/Core>
 #include <algorithm>
 #include <cmath>
+#include <memory>
 #include <string>
 #include <vector>
 
@@ -17,6 +18,7 @@
 #include "core/timer.h"
 #include "fmm/kernels3d.h"
 #include "fmm/m2l_product.h"
+#include "fmm/rotation3d.h"
 #include "fmm/tree.h"
 
 namespace kinema::fmm3 {
@@ -28,13 +30,16 @@ using fmm::Lists;
 using fmm::Octree;
 using ColMatrix = Eigen::Matrix<Scalar, Eigen::Dynamic, Eigen::Dynamic>;
 
-constexpr int kOffsets = 343;  // the 7^3 cube of same-level offsets, (dx+3)*49 + (dy+3)*7 + dz+3
+constexpr int kOffsets = 343;
+// From this order on the rotated M2L beats the dense products (bench/fmm/fmm3d_bench.py --m2l).
+constexpr int kRotationOrder = 6;  // the 7^3 cube of same-level offsets, (dx+3)*49 + (dy+3)*7 + dz+3
 
 // M2L matrices for the offsets with dx, dy, dz >= 0 only (56 of the 316): a reflection of the
 // offset is a diagonal +-1 map on both expansions, A(d) = T A(|d|) T (Helgaker's harmonics:
 // x -> -x maps I_lm to (-1)^m conj(I_lm), y -> -y to conj(I_lm), z -> -z to (-1)^(l+m) I_lm).
 struct M2lOperators {
-  M2lOperators(int p_, const std::vector<char>& used) : p(p_), n(coefficient_count(p_)), index(64, -1) {
+  M2lOperators(int p_, const std::vector<char>& used, bool rotate)
+      : p(p_), n(coefficient_count(p_)), index(64, -1) {
     std::vector<int> wanted;
     for (int o = 0; o < kOffsets; ++o) {
       if (!used[static_cast<size_t>(o)]) continue;
@@ -44,14 +49,8 @@ struct M2lOperators {
         wanted.push_back(base);
       }
     }
-    matrices.resize(wanted.size() * static_cast<size_t>(n) * static_cast<size_t>(n));
-    const int count = static_cast<int>(wanted.size());
-#pragma omp parallel for schedule(dynamic, 1)
-    for (int i = 0; i < count; ++i) {
-      const int b = wanted[static_cast<size_t>(i)];
-      const int d[3] = {b / 16, (b / 4) % 4, b % 4};
-      m2l_matrix(p, d, &matrices[static_cast<size_t>(i) * n * n]);
-    }
+    if (rotate) rotated = std::make_unique<RotatedM2l>(p, wanted);
+    else build_dense(wanted);
     // signs[pattern][k]: pattern bit 0/1/2 set when dx/dy/dz < 0.
     signs.assign(8, std::vector<Scalar>(static_cast<size_t>(n), 1.0));
     for (int pattern = 0; pattern < 8; ++pattern)
@@ -65,6 +64,16 @@ struct M2lOperators {
             const int k = l * l + (m == 0 ? 0 : 2 * m - 1 + part);
             signs[static_cast<size_t>(pattern)][static_cast<size_t>(k)] = s;
           }
+  }
+  void build_dense(const std::vector<int>& wanted) {
+    matrices.resize(wanted.size() * static_cast<size_t>(n) * static_cast<size_t>(n));
+    const int count = static_cast<int>(wanted.size());
+#pragma omp parallel for schedule(dynamic, 1)
+    for (int i = 0; i < count; ++i) {
+      const int b = wanted[static_cast<size_t>(i)];
+      const int d[3] = {b / 16, (b / 4) % 4, b % 4};
+      m2l_matrix(p, d, &matrices[static_cast<size_t>(i) * n * n]);
+    }
   }
   static int canonical(int o) {
     const int dx = o / 49 - 3, dy = (o / 7) % 7 - 3, dz = o % 7 - 3;
@@ -88,7 +97,8 @@ struct M2lOperators {
   }
   int p, n;
   std::vector<int> index;
-  std::vector<Scalar> matrices;
+  std::vector<Scalar> matrices;          // dense operators (when not rotating)
+  std::unique_ptr<RotatedM2l> rotated;  // O(p^3) operators (when rotating)
   std::vector<std::vector<Scalar>> signs;
 };
 
@@ -155,7 +165,31 @@ struct Engine {
       const bool flip = pattern != 0;
       const Index count = static_cast<Index>(list.size());
       const Index chunks = (count + kChunk - 1) / kChunk;
-      const int ne = coefficient_count(M2lOperators::truncated_order(o, p));
+      const int pt = M2lOperators::truncated_order(o, p);
+      const int ne = coefficient_count(pt);
+      if (ops.rotated) {
+        constexpr int K = RotatedM2l::kColumns;
+        const Index columns = count * nc, blocks = (columns + K - 1) / K;
+        const int b = M2lOperators::canonical(o);
+#pragma omp parallel for schedule(dynamic, 4) if (blocks > 1)
+        for (Index bk = 0; bk < blocks; ++bk) {
+          const Index begin = bk * K, end = std::min(columns, begin + K);
+          std::vector<Scalar> in(static_cast<size_t>(ne * K), 0.0), out(in.size()),
+              scratch(ops.rotated->scratch_size());
+          for (Index col = begin; col < end; ++col) {
+            const Scalar* m = mul(list[static_cast<size_t>(col / nc)].second, static_cast<int>(col % nc));
+            const Index c = col - begin;
+            for (int k = 0; k < ne; ++k) in[static_cast<size_t>(k * K + c)] = sign[k] * m[k];
+          }
+          ops.rotated->apply(b, pt, in.data(), out.data(), scratch.data());
+          for (Index col = begin; col < end; ++col) {
+            Scalar* l = loc(list[static_cast<size_t>(col / nc)].first, static_cast<int>(col % nc));
+            const Index c = col - begin;
+            for (int k = 0; k < ne; ++k) l[k] += sign[k] * inv_h * out[static_cast<size_t>(k * K + c)];
+          }
+        }
+        continue;
+      }
 #pragma omp parallel for schedule(dynamic, 1) if (chunks > 1)
       for (Index ck = 0; ck < chunks; ++ck) {
         const Index begin = ck * kChunk, end = std::min(count, begin + kChunk);
@@ -411,6 +445,11 @@ int order_for(Scalar eps) {
   return std::clamp(static_cast<int>(std::ceil(p)), 3, kMaxOrder3d);
 }
 
+bool rotate_m2l(int order, const Fmm3dConfig& config) {
+  if (config.m2l != M2lMethod::Auto) return config.m2l == M2lMethod::Rotation;
+  return order >= kRotationOrder;
+}
+
 // Near-field pairs per target ~27 x leaf against ~189 M2L of (p+1)^4 per box.
 Index leaf_size_for(int order) { return std::clamp<Index>(24 * order, 96, 512); }
 
@@ -423,6 +462,8 @@ Fmm3dStats fmm3d(const Scalar* sources, Index n, const Scalar* charges, int comp
     throw InvalidArgument("order: expected 0 (automatic) or 1.." + std::to_string(kMaxOrder3d) +
                           ", got " + std::to_string(config.order));
   if (config.leaf_size < 0) throw InvalidArgument("leaf_size: expected 0 (automatic) or a positive count");
+  if (static_cast<int>(config.m2l) < 0 || static_cast<int>(config.m2l) > 2)
+    throw InvalidArgument("m2l: expected auto, dense or rotation");
   if (config.derivatives < 0 || config.derivatives > 2)
     throw InvalidArgument("derivatives: expected 0, 1 or 2");
   if (components < 1 || components > 4)
@@ -466,7 +507,8 @@ Fmm3dStats fmm3d(const Scalar* sources, Index n, const Scalar* charges, int comp
   std::vector<char> used(kOffsets, 0);
   for (const Lists& l : tree.lists)
     for (const fmm::M2lEntry& e : l.m2l) used[static_cast<size_t>(e.offset)] = 1;
-  const M2lOperators ops(p, used);
+  stats.rotation = rotate_m2l(p, config);
+  const M2lOperators ops(p, used, stats.rotation);
   stats.seconds_tree = watch.seconds();
 
   Engine engine(tree, config, p, components, q);

@@ -15,6 +15,7 @@
 #include "fmm/laplace3d.h"
 #include "fmm/m2l_product.h"
 #include "fmm/p2p3d.h"
+#include "fmm/rotation3d.h"
 #include "fmm/tree.h"
 
 namespace kinema::fmm3 {
@@ -81,6 +82,64 @@ TEST(Fmm3dKernels, MultipoleTranslatedToLocalReproducesThePotential) {
     tp[a] += h, tm[a] -= h;
     const Scalar fd = (direct(s, tp) - direct(s, tm)) / (2 * h);
     EXPECT_NEAR(g, fd, 1e-5 * std::abs(exact)) << "L2P derivative " << a;
+  }
+}
+
+TEST(Fmm3dKernels, RotatedM2lMatchesDenseMatrixToRounding) {
+  // Every canonical offset of the V list (non-negative components, |d|_inf >= 2), at several
+  // orders and truncated orders, on multipoles of real clouds: the rotation-based operator and
+  // the dense matrix are two factorisations of one linear map, so they agree to rounding
+  // (measured on the locals weighted by sqrt((l+m)!(l-m)!)^-1, i.e. the orthonormal
+  // coefficients whose size bounds the potential's error).
+  constexpr int K = RotatedM2l::kColumns;
+  for (int p : {1, 4, 9, 16, 25, 38}) {
+    std::vector<int> canonical;  // all 56 at p <= 25; four (axis, face and body diagonal) at 38
+    for (int b = 0; b < 64; ++b)
+      if (std::max({b / 16, (b / 4) % 4, b % 4}) >= 2 && (p < 30 || b == 2 || b == 37 || b == 42 || b == 63))
+        canonical.push_back(b);
+    const RotatedM2l rotated(p, canonical);
+    const int n = coefficient_count(p);
+    std::vector<Scalar> in(static_cast<size_t>(n * K)), out(in.size()), scratch(rotated.scratch_size());
+    std::vector<std::vector<Scalar>> columns(K);
+    for (int c = 0; c < K; ++c) {
+      const Scalar centre[3] = {0, 0, 0};
+      const Cloud s = cloud(20, centre, 1.0, 7 + c);
+      const Scalar* xyz[3] = {s.x[0].data(), s.x[1].data(), s.x[2].data()};
+      columns[c].assign(static_cast<size_t>(n), 0.0);
+      p2m(p, centre, 1.0, xyz, s.q.data(), 20, 1, columns[c].data());
+      for (int k = 0; k < n; ++k) in[static_cast<size_t>(k * K + c)] = columns[c][static_cast<size_t>(k)];
+    }
+    std::vector<Scalar> weight(static_cast<size_t>(n));
+    for (int l = 0; l <= p; ++l)
+      for (int m = 0; m <= l; ++m) {
+        Scalar f = 1;
+        for (int k = 2; k <= l + m; ++k) f *= k;
+        for (int k = 2; k <= l - m; ++k) f *= k;
+        for (int part = 0; part < (m ? 2 : 1); ++part)
+          weight[static_cast<size_t>(l * l + (m ? 2 * m - 1 + part : 0))] = 1 / std::sqrt(f);
+      }
+    std::vector<Scalar> matrix(static_cast<size_t>(n * n));
+    for (int b : canonical) {
+      const int offset[3] = {b / 16, (b / 4) % 4, b % 4};
+      m2l_matrix(p, offset, matrix.data());
+      for (int pt : {p, std::max(1, p / 2)}) {
+        const int nt = coefficient_count(pt);
+        std::vector<Scalar> trunc(static_cast<size_t>(nt * K));
+        for (int k = 0; k < nt; ++k)
+          for (int c = 0; c < K; ++c) trunc[static_cast<size_t>(k * K + c)] = in[static_cast<size_t>(k * K + c)];
+        rotated.apply(b, pt, trunc.data(), out.data(), scratch.data());
+        for (int c = 0; c < K; ++c) {
+          Scalar err = 0, norm = 0;
+          for (int i = 0; i < nt; ++i) {
+            Scalar dense = 0;
+            for (int k = 0; k < nt; ++k) dense += matrix[static_cast<size_t>(i * n + k)] * columns[c][static_cast<size_t>(k)];
+            err = std::max(err, std::abs(out[static_cast<size_t>(i * K + c)] - dense) * weight[static_cast<size_t>(i)]);
+            norm = std::max(norm, std::abs(dense) * weight[static_cast<size_t>(i)]);
+          }
+          ASSERT_LE(err, 1e-13 * norm) << "p " << p << " pt " << pt << " offset " << offset[0] << offset[1] << offset[2];
+        }
+      }
+    }
   }
 }
 
