@@ -49,8 +49,13 @@ struct M2lOperators {
         wanted.push_back(base);
       }
     }
-    if (rotate) rotated = std::make_unique<RotatedM2l>(p, wanted);
-    else build_dense(wanted);
+    if (rotate) {
+      rotated = std::make_unique<RotatedTranslation>(p, Translation::M2L, wanted);
+      m2m = std::make_unique<RotatedTranslation>(p, Translation::M2M, std::vector<int>{RotatedTranslation::kDiagonal});
+      l2l = std::make_unique<RotatedTranslation>(p, Translation::L2L, std::vector<int>{RotatedTranslation::kDiagonal});
+    } else {
+      build_dense(wanted);
+    }
     // signs[pattern][k]: pattern bit 0/1/2 set when dx/dy/dz < 0.
     signs.assign(8, std::vector<Scalar>(static_cast<size_t>(n), 1.0));
     for (int pattern = 0; pattern < 8; ++pattern)
@@ -98,7 +103,7 @@ struct M2lOperators {
   int p, n;
   std::vector<int> index;
   std::vector<Scalar> matrices;          // dense operators (when not rotating)
-  std::unique_ptr<RotatedM2l> rotated;  // O(p^3) operators (when rotating)
+  std::unique_ptr<RotatedTranslation> rotated, m2m, l2l;  // O(p^3) operators (when rotating)
   std::vector<std::vector<Scalar>> signs;
 };
 
@@ -120,7 +125,8 @@ struct Engine {
     for (int d = 0; d < 3; ++d) src[d] = tree.s[d].data();
   }
 
-  void upward(Interrupt& interrupt) {
+  void upward(const M2lOperators& ops, Interrupt& interrupt) {
+    const bool rotate = ops.m2m != nullptr;
     for (size_t level = tree.levels.size(); level-- > 0;) {
       interrupt.check();
       const std::vector<Index>& ids = tree.levels[level];
@@ -137,12 +143,65 @@ struct Engine {
                 box.source_count(), nc, mul(id, c));
             continue;
           }
+          if (rotate) continue;
           for (Index ch : box.child) {
             if (ch < 0 || tree.boxes[static_cast<size_t>(ch)].source_count() == 0) continue;
             m2m(p, mul(ch, c), tree.boxes[static_cast<size_t>(ch)].c, box.c, box.h, mul(id, c));
           }
         }
       }
+      if (rotate) translate_children(ids, ops, true);
+    }
+  }
+
+  // dst += scale T (T op (T src)) for the (dst box, src box) pairs of one offset, kColumns
+  // expansions (pairs x components) at a time; T: the reflection signs mapping the offset to
+  // its canonical one b. src and dst read and write multipoles or locals (M2L: multipoles to
+  // locals, M2M: multipoles, L2L: locals). Each dst box appears once per call.
+  void translate(const RotatedTranslation& op, int b, int pt, const Scalar* sign,
+                 const std::vector<std::pair<Index, Index>>& list, bool from_multipoles,
+                 bool to_multipoles, Scalar scale) {
+    constexpr int K = RotatedTranslation::kColumns;
+    const int ne = coefficient_count(pt);
+    const Index columns = static_cast<Index>(list.size()) * nc, blocks = (columns + K - 1) / K;
+#pragma omp parallel for schedule(dynamic, 4) if (blocks > 1)
+    for (Index bk = 0; bk < blocks; ++bk) {
+      const Index begin = bk * K, end = std::min(columns, begin + K);
+      std::vector<Scalar> in(static_cast<size_t>(ne * K), 0.0), out(in.size()), scratch(op.scratch_size());
+      for (Index col = begin; col < end; ++col) {
+        const std::pair<Index, Index>& pr = list[static_cast<size_t>(col / nc)];
+        const int c = static_cast<int>(col % nc);
+        const Scalar* x = from_multipoles ? mul(pr.second, c) : loc(pr.second, c);
+        for (int k = 0; k < ne; ++k) in[static_cast<size_t>(k * K + col - begin)] = sign[k] * x[k];
+      }
+      op.apply(b, pt, in.data(), out.data(), scratch.data());
+      for (Index col = begin; col < end; ++col) {
+        const std::pair<Index, Index>& pr = list[static_cast<size_t>(col / nc)];
+        const int c = static_cast<int>(col % nc);
+        Scalar* y = to_multipoles ? mul(pr.first, c) : loc(pr.first, c);
+        for (int k = 0; k < ne; ++k) y[k] += sign[k] * scale * out[static_cast<size_t>(k * K + col - begin)];
+      }
+    }
+  }
+
+  // M2M (upward) or L2L (downward) of one level by rotation, octant by octant.
+  void translate_children(const std::vector<Index>& ids, const M2lOperators& ops, bool upward) {
+    for (int q = 0; q < 8; ++q) {
+      std::vector<std::pair<Index, Index>> list;
+      for (Index id : ids) {
+        const Box3& box = tree.boxes[static_cast<size_t>(id)];
+        if (upward) {
+          if (box.leaf || box.source_count() == 0) continue;
+          const Index ch = box.child[static_cast<size_t>(q)];
+          if (ch >= 0 && tree.boxes[static_cast<size_t>(ch)].source_count() > 0) list.push_back({id, ch});
+        } else if (box.target_count() > 0 && box.parent > 0 &&
+                   tree.boxes[static_cast<size_t>(box.parent)].child[static_cast<size_t>(q)] == id) {
+          list.push_back({id, box.parent});
+        }
+      }
+      if (list.empty()) continue;
+      translate(upward ? *ops.m2m : *ops.l2l, RotatedTranslation::kDiagonal, p,
+                ops.signs[static_cast<size_t>(~q & 7)].data(), list, upward, upward, 1.0);
     }
   }
 
@@ -168,26 +227,7 @@ struct Engine {
       const int pt = M2lOperators::truncated_order(o, p);
       const int ne = coefficient_count(pt);
       if (ops.rotated) {
-        constexpr int K = RotatedM2l::kColumns;
-        const Index columns = count * nc, blocks = (columns + K - 1) / K;
-        const int b = M2lOperators::canonical(o);
-#pragma omp parallel for schedule(dynamic, 4) if (blocks > 1)
-        for (Index bk = 0; bk < blocks; ++bk) {
-          const Index begin = bk * K, end = std::min(columns, begin + K);
-          std::vector<Scalar> in(static_cast<size_t>(ne * K), 0.0), out(in.size()),
-              scratch(ops.rotated->scratch_size());
-          for (Index col = begin; col < end; ++col) {
-            const Scalar* m = mul(list[static_cast<size_t>(col / nc)].second, static_cast<int>(col % nc));
-            const Index c = col - begin;
-            for (int k = 0; k < ne; ++k) in[static_cast<size_t>(k * K + c)] = sign[k] * m[k];
-          }
-          ops.rotated->apply(b, pt, in.data(), out.data(), scratch.data());
-          for (Index col = begin; col < end; ++col) {
-            Scalar* l = loc(list[static_cast<size_t>(col / nc)].first, static_cast<int>(col % nc));
-            const Index c = col - begin;
-            for (int k = 0; k < ne; ++k) l[k] += sign[k] * inv_h * out[static_cast<size_t>(k * K + c)];
-          }
-        }
+        translate(*ops.rotated, M2lOperators::canonical(o), pt, sign, list, true, false, inv_h);
         continue;
       }
 #pragma omp parallel for schedule(dynamic, 1) if (chunks > 1)
@@ -221,6 +261,8 @@ struct Engine {
       Stopwatch watch;
       m2l_level(ids, ops, interrupt);
       stats.seconds_m2l += watch.seconds();
+      const bool rotate = ops.l2l != nullptr;
+      if (rotate) translate_children(ids, ops, false);
 #pragma omp parallel for schedule(dynamic, 8)
       for (Index i = 0; i < count; ++i) {
         const Index id = ids[static_cast<size_t>(i)];
@@ -229,7 +271,7 @@ struct Engine {
         const Box3& parent = tree.boxes[static_cast<size_t>(box.parent)];
         const Lists& lists = tree.lists[static_cast<size_t>(id)];
         for (int c = 0; c < nc; ++c) {
-          if (box.parent > 0) l2l(p, loc(box.parent, c), parent.c, parent.h, box.c, loc(id, c));
+          if (box.parent > 0 && !rotate) l2l(p, loc(box.parent, c), parent.c, parent.h, box.c, loc(id, c));
           for (Index s : lists.p2l) {
             const Box3& sb = tree.boxes[static_cast<size_t>(s)];
             const Scalar* xyz[3] = {src[0] + sb.src_begin, src[1] + sb.src_begin, src[2] + sb.src_begin};
@@ -513,7 +555,7 @@ Fmm3dStats fmm3d(const Scalar* sources, Index n, const Scalar* charges, int comp
 
   Engine engine(tree, config, p, components, q);
   watch.restart();
-  engine.upward(interrupt);
+  engine.upward(ops, interrupt);
   stats.seconds_upward = watch.seconds();
   watch.restart();
   engine.downward(ops, stats, interrupt);
