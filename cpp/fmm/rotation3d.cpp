@@ -86,25 +86,29 @@ inline int group_start(int m, int pt) {
 }
 inline int interleaved(int l, int m, bool imag) { return l * l + (m == 0 ? 0 : 2 * m - 1 + imag); }
 
+// Degree l of `to` = e^{i sign m a} times degree l of `from` (interleaved layout, K columns).
+KINEMA_ALWAYS_INLINE void rotate_z(int l, const Scalar* cos_ma, const Scalar* sin_ma, Scalar sign,
+                                   const Scalar* from, Scalar* to) {
+  for (int c = 0; c < K; ++c) to[(l * l) * K + c] = from[(l * l) * K + c];
+  for (int m = 1; m <= l; ++m) {
+    const Scalar co = cos_ma[m], si = sign * sin_ma[m];
+    const Scalar* re = from + interleaved(l, m, false) * K;
+    const Scalar* im = from + interleaved(l, m, true) * K;
+    Scalar* tr = to + interleaved(l, m, false) * K;
+    Scalar* ti = to + interleaved(l, m, true) * K;
+    for (int c = 0; c < K; ++c) {
+      tr[c] = co * re[c] - si * im[c];
+      ti[c] = si * re[c] + co * im[c];
+    }
+  }
+}
+
 KINEMA_ALWAYS_INLINE void apply_body(int pt, const Scalar* cos_ma, const Scalar* sin_ma, Scalar s_in, Scalar s_out,
                                      const Scalar* rot, const size_t* block_start,
                                      const Scalar* trans, const size_t* trans_start, int p,
                                      const Scalar* in, Scalar* out, Scalar* x, Scalar* y) {
   // 1. About z: X_lm = e^{i s_in m a} M_lm.
-  for (int l = 0; l <= pt; ++l) {
-    for (int c = 0; c < K; ++c) x[(l * l) * K + c] = in[(l * l) * K + c];
-    for (int m = 1; m <= l; ++m) {
-      const Scalar co = cos_ma[m], si = s_in * sin_ma[m];
-      const Scalar* re = in + interleaved(l, m, false) * K;
-      const Scalar* im = in + interleaved(l, m, true) * K;
-      Scalar* xr = x + interleaved(l, m, false) * K;
-      Scalar* xi = x + interleaved(l, m, true) * K;
-      for (int c = 0; c < K; ++c) {
-        xr[c] = co * re[c] - si * im[c];
-        xi[c] = si * re[c] + co * im[c];
-      }
-    }
-  }
+  for (int l = 0; l <= pt; ++l) rotate_z(l, cos_ma, sin_ma, s_in, in, x);
   // 2. About y, degree by degree, into the layout grouped by m.
   const Scalar* src[2 * 41 + 2];
   Scalar* dst[2 * 41 + 2];
@@ -147,18 +151,7 @@ KINEMA_ALWAYS_INLINE void apply_body(int pt, const Scalar* cos_ma, const Scalar*
       dst[m - 1] = y + interleaved(l, m, true) * K;
     }
     rows_product(l, l, bim, l, src, dst);
-    for (int c = 0; c < K; ++c) out[(l * l) * K + c] = y[(l * l) * K + c];
-    for (int m = 1; m <= l; ++m) {
-      const Scalar co = cos_ma[m], si = s_out * sin_ma[m];
-      const Scalar* re = y + interleaved(l, m, false) * K;
-      const Scalar* im = y + interleaved(l, m, true) * K;
-      Scalar* dr = out + interleaved(l, m, false) * K;
-      Scalar* di = out + interleaved(l, m, true) * K;
-      for (int c = 0; c < K; ++c) {
-        dr[c] = co * re[c] - si * im[c];
-        di[c] = si * re[c] + co * im[c];
-      }
-    }
+    rotate_z(l, cos_ma, sin_ma, s_out, y, out);
   }
 }
 
