@@ -3,6 +3,8 @@
     .venv/bin/python bench/fmm/fmm3d_bench.py --quick       # wiring check, N = 1e5 (~2 min)
     .venv/bin/python bench/fmm/fmm3d_bench.py               # crossover, eps sweep at N = 1e6
     .venv/bin/python bench/fmm/fmm3d_bench.py --large       # also N = 1e7 at eps 1e-6
+    .venv/bin/python bench/fmm/fmm3d_bench.py --no-crossover --peer-eps 1e-3 1e-4 1e-6 1e-8 1e-9 --tries 1
+                                            # the curve 1e-3 .. 1e-12 beside fmm3dpy (RESULTS.md)
 
 Problem: N points uniform in the unit cube (seed 0), charges uniform in [-1, 1]; potential AND
 gradient at the sources (self term left out), float64: km.fmm.laplace3d(gradient=True) and
@@ -62,13 +64,13 @@ def run_fmm3d(x, q, eps):
     return out.pot * (4 * np.pi), out.grad.T * (4 * np.pi)
 
 
-def sweep(rec, n, eps_list, peer, max_seconds):
+def sweep(rec, n, eps_list, peer, max_seconds, peer_eps=None):
     x, q = problem(n)
     idx = np.sort(np.random.default_rng(1).choice(n, min(n, 1000), replace=False))
     ref = reference(x, q, idx)
     rows = []
     for name, fn in (("kinema", run_kinema),) + ((("fmm3dpy", run_fmm3d),) if peer else ()):
-        for eps in eps_list:
+        for eps in (peer_eps or eps_list) if name == "fmm3dpy" else eps_list:
             m = harness.measure(harness.with_cpu(lambda: fn(x, q, eps)), max_tries=TRIES, quiet_timeout=10)
             (phi, grad), cpu = m.value
             e_phi, e_grad = errors(phi, grad, ref, idx)
@@ -135,6 +137,9 @@ def main():
     ap.add_argument("--no-crossover", action="store_true")
     ap.add_argument("--size", type=float, default=1e6)
     ap.add_argument("--eps", type=float, nargs="*")
+    ap.add_argument("--peer-eps", type=float, nargs="*",
+                    help="fmm3dpy's eps values (default: --eps); its errors run 1-3 decades below eps, "
+                         "so 1e-3 .. 1e-9 span kinema's 1e-3 .. 1e-12 curve")
     ap.add_argument("--max-seconds", type=float, default=300)
     ap.add_argument("--tries", type=int, default=2, help="timed calls per figure while the machine is loaded")
     args = ap.parse_args()
@@ -146,7 +151,7 @@ def main():
         crossover(rec)
     n = int(1e5 if args.quick else args.size)
     eps_list = args.eps or ((1e-3, 1e-6, 1e-9) if args.quick else EPS)
-    rows = sweep(rec, n, eps_list, not args.no_peer, args.max_seconds)
+    rows = sweep(rec, n, eps_list, not args.no_peer, args.max_seconds, args.peer_eps)
     summary(rows)
     if args.large:
         sweep(rec, int(1e7), (1e-6,), False, 1e9)

@@ -40,6 +40,7 @@ py::dict info(const Stats& stats) {
   d["seconds_tree"] = stats.seconds_tree;
   d["seconds_upward"] = stats.seconds_upward;
   if constexpr (std::is_same_v<Stats, fmm3::Fmm3dStats>) d["seconds_m2l"] = stats.seconds_m2l;
+  if constexpr (std::is_same_v<Stats, fmm3::Fmm3dStats>) d["m2l"] = stats.rotation ? "rotation" : "dense";
   d["seconds_downward"] = stats.seconds_downward;
   d["seconds_leaves"] = stats.seconds_leaves;
   return d;
@@ -108,7 +109,7 @@ void bind_fmm3d(py::module_& m) {
       "eval3d",
       [](py::array sources, py::array charges, std::optional<py::array> targets, Scalar eps,
          int derivatives, int kernel, Scalar length, Scalar min_width, int order, Index leaf_size,
-         bool direct) {
+         bool direct, int m2l) {
         const Points src = points(sources, 3, "sources"), tgt = targets_or_sources(targets, 3, src);
         const Index n = src.count, mt = tgt.count;
         if (charges.ndim() != 2 || charges.shape(0) != n)
@@ -124,6 +125,7 @@ void bind_fmm3d(py::module_& m) {
         config.kernel = static_cast<fmm3::NearKernel>(kernel);
         config.length = length;
         config.min_width = min_width;
+        config.m2l = static_cast<fmm3::M2lMethod>(m2l);
         const int width = fmm3::output_width(derivatives);
         std::vector<Scalar> out(static_cast<size_t>(mt * components * width));
         fmm3::Fmm3dStats stats;
@@ -137,7 +139,7 @@ void bind_fmm3d(py::module_& m) {
       },
       py::arg("sources"), py::arg("charges"), py::arg("targets"), py::arg("eps"),
       py::arg("derivatives"), py::arg("kernel"), py::arg("length"), py::arg("min_width"),
-      py::arg("order"), py::arg("leaf_size"), py::arg("direct"));
+      py::arg("order"), py::arg("leaf_size"), py::arg("direct"), py::arg("m2l") = 0);
 }
 
 }  // namespace kinema::bind

@@ -10,6 +10,7 @@
 #include <Eigen/Core>
 #include <algorithm>
 #include <cmath>
+#include <memory>
 #include <string>
 #include <vector>
 
@@ -17,6 +18,7 @@
 #include "core/timer.h"
 #include "fmm/kernels3d.h"
 #include "fmm/m2l_product.h"
+#include "fmm/rotation3d.h"
 #include "fmm/tree.h"
 
 namespace kinema::fmm3 {
@@ -28,13 +30,16 @@ using fmm::Lists;
 using fmm::Octree;
 using ColMatrix = Eigen::Matrix<Scalar, Eigen::Dynamic, Eigen::Dynamic>;
 
-constexpr int kOffsets = 343;  // the 7^3 cube of same-level offsets, (dx+3)*49 + (dy+3)*7 + dz+3
+constexpr int kOffsets = 343;
+// From this order on the rotated M2L beats the dense products (bench/fmm/fmm3d_bench.py --m2l).
+constexpr int kRotationOrder = 6;  // the 7^3 cube of same-level offsets, (dx+3)*49 + (dy+3)*7 + dz+3
 
 // M2L matrices for the offsets with dx, dy, dz >= 0 only (56 of the 316): a reflection of the
 // offset is a diagonal +-1 map on both expansions, A(d) = T A(|d|) T (Helgaker's harmonics:
 // x -> -x maps I_lm to (-1)^m conj(I_lm), y -> -y to conj(I_lm), z -> -z to (-1)^(l+m) I_lm).
 struct M2lOperators {
-  M2lOperators(int p_, const std::vector<char>& used) : p(p_), n(coefficient_count(p_)), index(64, -1) {
+  M2lOperators(int p_, const std::vector<char>& used, bool rotate)
+      : p(p_), n(coefficient_count(p_)), index(64, -1) {
     std::vector<int> wanted;
     for (int o = 0; o < kOffsets; ++o) {
       if (!used[static_cast<size_t>(o)]) continue;
@@ -44,13 +49,12 @@ struct M2lOperators {
         wanted.push_back(base);
       }
     }
-    matrices.resize(wanted.size() * static_cast<size_t>(n) * static_cast<size_t>(n));
-    const int count = static_cast<int>(wanted.size());
-#pragma omp parallel for schedule(dynamic, 1)
-    for (int i = 0; i < count; ++i) {
-      const int b = wanted[static_cast<size_t>(i)];
-      const int d[3] = {b / 16, (b / 4) % 4, b % 4};
-      m2l_matrix(p, d, &matrices[static_cast<size_t>(i) * n * n]);
+    if (rotate) {
+      rotated = std::make_unique<RotatedTranslation>(p, Translation::M2L, wanted);
+      m2m = std::make_unique<RotatedTranslation>(p, Translation::M2M, std::vector<int>{RotatedTranslation::kDiagonal});
+      l2l = std::make_unique<RotatedTranslation>(p, Translation::L2L, std::vector<int>{RotatedTranslation::kDiagonal});
+    } else {
+      build_dense(wanted);
     }
     // signs[pattern][k]: pattern bit 0/1/2 set when dx/dy/dz < 0.
     signs.assign(8, std::vector<Scalar>(static_cast<size_t>(n), 1.0));
@@ -65,6 +69,16 @@ struct M2lOperators {
             const int k = l * l + (m == 0 ? 0 : 2 * m - 1 + part);
             signs[static_cast<size_t>(pattern)][static_cast<size_t>(k)] = s;
           }
+  }
+  void build_dense(const std::vector<int>& wanted) {
+    matrices.resize(wanted.size() * static_cast<size_t>(n) * static_cast<size_t>(n));
+    const int count = static_cast<int>(wanted.size());
+#pragma omp parallel for schedule(dynamic, 1)
+    for (int i = 0; i < count; ++i) {
+      const int b = wanted[static_cast<size_t>(i)];
+      const int d[3] = {b / 16, (b / 4) % 4, b % 4};
+      m2l_matrix(p, d, &matrices[static_cast<size_t>(i) * n * n]);
+    }
   }
   static int canonical(int o) {
     const int dx = o / 49 - 3, dy = (o / 7) % 7 - 3, dz = o % 7 - 3;
@@ -88,7 +102,8 @@ struct M2lOperators {
   }
   int p, n;
   std::vector<int> index;
-  std::vector<Scalar> matrices;
+  std::vector<Scalar> matrices;          // dense operators (when not rotating)
+  std::unique_ptr<RotatedTranslation> rotated, m2m, l2l;  // O(p^3) operators (when rotating)
   std::vector<std::vector<Scalar>> signs;
 };
 
@@ -110,7 +125,8 @@ struct Engine {
     for (int d = 0; d < 3; ++d) src[d] = tree.s[d].data();
   }
 
-  void upward(Interrupt& interrupt) {
+  void upward(const M2lOperators& ops, Interrupt& interrupt) {
+    const bool rotate = ops.m2m != nullptr;
     for (size_t level = tree.levels.size(); level-- > 0;) {
       interrupt.check();
       const std::vector<Index>& ids = tree.levels[level];
@@ -127,12 +143,65 @@ struct Engine {
                 box.source_count(), nc, mul(id, c));
             continue;
           }
+          if (rotate) continue;
           for (Index ch : box.child) {
             if (ch < 0 || tree.boxes[static_cast<size_t>(ch)].source_count() == 0) continue;
             m2m(p, mul(ch, c), tree.boxes[static_cast<size_t>(ch)].c, box.c, box.h, mul(id, c));
           }
         }
       }
+      if (rotate) translate_children(ids, ops, true);
+    }
+  }
+
+  // dst += scale T (T op (T src)) for the (dst box, src box) pairs of one offset, kColumns
+  // expansions (pairs x components) at a time; T: the reflection signs mapping the offset to
+  // its canonical one b. src and dst read and write multipoles or locals (M2L: multipoles to
+  // locals, M2M: multipoles, L2L: locals). Each dst box appears once per call.
+  void translate(const RotatedTranslation& op, int b, int pt, const Scalar* sign,
+                 const std::vector<std::pair<Index, Index>>& list, bool from_multipoles,
+                 bool to_multipoles, Scalar scale) {
+    constexpr int K = RotatedTranslation::kColumns;
+    const int ne = coefficient_count(pt);
+    const Index columns = static_cast<Index>(list.size()) * nc, blocks = (columns + K - 1) / K;
+#pragma omp parallel for schedule(dynamic, 4) if (blocks > 1)
+    for (Index bk = 0; bk < blocks; ++bk) {
+      const Index begin = bk * K, end = std::min(columns, begin + K);
+      std::vector<Scalar> in(static_cast<size_t>(ne * K), 0.0), out(in.size()), scratch(op.scratch_size());
+      for (Index col = begin; col < end; ++col) {
+        const std::pair<Index, Index>& pr = list[static_cast<size_t>(col / nc)];
+        const int c = static_cast<int>(col % nc);
+        const Scalar* x = from_multipoles ? mul(pr.second, c) : loc(pr.second, c);
+        for (int k = 0; k < ne; ++k) in[static_cast<size_t>(k * K + col - begin)] = sign[k] * x[k];
+      }
+      op.apply(b, pt, in.data(), out.data(), scratch.data());
+      for (Index col = begin; col < end; ++col) {
+        const std::pair<Index, Index>& pr = list[static_cast<size_t>(col / nc)];
+        const int c = static_cast<int>(col % nc);
+        Scalar* y = to_multipoles ? mul(pr.first, c) : loc(pr.first, c);
+        for (int k = 0; k < ne; ++k) y[k] += sign[k] * scale * out[static_cast<size_t>(k * K + col - begin)];
+      }
+    }
+  }
+
+  // M2M (upward) or L2L (downward) of one level by rotation, octant by octant.
+  void translate_children(const std::vector<Index>& ids, const M2lOperators& ops, bool upward) {
+    for (int q = 0; q < 8; ++q) {
+      std::vector<std::pair<Index, Index>> list;
+      for (Index id : ids) {
+        const Box3& box = tree.boxes[static_cast<size_t>(id)];
+        if (upward) {
+          if (box.leaf || box.source_count() == 0) continue;
+          const Index ch = box.child[static_cast<size_t>(q)];
+          if (ch >= 0 && tree.boxes[static_cast<size_t>(ch)].source_count() > 0) list.push_back({id, ch});
+        } else if (box.target_count() > 0 && box.parent > 0 &&
+                   tree.boxes[static_cast<size_t>(box.parent)].child[static_cast<size_t>(q)] == id) {
+          list.push_back({id, box.parent});
+        }
+      }
+      if (list.empty()) continue;
+      translate(upward ? *ops.m2m : *ops.l2l, RotatedTranslation::kDiagonal, p,
+                ops.signs[static_cast<size_t>(~q & 7)].data(), list, upward, upward, 1.0);
     }
   }
 
@@ -155,7 +224,12 @@ struct Engine {
       const bool flip = pattern != 0;
       const Index count = static_cast<Index>(list.size());
       const Index chunks = (count + kChunk - 1) / kChunk;
-      const int ne = coefficient_count(M2lOperators::truncated_order(o, p));
+      const int pt = M2lOperators::truncated_order(o, p);
+      const int ne = coefficient_count(pt);
+      if (ops.rotated) {
+        translate(*ops.rotated, M2lOperators::canonical(o), pt, sign, list, true, false, inv_h);
+        continue;
+      }
 #pragma omp parallel for schedule(dynamic, 1) if (chunks > 1)
       for (Index ck = 0; ck < chunks; ++ck) {
         const Index begin = ck * kChunk, end = std::min(count, begin + kChunk);
@@ -187,6 +261,8 @@ struct Engine {
       Stopwatch watch;
       m2l_level(ids, ops, interrupt);
       stats.seconds_m2l += watch.seconds();
+      const bool rotate = ops.l2l != nullptr;
+      if (rotate) translate_children(ids, ops, false);
 #pragma omp parallel for schedule(dynamic, 8)
       for (Index i = 0; i < count; ++i) {
         const Index id = ids[static_cast<size_t>(i)];
@@ -195,7 +271,7 @@ struct Engine {
         const Box3& parent = tree.boxes[static_cast<size_t>(box.parent)];
         const Lists& lists = tree.lists[static_cast<size_t>(id)];
         for (int c = 0; c < nc; ++c) {
-          if (box.parent > 0) l2l(p, loc(box.parent, c), parent.c, parent.h, box.c, loc(id, c));
+          if (box.parent > 0 && !rotate) l2l(p, loc(box.parent, c), parent.c, parent.h, box.c, loc(id, c));
           for (Index s : lists.p2l) {
             const Box3& sb = tree.boxes[static_cast<size_t>(s)];
             const Scalar* xyz[3] = {src[0] + sb.src_begin, src[1] + sb.src_begin, src[2] + sb.src_begin};
@@ -411,6 +487,11 @@ int order_for(Scalar eps) {
   return std::clamp(static_cast<int>(std::ceil(p)), 3, kMaxOrder3d);
 }
 
+bool rotate_m2l(int order, const Fmm3dConfig& config) {
+  if (config.m2l != M2lMethod::Auto) return config.m2l == M2lMethod::Rotation;
+  return order >= kRotationOrder;
+}
+
 // Near-field pairs per target ~27 x leaf against ~189 M2L of (p+1)^4 per box.
 Index leaf_size_for(int order) { return std::clamp<Index>(24 * order, 96, 512); }
 
@@ -423,6 +504,8 @@ Fmm3dStats fmm3d(const Scalar* sources, Index n, const Scalar* charges, int comp
     throw InvalidArgument("order: expected 0 (automatic) or 1.." + std::to_string(kMaxOrder3d) +
                           ", got " + std::to_string(config.order));
   if (config.leaf_size < 0) throw InvalidArgument("leaf_size: expected 0 (automatic) or a positive count");
+  if (static_cast<int>(config.m2l) < 0 || static_cast<int>(config.m2l) > 2)
+    throw InvalidArgument("m2l: expected auto, dense or rotation");
   if (config.derivatives < 0 || config.derivatives > 2)
     throw InvalidArgument("derivatives: expected 0, 1 or 2");
   if (components < 1 || components > 4)
@@ -466,12 +549,13 @@ Fmm3dStats fmm3d(const Scalar* sources, Index n, const Scalar* charges, int comp
   std::vector<char> used(kOffsets, 0);
   for (const Lists& l : tree.lists)
     for (const fmm::M2lEntry& e : l.m2l) used[static_cast<size_t>(e.offset)] = 1;
-  const M2lOperators ops(p, used);
+  stats.rotation = rotate_m2l(p, config);
+  const M2lOperators ops(p, used, stats.rotation);
   stats.seconds_tree = watch.seconds();
 
   Engine engine(tree, config, p, components, q);
   watch.restart();
-  engine.upward(interrupt);
+  engine.upward(ops, interrupt);
   stats.seconds_upward = watch.seconds();
   watch.restart();
   engine.downward(ops, stats, interrupt);

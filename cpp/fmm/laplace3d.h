@@ -15,6 +15,11 @@
 
 namespace kinema::fmm3 {
 
+// How the M2L translations are applied: dense (p+1)^2 x (p+1)^2 matrices batched as matrix
+// products (O(p^4) per translation, fastest at low order), or by rotation to the z axis
+// (rotation3d.h, O(p^3)); Auto picks by the order.
+enum class M2lMethod { Auto = 0, Dense = 1, Rotation = 2 };
+
 struct Fmm3dConfig {
   Scalar eps = 1e-10;   // relative 2-norm error asked for phi
   int derivatives = 0;  // 0: phi; 1: phi and gradient; 2: also the Hessian
@@ -23,10 +28,12 @@ struct Fmm3dConfig {
   NearKernel kernel = NearKernel::Laplace;  // kernel of the near field
   Scalar length = 0;    // softening / core length of the near-field kernel [m]
   Scalar min_width = 0; // leaves are not split below this width [m]
+  M2lMethod m2l = M2lMethod::Auto;
 };
 
 struct Fmm3dStats {
   int order = 0;
+  bool rotation = false;  // the M2L ran by rotation
   Index leaf_size = 0;
   Index box_count = 0;
   int depth = 0;
@@ -38,6 +45,8 @@ constexpr int kMaxOrder3d = 40;
 
 // Expansion order that meets eps (measured over uniform and clustered distributions).
 int order_for(Scalar eps);
+// Whether Auto applies the M2L by rotation at order p.
+bool rotate_m2l(int order, const Fmm3dConfig& config);
 // Leaf size that balances the near-field sums against the translations for order p.
 Index leaf_size_for(int order);
 

@@ -123,8 +123,11 @@ _NEAR_KERNELS = {"laplace": 0, "plummer": 1, "gaussian": 2}
 _DIRECT_PAIRS_3D = 2_000_000
 
 
+_M2L = {"auto": 0, "dense": 1, "rotation": 2}
+
+
 def _eval3d(src, q, tgt, *, eps, derivatives, kernel="laplace", length=0.0, min_width=0.0,
-            order=0, leaf_size=0, direct=False):
+            order=0, leaf_size=0, direct=False, m2l="auto"):
     """The 3D engine shared by laplace3d, km.nbody and km.vortex (checked inputs).
 
     q: (N, C) charge components. Returns (out (M, C, width), info); width 1 (phi), 4 (phi,
@@ -133,12 +136,12 @@ def _eval3d(src, q, tgt, *, eps, derivatives, kernel="laplace", length=0.0, min_
     q2 = np.ascontiguousarray(q[:, None] if q.ndim == 1 else q, dtype=np.float64)
     out, info = _core.fmm.eval3d(src, q2, tgt, float(eps), int(derivatives), _NEAR_KERNELS[kernel],
                                  float(length), float(min_width), int(order), int(leaf_size),
-                                 bool(direct))
+                                 bool(direct), _M2L[m2l])
     return out, info
 
 
 def laplace3d(sources, charges, targets=None, *, eps=1e-10, gradient=False, order=None,
-              leaf_size=None):
+              leaf_size=None, m2l="auto"):
     """phi(x) = sum_j q_j / |x - y_j| (and its gradient) by the fast multipole method.
 
     sources: (N, 3) source positions [m]. charges: (N,) charges q_j (or a scalar for all).
@@ -149,6 +152,10 @@ def laplace3d(sources, charges, targets=None, *, eps=1e-10, gradient=False, orde
     gradient: also return grad phi = -sum_j q_j (x - y_j) / |x - y_j|^3.
     order, leaf_size: override the expansion order p (1..40) and the leaf capacity, otherwise
     chosen from eps (for benchmarks and studies; eps is then not guaranteed).
+    m2l: how the multipole-to-local translations run: "dense" (precomputed (p+1)^2 square
+    matrices applied as batched matrix products, O(p^4) each), "rotation" (rotate to the z
+    axis, translate along it, rotate back: O(p^3) each) or "auto" (by the order; the two agree
+    to rounding).
 
     Problems of fewer than about 2e6 source-target pairs are summed directly (exact, and
     faster there). Returns phi (M,), or (phi, grad) with grad of shape (M, 3). Statistics of
@@ -156,13 +163,15 @@ def laplace3d(sources, charges, targets=None, *, eps=1e-10, gradient=False, orde
     """
     src, q, tgt = _inputs(sources, charges, targets, 3)
     e = _eps(eps)
+    if m2l not in _M2L:
+        raise ValueError(f"m2l: expected 'auto', 'dense' or 'rotation', got {m2l!r}")
     p = _count(order, "order")
     if p > 40:
         raise ValueError(f"order: expected an integer in 1..40, got {order}")
     m = src.shape[0] if tgt is None else tgt.shape[0]
     direct = order is None and leaf_size is None and src.shape[0] * m <= _DIRECT_PAIRS_3D
     out, info = _eval3d(src, q, tgt, eps=e, derivatives=1 if gradient else 0, order=p,
-                        leaf_size=_count(leaf_size, "leaf_size"), direct=direct)
+                        leaf_size=_count(leaf_size, "leaf_size"), direct=direct, m2l=m2l)
     info["direct"] = direct
     representable(out, "sources, charges", "the potential or its gradient")
     _last_info.clear()

@@ -15,6 +15,7 @@
 #include "fmm/laplace3d.h"
 #include "fmm/m2l_product.h"
 #include "fmm/p2p3d.h"
+#include "fmm/rotation3d.h"
 #include "fmm/tree.h"
 
 namespace kinema::fmm3 {
@@ -81,6 +82,125 @@ TEST(Fmm3dKernels, MultipoleTranslatedToLocalReproducesThePotential) {
     tp[a] += h, tm[a] -= h;
     const Scalar fd = (direct(s, tp) - direct(s, tm)) / (2 * h);
     EXPECT_NEAR(g, fd, 1e-5 * std::abs(exact)) << "L2P derivative " << a;
+  }
+}
+
+TEST(Fmm3dKernels, RotatedM2lMatchesDenseMatrixToRounding) {
+  // Every canonical offset of the V list (non-negative components, |d|_inf >= 2), at several
+  // orders and truncated orders, on multipoles of real clouds: the rotation-based operator and
+  // the dense matrix are two factorisations of one linear map, so they agree to rounding
+  // (measured on the locals weighted by sqrt((l+m)!(l-m)!)^-1, i.e. the orthonormal
+  // coefficients whose size bounds the potential's error).
+  constexpr int K = RotatedTranslation::kColumns;
+  for (int p : {1, 4, 9, 16, 25, 38}) {
+    std::vector<int> canonical;  // all 56 at p <= 25; four (axis, face and body diagonal) at 38
+    for (int b = 0; b < 64; ++b)
+      if (std::max({b / 16, (b / 4) % 4, b % 4}) >= 2 && (p < 30 || b == 2 || b == 37 || b == 42 || b == 63))
+        canonical.push_back(b);
+    const RotatedTranslation rotated(p, Translation::M2L, canonical);
+    const int n = coefficient_count(p);
+    std::vector<Scalar> in(static_cast<size_t>(n * K)), out(in.size()), scratch(rotated.scratch_size());
+    std::vector<std::vector<Scalar>> columns(K);
+    for (int c = 0; c < K; ++c) {
+      const Scalar centre[3] = {0, 0, 0};
+      const Cloud s = cloud(20, centre, 1.0, 7 + c);
+      const Scalar* xyz[3] = {s.x[0].data(), s.x[1].data(), s.x[2].data()};
+      columns[c].assign(static_cast<size_t>(n), 0.0);
+      p2m(p, centre, 1.0, xyz, s.q.data(), 20, 1, columns[c].data());
+      for (int k = 0; k < n; ++k) in[static_cast<size_t>(k * K + c)] = columns[c][static_cast<size_t>(k)];
+    }
+    std::vector<Scalar> weight(static_cast<size_t>(n));
+    for (int l = 0; l <= p; ++l)
+      for (int m = 0; m <= l; ++m) {
+        Scalar f = 1;
+        for (int k = 2; k <= l + m; ++k) f *= k;
+        for (int k = 2; k <= l - m; ++k) f *= k;
+        for (int part = 0; part < (m ? 2 : 1); ++part)
+          weight[static_cast<size_t>(l * l + (m ? 2 * m - 1 + part : 0))] = 1 / std::sqrt(f);
+      }
+    std::vector<Scalar> matrix(static_cast<size_t>(n * n));
+    for (int b : canonical) {
+      const int offset[3] = {b / 16, (b / 4) % 4, b % 4};
+      m2l_matrix(p, offset, matrix.data());
+      for (int pt : {p, std::max(1, p / 2)}) {
+        const int nt = coefficient_count(pt);
+        std::vector<Scalar> trunc(static_cast<size_t>(nt * K));
+        for (int k = 0; k < nt; ++k)
+          for (int c = 0; c < K; ++c) trunc[static_cast<size_t>(k * K + c)] = in[static_cast<size_t>(k * K + c)];
+        rotated.apply(b, pt, trunc.data(), out.data(), scratch.data());
+        for (int c = 0; c < K; ++c) {
+          Scalar err = 0, norm = 0;
+          for (int i = 0; i < nt; ++i) {
+            Scalar dense = 0;
+            for (int k = 0; k < nt; ++k) dense += matrix[static_cast<size_t>(i * n + k)] * columns[c][static_cast<size_t>(k)];
+            err = std::max(err, std::abs(out[static_cast<size_t>(i * K + c)] - dense) * weight[static_cast<size_t>(i)]);
+            norm = std::max(norm, std::abs(dense) * weight[static_cast<size_t>(i)]);
+          }
+          ASSERT_LE(err, 1e-13 * norm) << "p " << p << " pt " << pt << " offset " << offset[0] << offset[1] << offset[2];
+        }
+      }
+    }
+  }
+}
+
+TEST(Fmm3dKernels, RotatedM2mAndL2lMatchDirectTranslationsToRounding) {
+  // The child at the parent's centre + (1, 1, 1) h/2: M2M and L2L by rotation against m2m() and
+  // l2l() (the O(p^4) sums over the addition theorem).
+  constexpr int K = RotatedTranslation::kColumns;
+  const Scalar cp[3] = {0.3, -0.2, 0.1}, h = 2.0, cc[3] = {cp[0] + 1, cp[1] + 1, cp[2] + 1};
+  for (int p : {2, 7, 14, 26, 40}) {
+    const int n = coefficient_count(p);
+    for (Translation kind : {Translation::M2M, Translation::L2L}) {
+      const RotatedTranslation rotated(p, kind, {RotatedTranslation::kDiagonal});
+      std::vector<Scalar> in(static_cast<size_t>(n * K)), out(in.size()), scratch(rotated.scratch_size());
+      std::vector<std::vector<Scalar>> expected(K);
+      for (int c = 0; c < K; ++c) {
+        std::vector<Scalar> e(static_cast<size_t>(n), 0.0), r(static_cast<size_t>(n), 0.0);
+        if (kind == Translation::M2M) {  // a child multipole of real sources
+          const Cloud s = cloud(20, cc, 0.5 * h, 11 + c);
+          const Scalar* xyz[3] = {s.x[0].data(), s.x[1].data(), s.x[2].data()};
+          p2m(p, cc, 0.5 * h, xyz, s.q.data(), 20, 1, e.data());
+          m2m(p, e.data(), cc, cp, h, r.data());
+        } else {  // a parent local of far sources
+          const Scalar far[3] = {cp[0] + 9, cp[1] - 7, cp[2] + 8};
+          const Cloud s = cloud(20, far, 2.0, 21 + c);
+          const Scalar* xyz[3] = {s.x[0].data(), s.x[1].data(), s.x[2].data()};
+          p2l(p, cp, h, xyz, s.q.data(), 20, 1, e.data());
+          l2l(p, e.data(), cp, h, cc, r.data());
+        }
+        for (int k = 0; k < n; ++k) in[static_cast<size_t>(k * K + c)] = e[static_cast<size_t>(k)];
+        expected[c] = r;
+      }
+      rotated.apply(RotatedTranslation::kDiagonal, p, in.data(), out.data(), scratch.data());
+      // Compared by what they represent: the potential of the parent multipole at 2 parent
+      // widths and beyond (where M2L uses it), of the child local inside the child's box.
+      std::mt19937_64 rng(p);
+      std::uniform_real_distribution<Scalar> u(-1, 1);
+      std::vector<Complex> a(complex_count(p)), b(complex_count(p)), v(complex_count(p));
+      for (int c = 0; c < K; ++c) {
+        std::vector<Scalar> mine(static_cast<size_t>(n));
+        for (int k = 0; k < n; ++k) mine[static_cast<size_t>(k)] = out[static_cast<size_t>(k * K + c)];
+        to_complex(mine.data(), p, a.data());
+        to_complex(expected[c].data(), p, b.data());
+        Scalar err = 0, norm = 0;
+        for (int t = 0; t < 20; ++t) {
+          Scalar phi_a, phi_b;
+          if (kind == Translation::M2M) {
+            Scalar d[3] = {u(rng), u(rng), u(rng)};
+            const Scalar r = std::sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+            for (Scalar& x : d) x *= (4 + t % 3) / r;  // 4-6 half-widths of the parent
+            irregular(d[0], d[1], d[2], p, v.data());
+            phi_a = multipole_sum(a.data(), v.data(), p), phi_b = multipole_sum(b.data(), v.data(), p);
+          } else {
+            regular(u(rng), u(rng), u(rng), p, v.data());
+            phi_a = local_sum(a.data(), v.data(), p), phi_b = local_sum(b.data(), v.data(), p);
+          }
+          err = std::max(err, std::abs(phi_a - phi_b));
+          norm = std::max(norm, std::abs(phi_b));
+        }
+        ASSERT_LE(err, 1e-13 * norm) << (kind == Translation::M2M ? "M2M" : "L2L") << " p " << p << " column " << c;
+      }
+    }
   }
 }
 
