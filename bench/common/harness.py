@@ -220,6 +220,17 @@ def measure(fn: Callable[[], Any], *, min_of: int = 1, max_load: float = DEFAULT
                        runs=tuple(runs), waited=waited)
 
 
+def best_of(fn: Callable[[], Any], reps: int) -> float:
+    """The shortest wall time [s] of ``reps`` calls of ``fn`` (for short kernels timed in a loop,
+    where measure()'s load bookkeeping would cost more than the call)."""
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t0)
+    return min(times)
+
+
 def combine(measurements) -> Measurement:
     """One Measurement from several of the same call (for instance taken in rounds alternated
     with a peer's, so that a drift of the machine's speed over minutes cannot favour either):

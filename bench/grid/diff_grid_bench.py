@@ -137,12 +137,7 @@ def kinema_part(rec, shape, steps, advection, rk_order, opts):
     grads = {n: grad_rng.normal(size=s1[n].shape) for n in sim._diff_state_names}
 
     def best_of(fn, reps=5):
-        times = []
-        for _ in range(reps):
-            t0 = time.perf_counter()
-            fn()
-            times.append(time.perf_counter() - t0)
-        return min(times)
+        return harness.best_of(fn, reps)
 
     def one_step():
         sim.set_state(s_mid)

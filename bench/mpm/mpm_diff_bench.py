@@ -89,12 +89,7 @@ def main():
     g1 = {k: np.ones_like(s1[k]) for k in ("x", "v", "F", "C")}
 
     def best_of(fn, reps=30):
-        times = []
-        for _ in range(reps):
-            t0 = time.perf_counter()
-            fn()
-            times.append(time.perf_counter() - t0)
-        return min(times)
+        return harness.best_of(fn, reps)
 
     sim.set_state(s0)
     t_step = best_of(lambda: sim._sim.step(dt, forces[0]))

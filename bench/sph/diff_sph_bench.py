@@ -56,13 +56,7 @@ def task(d, steps):
     return fluid, x, v0, forces, weights, direction
 
 
-def best_of(fn, reps):
-    times = []
-    for _ in range(reps):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return min(times)
+best_of = harness.best_of
 
 
 def run_dim(d, opts, rec):
