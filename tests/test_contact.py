@@ -271,6 +271,13 @@ def test_bad_input_is_refused_clearly():
         scene.step(float("nan"))
     with pytest.raises(ValueError, match="dt: .*finite square"):
         scene.step(1e308)
+    # A diverged velocity (a step carrying vertices over 1000 scene diagonals) is refused at once
+    # and leaves the state as it was (CCD along such a path would crawl for hours).
+    x0 = scene.x.copy()
+    scene.v = np.full_like(scene.v, 1e300)
+    with pytest.raises(km.DivergenceError, match="v: a step of dt"):
+        scene.step(0.01)
+    np.testing.assert_array_equal(scene.x, x0)
 
 
 def test_contact_examples_run_small(tmp_path):

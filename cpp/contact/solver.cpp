@@ -390,6 +390,16 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
       const size_t k = static_cast<size_t>(3 * i + r);
       xhat_[k] = model_.fixed[static_cast<size_t>(i)] ? xn_[k] : xn_[k] + h * state.v[k] + h * h * config_.gravity[r];
     }
+  // A step that would carry vertices over many scene diagonals is a diverged state (or a dt far
+  // too long): CCD would crawl along such a path in tiny increments for hours. Refused.
+  {
+    Scalar reach = 0;
+    for (size_t k = 0; k < xhat_.size(); ++k) reach = std::max(reach, std::abs(xhat_[k] - xn_[k]));
+    if (!(reach <= 1e3 * diag))
+      throw DivergenceError("v: a step of dt = " + format_real(h) + " would move vertices by " + format_real(reach) +
+                            " m, more than 1000 scene diagonals (" + format_real(diag) +
+                            " m): the state has diverged or dt is far too long");
+  }
   Scalar kappa = state.kappa;
   lag_friction(xn_, kappa, h);
   // Spring damping acts along the spring directions at x_n.
@@ -529,7 +539,7 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
     for (Index i = 0; i < n; ++i)
       if (model_.driven[static_cast<size_t>(i)])
         for (int r = 0; r < 3; ++r) rest_move[static_cast<size_t>(3 * i + r)] = target_[static_cast<size_t>(3 * i + r)] - x[static_cast<size_t>(3 * i + r)];
-    if (max_safe_step(model_, x.data(), rest_move.data(), CcdOptions{}) >= 1)
+    if (max_safe_step(x.data(), rest_move.data()) >= 1)
       for (size_t k = 0; k < x.size(); ++k) x[k] += rest_move[k];
   }
   // Velocities from the displacement (implicit Euler).
