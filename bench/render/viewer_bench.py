@@ -3,7 +3,7 @@ whatever OpenGL the display offers (here: Mesa's llvmpipe software rasteriser un
 
     python bench/render/viewer_bench.py                   # 1e4, 1e5, 1e6 particles, 1024x768
     python bench/render/viewer_bench.py --sizes 100000 --width 640 --height 480
-    python bench/render/viewer_bench.py --points splat --splat-scale 0.5
+    python bench/render/viewer_bench.py --points splat --splat-scale 1.0
 
 A frame is what the window does while a simulation runs: new positions and a new colour
 quantity (speed) uploaded, then drawn and presented (Viewer.tick with a CallbackSource that
@@ -83,7 +83,7 @@ def main(argv=None):
     p.add_argument("--height", type=int, default=768)
     p.add_argument("--frames", type=int, default=20)
     p.add_argument("--points", nargs="*", default=["polyscope", "splat"], choices=["polyscope", "splat"])
-    p.add_argument("--splat-scale", type=float, default=1.0)
+    p.add_argument("--splat-scale", type=float, default=0.5)
     args = p.parse_args(argv)
     xvfb = ensure_display()
     rec = harness.Recorder(OUT / "viewer.csv", "viewer_fps", threads=km.get_num_threads())

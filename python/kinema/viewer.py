@@ -345,11 +345,12 @@ class Viewer:
     points: how particles are drawn: "polyscope" (Polyscope's sphere impostors, best on a GPU),
     "splat" (spheres splatted on the CPU and composited by depth, best on a software renderer)
     or "auto" (splat above SPLAT_ABOVE particles). splat_scale: resolution of the splat relative
-    to the window, in (0, 1] (0.5 renders a quarter of the pixels).
+    to the window, in (0, 1]: the default 0.5 splats a quarter of the pixels (1e5 particles in a
+    1024 x 768 window on Mesa's software OpenGL: 22 fps, against 12 fps at 1.0).
     """
 
     def __init__(self, source, *, quantity=None, point_radius=None, paused=False, width=1024, height=768,
-                 quick=False, overrides=(), cmap="viridis", points="auto", splat_scale=1.0):
+                 quick=False, overrides=(), cmap="viridis", points="auto", splat_scale=0.5):
         if points not in ("auto", "polyscope", "splat"):
             raise ValueError(f"points: expected 'auto', 'polyscope' or 'splat', got {points!r}")
         if isinstance(splat_scale, bool) or not isinstance(splat_scale, (int, float)) or \
@@ -359,6 +360,7 @@ class Viewer:
         self.splat_scale = float(splat_scale)
         self._splats = {}  # name -> (points, radius, point data, solid) of splatted particles
         self._splat_view = None  # camera and size the splats were made for
+        self._splat_buffers = None  # ((w, h), Polyscope buffers) of the splat image
         self.ps = _polyscope()
         self.source = _source(source, quick, overrides)
         _init(self.ps, width, height, f"kinema: {self.source.name}")
@@ -617,8 +619,26 @@ class Viewer:
             colours.append(self._particle_colours(data, solid, len(pts)))
         depth, normals, ids, _ = splat_spheres(camera, np.concatenate(points), np.concatenate(radii))
         table = np.concatenate(colours + [np.zeros((1, 3), np.float32)])  # ids of -1: the last row
-        ps.add_color_render_image_quantity(SPLAT_NAME, depth, normals, table[ids], enabled=True,
-                                           allow_fullscreen_compositing=True)
+        flat_ids = ids.reshape(-1)
+        # Polyscope's (n, 3) buffers are column-major: fill each colour channel as one column.
+        image = np.empty((flat_ids.size, 3), np.float32, order="F")
+        for c in range(3):
+            np.take(table[:, c], flat_ids, out=image[:, c])
+        normals = np.asfortranarray(normals.reshape(-1, 3))
+        updated = False
+        if self._splat_buffers is not None and self._splat_buffers[0] == (w, h):
+            # Same size: new data into the quantity's GPU buffers (re-adding it costs ~15 ms more).
+            try:
+                for buffer, data in zip(self._splat_buffers[1], (depth.reshape(-1), normals, image)):
+                    buffer.update_data(data)
+                updated = True
+            except ValueError:  # the quantity went with Polyscope's structures: add it again
+                pass
+        if not updated:
+            ps.add_color_render_image_quantity(SPLAT_NAME, depth, normals.reshape(h, w, 3), image.reshape(h, w, 3),
+                                               enabled=True, allow_fullscreen_compositing=True)
+            self._splat_buffers = ((w, h), [ps.get_quantity_buffer(SPLAT_NAME, b)
+                                            for b in ("depths", "normals", "colors")])
         self._splat_view = view
 
     def _particle_colours(self, data, solid, n):
@@ -641,6 +661,7 @@ class Viewer:
             FloatingQuantityStructure().remove_quantity(SPLAT_NAME, error_if_absent=False)
         self._splats = {}
         self._splat_view = None
+        self._splat_buffers = None
 
     def _draw_surface(self, item):
         ps = self.ps
