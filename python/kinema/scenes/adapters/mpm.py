@@ -158,16 +158,27 @@ class MPMSimulation(ArrayStateSimulation):
         table = np.array([COLORS[k] for k in self.kinds], float)
         return table[self.sim.material]
 
+    def _water(self):
+        """Positions of the water particles (empty when the scene has none)."""
+        codes = [code for code, kind in enumerate(self.kinds) if kind == "water"]
+        return self.sim.x[np.isin(self.sim.material, codes)]
+
     def geometry(self, axes):
+        """Solids, snow and sand as particles; water as its reconstructed free surface (drawn as
+        water, as the SPH scenes' liquid)."""
         r = 0.5 * self.spacing
         spheres = []
         for code, kind in enumerate(self.kinds):
+            if kind == "water":
+                continue
             rgb = np.array(COLORS[kind]) / 255.0
             spheres.append((self.sim.x[self.sim.material == code], r, km.render.lambertian(tuple(rgb))))
         for region in self.colliders:
             if region["shape"] == "sphere":
                 spheres.append((np.array([region["center"]], float), region["radius"], km.render.lambertian(0.35)))
-        return render3d.Geometry(self.lower, self.upper, spheres=spheres)
+        water = self._water()
+        return render3d.Geometry(self.lower, self.upper, spheres=spheres,
+                                 liquids=[(water, self.spacing)] if len(water) else [])
 
     def image(self, output):
         if output["render"] != "flat" and self.dim == 3:
@@ -184,9 +195,16 @@ class MPMSimulation(ArrayStateSimulation):
 
     def data(self):
         s = self.sim
-        return [PointData("particles", s.x.copy(), point_data={
+        items = [PointData("particles", s.x.copy(), point_data={
             "velocity": s.v.copy(), "material": s.material.astype(float), "Jp": s.Jp.copy(),
             "J": np.linalg.det(s.F)})]
+        water = self._water()
+        if self.dim == 3 and len(water):  # the water's free surface beside the particles (PLY/VTU)
+            mesh = render3d.liquid_surface(water, self.spacing)
+            if mesh is not None:
+                items.append(PointData("surface", mesh.vertices, [("triangle", mesh.triangles)],
+                                       surface=mesh.triangles))
+        return items
 
 
 Simulation = MPMSimulation
