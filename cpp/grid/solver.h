@@ -101,7 +101,9 @@ class Solver {
  private:
   StepStats step_phases(State& state, Scalar dt, Interrupt& interrupt, const Scalar* control);  // step() without the rollback
   // The five phases of a step, in order.
-  void advect(State& state, Scalar dt);
+  // kept (nullable): the advection scratch of the scalars (0) and of each velocity component
+  // (1 + axis) is left there, for the adjoint (advect_adjoint's `forward`).
+  void advect(State& state, Scalar dt, std::array<AdvectionScratch, 4>* kept = nullptr);
   void add_forces(State& state, Scalar dt, const Scalar* control);
   Index diffuse(State& state, Scalar dt, Interrupt& interrupt);
   SolveInfo project(State& state, Scalar dt, Interrupt& interrupt);
