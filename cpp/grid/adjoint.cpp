@@ -141,7 +141,8 @@ class Scatter {
         for (Index k = 0; k < nk; ++k, ++flat) body(i, j, k, flat);
       }
     };
-    const bool parallel = blocks > 1 && L.size() > 8 * kParallelGrain;
+    // a node's adjoint costs tens of nanoseconds: a few thousand of them outweigh a parallel region
+    const bool parallel = blocks > 1 && L.size() > kParallelGrain;
     for (int colour = 0; colour < 2; ++colour) {
       const Index end = seam ? blocks - 1 : blocks;
 #pragma omp parallel for schedule(dynamic, 1) if (parallel)
@@ -412,7 +413,8 @@ void Solver::cell_force_adjoint(int axis, const Scalar* g, Scalar* out, Index st
   });
 }
 
-void Solver::projection_adjoint(std::array<std::vector<Scalar>, 3>& grad, Scalar dt, Interrupt& interrupt) {
+void Solver::projection_adjoint(std::array<std::vector<Scalar>, 3>& grad, Scalar dt, Interrupt& interrupt,
+                                Index warm_step) {
   // u' = u - (dt/h) G p with A p = -div(u) / dt. The transpose: dL/dp = -(dt/h) G^T g, then one
   // solve w = A^-1 dL/dp (A is symmetric; dL/dp sums to zero on every singular component, as the
   // forward right-hand side does), then g += div^T w * (-1/dt); the divergence is 0 in solid cells.
@@ -441,11 +443,22 @@ void Solver::projection_adjoint(std::array<std::vector<Scalar>, 3>& grad, Scalar
   }
   const Scalar norm2 = parallel_sum(n, [&](Index c) { return gp[c] * gp[c]; });
   if (norm2 > 0) {
+    // Warm start (as project() does) only when it beats zero.
+    if (warm_step >= 0 && adjoint_pressure_step_ == warm_step + 1 &&
+        static_cast<Index>(adjoint_pressure_.size()) == n) {
+      std::vector<Scalar> r(static_cast<size_t>(n));
+      pressure_solver_->op().residual(gp.data(), adjoint_pressure_.data(), r.data());
+      if (parallel_sum(n, [&](Index c) { return r[c] * r[c]; }) < norm2) w = adjoint_pressure_;
+    }
     IterativeOptions options{config_.tol, config_.max_iter};
     const SolveInfo info = pressure_solver_->solve(gp.data(), w.data(), options, interrupt);
     if (!info.converged)
       throw ConvergenceError("pressure: the adjoint projection did not reach tol=" + format_real(config_.tol) +
                              " (relative residual " + format_real(info.residual) + ")");
+  }
+  if (warm_step >= 0) {
+    adjoint_pressure_ = w;
+    adjoint_pressure_step_ = warm_step;
   }
   // Cell c's divergence reads its faces idx (-) and idx + 1 (+), never across a periodic seam.
   const Scalar inv = -1 / (dt * model_.h);
@@ -492,7 +505,7 @@ void Solver::step_adjoint(const State& before, Scalar dt, const Scalar* control,
 
   std::array<std::vector<Scalar>, 3>& g = adjoint.velocity;
   // 4. Projection.
-  projection_adjoint(g, dt, interrupt);
+  projection_adjoint(g, dt, interrupt, before.steps);
   // 3. Viscosity: (I + c L) x = u*, c = nu dt / h^2: lambda = (I + c L)^-1 g, dL/du* = lambda,
   // dL/dc = -lambda . L x (also at nu = 0, where the forward pass skips the solve).
   enforce_boundary_adjoint(g);
