@@ -18,24 +18,78 @@ namespace kinema::grid {
 
 namespace {
 
-// The trilinear (bilinear in 2D) stencil of point x in layout L: nodes, weights and the weights'
-// derivatives with respect to x (grid units), with bracket()'s clamping and wrapping.
+// One axis of a stencil: the bracketing nodes, the weight of i1 and d w / d x (1 inside; 0 where
+// bracket() clamped the coordinate to the domain, or read a NaN as 0).
+struct AxisWeight {
+  Index i0 = 0, i1 = 0;
+  Scalar w = 0, d = 0;
+};
+
+inline AxisWeight axis_weight(Scalar s, Index n, Index period) {
+  const Bracket br = bracket(s, n, period);
+  return AxisWeight{br.i0, br.i1, br.w,
+                    period > 0 || (n > 1 && s >= 0 && s <= static_cast<Scalar>(n - 1)) ? Scalar(1) : Scalar(0)};
+}
+
+// The trilinear (bilinear in 2D) stencil of a point in layout L, from its axis brackets (with
+// bracket()'s clamping and wrapping): nodes in the order (a0, a1, a2) = 000, 001, 010, ...,
+// weights, and the interpolant's value and gradient in grid units.
+template <bool ThreeD>
 struct Stencil {
-  int count = 0;  // 4 in 2D, 8 in 3D
+  static constexpr int count = ThreeD ? 8 : 4;
   Index node[8];
   Scalar w[8];
-  Vec3 dw[8];
+  Scalar d[3];   // d w / d x per axis (0 along a clamped axis)
+  Scalar wa[3];  // the weight of the upper node per axis
+
+  Stencil(const FieldLayout& L, const AxisWeight& x0, const AxisWeight& x1, const AxisWeight& x2) {
+    const Index s0 = L.stride(0), s1 = L.stride(1);
+    d[0] = ThreeD ? x0.d : 0, d[1] = x1.d, d[2] = x2.d;
+    wa[0] = ThreeD ? x0.w : 0, wa[1] = x1.w, wa[2] = x2.w;
+    int m = 0;
+    for (int a0 = 0; a0 < (ThreeD ? 2 : 1); ++a0) {
+      const Scalar f0 = ThreeD ? (a0 ? x0.w : 1 - x0.w) : 1;
+      const Index n0 = ThreeD ? (a0 ? x0.i1 : x0.i0) * s0 : 0;
+      for (int a1 = 0; a1 < 2; ++a1) {
+        const Scalar f1 = f0 * (a1 ? x1.w : 1 - x1.w);
+        const Index n1 = n0 + (a1 ? x1.i1 : x1.i0) * s1;
+        node[m] = n1 + x2.i0, w[m++] = f1 * (1 - x2.w);
+        node[m] = n1 + x2.i1, w[m++] = f1 * x2.w;
+      }
+    }
+  }
 
   Scalar value(const Scalar* f) const {
     Scalar v = 0;
     for (int n = 0; n < count; ++n) v += w[n] * f[node[n]];
     return v;
   }
-  Vec3 gradient(const Scalar* f) const {
-    Vec3 g{0, 0, 0};
-    for (int n = 0; n < count; ++n)
-      for (int b = 0; b < 3; ++b) g[b] += dw[n][b] * f[node[n]];
-    return g;
+  // target[node] += g * w for every node.
+  void scatter(Scalar g, Scalar* target) const {
+    for (int n = 0; n < count; ++n) target[node[n]] += g * w[n];
+  }
+  // g times the gradient of the interpolant of f, added to out: the differences along each axis,
+  // weighted by the other axes' weights.
+  void add_gradient(const Scalar* f, Scalar g, Vec3& out) const {
+    Scalar v[8];
+    for (int n = 0; n < count; ++n) v[n] = f[node[n]];
+    const Scalar u1 = 1 - wa[1], u2 = 1 - wa[2];
+    if constexpr (ThreeD) {
+      const Scalar u0 = 1 - wa[0];
+      // planes a0 = 0 (v0..v3) and 1 (v4..v7)
+      const Scalar p0 = u1 * (u2 * v[0] + wa[2] * v[1]) + wa[1] * (u2 * v[2] + wa[2] * v[3]);
+      const Scalar p1 = u1 * (u2 * v[4] + wa[2] * v[5]) + wa[1] * (u2 * v[6] + wa[2] * v[7]);
+      out[0] += g * d[0] * (p1 - p0);
+      const Scalar e1 = u0 * (u2 * (v[2] - v[0]) + wa[2] * (v[3] - v[1])) +
+                        wa[0] * (u2 * (v[6] - v[4]) + wa[2] * (v[7] - v[5]));
+      const Scalar e2 = u0 * (u1 * (v[1] - v[0]) + wa[1] * (v[3] - v[2])) +
+                        wa[0] * (u1 * (v[5] - v[4]) + wa[1] * (v[7] - v[6]));
+      out[1] += g * d[1] * e1;
+      out[2] += g * d[2] * e2;
+    } else {
+      out[1] += g * d[1] * (u2 * (v[2] - v[0]) + wa[2] * (v[3] - v[1]));
+      out[2] += g * d[2] * (u1 * (v[1] - v[0]) + wa[1] * (v[3] - v[2]));
+    }
   }
   // The node holding the smallest (largest) value, first in stencil order on ties.
   Index argmin(const Scalar* f) const {
@@ -52,115 +106,76 @@ struct Stencil {
   }
 };
 
-// One axis of a stencil: the bracketing nodes, the weight of i1 and d w / d x (1 inside; 0 where
-// bracket() clamped the coordinate to the domain, or read a NaN as 0).
-struct AxisWeight {
-  Index i0 = 0, i1 = 0;
-  Scalar w = 0, d = 0;
-};
-
-inline AxisWeight axis_weight(Scalar s, Index n, Index period) {
-  const Bracket br = bracket(s, n, period);
-  return AxisWeight{br.i0, br.i1, br.w,
-                    period > 0 || (n > 1 && s >= 0 && s <= static_cast<Scalar>(n - 1)) ? Scalar(1) : Scalar(0)};
-}
-
-template <bool ThreeD>
-Stencil stencil_of(const FieldLayout& L, const AxisWeight& x0, const AxisWeight& x1, const AxisWeight& x2) {
-  Stencil st;
-  st.count = ThreeD ? 8 : 4;
-  const Index s0 = L.stride(0), s1 = L.stride(1);
-  int m = 0;
-  for (int a0 = 0; a0 < (ThreeD ? 2 : 1); ++a0) {
-    const Scalar f0 = ThreeD ? (a0 ? x0.w : 1 - x0.w) : 1;
-    const Scalar d0 = ThreeD ? (a0 ? x0.d : -x0.d) : 0;
-    const Index n0 = ThreeD ? (a0 ? x0.i1 : x0.i0) * s0 : 0;
-    for (int a1 = 0; a1 < 2; ++a1) {
-      const Scalar f1 = a1 ? x1.w : 1 - x1.w, d1 = a1 ? x1.d : -x1.d;
-      const Index n1 = n0 + (a1 ? x1.i1 : x1.i0) * s1;
-      for (int a2 = 0; a2 < 2; ++a2, ++m) {
-        const Scalar f2 = a2 ? x2.w : 1 - x2.w, d2 = a2 ? x2.d : -x2.d;
-        st.node[m] = n1 + (a2 ? x2.i1 : x2.i0);
-        st.w[m] = f0 * f1 * f2;
-        st.dw[m] = Vec3{d0 * f1 * f2, f0 * d1 * f2, f0 * f1 * d2};
-      }
-    }
-  }
-  return st;
-}
-
 // The stencil of point x (grid units) in layout L.
 template <bool ThreeD>
-Stencil stencil(const FieldLayout& L, const Vec3& x) {
+Stencil<ThreeD> stencil(const FieldLayout& L, const Vec3& x) {
   AxisWeight a[3];
   for (int b = ThreeD ? 0 : 1; b < 3; ++b) a[b] = axis_weight(x[b] - L.offset[b], L.n[b], L.period[b]);
-  return stencil_of<ThreeD>(L, a[0], a[1], a[2]);
+  return Stencil<ThreeD>(L, a[0], a[1], a[2]);
 }
 
-// Deterministic scatter-add into a set of target arrays over the nodes of a layout: each thread
-// takes a fixed contiguous range of rows and adds into its own zeroed copy of the targets; the
-// copies are then added into the targets in thread order (thread 0 adds into the targets
-// themselves).
+// Scatter-add over the nodes of a layout, without atomics or per-thread copies, and with a
+// result that does not depend on the thread count. The nodes are cut into blocks of whole
+// slabs along the outermost axis (axis 0 in 3D, 1 in 2D), each at least twice as wide as the
+// reach of a node's writes (how far along that axis from the node its stencils can lie); the
+// even blocks run in parallel, then the odd ones (then, across a periodic seam with an odd
+// block count, the last one alone). No two blocks that run together write the same node, so
+// every node receives its terms in one fixed order: the blocks' and, inside a block, the rows'.
 class Scatter {
  public:
-  // The id of target `data` (n values); the same pointer twice is one target.
-  static constexpr int kMaxTargets = 3 + 2 * kMaxAdvectedFields;
-
-  int target(Scalar* data, Index n) {
-    for (size_t t = 0; t < data_.size(); ++t)
-      if (data_[t] == data) return static_cast<int>(t);
-    data_.push_back(data);
-    size_.push_back(n);
-    return static_cast<int>(data_.size()) - 1;
-  }
-
-  // body(i, j, k, c, acc) for every node of L; acc[id] is the calling thread's copy of target id.
+  // body(i, j, k, c) for every node of L; a node's writes lie within `reach` slabs of it
+  // (reach < 0: unknown, run serially).
   template <class Body>
-  void run(const FieldLayout& L, Body&& body) {
-    const int targets = static_cast<int>(data_.size());
-    const int threads = L.size() > 8 * kParallelGrain ? omp_get_max_threads() : 1;
-    // thread 0 adds into the targets themselves, the others into zeroed copies
-    copies_.resize(static_cast<size_t>(threads) * targets);
-    for (int t = 1; t < threads; ++t)
-      for (int id = 0; id < targets; ++id) copies_[t * targets + id].assign(static_cast<size_t>(size_[id]), 0);
-    int used = 1;
-    const Index rows = L.rows(), n1 = L.n[1], nk = L.n[2];
-#pragma omp parallel num_threads(threads) if (threads > 1)
-    {
-      const int team = omp_get_num_threads(), t = omp_get_thread_num();
-#pragma omp single
-      used = team;
-      Scalar* acc[kMaxTargets];
-      for (int id = 0; id < targets; ++id) acc[id] = t == 0 ? data_[id] : copies_[t * targets + id].data();
-      const Index first = rows * t / team, last = rows * (t + 1) / team;
+  static void run(const FieldLayout& L, Index reach, Body&& body) {
+    const int axis = L.n[0] > 1 ? 0 : 1;
+    const Index n = L.n[axis], n1 = L.n[1], nk = L.n[2];
+    const Index width = reach < 0 ? n : std::max<Index>(1, 2 * reach);
+    const Index blocks = std::max<Index>(1, n / width);
+    const bool seam = L.period[axis] > 0 && blocks % 2 == 1 && blocks > 1;
+    const Index slab_rows = axis == 0 ? n1 : 1;  // rows per slab
+    auto block = [&](Index b) {
+      const Index first = n * b / blocks * slab_rows, last = n * (b + 1) / blocks * slab_rows;
       for (Index row = first; row < last; ++row) {
         const Index i = row / n1, j = row % n1;
         Index flat = row * nk;
-        for (Index k = 0; k < nk; ++k, ++flat) body(i, j, k, flat, acc);
+        for (Index k = 0; k < nk; ++k, ++flat) body(i, j, k, flat);
       }
+    };
+    // a node's adjoint costs tens of nanoseconds: a few thousand of them outweigh a parallel region
+    const bool parallel = blocks > 1 && L.size() > kParallelGrain;
+    for (int colour = 0; colour < 2; ++colour) {
+      const Index end = seam ? blocks - 1 : blocks;
+#pragma omp parallel for schedule(dynamic, 1) if (parallel)
+      for (Index b = colour; b < end; b += 2) block(b);
     }
-    for (int id = 0; id < targets && used > 1; ++id) {
-      Scalar* out = data_[id];
-      parallel_for(size_[id], [&](Index e) {
-        Scalar s = out[e];
-        for (int t = 1; t < used; ++t) s += copies_[t * targets + id][e];
-        out[e] = s;
-      });
-    }
+    if (seam) block(blocks - 1);
   }
-
- private:
-  std::vector<Scalar*> data_;
-  std::vector<Index> size_;
-  std::vector<std::vector<Scalar>> copies_;
 };
+
+// How many slabs along the blocking axis of L a node's scatter can reach when its back-traces
+// read u over |dt| (Runge-Kutta stages are convex combinations of sampled velocities, so no
+// stage leaves |dt| max|u| of the node), plus the stencil, the half-cell offset between faces
+// and cells, and rounding; -1 where u is not finite or the reach spans the domain.
+inline Index scatter_reach(const MacVelocity& u, const FieldLayout& L, Scalar dt) {
+  const int axis = L.n[0] > 1 ? 0 : 1;
+  const Scalar* c = u.comp[axis];
+  const Index n = u.layout[axis].size();
+  Scalar top = 0;
+  for (Index e = 0; e < n; ++e) {
+    const Scalar a = std::fabs(c[e]);
+    if (!(a <= top)) top = a;  // NaN propagates
+  }
+  const Scalar reach = std::ceil(top * std::fabs(dt)) + 3;
+  if (!(reach < static_cast<Scalar>(L.n[axis]))) return -1;
+  return static_cast<Index>(reach);
+}
 
 // The back-trace of kernels.h with its Runge-Kutta stages kept, and its adjoint.
 template <bool ThreeD>
 struct Tracer {
   const MacVelocity& u;
   int rk;
-  int u_id[3];  // Scatter ids of dL/du per component (-1 inactive)
+  Scalar* g_u[3];  // dL/du per component (nullptr inactive)
 
   struct Stages {
     Vec3 x, y1, y2, p;
@@ -192,7 +207,7 @@ struct Tracer {
   }
 
   // dL/du += (d u(y) / d u)^T g; returns (d u(y) / d y)^T g when `moves` (else 0: y is fixed).
-  Vec3 velocity_adjoint(const Vec3& y, const Vec3& g, Scalar* const* acc, bool moves = true) const {
+  Vec3 velocity_adjoint(const Vec3& y, const Vec3& g, bool moves = true) const {
     Vec3 gy{0, 0, 0};
     // the face brackets along axis b serve component b, the cell brackets the others
     AxisWeight face[3], cell[3];
@@ -203,19 +218,16 @@ struct Tracer {
     }
     for (int a = ThreeD ? 0 : 1; a < 3; ++a) {
       if (g[a] == 0) continue;
-      const Stencil st = stencil_of<ThreeD>(u.layout[a], a == 0 ? face[0] : cell[0], a == 1 ? face[1] : cell[1],
-                                            a == 2 ? face[2] : cell[2]);
-      Scalar* gu = acc[u_id[a]];
-      for (int n = 0; n < st.count; ++n) gu[st.node[n]] += g[a] * st.w[n];
-      if (!moves) continue;
-      const Vec3 d = st.gradient(u.comp[a]);
-      for (int b = 0; b < 3; ++b) gy[b] += g[a] * d[b];
+      const Stencil<ThreeD> st(u.layout[a], a == 0 ? face[0] : cell[0], a == 1 ? face[1] : cell[1],
+                               a == 2 ? face[2] : cell[2]);
+      st.scatter(g[a], g_u[a]);
+      if (moves) st.add_gradient(u.comp[a], g[a], gy);
     }
     return gy;
   }
 
   // dL/du += (dp/du)^T gp through the stages of p = x - dt k.
-  void trace_adjoint(const Stages& s, Scalar dt, const Vec3& gp, Scalar* const* acc) const {
+  void trace_adjoint(const Stages& s, Scalar dt, const Vec3& gp) const {
     Vec3 g1{0, 0, 0}, g2{0, 0, 0}, g3{0, 0, 0};
     const Scalar c1 = rk == 1 ? 1 : rk == 2 ? 0 : 2.0 / 9, c2 = rk == 2 ? 1 : rk == 3 ? 3.0 / 9 : 0,
                  c3 = rk == 3 ? 4.0 / 9 : 0;
@@ -225,165 +237,125 @@ struct Tracer {
       g3[b] = -dt * c3 * gp[b];
     }
     if (rk == 3) {
-      const Vec3 gy2 = velocity_adjoint(s.y2, g3, acc);
+      const Vec3 gy2 = velocity_adjoint(s.y2, g3);
       for (int b = 0; b < 3; ++b) g2[b] -= 0.75 * dt * gy2[b];
     }
     if (rk >= 2) {
-      const Vec3 gy1 = velocity_adjoint(s.y1, g2, acc);
+      const Vec3 gy1 = velocity_adjoint(s.y1, g2);
       for (int b = 0; b < 3; ++b) g1[b] -= 0.5 * dt * gy1[b];
     }
-    velocity_adjoint(s.x, g1, acc, false);  // the node itself does not move
+    velocity_adjoint(s.x, g1, false);  // the node itself does not move
   }
 };
 
 template <bool ThreeD>
 void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const FieldLayout& L, int count,
                          const Scalar* const* q, const Scalar* const* g_out, Scalar* const* g_q,
-                         const std::array<Scalar*, 3>& g_u, Scalar dt, int rk) {
+                         const std::array<Scalar*, 3>& g_u, Scalar dt, int rk, const AdvectionScratch* forward) {
   const Index n = L.size();
+  const Index reach = scatter_reach(u, L, dt);
   auto node = [&](Index i, Index j, Index k) {
     return Vec3{static_cast<Scalar>(i) + L.offset[0], static_cast<Scalar>(j) + L.offset[1],
                 static_cast<Scalar>(k) + L.offset[2]};
   };
-  // A scatter with dL/du and the given per-field targets; returns the tracer and the ids.
-  auto make = [&](Scatter& sc, Scalar* const* fields, int* ids) {
-    Tracer<ThreeD> tr{u, rk, {-1, -1, -1}};
-    for (int a = ThreeD ? 0 : 1; a < 3; ++a) tr.u_id[a] = sc.target(g_u[a], u.layout[a].size());
-    for (int f = 0; f < count; ++f) ids[f] = sc.target(fields[f], n);
-    return tr;
-  };
-  // out[f] = SL(src[f]) adjoint: dL/dsrc[f] += W^T g[f] (ids), positions through the trace.
-  auto semi_lagrangian = [&](const Scalar* const* src, const Scalar* const* g, Scalar* const* dst, Scalar step) {
-    Scatter sc;
-    int ids[kMaxAdvectedFields];
-    const Tracer<ThreeD> tr = make(sc, dst, ids);
-    sc.run(L, [&](Index i, Index j, Index k, Index c, Scalar* const* acc) {
+  const Tracer<ThreeD> tr{u, rk, {g_u[0], g_u[1], g_u[2]}};
+  // One pass traced over `step`: for each node, term(f, c, st, acc) returns dL/d(src[f] at the
+  // departure point) after adding the terms that do not go through it; the pass scatters that
+  // into dst[f] (W^T) and carries (grad src[f]) through the trace into dL/du.
+  auto pass = [&](Scalar step, const Scalar* const* src, Scalar* const* dst, auto&& term) {
+    Scatter::run(L, reach, [&](Index i, Index j, Index k, Index c) {
       const auto s = tr.trace(node(i, j, k), step);
-      const Stencil st = stencil<ThreeD>(L, s.p);
+      const Stencil<ThreeD> st = stencil<ThreeD>(L, s.p);
       Vec3 gp{0, 0, 0};
       for (int f = 0; f < count; ++f) {
-        const Scalar gf = g[f][c];
-        if (gf == 0) continue;
-        Scalar* out = acc[ids[f]];
-        for (int m = 0; m < st.count; ++m) out[st.node[m]] += gf * st.w[m];
-        const Vec3 d = st.gradient(src[f]);
-        for (int b = 0; b < 3; ++b) gp[b] += gf * d[b];
+        const Scalar g = term(f, c, st);
+        if (g == 0) continue;
+        st.scatter(g, dst[f]);
+        st.add_gradient(src[f], g, gp);
       }
-      if (gp != Vec3{0, 0, 0}) tr.trace_adjoint(s, step, gp, acc);
+      if (gp != Vec3{0, 0, 0}) tr.trace_adjoint(s, step, gp);
     });
   };
+  // out[f] = SL(src[f]) adjoint: dL/dsrc[f] += W^T g[f], positions through the trace.
+  auto semi_lagrangian = [&](const Scalar* const* src, const Scalar* const* g, Scalar* const* dst) {
+    pass(dt, src, dst, [&](int f, Index c, const Stencil<ThreeD>&) { return g[f][c]; });
+  };
   if (scheme == AdvectionScheme::SemiLagrangian) {
-    semi_lagrangian(q, g_out, g_q, dt);
+    semi_lagrangian(q, g_out, g_q);
     return;
   }
-  // Recompute the forward pass q^ = SL(q, dt) and its stencil's extreme nodes (the clamp bounds).
-  std::vector<std::vector<Scalar>> fwd(count, std::vector<Scalar>(n)), g_fwd(count, std::vector<Scalar>(n, 0));
-  std::vector<std::vector<Index>> lo(count, std::vector<Index>(n)), hi(count, std::vector<Index>(n));
-  const Tracer<ThreeD> plain{u, rk, {-1, -1, -1}};
-  for_each_node(L, [&](Index i, Index j, Index k, Index c) {
-    const Stencil st = stencil<ThreeD>(L, plain.trace(node(i, j, k), dt).p);
-    for (int f = 0; f < count; ++f) {
-      fwd[f][c] = st.value(q[f]);
-      lo[f][c] = st.argmin(q[f]);
-      hi[f][c] = st.argmax(q[f]);
-    }
-  });
-  Scalar* fwd_p[kMaxAdvectedFields];
+  // The forward pass as run: q^ = SL(q, dt), the clamp bounds lo/hi (values), BFECC's q_bar.
+  AdvectionScratch own;
+  if (!forward) {
+    std::vector<std::vector<Scalar>> out(count, std::vector<Scalar>(n));
+    Scalar* out_p[kMaxAdvectedFields];
+    for (int f = 0; f < count; ++f) out_p[f] = out[f].data();
+    advect_fields(scheme, u, L, count, q, out_p, dt, rk, own);
+    forward = &own;
+  }
+  const Scalar *fwd[kMaxAdvectedFields], *lo[kMaxAdvectedFields], *hi[kMaxAdvectedFields],
+      *bar[kMaxAdvectedFields];
+  std::vector<std::vector<Scalar>> g_fwd(count, std::vector<Scalar>(n, 0));
   Scalar* g_fwd_p[kMaxAdvectedFields];
-  for (int f = 0; f < count; ++f) fwd_p[f] = fwd[f].data(), g_fwd_p[f] = g_fwd[f].data();
-  // Where the clamp took a bound, the node value itself is the result.
-  auto clamped = [&](int f, Index c, Scalar v, Scalar g, Scalar* gq) {
-    const Index l = lo[f][c], h = hi[f][c];
-    if (v < q[f][l]) gq[l] += g;
-    else if (q[f][h] < v) gq[h] += g;
+  for (int f = 0; f < count; ++f) {
+    fwd[f] = forward->forward[f].data(), lo[f] = forward->lo[f].data(), hi[f] = forward->hi[f].data();
+    if (scheme == AdvectionScheme::BFECC) bar[f] = forward->corrected[f].data();
+    g_fwd_p[f] = g_fwd[f].data();
+  }
+  // Where the clamp took a bound, the result is that stencil node of q (st: the stencil of the
+  // forward departure point, for its extreme nodes): true when it did.
+  auto clamped = [&](int f, Index c, Scalar v, Scalar g, auto&& st) {
+    if (v < lo[f][c]) g_q[f][st().argmin(q[f])] += g;
+    else if (hi[f][c] < v) g_q[f][st().argmax(q[f])] += g;
     else return false;
     return true;
   };
-  // The adjoint of the round trip q~ = SL(q^, -dt) of both schemes: direct(f, c, st, acc, q_id,
-  // fwd_id) adds the terms that do not go through q~ and returns dL/dq~[f][c] (st: the stencil of
-  // q~'s departure point).
-  auto round_trip = [&](auto&& direct) {
-    Scatter sc;
-    int q_ids[kMaxAdvectedFields], fwd_ids[kMaxAdvectedFields];
-    const Tracer<ThreeD> tr = make(sc, g_q, q_ids);
-    for (int f = 0; f < count; ++f) fwd_ids[f] = sc.target(g_fwd_p[f], n);
-    sc.run(L, [&](Index i, Index j, Index k, Index c, Scalar* const* acc) {
-      const auto s = tr.trace(node(i, j, k), -dt);
-      const Stencil st = stencil<ThreeD>(L, s.p);
-      Vec3 gp{0, 0, 0};
-      for (int f = 0; f < count; ++f) {
-        const Scalar g_back = direct(f, c, st, acc, q_ids[f], fwd_ids[f]);
-        if (g_back == 0) continue;
-        Scalar* gf = acc[fwd_ids[f]];
-        for (int m = 0; m < st.count; ++m) gf[st.node[m]] += g_back * st.w[m];
-        const Vec3 d = st.gradient(fwd_p[f]);
-        for (int b = 0; b < 3; ++b) gp[b] += g_back * d[b];
-      }
-      if (gp != Vec3{0, 0, 0}) tr.trace_adjoint(s, -dt, gp, acc);
-    });
-  };
   if (scheme == AdvectionScheme::MacCormack) {
-    // out = clamp(q^ + (q - q~)/2)
-    round_trip([&](int f, Index c, const Stencil& st, Scalar* const* acc, int q_id, int fwd_id) -> Scalar {
+    // out = clamp(q^ + (q - q~)/2), q~ = SL(q^, -dt)
+    pass(-dt, fwd, g_fwd_p, [&](int f, Index c, const Stencil<ThreeD>& st) -> Scalar {
       const Scalar g = g_out[f][c];
       if (g == 0) return 0;
-      const Scalar v = fwd_p[f][c] + 0.5 * (q[f][c] - st.value(fwd_p[f]));
-      if (clamped(f, c, v, g, acc[q_id])) return 0;
-      acc[fwd_id][c] += g;
-      acc[q_id][c] += 0.5 * g;
+      const Scalar v = fwd[f][c] + 0.5 * (q[f][c] - st.value(fwd[f]));
+      auto forward_stencil = [&] {
+        const Index row = c / L.n[2];
+        return stencil<ThreeD>(L, tr.trace(node(row / L.n[1], row % L.n[1], c % L.n[2]), dt).p);
+      };
+      if (clamped(f, c, v, g, forward_stencil)) return 0;
+      g_fwd_p[f][c] += g;
+      g_q[f][c] += 0.5 * g;
       return -0.5 * g;
     });
-    semi_lagrangian(q, g_fwd_p, g_q, dt);
+    semi_lagrangian(q, g_fwd_p, g_q);
     return;
   }
   // BFECC: q_bar = q + (q - SL(q^, -dt))/2, out = clamp(SL(q_bar, dt)).
-  std::vector<std::vector<Scalar>> bar(count, std::vector<Scalar>(n)), g_bar(count, std::vector<Scalar>(n, 0));
-  for_each_node(L, [&](Index i, Index j, Index k, Index c) {
-    const Stencil st = stencil<ThreeD>(L, plain.trace(node(i, j, k), -dt).p);
-    for (int f = 0; f < count; ++f) bar[f][c] = q[f][c] + 0.5 * (q[f][c] - st.value(fwd_p[f]));
-  });
-  Scalar* bar_p[kMaxAdvectedFields];
+  std::vector<std::vector<Scalar>> g_bar(count, std::vector<Scalar>(n, 0));
   Scalar* g_bar_p[kMaxAdvectedFields];
-  for (int f = 0; f < count; ++f) bar_p[f] = bar[f].data(), g_bar_p[f] = g_bar[f].data();
-  {
-    Scatter sc;
-    int q_ids[kMaxAdvectedFields], bar_ids[kMaxAdvectedFields];
-    const Tracer<ThreeD> tr = make(sc, g_q, q_ids);
-    for (int f = 0; f < count; ++f) bar_ids[f] = sc.target(g_bar_p[f], n);
-    sc.run(L, [&](Index i, Index j, Index k, Index c, Scalar* const* acc) {
-      const auto s = tr.trace(node(i, j, k), dt);
-      const Stencil st = stencil<ThreeD>(L, s.p);
-      Vec3 gp{0, 0, 0};
-      for (int f = 0; f < count; ++f) {
-        const Scalar g = g_out[f][c];
-        if (g == 0 || clamped(f, c, st.value(bar_p[f]), g, acc[q_ids[f]])) continue;
-        Scalar* gb = acc[bar_ids[f]];
-        for (int m = 0; m < st.count; ++m) gb[st.node[m]] += g * st.w[m];
-        const Vec3 d = st.gradient(bar_p[f]);
-        for (int b = 0; b < 3; ++b) gp[b] += g * d[b];
-      }
-      if (gp != Vec3{0, 0, 0}) tr.trace_adjoint(s, dt, gp, acc);
-    });
-  }
+  for (int f = 0; f < count; ++f) g_bar_p[f] = g_bar[f].data();
+  pass(dt, bar, g_bar_p, [&](int f, Index c, const Stencil<ThreeD>& st) -> Scalar {
+    const Scalar g = g_out[f][c];
+    if (g == 0 || clamped(f, c, st.value(bar[f]), g, [&]() -> const Stencil<ThreeD>& { return st; })) return 0;
+    return g;
+  });
   // q_bar = 1.5 q - 0.5 q~
-  round_trip([&](int f, Index c, const Stencil&, Scalar* const* acc, int q_id, int) -> Scalar {
+  pass(-dt, fwd, g_fwd_p, [&](int f, Index c, const Stencil<ThreeD>&) -> Scalar {
     const Scalar g = g_bar_p[f][c];
-    acc[q_id][c] += 1.5 * g;
+    g_q[f][c] += 1.5 * g;
     return -0.5 * g;
   });
-  semi_lagrangian(q, g_fwd_p, g_q, dt);
+  semi_lagrangian(q, g_fwd_p, g_q);
 }
 
 }  // namespace
 
 void advect_adjoint(AdvectionScheme scheme, const MacVelocity& u, const FieldLayout& L, int count,
                     const Scalar* const* q, const Scalar* const* g_out, Scalar* const* g_q,
-                    const std::array<Scalar*, 3>& g_u, Scalar dt, int rk_order) {
+                    const std::array<Scalar*, 3>& g_u, Scalar dt, int rk_order, const AdvectionScratch* forward) {
   if (count <= 0) return;
   if (count > kMaxAdvectedFields) throw InvalidArgument("advect_adjoint: at most 8 fields per call");
   if (u.walls) throw InvalidArgument("walls: the advection adjoint does not handle no-slip walls");
-  if (u.comp[0]) advect_adjoint_impl<true>(scheme, u, L, count, q, g_out, g_q, g_u, dt, rk_order);
-  else advect_adjoint_impl<false>(scheme, u, L, count, q, g_out, g_q, g_u, dt, rk_order);
+  if (u.comp[0]) advect_adjoint_impl<true>(scheme, u, L, count, q, g_out, g_q, g_u, dt, rk_order, forward);
+  else advect_adjoint_impl<false>(scheme, u, L, count, q, g_out, g_q, g_u, dt, rk_order, forward);
 }
 
 // --------------------------------------------------------------------------- the step
@@ -441,7 +413,8 @@ void Solver::cell_force_adjoint(int axis, const Scalar* g, Scalar* out, Index st
   });
 }
 
-void Solver::projection_adjoint(std::array<std::vector<Scalar>, 3>& grad, Scalar dt, Interrupt& interrupt) {
+void Solver::projection_adjoint(std::array<std::vector<Scalar>, 3>& grad, Scalar dt, Interrupt& interrupt,
+                                Index warm_step) {
   // u' = u - (dt/h) G p with A p = -div(u) / dt. The transpose: dL/dp = -(dt/h) G^T g, then one
   // solve w = A^-1 dL/dp (A is symmetric; dL/dp sums to zero on every singular component, as the
   // forward right-hand side does), then g += div^T w * (-1/dt); the divergence is 0 in solid cells.
@@ -470,11 +443,22 @@ void Solver::projection_adjoint(std::array<std::vector<Scalar>, 3>& grad, Scalar
   }
   const Scalar norm2 = parallel_sum(n, [&](Index c) { return gp[c] * gp[c]; });
   if (norm2 > 0) {
+    // Warm start (as project() does) only when it beats zero.
+    if (warm_step >= 0 && adjoint_pressure_step_ == warm_step + 1 &&
+        static_cast<Index>(adjoint_pressure_.size()) == n) {
+      std::vector<Scalar> r(static_cast<size_t>(n));
+      pressure_solver_->op().residual(gp.data(), adjoint_pressure_.data(), r.data());
+      if (parallel_sum(n, [&](Index c) { return r[c] * r[c]; }) < norm2) w = adjoint_pressure_;
+    }
     IterativeOptions options{config_.tol, config_.max_iter};
     const SolveInfo info = pressure_solver_->solve(gp.data(), w.data(), options, interrupt);
     if (!info.converged)
       throw ConvergenceError("pressure: the adjoint projection did not reach tol=" + format_real(config_.tol) +
                              " (relative residual " + format_real(info.residual) + ")");
+  }
+  if (warm_step >= 0) {
+    adjoint_pressure_ = w;
+    adjoint_pressure_step_ = warm_step;
   }
   // Cell c's divergence reads its faces idx (-) and idx + 1 (+), never across a periodic seam.
   const Scalar inv = -1 / (dt * model_.h);
@@ -513,14 +497,15 @@ void Solver::step_adjoint(const State& before, Scalar dt, const Scalar* control,
   apply_sources(s);
   enforce_boundary(s);
   const State s0 = s;
-  advect(s, dt);
+  std::array<AdvectionScratch, 4> kept;  // the advection's forward passes, for its adjoint
+  advect(s, dt, &kept);
   add_forces(s, dt, control);
   diffuse(s, dt, interrupt);
   interrupt.check();
 
   std::array<std::vector<Scalar>, 3>& g = adjoint.velocity;
   // 4. Projection.
-  projection_adjoint(g, dt, interrupt);
+  projection_adjoint(g, dt, interrupt, before.steps);
   // 3. Viscosity: (I + c L) x = u*, c = nu dt / h^2: lambda = (I + c L)^-1 g, dL/du* = lambda,
   // dL/dc = -lambda . L x (also at nu = 0, where the forward pass skips the solve).
   enforce_boundary_adjoint(g);
@@ -581,7 +566,8 @@ void Solver::step_adjoint(const State& before, Scalar dt, const Scalar* control,
     if (!active_[a]) continue;
     const Scalar* qa = s0.velocity[a].data();
     const Scalar* ga = g[a].data();
-    advect_adjoint(config_.advection, u0, faces_[a], 1, &qa, &ga, &g0_p[a], g0_p, dt_grid, config_.rk_order);
+    advect_adjoint(config_.advection, u0, faces_[a], 1, &qa, &ga, &g0_p[a], g0_p, dt_grid, config_.rk_order,
+                   &kept[1 + a]);
   }
   const Scalar* q[2];
   const Scalar* g_out[2];
@@ -601,7 +587,7 @@ void Solver::step_adjoint(const State& before, Scalar dt, const Scalar* control,
     ++count;
   }
   if (count > 0 && any_open()) inflow_ambient(s0, g_scalars, count);
-  advect_adjoint(config_.advection, u0, cells_, count, q, g_out, g_in, g0_p, dt_grid, config_.rk_order);
+  advect_adjoint(config_.advection, u0, cells_, count, q, g_out, g_in, g0_p, dt_grid, config_.rk_order, &kept[0]);
   // 0. Boundary values and sources imposed before the step.
   enforce_boundary_adjoint(g0);
   for (int f = 0; f < count; ++f) std::copy(g_scalar0[f].begin(), g_scalar0[f].end(), g_scalars[f]);

@@ -8,10 +8,10 @@
 // so its gradient goes to that node only. Interpolation weights are differentiated where the
 // back-trace stays inside the domain; a clamped (outside) coordinate has zero derivative.
 //
-// The scatters are deterministic: each thread adds into its own copy of the targets over a
-// fixed contiguous range of rows, and the copies are summed in thread order, so the result is
-// bitwise the same run to run for a fixed thread count (not across thread counts: the sums
-// are grouped differently).
+// The scatters are deterministic for any thread count: the nodes are cut into blocks of slabs
+// wider than twice the reach of a node's writes (max |u| |dt| plus the stencil), the even
+// blocks run in parallel, then the odd ones, so no two threads write one node at once (no
+// atomics, no per-thread copies) and every node receives its terms in one fixed order.
 //
 // No-slip walls in the interpolation (MacVelocity::walls) are not handled; the Solver refuses to
 // differentiate them (Solver::check_differentiable).
@@ -24,9 +24,12 @@ namespace kinema::grid {
 // The adjoint of advect_fields(scheme, u, L, count, q, out, dt, rk_order): given
 // g_out[f] = dL/d(out[f]), adds dL/d(q[f]) into g_q[f] and dL/du into g_u[a] (one array per
 // active component of u, on u.layout[a]). g_q[f] may alias g_u[a] (a velocity component advected
-// through itself). u.walls must be null.
+// through itself). u.walls must be null. forward (nullable): the scratch of that advect_fields
+// call (MacCormack and BFECC read its forward pass, bounds and corrected field; recomputed when
+// null).
 void advect_adjoint(AdvectionScheme scheme, const MacVelocity& u, const FieldLayout& L, int count,
                     const Scalar* const* q, const Scalar* const* g_out, Scalar* const* g_q,
-                    const std::array<Scalar*, 3>& g_u, Scalar dt, int rk_order);
+                    const std::array<Scalar*, 3>& g_u, Scalar dt, int rk_order,
+                    const AdvectionScratch* forward = nullptr);
 
 }  // namespace kinema::grid

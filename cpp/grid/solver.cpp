@@ -443,7 +443,7 @@ MacVelocity Solver::mac_velocity(const std::array<std::vector<Scalar>, 3>& veloc
   return u;
 }
 
-void Solver::advect(State& state, Scalar dt) {
+void Solver::advect(State& state, Scalar dt, std::array<AdvectionScratch, 4>* kept) {
   const MacVelocity u = mac_velocity(state.velocity);
   const Scalar dt_grid = dt / model_.h;
   const int rk = config_.rk_order;
@@ -458,8 +458,8 @@ void Solver::advect(State& state, Scalar dt) {
     out[count] = scalar_new_[count].data();
     ++count;
   }
-  grid::advect_fields(config_.advection, u, cells_, count, q, out, dt_grid, rk, advection_scratch_, -1,
-                       config_.advection_kernel);
+  grid::advect_fields(config_.advection, u, cells_, count, q, out, dt_grid, rk,
+                       kept ? (*kept)[0] : advection_scratch_, -1, config_.advection_kernel);
   const std::vector<std::uint8_t>& solid = model_.solid;
   for (int f = 0; f < count; ++f) {
     Scalar* dst = fields[f];
@@ -472,8 +472,8 @@ void Solver::advect(State& state, Scalar dt) {
     if (!active_[a]) continue;
     const Scalar* qa = state.velocity[a].data();
     Scalar* oa = velocity_new_[a].data();
-    grid::advect_fields(config_.advection, u, faces_[a], 1, &qa, &oa, dt_grid, rk, advection_scratch_, a,
-                         config_.advection_kernel);
+    grid::advect_fields(config_.advection, u, faces_[a], 1, &qa, &oa, dt_grid, rk,
+                         kept ? (*kept)[1 + a] : advection_scratch_, a, config_.advection_kernel);
   }
   for (int a = 0; a < 3; ++a) {
     if (!active_[a]) continue;

@@ -66,7 +66,11 @@ class Solver {
   void check_differentiable() const;
   // The projection alone (u -= dt grad p with the pressure solve) and its transpose, for tests.
   SolveInfo apply_projection(State& state, Scalar dt, Interrupt& interrupt) { return project(state, dt, interrupt); }
-  void projection_adjoint(std::array<std::vector<Scalar>, 3>& grad, Scalar dt, Interrupt& interrupt);
+  // warm_step >= 0: the adjoint solve of the step from state.steps = warm_step starts from the
+  // last one's solution when that was the step after it (a backward pass runs the steps in
+  // reverse, and consecutive adjoint pressures differ little, as the forward pressures do).
+  void projection_adjoint(std::array<std::vector<Scalar>, 3>& grad, Scalar dt, Interrupt& interrupt,
+                          Index warm_step = -1);
   // Sets the kinematic viscosity nu [m^2/s] (a differentiable parameter).
   void set_viscosity(Scalar viscosity);
   // The CFL step dt = cfl h / u_max, at most max_dt, where u_max = max |u| + sqrt(5 h |g|)
@@ -101,7 +105,9 @@ class Solver {
  private:
   StepStats step_phases(State& state, Scalar dt, Interrupt& interrupt, const Scalar* control);  // step() without the rollback
   // The five phases of a step, in order.
-  void advect(State& state, Scalar dt);
+  // kept (nullable): the advection scratch of the scalars (0) and of each velocity component
+  // (1 + axis) is left there, for the adjoint (advect_adjoint's `forward`).
+  void advect(State& state, Scalar dt, std::array<AdvectionScratch, 4>* kept = nullptr);
   void add_forces(State& state, Scalar dt, const Scalar* control);
   Index diffuse(State& state, Scalar dt, Interrupt& interrupt);
   SolveInfo project(State& state, Scalar dt, Interrupt& interrupt);
@@ -157,6 +163,8 @@ class Solver {
   std::vector<Scalar> vorticity_norm_;
   AdvectionScratch advection_scratch_;
   CgWorkspace viscosity_cg_;
+  std::vector<Scalar> adjoint_pressure_;  // the last adjoint pressure solution (a warm start)
+  Index adjoint_pressure_step_ = -1;      // the step it belongs to, -1: none
   WallVelocities walls_;  // no-slip and moving walls as interpolation sees them
 };
 

@@ -1,0 +1,79 @@
+"""Backward over forward of the km.grid smoke-control gradient in CPU time on one thread: the
+figure bench/grid/diff_grid_bench.py measures in wall time, but robust to a loaded machine
+(other processes inflate wall time, not this process's CPU time, as long as it runs on one
+thread). Same task (diff_grid_bench.task): forward = T plain steps; backward = km.diff's
+backward after a rollout with every state stored and with K = 2 sqrt(T) checkpoints
+(recomputation included); FD agreement as there.
+
+    .venv/bin/python bench/grid/diff_grid_cpu.py [--quick]
+
+Prints one line per case and a SUMMARY line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+import kinema as km
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from diff_grid_bench import TOL, kinema_fluid, task  # noqa: E402
+
+
+def case(shape, steps, advection, rk, tol=TOL):
+    h, dt, rho0, controls, weights, direction = task(shape, steps)
+    sim = kinema_fluid(shape, h, rho0, advection, rk, tol)
+    s0 = sim.state()
+
+    def loss(c):
+        sim.set_state(s0)
+        for k in range(steps):
+            sim._diff_step(dt, c[k], {})
+        return float(np.sum(weights * sim.density))
+
+    def cpu(fn, reps=1):
+        best = float("inf")
+        for _ in range(reps):
+            t = time.process_time()
+            fn()
+            best = min(best, time.process_time() - t)
+        return best
+
+    forward = cpu(lambda: loss(controls))
+    e = 1e-5
+    fd = (loss(controls + e * direction) - loss(controls - e * direction)) / (2 * e)
+    out = {}
+    for name, ck in (("stored", None), ("checkpointed", int(2 * np.sqrt(steps)))):
+        sim.set_state(s0)
+        run = km.diff.rollout(sim, steps, dt, wrt=("controls",), controls=controls, checkpoints=ck)
+        box = {}
+        backward = cpu(lambda: box.update(g=run.backward({"density": weights})["controls"]))
+        err = abs(float(np.sum(box["g"] * direction)) - fd) / abs(fd)
+        out[name] = backward / forward
+        print(f"{len(shape)}D {'x'.join(map(str, shape))} {advection} rk{rk} T={steps} {name:12s}: CPU forward "
+              f"{forward:.3f} s, backward {backward:.3f} s, backward/forward {backward / forward:.2f}, "
+              f"|adj - FD|/|FD| {err:.1e}", flush=True)
+    return out
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="small sizes (a check that the script runs)")
+    opts = ap.parse_args()
+    km.set_num_threads(1)
+    n2, n3, t2, t3 = (256, 64, 16, 9) if not opts.quick else (32, 12, 4, 4)
+    summary = []
+    for shape, steps in (((n2, n2), t2), ((n3, n3, n3), t3)):
+        for advection, rk in (("semi_lagrangian", 1), ("maccormack", 2), ("bfecc", 2)):
+            r = case(shape, steps, advection, rk)
+            summary.append(f"{len(shape)}D {advection} {r['stored']:.2f}/{r['checkpointed']:.2f}")
+    print("SUMMARY (CPU backward/forward, stored/checkpointed, 1 thread): " + "; ".join(summary), flush=True)
+
+
+if __name__ == "__main__":
+    main()
