@@ -649,7 +649,7 @@ class SolverD final : public Solver::Impl {
         Eigen::Map<Eigen::Matrix<Scalar, D, D, Eigen::RowMajor>> F(&state.F[pd * D]);
         Eigen::Map<Eigen::Matrix<Scalar, D, D, Eigen::RowMajor>>(&state.C[pd * D]) = C;
         Mat<D> Fn = (Mat<D>::Identity() + dt * C) * F;
-        plasticity(state, p, Fn);
+        plasticity(state, p, Fn, dt);
         F = Fn;
         for (int a = 0; a < D; ++a) {
           Scalar& x = state.x[pd + a];
@@ -741,7 +741,7 @@ class SolverD final : public Solver::Impl {
     }
   }
 
-  void plasticity(State& state, Index p, Mat<D>& F) const {
+  void plasticity(State& state, Index p, Mat<D>& F, Scalar dt) const {
     const Material& m = model_.materials[static_cast<size_t>(state.material[static_cast<size_t>(p)])];
     Scalar& Jp = state.Jp[static_cast<size_t>(p)];
     Svd<D> s;
@@ -752,7 +752,7 @@ class SolverD final : public Solver::Impl {
       case MaterialKind::Sand: {
         Material own = m;  // the yield surface with this particle's moduli
         particle_lame(state, m, p, own.mu, own.lambda);
-        F = sand_project<D>(F, own, Jp, s);
+        F = sand_project<D>(F, own, Jp, s, dt);
         break;
       }
       case MaterialKind::Water: {
