@@ -18,7 +18,7 @@ def _sim(d, n=32, gravity=(0.0, -9.81, 0.0), boundary="slip"):
 
 def _add(sim, x, material, **kw):
     kw.setdefault("density", 1000.0)
-    if material == "sand":
+    if material == "sand" and kw.get("friction_law", "constant") == "constant":
         kw.setdefault("friction_angle", 30.0)
     return sim.add_particles(x, material, **kw)
 
@@ -142,15 +142,20 @@ def test_bitwise_determinism_for_1_and_2_threads_and_checkpoints(d):
 
 # ---------------------------------------------------------------- every material, 2D and 3D
 @pytest.mark.parametrize("d", [2, 3])
-@pytest.mark.parametrize("material", MATERIALS)
+@pytest.mark.parametrize("material", MATERIALS + ("sand_mu_i",))
 def test_every_material_drops_settles_and_behaves(d, material):
+    # "sand_mu_i": sand with the mu(I) friction law (static friction tan 30 deg, as the constant
+    # law's cases), held to the same heap bounds.
+    options = {}
+    if material == "sand_mu_i":
+        material, options = "sand", dict(SAND_MU_I)
     n = 32 if d == 2 else 16
     sim = km.mpm.Simulation((n,) * d, 1.0 / n, gravity=[0.0, -9.81, 0.0][:d], boundary="separate",
                             friction=0.5 if material == "sand" else 0.0)
     lo, hi = [0.35] + [0.05] * (d - 1), [0.65] + [0.35] * (d - 1)
     if d == 3:
         lo[2], hi[2] = 0.35, 0.65
-    _add(sim, km.mpm.block(lo, hi, 0.5 / n), material)
+    _add(sim, km.mpm.block(lo, hi, 0.5 / n), material, **options)
     width0 = np.ptp(sim.x[:, 0])
     sim.advance(0.4)
     x = sim.x
