@@ -155,6 +155,7 @@ def taichi(opts):
     rec = harness.Recorder(CSV, "mpm_vs_taichi", threads=opts.threads)
     km.set_num_threads(opts.threads)
     steps = opts.steps
+    summary = []
     for kind in ("mpm88", "mpm128", "mpm3d"):
         with tempfile.TemporaryDirectory() as tmp:
             start_file = Path(tmp) / "start.npz"
@@ -198,6 +199,9 @@ def taichi(opts):
               f"({'ok' if ok else 'FAILED'}), other load {m.other_load:.2f}", flush=True)
         if not ok:
             raise SystemExit(f"{kind}: kinema and Taichi disagree ({drift:.3g}); no time recorded as valid")
+        summary.append(f"{kind} {speedup:.2f}x (cpu {ti_res['cpu_seconds'] / cpu:.2f}x, load {m.other_load:.2f})")
+    print(f"summary, Taichi / kinema time per substep, {opts.threads} thread(s), target >= 2x: " + "; ".join(summary),
+          flush=True)
 
 
 def main():

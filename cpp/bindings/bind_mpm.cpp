@@ -63,7 +63,8 @@ struct PySimulation {
 
   py::tuple add_particles(py::array positions, mpm::MaterialKind kind, Scalar density, Scalar youngs_modulus,
                           Scalar poisson_ratio, py::array velocity, py::array volume, Scalar friction_angle,
-                          Scalar cohesion) {
+                          Scalar cohesion, const std::string& friction_law, Scalar mu_s, Scalar mu_2, Scalar I0,
+                          Scalar grain_diameter, Scalar grain_density) {
     const int d = model.dim;
     if (positions.ndim() != 2 || positions.shape(1) != d)
       throw InvalidArgument("positions: expected shape (n, " + std::to_string(d) + ")");
@@ -82,8 +83,11 @@ struct PySimulation {
       }
       if (!(std::isfinite(vol[p]) && vol[p] > 0)) throw InvalidArgument("volume: expected finite values > 0");
     }
-    const mpm::Material mat =
-        mpm::make_material(d, kind, density, youngs_modulus, poisson_ratio, friction_angle, cohesion);
+    mpm::Material mat = mpm::make_material(d, kind, density, youngs_modulus, poisson_ratio, friction_angle, cohesion);
+    if (friction_law == "mu_i")
+      mpm::use_mu_i(mat, d, mu_s, mu_2, I0, grain_diameter, grain_density);
+    else if (friction_law != "constant")
+      throw InvalidArgument("friction_law: expected 'constant' or 'mu_i', got '" + friction_law + "'");
     std::vector<Scalar> mass(vol, vol + m);
     for (Scalar& w : mass) w *= density;
     // A new State (old views keep the old one alive) and a new solver for the new material table.
@@ -281,6 +285,14 @@ void bind_mpm(py::module_& m) {
       .def_readonly("lambda_", &mpm::Material::lambda, "[Pa]")
       .def_readonly("friction_angle", &mpm::Material::friction_angle, "[deg]")
       .def_readonly("cohesion", &mpm::Material::cohesion, "[Pa]")
+      .def_property_readonly("friction_law", [](const mpm::Material& mat) {
+        return std::string(mat.friction_law == mpm::Material::FrictionLaw::MuI ? "mu_i" : "constant");
+      })
+      .def_readonly("mu_s", &mpm::Material::mu_s, "static friction coefficient of mu(I) [-]")
+      .def_readonly("mu_2", &mpm::Material::mu_2, "limiting friction coefficient of mu(I) [-]")
+      .def_readonly("I0", &mpm::Material::inertial_number0, "inertial number scale of mu(I) [-]")
+      .def_readonly("grain_diameter", &mpm::Material::grain_diameter, "[m]")
+      .def_readonly("grain_density", &mpm::Material::grain_density, "[kg/m^d]")
       .def_readonly("wave_speed", &mpm::Material::wave_speed, "fastest elastic wave at rest [m/s]");
 
   py::class_<PySimulation>(m, "Simulation")
@@ -289,7 +301,9 @@ void bind_mpm(py::module_& m) {
            py::arg("friction"))
       .def("add_particles", &PySimulation::add_particles, py::arg("positions"), py::arg("material"),
            py::arg("density"), py::arg("youngs_modulus"), py::arg("poisson_ratio"), py::arg("velocity"),
-           py::arg("volume"), py::arg("friction_angle"), py::arg("cohesion"))
+           py::arg("volume"), py::arg("friction_angle"), py::arg("cohesion"), py::arg("friction_law") = "constant",
+           py::arg("mu_s") = 0.0, py::arg("mu_2") = 0.0, py::arg("I0") = 0.0, py::arg("grain_diameter") = 0.0,
+           py::arg("grain_density") = 0.0)
       .def("add_collider", &PySimulation::add_collider, py::arg("shape"), py::arg("lower"), py::arg("upper"),
            py::arg("center"), py::arg("radius"), py::arg("boundary"), py::arg("friction"))
       .def("step", &PySimulation::step, py::arg("dt"), py::arg("forces") = py::none())

@@ -178,19 +178,50 @@ Mat<D> snow_project(const Mat<D>& F, const Material& m, Scalar& Jp, Svd<D>& s) {
 //   dg = |eps^| + (d lambda + 2 mu) / (2 mu) tr alpha <= 0 -> inside the cone: no change,
 //   otherwise                           eps <- eps - dg eps^ / |eps^| (onto the cone).
 // Jp accumulates the plastic volume change. Returns the new elastic F.
+//
+// The mu(I) law (m.friction_law == MuI; Jop, Forterre and Pouliquen 2006) in the same space:
+// the Hencky stress has deviator 2 mu eps^ and Kirchhoff pressure -(d lambda + 2 mu) tr / d, so
+// Jop's ratio |tau| / p = mu_f, |tau| = sqrt(tau':tau' / 2), is the cone
+// |eps^| = c mu_f with c = -sqrt(2) / d (d lambda + 2 mu) / (2 mu) tr (the constant law's
+// alpha = sqrt(2) mu_f / d). A step whose trial deviator q = |eps^| lies outside the static
+// cone (q > c mu_s) flows plastically by dq, i.e. at the shear rate gamma_dot = sqrt(2) dq / dt
+// (simple shear at rate gamma_dot moves |eps^| by gamma_dot dt / sqrt(2)), with the inertial
+// number I = gamma_dot d_g / sqrt(p / rho_s) = beta dq (p the Cauchy pressure), and lands on the
+// cone of mu(I): q - dq = c (mu_s + (mu_2 - mu_s) beta dq / (I0 + beta dq)). Times (I0 + beta dq)
+// this is the quadratic beta dq^2 - b dq - a0 I0 = 0, b = a0 beta - I0 - c (mu_2 - mu_s) beta,
+// a0 = q - c mu_s > 0, whose one positive root is taken (in the form without cancellation).
 template <int D>
-Mat<D> sand_project(const Mat<D>& F, const Material& m, Scalar& Jp, Svd<D>& s) {
+Mat<D> sand_project(const Mat<D>& F, const Material& m, Scalar& Jp, Svd<D>& s, Scalar dt) {
   s = svd(F);
   Vec<D> eps = s.sigma.array().abs().max(1e-12).log().matrix();
   const Scalar tr = eps.sum() - m.apex_trace;
   const Vec<D> dev = eps - Vec<D>::Constant(eps.sum() / D);
   const Scalar dev_norm = dev.norm();
+  const Scalar k = (D * m.lambda + 2 * m.mu) / (2 * m.mu);
   Vec<D> projected = eps;
   if (tr >= 0) {
     projected.setConstant(m.apex_trace / D);
-  } else {
-    const Scalar dg = dev_norm + (D * m.lambda + 2 * m.mu) / (2 * m.mu) * tr * m.alpha;
+  } else if (m.friction_law == Material::FrictionLaw::Constant) {
+    const Scalar dg = dev_norm + k * tr * m.alpha;
     if (dg > 0 && dev_norm > 0) projected = eps - (dg / dev_norm) * dev;
+  } else {
+    const Scalar c = -std::sqrt(2.0) / D * k * tr;
+    const Scalar a0 = dev_norm - c * m.mu_s;
+    if (a0 > 0 && dev_norm > 0) {
+      const Scalar dmu = m.mu_2 - m.mu_s;
+      // Cauchy pressure from the Kirchhoff one, tau = J sigma.
+      const Scalar p = -(D * m.lambda + 2 * m.mu) * eps.sum() / D / std::exp(eps.sum());
+      Scalar dq;
+      if (!(p > 0)) {  // no confinement (cohesive tension): I is infinite, mu = mu_2
+        dq = std::max(a0 - c * dmu, 0.0);
+      } else {
+        const Scalar beta = std::sqrt(2.0) * m.grain_diameter / (dt * std::sqrt(p / m.grain_density));
+        const Scalar I0 = m.inertial_number0;
+        const Scalar b = a0 * beta - I0 - c * dmu * beta, root = std::sqrt(b * b + 4 * beta * a0 * I0);
+        dq = b >= 0 ? (b + root) / (2 * beta) : 2 * a0 * I0 / (root - b);
+      }
+      projected = eps - (std::min(dq, dev_norm) / dev_norm) * dev;
+    }
   }
   if (projected == eps) return F;
   Jp *= std::exp(eps.sum() - projected.sum());

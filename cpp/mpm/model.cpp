@@ -83,6 +83,27 @@ Material make_material(int dim, MaterialKind kind, Scalar density, Scalar youngs
   return m;
 }
 
+void use_mu_i(Material& m, int dim, Scalar mu_s, Scalar mu_2, Scalar inertial_number0, Scalar grain_diameter,
+              Scalar grain_density) {
+  if (m.kind != MaterialKind::Sand) throw InvalidArgument("friction_law: 'mu_i' is a law of sand only");
+  if (!finite_positive(mu_s)) throw InvalidArgument("mu_s: expected a finite number > 0, got " + format_real(mu_s));
+  if (!(std::isfinite(mu_2) && mu_2 >= mu_s))
+    throw InvalidArgument("mu_2: expected a finite number >= mu_s = " + format_real(mu_s) + ", got " + format_real(mu_2));
+  if (!finite_positive(inertial_number0))
+    throw InvalidArgument("I0: expected a finite number > 0, got " + format_real(inertial_number0));
+  if (!finite_positive(grain_diameter))
+    throw InvalidArgument("grain_diameter: expected a finite number > 0 [m], got " + format_real(grain_diameter));
+  if (!finite_positive(grain_density))
+    throw InvalidArgument("grain_density: expected a finite number > 0 [kg/m^d], got " + format_real(grain_density));
+  m.friction_law = Material::FrictionLaw::MuI;
+  m.mu_s = mu_s;
+  m.mu_2 = mu_2;
+  m.inertial_number0 = inertial_number0;
+  m.grain_diameter = grain_diameter;
+  m.grain_density = grain_density;
+  m.apex_trace = dim * (m.cohesion / mu_s) / (dim * m.lambda + 2 * m.mu);
+}
+
 Model make_model(int dim, const std::vector<Index>& shape, Scalar h, const std::vector<Scalar>& origin,
                  Boundary boundary, Scalar wall_friction) {
   if (dim != 2 && dim != 3) throw InvalidArgument("shape: expected 2 or 3 entries");

@@ -44,6 +44,18 @@ struct Material {
   Scalar cohesion = 0;        // [Pa]
   Scalar alpha = 0;
   Scalar apex_trace = 0;
+  // Sand's friction law. Constant: the cone of friction_angle above (Klar et al.). MuI: the
+  // mu(I) rheology of Jop, Forterre and Pouliquen 2006 (Nature 441, 727): the friction
+  // coefficient mu = |tau| / p, with |tau| = sqrt(tau':tau' / 2), grows with the inertial number
+  // I = gamma_dot d / sqrt(p / rho_s) as mu(I) = mu_s + (mu_2 - mu_s) / (I0 / I + 1); the return
+  // mapping solves for the plastic shear rate that puts the stress on the mu(I) cone (as the
+  // MPM of Dunatunga and Kamrin 2015, J. Fluid Mech. 779, 483, does implicitly). See
+  // sand_project in kernels.h.
+  enum class FrictionLaw { Constant, MuI } friction_law = FrictionLaw::Constant;
+  Scalar mu_s = 0, mu_2 = 0;     // static and limiting friction coefficients [-]
+  Scalar inertial_number0 = 0;   // I0 [-]
+  Scalar grain_diameter = 0;     // d [m]
+  Scalar grain_density = 0;      // rho_s [kg/m^d] (of the grains, not the bulk)
   // Water: Tait pressure p = K / gamma (J^-gamma - 1).
   Scalar gamma = 7;
   Scalar wave_speed = 0;  // speed of the fastest elastic wave at rest [m/s]
@@ -60,6 +72,12 @@ inline void lame_parameters(Scalar youngs_modulus, Scalar poisson_ratio, Scalar&
 // A validated material: `dim` fixes the Drucker-Prager constants of sand.
 Material make_material(int dim, MaterialKind kind, Scalar density, Scalar youngs_modulus,
                        Scalar poisson_ratio, Scalar friction_angle, Scalar cohesion);
+
+// Switches a sand material (made by make_material with friction_angle = atan(mu_s)) to the
+// mu(I) friction law; validates the parameters (InvalidArgument naming the one at fault) and
+// moves the cohesive apex to the tensile pressure c / mu_s.
+void use_mu_i(Material& material, int dim, Scalar mu_s, Scalar mu_2, Scalar inertial_number0, Scalar grain_diameter,
+              Scalar grain_density);
 
 struct Collider {
   enum class Shape { Box, Sphere } shape = Shape::Box;

@@ -185,48 +185,37 @@ class SolverD final : public Solver::Impl {
     slot_key_.clear();
     particle_key_.resize(static_cast<size_t>(n));
     // Keys of the block holding each particle's first stencil node; positions are checked
-    // here because a user may write anything into the x view.
-    Index bad = -1;
-#pragma omp parallel for schedule(static) if (n > kParallelParticles)
-    for (Index p = 0; p < n; ++p) {
-      const Scalar* x = &state.x[static_cast<size_t>(p * D)];
-      const Vec<D> g = grid_coords(x);
-      std::array<Index, 3> b{0, 0, 0};
-      bool inside = true;
-      for (int a = 0; a < D; ++a) {
-        inside = inside && g(a) >= 1 && g(a) <= static_cast<Scalar>(model_.shape[a] + 1);
-        if (inside) b[a] = base_node(g(a)) / B;
-      }
-      const Index code = state.material[static_cast<size_t>(p)];
-      inside = inside && code >= 0 && code < static_cast<Index>(model_.materials.size());
-      const Scalar E = state.youngs_modulus[static_cast<size_t>(p)], nu = state.poisson_ratio[static_cast<size_t>(p)];
-      inside = inside && std::isfinite(E) && E > 0 && std::isfinite(nu) && nu > -1 && nu < 0.5;
-      if (!inside) {
-#pragma omp critical(mpm_bad_particle)
-        bad = bad < 0 ? p : std::min(bad, p);
-        continue;
-      }
-      particle_key_[static_cast<size_t>(p)] = key_of(b);
-    }
-    if (bad >= 0) {
-      std::string where = "(";
-      for (int a = 0; a < D; ++a) where += (a ? ", " : "") + format_real(state.x[static_cast<size_t>(bad * D + a)]);
-      throw InvalidArgument("x: particle " + std::to_string(bad) + " at " + where +
-                            ") is outside the domain or not finite (or its material code is not one of the " +
-                            std::to_string(model_.materials.size()) +
-                            " materials, or its youngs_modulus is not > 0 or poisson_ratio not in (-1, 0.5))");
-    }
-    // The distinct particle blocks, in Morton order, take the first slots. Each thread lists
-    // the keys it finds unmarked; a key two threads both found is listed twice and dropped
-    // after the sort, so the list does not depend on the thread count.
+    // here because a user may write anything into the x view. In the same pass, the distinct
+    // particle blocks: each thread lists the keys it finds unmarked; a key two threads both
+    // found is listed twice and dropped after the sort, so the list does not depend on the
+    // thread count. They take the first slots, in Morton order.
     const bool parallel = n > kParallelParticles;
+    Index bad = -1;
     std::vector<std::pair<std::uint64_t, Index>> found;
 #pragma omp parallel if (parallel)
     {
       std::vector<std::pair<std::uint64_t, Index>> mine;
 #pragma omp for schedule(static) nowait
       for (Index p = 0; p < n; ++p) {
-        const Index key = particle_key_[static_cast<size_t>(p)];
+        const Scalar* x = &state.x[static_cast<size_t>(p * D)];
+        const Vec<D> g = grid_coords(x);
+        std::array<Index, 3> b{0, 0, 0};
+        bool inside = true;
+        for (int a = 0; a < D; ++a) {
+          inside = inside && g(a) >= 1 && g(a) <= static_cast<Scalar>(model_.shape[a] + 1);
+          if (inside) b[a] = base_node(g(a)) / B;
+        }
+        const Index code = state.material[static_cast<size_t>(p)];
+        inside = inside && code >= 0 && code < static_cast<Index>(model_.materials.size());
+        const Scalar E = state.youngs_modulus[static_cast<size_t>(p)], nu = state.poisson_ratio[static_cast<size_t>(p)];
+        inside = inside && std::isfinite(E) && E > 0 && std::isfinite(nu) && nu > -1 && nu < 0.5;
+        if (!inside) {
+#pragma omp critical(mpm_bad_particle)
+          bad = bad < 0 ? p : std::min(bad, p);
+          continue;
+        }
+        const Index key = key_of(b);
+        particle_key_[static_cast<size_t>(p)] = key;
         std::int32_t& mark = table_[static_cast<size_t>(key)];
         std::int32_t seen;
 #pragma omp atomic read
@@ -239,6 +228,15 @@ class SolverD final : public Solver::Impl {
       }
 #pragma omp critical(mpm_found_blocks)
       found.insert(found.end(), mine.begin(), mine.end());
+    }
+    if (bad >= 0) {
+      for (const auto& f : found) table_[static_cast<size_t>(f.second)] = -1;
+      std::string where = "(";
+      for (int a = 0; a < D; ++a) where += (a ? ", " : "") + format_real(state.x[static_cast<size_t>(bad * D + a)]);
+      throw InvalidArgument("x: particle " + std::to_string(bad) + " at " + where +
+                            ") is outside the domain or not finite (or its material code is not one of the " +
+                            std::to_string(model_.materials.size()) +
+                            " materials, or its youngs_modulus is not > 0 or poisson_ratio not in (-1, 0.5))");
     }
     std::sort(found.begin(), found.end());
     found.erase(std::unique(found.begin(), found.end()), found.end());
@@ -449,6 +447,24 @@ class SolverD final : public Solver::Impl {
     return Mat<D>::Zero();
   }
 
+  // The rows of particle order_[q + kAhead] are fetched into cache while particle q is worked
+  // on: the transfers visit the rows in block order, which is random in the user's row order
+  // (a block-sorted row order runs mpm88 12% faster per core), so the hardware prefetcher
+  // cannot see them coming. No effect on the results.
+  static constexpr Index kAhead = 12;
+  void prefetch_row(const State& state, Index q, Index end) const {
+    if (q + kAhead >= end) return;
+    const size_t p = static_cast<size_t>(order_[static_cast<size_t>(q + kAhead)]);
+    __builtin_prefetch(&state.x[p * D]);
+    __builtin_prefetch(&state.v[p * D]);
+    __builtin_prefetch(&state.F[p * D * D]);
+    __builtin_prefetch(&state.C[p * D * D]);
+    __builtin_prefetch(&state.mass[p]);
+    __builtin_prefetch(&state.volume[p]);
+    __builtin_prefetch(&state.material[p]);
+    __builtin_prefetch(&state.Jp[p]);
+  }
+
   // Each particle block scatters into its own tile of tiles_ (no two threads write one value).
   void p2g(const State& state, Scalar dt, const Scalar* forces) {
     const Scalar h = model_.h, stress_scale = 4 * dt / (h * h);
@@ -458,6 +474,7 @@ class SolverD final : public Solver::Impl {
       Scalar* tile = &tiles_[static_cast<size_t>(s * TN * S)];
       std::fill_n(tile, TN * S, 0.0);
       for (Index q = block_start_[s]; q < block_start_[s + 1]; ++q) {
+        prefetch_row(state, q, block_start_[s + 1]);
         const Index p = order_[static_cast<size_t>(q)];
         const size_t pd = static_cast<size_t>(p * D);
         const Stencil st = stencil(&state.x[pd], o);
@@ -632,17 +649,18 @@ class SolverD final : public Solver::Impl {
 
   Scalar g2p(State& state, Scalar dt) {
     const Scalar h = model_.h;
-    Scalar vmax = 0;
+    Scalar vmax2 = 0;
     bool finite = true;
-#pragma omp parallel for schedule(dynamic, 1) reduction(max : vmax) reduction(&& : finite) if (state.n > kParallelParticles)
+#pragma omp parallel for schedule(dynamic, 1) reduction(max : vmax2) reduction(&& : finite) if (state.n > kParallelParticles)
     for (Index s = 0; s < particle_blocks_; ++s) {
       const auto o = block_origin(s);
       alignas(64) Scalar tile[TN * S];
-      gather(tile, s, grid_, 1);
+      gather<1>(tile, s, grid_);
       for (Index q = block_start_[s]; q < block_start_[s + 1]; ++q) {
+        prefetch_row(state, q, block_start_[s + 1]);
         const Index p = order_[static_cast<size_t>(q)];
         const size_t pd = static_cast<size_t>(p * D);
-        save_row(state, p);
+        save_row(state, p, q);
         const Stencil st = stencil(&state.x[pd], o);
         Vec<D> v = Vec<D>::Zero();
         Mat<D> Bm = Mat<D>::Zero();  // sum w v_i (node offset in cells)^T
@@ -651,7 +669,7 @@ class SolverD final : public Solver::Impl {
         Eigen::Map<Eigen::Matrix<Scalar, D, D, Eigen::RowMajor>> F(&state.F[pd * D]);
         Eigen::Map<Eigen::Matrix<Scalar, D, D, Eigen::RowMajor>>(&state.C[pd * D]) = C;
         Mat<D> Fn = (Mat<D>::Identity() + dt * C) * F;
-        plasticity(state, p, Fn);
+        plasticity(state, p, Fn, dt);
         F = Fn;
         for (int a = 0; a < D; ++a) {
           Scalar& x = state.x[pd + a];
@@ -659,11 +677,12 @@ class SolverD final : public Solver::Impl {
           state.v[pd + a] = v(a);
         }
         finite = finite && v.allFinite() && Fn.allFinite();
-        vmax = std::max(vmax, v.norm());
+        vmax2 = std::max(vmax2, v.squaredNorm());
       }
     }
+    const Scalar vmax = std::sqrt(vmax2);
     if (!finite || !(vmax * dt <= config_.max_cells_per_step * h)) {
-      parallel_for(state.n, [&](Index p) { restore_row(state, p); });
+      parallel_for(state.n, [&](Index q) { restore_row(state, order_[static_cast<size_t>(q)], q); });
       throw DivergenceError(
           "mpm: " + std::string(finite ? "particles moved " + format_real(vmax * dt / h) + " cells in one step"
                                        : "a velocity or deformation gradient became non-finite") +
@@ -676,18 +695,20 @@ class SolverD final : public Solver::Impl {
   // G2P is the only phase that writes the State, and it can fail (a blow-up): it saves the
   // values it overwrites, particle by particle while they are in cache, so that a step that
   // throws leaves the State as it was without a copy of the whole State before every step.
+  // Row q of the backup is the particle at position q of the block order (sequential writes).
   static constexpr int kRow = 2 * D + 2 * D * D + 1;  // x, v, F, C, Jp
-  void save_row(const State& state, Index p) {
-    Scalar* r = &backup_[static_cast<size_t>(p * kRow)];
+  void save_row(const State& state, Index p, Index q) {
+    // Element by element: std::copy_n of these short rows became memmove calls.
+    Scalar* r = &backup_[static_cast<size_t>(q * kRow)];
     const size_t pd = static_cast<size_t>(p * D);
-    r = std::copy_n(&state.x[pd], D, r);
-    r = std::copy_n(&state.v[pd], D, r);
-    r = std::copy_n(&state.F[pd * D], D * D, r);
-    r = std::copy_n(&state.C[pd * D], D * D, r);
-    *r = state.Jp[static_cast<size_t>(p)];
+    for (int k = 0; k < D; ++k) r[k] = state.x[pd + k];
+    for (int k = 0; k < D; ++k) r[D + k] = state.v[pd + k];
+    for (int k = 0; k < D * D; ++k) r[2 * D + k] = state.F[pd * D + k];
+    for (int k = 0; k < D * D; ++k) r[2 * D + D * D + k] = state.C[pd * D + k];
+    r[kRow - 1] = state.Jp[static_cast<size_t>(p)];
   }
-  void restore_row(State& state, Index p) const {
-    const Scalar* r = &backup_[static_cast<size_t>(p * kRow)];
+  void restore_row(State& state, Index p, Index q) const {
+    const Scalar* r = &backup_[static_cast<size_t>(q * kRow)];
     const size_t pd = static_cast<size_t>(p * D);
     std::copy_n(r, D, &state.x[pd]);
     std::copy_n(r + D, D, &state.v[pd]);
@@ -696,13 +717,15 @@ class SolverD final : public Solver::Impl {
     state.Jp[static_cast<size_t>(p)] = r[kRow - 1];
   }
 
-  // Copies components first..S-1 of the nodes a block's tile covers from `source`.
-  void gather(Scalar* tile, Index s, const std::vector<Scalar>& source, int first) const {
+  // Copies components First..S-1 of the nodes a block's tile covers from `source` (First is a
+  // constant: a copy of a run-time length became a memmove call per node).
+  template <int First>
+  void gather(Scalar* tile, Index s, const std::vector<Scalar>& source) const {
     const std::int32_t* nb = &neighbor_slot_[static_cast<size_t>(s * NEIGHBORS)];
     for (int t = 0; t < TN; ++t) {
       const TileNode& tn = tile_nodes_[static_cast<size_t>(t)];
       const Scalar* node = &source[static_cast<size_t>((static_cast<Index>(nb[tn.neighbor]) * BN + tn.local) * S)];
-      for (int c = first; c < S; ++c) tile[t * S + c] = node[c];
+      for (int c = First; c < S; ++c) tile[t * S + c] = node[c];
     }
   }
 
@@ -738,7 +761,7 @@ class SolverD final : public Solver::Impl {
     }
   }
 
-  void plasticity(State& state, Index p, Mat<D>& F) const {
+  void plasticity(State& state, Index p, Mat<D>& F, Scalar dt) const {
     const Material& m = model_.materials[static_cast<size_t>(state.material[static_cast<size_t>(p)])];
     Scalar& Jp = state.Jp[static_cast<size_t>(p)];
     Svd<D> s;
@@ -749,7 +772,7 @@ class SolverD final : public Solver::Impl {
       case MaterialKind::Sand: {
         Material own = m;  // the yield surface with this particle's moduli
         particle_lame(state, m, p, own.mu, own.lambda);
-        F = sand_project<D>(F, own, Jp, s);
+        F = sand_project<D>(F, own, Jp, s, dt);
         break;
       }
       case MaterialKind::Water: {
@@ -824,7 +847,7 @@ void SolverD<D>::step_adjoint(const State& before, const State& after, Scalar dt
       const auto o = block_origin(s);
       alignas(64) Scalar velocity[TN * S];
       Scalar* tile = &tiles_[static_cast<size_t>(s * TN * S)];
-      gather(velocity, s, grid_, 1);
+      gather<1>(velocity, s, grid_);
       std::fill_n(tile, TN * S, 0.0);
       for (Index q = block_start_[s]; q < block_start_[s + 1]; ++q) {
         const Index p = order_[static_cast<size_t>(q)];
@@ -892,7 +915,7 @@ void SolverD<D>::step_adjoint(const State& before, const State& after, Scalar dt
   for (Index s = 0; s < particle_blocks_; ++s) {
     const auto o = block_origin(s);
     alignas(64) Scalar tile[TN * S];
-    gather(tile, s, adjoint_grid_, 0);
+    gather<0>(tile, s, adjoint_grid_);
     for (Index q = block_start_[s]; q < block_start_[s + 1]; ++q) {
       const Index p = order_[static_cast<size_t>(q)];
       const size_t pd = static_cast<size_t>(p * D);

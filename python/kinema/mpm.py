@@ -30,6 +30,8 @@ views of the solver's memory; adding particles reallocates them, so take views a
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from kinema import _core
@@ -37,7 +39,7 @@ from kinema._checks import (
     as_float_array, choice, finite, finite_result, grid_shape, integer, non_negative, positive,
     simulation_object)
 
-__all__ = ["Simulation", "Config", "StepStats", "block", "sphere", "MATERIALS", "BOUNDARIES"]
+__all__ = ["Simulation", "Config", "StepStats", "block", "sphere", "MATERIALS", "BOUNDARIES", "MU_I_GLASS_BEADS"]
 
 Config = _core.mpm.Config
 StepStats = _core.mpm.StepStats
@@ -48,6 +50,11 @@ BOUNDARIES = ("sticky", "slip", "separate")
 # Young's modulus [Pa] and Poisson ratio of each material when not given: a soft jelly, snow
 # and sand of Stomakhin et al. 2013 and Klar et al. 2016, and water's bulk modulus chosen for a
 # sound speed of 50 m/s at 1000 kg/m^3 (Mach < 0.1 for flows below 5 m/s, about 1% compression).
+# The mu(I) parameters of Jop, Forterre and Pouliquen 2006 (Nature 441, 727) for their glass
+# beads: the defaults of add_particles(..., friction_law="mu_i").
+MU_I_GLASS_BEADS = {"mu_s": math.tan(math.radians(20.9)), "mu_2": math.tan(math.radians(32.76)), "I0": 0.279,
+                    "grain_diameter": 0.53e-3, "grain_density": 2450.0}
+
 DEFAULTS = {
     "elastic": (1e5, 0.3),
     "neohookean": (1e5, 0.3),
@@ -148,13 +155,25 @@ class Simulation:
 
     # ---------------------------------------------------------------- building
     def add_particles(self, positions, material, *, density, youngs_modulus=None, poisson_ratio=None,
-                      velocity=None, volume=None, friction_angle=None, cohesion=0.0) -> slice:
+                      velocity=None, volume=None, friction_angle=None, cohesion=0.0, friction_law="constant",
+                      mu_s=None, mu_2=None, I0=None, grain_diameter=None, grain_density=None) -> slice:
         """Adds particles of one material; returns the slice of their rows.
 
         ``density`` [kg/m^d] and ``volume`` (scalar or (n,), default the lattice spacing^d
         estimated from ``positions``) give each particle's mass. ``youngs_modulus`` [Pa]
         (water: the bulk modulus) and ``poisson_ratio`` default to the material's entry in
-        :data:`DEFAULTS`. ``friction_angle`` [deg] is required by ``"sand"``.
+        :data:`DEFAULTS`.
+
+        Sand has two friction laws. ``friction_law="constant"`` (the default): a Drucker-Prager
+        cone of ``friction_angle`` [deg] (required; Klar et al. 2016), rate independent.
+        ``friction_law="mu_i"``: the mu(I) rheology of Jop, Forterre and Pouliquen 2006, the
+        friction coefficient |tau| / p = mu_s + (mu_2 - mu_s) / (I0 / I + 1) growing with the
+        inertial number I = gamma_dot d / sqrt(p / rho_s) (``grain_diameter`` d [m],
+        ``grain_density`` rho_s [kg/m^d] of the grains, not the bulk ``density``); the parameters
+        default to Jop et al.'s glass beads (:data:`MU_I_GLASS_BEADS`: mu_s = tan 20.9 deg,
+        mu_2 = tan 32.76 deg, I0 = 0.279, d = 0.53 mm, rho_s = 2450 kg/m^3); ``friction_angle``
+        is then not used (give ``mu_s``). ``cohesion`` [Pa] moves either cone's apex to the
+        tensile pressure cohesion / tan(phi) (cohesion / mu_s).
         """
         choice(material, "material", MATERIALS)
         x = as_float_array(positions, "positions", ndim=2)
@@ -178,6 +197,22 @@ class Simulation:
         e_default, nu_default = DEFAULTS[material]
         e = e_default if youngs_modulus is None else positive(youngs_modulus, "youngs_modulus")
         nu = nu_default if poisson_ratio is None else finite(poisson_ratio, "poisson_ratio")
+        choice(friction_law, "friction_law", ("constant", "mu_i"))
+        mu_i = dict(MU_I_GLASS_BEADS)
+        if friction_law == "mu_i":
+            if material != "sand":
+                raise ValueError(f"friction_law: 'mu_i' is a law of sand, not of {material!r}")
+            if friction_angle is not None:
+                raise ValueError("friction_angle: not used by friction_law='mu_i' (give mu_s, the static "
+                                 "friction coefficient)")
+            for key, value in (("mu_s", mu_s), ("mu_2", mu_2), ("I0", I0), ("grain_diameter", grain_diameter),
+                               ("grain_density", grain_density)):
+                if value is not None:
+                    mu_i[key] = positive(value, key)
+            friction_angle = math.degrees(math.atan(mu_i["mu_s"]))
+        elif any(v is not None for v in (mu_s, mu_2, I0, grain_diameter, grain_density)):
+            raise ValueError("friction_law: mu_s, mu_2, I0, grain_diameter and grain_density belong to "
+                             "friction_law='mu_i'")
         if material == "sand":
             if friction_angle is None:
                 raise ValueError("friction_angle: sand needs a friction angle in degrees (e.g. 30)")
@@ -185,7 +220,8 @@ class Simulation:
         else:
             phi = 0.0 if friction_angle is None else finite(friction_angle, "friction_angle")
         start, stop = self._sim.add_particles(x, _core.mpm.MaterialKind.__members__[material], positive(density, "density"), e, nu, v, vol, phi,
-                                              non_negative(cohesion, "cohesion"))
+                                              non_negative(cohesion, "cohesion"),
+                                              friction_law, **(mu_i if friction_law == "mu_i" else {}))
         return slice(start, stop)
 
     def add_collider(self, region, *, boundary="slip", friction=0.0):

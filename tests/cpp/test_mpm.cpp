@@ -1,7 +1,8 @@
 // MPM kernels: the signed SVD reconstructs F with rotations (also for inverted and degenerate
 // F), every stress vanishes at rest and is symmetric, the Hencky stress's first Piola-Kirchhoff
 // tensor matches central finite differences of its energy, the snow projection clamps, the
-// Drucker-Prager return lands on the cone, and a solver step conserves momentum exactly.
+// Drucker-Prager return lands on the cone, the mu(I) return lands on the cone of mu(I) at the
+// plastic shear rate it implies, and a solver step conserves momentum exactly.
 #include <gtest/gtest.h>
 
 #include <cmath>
@@ -103,7 +104,7 @@ void plastic_projections() {
     const Mat<D> Ft = random_F<D>(rng, 0.1);
     Scalar J = 1;
     Svd<D> t;
-    const Mat<D> Fs = sand_project<D>(Ft, sand, J, t);
+    const Mat<D> Fs = sand_project<D>(Ft, sand, J, t, 1e-3);
     const Svd<D> r = svd(Fs);
     const Vec<D> e = r.sigma.array().abs().log().matrix();
     const Vec<D> dev = e - Vec<D>::Constant(e.sum() / D);
@@ -111,6 +112,59 @@ void plastic_projections() {
     const Scalar yield = dev.norm() + (D * sand.lambda + 2 * sand.mu) / (2 * sand.mu) * e.sum() * sand.alpha;
     EXPECT_LE(e.sum(), 1e-12);
     EXPECT_LE(yield, 1e-10);
+  }
+}
+
+// The mu(I) return mapping (kernels.h, sand_project): a trial state outside the static cone
+// lands on the cone of mu(I) with I from the plastic shear rate it implies, i.e. Jop et al.'s
+// |tau| / p = mu_s + (mu_2 - mu_s) / (I0 / I + 1), |tau| = sqrt(tau':tau' / 2), computed here
+// from the stress itself; inside the static cone nothing changes; mu_2 = mu_s is the constant
+// law with alpha = sqrt(2) mu_s / d.
+template <int D>
+void mu_i_projection() {
+  const Scalar mu_s = 0.5, mu_2 = 0.8, I0 = 0.3, d_g = 1e-3, rho_s = 2650, dt = 1e-4;
+  Material sand = make_material(D, MaterialKind::Sand, 1600, 1e5, 0.3, std::atan(mu_s) * 180 / 3.14159265358979323846, 0);
+  use_mu_i(sand, D, mu_s, mu_2, I0, d_g, rho_s);
+  std::mt19937 rng(17);
+  int flowed = 0;
+  for (int k = 0; k < 200; ++k) {
+    // Compressed (tr eps < 0) trial states with random shear.
+    const Mat<D> Ft = random_F<D>(rng, 0.05) * 0.97;
+    Scalar Jp = 1;
+    Svd<D> t;
+    const Mat<D> Fs = sand_project<D>(Ft, sand, Jp, t, dt);
+    const Svd<D> trial = svd(Ft), out = svd(Fs);
+    const Vec<D> e0 = trial.sigma.array().abs().log().matrix(), e1 = out.sigma.array().abs().log().matrix();
+    if (e0.sum() >= 0) continue;
+    const Mat<D> tau = hencky_tau<D>(out, sand.mu, sand.lambda);
+    const Scalar p = -tau.trace() / D / out.sigma.prod();  // Cauchy pressure
+    const Mat<D> dev_tau = tau - Mat<D>::Identity() * (tau.trace() / D);
+    const Scalar ratio = std::sqrt(0.5 * dev_tau.squaredNorm()) / (-tau.trace() / D);
+    const Vec<D> d0 = e0 - Vec<D>::Constant(e0.sum() / D), d1 = e1 - Vec<D>::Constant(e1.sum() / D);
+    EXPECT_NEAR(e1.sum(), e0.sum(), 1e-12);  // the projection keeps the volume
+    EXPECT_NEAR(Jp, 1, 1e-12);
+    if (Fs == Ft) {
+      EXPECT_LE(ratio, mu_s + 1e-12);  // inside the static cone
+      continue;
+    }
+    ++flowed;
+    const Scalar gamma_dot = std::sqrt(2.0) * (d0.norm() - d1.norm()) / dt;
+    const Scalar I = gamma_dot * d_g / std::sqrt(p / rho_s);
+    EXPECT_NEAR(ratio, mu_s + (mu_2 - mu_s) / (I0 / I + 1), 1e-9) << "I = " << I;
+    EXPECT_GT(ratio, mu_s);
+  }
+  EXPECT_GT(flowed, 20);
+  // mu_2 = mu_s: the constant law's cone with alpha = sqrt(2) mu_s / d.
+  Material flat = sand;
+  flat.mu_2 = mu_s;
+  Material constant = sand;
+  constant.friction_law = Material::FrictionLaw::Constant;
+  constant.alpha = std::sqrt(2.0) * mu_s / D;
+  for (int k = 0; k < 50; ++k) {
+    const Mat<D> Ft = random_F<D>(rng, 0.05) * 0.97;
+    Scalar J1 = 1, J2 = 1;
+    Svd<D> t1, t2;
+    EXPECT_LT((sand_project<D>(Ft, flat, J1, t1, dt) - sand_project<D>(Ft, constant, J2, t2, dt)).norm(), 1e-12);
   }
 }
 
@@ -217,6 +271,8 @@ TEST(MpmKernels, HenckyFiniteDifferences2D) { hencky_matches_finite_differences<
 TEST(MpmKernels, HenckyFiniteDifferences3D) { hencky_matches_finite_differences<3>(); }
 TEST(MpmKernels, PlasticProjections2D) { plastic_projections<2>(); }
 TEST(MpmKernels, PlasticProjections3D) { plastic_projections<3>(); }
+TEST(MpmKernels, MuIProjection2D) { mu_i_projection<2>(); }
+TEST(MpmKernels, MuIProjection3D) { mu_i_projection<3>(); }
 TEST(MpmSolver, StepConservesMomentum2D) { step_conserves_momentum<2>(); }
 TEST(MpmSolver, StepConservesMomentum3D) { step_conserves_momentum<3>(); }
 
