@@ -497,3 +497,45 @@ def test_one_up_axis_in_every_shipped_scene():
     np.testing.assert_array_equal(up, [0, 1, 0])
     sim = km.mpm.Simulation((4, 4, 4), 0.25)  # gravity=None: no gravity, as in every module
     assert not np.asarray(sim.gravity).any()
+
+
+MPM_SAND_SCENE = """
+[scene]
+name = "mpm sand"
+duration = 0.01
+fps = 100
+threads = 1
+[solver]
+type = "mpm"
+shape = [16, 16]
+h = 0.0625
+gravity = [0.0, -9.81]
+[[objects]]
+type = "block"
+material = "sand"
+density = 1600.0
+friction_law = "{law}"
+{extra}
+region = {{ shape = "box", lower = [0.1, 0.0], upper = [0.4, 0.3] }}
+[output]
+mp4 = false
+width = 64
+"""
+
+
+def test_mpm_scene_sand_takes_the_mu_i_law_and_its_parameters(tmp_path):
+    text = MPM_SAND_SCENE.format(law="mu_i", extra="mu_s = 0.5\nmu_2 = 0.8\nI0 = 0.3\n"
+                                 "grain_diameter = 0.002\ngrain_density = 2650.0")
+    material = km.Scene.load(write(tmp_path, text, "sand.toml")).build().sim.materials[0]
+    assert (material.friction_law, material.mu_s, material.mu_2, material.I0) == ("mu_i", 0.5, 0.8, 0.3)
+    assert (material.grain_diameter, material.grain_density) == (0.002, 2650.0)
+    constant = MPM_SAND_SCENE.format(law="constant", extra="friction_angle = 30.0")
+    assert km.Scene.load(write(tmp_path, constant, "c.toml")).build().sim.materials[0].friction_law == "constant"
+
+
+def test_mpm_scene_refuses_mu_i_parameters_on_the_constant_law(tmp_path):
+    text = MPM_SAND_SCENE.format(law="constant", extra="friction_angle = 30.0\nmu_s = 0.5")
+    with pytest.raises(ValueError, match=r"objects\[0\].*mu_s"):
+        km.Scene.load(write(tmp_path, text, "bad.toml")).build()
+    with pytest.raises(ValueError, match="friction_law"):
+        km.Scene.load(write(tmp_path, MPM_SAND_SCENE.format(law="coulomb", extra=""), "bad2.toml"))

@@ -35,6 +35,12 @@ MATERIAL_FIELDS = {
     "poisson_ratio": Field(Real(), None),
     "friction_angle": Field(Real(gt=0), None, "[deg], sand"),
     "cohesion": Field(Real(ge=0), 0.0, "[Pa], sand"),
+    "friction_law": Field(Str(("constant", "mu_i")), "constant", "sand: constant Drucker-Prager or mu(I)"),
+    "mu_s": Field(Real(gt=0), None, "sand, mu(I): static friction coefficient"),
+    "mu_2": Field(Real(gt=0), None, "sand, mu(I): limiting friction coefficient"),
+    "I0": Field(Real(gt=0), None, "sand, mu(I): inertial number scale"),
+    "grain_diameter": Field(Real(gt=0), None, "sand, mu(I): [m]"),
+    "grain_density": Field(Real(gt=0), None, "sand, mu(I): [kg/m^d] of the grains"),
     "velocity": Field(Vec(spatial=True), None, "[m/s]"),
 }
 
@@ -107,7 +113,9 @@ class MPMSimulation(ArrayStateSimulation):
                 self.sim.add_particles(pts, obj["material"], density=obj["density"],
                                        youngs_modulus=obj["youngs_modulus"], poisson_ratio=obj["poisson_ratio"],
                                        friction_angle=obj["friction_angle"], cohesion=obj["cohesion"],
-                                       velocity=obj["velocity"], volume=self.spacing ** self.dim)
+                                       friction_law=obj["friction_law"], mu_s=obj["mu_s"], mu_2=obj["mu_2"],
+                                       I0=obj["I0"], grain_diameter=obj["grain_diameter"],
+                                       grain_density=obj["grain_density"], velocity=obj["velocity"], volume=self.spacing ** self.dim)
             except ValueError as exc:
                 raise scene.error(f"objects[{k}]", str(exc)) from None
         if self.sim.count == 0:
