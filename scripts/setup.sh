@@ -50,6 +50,22 @@ PY
   echo "$dep_hash" > "$dep_stamp"
 fi
 
+# bench: fmm3dpy's PyPI wheel has no OpenMP; the same release's source (PyPI sdist) is built a
+# second time with OpenMP and FMM3D's own makefile flags into .venv/peers (bench/fmm/fmm3d_bench.py).
+fmm3d_omp="$venv/peers/fmm3dpy_openmp"
+if [[ ",$extras," == *",bench,"* ]] && [ ! -f "$fmm3d_omp/.built" ]; then
+  if ! command -v gfortran >/dev/null; then
+    [ "$(id -u)" -eq 0 ] && sudo_cmd="" || sudo_cmd="sudo"
+    $sudo_cmd apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive $sudo_cmd apt-get install -y -qq gfortran >/dev/null
+  fi
+  echo "[setup] building fmm3dpy 2.1.0 from its source release with OpenMP (about 5 minutes)"
+  rm -rf "$fmm3d_omp"
+  "$py" -m pip install -q --no-deps --no-binary fmm3dpy --target "$fmm3d_omp" "fmm3dpy==2.1.0" \
+    "-Csetup-args=-Dfortran_args=-fopenmp -march=native -funroll-loops" "-Csetup-args=-Dc_link_args=-fopenmp"
+  touch "$fmm3d_omp/.built"
+fi
+
 src_hash=$(find CMakeLists.txt pyproject.toml cmake cpp python -type f \( -name '*.py' -o -name '*.h' \
   -o -name '*.cpp' -o -name '*.txt' -o -name '*.cmake' -o -name '*.toml' -o -name '*.toml.in' \) \
   -not -path '*/__pycache__/*' | sort | xargs sha1sum | sha1sum | cut -d' ' -f1)

@@ -89,6 +89,23 @@ def test_separate_targets_match_direct(eps):
     assert rel(grad, grad_ref) < 20 * eps
 
 
+@pytest.mark.parametrize("eps", [1e-3, 1e-6])
+@pytest.mark.parametrize("separate", [False, True])
+def test_ragged_tree_meets_eps(eps, separate):
+    # A leaf size at the mean count of a level (8000 / 64 = 125) splits about half of its boxes:
+    # big leaves beside split neighbours, with W and X lists whose small boxes are summed
+    # directly (both directions) and the larger ones through M2P / P2L.
+    x = distribution("uniform", 8000, seed=5)
+    y = distribution("uniform", 8000, seed=6) if separate else None
+    q = np.random.default_rng(7).uniform(-1, 1, len(x))
+    phi, grad = km.fmm.laplace3d(x, q, y, eps=eps, gradient=True, leaf_size=125)
+    info = km.fmm.last_info()
+    assert info["depth"] == 3 and 1 + 8 + 64 < info["boxes"] < 1 + 8 + 64 + 512, info  # ragged level 3
+    phi_ref, grad_ref = km.fmm.direct3d(x, q, y, gradient=True)
+    assert rel(phi, phi_ref) < eps
+    assert rel(grad, grad_ref) < 20 * eps
+
+
 def test_direct_sum_is_exact_and_leaves_out_zero_distance_pairs():
     x = np.array([[0.0, 0, 0], [1.0, 0, 0], [0.0, 2, 0], [1.0, 0, 0]])  # a duplicate point
     q = np.array([1.0, 2.0, 3.0, 4.0])

@@ -107,6 +107,14 @@ struct M2lOperators {
   std::vector<std::vector<Scalar>> signs;
 };
 
+// Newton steps after the float reciprocal square root (relative error e0 <= 1.5 2^-12) of the
+// near field: each squares it, e_{k+1} = 1.5 e_k^2, so one step leaves 2e-7 (6e-7 on 1/r^3),
+// far below eps >= 1e-5 (the FMM's own error there is above 1e-6); two leave 6e-14, three
+// reach rounding.
+Index direct_below_for(int p) { return 2 * coefficient_count(p); }
+
+int newton_steps(Scalar eps) { return eps >= 1e-5 ? 1 : eps >= 1e-9 ? 2 : 3; }
+
 struct Engine {
   const Octree& tree;
   const Fmm3dConfig& config;
@@ -117,9 +125,14 @@ struct Engine {
   Scalar* loc(Index box, int c) { return &local[(static_cast<size_t>(box) * nc + c) * n]; }
   const Scalar* src[3];
 
+  // Boxes with at most this many sources (W list) or targets (X list) meet the leaves across
+  // the list directly: an expansion of order p costs ~(p+1)^2 complex terms per point.
+  Index direct_below;
+  bool direct_p2l(const Box3& box) const { return box.target_count() <= direct_below; }
+
   Engine(const Octree& t, const Fmm3dConfig& cfg, int order, int components, const std::vector<Scalar>& charges)
       : tree(t), config(cfg), p(order), n(coefficient_count(order)), nc(components),
-        width(output_width(cfg.derivatives)), q(charges) {
+        width(output_width(cfg.derivatives)), q(charges), direct_below(direct_below_for(order)) {
     multipole.assign(tree.boxes.size() * static_cast<size_t>(nc * n), 0.0);
     local.assign(multipole.size(), 0.0);
     for (int d = 0; d < 3; ++d) src[d] = tree.s[d].data();
@@ -272,6 +285,7 @@ struct Engine {
         const Lists& lists = tree.lists[static_cast<size_t>(id)];
         for (int c = 0; c < nc; ++c) {
           if (box.parent > 0 && !rotate) l2l(p, loc(box.parent, c), parent.c, parent.h, box.c, loc(id, c));
+          if (direct_p2l(box)) continue;
           for (Index s : lists.p2l) {
             const Box3& sb = tree.boxes[static_cast<size_t>(s)];
             const Scalar* xyz[3] = {src[0] + sb.src_begin, src[1] + sb.src_begin, src[2] + sb.src_begin};
@@ -317,7 +331,7 @@ struct Engine {
     const Index leaf_count = static_cast<Index>(tree.leaves.size());
     const bool fast = config.kernel != NearKernel::Gaussian && nc == 1 && width <= 4;
     const Scalar softening = config.kernel == NearKernel::Plummer ? config.length : 0.0;
-    const int newton = config.eps < 1e-9 ? 3 : 2;
+    const int newton = newton_steps(config.eps);
     const Scalar* tgt[3] = {tree.t[0].data(), tree.t[1].data(), tree.t[2].data()};
     constexpr Index kBlock = 256;
     for (Index start = 0; start < leaf_count; start += kBlock) {
@@ -333,7 +347,13 @@ struct Engine {
         if (mutual)
           for (Index w : lists.w_direct)
             small_w.insert(small_w.end(), {tree.boxes[static_cast<size_t>(w)].src_begin, tree.boxes[static_cast<size_t>(w)].src_end});
-        const std::vector<Index>& ranges = mutual ? small_w : lists.p2p_ranges;
+        std::vector<Index> ranges = mutual ? small_w : lists.p2p_ranges;
+        // X lists of the leaf and its ancestors that are summed directly (direct_p2l).
+        for (Index up = id; up > 0; up = tree.boxes[static_cast<size_t>(up)].parent) {
+          if (!direct_p2l(tree.boxes[static_cast<size_t>(up)])) continue;
+          for (Index s : tree.lists[static_cast<size_t>(up)].p2l)
+            ranges.insert(ranges.end(), {tree.boxes[static_cast<size_t>(s)].src_begin, tree.boxes[static_cast<size_t>(s)].src_end});
+        }
         std::vector<Complex> coeffs(static_cast<size_t>(complex_count(p)));
         std::vector<Complex> values(static_cast<size_t>(complex_count(p + extra)));
         std::vector<std::vector<std::vector<Complex>>> local_d(static_cast<size_t>(nc));
@@ -420,7 +440,7 @@ struct Engine {
   // visited once (p2p_mutual), A with itself by p2p_fast.
   void near_mutual(std::vector<Scalar>& result, Interrupt& interrupt) {
     const Scalar softening = config.kernel == NearKernel::Plummer ? config.length : 0.0;
-    const int newton = config.eps < 1e-9 ? 3 : 2;
+    const int newton = newton_steps(config.eps);
     const bool gradient = width == 4;
     for (const std::vector<Index>& group : mutual_groups()) {
       interrupt.check();
@@ -492,8 +512,15 @@ bool rotate_m2l(int order, const Fmm3dConfig& config) {
   return order >= kRotationOrder;
 }
 
-// Near-field pairs per target ~27 x leaf against ~189 M2L of (p+1)^4 per box.
-Index leaf_size_for(int order) { return std::clamp<Index>(24 * order, 96, 512); }
+// With s points per leaf a target costs ~27 s near-field pairs and a leaf ~189 M2L of O(p^3):
+// the work per point A s + B(p) / s is least at s* = sqrt(B / A). The leaves of a uniform
+// tree hold s*/sqrt(8) .. s* sqrt(8) when boxes split above sqrt(8) s*. s* fitted to whole runs
+// at N = 1e6 (2 threads; the octree's levels give 30.5 or 244 points per leaf there): the
+// depth-5 tree is 1.6x cheaper at p = 5, the depth-4 one 1.1x at p = 8 and 1.4x at p = 11,
+// hence s* ~ 66, 93, 106. Where a threshold falls among the counts of one level, only part of
+// it splits; that tree's cost lies between the two (its W and X lists are summed directly
+// when a box is small: direct_below_for).
+Index leaf_size_for(int order) { return std::clamp<Index>(24 * order + 72, 96, 512); }
 
 Fmm3dStats fmm3d(const Scalar* sources, Index n, const Scalar* charges, int components,
                  const Scalar* targets, Index m, const Fmm3dConfig& config, Scalar* out,
@@ -539,7 +566,7 @@ Fmm3dStats fmm3d(const Scalar* sources, Index n, const Scalar* charges, int comp
   const Scalar* tp[3] = {txyz[0].data(), txyz[1].data(), txyz[2].data()};
   const int p = stats.order;
   const Octree tree(sp, n, tp, m, stats.leaf_size, config.min_width,
-                    static_cast<Index>(coefficient_count(p)) / 2, interrupt);
+                    direct_below_for(p), interrupt);
   std::vector<Scalar> q(static_cast<size_t>(n) * components);
   for (Index i = 0; i < n; ++i)
     for (int c = 0; c < components; ++c)

@@ -4,6 +4,8 @@
 
 #include "core/simd.h"
 
+#include <algorithm>
+
 #if KINEMA_HAVE_AVX2_CLONES
 #include <immintrin.h>
 #endif
@@ -90,8 +92,8 @@ KINEMA_AVX2_FMA bool p2p_avx2(int newton_steps, Scalar a, Scalar x, Scalar y, Sc
 // Target i of block a against all of block b, four b points per vector: the inverse distance
 // as in p2p_vector, q_b/r into i's sums and q_i/r into b's sums in memory. (Two targets per
 // pass, sharing b's loads and stores, measured slower: the sixteen AVX2 registers spill.)
-template <bool Gradient>
-KINEMA_AVX2_FMA inline void mutual_row(int newton_steps, __m256d a2, const Scalar* const xa[3],
+template <bool Gradient, int NewtonSteps>
+KINEMA_AVX2_FMA inline void mutual_row(__m256d a2, const Scalar* const xa[3],
                                        const Scalar* qa, Index i, const Scalar* const xb[3],
                                        const Scalar* qb, Index nb, Scalar* const bout[4],
                                        Scalar* out_a, __m256d& smallest, __m256d& largest) {
@@ -109,7 +111,7 @@ KINEMA_AVX2_FMA inline void mutual_row(int newton_steps, __m256d a2, const Scala
     largest = _mm256_max_pd(largest, s2);
     __m256d inv = _mm256_cvtps_pd(_mm_rsqrt_ps(_mm256_cvtpd_ps(s2)));
     const __m256d hs = _mm256_mul_pd(half, s2);
-    for (int k = 0; k < newton_steps; ++k)
+    for (int k = 0; k < NewtonSteps; ++k)
       inv = _mm256_mul_pd(inv, _mm256_fnmadd_pd(hs, _mm256_mul_pd(inv, inv), three_halves));
     const __m256d qj = _mm256_loadu_pd(qb + j);
     phi = _mm256_fmadd_pd(qj, inv, phi);
@@ -135,8 +137,8 @@ KINEMA_AVX2_FMA inline void mutual_row(int newton_steps, __m256d a2, const Scala
   }
 }
 
-template <bool Gradient>
-KINEMA_AVX2_FMA bool p2p_mutual_avx2(int newton_steps, Scalar a, const Scalar* const xa[3],
+template <bool Gradient, int NewtonSteps>
+KINEMA_AVX2_FMA bool p2p_mutual_avx2(Scalar a, const Scalar* const xa[3],
                                      const Scalar* qa, Index na, const Scalar* const xb[3],
                                      const Scalar* qb, Index nb, Index stride_b, Scalar* out_a,
                                      Scalar* out_b) {
@@ -147,7 +149,7 @@ KINEMA_AVX2_FMA bool p2p_mutual_avx2(int newton_steps, Scalar a, const Scalar* c
   const Index g = Gradient ? stride_b : 0;  // without the gradient out_b holds phi only
   Scalar* const bout[4] = {out_b, out_b + g, out_b + 2 * g, out_b + 3 * g};
   for (Index i = 0; i < na; ++i)
-    mutual_row<Gradient>(newton_steps, a2, xa, qa, i, xb, qb, nb, bout, out_a, smallest, largest);
+    mutual_row<Gradient, NewtonSteps>(a2, xa, qa, i, xb, qb, nb, bout, out_a, smallest, largest);
   const __m256d bad = _mm256_or_pd(_mm256_cmp_pd(smallest, _mm256_set1_pd(1e-36), _CMP_LT_OQ),
                                    _mm256_cmp_pd(largest, _mm256_set1_pd(1e36), _CMP_GT_OQ));
   return _mm256_movemask_pd(bad) == 0;
@@ -169,9 +171,15 @@ bool p2p_mutual(bool gradient, int newton_steps, Scalar a, const Scalar* const x
                 Index stride_b, Scalar* out_a, Scalar* out_b) {
 #if KINEMA_HAVE_AVX2_CLONES
   static const bool avx2 = use_avx2();
-  if (avx2)
-    return gradient ? p2p_mutual_avx2<true>(newton_steps, a, xa, qa, na, xb, qb, nb, stride_b, out_a, out_b)
-                    : p2p_mutual_avx2<false>(newton_steps, a, xa, qa, na, xb, qb, nb, stride_b, out_a, out_b);
+  // The Newton steps as a template argument: the inner loop unrolled (1 to 3 steps).
+  if (avx2) {
+    using Kernel = bool (*)(Scalar, const Scalar* const*, const Scalar*, Index, const Scalar* const*,
+                            const Scalar*, Index, Index, Scalar*, Scalar*);
+    static constexpr Kernel kernels[2][3] = {
+        {p2p_mutual_avx2<false, 1>, p2p_mutual_avx2<false, 2>, p2p_mutual_avx2<false, 3>},
+        {p2p_mutual_avx2<true, 1>, p2p_mutual_avx2<true, 2>, p2p_mutual_avx2<true, 3>}};
+    return kernels[gradient][std::clamp(newton_steps, 1, 3) - 1](a, xa, qa, na, xb, qb, nb, stride_b, out_a, out_b);
+  }
 #endif
   (void)gradient, (void)newton_steps, (void)a, (void)xa, (void)qa, (void)na, (void)xb, (void)qb,
       (void)nb, (void)stride_b, (void)out_a, (void)out_b;

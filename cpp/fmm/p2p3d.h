@@ -82,7 +82,8 @@ inline void p2p_generic(NearKernel kernel, Scalar a, int width, Scalar x, Scalar
 
 // The Laplace (softening a = 0) or Plummer potential and gradient of sources [0, n) with unit
 // stride charges, AVX2 where the CPU has it (a float reciprocal square root refined by Newton
-// steps: two give a relative error below 1e-13, three reach rounding). Adds to out[0..3].
+// steps: one leaves 2e-7, two a relative error below 1e-13, three reach rounding; the
+// mutual kernel takes 1 to 3). Adds to out[0..3].
 // Returns false, leaving out untouched, when a pair's r^2 is outside the range where the float
 // estimate is valid; the caller then uses p2p_generic.
 bool p2p_fast(bool gradient, int newton_steps, Scalar a, Scalar x, Scalar y, Scalar z,
