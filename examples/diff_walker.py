@@ -163,7 +163,7 @@ def main(argv=None):
         norm = np.sqrt(sum(np.sum(g**2) for g in grads))
         # Adam (Kingma and Ba 2015): steps of about lr whatever the gradient's scale, lr
         # decaying so that the walk settles (the contacts make the loss rough at small scales).
-        lr = args.lr / (1 + it / 10)
+        lr = args.lr / (1 + it / 4)
         for k, (theta, g) in enumerate(zip(net, grads)):
             m1[k] = 0.9 * m1[k] + 0.1 * g
             m2[k] = 0.999 * m2[k] + 0.001 * g**2
