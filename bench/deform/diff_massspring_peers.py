@@ -6,7 +6,7 @@ The task, the same in kinema: Taichi's cloth layout of bench/deform_bench.py ((N
 gravity (0, -2), the two corners N and (N+1)^2 - 1 pinned), `steps` symplectic Euler steps of dt
 from rest (v0 = 0), loss L = sum_i w_i . x_i(T) for fixed random w;
 the gradient dL/dv0. float64 throughout, CPU. Prints one JSON line: seconds per gradient
-(forward + backward, best of --min-of), the directional derivative along a random direction and
+(forward + backward, best of --min-of; wall and CPU time of the process), the directional derivative along a random direction and
 its central finite difference (h = 1e-5; bench/deform/diff_massspring_bench.py compares every
 framework's directional derivative with the same difference of kinema's forward run).
 """
@@ -194,17 +194,18 @@ def warp_peer(N, steps, dt, threads):
 
 def run(gradient, value, v0, direction, threads, h=1e-5, min_of=3):
     gradient()  # compile / warm up
-    times = []
+    times, cpu = [], []
     for _ in range(min_of):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         g = gradient()
         times.append(time.perf_counter() - t)
+        cpu.append(time.process_time() - c)
     t = time.perf_counter()
     value(v0)
     forward_seconds = time.perf_counter() - t
     fd = (value(v0 + h * direction) - value(v0 - h * direction)) / (2 * h)
     ad = float(np.sum(g * direction))
-    return {"seconds": min(times), "forward_seconds": forward_seconds, "directional": ad, "fd": fd,
+    return {"seconds": min(times), "cpu_seconds": min(cpu), "forward_seconds": forward_seconds, "directional": ad, "fd": fd,
             "fd_relative_error": abs(ad - fd) / abs(fd), "threads": threads}
 
 

@@ -22,6 +22,9 @@ struct System {
   // step_adjoint's inputs and outputs, kept so that a backward pass reuses their buffers.
   State before, after, adjoint;
   Params params;
+  // The states of the last Trajectory let go, whose buffers the next record reuses (a run's
+  // states are tens of megabytes; fresh ones would page-fault in on every rollout).
+  std::vector<State> spare;
 };
 
 // A run stored for reverse mode in C++ (System.record): the states before and after every step.
@@ -31,6 +34,9 @@ struct Trajectory {
   Scalar dt;
   std::vector<State> states;
   bool controlled;
+  ~Trajectory() {
+    if (system && states.size() > system->spare.size()) system->spare = std::move(states);
+  }
 };
 
 py::array view(py::object self, std::vector<Scalar>& buffer, Index d) {
@@ -321,11 +327,18 @@ void bind_massspring(py::module_& m) {
              t->dt = dt;
              t->controlled = !forces.empty();
              Interrupt interrupt = python_interrupt();
-             // What step_adjoint reads of a state; the lagged factor's record is not (it would
-             // add a third array to every state held).
-             const auto kept = [](const State& from) {
+             // What step_adjoint reads of a state, into the buffers of a spare state when there
+             // is one; the lagged factor's record is not kept (it would add a third array to
+             // every state held).
+             std::vector<State> spare = std::move(s.spare);
+             s.spare.clear();
+             const auto kept = [&spare](const State& from) {
                State to;
-               to.x = from.x;
+               if (!spare.empty()) {
+                 to = std::move(spare.back());
+                 spare.pop_back();
+               }
+               to.x = from.x;  // copy assignment: reuses the spare's buffer
                to.v = from.v;
                to.time = from.time;
                to.step = from.step;
@@ -339,7 +352,21 @@ void bind_massspring(py::module_& m) {
                for (Index k = 0; k < steps; ++k) {
                  interrupt.check();
                  const Scalar* u = forces.empty() ? nullptr : forces.data() + k * n;
-                 with_rollback(s.state, [&] { return s.solver->step(s.state, dt, interrupt, u); });
+                 // The rollback copy is the state just kept plus the factor's record (with_rollback
+                 // without a third copy of x and v per step).
+                 const FactorRecord factor = s.state.factor;
+                 try {
+                   s.solver->step(s.state, dt, interrupt, u);
+                 } catch (...) {
+                   const State& last = t->states.back();
+                   s.state.x = last.x;
+                   s.state.v = last.v;
+                   s.state.time = last.time;
+                   s.state.step = last.step;
+                   s.state.clamped = last.clamped;
+                   s.state.factor = factor;
+                   throw;
+                 }
                  t->states.push_back(kept(s.state));
                }
              }

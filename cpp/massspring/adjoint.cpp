@@ -15,6 +15,7 @@
 #include "core/errors.h"
 #include "core/parallel.h"
 #include "massspring/kernels.h"
+#include "massspring/spring_pass.h"
 #include "massspring/solver.h"
 
 namespace kinema::massspring {
@@ -126,43 +127,23 @@ void Solver::adjoint_explicit_d(const State& before, const State& after, Scalar 
       if (!m.fixed[i]) params.mass[i] += s;
     });
   if (adjoint_control) std::copy(lambda.begin(), lambda.end(), adjoint_control);
-  // psi = -mu . f_i per spring, in d (-> x), dv (-> v) and the parameters; each vertex sums
-  // its springs' terms in spring order (as ElementAssembly's gather), the spring's first vertex
-  // writes its parameter terms.
+  // psi = -mu . f_i per spring, in d (-> x), dv (-> v) and the parameters, each spring once
+  // (spring_pass.h), signed into its ends' slots; then each vertex sums its slots in sequence
+  // (its springs in spring order, as ElementAssembly's gather).
   const Scalar* x = before.x.data();
   const Scalar* v = before.v.data();
+  std::vector<Scalar>& terms = scratch(adj_ex_, m.spring_count * 4 * D);  // (2 m, 2 D): by slot
+  spring_adjoint<D>({m.springs.data(), x, v, m.stiffness.data(), m.rest_length.data(), m.damping.data(),
+                     slot_.data()},
+                    lambda.data(), m.spring_count, avx2_, terms.data(),
+                    with_params ? params.stiffness.data() : nullptr, params.rest_length.data(),
+                    params.damping.data());
+  const Scalar* t = terms.data();
   parallel_for(m.vertex_count, [&](Index vi) {
     Vec<D> sx = Vec<D>::Zero(), sv = Vec<D>::Zero();
     for (Index p = incidence_ptr_[vi]; p < incidence_ptr_[vi + 1]; ++p) {
-      const Index s = incidence_[p] / 2;
-      const bool first = incidence_[p] % 2 == 0;
-      const Index i = m.springs[2 * s], j = m.springs[2 * s + 1];
-      const Vec<D> dd = vertex<D>(x, j) - vertex<D>(x, i);
-      const Vec<D> dv = vertex<D>(v, j) - vertex<D>(v, i);
-      const Vec<D> mu = vertex<D>(lambda.data(), j) - vertex<D>(lambda.data(), i);
-      const Scalar l = dd.norm();
-      Vec<D> gd = Vec<D>::Zero(), gdv = Vec<D>::Zero();
-      if (l > 0) {
-        const Vec<D> nv = dd / l;
-        const Scalar k = m.stiffness[s], L = m.rest_length[s], c = m.damping[s];
-        const Scalar mn = mu.dot(nv), vn = dv.dot(nv), F = k * (l - L) + c * vn;
-        const Vec<D> dv_perp = dv - vn * nv, mu_perp = mu - mn * nv;
-        gd = -((k * nv + c * dv_perp / l) * mn + F * mu_perp / l);
-        gdv = -c * mn * nv;
-        if (with_params && first) {
-          params.stiffness[s] += -(l - L) * mn;
-          params.rest_length[s] += k * mn;
-          params.damping[s] += -vn * mn;
-        }
-      }
-      // d = x_j - x_i: dL/dx_i = -gd, dL/dx_j = +gd (the same for v).
-      if (first) {
-        sx += -gd;
-        sv += -gdv;
-      } else {
-        sx += gd;
-        sv += gdv;
-      }
+      sx += Eigen::Map<const Vec<D>>(t + p * 2 * D);
+      sv += Eigen::Map<const Vec<D>>(t + p * 2 * D + D);
     }
     for (int r = 0; r < D; ++r) {
       adjoint.x[vi * D + r] += sx(r);

@@ -1,6 +1,7 @@
 #include "massspring/solver.h"
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <limits>
 #include <string>
@@ -9,6 +10,7 @@
 #include "core/parallel.h"
 #include "core/timer.h"
 #include "massspring/kernels.h"
+#include "massspring/spring_pass.h"
 #include "mesh/vertex_set.h"
 
 namespace kinema::massspring {
@@ -50,6 +52,8 @@ Solver::Solver(const Model& model, const Config& config)
   incidence_.resize(2 * model_.spring_count);
   std::vector<Index> next(incidence_ptr_.begin(), incidence_ptr_.end() - 1);
   for (Index q = 0; q < 2 * model_.spring_count; ++q) incidence_[next[model_.springs[q]]++] = q;
+  slot_.resize(incidence_.size());
+  for (std::size_t p = 0; p < incidence_.size(); ++p) slot_[incidence_[p]] = static_cast<Index>(p);
 }
 
 State Solver::initial_state(const Scalar* x0) const {
@@ -115,7 +119,7 @@ void Solver::forces_d(const State& st, const Scalar* control, bool with_damping,
 }
 
 template <int D>
-void Solver::explicit_step_d(const State& st, Scalar dt, const Scalar* control) {
+bool Solver::explicit_step_d(const State& st, Scalar dt, const Scalar* control) {
   const Model& m = model_;
   const Scalar* x = st.x.data();
   const Scalar* v = st.v.data();
@@ -123,19 +127,18 @@ void Solver::explicit_step_d(const State& st, Scalar dt, const Scalar* control) 
   const bool gravity = !m.gravity.empty();
   x_new_.resize(st.x.size());
   v_new_.resize(st.v.size());
-  // f(x_n, v_n) per vertex from its springs (as forces_d + gather, term for term), then
-  // explicit Euler moves x with v_n, symplectic Euler with v_{n+1}.
+  // f(x_n, v_n): each spring's force once (spring_pass.h), then per vertex the sum of its
+  // springs' in spring order, read in sequence (as forces_d + gather, term for term); explicit Euler moves x
+  // with v_n, symplectic Euler with v_{n+1}.
+  spring_buffer_.resize(static_cast<std::size_t>(m.spring_count * 2 * D));  // (2 m, D): by slot
+  std::atomic<bool> finite{true};  // every free vertex's v' and x' (one pass, no re-read)
+  const Scalar* fs = spring_buffer_.data();
+  spring_forces<D>({m.springs.data(), x, v, m.stiffness.data(), m.rest_length.data(), m.damping.data(),
+                    slot_.data()},
+                   m.spring_count, avx2_, spring_buffer_.data());
   parallel_for(m.vertex_count, [&](Index i) {
     Vec<D> f = Vec<D>::Zero();
-    for (Index p = incidence_ptr_[i]; p < incidence_ptr_[i + 1]; ++p) {
-      const Index s = incidence_[p] / 2;
-      const Index a = m.springs[2 * s], b = m.springs[2 * s + 1];
-      const Vec<D> fi = spring_force<D>(vertex<D>(x, b) - vertex<D>(x, a),
-                                        vertex<D>(v, b) - vertex<D>(v, a), m.stiffness[s],
-                                        m.rest_length[s], m.damping[s]);
-      if (incidence_[p] % 2 == 0) f += fi;
-      else f += -fi;
-    }
+    for (Index p = incidence_ptr_[i]; p < incidence_ptr_[i + 1]; ++p) f += vertex<D>(fs, p);
     for (int r = 0; r < D; ++r) {
       const Index q = i * D + r;
       if (m.fixed[i]) {
@@ -149,8 +152,10 @@ void Solver::explicit_step_d(const State& st, Scalar dt, const Scalar* control) 
       const Scalar vq = v[q] + dt * fq / m.mass[i];
       x_new_[q] = x[q] + dt * (symplectic ? vq : v[q]);
       v_new_[q] = vq;
+      if (!(std::isfinite(vq) && std::isfinite(x_new_[q]))) finite = false;
     }
   });
+  return finite;
 }
 
 void Solver::forces(const State& s, Scalar* f) {
@@ -267,10 +272,12 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt, const Scal
   const int d = m.dim;
   const Index n = assembly_.dof_count();
   if (config_.integrator != Integrator::Implicit) {
-    if (d == 2) explicit_step_d<2>(state, dt, control);
-    else explicit_step_d<3>(state, dt, control);
-    check_finite(v_new_, "v", state.step);
-    check_finite(x_new_, "x", state.step);
+    const bool finite = d == 2 ? explicit_step_d<2>(state, dt, control)
+                               : explicit_step_d<3>(state, dt, control);
+    if (!finite) {  // the message names the first non-finite quantity
+      check_finite(v_new_, "v", state.step);
+      check_finite(x_new_, "x", state.step);
+    }
     accept_step(state, x_new_, v_new_, dt);
     state.clamped = false;
     stats.time = state.time;

@@ -14,6 +14,7 @@
 #include <vector>
 
 #include "core/interrupt.h"
+#include "core/simd.h"
 #include "core/step_stats.h"
 #include "linalg/spd_solver.h"
 #include "mesh/element_assembly.h"
@@ -137,7 +138,8 @@ class Solver {
  private:
   template <int D> void forces_d(const State& s, const Scalar* control, bool with_damping, Scalar* f);
   // The explicit and symplectic steps into x_new_, v_new_, one pass over the vertices.
-  template <int D> void explicit_step_d(const State& s, Scalar dt, const Scalar* control);
+  // False when a v' or x' is not finite.
+  template <int D> bool explicit_step_d(const State& s, Scalar dt, const Scalar* control);
   template <int D> void assemble_d(const Scalar* x, Scalar dt, Scalar beta, bool clamp);
   void assemble(const Scalar* x, Scalar dt, Scalar beta, bool clamp);
   CsrView matrix() const;
@@ -158,6 +160,7 @@ class Solver {
   // the order ElementAssembly::gather_vector sums a vertex's contributions in, so a vertex
   // summing its springs' terms itself (no per-spring buffer, one pass) gives the same bits.
   std::vector<Index> incidence_ptr_, incidence_;
+  std::vector<Index> slot_;  // slot_[incidence_[p]] = p (spring_pass.h)
   SpdSolver linear_;
   SpdSolver adjoint_linear_;  // its own factor, so a backward pass leaves the forward's alone
   // The step index of the last adjoint: a backward pass visits steps in decreasing order, so
@@ -166,6 +169,8 @@ class Solver {
   // checkpointed, chained or repeated).
   Index adjoint_last_step_ = -1;
   std::vector<Scalar> adj_lambda_, adj_gx_, adj_rhs_, adj_ex_, adj_sum_;  // step_adjoint's
+  std::vector<Scalar> spring_buffer_;  // the explicit step's per-spring forces
+  bool avx2_ = use_avx2();             // the 2D spring passes' AVX2 version (core/simd.h)
   FactorRecord factor_;       // what linear_'s lagged factor is (valid while factor_known_)
   bool factor_known_ = true;
 };
