@@ -16,6 +16,7 @@
 // f1'(y) along u and f1(y) / y across it), so no projection is needed.
 #pragma once
 
+#include <Eigen/Cholesky>
 #include <Eigen/Eigenvalues>
 #include <cmath>
 
@@ -130,7 +131,7 @@ inline Scalar pair_barrier(const Reduced& r, const Vec3* y, Scalar eps_x, Scalar
 // (9 x 9 instead of 12 x 12 eigenproblems).
 template <int K>
 inline void project_psd_translation_free(Mat<12>& H) {
-  constexpr int N = 3 * K, R = 3 * (K - 1);
+  constexpr int R = 3 * (K - 1);
   // Rows orthonormal and orthogonal to (1, ..., 1): a Hadamard basis (K = 4, 2) or Helmert's (K = 3).
   Eigen::Matrix<Scalar, K - 1, K> B;
   if constexpr (K == 4) {
@@ -141,15 +142,39 @@ inline void project_psd_translation_free(Mat<12>& H) {
   } else {
     B << 1 / std::sqrt(2.0), -1 / std::sqrt(2.0);
   }
-  Eigen::Matrix<Scalar, N, R> Q = Eigen::Matrix<Scalar, N, R>::Zero();
-  for (int a = 0; a < K; ++a)
-    for (int b = 0; b < K - 1; ++b) Q.template block<3, 3>(3 * a, 3 * b) = B(b, a) * Mat3::Identity();
-  const Mat<N> A = H.topLeftCorner<N, N>();
-  const Mat<R> Ar = Q.transpose() * A * Q;
+  // Q = B^T (x) I3, so Q^T H Q and Q M Q^T are sums of 3x3 blocks weighted by B's entries.
+  Eigen::Matrix<Scalar, R, 3 * K> T;
+  for (int b = 0; b < K - 1; ++b)
+    for (int c = 0; c < K; ++c) {
+      Mat3 s = Mat3::Zero();
+      for (int a = 0; a < K; ++a) s += B(b, a) * H.block<3, 3>(3 * a, 3 * c);
+      T.template block<3, 3>(3 * b, 3 * c) = s;
+    }
+  Mat<R> Ar;
+  for (int b = 0; b < K - 1; ++b)
+    for (int d = 0; d < K - 1; ++d) {
+      Mat3 s = Mat3::Zero();
+      for (int c = 0; c < K; ++c) s += B(d, c) * T.template block<3, 3>(3 * b, 3 * c);
+      Ar.template block<3, 3>(3 * b, 3 * d) = s;
+    }
+  // Positive definite already (a Cholesky factorisation exists): nothing to clamp.
+  if (Eigen::LLT<Mat<R>>(Ar).info() == Eigen::Success) return;
   Eigen::SelfAdjointEigenSolver<Mat<R>> eig(Ar);
   if (eig.eigenvalues().minCoeff() >= 0) return;
-  const Eigen::Matrix<Scalar, N, R> V = Q * eig.eigenvectors();
-  H.topLeftCorner<N, N>() = V * eig.eigenvalues().cwiseMax(Scalar(0)).asDiagonal() * V.transpose();
+  const Eigen::Matrix<Scalar, R, R> V = eig.eigenvectors();
+  const Mat<R> P = V * eig.eigenvalues().cwiseMax(Scalar(0)).asDiagonal() * V.transpose();
+  for (int b = 0; b < K - 1; ++b)
+    for (int c = 0; c < K; ++c) {
+      Mat3 s = Mat3::Zero();
+      for (int d = 0; d < K - 1; ++d) s += B(d, c) * P.template block<3, 3>(3 * b, 3 * d);
+      T.template block<3, 3>(3 * b, 3 * c) = s;
+    }
+  for (int a = 0; a < K; ++a)
+    for (int c = 0; c < K; ++c) {
+      Mat3 s = Mat3::Zero();
+      for (int b = 0; b < K - 1; ++b) s += B(b, a) * T.template block<3, 3>(3 * b, 3 * c);
+      H.block<3, 3>(3 * a, 3 * c) = s;
+    }
 }
 
 }  // namespace kinema::contact
