@@ -95,18 +95,20 @@ inline Scalar pair_barrier(const Reduced& r, const Vec3* y, Scalar eps_x, Scalar
   Scalar s = eps_x;
   Vec<12> gs;
   Mat<12> Hs;
-  if (eps_x > 0) s = g ? ee_cross_derivatives(y[0], y[1], y[2], y[3], gs, Hs) : (y[1] - y[0]).cross(y[3] - y[2]).squaredNorm();
+  if (eps_x > 0) s = g ? ee_cross_derivatives(y[0], y[1], y[2], y[3], gs, H ? &Hs : nullptr) : (y[1] - y[0]).cross(y[3] - y[2]).squaredNorm();
   const Scalar m = eps_x > 0 ? edge_mollifier(s, eps_x) : Scalar(1);
   if (!g) return m * b;
   Vec<12> gl;
   Mat<12> Hl;
-  reduced_derivatives(r.kind, v, gl, Hl);
+  reduced_derivatives(r.kind, v, gl, H ? &Hl : nullptr);
   // The formula's derivatives, moved to the stencil slots it reads.
   Vec<12> gd = Vec<12>::Zero();
-  Mat<12> Hd = Mat<12>::Zero();
+  Mat<12> Hd;
+  if (H) Hd.setZero();
   for (int a = 0; a < k; ++a) {
     gd.segment<3>(3 * r.slot[a]) = gl.segment<3>(3 * a);
-    for (int c = 0; c < k; ++c) Hd.block<3, 3>(3 * r.slot[a], 3 * r.slot[c]) = Hl.block<3, 3>(3 * a, 3 * c);
+    if (H)
+      for (int c = 0; c < k; ++c) Hd.block<3, 3>(3 * r.slot[a], 3 * r.slot[c]) = Hl.block<3, 3>(3 * a, 3 * c);
   }
   const Scalar b1 = barrier_first(d, dhat2), b2 = barrier_second(d, dhat2);
   *g = m * b1 * gd;
@@ -128,7 +130,8 @@ inline Scalar pair_barrier(const Reduced& r, const Vec3* y, Scalar eps_x, Scalar
 // its K vertices, so its Hessian vanishes on translations and lives on their orthogonal
 // complement: with Q (3K x 3(K-1)) an orthonormal basis of that complement, H = Q (Q^T H Q) Q^T
 // exactly, and projecting the smaller Q^T H Q gives the same matrix at about half the cost
-// (9 x 9 instead of 12 x 12 eigenproblems).
+// (9 x 9 instead of 12 x 12 eigenproblems); a Cholesky test first skips the eigenproblem when
+// the restriction is already positive definite.
 template <int K>
 inline void project_psd_translation_free(Mat<12>& H) {
   constexpr int R = 3 * (K - 1);
