@@ -139,3 +139,42 @@ def test_ccd_point_through_triangle_stops_before_the_plane():
     assert 0.4 < t < 0.5
     # Stops at about a tenth of the initial gap: 1 - 2 t = remaining height in [0, 0.1].
     assert 0 < 1 - 2 * t <= 0.1 + 1e-12
+
+
+def test_exact_distances_equal_their_region_formula():
+    # point_triangle_distance / edge_edge_distance compute the distance from the closest points
+    # found by the region search; it must equal the smooth formula of that region (the one the
+    # barrier differentiates) to rounding, ~1e-15 relative.
+    tri = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0]])
+    cases = [  # point, formula, vertices the formula reads
+        ([0.2, 0.3, 0.7], "pt", lambda p: [p, *tri]),  # above the interior: the plane
+        ([0.5, -0.4, 0.3], "pe", lambda p: [p, tri[0], tri[1]]),  # beyond edge (t0, t1)
+        ([-0.5, -0.5, 0.2], "pp", lambda p: [p, tri[0]]),  # beyond vertex t0
+    ]
+    for p, kind, verts in cases:
+        p = np.array(p)
+        exact = C.point_triangle_distance(p[None], *(t[None] for t in tri))[0]
+        formula = C.pair_distance(kind, np.array(verts(p)))[0]
+        assert exact == pytest.approx(formula, rel=1e-14), (kind, exact, formula)
+    a0, a1 = np.array([0.0, 0, 0]), np.array([1.0, 0, 0])
+    for b0, b1, kind, verts in [
+        ([0.5, -1, 0.4], [0.5, 1, 0.4], "ee", lambda: [a0, a1, b0, b1]),  # crossing: line-line
+        ([2.0, -1, 0.4], [2.0, 1, 0.4], "pe", lambda: [a1, b0, b1]),  # past a1: a1 to segment b
+    ]:
+        b0, b1 = np.array(b0), np.array(b1)
+        exact = C.edge_edge_distance(a0[None], a1[None], b0[None], b1[None])[0]
+        formula = C.pair_distance(kind, np.array(verts()))[0]
+        assert exact == pytest.approx(formula, rel=1e-14), (kind, exact, formula)
+
+
+def test_ccd_returns_t_max_when_the_first_safe_advance_covers_it():
+    # A point falling onto a triangle 1 m below, reaching it at t = 0.5: any t_max below the
+    # first conservative advance (0.9 of the gap over the closing speed bound) is returned as
+    # is, and the pair is indeed apart over [0, t_max].
+    tri = np.array([[-1.0, -1, 0], [2, -1, 0], [-1, 2, 0]])
+    x0 = np.vstack([[0.1, 0.1, 1.0], tri])
+    x1 = np.vstack([[0.1, 0.1, -1.0], tri])
+    for t_max in (0.05, 0.2):
+        assert C.ccd("pt", x0, x1, t_max) == t_max
+        assert sampled_min_distance("pt", x0, x1, t_max) > 0
+    assert C.ccd("pt", x0, x1, 1.0) < 0.5

@@ -16,6 +16,7 @@
 // f1'(y) along u and f1(y) / y across it), so no projection is needed.
 #pragma once
 
+#include <Eigen/Cholesky>
 #include <Eigen/Eigenvalues>
 #include <cmath>
 
@@ -94,18 +95,20 @@ inline Scalar pair_barrier(const Reduced& r, const Vec3* y, Scalar eps_x, Scalar
   Scalar s = eps_x;
   Vec<12> gs;
   Mat<12> Hs;
-  if (eps_x > 0) s = g ? ee_cross_derivatives(y[0], y[1], y[2], y[3], gs, Hs) : (y[1] - y[0]).cross(y[3] - y[2]).squaredNorm();
+  if (eps_x > 0) s = g ? ee_cross_derivatives(y[0], y[1], y[2], y[3], gs, H ? &Hs : nullptr) : (y[1] - y[0]).cross(y[3] - y[2]).squaredNorm();
   const Scalar m = eps_x > 0 ? edge_mollifier(s, eps_x) : Scalar(1);
   if (!g) return m * b;
   Vec<12> gl;
   Mat<12> Hl;
-  reduced_derivatives(r.kind, v, gl, Hl);
+  reduced_derivatives(r.kind, v, gl, H ? &Hl : nullptr);
   // The formula's derivatives, moved to the stencil slots it reads.
   Vec<12> gd = Vec<12>::Zero();
-  Mat<12> Hd = Mat<12>::Zero();
+  Mat<12> Hd;
+  if (H) Hd.setZero();
   for (int a = 0; a < k; ++a) {
     gd.segment<3>(3 * r.slot[a]) = gl.segment<3>(3 * a);
-    for (int c = 0; c < k; ++c) Hd.block<3, 3>(3 * r.slot[a], 3 * r.slot[c]) = Hl.block<3, 3>(3 * a, 3 * c);
+    if (H)
+      for (int c = 0; c < k; ++c) Hd.block<3, 3>(3 * r.slot[a], 3 * r.slot[c]) = Hl.block<3, 3>(3 * a, 3 * c);
   }
   const Scalar b1 = barrier_first(d, dhat2), b2 = barrier_second(d, dhat2);
   *g = m * b1 * gd;
@@ -127,10 +130,11 @@ inline Scalar pair_barrier(const Reduced& r, const Vec3* y, Scalar eps_x, Scalar
 // its K vertices, so its Hessian vanishes on translations and lives on their orthogonal
 // complement: with Q (3K x 3(K-1)) an orthonormal basis of that complement, H = Q (Q^T H Q) Q^T
 // exactly, and projecting the smaller Q^T H Q gives the same matrix at about half the cost
-// (9 x 9 instead of 12 x 12 eigenproblems).
+// (9 x 9 instead of 12 x 12 eigenproblems); a Cholesky test first skips the eigenproblem when
+// the restriction is already positive definite.
 template <int K>
 inline void project_psd_translation_free(Mat<12>& H) {
-  constexpr int N = 3 * K, R = 3 * (K - 1);
+  constexpr int R = 3 * (K - 1);
   // Rows orthonormal and orthogonal to (1, ..., 1): a Hadamard basis (K = 4, 2) or Helmert's (K = 3).
   Eigen::Matrix<Scalar, K - 1, K> B;
   if constexpr (K == 4) {
@@ -141,15 +145,39 @@ inline void project_psd_translation_free(Mat<12>& H) {
   } else {
     B << 1 / std::sqrt(2.0), -1 / std::sqrt(2.0);
   }
-  Eigen::Matrix<Scalar, N, R> Q = Eigen::Matrix<Scalar, N, R>::Zero();
-  for (int a = 0; a < K; ++a)
-    for (int b = 0; b < K - 1; ++b) Q.template block<3, 3>(3 * a, 3 * b) = B(b, a) * Mat3::Identity();
-  const Mat<N> A = H.topLeftCorner<N, N>();
-  const Mat<R> Ar = Q.transpose() * A * Q;
+  // Q = B^T (x) I3, so Q^T H Q and Q M Q^T are sums of 3x3 blocks weighted by B's entries.
+  Eigen::Matrix<Scalar, R, 3 * K> T;
+  for (int b = 0; b < K - 1; ++b)
+    for (int c = 0; c < K; ++c) {
+      Mat3 s = Mat3::Zero();
+      for (int a = 0; a < K; ++a) s += B(b, a) * H.block<3, 3>(3 * a, 3 * c);
+      T.template block<3, 3>(3 * b, 3 * c) = s;
+    }
+  Mat<R> Ar;
+  for (int b = 0; b < K - 1; ++b)
+    for (int d = 0; d < K - 1; ++d) {
+      Mat3 s = Mat3::Zero();
+      for (int c = 0; c < K; ++c) s += B(d, c) * T.template block<3, 3>(3 * b, 3 * c);
+      Ar.template block<3, 3>(3 * b, 3 * d) = s;
+    }
+  // Positive definite already (a Cholesky factorisation exists): nothing to clamp.
+  if (Eigen::LLT<Mat<R>>(Ar).info() == Eigen::Success) return;
   Eigen::SelfAdjointEigenSolver<Mat<R>> eig(Ar);
   if (eig.eigenvalues().minCoeff() >= 0) return;
-  const Eigen::Matrix<Scalar, N, R> V = Q * eig.eigenvectors();
-  H.topLeftCorner<N, N>() = V * eig.eigenvalues().cwiseMax(Scalar(0)).asDiagonal() * V.transpose();
+  const Eigen::Matrix<Scalar, R, R> V = eig.eigenvectors();
+  const Mat<R> P = V * eig.eigenvalues().cwiseMax(Scalar(0)).asDiagonal() * V.transpose();
+  for (int b = 0; b < K - 1; ++b)
+    for (int c = 0; c < K; ++c) {
+      Mat3 s = Mat3::Zero();
+      for (int d = 0; d < K - 1; ++d) s += B(d, c) * P.template block<3, 3>(3 * b, 3 * d);
+      T.template block<3, 3>(3 * b, 3 * c) = s;
+    }
+  for (int a = 0; a < K; ++a)
+    for (int c = 0; c < K; ++c) {
+      Mat3 s = Mat3::Zero();
+      for (int b = 0; b < K - 1; ++b) s += B(b, a) * T.template block<3, 3>(3 * b, 3 * c);
+      H.block<3, 3>(3 * a, 3 * c) = s;
+    }
 }
 
 }  // namespace kinema::contact

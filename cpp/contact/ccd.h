@@ -44,6 +44,9 @@ Scalar additive_ccd(Vec3 x[4], Vec3 dx[4], int split, Scalar t_max, Distance&& d
   const Scalar gap = options.gap_fraction * d;
   Scalar t = 0;
   Scalar tl = (1 - options.gap_fraction) * d / lp;
+  // The first advance is safe from t = 0: when it already covers t_max (most candidate pairs of
+  // a step), the pair cannot meet before t_max.
+  if (tl >= t_max) return t_max;
   for (Index it = 0; it < options.max_iterations; ++it) {
     for (int k = 0; k < 4; ++k) x[k] += tl * dx[k];
     d = std::sqrt(distance(x));

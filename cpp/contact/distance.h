@@ -60,7 +60,10 @@ struct Reduced {
   int slot[4];
 };
 
-inline Reduced point_triangle_region(const Vec3& p, const Vec3& t0, const Vec3& t1, const Vec3& t2) {
+// `dist`, when given, receives the squared distance found on the way (the exact distance of
+// the point to the triangle, whatever the region).
+inline Reduced point_triangle_region(const Vec3& p, const Vec3& t0, const Vec3& t1, const Vec3& t2,
+                                     Scalar* dist = nullptr) {
   const Vec3 e1 = t1 - t0, e2 = t2 - t0, r = p - t0;
   // Barycentric coordinates of p's projection on the plane (Gram system of e1, e2).
   const Scalar a11 = e1.dot(e1), a12 = e1.dot(e2), a22 = e2.dot(e2);
@@ -68,7 +71,14 @@ inline Reduced point_triangle_region(const Vec3& p, const Vec3& t0, const Vec3& 
   const Scalar det = a11 * a22 - a12 * a12;
   if (det > 0) {
     const Scalar u = (a22 * b1 - a12 * b2) / det, v = (a11 * b2 - a12 * b1) / det;
-    if (u >= 0 && v >= 0 && u + v <= 1) return {PairKind::PT, {0, 1, 2, 3}};
+    if (u >= 0 && v >= 0 && u + v <= 1) {
+      if (dist) {
+        const Vec3 n = e1.cross(e2);
+        const Scalar a = n.dot(r);
+        *dist = a * a / n.squaredNorm();
+      }
+      return {PairKind::PT, {0, 1, 2, 3}};
+    }
   }
   // Outside (or a degenerate triangle): the nearest of the three edges.
   const Vec3* t[3] = {&t0, &t1, &t2};
@@ -89,12 +99,15 @@ inline Reduced point_triangle_region(const Vec3& p, const Vec3& t0, const Vec3& 
         out = {PairKind::PE, {0, 1 + k, 1 + (k + 1) % 3, -1}};
     }
   }
+  if (dist) *dist = best;
   return out;
 }
 
 // Edge-edge: slots 0, 1 = a0, a1 and 2, 3 = b0, b1. Closest parameters of two segments
 // (Ericson, "Real-Time Collision Detection", 2005, sec. 5.1.9), then the region they lie in.
-inline Reduced edge_edge_region(const Vec3& a0, const Vec3& a1, const Vec3& b0, const Vec3& b1) {
+// `dist` as for point_triangle_region.
+inline Reduced edge_edge_region(const Vec3& a0, const Vec3& a1, const Vec3& b0, const Vec3& b1,
+                                Scalar* dist = nullptr) {
   const Vec3 d1 = a1 - a0, d2 = b1 - b0, r = a0 - b0;
   const Scalar a = d1.dot(d1), e = d2.dot(d2), f = d2.dot(r);
   const Scalar c = d1.dot(r), b = d1.dot(d2);
@@ -111,6 +124,7 @@ inline Reduced edge_edge_region(const Vec3& a0, const Vec3& a1, const Vec3& b0, 
       t = 1;
       s = std::clamp((b - c) / a, Scalar(0), Scalar(1));
     }
+    if (dist) *dist = (r + s * d1 - t * d2).squaredNorm();
     const bool s_in = s > 0 && s < 1, t_in = t > 0 && t < 1;
     if (s_in && t_in) return {PairKind::EE, {0, 1, 2, 3}};
     if (!s_in && !t_in) return {PairKind::PP, {s <= 0 ? 0 : 1, t <= 0 ? 2 : 3, -1, -1}};
@@ -136,6 +150,7 @@ inline Reduced edge_edge_region(const Vec3& a0, const Vec3& a1, const Vec3& b0, 
         best = {PairKind::PE, {k, e0, e0 + 1, -1}};
     }
   }
+  if (dist) *dist = best_d;
   return best;
 }
 
@@ -174,179 +189,217 @@ inline Scalar reduced_distance(PairKind kind, const Vec3* v) {
   return 0;
 }
 
-// Exact (unsigned, squared) point-triangle and segment-segment distances, whatever the region.
+// Exact (unsigned, squared) point-triangle and segment-segment distances, whatever the region
+// (computed directly from the closest points; equal to the region's formula up to rounding).
 inline Scalar point_triangle_distance(const Vec3& p, const Vec3& t0, const Vec3& t1, const Vec3& t2) {
-  const Reduced r = point_triangle_region(p, t0, t1, t2);
-  const Vec3 all[4] = {p, t0, t1, t2};
-  Vec3 v[4];
-  for (int k = 0; k < vertex_count(r.kind); ++k) v[k] = all[r.slot[k]];
-  return reduced_distance(r.kind, v);
+  Scalar d;
+  point_triangle_region(p, t0, t1, t2, &d);
+  return d;
 }
 
 inline Scalar edge_edge_distance(const Vec3& a0, const Vec3& a1, const Vec3& b0, const Vec3& b1) {
-  const Reduced r = edge_edge_region(a0, a1, b0, b1);
-  const Vec3 all[4] = {a0, a1, b0, b1};
-  Vec3 v[4];
-  for (int k = 0; k < vertex_count(r.kind); ++k) v[k] = all[r.slot[k]];
-  return reduced_distance(r.kind, v);
+  Scalar d;
+  edge_edge_region(a0, a1, b0, b1, &d);
+  return d;
 }
 
 // ----------------------------------------------------------------- derivatives
 
 namespace detail {
 
-// Value, gradient and Hessian of b = |e1 x e2|^2 over (e1, e2).
-inline void cross_sq(const Vec3& e1, const Vec3& e2, Scalar& b, Vec<6>& g, Mat<6>& H) {
+// Value, gradient and (when H is given) Hessian of b = |e1 x e2|^2 over (e1, e2).
+inline void cross_sq(const Vec3& e1, const Vec3& e2, Scalar& b, Vec<6>& g, Mat<6>* H) {
   const Vec3 n = e1.cross(e2);
   b = n.squaredNorm();
   g.head<3>() = 2 * e2.cross(n);
   g.tail<3>() = 2 * n.cross(e1);
-  Eigen::Matrix<Scalar, 3, 6> J;  // dn / d(e1, e2)
-  J.leftCols<3>() = -cross_matrix(e2);
-  J.rightCols<3>() = cross_matrix(e1);
-  H = 2 * J.transpose() * J;
-  const Mat3 N = cross_matrix(n);
-  H.block<3, 3>(0, 3) -= 2 * N;
-  H.block<3, 3>(3, 0) += 2 * N;
+  if (!H) return;
+  // dn / de1 = -[e2]x, dn / de2 = [e1]x; [v]x^T [v]x = |v|^2 I - v v^T.
+  const Mat3 C1 = cross_matrix(e1), C2 = cross_matrix(e2), N = cross_matrix(n);
+  H->block<3, 3>(0, 0) = 2 * (e2.squaredNorm() * Mat3::Identity() - e2 * e2.transpose());
+  H->block<3, 3>(3, 3) = 2 * (e1.squaredNorm() * Mat3::Identity() - e1 * e1.transpose());
+  H->block<3, 3>(0, 3) = 2 * (C2 * C1) - 2 * N;  // -[e2]x^T [e1]x = [e2]x [e1]x
+  H->block<3, 3>(3, 0) = H->block<3, 3>(0, 3).transpose();
 }
 
-// d = a^2 / b with a = (e1 x e2) . r and b = |e1 x e2|^2, over y = (e1, e2, r).
-inline void triple_over_cross(const Vec3& e1, const Vec3& e2, const Vec3& r, Scalar& d, Vec<9>& g,
-                              Mat<9>& H) {
+// d = a^2 / b with a = (e1 x e2) . r and b = |e1 x e2|^2, over y = (e1, e2, r). With
+// q = grad a - (a / b) grad b the Hessian is (2 / b) q q^T + (2 a / b) Hess a - (a / b)^2 Hess b.
+inline void triple_over_cross(const Vec3& e1, const Vec3& e2, const Vec3& r, Vec<9>& g, Mat<9>* H) {
   const Vec3 n = e1.cross(e2);
   const Scalar a = n.dot(r);
   Vec<9> ga;
   ga << e2.cross(r), r.cross(e1), n;
-  Mat<9> Ha = Mat<9>::Zero();
-  Ha.block<3, 3>(0, 3) = -cross_matrix(r);
-  Ha.block<3, 3>(0, 6) = cross_matrix(e2);
-  Ha.block<3, 3>(3, 6) = -cross_matrix(e1);
-  Ha.block<3, 3>(3, 0) = Ha.block<3, 3>(0, 3).transpose();
-  Ha.block<3, 3>(6, 0) = Ha.block<3, 3>(0, 6).transpose();
-  Ha.block<3, 3>(6, 3) = Ha.block<3, 3>(3, 6).transpose();
   Scalar b;
-  Vec<6> gb6;
-  Mat<6> Hb6;
-  cross_sq(e1, e2, b, gb6, Hb6);
-  Vec<9> gb = Vec<9>::Zero();
-  gb.head<6>() = gb6;
-  Mat<9> Hb = Mat<9>::Zero();
-  Hb.topLeftCorner<6, 6>() = Hb6;
-  d = a * a / b;
-  g = (2 * a / b) * ga - (a * a / (b * b)) * gb;
-  H = (2 / b) * ga * ga.transpose() + (2 * a / b) * Ha -
-      (2 * a / (b * b)) * (ga * gb.transpose() + gb * ga.transpose()) +
-      (2 * a * a / (b * b * b)) * gb * gb.transpose() - (a * a / (b * b)) * Hb;
+  Vec<6> gb;
+  Mat<6> Hb;
+  cross_sq(e1, e2, b, gb, H ? &Hb : nullptr);
+  const Scalar ab = a / b;
+  g = 2 * ab * ga;
+  g.head<6>() -= ab * ab * gb;
+  if (!H) return;
+  Vec<9> q = ga;
+  q.head<6>() -= ab * gb;
+  H->noalias() = (2 / b) * q * q.transpose();
+  H->topLeftCorner<6, 6>() -= ab * ab * Hb;
+  // Hess a: the off-diagonal blocks -[r]x (e1, e2), [e2]x (e1, r), -[e1]x (e2, r).
+  const Scalar s = 2 * ab;
+  const Mat3 Cr = s * cross_matrix(r), C1 = s * cross_matrix(e1), C2 = s * cross_matrix(e2);
+  H->block<3, 3>(0, 3) -= Cr;
+  H->block<3, 3>(3, 0) += Cr;
+  H->block<3, 3>(0, 6) += C2;
+  H->block<3, 3>(6, 0) -= C2;
+  H->block<3, 3>(3, 6) -= C1;
+  H->block<3, 3>(6, 3) += C1;
+}
+
+// A formula of K vertices that depends only on their differences: given its gradient and
+// Hessian over K - 1 "free" vertices (all but `dep`, in order) with the dependent vertex held
+// still, the full ones follow from translation invariance (the gradient sums to zero over the
+// vertices and every block row of the Hessian sums to zero). Block sums, no dense products.
+// Hf is read only when H is given.
+template <int K>
+inline void complete_translation_free(const Vec<3 * (K - 1)>& gf, const Mat<3 * (K - 1)>& Hf, int dep,
+                                      Vec<12>& g, Mat<12>* H) {
+  int slot[K - 1];
+  for (int a = 0, k = 0; a < K; ++a)
+    if (a != dep) slot[k++] = a;
+  Vec3 gsum = Vec3::Zero();
+  for (int a = 0; a < K - 1; ++a) {
+    g.segment<3>(3 * slot[a]) = gf.template segment<3>(3 * a);
+    gsum += gf.template segment<3>(3 * a);
+  }
+  g.segment<3>(3 * dep) = -gsum;
+  if (!H) return;
+  Mat3 total = Mat3::Zero();
+  for (int a = 0; a < K - 1; ++a) {
+    Mat3 row = Mat3::Zero();
+    for (int b = 0; b < K - 1; ++b) {
+      const Mat3 blk = Hf.template block<3, 3>(3 * a, 3 * b);
+      H->block<3, 3>(3 * slot[a], 3 * slot[b]) = blk;
+      row += blk;
+    }
+    H->block<3, 3>(3 * slot[a], 3 * dep) = -row;
+    H->block<3, 3>(3 * dep, 3 * slot[a]) = -row.transpose();
+    total += row;
+  }
+  H->block<3, 3>(3 * dep, 3 * dep) = total;
 }
 
 }  // namespace detail
 
-// Gradient and Hessian of each formula with respect to its vertices (3 entries per vertex, in
-// formula order); N = 3 * vertex count.
-inline void pp_derivatives(const Vec3& p, const Vec3& q, Vec<6>& g, Mat<6>& H) {
-  const Vec3 r = p - q;
-  g << 2 * r, -2 * r;
-  H.setZero();
-  H.block<3, 3>(0, 0) = H.block<3, 3>(3, 3) = 2 * Mat3::Identity();
-  H.block<3, 3>(0, 3) = H.block<3, 3>(3, 0) = -2 * Mat3::Identity();
+// Gradient and (when H is given) Hessian of each formula with respect to its vertices (3
+// entries per vertex, in formula order), in the first 3k entries of g and the top-left
+// 3k x 3k block of H.
+inline void pp_derivatives(const Vec3& p, const Vec3& q, Vec<12>& g, Mat<12>* H) {
+  detail::complete_translation_free<2>(2 * (q - p), 2 * Mat3::Identity(), 0, g, H);
 }
 
-inline void pe_derivatives(const Vec3& p, const Vec3& e0, const Vec3& e1, Vec<9>& g, Mat<9>& H) {
-  // d = b / c over y = (u, w) = (e0 - p, e1 - p), b = |u x w|^2, c = |w - u|^2.
+inline void pe_derivatives(const Vec3& p, const Vec3& e0, const Vec3& e1, Vec<12>& g, Mat<12>* H) {
+  // d = b / c over the free vertices (e0, e1) with p held: u = e0 - p, w = e1 - p,
+  // b = |u x w|^2, c = |w - u|^2.
   const Vec3 u = e0 - p, w = e1 - p, e = w - u;
   Scalar b;
   Vec<6> gb;
   Mat<6> Hb;
-  detail::cross_sq(u, w, b, gb, Hb);
+  detail::cross_sq(u, w, b, gb, H ? &Hb : nullptr);
   const Scalar c = e.squaredNorm();
   Vec<6> gc;
   gc << -2 * e, 2 * e;
-  Mat<6> Hc;
-  Hc << 2 * Mat3::Identity(), -2 * Mat3::Identity(), -2 * Mat3::Identity(), 2 * Mat3::Identity();
-  const Vec<6> gy = gb / c - (b / (c * c)) * gc;
-  const Mat<6> Hy = Hb / c - (gb * gc.transpose() + gc * gb.transpose()) / (c * c) +
-                    (2 * b / (c * c * c)) * gc * gc.transpose() - (b / (c * c)) * Hc;
-  // y = J x with x = (p, e0, e1): u = e0 - p, w = e1 - p.
-  Eigen::Matrix<Scalar, 6, 9> J = Eigen::Matrix<Scalar, 6, 9>::Zero();
-  J.block<3, 3>(0, 0) = J.block<3, 3>(3, 0) = -Mat3::Identity();
-  J.block<3, 3>(0, 3) = J.block<3, 3>(3, 6) = Mat3::Identity();
-  g = J.transpose() * gy;
-  H = J.transpose() * Hy * J;
+  Mat<6> Hy;
+  if (H) {
+    // Hess c = 2 [[I, -I], [-I, I]]; with q = gb - (b / c) gc the Hessian is
+    // Hb / c - (q gc^T + gc q^T) / c^2 - (b / c^2) Hess c.
+    const Vec<6> q = gb - (b / c) * gc;
+    Hy = Hb / c;
+    Hy.noalias() -= (q * gc.transpose() + gc * q.transpose()) / (c * c);
+    const Scalar k = 2 * b / (c * c);
+    for (int i = 0; i < 3; ++i) {
+      Hy(i, i) -= k, Hy(i + 3, i + 3) -= k;
+      Hy(i, i + 3) += k, Hy(i + 3, i) += k;
+    }
+  }
+  detail::complete_translation_free<3>(gb / c - (b / (c * c)) * gc, Hy, 0, g, H);
 }
 
 inline void pt_derivatives(const Vec3& p, const Vec3& t0, const Vec3& t1, const Vec3& t2, Vec<12>& g,
-                           Mat<12>& H) {
-  Scalar d;
+                           Mat<12>* H) {
+  // Over y = (t1 - t0, t2 - t0, p - t0): with t0 held still, y is the free vertices (t1, t2, p).
   Vec<9> gy;
   Mat<9> Hy;
-  detail::triple_over_cross(t1 - t0, t2 - t0, p - t0, d, gy, Hy);
-  // y = (t1 - t0, t2 - t0, p - t0), x = (p, t0, t1, t2).
-  Eigen::Matrix<Scalar, 9, 12> J = Eigen::Matrix<Scalar, 9, 12>::Zero();
-  for (int k = 0; k < 3; ++k) J.block<3, 3>(3 * k, 3) = -Mat3::Identity();
-  J.block<3, 3>(0, 6) = J.block<3, 3>(3, 9) = J.block<3, 3>(6, 0) = Mat3::Identity();
-  g = J.transpose() * gy;
-  H = J.transpose() * Hy * J;
+  detail::triple_over_cross(t1 - t0, t2 - t0, p - t0, gy, H ? &Hy : nullptr);
+  // Reorder to the free vertices in formula order (p, t1, t2) = (y2, y0, y1).
+  const int from[3] = {2, 0, 1};
+  Vec<9> gf;
+  Mat<9> Hf;
+  for (int a = 0; a < 3; ++a) {
+    gf.segment<3>(3 * a) = gy.segment<3>(3 * from[a]);
+    if (H)
+      for (int b = 0; b < 3; ++b) Hf.block<3, 3>(3 * a, 3 * b) = Hy.block<3, 3>(3 * from[a], 3 * from[b]);
+  }
+  detail::complete_translation_free<4>(gf, Hf, 1, g, H);
 }
 
 inline void ee_derivatives(const Vec3& a0, const Vec3& a1, const Vec3& b0, const Vec3& b1, Vec<12>& g,
-                           Mat<12>& H) {
-  Scalar d;
+                           Mat<12>* H) {
+  // Over y = (a1 - a0, b1 - b0, b0 - a0); with a0 held still the free vertices are
+  // a1 = y0, b0 = y2 - y1, b1 = y1 (as displacements: d a1 -> d y0, d b0 -> d y2 - d y1,
+  // d b1 -> d y1), so the free derivatives are block sums of y's.
   Vec<9> gy;
   Mat<9> Hy;
-  detail::triple_over_cross(a1 - a0, b1 - b0, b0 - a0, d, gy, Hy);
-  // y = (a1 - a0, b1 - b0, b0 - a0), x = (a0, a1, b0, b1).
-  Eigen::Matrix<Scalar, 9, 12> J = Eigen::Matrix<Scalar, 9, 12>::Zero();
-  J.block<3, 3>(0, 0) = J.block<3, 3>(6, 0) = -Mat3::Identity();
-  J.block<3, 3>(0, 3) = Mat3::Identity();
-  J.block<3, 3>(3, 6) = -Mat3::Identity();
-  J.block<3, 3>(3, 9) = J.block<3, 3>(6, 6) = Mat3::Identity();
-  g = J.transpose() * gy;
-  H = J.transpose() * Hy * J;
+  detail::triple_over_cross(a1 - a0, b1 - b0, b0 - a0, gy, H ? &Hy : nullptr);
+  Vec<9> gf;
+  gf << gy.segment<3>(0), gy.segment<3>(6) - gy.segment<3>(3), gy.segment<3>(3);
+  Mat<9> Hf;
+  if (H) {
+    auto blk = [&](int i, int j) { return Hy.block<3, 3>(3 * i, 3 * j); };
+    const Mat3 A02 = blk(0, 2) - blk(0, 1), A12 = blk(1, 2) - blk(1, 1);
+    Hf.block<3, 3>(0, 0) = blk(0, 0);
+    Hf.block<3, 3>(0, 3) = A02;
+    Hf.block<3, 3>(0, 6) = blk(0, 1);
+    Hf.block<3, 3>(3, 3) = blk(2, 2) - blk(2, 1) - A12;
+    Hf.block<3, 3>(3, 6) = blk(2, 1) - blk(1, 1);
+    Hf.block<3, 3>(6, 6) = blk(1, 1);
+    Hf.block<3, 3>(3, 0) = A02.transpose();
+    Hf.block<3, 3>(6, 0) = blk(1, 0);
+    Hf.block<3, 3>(6, 3) = Hf.block<3, 3>(3, 6).transpose();
+  }
+  detail::complete_translation_free<4>(gf, Hf, 0, g, H);
 }
 
-// s = |(a1 - a0) x (b1 - b0)|^2 of an edge pair with its gradient and Hessian over
-// (a0, a1, b0, b1): the quantity the edge-edge mollifier is a function of.
+// s = |(a1 - a0) x (b1 - b0)|^2 of an edge pair with its gradient and (when H is given)
+// Hessian over (a0, a1, b0, b1): the quantity the edge-edge mollifier is a function of.
 inline Scalar ee_cross_derivatives(const Vec3& a0, const Vec3& a1, const Vec3& b0, const Vec3& b1, Vec<12>& g,
-                                   Mat<12>& H) {
+                                   Mat<12>* H) {
   Scalar s;
   Vec<6> g6;
   Mat<6> H6;
-  detail::cross_sq(a1 - a0, b1 - b0, s, g6, H6);
+  detail::cross_sq(a1 - a0, b1 - b0, s, g6, H ? &H6 : nullptr);
   // (e1, e2) = (a1 - a0, b1 - b0): d/da0 = -d/de1, d/da1 = d/de1, likewise for b.
   const int sign[4] = {-1, 1, -1, 1};
   for (int a = 0; a < 4; ++a) {
     g.segment<3>(3 * a) = sign[a] * g6.segment<3>(3 * (a / 2));
-    for (int b = 0; b < 4; ++b)
-      H.block<3, 3>(3 * a, 3 * b) = (sign[a] * sign[b]) * H6.block<3, 3>(3 * (a / 2), 3 * (b / 2));
+    if (H)
+      for (int b = 0; b < 4; ++b)
+        H->block<3, 3>(3 * a, 3 * b) = (sign[a] * sign[b]) * H6.block<3, 3>(3 * (a / 2), 3 * (b / 2));
   }
   return s;
 }
 
-// Gradient (first 3k entries of g) and Hessian (top-left 3k x 3k of H) of a reduced pair.
-inline void reduced_derivatives(PairKind kind, const Vec3* v, Vec<12>& g, Mat<12>& H) {
+// Gradient (first 3k entries of g) and, when H is given, Hessian (top-left 3k x 3k of H) of a
+// reduced pair; the rest of g and H is zero.
+inline void reduced_derivatives(PairKind kind, const Vec3* v, Vec<12>& g, Mat<12>* H) {
   g.setZero();
-  H.setZero();
+  if (H) H->setZero();
   switch (kind) {
-    case PairKind::PP: {
-      Vec<6> g6;
-      Mat<6> H6;
-      pp_derivatives(v[0], v[1], g6, H6);
-      g.head<6>() = g6;
-      H.topLeftCorner<6, 6>() = H6;
-      break;
-    }
-    case PairKind::PE: {
-      Vec<9> g9;
-      Mat<9> H9;
-      pe_derivatives(v[0], v[1], v[2], g9, H9);
-      g.head<9>() = g9;
-      H.topLeftCorner<9, 9>() = H9;
-      break;
-    }
+    case PairKind::PP: pp_derivatives(v[0], v[1], g, H); break;
+    case PairKind::PE: pe_derivatives(v[0], v[1], v[2], g, H); break;
     case PairKind::PT: pt_derivatives(v[0], v[1], v[2], v[3], g, H); break;
     case PairKind::EE: ee_derivatives(v[0], v[1], v[2], v[3], g, H); break;
   }
 }
 
+inline void reduced_derivatives(PairKind kind, const Vec3* v, Vec<12>& g, Mat<12>& H) {
+  reduced_derivatives(kind, v, g, &H);
+}
 
 }  // namespace kinema::contact

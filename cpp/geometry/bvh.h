@@ -78,34 +78,41 @@ class Bvh {
   const std::vector<Index>& order() const { return order_; }
   int depth() const { return depth_; }
 
-  // Visits the leaves whose boxes the ray meets within (t_min, t_max), near first; `leaf(first,
-  // count, t_max)` tests those primitives and returns the (possibly shrunk) t_max.
-  template <class Leaf>
-  Scalar traverse(const Vec3& origin, const Vec3& direction, Scalar t_min, Scalar t_max,
-                  Leaf&& leaf) const {
-    if (nodes_.empty()) return t_max;
-    const Vec3 inv_dir = direction.cwiseInverse();
+  // Depth-first walk over the nodes that `enter(node)` accepts, calling `leaf(node)` on each
+  // accepted leaf; `second_first(node)` says whether an interior node's second child is
+  // visited before its first. The one stack loop under both queries below.
+  template <class Enter, class Leaf, class SecondFirst>
+  void walk(Enter&& enter, Leaf&& leaf, SecondFirst&& second_first) const {
+    if (nodes_.empty()) return;
     std::int32_t stack[kStackSize];
     int top = 0;
     std::int32_t node = 0;
     for (;;) {
       const BvhNode& n = nodes_[static_cast<size_t>(node)];
-      if (hit_box(n.lo, n.hi, origin, inv_dir, t_min, t_max)) {
+      if (enter(n)) {
         if (n.count > 0) {
-          t_max = leaf(n.first, n.count, t_max);
-        } else if (direction[n.axis] < 0) {
-          stack[top++] = node + 1;
-          node = n.second;
-          continue;
+          leaf(n);
         } else {
-          stack[top++] = n.second;
-          node = node + 1;
+          const bool swap = second_first(n);
+          stack[top++] = swap ? node + 1 : n.second;
+          node = swap ? n.second : node + 1;
           continue;
         }
       }
       if (top == 0) break;
       node = stack[--top];
     }
+  }
+
+  // Visits the leaves whose boxes the ray meets within (t_min, t_max), near first; `leaf(first,
+  // count, t_max)` tests those primitives and returns the (possibly shrunk) t_max.
+  template <class Leaf>
+  Scalar traverse(const Vec3& origin, const Vec3& direction, Scalar t_min, Scalar t_max,
+                  Leaf&& leaf) const {
+    const Vec3 inv_dir = direction.cwiseInverse();
+    walk([&](const BvhNode& n) { return hit_box(n.lo, n.hi, origin, inv_dir, t_min, t_max); },
+         [&](const BvhNode& n) { t_max = leaf(n.first, n.count, t_max); },
+         [&](const BvhNode& n) { return direction[n.axis] < 0; });
     return t_max;
   }
 
@@ -115,26 +122,16 @@ class Bvh {
   // per-primitive boxes, so callers test their primitives themselves.
   template <class Visit>
   void query(const Scalar lo[3], const Scalar hi[3], Visit&& visit) const {
-    if (nodes_.empty()) return;
-    std::int32_t stack[kStackSize];
-    int top = 0;
-    std::int32_t node = 0;
-    for (;;) {
-      const BvhNode& n = nodes_[static_cast<size_t>(node)];
-      const bool overlap = n.lo[0] <= hi[0] && lo[0] <= n.hi[0] && n.lo[1] <= hi[1] &&
-                           lo[1] <= n.hi[1] && n.lo[2] <= hi[2] && lo[2] <= n.hi[2];
-      if (overlap) {
-        if (n.count > 0) {
+    walk(
+        [&](const BvhNode& n) {
+          // Non-short-circuit: six comparisons without branches.
+          return (n.lo[0] <= hi[0]) & (lo[0] <= n.hi[0]) & (n.lo[1] <= hi[1]) & (lo[1] <= n.hi[1]) &
+                 (n.lo[2] <= hi[2]) & (lo[2] <= n.hi[2]);
+        },
+        [&](const BvhNode& n) {
           for (std::int32_t i = 0; i < n.count; ++i) visit(order_[static_cast<size_t>(n.first + i)]);
-        } else {
-          stack[top++] = n.second;
-          node = node + 1;
-          continue;
-        }
-      }
-      if (top == 0) break;
-      node = stack[--top];
-    }
+        },
+        [](const BvhNode&) { return false; });
   }
 
  private:
