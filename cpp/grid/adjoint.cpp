@@ -7,10 +7,13 @@
 
 #include <algorithm>
 #include <cstring>
+#include <memory>
 #include <string>
 
 #include "core/errors.h"
 #include "core/parallel.h"
+#include "core/simd.h"
+#include "grid/advect_rows.h"
 #include "grid/solver.h"
 #include "linalg/cg.h"
 
@@ -123,10 +126,10 @@ Stencil<ThreeD> stencil(const FieldLayout& L, const Vec3& x) {
 // every node receives its terms in one fixed order: the blocks' and, inside a block, the rows'.
 class Scatter {
  public:
-  // body(i, j, k, c) for every node of L; a node's writes lie within `reach` slabs of it
-  // (reach < 0: unknown, run serially).
-  template <class Body>
-  static void run(const FieldLayout& L, Index reach, Body&& body) {
+  // row(scratch, i, j, c) for every row (i, j) of L, c its first node, with scratch = make()
+  // per block; a node's writes lie within `reach` slabs of it (reach < 0: unknown, run serially).
+  template <class Make, class Row>
+  static void run(const FieldLayout& L, Index reach, Make&& make, Row&& row_body) {
     const int axis = L.n[0] > 1 ? 0 : 1;
     const Index n = L.n[axis], n1 = L.n[1], nk = L.n[2];
     const Index width = reach < 0 ? n : std::max<Index>(1, 2 * reach);
@@ -135,11 +138,8 @@ class Scatter {
     const Index slab_rows = axis == 0 ? n1 : 1;  // rows per slab
     auto block = [&](Index b) {
       const Index first = n * b / blocks * slab_rows, last = n * (b + 1) / blocks * slab_rows;
-      for (Index row = first; row < last; ++row) {
-        const Index i = row / n1, j = row % n1;
-        Index flat = row * nk;
-        for (Index k = 0; k < nk; ++k, ++flat) body(i, j, k, flat);
-      }
+      auto scratch = make();
+      for (Index row = first; row < last; ++row) row_body(scratch, row / n1, row % n1, row * nk);
     };
     // a node's adjoint costs tens of nanoseconds: a few thousand of them outweigh a parallel region
     const bool parallel = blocks > 1 && L.size() > kParallelGrain;
@@ -259,21 +259,45 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
                 static_cast<Scalar>(k) + L.offset[2]};
   };
   const Tracer<ThreeD> tr{u, rk, {g_u[0], g_u[1], g_u[2]}};
+  // The back-traces of a row at once (advect_rows' vectorised traces) where those apply.
+  const bool rows = rows_apply(u, L);
+  const bool avx2 = rows && use_avx2();
+  auto make = [&] { return rows ? std::make_unique<RowTrace>(u, L, rk, avx2) : std::unique_ptr<RowTrace>(); };
+  // One node of a pass: the stencil of its departure point s.p, its terms, their scatter, and
+  // the trace's adjoint.
+  auto node_adjoint = [&](const typename Tracer<ThreeD>::Stages& s, Index c, Scalar step, const Scalar* const* src,
+                          Scalar* const* dst, auto&& term) {
+    const Stencil<ThreeD> st = stencil<ThreeD>(L, s.p);
+    Vec3 gp{0, 0, 0};
+    for (int f = 0; f < count; ++f) {
+      const Scalar g = term(f, c, st);
+      if (g == 0) continue;
+      st.scatter(g, dst[f]);
+      st.add_gradient(src[f], g, gp);
+    }
+    if (gp != Vec3{0, 0, 0}) tr.trace_adjoint(s, step, gp);
+  };
   // One pass traced over `step`: for each node, term(f, c, st, acc) returns dL/d(src[f] at the
   // departure point) after adding the terms that do not go through it; the pass scatters that
   // into dst[f] (W^T) and carries (grad src[f]) through the trace into dL/du.
   auto pass = [&](Scalar step, const Scalar* const* src, Scalar* const* dst, auto&& term) {
-    Scatter::run(L, reach, [&](Index i, Index j, Index k, Index c) {
-      const auto s = tr.trace(node(i, j, k), step);
-      const Stencil<ThreeD> st = stencil<ThreeD>(L, s.p);
-      Vec3 gp{0, 0, 0};
-      for (int f = 0; f < count; ++f) {
-        const Scalar g = term(f, c, st);
-        if (g == 0) continue;
-        st.scatter(g, dst[f]);
-        st.add_gradient(src[f], g, gp);
+    Scatter::run(L, reach, make, [&](std::unique_ptr<RowTrace>& rt, Index i, Index j, Index c0) {
+      if (rt) rt->trace(i, j, step);
+      for (Index k = 0; k < L.n[2]; ++k) {
+        const Index c = c0 + k;
+        typename Tracer<ThreeD>::Stages s;
+        if (rt) {
+          s.x = node(i, j, k);
+          for (int b = 0; b < 3; ++b) {
+            s.p[b] = rt->p[b][k];
+            if (rk >= 2) s.y1[b] = rt->y1[b][k];
+            if (rk == 3) s.y2[b] = rt->y2[b][k];
+          }
+        } else {
+          s = tr.trace(node(i, j, k), step);
+        }
+        node_adjoint(s, c, step, src, dst, term);
       }
-      if (gp != Vec3{0, 0, 0}) tr.trace_adjoint(s, step, gp);
     });
   };
   // out[f] = SL(src[f]) adjoint: dL/dsrc[f] += W^T g[f], positions through the trace.
