@@ -377,6 +377,29 @@ RowTrace::RowTrace(const MacVelocity& u, const FieldLayout& L, int rk_order, boo
 RowTrace::~RowTrace() = default;
 
 namespace {
+template <bool Periodic>
+[[gnu::always_inline]] inline void brackets_row(const Scalar* __restrict x, Index n, Scalar offset, int nodes,
+                                                int period, const RowAxis& out, Scalar* __restrict d) {
+  bracket_row<Periodic>(x, n, offset, nodes, period, out);
+  const Scalar hi = static_cast<Scalar>(nodes - 1);
+  for (Index k = 0; k < n; ++k) {
+    const Scalar s = x[k] - offset;
+    d[k] = Periodic || (s >= 0 && s <= hi) ? Scalar(1) : Scalar(0);
+  }
+}
+template <bool Periodic>
+void brackets_baseline(const Scalar* x, Index n, Scalar offset, int nodes, int period, const RowAxis& out,
+                       Scalar* d) {
+  brackets_row<Periodic>(x, n, offset, nodes, period, out, d);
+}
+#if KINEMA_HAVE_AVX2_CLONES
+template <bool Periodic>
+KINEMA_TARGET_AVX2 void brackets_avx2(const Scalar* x, Index n, Scalar offset, int nodes, int period,
+                                      const RowAxis& out, Scalar* d) {
+  brackets_row<Periodic>(x, n, offset, nodes, period, out, d);
+}
+#endif
+
 template <bool ThreeD, bool Periodic>
 void trace_stages(const MacVelocity& u, const FieldLayout& L, int rk, bool avx2, Index i, Index j, Scalar dt,
                   RowScratch& s, Scalar* const* st) {
@@ -401,6 +424,22 @@ void RowTrace::trace(Index i, Index j, Scalar dt) {
     if (periodic) trace_stages<false, true>(u_, L_, rk_, avx2_, i, j, dt, s, st);
     else trace_stages<false, false>(u_, L_, rk_, avx2_, i, j, dt, s, st);
   }
+}
+
+void RowTrace::brackets(const Scalar* x, Scalar offset, Index nodes, Index period, int* i0, int* i1, Scalar* w,
+                        Scalar* d) const {
+  const RowAxis out{i0, i1, w};
+  const Index n = L_.n[2];
+  const int nn = static_cast<int>(nodes), pp = static_cast<int>(period);
+#if KINEMA_HAVE_AVX2_CLONES
+  if (avx2_) {
+    if (period > 0) brackets_avx2<true>(x, n, offset, nn, pp, out, d);
+    else brackets_avx2<false>(x, n, offset, nn, pp, out, d);
+    return;
+  }
+#endif
+  if (period > 0) brackets_baseline<true>(x, n, offset, nn, pp, out, d);
+  else brackets_baseline<false>(x, n, offset, nn, pp, out, d);
 }
 
 bool rows_apply(const MacVelocity& u, const FieldLayout& L) {

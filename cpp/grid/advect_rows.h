@@ -38,6 +38,12 @@ class RowTrace {
 
   void trace(Index i, Index j, Scalar dt);  // fills y1, y2, p for row (i, j)
 
+  // The brackets (kernels.h: bracket) of x[k] - offset, k < L.n[2], on `nodes` nodes of period
+  // `period` (0: none; the row passes require every axis periodic or none), and d[k] = d w / d x:
+  // 1 inside the domain or when periodic, 0 where the coordinate was clamped.
+  void brackets(const Scalar* x, Scalar offset, Index nodes, Index period, int* i0, int* i1, Scalar* w,
+                Scalar* d) const;
+
   Scalar* y1[3];
   Scalar* y2[3];
   Scalar* p[3];
