@@ -7,10 +7,13 @@
 
 #include <algorithm>
 #include <cstring>
+#include <memory>
 #include <string>
 
 #include "core/errors.h"
 #include "core/parallel.h"
+#include "core/simd.h"
+#include "grid/advect_rows.h"
 #include "grid/solver.h"
 #include "linalg/cg.h"
 
@@ -123,10 +126,10 @@ Stencil<ThreeD> stencil(const FieldLayout& L, const Vec3& x) {
 // every node receives its terms in one fixed order: the blocks' and, inside a block, the rows'.
 class Scatter {
  public:
-  // body(i, j, k, c) for every node of L; a node's writes lie within `reach` slabs of it
-  // (reach < 0: unknown, run serially).
-  template <class Body>
-  static void run(const FieldLayout& L, Index reach, Body&& body) {
+  // row(scratch, i, j, c) for every row (i, j) of L, c its first node, with scratch = make()
+  // per block; a node's writes lie within `reach` slabs of it (reach < 0: unknown, run serially).
+  template <class Make, class Row>
+  static void run(const FieldLayout& L, Index reach, Make&& make, Row&& row_body) {
     const int axis = L.n[0] > 1 ? 0 : 1;
     const Index n = L.n[axis], n1 = L.n[1], nk = L.n[2];
     const Index width = reach < 0 ? n : std::max<Index>(1, 2 * reach);
@@ -135,11 +138,8 @@ class Scatter {
     const Index slab_rows = axis == 0 ? n1 : 1;  // rows per slab
     auto block = [&](Index b) {
       const Index first = n * b / blocks * slab_rows, last = n * (b + 1) / blocks * slab_rows;
-      for (Index row = first; row < last; ++row) {
-        const Index i = row / n1, j = row % n1;
-        Index flat = row * nk;
-        for (Index k = 0; k < nk; ++k, ++flat) body(i, j, k, flat);
-      }
+      auto scratch = make();
+      for (Index row = first; row < last; ++row) row_body(scratch, row / n1, row % n1, row * nk);
     };
     // a node's adjoint costs tens of nanoseconds: a few thousand of them outweigh a parallel region
     const bool parallel = blocks > 1 && L.size() > kParallelGrain;
@@ -206,16 +206,25 @@ struct Tracer {
     return s;
   }
 
-  // dL/du += (d u(y) / d u)^T g; returns (d u(y) / d y)^T g when `moves` (else 0: y is fixed).
-  Vec3 velocity_adjoint(const Vec3& y, const Vec3& g, bool moves = true) const {
-    Vec3 gy{0, 0, 0};
-    // the face brackets along axis b serve component b, the cell brackets the others
+  // The brackets of a point for u's components: the face brackets along axis b serve
+  // component b, the cell brackets the others.
+  struct Brackets {
     AxisWeight face[3], cell[3];
+  };
+  Brackets brackets(const Vec3& y) const {
+    Brackets br;
     for (int b = ThreeD ? 0 : 1; b < 3; ++b) {
       const Index n = u.layout[b].n[b] - 1, p = u.layout[b].period[b];
-      face[b] = axis_weight(y[b], n + 1, p);
-      cell[b] = axis_weight(y[b] - 0.5, n, p);
+      br.face[b] = axis_weight(y[b], n + 1, p);
+      br.cell[b] = axis_weight(y[b] - 0.5, n, p);
     }
+    return br;
+  }
+
+  // dL/du += (d u(y) / d u)^T g; returns (d u(y) / d y)^T g when `moves` (else 0: y is fixed).
+  Vec3 velocity_adjoint(const Brackets& br, const Vec3& g, bool moves = true) const {
+    Vec3 gy{0, 0, 0};
+    const AxisWeight *face = br.face, *cell = br.cell;
     for (int a = ThreeD ? 0 : 1; a < 3; ++a) {
       if (g[a] == 0) continue;
       const Stencil<ThreeD> st(u.layout[a], a == 0 ? face[0] : cell[0], a == 1 ? face[1] : cell[1],
@@ -226,8 +235,10 @@ struct Tracer {
     return gy;
   }
 
-  // dL/du += (dp/du)^T gp through the stages of p = x - dt k.
-  void trace_adjoint(const Stages& s, Scalar dt, const Vec3& gp) const {
+  // dL/du += (dp/du)^T gp through the stages of p = x - dt k; at(m) = the brackets of stage m
+  // (0: s.x, 1: s.y1, 2: s.y2).
+  template <class At>
+  void trace_adjoint(Scalar dt, const Vec3& gp, At&& at) const {
     Vec3 g1{0, 0, 0}, g2{0, 0, 0}, g3{0, 0, 0};
     const Scalar c1 = rk == 1 ? 1 : rk == 2 ? 0 : 2.0 / 9, c2 = rk == 2 ? 1 : rk == 3 ? 3.0 / 9 : 0,
                  c3 = rk == 3 ? 4.0 / 9 : 0;
@@ -237,14 +248,17 @@ struct Tracer {
       g3[b] = -dt * c3 * gp[b];
     }
     if (rk == 3) {
-      const Vec3 gy2 = velocity_adjoint(s.y2, g3);
+      const Vec3 gy2 = velocity_adjoint(at(2), g3);
       for (int b = 0; b < 3; ++b) g2[b] -= 0.75 * dt * gy2[b];
     }
     if (rk >= 2) {
-      const Vec3 gy1 = velocity_adjoint(s.y1, g2);
+      const Vec3 gy1 = velocity_adjoint(at(1), g2);
       for (int b = 0; b < 3; ++b) g1[b] -= 0.5 * dt * gy1[b];
     }
-    velocity_adjoint(s.x, g1, false);  // the node itself does not move
+    velocity_adjoint(at(0), g1, false);  // the node itself does not move
+  }
+  void trace_adjoint(const Stages& s, Scalar dt, const Vec3& gp) const {
+    trace_adjoint(dt, gp, [&](int m) { return brackets(m == 0 ? s.x : m == 1 ? s.y1 : s.y2); });
   }
 };
 
@@ -259,21 +273,89 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
                 static_cast<Scalar>(k) + L.offset[2]};
   };
   const Tracer<ThreeD> tr{u, rk, {g_u[0], g_u[1], g_u[2]}};
-  // One pass traced over `step`: for each node, term(f, c, st, acc) returns dL/d(src[f] at the
+  // Where the row passes apply, a row's back-traces run at once (advect_rows' vectorised
+  // traces), and so do the brackets of its departure points (in L) and of its Runge-Kutta
+  // stages (for u); the nodes then only gather and scatter.
+  const bool rows = rows_apply(u, L);
+  const Index nk = L.n[2];
+  const int first = ThreeD ? 0 : 1;
+  struct RowData {
+    std::unique_ptr<RowTrace> trace;
+    std::vector<int> ints;      // per slot: i0, i1
+    std::vector<Scalar> reals;  // per slot: w, d; then the nodes' coordinates
+  };
+  // slots: (stage m, face 0 / cell 1, axis b) at 6 m + 3 o + b, the departure point in L at 18 + b
+  constexpr int kSlots = 21;
+  auto make = [&] {
+    RowData rd;
+    if (rows) {
+      rd.trace = std::make_unique<RowTrace>(u, L, rk, use_avx2());
+      rd.ints.resize(static_cast<size_t>(2 * kSlots * nk));
+      rd.reals.resize(static_cast<size_t>((2 * kSlots + 3) * nk));
+      Scalar* x2 = rd.reals.data() + (2 * kSlots + 2) * nk;
+      for (Index k = 0; k < nk; ++k) x2[k] = static_cast<Scalar>(k) + L.offset[2];
+    }
+    return rd;
+  };
+  auto slot = [&](const RowData& rd, int sl, Index k) {
+    const int* i = rd.ints.data() + 2 * sl * nk;
+    const Scalar* r = rd.reals.data() + 2 * sl * nk;
+    return AxisWeight{i[k], i[nk + k], r[k], r[nk + k]};
+  };
+  auto fill = [&](RowData& rd, int sl, const Scalar* x, Scalar offset, Index nodes, Index period) {
+    int* i = rd.ints.data() + 2 * sl * nk;
+    Scalar* r = rd.reals.data() + 2 * sl * nk;
+    rd.trace->brackets(x, offset, nodes, period, i, i + nk, r, r + nk);
+  };
+  // One node of a pass: its terms at the departure point (stencil st), their scatter, and the
+  // trace's adjoint (at(m): the brackets of stage m).
+  auto node_adjoint = [&](const Stencil<ThreeD>& st, Index c, Scalar step, const Scalar* const* src,
+                          Scalar* const* dst, auto&& term, auto&& at) {
+    Vec3 gp{0, 0, 0};
+    for (int f = 0; f < count; ++f) {
+      const Scalar g = term(f, c, st);
+      if (g == 0) continue;
+      st.scatter(g, dst[f]);
+      st.add_gradient(src[f], g, gp);
+    }
+    if (gp != Vec3{0, 0, 0}) tr.trace_adjoint(step, gp, at);
+  };
+  // One pass traced over `step`: for each node, term(f, c, st) returns dL/d(src[f] at the
   // departure point) after adding the terms that do not go through it; the pass scatters that
   // into dst[f] (W^T) and carries (grad src[f]) through the trace into dL/du.
   auto pass = [&](Scalar step, const Scalar* const* src, Scalar* const* dst, auto&& term) {
-    Scatter::run(L, reach, [&](Index i, Index j, Index k, Index c) {
-      const auto s = tr.trace(node(i, j, k), step);
-      const Stencil<ThreeD> st = stencil<ThreeD>(L, s.p);
-      Vec3 gp{0, 0, 0};
-      for (int f = 0; f < count; ++f) {
-        const Scalar g = term(f, c, st);
-        if (g == 0) continue;
-        st.scatter(g, dst[f]);
-        st.add_gradient(src[f], g, gp);
+    Scatter::run(L, reach, make, [&](RowData& rd, Index i, Index j, Index c0) {
+      if (!rd.trace) {
+        for (Index k = 0; k < nk; ++k) {
+          const auto s = tr.trace(node(i, j, k), step);
+          node_adjoint(stencil<ThreeD>(L, s.p), c0 + k, step, src, dst, term,
+                       [&](int m) { return tr.brackets(m == 0 ? s.x : m == 1 ? s.y1 : s.y2); });
+        }
+        return;
       }
-      if (gp != Vec3{0, 0, 0}) tr.trace_adjoint(s, step, gp);
+      RowTrace& rt = *rd.trace;
+      rt.trace(i, j, step);
+      Scalar* x = rd.reals.data() + 2 * kSlots * nk;  // the nodes' coordinates along axes 0, 1
+      std::fill(x, x + nk, static_cast<Scalar>(i) + L.offset[0]);
+      std::fill(x + nk, x + 2 * nk, static_cast<Scalar>(j) + L.offset[1]);
+      const Scalar* stage[3][3] = {{x, x + nk, x + 2 * nk}, {rt.y1[0], rt.y1[1], rt.y1[2]},
+                                   {rt.y2[0], rt.y2[1], rt.y2[2]}};
+      for (int b = first; b < 3; ++b) {
+        fill(rd, 18 + b, rt.p[b], L.offset[b], L.n[b], L.period[b]);
+        const Index cells = u.layout[b].n[b] - 1, period = u.layout[b].period[b];
+        for (int m = 0; m < rk; ++m) {
+          fill(rd, 6 * m + b, stage[m][b], 0, cells + 1, period);
+          fill(rd, 6 * m + 3 + b, stage[m][b], 0.5, cells, period);
+        }
+      }
+      for (Index k = 0; k < nk; ++k) {
+        const Stencil<ThreeD> st(L, slot(rd, 18, k), slot(rd, 19, k), slot(rd, 20, k));
+        node_adjoint(st, c0 + k, step, src, dst, term, [&](int m) {
+          typename Tracer<ThreeD>::Brackets br;
+          for (int b = first; b < 3; ++b) br.face[b] = slot(rd, 6 * m + b, k), br.cell[b] = slot(rd, 6 * m + 3 + b, k);
+          return br;
+        });
+      }
     });
   };
   // out[f] = SL(src[f]) adjoint: dL/dsrc[f] += W^T g[f], positions through the trace.

@@ -13,6 +13,10 @@
 // blocks run in parallel, then the odd ones, so no two threads write one node at once (no
 // atomics, no per-thread copies) and every node receives its terms in one fixed order.
 //
+// Where the row passes apply (advect_rows.h: rows_apply), a row's back-traces and the brackets
+// of its departure points and Runge-Kutta stages are computed at once, vectorised (RowTrace);
+// the nodes then only gather and scatter, in the same order.
+//
 // No-slip walls in the interpolation (MacVelocity::walls) are not handled; the Solver refuses to
 // differentiate them (Solver::check_differentiable).
 #pragma once

@@ -4,6 +4,7 @@
 #include <cmath>
 #include <cstdint>
 #include <limits>
+#include <memory>
 #include <utility>
 #include <vector>
 
@@ -226,14 +227,23 @@ struct RowPasses {
     for (Index k = 0; k < n; ++k) p2[k] = x2[k] - c * k2[k];
   }
 
-  // s.p = the departure points of row (i, j) over dt (back_trace_from element-wise).
-  [[gnu::always_inline]] inline void trace_row(Index i, Index j, Index n, Scalar dt, RowScratch& s) const {
+  // kept[b] = s.p[b] for the active axes.
+  [[gnu::always_inline]] inline void keep(const RowScratch& s, Index n, Scalar* const* kept) const {
+    for (int b = first; b < 3; ++b) std::copy_n(s.p[b], n, kept[b]);
+  }
+
+  // s.p = the departure points of row (i, j) over dt (back_trace_from element-wise); y1, y2
+  // (nullable) receive the points the second and third stages sample the velocity at.
+  [[gnu::always_inline]] inline void trace_row(Index i, Index j, Index n, Scalar dt, RowScratch& s,
+                                               Scalar* const* y1 = nullptr, Scalar* const* y2 = nullptr) const {
     node_velocity_row(i, j, n, s.k1, s.x2);
     if (rk == 1) return shift_row(i, j, n, dt, s.k1, s);
     shift_row(i, j, n, 0.5 * dt, s.k1, s);
+    if (y1) keep(s, n, y1);
     velocity_row(s.p, n, s.k2, s);
     if (rk == 2) return shift_row(i, j, n, dt, s.k2, s);
     shift_row(i, j, n, 0.75 * dt, s.k2, s);
+    if (y2) keep(s, n, y2);
     velocity_row(s.p, n, s.k3, s);
     for (int b = first; b < 3; ++b) {
       Scalar* __restrict k3 = s.k3[b];
@@ -279,6 +289,22 @@ struct RowPasses {
       }
     }
   }
+
+  // The stages of row (i, j)'s back-traces over dt: st[0..2] = y1, st[3..5] = y2, st[6..8] = p.
+  [[gnu::always_inline]] inline void stages(Index i, Index j, Scalar dt, RowScratch& s, Scalar* const* st) const {
+    const Index n = L.n[2];
+    trace_row(i, j, n, dt, s, st, st + 3);
+    keep(s, n, st + 6);
+  }
+  static void stages_baseline(const RowPasses& p, Index i, Index j, Scalar dt, RowScratch& s, Scalar* const* st) {
+    p.stages(i, j, dt, s, st);
+  }
+#if KINEMA_HAVE_AVX2_CLONES
+  KINEMA_TARGET_AVX2 static void stages_avx2(const RowPasses& p, Index i, Index j, Scalar dt, RowScratch& s,
+                                             Scalar* const* st) {
+    p.stages(i, j, dt, s, st);
+  }
+#endif
 
   using RowFunction = void (*)(const RowPasses&, const RowJob&, Index, Index, RowScratch&);
 
@@ -332,6 +358,89 @@ struct RowPasses {
 };
 
 }  // namespace
+
+struct RowTrace::Impl {
+  RowScratch scratch;
+  std::vector<Scalar> store;
+  Impl(Index n, Scalar offset) : scratch(n, offset), store(static_cast<size_t>(9 * n)) {}
+};
+
+RowTrace::RowTrace(const MacVelocity& u, const FieldLayout& L, int rk_order, bool avx2)
+    : u_(u), L_(L), rk_(rk_order), avx2_(avx2), impl_(std::make_unique<Impl>(L.n[2], L.offset[2])) {
+  const Index n = L.n[2];
+  Scalar* r = impl_->store.data();
+  for (int b = 0; b < 3; ++b) y1[b] = r + b * n, y2[b] = r + (3 + b) * n, p[b] = r + (6 + b) * n;
+  if (!u.comp[0])  // 2D: axis 0 is the nodes' own coordinate
+    for (Scalar* a : {y1[0], y2[0], p[0]}) std::fill(a, a + n, L.offset[0]);
+}
+
+RowTrace::~RowTrace() = default;
+
+namespace {
+template <bool Periodic>
+[[gnu::always_inline]] inline void brackets_row(const Scalar* __restrict x, Index n, Scalar offset, int nodes,
+                                                int period, const RowAxis& out, Scalar* __restrict d) {
+  bracket_row<Periodic>(x, n, offset, nodes, period, out);
+  const Scalar hi = static_cast<Scalar>(nodes - 1);
+  for (Index k = 0; k < n; ++k) {
+    const Scalar s = x[k] - offset;
+    d[k] = Periodic || (s >= 0 && s <= hi) ? Scalar(1) : Scalar(0);
+  }
+}
+template <bool Periodic>
+void brackets_baseline(const Scalar* x, Index n, Scalar offset, int nodes, int period, const RowAxis& out,
+                       Scalar* d) {
+  brackets_row<Periodic>(x, n, offset, nodes, period, out, d);
+}
+#if KINEMA_HAVE_AVX2_CLONES
+template <bool Periodic>
+KINEMA_TARGET_AVX2 void brackets_avx2(const Scalar* x, Index n, Scalar offset, int nodes, int period,
+                                      const RowAxis& out, Scalar* d) {
+  brackets_row<Periodic>(x, n, offset, nodes, period, out, d);
+}
+#endif
+
+template <bool ThreeD, bool Periodic>
+void trace_stages(const MacVelocity& u, const FieldLayout& L, int rk, bool avx2, Index i, Index j, Scalar dt,
+                  RowScratch& s, Scalar* const* st) {
+  const RowPasses<ThreeD, Periodic> passes(u, L, 1, rk);
+#if KINEMA_HAVE_AVX2_CLONES
+  if (avx2) return RowPasses<ThreeD, Periodic>::stages_avx2(passes, i, j, dt, s, st);
+#else
+  (void)avx2;
+#endif
+  RowPasses<ThreeD, Periodic>::stages_baseline(passes, i, j, dt, s, st);
+}
+}  // namespace
+
+void RowTrace::trace(Index i, Index j, Scalar dt) {
+  Scalar* const st[9] = {y1[0], y1[1], y1[2], y2[0], y2[1], y2[2], p[0], p[1], p[2]};
+  RowScratch& s = impl_->scratch;
+  const bool periodic = L_.period[2] > 0;
+  if (u_.comp[0]) {
+    if (periodic) trace_stages<true, true>(u_, L_, rk_, avx2_, i, j, dt, s, st);
+    else trace_stages<true, false>(u_, L_, rk_, avx2_, i, j, dt, s, st);
+  } else {
+    if (periodic) trace_stages<false, true>(u_, L_, rk_, avx2_, i, j, dt, s, st);
+    else trace_stages<false, false>(u_, L_, rk_, avx2_, i, j, dt, s, st);
+  }
+}
+
+void RowTrace::brackets(const Scalar* x, Scalar offset, Index nodes, Index period, int* i0, int* i1, Scalar* w,
+                        Scalar* d) const {
+  const RowAxis out{i0, i1, w};
+  const Index n = L_.n[2];
+  const int nn = static_cast<int>(nodes), pp = static_cast<int>(period);
+#if KINEMA_HAVE_AVX2_CLONES
+  if (avx2_) {
+    if (period > 0) brackets_avx2<true>(x, n, offset, nn, pp, out, d);
+    else brackets_avx2<false>(x, n, offset, nn, pp, out, d);
+    return;
+  }
+#endif
+  if (period > 0) brackets_baseline<true>(x, n, offset, nn, pp, out, d);
+  else brackets_baseline<false>(x, n, offset, nn, pp, out, d);
+}
 
 bool rows_apply(const MacVelocity& u, const FieldLayout& L) {
   if (u.walls) return false;

@@ -8,6 +8,8 @@
 // Same schemes and equations as kernels.h (Stam 1999; Selle et al. 2008; Kim et al. 2005).
 #pragma once
 
+#include <memory>
+
 #include "grid/kernels.h"
 
 namespace kinema::grid {
@@ -21,5 +23,38 @@ bool rows_apply(const MacVelocity& u, const FieldLayout& L);
 void advect_rows(AdvectionScheme scheme, const MacVelocity& u, const FieldLayout& L, int count,
                  const Scalar* const* q, Scalar* const* out, Scalar dt, int rk_order,
                  AdvectionScratch& scratch, bool avx2);
+
+// The back-traces of advect_rows along one row of L's nodes at a time, with their Runge-Kutta
+// stages kept (for the adjoint): y1 = x - dt/2 k1 (rk >= 2), y2 = x - 3 dt/4 k2 (rk 3) and the
+// departure point p, per axis, for the L.n[2] nodes of the row (in 2D, axis 0 holds the nodes'
+// own coordinate). The same bits as advect_rows' traces. Requires rows_apply(u, L), and
+// cpu_has_avx2() when avx2; one per thread.
+class RowTrace {
+ public:
+  RowTrace(const MacVelocity& u, const FieldLayout& L, int rk_order, bool avx2);
+  ~RowTrace();
+  RowTrace(const RowTrace&) = delete;
+  RowTrace& operator=(const RowTrace&) = delete;
+
+  void trace(Index i, Index j, Scalar dt);  // fills y1, y2, p for row (i, j)
+
+  // The brackets (kernels.h: bracket) of x[k] - offset, k < L.n[2], on `nodes` nodes of period
+  // `period` (0: none; the row passes require every axis periodic or none), and d[k] = d w / d x:
+  // 1 inside the domain or when periodic, 0 where the coordinate was clamped.
+  void brackets(const Scalar* x, Scalar offset, Index nodes, Index period, int* i0, int* i1, Scalar* w,
+                Scalar* d) const;
+
+  Scalar* y1[3];
+  Scalar* y2[3];
+  Scalar* p[3];
+
+ private:
+  struct Impl;
+  const MacVelocity& u_;
+  const FieldLayout& L_;
+  int rk_;
+  bool avx2_;
+  std::unique_ptr<Impl> impl_;
+};
 
 }  // namespace kinema::grid
