@@ -246,9 +246,7 @@ REST_CASES = [
     pytest.param("wcsph", 2, id="wcsph-2d"),
     pytest.param("dfsph", 2, id="dfsph-2d"),
     pytest.param("wcsph", 3, id="wcsph-3d"),
-    pytest.param("dfsph", 3, id="dfsph-3d", marks=pytest.mark.xfail(strict=True, reason=(
-        "issue 15, open: the 3D column moves at 0.070-0.084 m/s rms (bound 0.063; WCSPH 0.048); its "
-        "pressure slope (1.02-1.05 rho0 g) and iterations (7.1 per step) are within their bounds"))),
+    pytest.param("dfsph", 3, id="dfsph-3d"),
 ]
 
 

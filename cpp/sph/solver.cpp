@@ -229,7 +229,7 @@ class SolverD final : public Solver::Impl {
   template <class Residual>
   int projected_jacobi(State& s, Scalar dt, Scalar scale, std::vector<Scalar>& k, Scalar tol, int min_iter,
                        Residual&& residual, Scalar& error, Interrupt& interrupt, Scalar warm_scale,
-                       Scalar expansion_weight) {
+                       Scalar compression_weight, Scalar expansion_weight) {
     const Index n = s.n;
     const Scalar w = s.last_dt > 0 ? config_.warm_start * warm_scale : 0;
     if (w > 0) {
@@ -244,7 +244,7 @@ class SolverD final : public Solver::Impl {
     while ((error > tol || it < min_iter) && it < config_.max_iter) {
       interrupt.check();
       parallel_for(n, [&](Index i) {
-        const Scalar r = aux_[i] > 0 ? aux_[i] : expansion_weight * aux_[i];
+        const Scalar r = (aux_[i] > 0 ? compression_weight : expansion_weight) * aux_[i];
         const Scalar increment = s.density[i] > 0 ? r * factor_[i] / (scale * s.density[i]) : 0;
         kappa_[i] = std::max(increment, -warm_left_[i]);
         if (kappa_[i] < 0) warm_left_[i] += kappa_[i];
@@ -257,6 +257,7 @@ class SolverD final : public Solver::Impl {
     return it;
   }
 
+  static constexpr Scalar kCompressionWeight = 0.8;
   static constexpr Scalar kExpansionWeight = 0.5;
   static constexpr Scalar kViscousDt = 0.05;
 
@@ -277,7 +278,7 @@ class SolverD final : public Solver::Impl {
              config_.rho0;
     };
     const int it = projected_jacobi(s, dt, dt, s.kappa_divergence, config_.divergence_tol, 1, residual,
-                                    stats.divergence_error, interrupt, s.last_dt > 0 ? s.last_dt / dt : 1, 0);
+                                    stats.divergence_error, interrupt, s.last_dt > 0 ? s.last_dt / dt : 1, 1, 0);
     return it;
   }
 
@@ -296,16 +297,10 @@ class SolverD final : public Solver::Impl {
   int density_solve(State& s, Scalar dt, StepStats& stats, Interrupt& interrupt) {
     const Index n = s.n;
     const Scalar rho0 = config_.rho0;
-    const Index* b = boundary().start.data();
-    const Scalar wall_count = parallel_sum(n, [&](Index i) { return Scalar(b[i + 1] > b[i]); });
     auto residual = [&] {
       const Pairs f = fluid_pairs();
       parallel_for(n, [&](Index i) { aux_[i] = s.density[i] + dt * density_rate(f, s.v.data(), i) - rho0; });
-      const Scalar mean = parallel_sum(n, [&](Index i) { return std::max<Scalar>(aux_[i], 0); }) / std::max<Index>(n, 1);
-      if (wall_count == 0) return mean / rho0;
-      const Scalar walls =
-          parallel_sum(n, [&](Index i) { return b[i + 1] > b[i] ? std::max<Scalar>(aux_[i], 0) : Scalar(0); }) / wall_count;
-      return std::max(mean, walls) / rho0;
+      return parallel_sum(n, [&](Index i) { return std::max<Scalar>(aux_[i], 0); }) / std::max<Index>(n, 1) / rho0;
     };
     // Warm start: k_i = p_i / rho_i^2 holds up a fluid at rest whatever dt, but the part that
     // corrected last step's density errors scales as 1 / dt^2: after a step 50x shorter (a run
@@ -314,7 +309,7 @@ class SolverD final : public Solver::Impl {
     // takes them as they are.
     const Scalar ratio = s.last_dt > 0 ? std::min<Scalar>(1, s.last_dt / dt) : 1;
     return projected_jacobi(s, dt, dt * dt, s.kappa_density, config_.tol, 2, residual, stats.density_error,
-                            interrupt, ratio * ratio, kExpansionWeight);
+                            interrupt, ratio * ratio, kCompressionWeight, kExpansionWeight);
   }
 
   // ------------------------------------------------------------------ shared passes
