@@ -241,8 +241,8 @@ def column_at_rest(method, d, tol=1e-3):
 # (before, a 3D column read a slope of 1.22-1.29 rho0 g, its bottom row 2.1 rho0 g (H - y)), and
 # its density solve under-relaxes the compressed particles' increments (0.8): at the paper's
 # full increment the warm-started Jacobi overshot every step and the column bounced as a whole (2D 0.063-0.09 m/s under the plain mean rule, 3D 0.070-0.084 m/s, mean
-# vertical speed +-0.028 m/s); measured after: 2D 0.026 m/s, 7.7 iterations (peak 11); 3D
-# 0.046 m/s, 9.1 (peak 19).
+# vertical speed +-0.028 m/s); measured after: 2D 0.026 m/s, slope 1.03, 7.7 iterations (peak
+# 11); 3D 0.046 m/s, slope 1.08 (1.02 before), 9.1 (peak 19).
 REST_CASES = [
     pytest.param("wcsph", 2, id="wcsph-2d"),
     pytest.param("dfsph", 2, id="dfsph-2d"),
