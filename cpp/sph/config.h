@@ -23,8 +23,7 @@ struct Config {
   std::array<Scalar, 3> gravity{0, 0, 0};    // [m/s^2], first d entries used
   Scalar speed_of_sound = 0;                 // WCSPH c [m/s]; 0: 10 sqrt(2 |g| H), H the initial fluid height
   Scalar gamma = 7;                          // Tait exponent
-  Scalar tol = 1e-3;                         // DFSPH: mean relative compression after the density solve, over all
-                                             // particles and over the wall contacts
+  Scalar tol = 1e-3;                         // DFSPH: mean relative compression after the density solve
   Scalar divergence_tol = 1e-3;              // DFSPH: mean (d rho/dt) dt / rho0 after the divergence solve
   int max_iter = 100;                        // DFSPH: iterations per solve
   bool divergence_solve = true;              // DFSPH: run the divergence-free solver

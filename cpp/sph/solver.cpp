@@ -208,8 +208,22 @@ class SolverD final : public Solver::Impl {
   // Algorithms 2 and 3 as one Jacobi iteration on the stiffnesses k_i = kappa_i / rho_i (stored
   // in k): each iteration adds residual_i alpha_i / (scale rho_i) (eqs. 6 and 12: the residual
   // is rho*_i - rho0 with scale dt^2, or D rho_i / Dt with scale dt) and applies the velocity
-  // change of the increments. A compressed particle (residual > 0) takes the full increment, as
-  // in the paper and SPlisHSPlasH. In the density solve an expanded one gives back stiffness at
+  // change of the increments. A compressed particle (residual > 0) takes compression_weight x
+  // the increment: the full one in the divergence solve, as in the paper and SPlisHSPlasH, 0.8
+  // in the density solve (kCompressionWeight). Since alpha_i only approximates the inverse
+  // diagonal (below), the full increment overshoots on the short modes and leaves particles
+  // moving apart, which neither one-sided solve pulls back; warm-started, the density solve
+  // iterates about a nearly converged state every step and the overshoot recurs. A 3D column at
+  // rest (issue 15, tests/test_sph.py) bounced as a whole: mean vertical speed +-0.028 m/s, its
+  // kinetic energy growing 3x over 0.5 s, rms 0.070-0.084 m/s against WCSPH's 0.048. Told
+  // apart: both solves cold (warm_start 0) 0.051 m/s but 14 iterations per step, warm_start
+  // 0.25 0.063; the divergence solve off still 0.078, its warm start off 0.094; the carried
+  // stiffness of particles that end a solve expanded trimmed off 0.084 (so the feed is the
+  // overshoot within the step, not the pressure carried over). At 0.8 the bounce is gone (mean
+  // vertical speed <= 0.008 m/s, rms 0.046 m/s at 9.1 iterations per step; 0.9: 0.070; 0.7:
+  // 0.044 at 10.7). The price is slower convergence at tight tolerances: a 3D dam break of 60k
+  // particles at tol 1e-4 takes 17.8 density iterations per step against 5.6 at the full rate.
+  // In the density solve an expanded one gives back stiffness at
   // expansion_weight x the rate, but only what the warm start gave it (warm_left_): the warm
   // start can start a particle above the pressure it needs (a free-surface particle, a splash),
   // and with increments >= 0 only, as before, that excess stayed for the whole step and pushed
@@ -229,7 +243,7 @@ class SolverD final : public Solver::Impl {
   template <class Residual>
   int projected_jacobi(State& s, Scalar dt, Scalar scale, std::vector<Scalar>& k, Scalar tol, int min_iter,
                        Residual&& residual, Scalar& error, Interrupt& interrupt, Scalar warm_scale,
-                       Scalar expansion_weight) {
+                       Scalar compression_weight, Scalar expansion_weight) {
     const Index n = s.n;
     const Scalar w = s.last_dt > 0 ? config_.warm_start * warm_scale : 0;
     if (w > 0) {
@@ -244,7 +258,7 @@ class SolverD final : public Solver::Impl {
     while ((error > tol || it < min_iter) && it < config_.max_iter) {
       interrupt.check();
       parallel_for(n, [&](Index i) {
-        const Scalar r = aux_[i] > 0 ? aux_[i] : expansion_weight * aux_[i];
+        const Scalar r = (aux_[i] > 0 ? compression_weight : expansion_weight) * aux_[i];
         const Scalar increment = s.density[i] > 0 ? r * factor_[i] / (scale * s.density[i]) : 0;
         kappa_[i] = std::max(increment, -warm_left_[i]);
         if (kappa_[i] < 0) warm_left_[i] += kappa_[i];
@@ -257,6 +271,7 @@ class SolverD final : public Solver::Impl {
     return it;
   }
 
+  static constexpr Scalar kCompressionWeight = 0.8;
   static constexpr Scalar kExpansionWeight = 0.5;
   static constexpr Scalar kViscousDt = 0.05;
 
@@ -277,35 +292,24 @@ class SolverD final : public Solver::Impl {
              config_.rho0;
     };
     const int it = projected_jacobi(s, dt, dt, s.kappa_divergence, config_.divergence_tol, 1, residual,
-                                    stats.divergence_error, interrupt, s.last_dt > 0 ? s.last_dt / dt : 1, 0);
+                                    stats.divergence_error, interrupt, s.last_dt > 0 ? s.last_dt / dt : 1, 1, 0);
     return it;
   }
 
   // Algorithm 3 on the predicted density rho*_i = rho_i + dt D rho_i/Dt (eq. 4). The error is
-  // the mean compression max(rho*_i / rho0 - 1, 0) (Bender and Koschier 2017, sec. 4.3), taken
-  // over all particles and over those in contact with a wall (a boundary neighbour), the
-  // larger of the two. The walls carry the fluid's weight, and a mean over a deep column
-  // dilutes what its bottom rows do by its depth: in a 2D column of 25 rows at rest at tol 1e-3
-  // the mean alone stopped the solve at its 2 minimum iterations while the column sank (bottom
-  // rows compressed to 2-3e-3) until a burst of 16-49 iterations corrected it in one step and
-  // threw the column up (mean vertical speed +0.03-0.06 m/s, rms 0.09 m/s against WCSPH's
-  // 0.025; issue 15). With the wall contacts' mean held to tol too: rms 0.031 m/s, 6.9
-  // iterations per step (5.7 before), peaks 17 (49). (The floor contacts alone, the particles
-  // that carry the weight, held it better, 0.024 m/s, but at 9.0 iterations, and sent a
-  // fine 2D column on a lattice to max_iter in its first steps.)
+  // the mean compression max(rho*_i / rho0 - 1, 0) over all particles (Bender and Koschier
+  // 2017, sec. 4.3). (A second rule, the wall contacts' mean held to tol too, once kept a 2D
+  // column at rest from sagging and bouncing, 0.09 -> 0.031 m/s rms, but it doubled the
+  // iterations of a 3D dam break at tol 1e-4, 6.6 -> 16.2 per step; the under-relaxed
+  // increments above hold both columns without it: 2D 0.026 m/s at 7.7 iterations per step,
+  // 3D 0.046 m/s at 9.1; with both rules 0.026 / 0.047 m/s at 9.0 / 9.1.)
   int density_solve(State& s, Scalar dt, StepStats& stats, Interrupt& interrupt) {
     const Index n = s.n;
     const Scalar rho0 = config_.rho0;
-    const Index* b = boundary().start.data();
-    const Scalar wall_count = parallel_sum(n, [&](Index i) { return Scalar(b[i + 1] > b[i]); });
     auto residual = [&] {
       const Pairs f = fluid_pairs();
       parallel_for(n, [&](Index i) { aux_[i] = s.density[i] + dt * density_rate(f, s.v.data(), i) - rho0; });
-      const Scalar mean = parallel_sum(n, [&](Index i) { return std::max<Scalar>(aux_[i], 0); }) / std::max<Index>(n, 1);
-      if (wall_count == 0) return mean / rho0;
-      const Scalar walls =
-          parallel_sum(n, [&](Index i) { return b[i + 1] > b[i] ? std::max<Scalar>(aux_[i], 0) : Scalar(0); }) / wall_count;
-      return std::max(mean, walls) / rho0;
+      return parallel_sum(n, [&](Index i) { return std::max<Scalar>(aux_[i], 0); }) / std::max<Index>(n, 1) / rho0;
     };
     // Warm start: k_i = p_i / rho_i^2 holds up a fluid at rest whatever dt, but the part that
     // corrected last step's density errors scales as 1 / dt^2: after a step 50x shorter (a run
@@ -314,7 +318,7 @@ class SolverD final : public Solver::Impl {
     // takes them as they are.
     const Scalar ratio = s.last_dt > 0 ? std::min<Scalar>(1, s.last_dt / dt) : 1;
     return projected_jacobi(s, dt, dt * dt, s.kappa_density, config_.tol, 2, residual, stats.density_error,
-                            interrupt, ratio * ratio, kExpansionWeight);
+                            interrupt, ratio * ratio, kCompressionWeight, kExpansionWeight);
   }
 
   // ------------------------------------------------------------------ shared passes

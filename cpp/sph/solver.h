@@ -26,8 +26,8 @@ struct AdjointScratch;  // adjoint.cpp
 struct StepStats : StepStatsBase {
   int iterations = 0;             // DFSPH constant-density iterations
   int divergence_iterations = 0;  // DFSPH divergence-free iterations
-  Scalar density_error = 0;       // mean compression max(rho/rho0 - 1, 0) (DFSPH: the density solve's error, the larger of
-                                  // that mean over all particles and over the wall contacts)
+  Scalar density_error = 0;       // mean compression max(rho/rho0 - 1, 0) (DFSPH: the density solve's error, of the
+                                  // predicted densities)
   Scalar divergence_error = 0;    // the divergence solve's error (DFSPH)
   Scalar max_speed = 0;           // after the step [m/s]
   Index neighbor_count = 0;       // fluid-fluid neighbour entries (2 per pair)

@@ -130,8 +130,7 @@ class Fluid:
     solid. speed_of_sound: WCSPH's c [m/s], default 10 sqrt(2 |g| H) for the initial fluid
     height H. gamma: Tait exponent.
     Further keywords: velocity ((n, d) initial velocities), tol (DFSPH mean density error,
-    default 1e-3, held both over all particles and over the particles touching a wall, which carry
-    the weight a mean over a deep column would dilute), divergence_tol (1e-3), max_iter (100), divergence_solve (True),
+    default 1e-3), divergence_tol (1e-3), max_iter (100), divergence_solve (True),
     reorder_every (least steps between Morton reorderings, 16; 0 keeps the input order),
     neighbor_skin (Verlet skin of the neighbour lists as a fraction of h, 0.2: the cell-grid
     search reruns only when a particle has moved half the skin; 0 searches every step),
