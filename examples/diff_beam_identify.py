@@ -15,11 +15,15 @@ fitted modulus along the beam) and prints the relative error of the fitted field
 """
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
 
 import kinema as km
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # examples/_diffplot.py, from any directory
+from _diffplot import Adam, plot_loss, pyplot  # noqa: E402
 
 E0, NU, RHO, DAMPING = 2e5, 0.3, 500.0, 40.0
 
@@ -61,7 +65,7 @@ def main(argv=None):
     scale = float(((x_obs - V) ** 2).sum())
 
     theta = np.full(cells[0], np.log(E0))  # log modulus per column of cells
-    m, v = np.zeros_like(theta), np.zeros_like(theta)
+    adam = Adam(args.rate)
     losses = []
     for it in range(1, args.iterations + 1):
         E = np.exp(theta[column])
@@ -70,9 +74,7 @@ def main(argv=None):
         losses.append(float((r ** 2).sum()) / scale)
         g_E = run.backward({"x": 2 * r / scale})["youngs_modulus"]
         g = np.bincount(column, weights=g_E * E, minlength=cells[0])  # dL/dtheta_j
-        m = 0.9 * m + 0.1 * g
-        v = 0.999 * v + 0.001 * g * g
-        theta -= args.rate * (m / (1 - 0.9 ** it)) / (np.sqrt(v / (1 - 0.999 ** it)) + 1e-12)
+        adam.step([theta], [g])
         if it == 1 or it % 10 == 0 or it == args.iterations:
             print(f"iteration {it:3d}: loss {losses[-1]:.3e}")
 
@@ -81,20 +83,10 @@ def main(argv=None):
     error = float(np.linalg.norm(E_fit - E_col) / np.linalg.norm(E_col))
     print(f"loss {losses[0]:.3e} -> {losses[-1]:.3e}; relative error of the fitted modulus {error:.3f}")
 
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     args.out.mkdir(parents=True, exist_ok=True)
-    fig, ax = plt.subplots(figsize=(5, 3.5))
-    ax.semilogy(np.arange(1, len(losses) + 1), losses, "o-", ms=3)
-    ax.set_xlabel("iteration")
-    ax.set_ylabel("loss |x_T - x_obs|^2 (relative)")
-    ax.set_title("beam modulus identification")
-    fig.tight_layout()
-    fig.savefig(args.out / "loss.png", dpi=120)
-    plt.close(fig)
+    plot_loss(args.out / "loss.png", losses, "loss |x_T - x_obs|^2 (relative)", "beam modulus identification",
+              first=1)
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(5, 3.5))
     xc = (np.arange(cells[0]) + 0.5) * length / cells[0]
     ax.plot(xc, E_col / 1e3, "k-", label="true")

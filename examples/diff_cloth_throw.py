@@ -12,12 +12,16 @@ iteration) and cloth_throw_paths.png (the centre of mass's flight at a few itera
 """
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
 import kinema as km
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # examples/_diffplot.py, from any directory
+from _diffplot import plot_loss, pyplot  # noqa: E402
 
 TARGET = np.array([1.0, 1.2, 0.5])
 
@@ -83,16 +87,9 @@ def main(argv=None):
     final = float(np.sum((sys.x.mean(axis=0) - TARGET) ** 2))
     losses.append(final)
     print(f"final |c(T) - target| {np.sqrt(final):.4f} m (first {np.sqrt(losses[0]):.3f} m)")
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    fig, ax = plt.subplots(figsize=(5, 3.5))
-    ax.semilogy(np.arange(len(losses)), losses, "o-", ms=3)
-    ax.set_xlabel("iteration")
-    ax.set_ylabel("loss |c(T) - target|^2 [m^2]")
-    ax.set_title("cloth throw (km.diff, implicit mass-spring)")
-    fig.tight_layout()
-    fig.savefig(out / "cloth_throw_loss.png", dpi=120)
+    plot_loss(out / "cloth_throw_loss.png", losses, "loss |c(T) - target|^2 [m^2]",
+              "cloth throw (km.diff, implicit mass-spring)")
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(5, 4))
     for it, path in paths:
         ax.plot(path[:, 0], path[:, 1], label=f"iteration {it}")

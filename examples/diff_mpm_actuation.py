@@ -17,12 +17,16 @@ and last controller), and prints the loss of each iteration.
 """
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
 import kinema as km
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # examples/_diffplot.py, from any directory
+from _diffplot import Adam, plot_loss, pyplot  # noqa: E402
 
 
 def walker(h):
@@ -88,7 +92,7 @@ def main(argv=None):
     direction[np.arange(n), groups] = sim.mass * np.sign(sim.x[:, 0] - centres[groups])
     ctrl = Controller(K, 4, amplitude=40.0, omega=2 * np.pi * 5)
     t = np.arange(args.steps) * args.dt
-    adam = {"m": [0, 0], "v": [0, 0]}
+    adam = Adam(args.learning_rate)
     losses, first_x = [], None
     for it in range(args.iterations):
         start = time.perf_counter()
@@ -103,29 +107,14 @@ def main(argv=None):
         g = run.backward({"x": np.column_stack([np.full(n, -1.0 / n), np.zeros(n)])})["controls"]
         g_a = np.einsum("tn,nk->tk", g[:, :, 0], direction)  # dL/da (steps, K)
         g_z = g_a * ctrl.amplitude * (1 - np.tanh(z) ** 2)
-        grads = [g_z.T @ ctrl.basis(t), g_z.sum(axis=0)]
-        for i, (p, gp) in enumerate(zip((ctrl.W, ctrl.b), grads)):  # Adam (Kingma and Ba 2015)
-            adam["m"][i] = 0.9 * adam["m"][i] + 0.1 * gp
-            adam["v"][i] = 0.999 * adam["v"][i] + 0.001 * gp * gp
-            mh = adam["m"][i] / (1 - 0.9 ** (it + 1))
-            vh = adam["v"][i] / (1 - 0.999 ** (it + 1))
-            p -= args.learning_rate * mh / (np.sqrt(vh) + 1e-12)
+        adam.step([ctrl.W, ctrl.b], [g_z.T @ ctrl.basis(t), g_z.sum(axis=0)])
         losses.append(loss)
         print(f"iteration {it:3d}  loss {loss:+.5f} (mean x {-loss:.4f} m)  {time.perf_counter() - start:.2f} s",
               flush=True)
 
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(5, 3.5))
-    ax.plot(losses, "o-", ms=3)
-    ax.set_xlabel("iteration")
-    ax.set_ylabel("loss = -mean x after the run [m]")
-    ax.set_title(f"diffmpm on km.mpm: {n} particles, {args.steps} steps")
-    fig.tight_layout()
-    fig.savefig(args.out / "loss.png", dpi=120)
+    plot_loss(args.out / "loss.png", losses, "loss = -mean x after the run [m]",
+              f"diffmpm on km.mpm: {n} particles, {args.steps} steps", log=False)
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(8, 3))
     ax.scatter(*(x0 + [0, h]).T, s=1, c="0.7", label="start")
     ax.scatter(*first_x.T, s=1, c="tab:blue", label="first controller")

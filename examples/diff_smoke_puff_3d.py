@@ -17,12 +17,16 @@ and along x, before and after learning, with the target marked); prints the loss
 """
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
 import kinema as km
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # examples/_diffplot.py, from any directory
+from _diffplot import Adam, plot_loss, pyplot  # noqa: E402
 
 
 def make_fluid(n, start):
@@ -49,7 +53,7 @@ def main(argv=None):
     sim, x = make_fluid(n, start)
     s0 = sim.state()
     controls = np.zeros((args.steps, n, n, n, 3))
-    m, v = np.zeros_like(controls), np.zeros_like(controls)
+    adam = Adam(args.learning_rate)
     losses, centres = [], []
     K = int(2 * np.sqrt(args.steps)) + 1
     for it in range(args.iterations):
@@ -64,10 +68,7 @@ def main(argv=None):
         penalty = 0.5 * args.penalty * float(np.sum(controls ** 2)) * h ** 3 * args.dt
         grad_rho = (r2 - loss) / mass
         g = run.backward({"density": grad_rho})["controls"] + args.penalty * controls * h ** 3 * args.dt
-        m = 0.9 * m + 0.1 * g
-        v = 0.999 * v + 0.001 * g * g
-        mh, vh = m / (1 - 0.9 ** (it + 1)), v / (1 - 0.999 ** (it + 1))
-        controls -= args.learning_rate * mh / (np.sqrt(vh) + 1e-12)
+        adam.step([controls], [g])
         losses.append(loss + penalty)
         centres.append(c)
         print(f"iteration {it:3d}  rms distance {np.sqrt(loss):.4f} m  centre {np.round(c, 3)}  "
@@ -81,18 +82,9 @@ def main(argv=None):
     print(f"centre to the target: {np.linalg.norm(centres[0] - goal):.4f} m without control -> "
           f"{np.linalg.norm(c_end - goal):.4f} m after {args.iterations} iterations")
 
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(5, 3.5))
-    ax.semilogy(losses, "o-", ms=3)
-    ax.set_xlabel("iteration")
-    ax.set_ylabel("mean |x - target|^2 + penalty [m^2]")
-    ax.set_title(f"3D smoke puff to a point: {n}^3 cells, {args.steps} steps")
-    fig.tight_layout()
-    fig.savefig(args.out / "loss.png", dpi=120)
+    plot_loss(args.out / "loss.png", losses, "mean |x - target|^2 + penalty [m^2]",
+              f"3D smoke puff to a point: {n}^3 cells, {args.steps} steps")
+    plt = pyplot()
     fig, axes = plt.subplots(1, 4, figsize=(11, 3))
     panels = [(before, 2, "start, along z"), (after, 2, "learned, along z"), (before, 0, "start, along x"),
               (after, 0, "learned, along x")]

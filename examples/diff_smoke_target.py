@@ -18,12 +18,16 @@ prints the loss of each iteration. The default settings take a few minutes on 2 
 """
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
 import kinema as km
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # examples/_diffplot.py, from any directory
+from _diffplot import Adam, plot_loss, pyplot  # noqa: E402
 
 
 def target_image(n, kind, mass):
@@ -68,7 +72,7 @@ def main(argv=None):
     s0 = sim.state()
     target = target_image(n, args.target, sim.density.sum())
     controls = np.zeros((args.steps, n, n, 2))
-    m, v = np.zeros_like(controls), np.zeros_like(controls)
+    adam = Adam(args.learning_rate)
     losses, first = [], None
     for it in range(args.iterations):
         start = time.perf_counter()
@@ -82,11 +86,7 @@ def main(argv=None):
         if first is None:
             first = rho.copy()
         g = run.backward({"density": misfit * h * h})["controls"] + args.penalty * controls * h * h * args.dt
-        # Adam
-        m = 0.9 * m + 0.1 * g
-        v = 0.999 * v + 0.001 * g * g
-        mh, vh = m / (1 - 0.9 ** (it + 1)), v / (1 - 0.999 ** (it + 1))
-        controls -= args.learning_rate * mh / (np.sqrt(vh) + 1e-12)
+        adam.step([controls], [g])
         losses.append(loss + effort)
         print(f"iteration {it:3d}  loss {loss:.4e}  penalty {effort:.2e}  {time.perf_counter() - start:.2f} s",
               flush=True)
@@ -107,18 +107,9 @@ def main(argv=None):
           f"({final_loss / initial_loss:.3f} of it)")
     np.savez(args.out / "smoke_target.npz", density=final, target=target, losses=np.array(losses))
 
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(5, 3.5))
-    ax.semilogy(losses, "-")
-    ax.set_xlabel("iteration")
-    ax.set_ylabel("loss")
-    ax.set_title(f"smoke to a {args.target}: {n}x{n} cells, {args.steps} steps, {args.advection}")
-    fig.tight_layout()
-    fig.savefig(args.out / "loss.png", dpi=120)
+    plot_loss(args.out / "loss.png", losses, "loss",
+              f"smoke to a {args.target}: {n}x{n} cells, {args.steps} steps, {args.advection}", style="-")
+    plt = pyplot()
     fig, axes = plt.subplots(2, len(shown) + 1, figsize=(2.2 * (len(shown) + 1), 4.6))
     vmax = max(target.max(), max(f.max() for f in frames["last"].values()))
     for row, key in enumerate(("first", "last")):

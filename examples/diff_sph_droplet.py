@@ -17,12 +17,16 @@ mass's path).
 """
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
 import kinema as km
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # examples/_diffplot.py, from any directory
+from _diffplot import plot_loss, pyplot  # noqa: E402
 
 SPACING = 0.01
 
@@ -97,16 +101,9 @@ def main(argv=None):
     flights.append((args.iterations, v0))
     print(f"final |c(T) - target| {np.sqrt(final):.5f} m (first {np.sqrt(losses[0]):.3f} m)")
 
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    fig, ax = plt.subplots(figsize=(5, 3.5))
-    ax.semilogy(np.arange(len(losses)), losses, "o-", ms=3)
-    ax.set_xlabel("iteration")
-    ax.set_ylabel("loss |c(T) - target|^2 [m^2]")
-    ax.set_title(f"SPH droplet throw ({d}D WCSPH, km.diff)")
-    fig.tight_layout()
-    fig.savefig(out / "sph_droplet_loss.png", dpi=120)
+    plot_loss(out / "sph_droplet_loss.png", losses, "loss |c(T) - target|^2 [m^2]",
+              f"SPH droplet throw ({d}D WCSPH, km.diff)")
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(6, 4))
     for (it, v), colour in zip(flights, ("tab:gray", "tab:blue")):
         path, x = flight(fluid, start, v, args.steps, args.dt)

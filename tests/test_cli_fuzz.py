@@ -255,6 +255,86 @@ CASES = [
     Case("resume-ok", RESUME, expect="ok", files={"scene.toml": GOOD}, run_first=True),
 ]
 
+# Colliders of fem and mass-spring scenes: objects[1] is the collider each case changes.
+BODY = {"fem": """type = "box"
+lower = [0.0, 0.05, 0.0]
+upper = [0.1, 0.15, 0.1]
+cells = [1, 1, 1]
+youngs_modulus = 1e4
+poisson_ratio = 0.3
+density = 1000.0""",
+        "massspring": """type = "cloth"
+resolution = [3, 3]
+size = [0.2, 0.2]
+origin = [0.0, 0.1, 0.0]
+plane = "xz"
+stiffness = 100.0
+mass = 0.05"""}
+
+
+def _collider(collider, solver="", kind="fem"):
+    return (f'[scene]\nname = "c"\nduration = 0.04\nfps = 50\n[solver]\ntype = "{kind}"\n'
+            f'gravity = [0.0, -9.81, 0.0]\n{solver}\n[[objects]]\n{BODY[kind]}\n[[objects]]\ntype = "collider"\n'
+            f'{collider}\n[output]\nwidth = 32\n')
+
+
+SPHERE = 'shape = "sphere"\ncenter = [0.05, -0.5, 0.05]\nradius = 0.5'
+RUN = ["run", "{tmp}/scene.toml", "--out", "{tmp}/o", *QUICK]
+for kind in ("fem", "massspring"):
+    CASES += [
+        Case(f"{kind}-collider-ok", RUN, expect="ok", files={"scene.toml": _collider(SPHERE, kind=kind)}),
+        Case(f"{kind}-collider-radius-negative", RUN, needle="objects[1].radius",
+             files={"scene.toml": _collider(SPHERE.replace("radius = 0.5", "radius = -1.0"), kind=kind)}),
+        Case(f"{kind}-collider-no-radius", RUN, needle="objects[1].radius: a sphere collider needs radius",
+             files={"scene.toml": _collider('shape = "sphere"\ncenter = [0.0, -1.0, 0.0]', kind=kind)}),
+        Case(f"{kind}-collider-box-no-upper", RUN, needle="objects[1].upper: a box collider needs upper",
+             files={"scene.toml": _collider('shape = "box"\nlower = [0.0, -1.0, 0.0]', kind=kind)}),
+        Case(f"{kind}-collider-box-inverted", RUN, needle="objects[1]: lower, upper: expected lower < upper",
+             files={"scene.toml": _collider('shape = "box"\nlower = [1.0, 0.0, 1.0]\nupper = [-1.0, -1.0, -1.0]',
+                                            kind=kind)}),
+        Case(f"{kind}-collider-box-rotation-nan", RUN, needle="objects[1].rotation",
+             files={"scene.toml": _collider('shape = "box"\nlower = [-1.0, -1.0, -1.0]\nupper = [1.0, 0.0, 1.0]\n'
+                                            'rotation = [nan, 0.0, 0.0]', kind=kind)}),
+        Case(f"{kind}-collider-plane-zero-normal", RUN, needle="objects[1]: normal: expected a non-zero vector",
+             files={"scene.toml": _collider('shape = "plane"\npoint = [0.0, 0.0, 0.0]\nnormal = [0.0, 0.0, 0.0]',
+                                            kind=kind)}),
+        Case(f"{kind}-collider-plane-moving", RUN, needle="objects[1]: motion: a plane collider is static",
+             files={"scene.toml": _collider('shape = "plane"\npoint = [0.0, 0.0, 0.0]\nnormal = [0.0, 1.0, 0.0]\n'
+                                            'velocity = [0.0, 1.0, 0.0]', kind=kind)}),
+        Case(f"{kind}-collider-center-2d", RUN, needle="objects[1].center",
+             files={"scene.toml": _collider('shape = "sphere"\ncenter = [0.0, -1.0]\nradius = 0.5', kind=kind)}),
+        Case(f"{kind}-collider-center-inf", RUN, needle="objects[1].center",
+             files={"scene.toml": _collider('shape = "sphere"\ncenter = [0.0, -inf, 0.0]\nradius = 0.5', kind=kind)}),
+        Case(f"{kind}-collider-velocity-text", RUN, needle="objects[1].velocity",
+             files={"scene.toml": _collider(SPHERE + '\nvelocity = "up"', kind=kind)}),
+        Case(f"{kind}-collider-unknown-key", RUN, needle="objects[1].radius2",
+             files={"scene.toml": _collider(SPHERE + "\nradius2 = 1.0", kind=kind)}),
+        Case(f"{kind}-collider-unknown-shape", RUN, needle="objects[1].shape",
+             files={"scene.toml": _collider('shape = "cone"\nradius = 1.0', kind=kind)}),
+        Case(f"{kind}-collider-friction-negative", RUN, needle="objects[1].friction",
+             files={"scene.toml": _collider(SPHERE + "\nfriction = -0.1", kind=kind)}),
+        Case(f"{kind}-collider-mesh-missing", RUN, needle="objects[1].file",
+             files={"scene.toml": _collider('shape = "mesh"\nfile = "none.obj"', kind=kind)}),
+        Case(f"{kind}-collider-mesh-garbage", RUN, needle="objects[1].file",
+             files={"scene.toml": _collider('shape = "mesh"\nfile = "g.obj"', kind=kind), "g.obj": bytes(range(256))}),
+        Case(f"{kind}-collider-mesh-no-triangles", RUN, needle="objects[1].file",
+             files={"scene.toml": _collider('shape = "mesh"\nfile = "l.obj"', kind=kind),
+                    "l.obj": "v 0 0 0\nv 1 0 0\nv 0 1 0\nl 1 2\n"}),
+        Case(f"{kind}-dhat-zero", RUN, needle="solver.dhat",
+             files={"scene.toml": _collider(SPHERE, "dhat = 0.0", kind=kind)}),
+    ]
+CASES += [
+    Case("fem-collider-symplectic", RUN, needle="solver.integrator",
+         files={"scene.toml": _collider(SPHERE, 'integrator = "symplectic"\n[[objects]]\n' + BODY["fem"].replace(
+             "0.0, 0.05, 0.0", "0.3, 0.05, 0.0").replace("0.1, 0.15, 0.1", "0.4, 0.15, 0.1"))}),
+    Case("massspring-collider-rotated-box-symplectic", RUN, needle="solver.integrator: integrator: a mesh collider",
+         files={"scene.toml": _collider('shape = "box"\nlower = [-1.0, -1.0, -1.0]\nupper = [1.0, 0.0, 1.0]\n'
+                                        'rotation = [0.0, 0.0, 10.0]', 'integrator = "symplectic"', kind="massspring")}),
+    Case("massspring-collider-intersecting-start", RUN, needle="intersect",
+         files={"scene.toml": _collider('shape = "box"\nlower = [0.05, 0.0, 0.05]\nupper = [0.15, 0.2, 0.15]',
+                                        kind="massspring")}),
+]
+
 
 def _prepare(case, tmp):
     for rel, content in case.files.items():

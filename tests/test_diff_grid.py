@@ -18,10 +18,13 @@ times over. A check passes when |adjoint - D(e)| <= |D(2e) - D(e)| + 2 delta / e
 must be below 1e-2 |g| |r| / sqrt(n) (the size of <g, r> for a random r) to say anything.
 """
 
+import functools
+
 import numpy as np
 import pytest
 
 import kinema as km
+from gradcheck import check_directional
 
 U = np.finfo(float).eps / 2
 TOL = 1e-13
@@ -86,23 +89,8 @@ def _loss(sim, state, weights, dt, controls, steps, override=None, viscosity=Non
             sum(float(np.sum(np.abs(weights[n] * out[n]))) for n in weights))
 
 
-def _fd_check(loss, base, direction, adjoint, e, where):
-    def D(step):
-        lp, sp = loss(base + step * direction)
-        lm, sm = loss(base - step * direction)
-        return (lp - lm) / (2 * step), max(sp, sm)
-
-    d1, scale = D(e)
-    d2, _ = D(2 * e)
-    delta = (1e3 * U + SOLVE) * scale
-    bound = abs(d2 - d1) + 2 * delta / e
-    got = float(np.sum(adjoint * direction))
-    assert abs(got - d1) <= bound, (f"{where}: adjoint {got:.12g} vs central difference {d1:.12g} "
-                                    f"(|diff| {abs(got - d1):.3g} > bound {bound:.3g}; D(2e) {d2:.12g})")
-    # The check must be informative: its bound far below what <g, r> is for a random direction
-    # r, |g| |r| / sqrt(n) (a particular r may make <g, r> itself small).
-    typical = np.linalg.norm(adjoint) * np.linalg.norm(direction) / np.sqrt(np.size(direction))
-    assert bound <= 1e-2 * typical, f"{where}: bound {bound:.3g} is not small against |g| |r| / sqrt(n) = {typical:.3g}"
+# the bound of the module docstring; informative when below 1e-2 |g| |r| / sqrt(n)
+_fd_check = functools.partial(check_directional, rounding=1e3 * U + SOLVE, typical=1e-2)
 
 
 def _check_run(sim, steps, dt, names=None, seed=1, where=""):

@@ -12,6 +12,7 @@ from load_script import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLES = ROOT / "examples"
+PROGRAMS = sorted(p for p in EXAMPLES.glob("*.py") if not p.name.startswith("_"))  # _*.py: shared by them
 
 
 def load(name):
@@ -65,12 +66,12 @@ def test_diff_sph_droplet_hits_its_target(tmp_path, dim):
 def test_every_example_is_smoke_tested():
     """Each examples/*.py is named by a test module (here or beside its method's tests)."""
     tests = "\n".join(p.read_text() for p in Path(__file__).parent.glob("test_*.py"))
-    untested = [p.name for p in sorted(EXAMPLES.glob("*.py"))
+    untested = [p.name for p in PROGRAMS
                 if f'"{p.name}"' not in tests and f'"{p.stem}"' not in tests]
     assert not untested, f"examples without a smoke test: {untested}"
 
 
-@pytest.mark.parametrize("path", sorted(EXAMPLES.glob("*.py")), ids=lambda p: p.name)
+@pytest.mark.parametrize("path", PROGRAMS, ids=lambda p: p.name)
 def test_example_documents_its_command(path):
     """Each example's docstring shows the command that runs it from the repository root."""
     doc = path.read_text().split('"""')[1]

@@ -24,6 +24,7 @@
 #include <Eigen/SVD>
 #include <algorithm>
 #include <cmath>
+#include <limits>
 
 #include "core/types.h"
 
@@ -121,6 +122,14 @@ Eigen::Matrix<Scalar, D * D, 1> vec(const Mat<D>& A) {
 template <int D>
 void rotation_svd(const Mat<D>& F, Mat<D>& U, Eigen::Matrix<Scalar, D, 1>& s, Mat<D>& V) {
   Eigen::JacobiSVD<Mat<D>> svd(F, Eigen::ComputeFullU | Eigen::ComputeFullV);
+  if (svd.info() != Eigen::Success) {
+    // A non-finite F: Eigen returns without computing (its factors are left unset). NaN
+    // singular values carry the non-finite state on to the solver's divergence check.
+    U.setIdentity();
+    V.setIdentity();
+    s.setConstant(std::numeric_limits<Scalar>::quiet_NaN());
+    return;
+  }
   U = svd.matrixU();
   V = svd.matrixV();
   s = svd.singularValues();

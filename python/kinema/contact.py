@@ -38,7 +38,8 @@ from __future__ import annotations
 import numpy as np
 
 from kinema import _core
-from kinema._checks import as_float_array, choice, finite, non_negative, positive
+from kinema._checks import INT_MAX, as_float_array, choice, finite, integer, non_negative, positive, time_step
+from kinema.errors import DivergenceError
 
 __all__ = ["Scene", "BodyContact", "attach", "StepStats", "icosphere", "box_surface", "cloth_mesh", "MODELS"]
 
@@ -82,8 +83,7 @@ def icosphere(center=(0.0, 0.0, 0.0), radius=1.0, subdivisions=3):
     oriented; faces lie inside the sphere by at most radius (1 - cos(edge angle / 2))."""
     c = _vec3(center, "center")
     r = positive(radius, "radius")
-    if int(subdivisions) != subdivisions or not 0 <= subdivisions <= 7:
-        raise ValueError(f"subdivisions: expected an integer in [0, 7], got {subdivisions!r}")
+    subdivisions = integer(subdivisions, "subdivisions", low=0, high=7)
     t = (1 + 5 ** 0.5) / 2
     v = [(-1, t, 0), (1, t, 0), (-1, -t, 0), (1, -t, 0), (0, -1, t), (0, 1, t), (0, -1, -t), (0, 1, -t),
          (t, 0, -1), (t, 0, 1), (-t, 0, -1), (-t, 0, 1)]
@@ -150,6 +150,43 @@ def cloth_mesh(nx, ny, size, *, origin=(0.0, 0.0, 0.0), bending=True):
     return verts, tris.astype(np.int64), np.concatenate(springs).astype(np.int64)
 
 
+def _required(shape, kw):
+    """Refuses a collider missing an option its shape needs (ValueError naming it)."""
+    need = {"box": ("lower", "upper"), "sphere": ("radius",), "plane": ()}.get(shape)
+    if shape == "mesh":
+        if "path" in kw and ("vertices" in kw or "triangles" in kw):
+            raise ValueError("path: a mesh collider takes either path or vertices and triangles, not both")
+        need = ("path",) if "path" in kw else ("vertices", "triangles")
+    for key in need:
+        if key not in kw:
+            raise ValueError(f"{key}: a {shape} collider needs {' and '.join(need)}")
+
+
+def _surface(shape, kw):
+    """(vertices (n, 3), triangles (m, 3)) of a box, sphere or mesh collider, checked."""
+    _required(shape, kw)
+    if shape == "box":
+        v, t = box_surface(kw["lower"], kw["upper"])
+    elif shape == "sphere":
+        v, t = icosphere(kw.get("center", (0, 0, 0)), kw["radius"], kw.get("subdivisions", 3))
+    elif "path" in kw:
+        import meshio
+        path = kw["path"]
+        if not isinstance(path, (str, bytes)) and not hasattr(path, "__fspath__"):
+            raise ValueError(f"path: expected a file name, got {path!r}")
+        try:
+            m = meshio.read(path)
+        except Exception as exc:  # noqa: BLE001 - meshio raises many types for unreadable files
+            raise ValueError(f"path: cannot read {str(path)!r} as a mesh ({type(exc).__name__}: {exc})") from None
+        tris = [c.data for c in m.cells if c.type == "triangle"]
+        if not tris:
+            raise ValueError(f"path: {path!r} holds no triangle cells")
+        v, t = m.points[:, :3], np.concatenate(tris)
+    else:
+        v, t = kw["vertices"], kw["triangles"]
+    return _points(v, "vertices"), _indices(t, "triangles", 3)  # index ranges are checked in C++
+
+
 class Scene:
     """Several deformable bodies (tetrahedral solids, cloths) and colliders in contact.
 
@@ -182,9 +219,7 @@ class Scene:
         cfg.friction_velocity = positive(friction_velocity, "friction_velocity")
         cfg.barrier_stiffness = 0.0 if barrier_stiffness is None else positive(barrier_stiffness, "barrier_stiffness")
         cfg.tol = positive(tol, "tol")
-        if int(max_newton) != max_newton or max_newton < 1:
-            raise ValueError(f"max_newton: expected an integer >= 1, got {max_newton!r}")
-        cfg.max_newton = int(max_newton)
+        cfg.max_newton = integer(max_newton, "max_newton", low=1, high=INT_MAX)
         cfg.linear_solver = choice(linear_solver, "linear_solver", ("cholmod", "cg"))
         self._core = _core.contact.Scene(cfg)
         self.config = cfg
@@ -224,6 +259,10 @@ class Scene:
         vertices collide as points. The body's gravity must be the scene's. Returns its rows."""
         from kinema import fem, massspring
 
+        if any(b is body for b, _ in self._bodies):
+            raise ValueError("body: this body is already in the scene (a body is added once)")
+        if isinstance(body, (fem.Body, massspring.System)):
+            _points(body.x, "body.x"), as_float_array(body.v, "body.v")
         if isinstance(body, fem.Body):
             if body.x.shape[1] != 3:
                 raise ValueError("body: contact is 3D only; got a 2D km.fem.Body")
@@ -302,28 +341,16 @@ class Scene:
             raise ValueError(f"{sorted(unknown)[0]}: not an option of a {shape} collider (expected {sorted(allowed)})")
         if shape == "plane":
             point, normal = _vec3(kw.get("point", (0, 0, 0)), "point"), _vec3(kw.get("normal", (0, 1, 0)), "normal")
-            if np.linalg.norm(normal) == 0:
+            if not normal.any():
                 raise ValueError("normal: expected a non-zero vector")
+            normal = normal / np.abs(normal).max()  # its norm is then representable
             self._core.add_plane(tuple(point), tuple(normal))
             self.planes.append((point, normal / np.linalg.norm(normal)))
             self.colliders.append({"shape": "plane", "point": point, "normal": normal / np.linalg.norm(normal),
                                    "rows": None, "motion": None})
             return None
-        if shape == "box":
-            v, t = box_surface(kw["lower"], kw["upper"])
-        elif shape == "sphere":
-            v, t = icosphere(kw.get("center", (0, 0, 0)), kw["radius"], kw.get("subdivisions", 3))
-        elif "path" in kw:
-            import meshio
-            m = meshio.read(kw["path"])
-            tris = [c.data for c in m.cells if c.type == "triangle"]
-            if not tris:
-                raise ValueError(f"path: {kw['path']!r} holds no triangle cells")
-            v, t = m.points[:, :3], np.concatenate(tris)
-        else:
-            v, t = kw["vertices"], kw["triangles"]
-        v = _points(v, "vertices")
-        start = self._core.add_obstacle(v, _indices(t, "triangles", 3), motion is not None)
+        v, t = _surface(shape, kw)
+        start = self._core.add_obstacle(v, t, motion is not None)
         rows = self._slice(start, len(v))
         spec = {"shape": shape, "rows": rows, "rest": v.copy(), "motion": motion,
                 "pivot": 0.5 * (v.min(axis=0) + v.max(axis=0))}
@@ -350,17 +377,29 @@ class Scene:
         """One implicit Euler step of ``dt`` [s]: returns the StepStats (Newton iterations,
         contact count, minimum distance [m], sticking and sliding friction contacts, CCD share
         of the wall time)."""
-        dt = positive(dt, "dt")
+        dt = time_step(dt)
         for body, rows in self._bodies:  # what the user wrote into a body's arrays counts
             if not np.array_equal(self._core.x[rows], body.x):
                 self._core.x[rows] = body.x
                 self._core.kappa = 0.0  # re-check for intersections
             self._core.v[rows] = body.v
+        for name in ("x", "v"):
+            bad = np.count_nonzero(~np.isfinite(getattr(self._core, name)))
+            if bad:
+                raise DivergenceError(f"{name}: {bad} non-finite value(s) at the start of the step (written into "
+                                      "a view, or left by a diverged run)")
         target = self._core.target
         for spec in self.colliders:
             if spec["motion"] is not None:
                 target[spec["rows"]] = _place(spec, self.time + dt)
-        stats = self._core.step(dt)
+        try:
+            stats = self._core.step(dt)
+        except ValueError as exc:
+            if not str(exc).startswith("A:"):
+                raise
+            # the Newton matrix M / dt^2 + H(elastic) + kappa H(barrier) overflowed
+            raise ValueError(f"dt, dhat: the Newton matrix of this step is not finite ({exc}): dt, dhat, "
+                             "barrier_stiffness or a material value is out of range for this scene") from None
         for body, rows in self._bodies:
             body.x[...] = self._core.x[rows]
             body.v[...] = self._core.v[rows]
@@ -558,9 +597,20 @@ def attach(sim, *, dhat=None, friction=0.0, friction_velocity=1e-3, tol=1e-2, ma
     * ``triangles`` (mass-spring only): the collision surface (cloth triangles), so that
       collider edges cannot slip between its vertices.
     """
+    from kinema import fem, massspring
+
+    if not isinstance(sim, (fem.Body, massspring.System)):
+        raise ValueError(f"sim: expected a km.fem.Body or km.massspring.System, got {type(sim).__name__}")
     options = dict(dhat=dhat, friction=friction, friction_velocity=friction_velocity, tol=tol,
                    max_newton=max_newton, triangles=triangles, barrier_stiffness=barrier_stiffness)
     if sim.contact is None:
+        # every option checked now, as the implicit steps' Scene will take it
+        Scene(dhat=1e-3 if dhat is None else dhat, friction=friction, friction_velocity=friction_velocity, tol=tol,
+              max_newton=max_newton, barrier_stiffness=barrier_stiffness)
+        if triangles is not None:
+            if isinstance(sim, fem.Body):
+                raise ValueError("triangles: a km.fem.Body collides with its boundary surface; do not pass triangles")
+            options["triangles"] = _indices(triangles, "triangles", 3)
         sim.contact = BodyContact(sim, **options)
     else:
         given = {k: v for k, v in options.items() if v is not None and not _same(v, sim.contact.options[k])}
@@ -626,7 +676,10 @@ class BodyContact:
                 what = "mesh" if shape == "mesh" else sorted(unknown)[0]
                 raise ValueError(f"{what}: a 2D body takes plane, box and sphere colliders with point, normal, "
                                  "lower, upper, center, radius and velocity")
-        non_negative(self.options["friction"], "friction")
+        else:  # every option checked now, as the implicit steps' Scene will take it
+            Scene().add_collider(shape, **options)
+        if shape != "mesh" and not set(options) - _PROJECTED:  # and as the symplectic steps will
+            _projection_spec(shape, options, mu, self.dim)
         self.colliders.append((shape, dict(options), mu))
         self._scene = None
         self._specs = None
@@ -641,7 +694,7 @@ class BodyContact:
                 raise ValueError("integrator: implicit contact (IPC) is 3D only; a 2D body takes "
                                  "integrator='symplectic' with colliders")
             o = self.options
-            x = self.sim.x
+            x = _points(self.sim.x, "x") if self.dim == 3 else self.sim.x
             diag = float(np.linalg.norm(x.max(axis=0) - x.min(axis=0)))
             dhat = o["dhat"] if o["dhat"] is not None else 1e-3 * max(diag, 1e-9)
             scene = Scene(gravity=None if not np.any(self._gravity()) else self._gravity(), dhat=dhat,
@@ -662,7 +715,7 @@ class BodyContact:
         """``steps`` steps of ``dt`` with contact; returns the last step's stats (a
         :class:`StepStats` for implicit steps, the body's own stats for symplectic ones, with
         ``contact_count`` and ``min_distance`` attributes of the projection added)."""
-        dt = positive(dt, "dt")
+        dt = time_step(dt)
         integrator = choice(integrator, "integrator", ("implicit", "symplectic", "explicit"))
         stats = None
         if integrator == "implicit":
@@ -682,34 +735,7 @@ class BodyContact:
 
     def _shapes(self):
         if self._specs is None:
-            specs = []
-            d = self.dim
-            for shape, kw, mu in self.colliders:
-                if shape == "mesh":
-                    raise ValueError("integrator: a mesh collider needs the implicit integrator (IPC)")
-                extra = set(kw) - {"velocity", "point", "normal", "lower", "upper", "center", "radius",
-                                   "subdivisions"}
-                if extra:
-                    raise ValueError(f"{sorted(extra)[0]}: symplectic steps move colliders by a constant "
-                                     "velocity only (motion and angular_velocity need the implicit integrator)")
-                vel = np.zeros(d) if kw.get("velocity") is None else _vecd(kw["velocity"], "velocity", d)
-                spec = {"shape": shape, "mu": mu, "velocity": vel}
-                if shape == "plane":
-                    n = _vecd(kw.get("normal", np.eye(d)[1]), "normal", d)
-                    if np.linalg.norm(n) == 0:
-                        raise ValueError("normal: expected a non-zero vector")
-                    spec.update(point=_vecd(kw.get("point", np.zeros(d)), "point", d), normal=n / np.linalg.norm(n),
-                                thickness=np.inf)
-                elif shape == "box":
-                    lo, hi = _vecd(kw["lower"], "lower", d), _vecd(kw["upper"], "upper", d)
-                    if not (hi > lo).all():
-                        raise ValueError("lower, upper: expected lower < upper on every axis")
-                    spec.update(lower=lo, upper=hi, thickness=float((hi - lo).min()))
-                else:
-                    r = positive(kw["radius"], "radius")
-                    spec.update(center=_vecd(kw.get("center", np.zeros(d)), "center", d), radius=r, thickness=2 * r)
-                specs.append(spec)
-            self._specs = specs
+            self._specs = [_projection_spec(shape, kw, mu, self.dim) for shape, kw, mu in self.colliders]
         return self._specs
 
     def _projected_step(self, dt, integrator):
@@ -759,6 +785,38 @@ class BodyContact:
             v[inside] = new + s["velocity"]
         stats_contact = _ProjectionStats(stats, count, dmin)
         return stats_contact
+
+
+_PROJECTED = {"velocity", "point", "normal", "lower", "upper", "center", "radius", "subdivisions"}
+
+
+def _projection_spec(shape, kw, mu, d):
+    """The checked description of one collider for the symplectic projection."""
+    if shape == "mesh":
+        raise ValueError("integrator: a mesh collider needs the implicit integrator (IPC)")
+    extra = set(kw) - _PROJECTED
+    if extra:
+        raise ValueError(f"{sorted(extra)[0]}: symplectic steps move colliders by a constant "
+                         "velocity only (motion and angular_velocity need the implicit integrator)")
+    _required(shape, kw)
+    vel = np.zeros(d) if kw.get("velocity") is None else _vecd(kw["velocity"], "velocity", d)
+    spec = {"shape": shape, "mu": mu, "velocity": vel}
+    if shape == "plane":
+        n = _vecd(kw.get("normal", np.eye(d)[1]), "normal", d)
+        if not n.any():
+            raise ValueError("normal: expected a non-zero vector")
+        n = n / np.abs(n).max()  # its norm is then representable
+        spec.update(point=_vecd(kw.get("point", np.zeros(d)), "point", d), normal=n / np.linalg.norm(n),
+                    thickness=np.inf)
+    elif shape == "box":
+        lo, hi = _vecd(kw["lower"], "lower", d), _vecd(kw["upper"], "upper", d)
+        if not (hi > lo).all():
+            raise ValueError("lower, upper: expected lower < upper on every axis")
+        spec.update(lower=lo, upper=hi, thickness=float((hi - lo).min()))
+    else:
+        r = positive(kw["radius"], "radius")
+        spec.update(center=_vecd(kw.get("center", np.zeros(d)), "center", d), radius=r, thickness=2 * r)
+    return spec
 
 
 class _ProjectionStats:

@@ -61,6 +61,7 @@ from __future__ import annotations
 
 import math
 import numbers
+import os
 
 import numpy as np
 
@@ -125,15 +126,27 @@ def _as_names(wrt) -> tuple:
 
 def _check_run(steps, dt) -> tuple:
     """(steps, dt) checked: an int >= 0 and a finite step > 0."""
-    if isinstance(steps, bool) or not isinstance(steps, numbers.Integral) or steps < 0:
-        raise ValueError(f"steps: expected an int >= 0, got {steps!r}")
+    if isinstance(steps, bool) or not isinstance(steps, numbers.Integral) or not 0 <= steps <= 2**63 - 1:
+        raise ValueError(f"steps: expected an int in [0, 2^63), got {steps!r}")
     try:
+        if isinstance(dt, (bool, np.bool_, str, bytes)):
+            raise TypeError
         dt = float(dt)
     except (TypeError, ValueError, OverflowError):
         raise ValueError(f"dt: expected a finite step > 0 [s], got {dt!r:.60}") from None
     if not (math.isfinite(dt) and dt > 0):
         raise ValueError(f"dt: expected a finite step > 0 [s], got {dt!r}")
+    if not math.isfinite(steps * dt):
+        raise ValueError(f"dt: {steps} steps of {dt} s overflow the simulated time")
     return int(steps), dt
+
+
+def _memory_bytes() -> float:
+    """The machine's physical memory [bytes] (inf where the system does not say)."""
+    try:
+        return float(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return math.inf
 
 
 def rollout(sim, steps, dt, *, wrt, controls=None, checkpoints=None, **step_options) -> "Rollout":
@@ -180,6 +193,11 @@ def rollout(sim, steps, dt, *, wrt, controls=None, checkpoints=None, **step_opti
         if isinstance(checkpoints, bool) or not isinstance(checkpoints, numbers.Integral) or checkpoints < 1:
             raise ValueError(f"checkpoints: expected None or an int >= 1, got {checkpoints!r}")
         checkpoints = int(checkpoints)
+    if checkpoints is None or checkpoints > steps:  # every state of the run is stored
+        need = (steps + 1) * sum(v.nbytes for v in sim.state().values() if isinstance(v, np.ndarray))
+        if need > _memory_bytes():
+            raise ValueError(f"steps: storing the {steps + 1} states of this run takes {need / 2**30:.3g} GiB, more "
+                             "than this machine's memory; pass checkpoints=K (K states held, the rest recomputed)")
     step_options = dict(step_options)
     sim._diff_check(names, step_options)
     return Rollout(sim, steps, dt, names, controls, checkpoints, step_options)

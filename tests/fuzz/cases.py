@@ -575,3 +575,238 @@ def cases():
         out.append(dict(id=sid, setup=SETUP, expr=expr, arg=None,
                         interrupt=3.0 if sid in NEW_INTERRUPTIBLE else None, fast=sid in NEW_FAST))
     return out
+
+
+# ------------------------------------------------------------------ colliders on one body, km.fem.Scene,
+# km.contact.attach, and km.diff over km.grid and km.sph (added in the review round)
+SETUP_BODIES = SETUP + """
+CL = km.massspring.cloth(4, 4, 1.0, plane='xz', origin=(0.0, 0.5, 0.0))
+CL2 = km.massspring.cloth(4, 4, 1.0, dim=2, origin=(0.0, 0.5))
+"""
+FEM3 = ("_b = km.fem.Body(TET_V * 0.1 + [0.0, 0.05, 0.0], TET_E, youngs_modulus=1e5, poisson_ratio=0.3, "
+        "density=1000.0, gravity=[0, -9.81, 0]); ")
+FEM2 = ("_b = km.fem.Body(FEM_V * 0.1 + [0.0, 0.05], FEM_E, youngs_modulus=1e5, poisson_ratio=0.3, "
+        "density=1000.0, gravity=[0, -9.81]); ")
+MS3 = "_s = km.massspring.System(CL.x, CL.springs, stiffness=100.0, mass=0.01, gravity=[0, -9.81, 0]); "
+MS2 = "_s = km.massspring.System(CL2.x, CL2.springs, stiffness=100.0, mass=0.01, gravity=[0, -9.81]); "
+GRID = "_g = km.grid.Fluid((8, 8), 1/8, tol=1e-8); _g.u[...] = 0.1; "
+SMOKE = ("_g = km.grid.Fluid((8, 8), 1/8, tol=1e-8, density=True); _m = np.zeros((8, 8), bool); _m[3:5, :2] = True; "
+         "_g.add_source(_m, density=1.0); ")
+WSPH = "_f = km.sph.Fluid(SPH_X + 0.01, 0.02, method='wcsph', gravity=[0, -9.81], domain=([0, 0], [0.2, 0.2])); "
+
+BODY_ENTRIES = {
+    "fem.add_collider.plane": (FEM3 + "_b.add_collider('plane', point={point}, normal={normal}); "
+                               "_b.step({dt}); _b.x",
+                               {"point": ("vector", "[0.0, 0.0, 0.0]"), "normal": ("vector", "[0.0, 1.0, 0.0]"),
+                                "dt": ("real", "1e-2")}),
+    "fem.add_collider.sphere": (FEM3 + "_b.add_collider('sphere', center={center}, radius={radius}, "
+                                "subdivisions={subdivisions}); _b.step(1e-2); _b.x",
+                                {"center": ("vector", "[0.05, -1.0, 0.05]"), "radius": ("real", "1.0"),
+                                 "subdivisions": ("count", "2")}),
+    "fem.add_collider.box": (FEM3 + "_b.add_collider('box', lower={lower}, upper={upper}, velocity={velocity}); "
+                             "_b.step(1e-2); _b.x",
+                             {"lower": ("vector", "[-1.0, -1.0, -1.0]"), "upper": ("vector", "[1.0, 0.0, 1.0]"),
+                              "velocity": ("vector", "[0.0, 0.1, 0.0]")}),
+    "fem.add_collider.mesh": (FEM3 + "_b.add_collider('mesh', vertices={vertices}, triangles={triangles}); "
+                              "_b.step(1e-2); _b.x",
+                              {"vertices": ("array", "[[-1.0, 0.0, -1.0], [1.0, 0.0, -1.0], [0.0, 0.0, 1.0]]"),
+                               "triangles": ("index", "[[0, 2, 1]]")}),
+    "fem.add_collider.motion": (FEM3 + "_b.add_collider('box', lower=[-1, -1, -1], upper=[1, 0, 1], "
+                                "angular_velocity={angular_velocity}, motion={motion}); _b.step(1e-2); _b.x",
+                                {"angular_velocity": ("vector", "None"), "motion": ("name", "None")}),
+    "fem.add_collider.symplectic.2d": (FEM2 + "_b.add_collider({shape}, center=[0.05, -1.0], radius={radius}, "
+                                       "friction={friction}); _b.step({dt}, 'symplectic'); _b.x",
+                                       {"shape": ("name", "'sphere'"), "radius": ("real", "1.0"),
+                                        "friction": ("real", "0.3"), "dt": ("real", "1e-5")}),
+    "fem.add_collider.box.2d": (FEM2 + "_b.add_collider('box', lower={lower}, upper={upper}, velocity={velocity}); "
+                                "_b.step(1e-5, 'symplectic'); _b.x",
+                                {"lower": ("vector", "[-1.0, -1.0]"), "upper": ("vector", "[1.0, 0.0]"),
+                                 "velocity": ("vector", "[0.0, 0.0]")}),
+    "massspring.add_collider.sphere": (MS3 + "_s.add_collider('sphere', center={center}, radius={radius}); "
+                                       "_s.step({dt}, {integrator}); _s.x",
+                                       {"center": ("vector", "[0.5, 0.0, 0.5]"), "radius": ("real", "0.3"),
+                                        "dt": ("real", "1e-2"), "integrator": ("name", "'implicit'")}),
+    "massspring.add_collider.plane.2d": (MS2 + "_s.add_collider('plane', point={point}, normal={normal}, "
+                                         "friction={friction}); _s.step({dt}, 'symplectic'); _s.x",
+                                         {"point": ("vector", "[0.0, 0.0]"), "normal": ("vector", "[0.0, 1.0]"),
+                                          "friction": ("real", "0.2"), "dt": ("real", "1e-3")}),
+    "contact.attach": (FEM3 + "km.contact.attach(_b, dhat={dhat}, friction={friction}, friction_velocity={friction_velocity}, "
+                       "tol={tol}, max_newton={max_newton}, barrier_stiffness={barrier_stiffness}); _b.add_collider('plane'); "
+                       "_b.step(1e-2); _b.x",
+                       {"dhat": ("real", "None"), "friction": ("real", "0.2"), "friction_velocity": ("real", "1e-3"),
+                        "tol": ("real", "1e-2"), "max_newton": ("count", "500"), "barrier_stiffness": ("real", "None")}),
+    "contact.attach.massspring": (MS3 + "km.contact.attach(_s, triangles={triangles}); "
+                                  "_s.add_collider('sphere', center=[0.5, 0.0, 0.5], radius=0.3); _s.step(1e-2); _s.x",
+                                  {"triangles": ("index", "CL.triangles")}),
+    "fem.Scene.add_body": ("_c = km.fem.Scene(gravity=[0, -9.81, 0]); " + FEM3 + "_c.add_body({body}); "
+                           "_c.add_collider('plane'); _c.step(1e-2); _b.x",
+                           {"body": ("name", "_b")}),
+    "fem.Scene.add_body.massspring": ("_c = km.fem.Scene(gravity=[0, -9.81, 0]); " + MS3 +
+                                      "_c.add_body(_s, triangles={triangles}); "
+                                      "_c.add_collider('sphere', center=[0.5, 0.0, 0.5], radius=0.3); _c.step(1e-2); _s.x",
+                                      {"triangles": ("index", "CL.triangles")}),
+    "diff.grid.rollout": (GRID + "_r = km.diff.rollout(_g, {steps}, {dt}, wrt={wrt}, checkpoints={checkpoints}); "
+                          "_r.backward({{'u': np.ones_like(_g.u)}})",
+                          {"steps": ("count", "2"), "dt": ("real", "0.02"), "wrt": ("name", "('u', 'v', 'viscosity')"),
+                           "checkpoints": ("count", "None")}),
+    "diff.grid.controls": (GRID + "_r = km.diff.rollout(_g, 2, 0.02, wrt=('controls',), controls={controls}); "
+                           "_r.backward({{'v': np.ones_like(_g.v)}})",
+                           {"controls": ("array", "np.zeros((2, 8, 8, 2))")}),
+    "diff.grid.backward": (SMOKE + "_r = km.diff.rollout(_g, 2, 0.02, wrt=('density', 'u')); "
+                           "_r.backward({{'density': {g}}})",
+                           {"g": ("array", "np.ones((8, 8))")}),
+    "diff.sph.rollout": (WSPH + "_r = km.diff.rollout(_f, {steps}, {dt}, wrt={wrt}, checkpoints={checkpoints}); "
+                         "_r.backward({{'x': np.ones_like(_f.x)}})",
+                         {"steps": ("count", "2"), "dt": ("real", "1e-4"), "wrt": ("name", "('x', 'v', 'viscosity')"),
+                          "checkpoints": ("count", "None")}),
+    "diff.sph.controls": (WSPH + "_r = km.diff.rollout(_f, 2, 1e-4, wrt=('controls',), controls={controls}); "
+                          "_r.backward({{'v': np.ones_like(_f.v)}})",
+                          {"controls": ("array", "np.zeros((2, len(SPH_X), 2))")}),
+    "diff.sph.backward": (WSPH + "_r = km.diff.rollout(_f, 2, 1e-4, wrt=('x', 'viscosity')); "
+                          "_r.backward({{'v': {g}}})",
+                          {"g": ("array", "np.ones_like(SPH_X)")}),
+}
+
+BODY_SCENARIOS = {
+    # colliders: missing, unknown and contradictory options; bodies a collider cannot hold
+    "fem.add_collider.box.no_upper": FEM3 + "_b.add_collider('box', lower=[0, 0, 0]); _b.step(1e-2)",
+    "fem.add_collider.sphere.no_radius": FEM3 + "_b.add_collider('sphere', center=[0, -1, 0]); _b.step(1e-2)",
+    "fem.add_collider.mesh.no_triangles": FEM3 + "_b.add_collider('mesh', vertices=np.zeros((3, 3))); _b.step(1e-2)",
+    "fem.add_collider.mesh.path_missing": FEM3 + "_b.add_collider('mesh', path=TMP + '/none.obj'); _b.step(1e-2)",
+    "fem.add_collider.mesh.path_garbage": (FEM3 + "WRITE(TMP + '/g.obj', bytes(range(256))); "
+                                           "_b.add_collider('mesh', path=TMP + '/g.obj'); _b.step(1e-2)"),
+    "fem.add_collider.mesh.path_none": FEM3 + "_b.add_collider('mesh', path=None); _b.step(1e-2)",
+    "fem.add_collider.unknown_option": FEM3 + "_b.add_collider('plane', nromal=[0, 1, 0]); _b.step(1e-2)",
+    "fem.add_collider.box.inverted": FEM3 + "_b.add_collider('box', lower=[1, 1, 1], upper=[0, 0, 0]); _b.step(1e-2)",
+    "fem.add_collider.box.flat": FEM3 + "_b.add_collider('box', lower=[0, 0, 0], upper=[1, 0, 1]); _b.step(1e-2)",
+    "fem.add_collider.plane.zero_normal": FEM3 + "_b.add_collider('plane', normal=[0, 0, 0]); _b.step(1e-2)",
+    "fem.add_collider.plane.moving": FEM3 + "_b.add_collider('plane', velocity=[0, 1, 0]); _b.step(1e-2)",
+    "fem.add_collider.motion.not_callable": FEM3 + "_b.add_collider('box', lower=[-1, -1, -1], upper=[1, 0, 1], motion=3)",
+    "fem.add_collider.motion.nan": (FEM3 + "_b.add_collider('box', lower=[-1, -1, -1], upper=[1, 0, 1], "
+                                    "motion=lambda t: [np.nan, 0, 0]); _b.step(1e-2); _b.x"),
+    # an exception of the user's own motion function reaches the user unchanged
+    "fem.add_collider.motion.raises": (FEM3 + "_ok = False\ntry:\n    _b.add_collider('box', lower=[-1, -1, -1], "
+                                       "upper=[1, 0, 1], motion=lambda t: 1 / 0)\nexcept ZeroDivisionError:\n"
+                                       "    _ok = True\nassert _ok; _b.x"),
+    "fem.add_collider.motion.bad_shape": (FEM3 + "_b.add_collider('box', lower=[-1, -1, -1], upper=[1, 0, 1], "
+                                          "motion=lambda t: [1.0, 2.0]); _b.step(1e-2); _b.x"),
+    "fem.add_collider.inside": FEM3 + "_b.add_collider('sphere', center=[0.05, 0.1, 0.05], radius=1.0); _b.step(1e-2)",
+    "fem.add_collider.huge_radius": FEM3 + "_b.add_collider('sphere', center=[0, -1e300, 0], radius=1e300); _b.step(1e-2)",
+    "fem.add_collider.2d.implicit": FEM2 + "_b.add_collider('plane'); _b.step(1e-2)",
+    "fem.add_collider.2d.mesh": FEM2 + "_b.add_collider('mesh', vertices=np.zeros((3, 2)), triangles=[[0, 1, 2]])",
+    "fem.add_collider.2d.motion": FEM2 + "_b.add_collider('box', lower=[-1, -1], upper=[1, 0], motion=lambda t: [0, 0])",
+    "fem.add_collider.2d.inside": FEM2 + "_b.add_collider('sphere', center=[0.05, 0.1], radius=1.0); _b.step(1e-5, 'symplectic'); _b.x",
+    "fem.add_collider.2d.tunnel": (FEM2 + "_b.add_collider('sphere', center=[0.05, -1.0], radius=1e-3); "
+                                   "_b.v[:] = [0.0, -100.0]; _b.step(1e-3, 'symplectic'); _b.x"),
+    "fem.add_collider.symplectic.mesh": (FEM3 + "_b.add_collider('mesh', vertices=[[0.0, 0, 0], [1, 0, 0], [0, 0, 1]], "
+                                         "triangles=[[0, 1, 2]]); _b.step(1e-5, 'symplectic')"),
+    "fem.add_collider.symplectic.motion": (FEM3 + "_b.add_collider('box', lower=[-1, -1, -1], upper=[1, 0, 1], "
+                                           "angular_velocity=[0, 1, 0]); _b.step(1e-5, 'symplectic')"),
+    "fem.add_collider.nan_view.x": FEM3 + "_b.add_collider('plane'); _b.x[0, 0] = np.nan; _b.step(1e-2); _b.x",
+    "fem.add_collider.nan_view.v.symplectic": (FEM3 + "_b.add_collider('plane'); _b.v[0, 0] = np.nan; "
+                                               "_b.step(1e-5, 'symplectic'); _b.x"),
+    "fem.add_collider.huge_velocity": FEM3 + "_b.add_collider('plane'); _b.v[:] = 1e300; _b.step(1e-2); _b.x",
+    "fem.add_collider.steps_bad": FEM3 + "_b.add_collider('plane'); _b.step(1e-2, steps=0)",
+    "fem.add_collider.beta": FEM3 + "_b.add_collider('plane'); _b.step(1e-2, integrator='explicit')",
+    "fem.add_collider.integrator_bad": FEM3 + "_b.add_collider('plane'); _b.step(1e-2, integrator='nope')",
+    "fem.add_collider.diff": FEM3 + "_b.add_collider('plane'); km.diff.rollout(_b, 2, 1e-2, wrt=('x',))",
+    "fem.add_collider.set_state": (FEM3 + "_b.add_collider('plane'); _st = _b.state(); _b.step(1e-2); "
+                                   "_b.set_state(_st); _b.step(1e-2); _b.x"),
+    "massspring.add_collider.beta": MS3 + "_s.add_collider('plane'); _s.step(1e-2, beta=0.5)",
+    "massspring.add_collider.2d.implicit": MS2 + "_s.add_collider('plane'); _s.step(1e-2)",
+    "massspring.add_collider.sphere.no_radius": MS2 + "_s.add_collider('sphere', center=[0, 0]); _s.step(1e-3, 'symplectic')",
+    "massspring.add_collider.box.no_lower": MS2 + "_s.add_collider('box', upper=[1, 0]); _s.step(1e-3, 'symplectic')",
+    "massspring.add_collider.box.3_coords": MS2 + "_s.add_collider('box', lower=[0, 0, 0], upper=[1, 1, 1]); _s.step(1e-3, 'symplectic')",
+    "massspring.add_collider.unknown_2d": MS2 + "_s.add_collider('plane', subdivisions=3)",
+    "massspring.add_collider.diff": MS3 + "_s.add_collider('plane'); km.diff.rollout(_s, 2, 1e-2, wrt=('x',))",
+    "massspring.add_collider.nan_view.symplectic": (MS2 + "_s.add_collider('plane'); _s.x[0, 0] = np.nan; "
+                                                    "_s.step(1e-3, 'symplectic'); _s.x"),
+    "massspring.add_collider.fixed_all": ("_s = km.massspring.System(CL.x, CL.springs, stiffness=100.0, "
+                                          "fixed=np.arange(len(CL.x)), gravity=[0, -9.81, 0]); "
+                                          "_s.add_collider('plane'); _s.step(1e-2); _s.x"),
+    "massspring.add_collider.no_springs": ("_s = km.massspring.System(CL.x, np.zeros((0, 2), int), stiffness=1.0, "
+                                           "gravity=[0, -9.81, 0]); _s.add_collider('plane'); _s.step(1e-2); _s.x"),
+    "massspring.add_collider.one_vertex": ("_s = km.massspring.System([[0.0, 1.0, 0.0]], np.zeros((0, 2), int), "
+                                           "stiffness=1.0, gravity=[0, -9.81, 0]); _s.add_collider('plane'); "
+                                           "_s.step(1e-2); _s.x"),
+    "contact.attach.twice_different": FEM3 + "km.contact.attach(_b, dhat=1e-3); km.contact.attach(_b, dhat=2e-3)",
+    "contact.attach.not_a_body": "km.contact.attach(object())",
+    "contact.attach.sph": "km.contact.attach(km.sph.Fluid(SPH_X, 0.02))",
+    "contact.attach.fem_triangles": FEM3 + "km.contact.attach(_b, triangles=[[0, 1, 2]]); _b.add_collider('plane'); _b.step(1e-2)",
+    "contact.attach.triangles_nan": MS3 + "km.contact.attach(_s, triangles=CL.triangles * np.nan); _s.add_collider('plane'); _s.step(1e-2)",
+    "contact.attach.friction_bad_late": FEM3 + "km.contact.attach(_b, friction=-1.0); _b.add_collider('plane')",
+    "fem.Scene.add_body.2d": "_c = km.fem.Scene(); " + FEM2 + "_c.add_body(_b)",
+    "fem.Scene.add_body.gravity": "_c = km.fem.Scene(); " + FEM3 + "_c.add_body(_b)",
+    "fem.Scene.add_body.twice": ("_c = km.fem.Scene(gravity=[0, -9.81, 0]); " + FEM3 + "_c.add_body(_b); _c.add_body(_b); "
+                                 "_c.step(1e-2); _b.x"),
+    "fem.Scene.add_body.fem_triangles": "_c = km.fem.Scene(gravity=[0, -9.81, 0]); " + FEM3 + "_c.add_body(_b, triangles=[[0, 1, 2]])",
+    "fem.Scene.add_body.nan_view": ("_c = km.fem.Scene(gravity=[0, -9.81, 0]); " + FEM3 + "_b.x[0, 0] = np.nan; "
+                                    "_c.add_body(_b); _c.step(1e-2); _b.x"),
+    "fem.Scene.add_body.nan_later": ("_c = km.fem.Scene(gravity=[0, -9.81, 0]); " + FEM3 + "_c.add_body(_b); "
+                                     "_b.x[0, 0] = np.nan; _c.step(1e-2); _b.x"),
+    "fem.Scene.add_body.not_a_body": "km.fem.Scene().add_body(km.sph.Fluid(SPH_X, 0.02))",
+    "fem.Scene.add_body.triangles_out_of_range": ("_c = km.fem.Scene(gravity=[0, -9.81, 0]); " + MS3 +
+                                                  "_c.add_body(_s, triangles=[[0, 1, 10**6]])"),
+    # km.diff over km.grid and km.sph
+    "diff.grid.no_slip": "_g = km.grid.Fluid((8, 8), 0.1, walls='no_slip'); km.diff.rollout(_g, 2, 0.01, wrt=('u',))",
+    "diff.grid.confinement": "_g = km.grid.Fluid((8, 8), 0.1, vorticity_confinement=0.3); km.diff.rollout(_g, 2, 0.01, wrt=('u',))",
+    "diff.grid.option": GRID + "km.diff.rollout(_g, 2, 0.01, wrt=('u',), cfl=0.5)",
+    "diff.grid.wrt_pressure": GRID + "km.diff.rollout(_g, 2, 0.01, wrt=('pressure',))",
+    "diff.grid.wrt_density_no_smoke": GRID + "km.diff.rollout(_g, 2, 0.01, wrt=('density',))",
+    "diff.grid.controls_without_wrt": GRID + "_r = km.diff.rollout(_g, 2, 0.02, wrt=('u',), controls=np.ones((2, 8, 8, 2))); _r.backward({'u': np.ones((9, 8))})",
+    "diff.grid.controls_missing": GRID + "km.diff.rollout(_g, 2, 0.02, wrt=('controls',))",
+    "diff.grid.controls_3d_shape": GRID + "km.diff.rollout(_g, 2, 0.02, wrt=('controls',), controls=np.ones((2, 8, 8, 3)))",
+    "diff.grid.controls_huge": GRID + "_r = km.diff.rollout(_g, 2, 0.02, wrt=('controls',), controls=np.full((2, 8, 8, 2), 1e300)); _r.backward({'u': np.ones((9, 8))})",
+    "diff.grid.nan_view": GRID + "_g.u[3, 3] = np.nan; _r = km.diff.rollout(_g, 2, 0.02, wrt=('u',)); _r.backward({'u': np.ones((9, 8))})",
+    "diff.grid.viscosity_negative": GRID + "_g._diff_set('viscosity', -1.0)",
+    "diff.grid.backward_unknown": GRID + "km.diff.rollout(_g, 2, 0.02, wrt=('u',)).backward({'w': np.ones((8, 8))})",
+    "diff.grid.backward_nan": GRID + "km.diff.rollout(_g, 2, 0.02, wrt=('u',)).backward({'u': np.full((9, 8), np.nan)})",
+    "diff.grid.backward_shape": GRID + "km.diff.rollout(_g, 2, 0.02, wrt=('u',)).backward({'u': np.ones((8, 9))})",
+    "diff.grid.torch": (GRID + TORCH + "_u = _t.zeros((9, 8), dtype=_t.float64, requires_grad=True); "
+                        "_o = km.torch.rollout(_g, 2, 0.02, {'u': _u}); _o['u'].sum().backward(); _u.grad.numpy()"),
+    "diff.grid.torch.bad_name": GRID + TORCH + "km.torch.rollout(_g, 2, 0.02, {'pressure': _t.zeros((8, 8))})",
+    "diff.grid.torch.shape": GRID + TORCH + "km.torch.rollout(_g, 2, 0.02, {'u': _t.zeros((8, 8), dtype=_t.float64)})",
+    "diff.grid.3d": ("_g = km.grid.Fluid((4, 4, 4), 0.25, tol=1e-8); "
+                     "_r = km.diff.rollout(_g, 2, 0.02, wrt=('w', 'controls'), controls=np.ones((2, 4, 4, 4, 2))); _r"),
+    "diff.sph.dfsph": "_f = km.sph.Fluid(SPH_X, 0.02); km.diff.rollout(_f, 2, 1e-4, wrt=('x',))",
+    "diff.sph.dfsph.torch": "_f = km.sph.Fluid(SPH_X, 0.02); " + TORCH + "km.torch.rollout(_f, 2, 1e-4, {'x': _t.tensor(_f.x)})",
+    "diff.sph.option": WSPH + "km.diff.rollout(_f, 2, 1e-4, wrt=('x',), cfl=0.4)",
+    "diff.sph.wrt_rho0": WSPH + "km.diff.rollout(_f, 2, 1e-4, wrt=('rho0',))",
+    "diff.sph.wrt_str": WSPH + "km.diff.rollout(_f, 2, 1e-4, wrt='xv')",
+    "diff.sph.controls_missing": WSPH + "km.diff.rollout(_f, 2, 1e-4, wrt=('controls',))",
+    "diff.sph.controls_transposed": WSPH + "km.diff.rollout(_f, 2, 1e-4, wrt=('controls',), controls=np.zeros((2, 2, len(SPH_X))))",
+    "diff.sph.controls_one_step": WSPH + "km.diff.rollout(_f, 2, 1e-4, wrt=('controls',), controls=np.zeros((len(SPH_X), 2)))",
+    "diff.sph.controls_huge": (WSPH + "_r = km.diff.rollout(_f, 2, 1e-4, wrt=('controls',), "
+                               "controls=np.full((2, len(SPH_X), 2), 1e300)); _r.backward({'x': np.ones_like(_f.x)})"),
+    "diff.sph.nan_view": WSPH + "_f.v[0, 0] = np.nan; km.diff.rollout(_f, 2, 1e-4, wrt=('x',)).backward({'x': np.ones_like(_f.x)})",
+    "diff.sph.dt_huge": WSPH + "km.diff.rollout(_f, 2, 1.0, wrt=('x',)).backward({'x': np.ones_like(_f.x)})",
+    "diff.sph.backward_unknown": WSPH + "km.diff.rollout(_f, 2, 1e-4, wrt=('x',)).backward({'rho': np.ones(len(SPH_X))})",
+    "diff.sph.backward_inf": WSPH + "km.diff.rollout(_f, 2, 1e-4, wrt=('x',)).backward({'x': np.full(SPH_X.shape, np.inf)})",
+    "diff.sph.viscosity_nan": WSPH + "_f._diff_set('viscosity', float('nan'))",
+    "diff.sph.torch.viscosity": (WSPH + TORCH + "_nu = _t.tensor(1e-3, dtype=_t.float64, requires_grad=True); "
+                                 "_o = km.torch.rollout(_f, 2, 1e-4, {'viscosity': _nu}); _o['x'].sum().backward(); "
+                                 "float(_nu.grad)"),
+    "diff.sph.3d": ("_f = km.sph.Fluid(km.sph.block([0, 0, 0], [0.06, 0.06, 0.06], 0.02) + 0.01, 0.02, method='wcsph', "
+                    "domain=([0, 0, 0], [0.1, 0.1, 0.1])); _r = km.diff.rollout(_f, 2, 1e-4, wrt=('x', 'controls'), "
+                    "controls=np.zeros((2, _f.n, 3))); _r.backward({'x': np.ones_like(_f.x)})"),
+}
+BODY_FAST = {"fem.add_collider.box.no_upper", "fem.add_collider.sphere.no_radius", "fem.add_collider.2d.implicit",
+             "fem.add_collider.2d.tunnel", "fem.add_collider.motion.nan", "massspring.add_collider.box.no_lower",
+             "contact.attach.twice_different", "fem.Scene.add_body.twice", "diff.grid.controls_3d_shape",
+             "diff.grid.nan_view", "diff.sph.dfsph", "diff.sph.controls_transposed", "diff.sph.nan_view"}
+
+
+def _body_cases():
+    out = []
+    for case in _entry_cases(BODY_ENTRIES, 0, 3.0):  # the base calls in the fast subset, the bad values not
+        out.append(dict(case, setup=SETUP_BODIES))
+    for sid, expr in BODY_SCENARIOS.items():
+        out.append(dict(id=sid, setup=SETUP_BODIES, expr=expr, arg=None, interrupt=3.0, fast=sid in BODY_FAST))
+    return out
+
+
+_cases_before_bodies = cases
+
+
+def cases():  # noqa: F811 - the list above, then the review round's cases
+    return _cases_before_bodies() + _body_cases()

@@ -102,12 +102,15 @@ class FEMSimulation(DeformableSimulation):
         try:
             for b in made:
                 self.contact.add_body(b)
-            for k, obj in found:
-                shape, kw = coll.collider_args(scene, k, obj)
-                kw.pop("friction", None)
-                self.contact.add_collider(shape, **kw)
         except ValueError as exc:
             raise scene.error("objects", str(exc)) from None
+        for k, obj in found:
+            shape, kw = coll.collider_args(scene, k, obj)
+            kw.pop("friction", None)
+            try:
+                self.contact.add_collider(shape, **kw)
+            except ValueError as exc:
+                raise scene.error(f"objects[{k}]", str(exc)) from None
         if o["integrator"] != "implicit":
             raise scene.error("solver.integrator", "bodies in contact step implicitly (IPC)")
         self.body = _Group(self.contact, offset)

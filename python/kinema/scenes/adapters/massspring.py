@@ -131,6 +131,11 @@ class MassSpringSimulation(DeformableSimulation):
                     self.body.add_collider(shape, **kw)
                 except ValueError as exc:
                     raise scene.error(f"objects[{k}]", str(exc)) from None
+            if self.integrator != "implicit":
+                try:
+                    self.contact._shapes()  # the colliders of the symplectic projection, checked now
+                except ValueError as exc:
+                    raise scene.error("solver.integrator", str(exc)) from None
 
     def _frame_box(self, lo, hi, up):
         return (lo, hi) if self.contact is None else coll.frame_box(lo, hi, self.contact.scene(), up)

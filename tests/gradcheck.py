@@ -1,0 +1,40 @@
+"""The central-difference check of an adjoint gradient along one direction, shared by the
+gradient tests (tests/test_diff_grid.py, tests/test_diff_mpm.py; their module docstrings derive
+the bound for their solvers).
+
+D(e) = (L(p + e r) - L(p - e r)) / 2e differs from <g, r> by a truncation c e^2 + O(e^4) and by
+at most 2 delta / 2e, delta the error of one evaluation of L. The truncation is measured, not
+guessed: D(e) - D(2e) = -3 c e^2 + O(e^4), so |D(2e) - D(e)| bounds it three times over. A check
+passes when |<g, r> - D(e)| <= |D(2e) - D(e)| + 2 delta / e.
+"""
+
+import numpy as np
+
+U = np.finfo(float).eps / 2
+
+
+def check_directional(loss, base, direction, adjoint, e, where, *, rounding=1e3 * U, typical=None,
+                      relative=1e-3):
+    """Asserts <adjoint, direction> against D(e) of ``loss`` at ``base`` along ``direction``.
+
+    ``loss(p)`` returns (L(p), S) with delta = ``rounding`` S bounding the error of one
+    evaluation (S = sum |W| |state| for L = <W, state>). The check must be informative: the bound
+    at most ``relative`` |D(e)|, or, when ``typical`` is given, at most ``typical`` |g| |r| /
+    sqrt(n), the size of <g, r> for a random r (a particular r may make <g, r> itself small).
+    ``where`` names the check in the failure message."""
+    def D(step):
+        lp, sp = loss(base + step * direction)
+        lm, sm = loss(base - step * direction)
+        return (lp - lm) / (2 * step), max(sp, sm)
+
+    d1, scale = D(e)
+    d2, _ = D(2 * e)
+    bound = abs(d2 - d1) + 2 * rounding * scale / e
+    got = float(np.sum(adjoint * direction))
+    assert abs(got - d1) <= bound, (f"{where}: adjoint {got:.12g} vs central difference {d1:.12g} "
+                                    f"(|diff| {abs(got - d1):.3g} > bound {bound:.3g}; D(2e) {d2:.12g})")
+    if typical is not None:
+        size = np.linalg.norm(adjoint) * np.linalg.norm(direction) / np.sqrt(np.size(direction))
+        assert bound <= typical * size, f"{where}: bound {bound:.3g} is not small against |g| |r| / sqrt(n) = {size:.3g}"
+    else:
+        assert bound <= relative * abs(d1), f"{where}: bound {bound:.3g} is not small against |D| = {abs(d1):.3g}"
