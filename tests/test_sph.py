@@ -390,10 +390,40 @@ def test_wcsph_dt_far_above_cfl_raises_divergence():
     x = km.sph.block([0, 0], [0.2, 0.2], s)
     fluid = km.sph.Fluid(x, s, gravity=down(2), method="wcsph", domain=([0, 0], [0.4, 0.4]))
     dt = 30 * fluid.stable_dt()
+    with pytest.raises(km.StabilityError, match="dt"):
+        fluid.step(dt)
     with pytest.raises(km.DivergenceError, match="dt"):
         for _ in range(2000):
-            fluid.step(dt)
+            fluid.step(dt, check=False)
             assert np.isfinite(fluid.x).all() and np.isfinite(fluid.v).all()
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_wcsph_stability_limit_is_where_it_diverges(d):
+    """stability_limit() is a true bound, not a guess: a dam break at 1.5 times WCSPH's acoustic
+    limit runs 0.3 s (checked off), at 3 times it diverges within 0.3 s; check=True refuses the
+    step above the limit, naming dt, and takes the one below it."""
+    s = 0.01 if d == 2 else 0.02
+    x = km.sph.block([0] * d, [0.2] * d, s)
+
+    def run(factor):
+        fluid = km.sph.Fluid(x, s, gravity=down(d), method="wcsph", domain=([0] * d, [0.4] * d))
+        dt = factor * fluid.stability_limit()
+        for _ in range(int(0.3 / dt)):
+            fluid.step(dt, check=False)
+        return fluid
+
+    fluid = run(1.5)
+    assert np.isfinite(fluid.x).all() and fluid.density_error() < 1e-2
+    with pytest.raises(km.DivergenceError):
+        run(3.0)
+    fluid = km.sph.Fluid(x, s, gravity=down(d), method="wcsph", viscosity=0.5, domain=([0] * d, [0.4] * d))
+    limit = fluid.stability_limit()
+    assert limit == pytest.approx(min(s / fluid.speed_of_sound, 2 / (19.3 if d == 2 else 21.4) * s * s / 0.5))
+    with pytest.raises(km.StabilityError, match="dt"):
+        fluid.step(1.01 * limit)
+    fluid.step(0.99 * limit)
+    assert km.sph.Fluid(x, s, method="dfsph", domain=([0] * d, [0.4] * d)).stability_limit() == np.inf
 
 
 def test_dfsph_large_dt_stays_bounded():
