@@ -279,7 +279,7 @@ void Solver::assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, cons
         const size_t k = static_cast<size_t>(3 * i + r);
         g[k] += driven_stiffness_ * (x[k] - target_[k]) - driven_lambda_[k];
       }
-      system.add(&i, 1, (driven_stiffness_ * Mat3::Identity()).eval(), false);
+      system.add(&i, 1, (driven_stiffness_ * Mat3::Identity()).eval());
       continue;
     }
     if (model_.fixed[iv]) continue;
@@ -288,7 +288,7 @@ void Solver::assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, cons
       const size_t k = static_cast<size_t>(3 * i + r);
       g[k] += m * (x[k] - xhat_[k]) + mc * (x[k] - xn_[k]);
     }
-    system.add(&i, 1, ((m + mc) * Mat3::Identity()).eval(), false);
+    system.add(&i, 1, ((m + mc) * Mat3::Identity()).eval());
   }
   // Elasticity: h^2 grad Psi, h^2 (projected) Hessian per element.
   const Index tet_count = static_cast<Index>(model_.tet_volume.size());
@@ -301,7 +301,7 @@ void Solver::assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, cons
     add_grad(tet, 4, h2 * fem::element_gradient<3>(fem::piola<3>(F, mat, mu, lam), dm_inv, vol));
     fem::HessF<3> dPdF = fem::piola_derivative<3>(F, mat, mu, lam);
     fem::project_psd<3>(dPdF);
-    system.add(tet, 4, (h2 * fem::element_hessian<3>(dPdF, dm_inv, vol)).eval(), false);
+    system.add(tet, 4, (h2 * fem::element_hessian<3>(dPdF, dm_inv, vol)).eval());
   }
   const Index spring_count = static_cast<Index>(model_.spring_rest.size());
   for (Index s = 0; s < spring_count; ++s) {
@@ -324,7 +324,7 @@ void Solver::assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, cons
     }
     Eigen::Matrix<Scalar, 6, 6> He;
     He << S, -S, -S, S;
-    system.add(ij, 2, He, false);
+    system.add(ij, 2, He);
   }
   // Barrier: kappa (b' grad d, b'' grad d grad d^T + b' Hess d), projected per contact.
   std::vector<Vec<12>> gb;
@@ -334,7 +334,7 @@ void Solver::assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, cons
     const Constraint& c = constraints[i];
     const int k = c.stencil_size();
     add_grad(c.stencil(), k, kappa * gb[i].head(3 * k));
-    system.add(c.stencil(), k, (kappa * Hb[i]).eval(), true);
+    system.add(c.stencil(), k, (kappa * Hb[i]).eval());
   }
   // Friction: h^2 mu lambda (f1(y)/y u/h through T, and the PSD tangent Hessian).
   const Scalar eps_v = config_.friction_velocity;
@@ -358,7 +358,7 @@ void Solver::assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, cons
       for (int b = 0; b < f.count; ++b) He.block<3, 3>(3 * a, 3 * b) = f.w[a] * f.w[b] * H3;
     }
     add_grad(f.v.data(), f.count, ge);
-    system.add(f.v.data(), f.count, He, true);
+    system.add(f.v.data(), f.count, He);
   }
 }
 
@@ -430,7 +430,12 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
   std::vector<Scalar> x = xn_, g, p(static_cast<size_t>(3 * n)), trial(static_cast<size_t>(3 * n));
   broad_phase_.find(model_, x.data(), nullptr, config_.dhat, candidates_);
   if (!system_ || !config_.reuse_pattern) system_ = std::make_unique<NewtonSystem>(model_);
-  system_->begin_step();
+  {
+    std::vector<std::vector<Index>> stencils;
+    for (const Constraint& c : find_constraints(model_, candidates_, x.data(), dhat2_))
+      stencils.emplace_back(c.stencil(), c.stencil() + c.stencil_size());
+    system_->begin_step(stencils);
+  }
   const Index m = system_->size();
   std::vector<Scalar> rhs(static_cast<size_t>(m)), pd(static_cast<size_t>(m));
   stats.unknowns = m;

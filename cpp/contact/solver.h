@@ -98,11 +98,12 @@ class Solver {
   std::unique_ptr<NewtonSystem> system_;
   std::unique_ptr<SpdSolver> linear_;
   std::int64_t linear_version_ = -1;
-  // Config::simplicial: Eigen's simplicial LLT of the lower triangle (AMD order), analysed
-  // once per pattern version; the matrix keeps the pattern, its values are copied in.
+  // Config::simplicial: Eigen's simplicial LLT of the lower triangle in the system's own dof
+  // order (AMD of the elastic pattern, fixed), analysed once per pattern version; the matrix
+  // keeps the pattern, its values are copied in.
   using ColMatrix = Eigen::SparseMatrix<Scalar, Eigen::ColMajor, Index>;
   ColMatrix llt_matrix_;
-  Eigen::SimplicialLLT<ColMatrix, Eigen::Lower, Eigen::AMDOrdering<Index>> llt_;
+  Eigen::SimplicialLLT<ColMatrix, Eigen::Lower, Eigen::NaturalOrdering<Index>> llt_;
   // Broad phase kept between queries (its trees are refit), and the candidate pairs of the
   // current Newton iteration: boxes swept over x -> x + p grown by dhat, so every trial of the
   // line search (x + alpha p, alpha <= 1) finds its active pairs among them.

@@ -1,6 +1,8 @@
 // The contact solver's Newton matrix on a kept block pattern (solver_system.h).
 #include "contact/solver_system.h"
 
+#include <Eigen/OrderingMethods>
+#include <Eigen/SparseCore>
 #include <algorithm>
 
 namespace kinema::contact {
@@ -24,10 +26,32 @@ NewtonSystem::NewtonSystem(const Model& model) {
   };
   for (size_t t = 0; t < model.tets.size(); t += 4) element(&model.tets[t], 4);
   for (size_t s = 0; s < model.springs.size(); s += 2) element(&model.springs[s], 2);
+  // Dofs numbered in the approximate-minimum-degree order of the elastic pattern (vertex
+  // graph): the factorisation runs in this fixed order whatever contact blocks are reserved,
+  // so its values do not depend on the pattern's history (reserved blocks are exact zeros) and
+  // a restored state continues bit for bit.
+  const Index nd = dof_count();
+  {
+    std::vector<Eigen::Triplet<Scalar, Index>> t;
+    for (const auto& [i, j] : blocks) t.emplace_back(i, j, 1);
+    Eigen::SparseMatrix<Scalar, Eigen::ColMajor, Index> graph(nd, nd);
+    graph.setFromTriplets(t.begin(), t.end());
+    Eigen::PermutationMatrix<Eigen::Dynamic, Eigen::Dynamic, Index> order;  // new -> old
+    Eigen::AMDOrdering<Index>()(graph, order);
+    std::vector<Index> renumber(static_cast<size_t>(nd));
+    const std::vector<Index> old_vertex = vertex_of_;
+    for (Index k = 0; k < nd; ++k) {
+      const Index old = order.indices()[k];
+      renumber[static_cast<size_t>(old)] = k;
+      vertex_of_[static_cast<size_t>(k)] = old_vertex[static_cast<size_t>(old)];
+      dof_[static_cast<size_t>(vertex_of_[static_cast<size_t>(k)])] = k;
+    }
+    for (auto& [i, j] : blocks) i = renumber[static_cast<size_t>(i)], j = renumber[static_cast<size_t>(j)];
+  }
   std::sort(blocks.begin(), blocks.end());
   blocks.erase(std::unique(blocks.begin(), blocks.end()), blocks.end());
+  elastic_ = blocks;
   rebuild(blocks);
-  std::fill(elastic_.begin(), elastic_.end(), 1);
 }
 
 Index NewtonSystem::find(Index i, Index j) const {
@@ -37,14 +61,13 @@ Index NewtonSystem::find(Index i, Index j) const {
   return it != last && *it == j ? static_cast<Index>(it - bcol_.begin()) : -1;
 }
 
-void NewtonSystem::add_block(Index i, Index j, const Scalar* m, bool contact) {
+void NewtonSystem::add_block(Index i, Index j, const Scalar* m) {
   const Index k = find(i, j);
   if (k < 0) {
     missing_.emplace_back(i, j);
     missing_values_.insert(missing_values_.end(), m, m + 9);
     return;
   }
-  if (contact) used_[static_cast<size_t>(k)] = 1;
   const Index start = bptr_[static_cast<size_t>(i)], len = bptr_[static_cast<size_t>(i) + 1] - start;
   Scalar* out = values_.data() + 9 * start + 3 * (k - start);
   for (int r = 0; r < 3; ++r)
@@ -56,7 +79,6 @@ void NewtonSystem::rebuild(const std::vector<std::pair<Index, Index>>& blocks) {
   // Old pattern and values, to carry over.
   const std::vector<Index> old_ptr = std::move(bptr_), old_col = std::move(bcol_);
   const std::vector<Scalar> old_values = std::move(values_);
-  const std::vector<char> old_elastic = std::move(elastic_), old_used = std::move(used_);
   bptr_.assign(static_cast<size_t>(rows) + 1, 0);
   bcol_.resize(blocks.size());
   for (size_t k = 0; k < blocks.size(); ++k) {
@@ -64,8 +86,6 @@ void NewtonSystem::rebuild(const std::vector<std::pair<Index, Index>>& blocks) {
     bcol_[k] = blocks[k].second;
   }
   for (Index i = 0; i < rows; ++i) bptr_[static_cast<size_t>(i) + 1] += bptr_[static_cast<size_t>(i)];
-  elastic_.assign(blocks.size(), 0);
-  used_.assign(blocks.size(), 0);
   values_.assign(9 * blocks.size(), 0);
   row_ptr_.resize(static_cast<size_t>(3 * rows) + 1);
   col_.resize(9 * blocks.size());
@@ -86,8 +106,6 @@ void NewtonSystem::rebuild(const std::vector<std::pair<Index, Index>>& blocks) {
     for (Index k = os; k < os + olen; ++k) {
       const Index slot = find(i, old_col[static_cast<size_t>(k)]);
       if (slot < 0) continue;  // dropped
-      elastic_[static_cast<size_t>(slot)] = old_elastic[static_cast<size_t>(k)];
-      used_[static_cast<size_t>(slot)] = old_used[static_cast<size_t>(k)];
       for (int r = 0; r < 3; ++r)
         for (int s = 0; s < 3; ++s)
           values_[static_cast<size_t>(9 * ns + r * 3 * nlen + 3 * (slot - ns) + s)] =
@@ -96,22 +114,24 @@ void NewtonSystem::rebuild(const std::vector<std::pair<Index, Index>>& blocks) {
   }
 }
 
-void NewtonSystem::begin_step() {
-  Index reserved = 0, used = 0;
-  for (size_t k = 0; k < bcol_.size(); ++k)
-    if (!elastic_[k]) {
-      ++reserved;
-      used += used_[k];
-    }
-  if (reserved > 2 * used + 64) {
-    std::vector<std::pair<Index, Index>> keep;
-    for (Index i = 0; i < dof_count(); ++i)
-      for (Index k = bptr_[static_cast<size_t>(i)]; k < bptr_[static_cast<size_t>(i) + 1]; ++k)
-        if (elastic_[static_cast<size_t>(k)] || used_[static_cast<size_t>(k)]) keep.emplace_back(i, bcol_[static_cast<size_t>(k)]);
-    rebuild(keep);
-    changed_ = true;
-  }
-  std::fill(used_.begin(), used_.end(), 0);
+void NewtonSystem::begin_step(const std::vector<std::vector<Index>>& stencils) {
+  std::vector<std::pair<Index, Index>> blocks = elastic_;
+  for (const std::vector<Index>& v : stencils)
+    for (Index a : v)
+      for (Index b : v) {
+        const Index i = dof(a), j = dof(b);
+        if (i >= 0 && j >= 0 && i != j) blocks.emplace_back(i, j);
+      }
+  std::sort(blocks.begin(), blocks.end());
+  blocks.erase(std::unique(blocks.begin(), blocks.end()), blocks.end());
+  // Unchanged when the current pattern is exactly these blocks.
+  bool same = static_cast<Index>(blocks.size()) == block_count();
+  for (Index i = 0; same && i < dof_count(); ++i)
+    for (Index k = bptr_[static_cast<size_t>(i)]; same && k < bptr_[static_cast<size_t>(i) + 1]; ++k)
+      same = blocks[static_cast<size_t>(k)] == std::make_pair(i, bcol_[static_cast<size_t>(k)]);
+  if (same) return;
+  rebuild(blocks);
+  changed_ = true;
 }
 
 void NewtonSystem::clear() {
@@ -135,7 +155,7 @@ bool NewtonSystem::finish() {
     missing_.clear();
     missing_values_.clear();
     rebuild(blocks);
-    for (size_t m = 0; m < missing.size(); ++m) add_block(missing[m].first, missing[m].second, &values[9 * m], true);
+    for (size_t m = 0; m < missing.size(); ++m) add_block(missing[m].first, missing[m].second, &values[9 * m]);
     changed_ = true;
   }
   if (!changed_) return false;

@@ -7,10 +7,15 @@
 // diagonal) form the fixed part of the pattern; contact blocks (barrier and friction stencils
 // joining two different dofs) are added into it. A block missing from the pattern is added on
 // the spot (values kept), which changes the pattern and needs a new symbolic analysis; blocks
-// stay reserved afterwards, so a contact set that returns to pairs it has seen reuses the
-// analysis (CHOLMOD refactorises numerically only). Reserved contact blocks that went unused
-// for a whole step are dropped at the next step's start once they outnumber the used ones
-// (at most one analysis per step for that), so the fill stays bounded on long runs.
+// stay reserved for the rest of the step, so Newton iterations whose contact set returns to
+// pairs seen reuse the analysis (numeric refactorisation only). Each step starts from the
+// elastic blocks plus those of the pairs active at x_n: a pattern that is a function of the
+// state (so a restored state continues bit for bit), the same as the last step's whenever no
+// pair appeared or vanished in between (then nothing is re-analysed), and bounded fill on long
+// runs.
+//
+// Dofs are numbered in the AMD order of the elastic pattern, kept for the model's life, so a
+// factorisation in this natural order does not depend on which contact blocks are reserved.
 //
 // Layout: block row i holds blocks k in [bptr[i], bptr[i+1]) with sorted block columns; its
 // three scalar rows are contiguous in the CSR arrays, so a scalar CSR view (full symmetric
@@ -35,15 +40,15 @@ class NewtonSystem {
   Index dof(Index v) const { return dof_[static_cast<size_t>(v)]; }
   Index vertex(Index d) const { return vertex_of_[static_cast<size_t>(d)]; }
 
-  // A new step: drops the reserved contact blocks if too many went unused in the last one.
-  void begin_step();
+  // A new step: the pattern becomes the elastic blocks plus the blocks of these contact
+  // stencils (the pairs active at the step's start), unchanged if it is that already.
+  void begin_step(const std::vector<std::vector<Index>>& stencils);
   // Zeroes the values before an assembly.
   void clear();
   // Adds the element matrix H (3 count x 3 count) over vertices verts[0..count); entries of
-  // vertices that are not dofs are skipped. `contact`: the stencil of a contact term (its
-  // blocks may be missing from the pattern; they are then added).
+  // vertices that are not dofs are skipped; blocks missing from the pattern are added.
   template <class Matrix>
-  void add(const Index* verts, int count, const Matrix& H, bool contact);
+  void add(const Index* verts, int count, const Matrix& H);
   // After an assembly: folds in the blocks that were missing (a pattern change). Returns true
   // when the pattern changed since the last call.
   bool finish();
@@ -57,15 +62,14 @@ class NewtonSystem {
   // Slot of block (i, j), or -1.
   Index find(Index i, Index j) const;
   // Adds the row-major 3x3 block m at dofs (i, j).
-  void add_block(Index i, Index j, const Scalar* m, bool contact);
+  void add_block(Index i, Index j, const Scalar* m);
   // Rebuilds the pattern from blocks (sorted unique (i, j) pairs), keeping the values of
   // blocks present before.
   void rebuild(const std::vector<std::pair<Index, Index>>& blocks);
 
   std::vector<Index> dof_, vertex_of_;
   std::vector<Index> bptr_, bcol_;
-  std::vector<char> elastic_;      // per block: part of the fixed (elastic and diagonal) pattern
-  std::vector<char> used_;         // per block: a contact term wrote it this step
+  std::vector<std::pair<Index, Index>> elastic_;  // the fixed (elastic and diagonal) blocks, sorted
   std::vector<Index> row_ptr_, col_;
   std::vector<Scalar> values_;
   // Blocks an assembly found missing: (i, j) and 9 values each (row-major).
@@ -76,7 +80,7 @@ class NewtonSystem {
 };
 
 template <class Matrix>
-void NewtonSystem::add(const Index* verts, int count, const Matrix& H, bool contact) {
+void NewtonSystem::add(const Index* verts, int count, const Matrix& H) {
   for (int a = 0; a < count; ++a) {
     const Index i = dof(verts[a]);
     if (i < 0) continue;
@@ -86,7 +90,7 @@ void NewtonSystem::add(const Index* verts, int count, const Matrix& H, bool cont
       Scalar m[9];
       for (int r = 0; r < 3; ++r)
         for (int s = 0; s < 3; ++s) m[3 * r + s] = H(3 * a + r, 3 * b + s);
-      add_block(i, j, m, contact);
+      add_block(i, j, m);
     }
   }
 }
