@@ -40,7 +40,9 @@ Dense dense_of(const NewtonSystem& s) {
   Dense A = Dense::Zero(v.rows, v.cols);
   for (Index r = 0; r < v.rows; ++r)
     for (Index k = v.row_ptr[r]; k < v.row_ptr[r + 1]; ++k) {
-      if (k > v.row_ptr[r]) EXPECT_LT(v.col_index[k - 1], v.col_index[k]);  // sorted, unique
+      if (k > v.row_ptr[r]) {
+        EXPECT_LT(v.col_index[k - 1], v.col_index[k]);  // sorted, unique
+      }
       A(r, v.col_index[k]) = v.values[k];
     }
   return A;
