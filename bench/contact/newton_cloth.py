@@ -11,9 +11,13 @@ dt = 1/50 s, cloth density 0.2 kg/m^2. Newton's side: one VBD step per dt with i
 10 iterations, self-contact on, sphere and box as static collision shapes (analytic, where
 kinema uses an icosphere and a box mesh). The models differ (kinema: springs and an IPC
 barrier solved to Newton tol 1e-2; VBD: StVK membrane and penalty contact at a fixed iteration
-count), so only the time per step at equal dt is compared, and each side's result is checked:
-kinema's exact minimum distance stays positive, Newton's cloth stays finite and above the
-sphere's surface less its contact radius.
+count), so the time per step at equal dt is compared beside each side's accuracy after every
+step: kinema's exact minimum distance (cloth to sphere/box meshes and to itself), its count of
+penetrations (edges through triangles, exact) and its last Newton step max|dx|/(dt diag) (the
+quantity tol bounds); VBD's smallest signed distance of a cloth vertex to the analytic sphere
+and box, the number of step-vertex pairs found inside either, and the cloth's
+self-intersections (edges through its own triangles, by kinema's exact check on VBD's
+triangles). VBD reports no residual (it stops after its fixed iterations).
 
 Warp compiles its CPU kernels on first use: the first steps are run untimed.
 """
@@ -76,17 +80,29 @@ def newton_scene(n):
     def positions():
         return states[0].particle_q.numpy()
 
-    return step, positions
+    return step, positions, model.tri_indices.numpy()
+
+
+def box_signed_distance(x):
+    # The tilted box of the scene: centre (0, -0.45, 0), half sizes (0.6, 0.05, 0.6), turned
+    # by TILT about z. Signed distance of points (negative inside).
+    c, s = math.cos(math.radians(TILT)), math.sin(math.radians(TILT))
+    p = x - np.array([0.0, -0.45, 0.0])
+    local = np.stack([c * p[:, 0] + s * p[:, 1], -s * p[:, 0] + c * p[:, 1], p[:, 2]], 1)  # R^T p
+    q = np.abs(local) - np.array([0.6, 0.05, 0.6])
+    return np.linalg.norm(np.maximum(q, 0), axis=1) + np.minimum(q.max(axis=1), 0)
 
 
 def run(sizes, steps, out):
     km.set_num_threads(1)
     rec = harness.Recorder(out / "contact_newton.csv", benchmark="contact-newton")
     print(f"commit {harness.git_commit()}  threads 1  dt {DT}")
+    summary = []
     for n in sizes:
         scene, dt = contact_scenes.cloth_scene(False, n)
         assert dt == DT
         contacts, cpu, wall = [], {"kinema": 0.0}, []
+        min_dist, residual, iterations = [], [], []
 
         def kinema_run():
             # The exact penetration check runs after each step, outside the step's own times.
@@ -96,12 +112,22 @@ def run(sizes, steps, out):
                 cpu["kinema"] += (time.process_time() - c0) / steps
                 wall.append(st.seconds)
                 contacts.append(st.contact_count)
-                assert scene.min_distance() > 0 and not scene.intersections()
+                iterations.append(st.newton_iterations)
+                residual.append(st.newton_history[-1])
+                min_dist.append(scene.min_distance())
+                assert min_dist[-1] > 0 and not scene.intersections()
 
         mk = harness.measure(kinema_run, max_tries=1)
-        step, positions = newton_scene(n)
+        kin_min = min(min_dist)
+        kin_residual = max(residual)
+        step, positions, tris = newton_scene(n)
         for _ in range(3):  # kernel compilation
             step()
+        # VBD's cloth checked by kinema's exact edge-triangle test (a cloth-only scene on VBD's
+        # triangles, built from its flat start).
+        checker = km.contact.Scene(dhat=1e-6)
+        checker.add_cloth(positions(), tris, stiffness=1.0, density=1.0)
+        vbd = {"min": np.inf, "inside": 0, "self": 0}
 
         def newton_run():
             c0 = time.process_time()
@@ -109,21 +135,39 @@ def run(sizes, steps, out):
                 step()
             cpu["newton"] = (time.process_time() - c0) / steps
 
+        # Timed without the checks (they run on a second, identical run below).
         mn = harness.measure(newton_run, max_tries=1)
-        x = positions()
-        assert np.all(np.isfinite(x)), "newton: non-finite positions"
-        r = np.linalg.norm(x, axis=1)
-        assert r.min() > RADIUS - 0.02, f"newton: cloth passed into the sphere (min radius {r.min():.4f})"
+        step, positions, _ = newton_scene(n)
+        for _ in range(steps + 3):
+            step()
+            x = positions()
+            assert np.all(np.isfinite(x)), "newton: non-finite positions"
+            d = np.minimum(np.linalg.norm(x, axis=1) - RADIUS, box_signed_distance(x))
+            vbd["min"] = min(vbd["min"], float(d.min()))
+            vbd["inside"] += int(np.sum(d < 0))
+            vbd["self"] += len(checker.intersections(x=x, limit=100000))
         size = f"cloth {n}x{n}, {(n + 1) ** 2} cloth vertices, {steps} steps"
         kinema_step = float(np.sum(wall)) / steps
         rec.record("kinema-cloth", size, kinema_step, measurement=mk,
-                   notes={"contacts_median": int(np.median(contacts)), "dt": DT, "cpu_ms": f"{cpu['kinema'] * 1e3:.1f}"})
+                   notes={"contacts_median": int(np.median(contacts)), "dt": DT, "cpu_ms": f"{cpu['kinema'] * 1e3:.1f}",
+                          "min_distance": f"{kin_min:.3g}", "penetrations": 0, "newton_residual": f"{kin_residual:.2g}",
+                          "newton_iterations": f"{np.mean(iterations):.1f}"})
         rec.record("newton-vbd-cloth-cpu", size, mn.seconds / steps, measurement=mn,
-                   notes={"iterations": 10, "dt": DT, "cpu_ms": f"{cpu['newton'] * 1e3:.1f}"})
-        print(f"{size}: kinema {kinema_step * 1e3:8.1f} ms/step (contacts {int(np.median(contacts))}, load "
-              f"{mk.other_load:.2f})  newton VBD cpu {mn.seconds / steps * 1e3:8.1f} ms/step (load {mn.other_load:.2f})  "
-              f"newton/kinema {mn.seconds / steps / kinema_step:5.2f}x | cpu per step kinema {cpu['kinema'] * 1e3:.1f} ms, "
-              f"newton {cpu['newton'] * 1e3:.1f} ms, newton/kinema {cpu['newton'] / cpu['kinema']:5.2f}x")
+                   notes={"iterations": 10, "dt": DT, "cpu_ms": f"{cpu['newton'] * 1e3:.1f}",
+                          "min_distance": f"{vbd['min']:.3g}", "vertices_inside": vbd["inside"],
+                          "self_intersections": vbd["self"]})
+        print(f"{size}: kinema {kinema_step * 1e3:8.1f} ms/step (contacts {int(np.median(contacts))}, newton "
+              f"{np.mean(iterations):.1f}, load {mk.other_load:.2f})  newton VBD cpu {mn.seconds / steps * 1e3:8.1f} "
+              f"ms/step (load {mn.other_load:.2f})  newton/kinema {mn.seconds / steps / kinema_step:5.2f}x | cpu per step "
+              f"kinema {cpu['kinema'] * 1e3:.1f} ms, newton {cpu['newton'] * 1e3:.1f} ms, newton/kinema "
+              f"{cpu['newton'] / cpu['kinema']:5.2f}x")
+        print(f"  accuracy: kinema min distance {kin_min:.3g} m, penetrations 0, last Newton step/(dt diag) <= "
+              f"{kin_residual:.2g} (tol {scene.config.tol:g}) | VBD min signed distance to sphere/box {vbd['min']:.3g} m, "
+              f"vertices inside a collider {vbd['inside']} (over all steps), cloth self-intersections {vbd['self']}")
+        summary.append((n, cpu["newton"] / cpu["kinema"], kin_min, vbd["min"], vbd["inside"], vbd["self"]))
+    print("summary (CPU time ratio newton VBD / kinema per step at dt 1/50; >= 2 meets the target): " + ", ".join(
+        f"{n}x{n}: {r:.2f}x (min distance kinema {a:.2g} m, VBD {b:.2g} m, VBD inside {c}, self-crossings {d})"
+        for n, r, a, b, c, d in summary))
 
 
 def main(argv=None):

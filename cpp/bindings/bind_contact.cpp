@@ -19,8 +19,9 @@ using contact::Vec3;
 
 LinearSolver contact_linear_solver(const std::string& name) {
   if (name == "cholmod") return LinearSolver::CholmodDirect;
+  if (name == "cholmod-pcg") return LinearSolver::Cholmod;
   if (name == "cg") return LinearSolver::CG;
-  throw InvalidArgument("linear_solver: expected 'cholmod' or 'cg', got '" + name + "'");
+  throw InvalidArgument("linear_solver: expected 'simplicial', 'cholmod', 'cholmod-pcg' or 'cg', got '" + name + "'");
 }
 
 Index rows_of(const py::array& a, Index cols, const char* name) {
@@ -87,15 +88,15 @@ struct PyScene {
                                   index_data(fixed), fixed.size()));
   }
 
-  Index add_obstacle(py::array vertices, const IndexArray& triangles, bool moving) {
+  Index add_obstacle(py::array vertices, const IndexArray& triangles, bool moving, Scalar friction) {
     const Index n = rows_of(vertices, 3, "vertices");
     const Index m = rows_of(triangles, 3, "triangles");
     const Scalar* x = checked_data(vertices, "vertices", 3 * n, false);
-    return grown(model->add_obstacle(x, n, index_data(triangles), m, moving));
+    return grown(model->add_obstacle(x, n, index_data(triangles), m, moving, friction));
   }
 
-  void add_plane(const std::array<Scalar, 3>& point, const std::array<Scalar, 3>& normal) {
-    model->add_plane(Vec3(point[0], point[1], point[2]), Vec3(normal[0], normal[1], normal[2]));
+  void add_plane(const std::array<Scalar, 3>& point, const std::array<Scalar, 3>& normal, Scalar friction) {
+    model->add_plane(Vec3(point[0], point[1], point[2]), Vec3(normal[0], normal[1], normal[2]), friction);
     state->kappa = 0;
     solver.reset();
   }
@@ -138,6 +139,7 @@ void bind_contact(py::module_& m) {
           "gravity", [](const contact::Config& c) { return std::array<Scalar, 3>{c.gravity[0], c.gravity[1], c.gravity[2]}; },
           [](contact::Config& c, const std::array<Scalar, 3>& g) { c.gravity = Vec3(g[0], g[1], g[2]); })
       .def_readwrite("dhat", &contact::Config::dhat)
+      .def_readwrite("reuse_pattern", &contact::Config::reuse_pattern)
       .def_readwrite("barrier_stiffness", &contact::Config::barrier_stiffness)
       .def_readwrite("friction", &contact::Config::friction)
       .def_readwrite("friction_velocity", &contact::Config::friction_velocity)
@@ -145,8 +147,16 @@ void bind_contact(py::module_& m) {
       .def_readwrite("max_newton", &contact::Config::max_newton)
       .def_property(
           "linear_solver",
-          [](const contact::Config& c) { return c.linear_solver == LinearSolver::CG ? "cg" : "cholmod"; },
-          [](contact::Config& c, const std::string& s) { c.linear_solver = contact_linear_solver(s); });
+          [](const contact::Config& c) {
+            return c.linear_solver == LinearSolver::CG        ? "cg"
+                   : c.linear_solver == LinearSolver::Cholmod ? "cholmod-pcg"
+                   : c.simplicial                             ? "simplicial"
+                                                              : "cholmod";
+          },
+          [](contact::Config& c, const std::string& s) {
+            c.simplicial = s == "simplicial";
+            c.linear_solver = contact_linear_solver(c.simplicial ? "cholmod" : s);
+          });
 
   py::class_<contact::StepStats, StepStatsBase>(m, "StepStats")
       .def_readonly("newton_iterations", &contact::StepStats::newton_iterations)
@@ -162,6 +172,8 @@ void bind_contact(py::module_& m) {
       .def_readonly("assemble_seconds", &contact::StepStats::assemble_seconds)
       .def_readonly("solve_seconds", &contact::StepStats::solve_seconds)
       .def_readonly("line_search_seconds", &contact::StepStats::line_search_seconds)
+      .def_readonly("pattern_changes", &contact::StepStats::pattern_changes)
+      .def_readonly("unknowns", &contact::StepStats::unknowns)
       .def_readonly("newton_history", &contact::StepStats::newton_history)
       .def_readonly("step_history", &contact::StepStats::step_history)
       .def("__repr__", [](const contact::StepStats& s) {
@@ -176,8 +188,9 @@ void bind_contact(py::module_& m) {
       .def("add_solid", &PyScene::add_solid)
       .def("add_cloth", &PyScene::add_cloth)
       .def("add_springs", &PyScene::add_springs)
-      .def("add_obstacle", &PyScene::add_obstacle)
-      .def("add_plane", &PyScene::add_plane)
+      .def("add_obstacle", &PyScene::add_obstacle, py::arg("vertices"), py::arg("triangles"), py::arg("moving"),
+           py::arg("friction") = -1.0)
+      .def("add_plane", &PyScene::add_plane, py::arg("point"), py::arg("normal"), py::arg("friction") = -1.0)
       .def("step", &PyScene::step)
       .def_property_readonly("vertex_count", [](const PyScene& s) { return s.model->vertex_count; })
       .def_property_readonly("x", [](PyScene& s) { return s.view(s.state->x); })

@@ -37,6 +37,7 @@ Index Model::append_vertices(const Scalar* x, Index n, const char* name) {
   driven.resize(static_cast<size_t>(start + n), 0);
   damping.resize(static_cast<size_t>(start + n), 0);
   body.resize(static_cast<size_t>(start + n), body_count);
+  body_friction.push_back(-1);
   vertex_count += n;
   ++body_count;
   return start;
@@ -204,10 +205,21 @@ Index Model::add_springs(const Scalar* x, Index n, const Index* spring_ids, Inde
   return start;
 }
 
-Index Model::add_obstacle(const Scalar* x, Index n, const Index* triangles, Index m, bool moving) {
+namespace {
+
+void check_friction(Scalar friction) {
+  if (std::isnan(friction) || std::isinf(friction))
+    throw InvalidArgument("friction: expected a finite value >= 0, got " + format_real(friction));
+}
+
+}  // namespace
+
+Index Model::add_obstacle(const Scalar* x, Index n, const Index* triangles, Index m, bool moving, Scalar friction) {
   if (m <= 0) throw InvalidArgument("triangles: expected at least one triangle");
   check_indices(triangles, 3 * m, n, "triangles");
+  check_friction(friction);
   const Index start = append_vertices(x, n, "vertices");
+  body_friction.back() = friction;
   for (Index k = start; k < start + n; ++k) fixed[static_cast<size_t>(k)] = 1, driven[static_cast<size_t>(k)] = moving;
   std::vector<Index> tris(triangles, triangles + 3 * m);
   for (Index& v : tris) v += start;
@@ -215,11 +227,12 @@ Index Model::add_obstacle(const Scalar* x, Index n, const Index* triangles, Inde
   return start;
 }
 
-void Model::add_plane(const Vec3& point, const Vec3& normal) {
+void Model::add_plane(const Vec3& point, const Vec3& normal, Scalar friction) {
   const Scalar len = normal.norm();
   if (!(std::isfinite(len) && len > 0)) throw InvalidArgument("normal: expected a finite non-zero vector");
   if (!point.allFinite()) throw InvalidArgument("point: contains non-finite values");
-  planes.push_back({point, normal / len});
+  check_friction(friction);
+  planes.push_back({point, normal / len, friction});
 }
 
 Scalar Model::total_mass() const {

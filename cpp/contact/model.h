@@ -23,10 +23,20 @@ struct Config {
   Scalar tol = 1e-2;                 // Newton stops when max |dx| / dt < tol * bbox diagonal [1/s]
   Index max_newton = 500;
   LinearSolver linear_solver = LinearSolver::CholmodDirect;
+  // With CholmodDirect: factorise by Eigen's simplicial LLT (AMD order, analysed once per
+  // pattern) instead of CHOLMOD's supernodal factorisation, which loses on the small, thin
+  // systems of a contact scene (a few hundred vertices: its supernodes are tiny BLAS calls).
+  bool simplicial = true;
+  // Keep the Newton matrix's pattern (elastic blocks plus the contact blocks seen so far) and
+  // its symbolic analysis between iterations and steps; false: a pattern of exactly this
+  // iteration's blocks, analysed afresh whenever it changes (the former behaviour; for tests
+  // and benchmarks).
+  bool reuse_pattern = true;
 };
 
 struct Plane {
   Vec3 point, normal;  // normal: unit, pointing into the allowed side
+  Scalar friction = -1;  // Coulomb mu of contacts with this plane; < 0: Config::friction
 };
 
 struct Model {
@@ -58,6 +68,10 @@ struct Model {
   std::vector<Plane> planes;
 
   Index body_count = 0;
+  // (body_count,) Coulomb mu of contacts with each body (colliders given their own); < 0:
+  // Config::friction. A contact takes the coefficient of the first vertex of its stencil whose
+  // body has one (a collider, since pairs join a body to a collider or to another body).
+  std::vector<Scalar> body_friction;
 
   // Each adder returns the index of its first vertex; inputs are validated with messages
   // naming the argument.
@@ -75,8 +89,10 @@ struct Model {
   Index add_springs(const Scalar* x, Index n, const Index* spring_ids, Index spring_count, const Scalar* stiffness,
                     const Scalar* rest_length, const Scalar* spring_damping, const Scalar* masses,
                     const Index* triangles, Index m, const Index* fixed_ids, Index fixed_count);
-  Index add_obstacle(const Scalar* x, Index n, const Index* triangles, Index m, bool moving = false);
-  void add_plane(const Vec3& point, const Vec3& normal);
+  // friction: the collider's own Coulomb mu (>= 0), or < 0 for the scene's.
+  Index add_obstacle(const Scalar* x, Index n, const Index* triangles, Index m, bool moving = false,
+                     Scalar friction = -1);
+  void add_plane(const Vec3& point, const Vec3& normal, Scalar friction = -1);
 
   Scalar total_mass() const;
   Scalar bbox_diagonal(const Scalar* x) const;

@@ -19,25 +19,6 @@ namespace {
 
 Vec3 at(const Scalar* x, Index i) { return Eigen::Map<const Vec3>(x + 3 * i); }
 
-// A degree of freedom of the solve: a body vertex that is not pinned, or a driven obstacle vertex.
-bool is_dof(const Model& model, Index i) {
-  return !model.fixed[static_cast<size_t>(i)] || model.driven[static_cast<size_t>(i)];
-}
-
-// Adds an element matrix over `count` vertices into triplets, skipping what is not a dof.
-template <class Matrix>
-void add_block(const Model& model, std::vector<Eigen::Triplet<Scalar, Index>>& t, const Index* verts, int count,
-               const Matrix& H) {
-  for (int a = 0; a < count; ++a) {
-    if (!is_dof(model, verts[a])) continue;
-    for (int b = 0; b < count; ++b) {
-      if (!is_dof(model, verts[b])) continue;
-      for (int r = 0; r < 3; ++r)
-        for (int s = 0; s < 3; ++s) t.emplace_back(3 * verts[a] + r, 3 * verts[b] + s, H(3 * a + r, 3 * b + s));
-    }
-  }
-}
-
 Eigen::Matrix<Scalar, 3, 2> tangent_basis(const Vec3& n) {
   const Vec3 a = std::abs(n.x()) < 0.9 ? Vec3::UnitX() : Vec3::UnitY();
   const Vec3 t1 = n.cross(a).normalized();
@@ -45,6 +26,13 @@ Eigen::Matrix<Scalar, 3, 2> tangent_basis(const Vec3& n) {
   P.col(0) = t1;
   P.col(1) = n.cross(t1);
   return P;
+}
+
+// Least-squares coordinates (u, v) of r in the span of e1 and e2 (the 2x2 normal equations).
+Eigen::Matrix<Scalar, 2, 1> span_coordinates(const Vec3& e1, const Vec3& e2, const Vec3& r) {
+  const Scalar a11 = e1.dot(e1), a12 = e1.dot(e2), a22 = e2.dot(e2), b1 = e1.dot(r), b2 = e2.dot(r);
+  const Scalar det = a11 * a22 - a12 * a12;
+  return {(a22 * b1 - a12 * b2) / det, (a11 * b2 - a12 * b1) / det};
 }
 
 // Weights w of the closest points of a constraint at x (relative position r = sum w_a x_a)
@@ -71,19 +59,15 @@ void closest_weights(const Model& model, const Constraint& c, const Scalar* x, F
       break;
     }
     case PairKind::PT: {
-      const Vec3 e1 = y[2] - y[1], e2 = y[3] - y[1], r = y[0] - y[1];
-      const Scalar a11 = e1.dot(e1), a12 = e1.dot(e2), a22 = e2.dot(e2), b1 = e1.dot(r), b2 = e2.dot(r);
-      const Scalar det = a11 * a22 - a12 * a12;
-      const Scalar u = (a22 * b1 - a12 * b2) / det, v = (a11 * b2 - a12 * b1) / det;
-      f.w[0] = 1, f.w[1] = -(1 - u - v), f.w[2] = -u, f.w[3] = -v;
+      // Closest point y1 + u (y2 - y1) + v (y3 - y1) on the triangle's plane.
+      const Eigen::Matrix<Scalar, 2, 1> uv = span_coordinates(y[2] - y[1], y[3] - y[1], y[0] - y[1]);
+      f.w[0] = 1, f.w[1] = -(1 - uv[0] - uv[1]), f.w[2] = -uv[0], f.w[3] = -uv[1];
       break;
     }
     case PairKind::EE: {
-      const Vec3 d1 = y[1] - y[0], d2 = y[3] - y[2], r = y[0] - y[2];
-      const Scalar a = d1.dot(d1), e = d2.dot(d2), b = d1.dot(d2), cc = d1.dot(r), ff = d2.dot(r);
-      const Scalar denom = a * e - b * b;
-      const Scalar s = (b * ff - cc * e) / denom, t = (a * ff - b * cc) / denom;
-      f.w[0] = 1 - s, f.w[1] = s, f.w[2] = -(1 - t), f.w[3] = -t;
+      // Closest points y0 + s (y1 - y0) and y2 + t (y3 - y2): s (y1 - y0) + t (y2 - y3) = y2 - y0.
+      const Eigen::Matrix<Scalar, 2, 1> st = span_coordinates(y[1] - y[0], y[2] - y[3], y[2] - y[0]);
+      f.w[0] = 1 - st[0], f.w[1] = st[0], f.w[2] = -(1 - st[1]), f.w[3] = -st[1];
       break;
     }
   }
@@ -168,7 +152,7 @@ void Solver::barrier_gradient(const Scalar* x, Scalar* g) const {
 }
 
 SparseMatrix Solver::barrier_hessian(const Scalar* x, bool project) const {
-  Triplets t;
+  std::vector<Eigen::Triplet<Scalar, Index>> t;
   const std::vector<Constraint> constraints = find_constraints(model_, broad_phase_, x, dhat2_);
   std::vector<Vec<12>> gb;
   std::vector<Mat<12>> Hb;
@@ -208,9 +192,27 @@ Scalar Solver::initial_kappa(Scalar h) const {
 
 void Solver::lag_friction(const std::vector<Scalar>& x, Scalar kappa, Scalar h) {
   friction_.clear();
-  if (config_.friction <= 0) return;
+  bool any = config_.friction > 0;
+  for (Scalar mu : model_.body_friction) any |= mu > 0;
+  for (const Plane& plane : model_.planes) any |= plane.friction > 0;
+  if (!any) return;
   for (const Constraint& c : find_constraints(model_, broad_phase_, x.data(), dhat2_)) {
     FrictionContact f;
+    // The pair's coefficient: its collider's own, else the scene's.
+    f.mu = config_.friction;
+    if (c.plane >= 0) {
+      const Scalar own = model_.planes[static_cast<size_t>(c.plane)].friction;
+      if (own >= 0) f.mu = own;
+    } else {
+      for (int a = 0; a < c.stencil_size(); ++a) {
+        const Scalar own = model_.body_friction[static_cast<size_t>(model_.body[static_cast<size_t>(c.stencil()[a])])];
+        if (own >= 0) {
+          f.mu = own;
+          break;
+        }
+      }
+    }
+    if (!(f.mu > 0)) continue;
     Vec3 n;
     closest_weights(model_, c, x.data(), f, n);
     // Normal force of the barrier: -d(kappa b)/d(distance) / h^2 (kappa carries the h^2 of Phi).
@@ -250,19 +252,19 @@ Scalar Solver::potential(const std::vector<Scalar>& x, Scalar h, Scalar kappa) c
   b = evaluate_barriers(model_, find_constraints(model_, candidates_, x.data(), dhat2_), x.data(), dhat2_, nullptr,
                         nullptr, false);
   Scalar friction = 0;
-  const Scalar mu = config_.friction, eps_v = config_.friction_velocity;
+  const Scalar eps_v = config_.friction_velocity;
   for (const FrictionContact& f : friction_) {
     const Eigen::Matrix<Scalar, 2, 1> u = sliding(f, x.data(), xn_.data());
-    friction += mu * f.normal_force * h * friction_f0(u.norm() / h, eps_v);
+    friction += f.mu * f.normal_force * h * friction_f0(u.norm() / h, eps_v);
   }
   return inertia + h * h * (elastic_energy(x.data()) + friction) + kappa * b;
 }
 
 void Solver::assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, const std::vector<Constraint>& constraints,
-                      std::vector<Scalar>& g, Triplets& t) const {
+                      std::vector<Scalar>& g, NewtonSystem& system) const {
   const Index n = model_.vertex_count;
   g.assign(static_cast<size_t>(3 * n), 0);
-  t.clear();
+  system.clear();
   const Scalar h2 = h * h;
   auto add_grad = [&](const Index* verts, int count, const Eigen::Ref<const VectorX>& ge) {
     for (int a = 0; a < count; ++a)
@@ -276,20 +278,17 @@ void Solver::assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, cons
       for (int r = 0; r < 3; ++r) {
         const size_t k = static_cast<size_t>(3 * i + r);
         g[k] += driven_stiffness_ * (x[k] - target_[k]) - driven_lambda_[k];
-        t.emplace_back(3 * i + r, 3 * i + r, driven_stiffness_);
       }
+      system.add(&i, 1, (driven_stiffness_ * Mat3::Identity()).eval());
       continue;
     }
-    if (model_.fixed[iv]) {
-      for (int r = 0; r < 3; ++r) t.emplace_back(3 * i + r, 3 * i + r, 1);
-      continue;
-    }
+    if (model_.fixed[iv]) continue;
     const Scalar m = model_.mass[iv], mc = h * model_.damping[iv] * m;
     for (int r = 0; r < 3; ++r) {
       const size_t k = static_cast<size_t>(3 * i + r);
       g[k] += m * (x[k] - xhat_[k]) + mc * (x[k] - xn_[k]);
-      t.emplace_back(3 * i + r, 3 * i + r, m + mc);
     }
+    system.add(&i, 1, ((m + mc) * Mat3::Identity()).eval());
   }
   // Elasticity: h^2 grad Psi, h^2 (projected) Hessian per element.
   const Index tet_count = static_cast<Index>(model_.tet_volume.size());
@@ -302,7 +301,7 @@ void Solver::assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, cons
     add_grad(tet, 4, h2 * fem::element_gradient<3>(fem::piola<3>(F, mat, mu, lam), dm_inv, vol));
     fem::HessF<3> dPdF = fem::piola_derivative<3>(F, mat, mu, lam);
     fem::project_psd<3>(dPdF);
-    add_block(model_, t, tet, 4, h2 * fem::element_hessian<3>(dPdF, dm_inv, vol));
+    system.add(tet, 4, (h2 * fem::element_hessian<3>(dPdF, dm_inv, vol)).eval());
   }
   const Index spring_count = static_cast<Index>(model_.spring_rest.size());
   for (Index s = 0; s < spring_count; ++s) {
@@ -325,7 +324,7 @@ void Solver::assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, cons
     }
     Eigen::Matrix<Scalar, 6, 6> He;
     He << S, -S, -S, S;
-    add_block(model_, t, ij, 2, He);
+    system.add(ij, 2, He);
   }
   // Barrier: kappa (b' grad d, b'' grad d grad d^T + b' Hess d), projected per contact.
   std::vector<Vec<12>> gb;
@@ -335,14 +334,14 @@ void Solver::assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, cons
     const Constraint& c = constraints[i];
     const int k = c.stencil_size();
     add_grad(c.stencil(), k, kappa * gb[i].head(3 * k));
-    add_block(model_, t, c.stencil(), k, (kappa * Hb[i]).eval());
+    system.add(c.stencil(), k, (kappa * Hb[i]).eval());
   }
   // Friction: h^2 mu lambda (f1(y)/y u/h through T, and the PSD tangent Hessian).
-  const Scalar mu = config_.friction, eps_v = config_.friction_velocity;
+  const Scalar eps_v = config_.friction_velocity;
   for (const FrictionContact& f : friction_) {
     const Eigen::Matrix<Scalar, 2, 1> u = sliding(f, x.data(), xn_.data());
     const Scalar y = u.norm() / h;
-    const Scalar scale = h2 * mu * f.normal_force;
+    const Scalar scale = h2 * f.mu * f.normal_force;
     const Scalar phi = friction_f1_over_y(y, eps_v);
     const Eigen::Matrix<Scalar, 2, 1> gu = scale * phi * u / h;
     Eigen::Matrix<Scalar, 2, 2> Hu = scale / h * phi * Eigen::Matrix<Scalar, 2, 2>::Identity();
@@ -359,11 +358,8 @@ void Solver::assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, cons
       for (int b = 0; b < f.count; ++b) He.block<3, 3>(3 * a, 3 * b) = f.w[a] * f.w[b] * H3;
     }
     add_grad(f.v.data(), f.count, ge);
-    add_block(model_, t, f.v.data(), f.count, He);
+    system.add(f.v.data(), f.count, He);
   }
-  for (Index i = 0; i < n; ++i)
-    if (!is_dof(model_, i))
-      for (int r = 0; r < 3; ++r) g[static_cast<size_t>(3 * i + r)] = 0;
 }
 
 StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
@@ -433,34 +429,62 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
 
   std::vector<Scalar> x = xn_, g, p(static_cast<size_t>(3 * n)), trial(static_cast<size_t>(3 * n));
   broad_phase_.find(model_, x.data(), nullptr, config_.dhat, candidates_);
-  Triplets triplets;
-  SparseMatrix H(3 * n, 3 * n);
+  if (!system_ || !config_.reuse_pattern) system_ = std::make_unique<NewtonSystem>(model_);
+  {
+    std::vector<std::vector<Index>> stencils;
+    for (const Constraint& c : find_constraints(model_, candidates_, x.data(), dhat2_))
+      stencils.emplace_back(c.stencil(), c.stencil() + c.stencil_size());
+    system_->begin_step(stencils);
+  }
+  const Index m = system_->size();
+  std::vector<Scalar> rhs(static_cast<size_t>(m)), pd(static_cast<size_t>(m));
+  stats.unknowns = m;
   Scalar prev_min = std::numeric_limits<Scalar>::infinity();
   bool converged = false;
   for (Index it = 0; it < config_.max_newton; ++it) {
     interrupt.check();
-    // Projected Newton direction: H p = -grad Phi.
+    // Projected Newton direction: H p = -grad Phi over the degrees of freedom.
     Stopwatch phase;
     const std::vector<Constraint> constraints = find_constraints(model_, candidates_, x.data(), dhat2_);
-    assemble(x, h, kappa, constraints, g, triplets);
-    H.setFromTriplets(triplets.begin(), triplets.end());
-    H.makeCompressed();
-    const std::vector<Index> ptr(H.outerIndexPtr(), H.outerIndexPtr() + H.outerSize() + 1);
-    const std::vector<Index> col(H.innerIndexPtr(), H.innerIndexPtr() + H.nonZeros());
-    if (!linear_ || ptr != pattern_ptr_ || col != pattern_col_) {
+    if (!config_.reuse_pattern && it > 0) system_ = std::make_unique<NewtonSystem>(model_);
+    assemble(x, h, kappa, constraints, g, *system_);
+    system_->finish();
+    const bool simplicial = config_.simplicial && config_.linear_solver == LinearSolver::CholmodDirect;
+    const CsrView view = system_->view();
+    if (!linear_ || system_->version() != linear_version_ || !config_.reuse_pattern) {
+      // A new pattern: a new symbolic analysis.
       linear_ = std::make_unique<SpdSolver>();
-      pattern_ptr_ = ptr;
-      pattern_col_ = col;
+      linear_version_ = system_->version();
+      ++stats.pattern_changes;
+      if (simplicial) {
+        // The full symmetric CSR matrix is its own CSC; the factorisation reads the lower half.
+        llt_matrix_ = Eigen::Map<const ColMatrix>(m, m, view.row_ptr[m], view.row_ptr, view.col_index, view.values);
+        llt_.analyzePattern(llt_matrix_);
+      }
     }
     stats.assemble_seconds += phase.seconds();
     phase.restart();
-    const CsrView view{3 * n, 3 * n, pattern_ptr_.data(), pattern_col_.data(), H.valuePtr()};
-    std::vector<Scalar> rhs(g.size());
-    for (size_t k = 0; k < g.size(); ++k) rhs[k] = -g[k];
+    for (Index d = 0; d < system_->dof_count(); ++d)
+      for (int r = 0; r < 3; ++r) rhs[static_cast<size_t>(3 * d + r)] = -g[static_cast<size_t>(3 * system_->vertex(d) + r)];
+    std::fill(pd.begin(), pd.end(), Scalar(0));
+    bool definite = true;
+    if (simplicial) {
+      std::copy(view.values, view.values + view.row_ptr[m], llt_matrix_.valuePtr());
+      llt_.factorize(llt_matrix_);
+      definite = llt_.info() == Eigen::Success;
+      if (definite) Eigen::Map<VectorX>(pd.data(), m) = llt_.solve(Eigen::Map<const VectorX>(rhs.data(), m));
+    } else {
+      // cholmod-pcg: PCG preconditioned by the last factor (refactorised when it stalls) to a
+      // relative residual of 1e-8; the direct and CG kinds solve to rounding / 1e-10.
+      SpdSolveStats solve_stats;
+      const bool lagged = config_.linear_solver == LinearSolver::Cholmod;
+      definite = linear_->solve(config_.linear_solver, view, rhs.data(), pd.data(), lagged ? 1e-8 : 1e-10, lagged,
+                                interrupt, solve_stats);
+    }
+    if (!definite) throw NotPositiveDefinite("contact: the projected Newton matrix is not positive definite", -1);
     std::fill(p.begin(), p.end(), Scalar(0));
-    SpdSolveStats solve_stats;
-    if (!linear_->solve(config_.linear_solver, view, rhs.data(), p.data(), 1e-10, false, interrupt, solve_stats))
-      throw NotPositiveDefinite("contact: the projected Newton matrix is not positive definite", -1);
+    for (Index d = 0; d < system_->dof_count(); ++d)
+      for (int r = 0; r < 3; ++r) p[static_cast<size_t>(3 * system_->vertex(d) + r)] = pd[static_cast<size_t>(3 * d + r)];
     stats.solve_seconds += phase.seconds();
     stats.newton_iterations = it + 1;
     Scalar p_max = 0;

@@ -7,11 +7,13 @@
 // accepted iterate, and the straight path to it, is free of intersections.
 #pragma once
 
+#include <Eigen/SparseCholesky>
 #include <memory>
 #include <vector>
 
 #include "contact/collision.h"
 #include "contact/model.h"
+#include "contact/solver_system.h"
 #include "core/interrupt.h"
 #include "core/step_stats.h"
 #include "linalg/spd_solver.h"
@@ -30,6 +32,11 @@ struct StepStats : StepStatsBase {
   Scalar ccd_share = 0;            // ccd_seconds / seconds
   Scalar barrier_stiffness = 0;    // kappa of the step [kg/m^2] (Phi units)
   double assemble_seconds = 0, solve_seconds = 0, line_search_seconds = 0;  // wall time per phase [s]
+  // Symbolic analyses of the Newton matrix in this step: its pattern changed (a contact block
+  // not reserved yet, or reserved blocks dropped at the step's start; every iteration when
+  // Config::reuse_pattern is off). The other factorisations reuse the analysis.
+  Index pattern_changes = 0;
+  Index unknowns = 0;  // size of the Newton system (3 per degree of freedom)
   // Per Newton iteration: max |dx| / (dt * bbox diagonal) (the quantity tol bounds) and the
   // step length accepted by the line search.
   std::vector<Scalar> newton_history, step_history;
@@ -42,6 +49,7 @@ struct FrictionContact {
   Scalar w[4] = {0, 0, 0, 0};
   Eigen::Matrix<Scalar, 3, 2> P;
   Scalar normal_force = 0;  // lambda [N]
+  Scalar mu = 0;            // its Coulomb coefficient
 };
 
 class Solver {
@@ -70,10 +78,9 @@ class Solver {
   const Config& config() const { return config_; }
 
  private:
-  using Triplets = std::vector<Eigen::Triplet<Scalar, Index>>;
   Scalar potential(const std::vector<Scalar>& x, Scalar h, Scalar kappa) const;
   void assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, const std::vector<Constraint>& constraints,
-                std::vector<Scalar>& g, Triplets& triplets) const;
+                std::vector<Scalar>& g, NewtonSystem& system) const;
   void lag_friction(const std::vector<Scalar>& x, Scalar kappa, Scalar h);
   Scalar initial_kappa(Scalar h) const;
 
@@ -86,8 +93,17 @@ class Solver {
   Scalar driven_stiffness_ = 0;                 // k of the augmented Lagrangian [kg]
   std::vector<Vec3> spring_direction_;          // unit spring directions at x_n
   std::vector<FrictionContact> friction_;
+  // The Newton matrix on its kept pattern and the factorisation of that pattern (analysed
+  // once per pattern version).
+  std::unique_ptr<NewtonSystem> system_;
   std::unique_ptr<SpdSolver> linear_;
-  std::vector<Index> pattern_ptr_, pattern_col_;
+  std::int64_t linear_version_ = -1;
+  // Config::simplicial: Eigen's simplicial LLT of the lower triangle in the system's own dof
+  // order (AMD of the elastic pattern, fixed), analysed once per pattern version; the matrix
+  // keeps the pattern, its values are copied in.
+  using ColMatrix = Eigen::SparseMatrix<Scalar, Eigen::ColMajor, Index>;
+  ColMatrix llt_matrix_;
+  Eigen::SimplicialLLT<ColMatrix, Eigen::Lower, Eigen::NaturalOrdering<Index>> llt_;
   // Broad phase kept between queries (its trees are refit), and the candidate pairs of the
   // current Newton iteration: boxes swept over x -> x + p grown by dhat, so every trial of the
   // line search (x + alpha p, alpha <= 1) finds its active pairs among them.

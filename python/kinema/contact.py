@@ -202,7 +202,14 @@ class Scene:
       when contacts get closer than 1e-9 of the scene size.
     * ``tol``: Newton stops when ``max |dx| / dt < tol * (bounding-box diagonal)`` [1/s];
       ``max_newton``: its iteration cap (``km.ConvergenceError`` beyond it).
-    * ``linear_solver``: "cholmod" (direct) or "cg".
+    * ``linear_solver``: "simplicial" (default: a direct solve per Newton iteration by
+      Eigen's simplicial Cholesky, fastest on contact scenes of up to a few thousand
+      vertices), "cholmod" (the same by CHOLMOD's supernodal factorisation), "cholmod-pcg" (PCG
+      preconditioned by the last factor, refactorised when PCG stalls) or "cg" (Jacobi).
+    * ``reuse_pattern``: keep the Newton matrix's sparsity pattern (elastic blocks plus the
+      contact blocks seen so far) and its symbolic analysis between Newton iterations and
+      steps (default); False re-analyses whenever the contact pattern changes (for
+      comparisons: the results agree to rounding).
 
     Attributes: ``x`` (n, 3) positions [m] and ``v`` (n, 3) velocities [m/s] of every vertex of
     every body and collider, in the order added (writable views; ``add_*`` returns each
@@ -211,7 +218,8 @@ class Scene:
     """
 
     def __init__(self, *, gravity=None, dhat=1e-3, friction=0.0, friction_velocity=1e-3,
-                 barrier_stiffness=None, tol=1e-2, max_newton=500, linear_solver="cholmod"):
+                 barrier_stiffness=None, tol=1e-2, max_newton=500, linear_solver="simplicial",
+                 reuse_pattern=True):
         cfg = _core.contact.Config()
         cfg.gravity = (0.0, 0.0, 0.0) if gravity is None else tuple(_vec3(gravity, "gravity"))
         cfg.dhat = positive(dhat, "dhat")
@@ -220,7 +228,10 @@ class Scene:
         cfg.barrier_stiffness = 0.0 if barrier_stiffness is None else positive(barrier_stiffness, "barrier_stiffness")
         cfg.tol = positive(tol, "tol")
         cfg.max_newton = integer(max_newton, "max_newton", low=1, high=INT_MAX)
-        cfg.linear_solver = choice(linear_solver, "linear_solver", ("cholmod", "cg"))
+        cfg.linear_solver = choice(linear_solver, "linear_solver", ("simplicial", "cholmod", "cholmod-pcg", "cg"))
+        if not isinstance(reuse_pattern, (bool, np.bool_)):
+            raise ValueError(f"reuse_pattern: expected True or False, got {reuse_pattern!r}")
+        cfg.reuse_pattern = bool(reuse_pattern)
         self._core = _core.contact.Scene(cfg)
         self.config = cfg
         self.planes = []
@@ -310,8 +321,9 @@ class Scene:
                                      finite(density, "density"), _indices(fixed, "fixed", None))
         return self._slice(start, len(v))
 
-    def add_collider(self, shape, *, motion=None, velocity=None, angular_velocity=None, **kw):
-        """A collider, static or moving. ``shape``:
+    def add_collider(self, shape, *, motion=None, velocity=None, angular_velocity=None, friction=None, **kw):
+        """A collider, static or moving, with its own Coulomb coefficient ``friction`` for every
+        contact with it (default None: the scene's ``friction``). ``shape``:
 
         * "plane": ``point``, ``normal`` (pointing to the free side): an exact half-space
           (static only);
@@ -330,6 +342,7 @@ class Scene:
 
         Returns the collider's rows of ``x`` (None for a plane)."""
         shape = choice(shape, "shape", ("plane", "box", "sphere", "mesh"))
+        mu = -1.0 if friction is None else non_negative(friction, "friction")
         moving = motion is not None or velocity is not None or angular_velocity is not None
         if moving and shape == "plane":
             raise ValueError("motion: a plane collider is static; use a large box for a moving floor or wall")
@@ -344,13 +357,13 @@ class Scene:
             if not normal.any():
                 raise ValueError("normal: expected a non-zero vector")
             normal = normal / np.abs(normal).max()  # its norm is then representable
-            self._core.add_plane(tuple(point), tuple(normal))
+            self._core.add_plane(tuple(point), tuple(normal), mu)
             self.planes.append((point, normal / np.linalg.norm(normal)))
             self.colliders.append({"shape": "plane", "point": point, "normal": normal / np.linalg.norm(normal),
                                    "rows": None, "motion": None})
             return None
         v, t = _surface(shape, kw)
-        start = self._core.add_obstacle(v, t, motion is not None)
+        start = self._core.add_obstacle(v, t, motion is not None, mu)
         rows = self._slice(start, len(v))
         spec = {"shape": shape, "rows": rows, "rest": v.copy(), "motion": motion,
                 "pivot": 0.5 * (v.min(axis=0) + v.max(axis=0))}
@@ -666,8 +679,8 @@ class BodyContact:
         """Adds a collider: ``shape`` and its options as :meth:`Scene.add_collider` (in 2D:
         "plane" with 2D ``point`` and ``normal``, "box" with 2D ``lower``/``upper``, "sphere"
         with a 2D ``center``; ``velocity`` (d,) moves it). ``friction``: this collider's
-        Coulomb mu for the symplectic projection (default: the body's ``friction``; the
-        implicit steps use the body's one coefficient). Returns the number of colliders."""
+        Coulomb mu, for the symplectic projection and the implicit steps alike (default: the
+        body's ``friction``). Returns the number of colliders."""
         shape = choice(shape, "shape", ("plane", "box", "sphere", "mesh"))
         mu = self.options["friction"] if friction is None else non_negative(friction, "friction")
         if self.dim == 2:
@@ -702,8 +715,8 @@ class BodyContact:
                           max_newton=o["max_newton"], barrier_stiffness=o["barrier_stiffness"])
             scene._core.time = self.sim.time
             scene.add_body(self.sim, triangles=o["triangles"])
-            for shape, kw, _ in self.colliders:
-                scene.add_collider(shape, **kw)
+            for shape, kw, mu in self.colliders:
+                scene.add_collider(shape, friction=mu, **kw)
             self._scene = scene
         return self._scene
 
