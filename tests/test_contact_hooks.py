@@ -237,3 +237,20 @@ def test_scene_files_take_mesh_and_moving_colliders(tmp_path, solver):
     path.write_text(bad)
     with pytest.raises(ValueError, match="file"):
         km.Scene.load(path).build()
+
+
+def test_a_single_vertex_lands_on_a_plane():
+    """A scene whose bodies span nothing (one mass point, no springs) steps like any other: it
+    falls freely (y = y0 - g t^2/2 ... the implicit Euler path) and then rests above the plane."""
+    point = km.massspring.System(np.array([[0.0, 0.05, 0.0]]), np.zeros((0, 2), dtype=np.int64),
+                                 stiffness=1.0, mass=0.01, gravity=G)
+    point.add_collider("plane", point=(0, 0, 0), normal=(0, 1, 0))
+    y = [0.05]
+    for _ in range(40):
+        point.step(5e-3)
+        y.append(point.x[0, 1])
+        assert point.x[0, 1] > 0
+    # before touching anything: implicit Euler's free fall, y_k = y0 - g h^2 k(k+1)/2
+    k = np.arange(1, 6)
+    assert np.allclose(y[1:6], 0.05 - 9.81 * 5e-3 ** 2 * k * (k + 1) / 2, rtol=0, atol=1e-12)
+    assert 0 < y[-1] < 1e-2 and abs(point.v[0, 1]) < 0.05

@@ -387,13 +387,15 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
       xhat_[k] = model_.fixed[static_cast<size_t>(i)] ? xn_[k] : xn_[k] + h * state.v[k] + h * h * config_.gravity[r];
     }
   // A step that would carry vertices over many scene diagonals is a diverged state (or a dt far
-  // too long): CCD would crawl along such a path in tiny increments for hours. Refused.
+  // too long): CCD would crawl along such a path in tiny increments for hours. Refused. The
+  // scale is at least 1 m, so that a scene whose bodies span nothing (a single vertex above a
+  // plane) is not refused for an ordinary step.
   {
     Scalar reach = 0;
     for (size_t k = 0; k < xhat_.size(); ++k) reach = std::max(reach, std::abs(xhat_[k] - xn_[k]));
-    if (!(reach <= 1e3 * diag))
+    if (!(reach <= 1e3 * std::max(diag, Scalar(1))))
       throw DivergenceError("v: a step of dt = " + format_real(h) + " would move vertices by " + format_real(reach) +
-                            " m, more than 1000 scene diagonals (" + format_real(diag) +
+                            " m, more than 1000 scene diagonals (" + format_real(std::max(diag, Scalar(1))) +
                             " m): the state has diverged or dt is far too long");
   }
   Scalar kappa = state.kappa;
