@@ -50,6 +50,43 @@ Mat<D> dm_inverse(const Model& m, Index e) {
   return Eigen::Map<const Mat<D>>(m.Dm_inv.data() + e * D * D);
 }
 
+// dP/dF applied to dF without forming the D^2 x D^2 matrix (piola_derivative<D>(F) vec(dF), as
+// fem/kernels.h writes it, term by term); the corotated model's rotation derivative goes
+// through the matrix.
+template <int D>
+Mat<D> piola_differential(const Mat<D>& F, const Mat<D>& dF, Material m, Scalar mu, Scalar lam) {
+  const Mat<D> I = Mat<D>::Identity();
+  switch (m) {
+    case Material::Linear:
+      return mu * (dF + dF.transpose()) + lam * dF.trace() * I;
+    case Material::StVK: {
+      const Mat<D> E = (F.transpose() * F - I) / 2;
+      const Mat<D> S = 2 * mu * E + lam * E.trace() * I;
+      const Mat<D> dE = (dF.transpose() * F + F.transpose() * dF) / 2;
+      return dF * S + F * (2 * mu * dE + lam * dE.trace() * I);
+    }
+    case Material::NeoHookean: {
+      // mu dF + lam' (cof F : dF) cof F + (lam' (J - 1) - mu) d(cof F)[dF], lam' = lam + mu.
+      const Scalar l = lam + mu;
+      const Mat<D> C = cofactor<D>(F);
+      Mat<D> dC;
+      if constexpr (D == 2) {
+        dC = cofactor<D>(dF);  // linear in F
+      } else {
+        dC.col(0) = dF.col(1).cross(F.col(2)) + F.col(1).cross(dF.col(2));
+        dC.col(1) = dF.col(2).cross(F.col(0)) + F.col(2).cross(dF.col(0));
+        dC.col(2) = dF.col(0).cross(F.col(1)) + F.col(0).cross(dF.col(1));
+      }
+      return mu * dF + (l * C.cwiseProduct(dF).sum()) * C + (l * det_minus_one<D>(F - I) - mu) * dC;
+    }
+    case Material::Corotated:
+      break;
+  }
+  Mat<D> dP;
+  Eigen::Map<Eigen::Matrix<Scalar, D * D, 1>>(dP.data()) = piola_derivative<D>(F, m, mu, lam) * vec<D>(dF);
+  return dP;
+}
+
 }  // namespace
 
 template <int D>
@@ -134,9 +171,7 @@ Scalar Solver::symplectic_elements_d(const Scalar* x, const Scalar* w, Scalar* K
     const Mat<D> Dinv = dm_inverse<D>(m, e);
     const Mat<D> F = deformation_gradient<D>(x, el, Dinv);
     const Mat<D> dF = deformation_gradient<D>(w, el, Dinv);  // linear in w: Ds(w) Dm^-1
-    const HessF<D> H = piola_derivative<D>(F, m.material(), m.mu[e], m.lam[e]);
-    Mat<D> dP;
-    Eigen::Map<Eigen::Matrix<Scalar, D * D, 1>>(dP.data()) = H * vec<D>(dF);
+    const Mat<D> dP = piola_differential<D>(F, dF, m.material(), m.mu[e], m.lam[e]);
     Eigen::Map<ElementVec<D>>(element_vectors_.data() + e * K) =
         element_gradient<D>(dP, Dinv, m.volume[e]);
     if (g_mu) {
