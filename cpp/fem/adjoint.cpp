@@ -89,27 +89,9 @@ Mat<D> piola_differential(const Mat<D>& F, const Mat<D>& dF, Material m, Scalar 
 
 }  // namespace
 
-template <int D>
-void Solver::hessian_product_d(const Scalar* x, const Scalar* w, Scalar* out) {
-  const Model& m = model_;
-  constexpr int K = (D + 1) * D;
-  parallel_for(m.element_count, [&](Index e) {
-    const Index* el = m.elements.data() + e * (D + 1);
-    const Mat<D> Dinv = dm_inverse<D>(m, e);
-    const Mat<D> F = deformation_gradient<D>(x, el, Dinv);
-    const Mat<D> dF = deformation_gradient<D>(w, el, Dinv);  // linear in w: Ds(w) Dm^-1
-    const HessF<D> H = piola_derivative<D>(F, m.material(), m.mu[e], m.lam[e]);
-    Mat<D> dP;
-    Eigen::Map<Eigen::Matrix<Scalar, D * D, 1>>(dP.data()) = H * vec<D>(dF);
-    Eigen::Map<ElementVec<D>>(element_vectors_.data() + e * K) =
-        element_gradient<D>(dP, Dinv, m.volume[e]);
-  });
-  assembly_.gather_vector(element_vectors_.data(), out);
-}
-
 void Solver::hessian_product(const Scalar* x, const Scalar* w, Scalar* out) {
-  if (model_.dim == 2) hessian_product_d<2>(x, w, out);
-  else hessian_product_d<3>(x, w, out);
+  if (model_.dim == 2) adjoint_elements_d<2>(x, w, out, nullptr, nullptr, false);
+  else adjoint_elements_d<3>(x, w, out, nullptr, nullptr, false);
 }
 
 template <int D>
@@ -161,7 +143,7 @@ void Solver::lame_to_parameters(const std::vector<Scalar>& g_mu, const std::vect
 }
 
 template <int D>
-Scalar Solver::symplectic_elements_d(const Scalar* x, const Scalar* w, Scalar* Kw, Scalar* g_mu,
+Scalar Solver::adjoint_elements_d(const Scalar* x, const Scalar* w, Scalar* Kw, Scalar* g_mu,
                                      Scalar* g_lam, bool work) {
   const Model& m = model_;
   constexpr int K = (D + 1) * D;
@@ -227,8 +209,8 @@ void Solver::adjoint_symplectic(const State& before, const State& after, Scalar 
   std::vector<Scalar> g_mu(wanted.elastic() ? m.element_count : 0), g_lam(g_mu.size());
   Scalar* gm = wanted.elastic() ? g_mu.data() : nullptr;
   Scalar* gl = wanted.elastic() ? g_lam.data() : nullptr;
-  const Scalar w_grad_E = d == 2 ? symplectic_elements_d<2>(before.x.data(), w.data(), Kw.data(), gm, gl, wanted.density)
-                                 : symplectic_elements_d<3>(before.x.data(), w.data(), Kw.data(), gm, gl, wanted.density);
+  const Scalar w_grad_E = d == 2 ? adjoint_elements_d<2>(before.x.data(), w.data(), Kw.data(), gm, gl, wanted.density)
+                                 : adjoint_elements_d<3>(before.x.data(), w.data(), Kw.data(), gm, gl, wanted.density);
   if (wanted.elastic()) lame_to_parameters(g_mu, g_lam, -1, params);  // f = -grad E
   // v_{n+1} = (v_n + h (f + u)/m) damp: d/drho of (f + u)/m with m = rho m^ is
   // -(f + u - m g)/(m rho) = -(u - grad E)/(m rho) (the gravity part m g does not depend on

@@ -93,7 +93,6 @@ class Solver {
   template <int D> Scalar elastic_energy_d(const Scalar* x) const;
   template <int D> void elastic_gradient_d(const Scalar* x, Scalar* g);
   template <int D> Index elastic_hessian_d(const Scalar* x, bool project, Scalar* values);
-  template <int D> void hessian_product_d(const Scalar* x, const Scalar* w, Scalar* out);
   template <int D> void parameter_product_d(const Scalar* x, const Scalar* w, Scalar* g_mu,
                                             Scalar* g_lam) const;
   void elastic_gradient(const Scalar* x, Scalar* g);
@@ -108,10 +107,10 @@ class Solver {
   // params.youngs_modulus, .poisson_ratio from g_mu, g_lam (per element) times factor.
   void lame_to_parameters(const std::vector<Scalar>& g_mu, const std::vector<Scalar>& g_lam,
                           Scalar factor, ParameterGradient& params) const;
-  // The symplectic adjoint's one pass over the elements at x with the adjoint w: Kw = K(x) w
-  // (every dof); with g_mu, g_lam non-null, parameter_product's; returns
+  // The adjoints' one pass over the elements at x with the adjoint w: Kw = K(x) w (every dof);
+  // with g_mu, g_lam non-null, parameter_product's; returns
   // sum_e vol_e P(F_e) : dF_e(w) = w . grad E(x) when work is true (else 0).
-  template <int D> Scalar symplectic_elements_d(const Scalar* x, const Scalar* w, Scalar* Kw,
+  template <int D> Scalar adjoint_elements_d(const Scalar* x, const Scalar* w, Scalar* Kw,
                                                 Scalar* g_mu, Scalar* g_lam, bool work);
 
   StepStats step_implicit(State& state, Scalar dt, const Scalar* control, Interrupt& interrupt);
