@@ -179,6 +179,23 @@ def kinema_side(opts):
         return run.backward({"x": w})["v"]
 
     grad, wall, cpu = timed(gradient, opts.min_of)
+    # Per-step split (CPU time, best of 10): one forward step, one adjoint step asking for no
+    # parameter (as the gradient above does) and one asking for all four.
+    options = {"integrator": "symplectic"}
+    body.set_state(start)
+    body._diff_step(DT, None, options)
+    after, grads = body.state(), {"x": w, "v": np.zeros_like(w)}
+
+    def forward_step():
+        body.set_state(start)
+        body._diff_step(DT, None, options)
+
+    split = {"forward": timed(forward_step, 10)[2]}
+    for label, wanted in (("adjoint", ()), ("adjoint, all parameters", None)):
+        body._diff_want(wanted)
+        split[label] = timed(lambda: body._diff_step_adjoint(DT, start, after, None, grads, options), 10)[2]
+    body._diff_want(None)
+    print("kinema per step (CPU): " + ", ".join(f"{k} {v * 1e3:.2f} ms" for k, v in split.items()), flush=True)
     return {"seconds": wall, "cpu_seconds": cpu, "loss": value, "fd": fd,
             "directional": float(np.sum(grad * direction)), "threads": harness.default_threads()}
 

@@ -6,6 +6,7 @@
 #include <optional>
 #include <string>
 #include <type_traits>
+#include <vector>
 
 #include "bindings/common.h"
 #include "bindings/fem_material.h"
@@ -218,8 +219,21 @@ void bind_fem(py::module_& m) {
       .def("step_adjoint",
            [](Solver& s, const State& before, const State& after, Scalar dt,
               const std::optional<ScalarArray>& control, const ScalarArray& grad_x,
-              const ScalarArray& grad_v) {
+              const ScalarArray& grad_v, const std::optional<std::vector<std::string>>& wanted) {
              const fem::Model& md = s.model();
+             fem::ParameterMask mask;
+             if (wanted) {
+               mask = {false, false, false, false};
+               for (const std::string& name : *wanted) {
+                 if (name == "youngs_modulus") mask.youngs_modulus = true;
+                 else if (name == "poisson_ratio") mask.poisson_ratio = true;
+                 else if (name == "density") mask.density = true;
+                 else if (name == "damping") mask.damping = true;
+                 else
+                   throw InvalidArgument("wanted: unknown parameter '" + name +
+                                         "' (expected youngs_modulus, poisson_ratio, density, damping)");
+               }
+             }
              const Scalar* u = optional_dofs(control, md, "control");
              State adjoint;
              adjoint.x.resize(md.rest.size());
@@ -232,7 +246,7 @@ void bind_fem(py::module_& m) {
              {
                ReleaseGil release;
                s.step_adjoint(before, after, dt, u, adjoint, params,
-                              control ? grad_control.data() : nullptr, interrupt);
+                              control ? grad_control.data() : nullptr, interrupt, mask);
              }
              const Index n = md.vertex_count, d = md.dim;
              py::object gc = py::none();
@@ -241,7 +255,7 @@ void bind_fem(py::module_& m) {
                                    to_numpy(std::move(adjoint.v), {n, d}), params, gc);
            },
            py::arg("before"), py::arg("after"), py::arg("dt"), py::arg("control"),
-           py::arg("grad_x"), py::arg("grad_v"))
+           py::arg("grad_x"), py::arg("grad_v"), py::arg("wanted") = py::none())
       .def("elastic_energy", [](const Solver& s, const State& st) { return s.elastic_energy(st.x.data()); })
       .def("kinetic_energy", [](const Solver& s, const State& st) { return s.kinetic_energy(st.v.data()); })
       .def("gravity_energy", [](const Solver& s, const State& st) { return s.gravity_energy(st.x.data()); })

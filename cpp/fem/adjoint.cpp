@@ -50,29 +50,48 @@ Mat<D> dm_inverse(const Model& m, Index e) {
   return Eigen::Map<const Mat<D>>(m.Dm_inv.data() + e * D * D);
 }
 
-}  // namespace
-
+// dP/dF applied to dF without forming the D^2 x D^2 matrix (piola_derivative<D>(F) vec(dF), as
+// fem/kernels.h writes it, term by term); the corotated model's rotation derivative goes
+// through the matrix.
 template <int D>
-void Solver::hessian_product_d(const Scalar* x, const Scalar* w, Scalar* out) {
-  const Model& m = model_;
-  constexpr int K = (D + 1) * D;
-  parallel_for(m.element_count, [&](Index e) {
-    const Index* el = m.elements.data() + e * (D + 1);
-    const Mat<D> Dinv = dm_inverse<D>(m, e);
-    const Mat<D> F = deformation_gradient<D>(x, el, Dinv);
-    const Mat<D> dF = deformation_gradient<D>(w, el, Dinv);  // linear in w: Ds(w) Dm^-1
-    const HessF<D> H = piola_derivative<D>(F, m.material(), m.mu[e], m.lam[e]);
-    Mat<D> dP;
-    Eigen::Map<Eigen::Matrix<Scalar, D * D, 1>>(dP.data()) = H * vec<D>(dF);
-    Eigen::Map<ElementVec<D>>(element_vectors_.data() + e * K) =
-        element_gradient<D>(dP, Dinv, m.volume[e]);
-  });
-  assembly_.gather_vector(element_vectors_.data(), out);
+Mat<D> piola_differential(const Mat<D>& F, const Mat<D>& dF, Material m, Scalar mu, Scalar lam) {
+  const Mat<D> I = Mat<D>::Identity();
+  switch (m) {
+    case Material::Linear:
+      return mu * (dF + dF.transpose()) + lam * dF.trace() * I;
+    case Material::StVK: {
+      const Mat<D> E = (F.transpose() * F - I) / 2;
+      const Mat<D> S = 2 * mu * E + lam * E.trace() * I;
+      const Mat<D> dE = (dF.transpose() * F + F.transpose() * dF) / 2;
+      return dF * S + F * (2 * mu * dE + lam * dE.trace() * I);
+    }
+    case Material::NeoHookean: {
+      // mu dF + lam' (cof F : dF) cof F + (lam' (J - 1) - mu) d(cof F)[dF], lam' = lam + mu.
+      const Scalar l = lam + mu;
+      const Mat<D> C = cofactor<D>(F);
+      Mat<D> dC;
+      if constexpr (D == 2) {
+        dC = cofactor<D>(dF);  // linear in F
+      } else {
+        dC.col(0) = dF.col(1).cross(F.col(2)) + F.col(1).cross(dF.col(2));
+        dC.col(1) = dF.col(2).cross(F.col(0)) + F.col(2).cross(dF.col(0));
+        dC.col(2) = dF.col(0).cross(F.col(1)) + F.col(0).cross(dF.col(1));
+      }
+      return mu * dF + (l * C.cwiseProduct(dF).sum()) * C + (l * det_minus_one<D>(F - I) - mu) * dC;
+    }
+    case Material::Corotated:
+      break;
+  }
+  Mat<D> dP;
+  Eigen::Map<Eigen::Matrix<Scalar, D * D, 1>>(dP.data()) = piola_derivative<D>(F, m, mu, lam) * vec<D>(dF);
+  return dP;
 }
 
+}  // namespace
+
 void Solver::hessian_product(const Scalar* x, const Scalar* w, Scalar* out) {
-  if (model_.dim == 2) hessian_product_d<2>(x, w, out);
-  else hessian_product_d<3>(x, w, out);
+  if (model_.dim == 2) adjoint_elements_d<2>(x, w, out, nullptr, nullptr, false);
+  else adjoint_elements_d<3>(x, w, out, nullptr, nullptr, false);
 }
 
 template <int D>
@@ -100,10 +119,16 @@ void Solver::parameter_product(const Scalar* x, const Scalar* w, Scalar* g_mu,
 
 void Solver::elastic_parameter_gradient(const Scalar* x, const Scalar* w, Scalar factor,
                                         ParameterGradient& params) const {
-  const Parameters& p = model_.parameters;
   const Index count = model_.element_count;
   std::vector<Scalar> g_mu(count), g_lam(count);
   parameter_product(x, w, g_mu.data(), g_lam.data());
+  lame_to_parameters(g_mu, g_lam, factor, params);
+}
+
+void Solver::lame_to_parameters(const std::vector<Scalar>& g_mu, const std::vector<Scalar>& g_lam,
+                                Scalar factor, ParameterGradient& params) const {
+  const Parameters& p = model_.parameters;
+  const Index count = model_.element_count;
   params.youngs_modulus.assign(count, 0);
   params.poisson_ratio.assign(count, 0);
   const bool uniform_E = p.youngs_modulus.size() == 1, uniform_nu = p.poisson_ratio.size() == 1;
@@ -117,9 +142,38 @@ void Solver::elastic_parameter_gradient(const Scalar* x, const Scalar* w, Scalar
   });
 }
 
+template <int D>
+Scalar Solver::adjoint_elements_d(const Scalar* x, const Scalar* w, Scalar* Kw, Scalar* g_mu,
+                                     Scalar* g_lam, bool work) {
+  const Model& m = model_;
+  constexpr int K = (D + 1) * D;
+  std::vector<Scalar> element_work(work ? m.element_count : 0);
+  parallel_for(m.element_count, [&](Index e) {
+    const Index* el = m.elements.data() + e * (D + 1);
+    const Mat<D> Dinv = dm_inverse<D>(m, e);
+    const Mat<D> F = deformation_gradient<D>(x, el, Dinv);
+    const Mat<D> dF = deformation_gradient<D>(w, el, Dinv);  // linear in w: Ds(w) Dm^-1
+    const Mat<D> dP = piola_differential<D>(F, dF, m.material(), m.mu[e], m.lam[e]);
+    Eigen::Map<ElementVec<D>>(element_vectors_.data() + e * K) =
+        element_gradient<D>(dP, Dinv, m.volume[e]);
+    if (g_mu) {
+      Mat<D> A, B;
+      piola_lame_derivatives<D>(F, m.material(), A, B);
+      g_mu[e] = m.volume[e] * A.cwiseProduct(dF).sum();
+      g_lam[e] = m.volume[e] * B.cwiseProduct(dF).sum();
+    }
+    if (work)
+      element_work[e] =
+          m.volume[e] * piola<D>(F, m.material(), m.mu[e], m.lam[e]).cwiseProduct(dF).sum();
+  });
+  assembly_.gather_vector(element_vectors_.data(), Kw);
+  return work ? parallel_sum(m.element_count, [&](Index e) { return element_work[e]; }) : 0;
+}
+
 void Solver::step_adjoint(const State& before, const State& after, Scalar dt,
                           const Scalar* control, State& adjoint, ParameterGradient& params,
-                          Scalar* grad_control, Interrupt& interrupt) {
+                          Scalar* grad_control, Interrupt& interrupt,
+                          const ParameterMask& wanted) {
   if (!(dt > 0) || !std::isfinite(dt))
     throw InvalidArgument("dt: expected a finite time step > 0 [s], got " + format_real(dt));
   const std::size_t size = model_.rest.size();
@@ -129,21 +183,21 @@ void Solver::step_adjoint(const State& before, const State& after, Scalar dt,
                             std::to_string(model_.vertex_count) + " vertices");
   interrupt.check();
   if (config_.integrator == Integrator::Symplectic)
-    adjoint_symplectic(before, after, dt, control, adjoint, params, grad_control);
+    adjoint_symplectic(before, after, dt, control, adjoint, params, grad_control, wanted);
   else
-    adjoint_implicit(before, after, dt, control, adjoint, params, grad_control, interrupt);
+    adjoint_implicit(before, after, dt, control, adjoint, params, grad_control, interrupt, wanted);
 }
 
 void Solver::adjoint_symplectic(const State& before, const State& after, Scalar dt,
                                 const Scalar* control, State& adjoint,
-                                ParameterGradient& params, Scalar* grad_control) {
+                                ParameterGradient& params, Scalar* grad_control,
+                                const ParameterMask& wanted) {
   const Model& m = model_;
   const int d = m.dim;
   const Index n = assembly_.dof_count();
   const Scalar c = m.damping(), rho = m.parameters.density;
   const Scalar damp = 1 / (1 + dt * c);
-  const bool gravity = !m.gravity().empty();
-  std::vector<Scalar> w(n), f(n), Kw(n);
+  std::vector<Scalar> w(n), Kw(n);
   // b + h a: dL/dv_{n+1} with x_{n+1} = x_n + h v_{n+1} folded in.
   parallel_for(m.vertex_count, [&](Index i) {
     for (int r = 0; r < d; ++r) {
@@ -151,18 +205,24 @@ void Solver::adjoint_symplectic(const State& before, const State& after, Scalar 
       w[q] = m.fixed[i] ? 0 : dt * damp / m.mass[i] * (adjoint.v[q] + dt * adjoint.x[q]);
     }
   });
-  forces(before.x.data(), f.data());
-  hessian_product(before.x.data(), w.data(), Kw.data());
-  elastic_parameter_gradient(before.x.data(), w.data(), -1, params);  // f = -grad E
+  // One pass over the elements: K w, and (when wanted) w . df/d(mu, lam) and w . grad E.
+  std::vector<Scalar> g_mu(wanted.elastic() ? m.element_count : 0), g_lam(g_mu.size());
+  Scalar* gm = wanted.elastic() ? g_mu.data() : nullptr;
+  Scalar* gl = wanted.elastic() ? g_lam.data() : nullptr;
+  const Scalar w_grad_E = d == 2 ? adjoint_elements_d<2>(before.x.data(), w.data(), Kw.data(), gm, gl, wanted.density)
+                                 : adjoint_elements_d<3>(before.x.data(), w.data(), Kw.data(), gm, gl, wanted.density);
+  if (wanted.elastic()) lame_to_parameters(g_mu, g_lam, -1, params);  // f = -grad E
   // v_{n+1} = (v_n + h (f + u)/m) damp: d/drho of (f + u)/m with m = rho m^ is
-  // -(f + u - m g)/(m rho); d/dc of damp is -h damp^2, so dv_{n+1}/dc = -h damp v_{n+1}.
-  params.density = -free_dof_sum(m, [&](Index i, Index q, int r) {
-    const Scalar own = f[q] + (control ? control[q] : 0) - (gravity ? m.mass[i] * m.gravity()[r] : 0);
-    return w[q] * own / rho;
-  });
-  params.damping = -free_dof_sum(m, [&](Index, Index q, int) {
-    return (adjoint.v[q] + dt * adjoint.x[q]) * dt * damp * after.v[q];
-  });
+  // -(f + u - m g)/(m rho) = -(u - grad E)/(m rho) (the gravity part m g does not depend on
+  // rho); d/dc of damp is -h damp^2, so dv_{n+1}/dc = -h damp v_{n+1}. w is 0 on fixed dofs.
+  if (wanted.density) {
+    const Scalar w_u = control ? free_dof_sum(m, [&](Index, Index q, int) { return w[q] * control[q]; }) : 0;
+    params.density = -(w_u - w_grad_E) / rho;
+  }
+  if (wanted.damping)
+    params.damping = -free_dof_sum(m, [&](Index, Index q, int) {
+      return (adjoint.v[q] + dt * adjoint.x[q]) * dt * damp * after.v[q];
+    });
   parallel_for(m.vertex_count, [&](Index i) {
     for (int r = 0; r < d; ++r) {
       const Index q = i * d + r;
@@ -176,7 +236,8 @@ void Solver::adjoint_symplectic(const State& before, const State& after, Scalar 
 
 void Solver::adjoint_implicit(const State& before, const State& after, Scalar dt,
                               const Scalar* control, State& adjoint, ParameterGradient& params,
-                              Scalar* grad_control, Interrupt& interrupt) {
+                              Scalar* grad_control, Interrupt& interrupt,
+                              const ParameterMask& wanted) {
   (void)control;  // G is linear in u: dG/du = -h^2 I whatever its value
   const Model& m = model_;
   const int d = m.dim;
@@ -248,14 +309,14 @@ void Solver::adjoint_implicit(const State& before, const State& after, Scalar dt
             "strict minimum and has no unique derivative; reduce dt",
         -1);
 
-  elastic_parameter_gradient(after.x.data(), lambda.data(), -scale, params);
+  if (wanted.elastic()) elastic_parameter_gradient(after.x.data(), lambda.data(), -scale, params);
   // dG/drho = (M/rho) ((x - y) + h c (x - x_n) - h^2 g) with y = x_n + h v_n; dG/dc = h M (x - x_n).
-  params.density = -free_dof_sum(m, [&](Index i, Index q, int r) {
+  if (wanted.density) params.density = -free_dof_sum(m, [&](Index i, Index q, int r) {
     const Scalar step = after.x[q] - before.x[q];
     const Scalar dG = (step - dt * before.v[q]) + dt * c * step - (gravity ? scale * m.gravity()[r] : 0);
     return lambda[q] * m.mass[i] / rho * dG;
   });
-  params.damping = -free_dof_sum(m, [&](Index i, Index q, int) {
+  if (wanted.damping) params.damping = -free_dof_sum(m, [&](Index i, Index q, int) {
     return lambda[q] * dt * m.mass[i] * (after.x[q] - before.x[q]);
   });
   std::vector<Scalar> K_lambda;

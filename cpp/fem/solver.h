@@ -42,6 +42,13 @@ struct ParameterGradient {
   Scalar damping = 0;                                 // [s]
 };
 
+// Which parameter gradients an adjoint step computes (the rest stay empty / zero): a gradient
+// nobody asked for costs element passes.
+struct ParameterMask {
+  bool youngs_modulus = true, poisson_ratio = true, density = true, damping = true;
+  bool elastic() const { return youngs_modulus || poisson_ratio; }
+};
+
 class Solver {
  public:
   // The model must outlive the solver.
@@ -63,10 +70,11 @@ class Solver {
   // dL/d(after.x), dL/d(after.v) on entry and dL/d(before.x), dL/d(before.v) on return;
   // grad_control (n d, may be null) receives dL/du; params the parameter gradient of this step.
   // Throws NotPositiveDefinite when the exact Hessian of an implicit step's converged x is not
-  // positive definite (no unique derivative of the minimiser there).
+  // positive definite (no unique derivative of the minimiser there). wanted: the parameter
+  // gradients to compute (the others are left empty / zero).
   void step_adjoint(const State& before, const State& after, Scalar dt, const Scalar* control,
                     State& adjoint, ParameterGradient& params, Scalar* grad_control,
-                    Interrupt& interrupt);
+                    Interrupt& interrupt, const ParameterMask& wanted = {});
 
   Scalar elastic_energy(const Scalar* x) const;
   Scalar kinetic_energy(const Scalar* v) const;
@@ -85,7 +93,6 @@ class Solver {
   template <int D> Scalar elastic_energy_d(const Scalar* x) const;
   template <int D> void elastic_gradient_d(const Scalar* x, Scalar* g);
   template <int D> Index elastic_hessian_d(const Scalar* x, bool project, Scalar* values);
-  template <int D> void hessian_product_d(const Scalar* x, const Scalar* w, Scalar* out);
   template <int D> void parameter_product_d(const Scalar* x, const Scalar* w, Scalar* g_mu,
                                             Scalar* g_lam) const;
   void elastic_gradient(const Scalar* x, Scalar* g);
@@ -97,15 +104,23 @@ class Solver {
   // (mu_e, lam_e).
   void elastic_parameter_gradient(const Scalar* x, const Scalar* w, Scalar factor,
                                   ParameterGradient& params) const;
+  // params.youngs_modulus, .poisson_ratio from g_mu, g_lam (per element) times factor.
+  void lame_to_parameters(const std::vector<Scalar>& g_mu, const std::vector<Scalar>& g_lam,
+                          Scalar factor, ParameterGradient& params) const;
+  // The adjoints' one pass over the elements at x with the adjoint w: Kw = K(x) w (every dof);
+  // with g_mu, g_lam non-null, parameter_product's; returns
+  // sum_e vol_e P(F_e) : dF_e(w) = w . grad E(x) when work is true (else 0).
+  template <int D> Scalar adjoint_elements_d(const Scalar* x, const Scalar* w, Scalar* Kw,
+                                                Scalar* g_mu, Scalar* g_lam, bool work);
 
   StepStats step_implicit(State& state, Scalar dt, const Scalar* control, Interrupt& interrupt);
   StepStats step_symplectic(State& state, Scalar dt, const Scalar* control);
   void adjoint_implicit(const State& before, const State& after, Scalar dt,
                         const Scalar* control, State& adjoint, ParameterGradient& params,
-                        Scalar* grad_control, Interrupt& interrupt);
+                        Scalar* grad_control, Interrupt& interrupt, const ParameterMask& wanted);
   void adjoint_symplectic(const State& before, const State& after, Scalar dt,
                           const Scalar* control, State& adjoint, ParameterGradient& params,
-                          Scalar* grad_control);
+                          Scalar* grad_control, const ParameterMask& wanted);
 
   // Minimises  a/2 ||x - y||_M^2 + b/2 ||x - z||_M^2 + s (E(x) - load g.M x - u.x)  over the
   // free dofs starting from x, with a = inertia weight (0 for statics), u = control or none.

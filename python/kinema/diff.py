@@ -55,6 +55,9 @@ Optional (a faster path for runs stored whole; km.diff falls back to the steps w
   params) -> (grad_before, grad_params, grad_controls)``: the steps' ``_diff_step_adjoint`` in
   sequence, last step first, grad_params for the names in ``params`` summed over the steps in
   that order (per item), grad_controls of shape (steps, *control_shape) or None.
+- ``_diff_want(names or None)``: ``backward`` tells the simulation which parameters it wants
+  (a tuple of names) before its adjoint steps and None (all) after them; ``_diff_step_adjoint``
+  may then leave the others out of grad_params (they count as zero) and skip their cost.
 """
 
 from __future__ import annotations
@@ -326,9 +329,12 @@ class Rollout:
             base = 1 + len(self._spine) if self._stored is None else len(self._stored)
         self._held = base
         self.peak_states = base
+        wanted = tuple(name for name in self.wrt if name in self._scalar_parameters)
+        want = getattr(self._sim, "_diff_want", None)  # optional: skip unwanted parameter work
+        if want is not None:
+            want(wanted)
         try:
             if self._record is not None:
-                wanted = tuple(name for name in self.wrt if name in self._scalar_parameters)
                 gb, gp, gc = self._record.backward(g, wanted)
                 g = {name: gb[name] for name in self._state_names}
                 self._params = dict(gp)
@@ -341,6 +347,8 @@ class Rollout:
                 self._hold(1)  # the final state, handed to the recursion as the last step's after
                 g = self._reverse(0, self._start, self.steps, self.checkpoints - 1, g, self._end)
         finally:
+            if want is not None:
+                want(None)
             self._sim.set_state(self._end)
         self._spine = {}  # used up by the first backward call; later calls recompute it
         out = {}

@@ -412,6 +412,11 @@ class Body:
             control = np.ascontiguousarray(control, dtype=np.float64).reshape(-1)
         self._step(dt, control, **options)
 
+    def _diff_want(self, names):
+        """km.diff's parameter mask: the adjoint steps compute the gradients of ``names`` only
+        (None: all of ``parameters``), skipping the element work the others cost."""
+        self._diff_wanted = None if names is None else tuple(n for n in names if n in self.parameters)
+
     def _diff_step_adjoint(self, dt, before, after, control, grad_after, step_options):
         options = {k: v for k, v in step_options.items() if k != "steps"}
         self._configure(**options)
@@ -432,14 +437,19 @@ class Body:
 
         flat = lambda a: np.ascontiguousarray(a, dtype=np.float64).reshape(-1)  # noqa: E731
         u = None if control is None else flat(control)
+        wanted = getattr(self, "_diff_wanted", None)
+        wanted = self.parameters if wanted is None else wanted
         gx, gv, gp, gu = self._solver.step_adjoint(core_state(before), core_state(after), real(dt, "dt"),
-                                                   u, flat(grad_after["x"]), flat(grad_after["v"]))
+                                                   u, flat(grad_after["x"]), flat(grad_after["v"]),
+                                                   list(wanted))
         params = {}
         for name in ("youngs_modulus", "poisson_ratio"):
-            g = np.array(getattr(gp, name))
-            params[name] = float(g.sum()) if np.ndim(self._values[name]) == 0 else g
-        params["density"] = float(gp.density)
-        params["damping"] = float(gp.damping)
+            if name in wanted:
+                g = np.array(getattr(gp, name))
+                params[name] = float(g.sum()) if np.ndim(self._values[name]) == 0 else g
+        for name in ("density", "damping"):
+            if name in wanted:
+                params[name] = float(getattr(gp, name))
         return {"x": gx, "v": gv}, params, gu
 
 
