@@ -69,6 +69,7 @@ import os
 import numpy as np
 
 from kinema._checks import as_float_array
+from kinema.errors import DivergenceError
 
 __all__ = ["rollout", "Rollout"]
 
@@ -346,6 +347,9 @@ class Rollout:
             elif self.steps > 0:
                 self._hold(1)  # the final state, handed to the recursion as the last step's after
                 g = self._reverse(0, self._start, self.steps, self.checkpoints - 1, g, self._end)
+        except DivergenceError as exc:
+            raise DivergenceError(f"grads: the backward pass overflowed ({exc}); the given gradients are "
+                                  "too large for the adjoint to stay finite: scale the loss down") from None
         finally:
             if want is not None:
                 want(None)
@@ -363,6 +367,10 @@ class Rollout:
                     value = 0.0 if self._scalar_parameters[name] else np.zeros(
                         np.shape(self._sim._diff_get(name)))
                 out[name] = float(np.sum(value)) if self._scalar_parameters[name] else np.asarray(value)
+        for name, value in out.items():
+            if not np.all(np.isfinite(value)):
+                raise DivergenceError(f"grads: the gradient with respect to {name!r} overflowed to a non-finite "
+                                      "value; the given gradients are too large: scale the loss down")
         return out
 
     def _adjoint(self, k: int, before: dict, after: dict, g: dict) -> dict:
