@@ -502,6 +502,8 @@ class SolverD final : public Solver::Impl {
     __builtin_prefetch(&state.volume[p]);
     __builtin_prefetch(&state.material[p]);
     __builtin_prefetch(&state.Jp[p]);
+    __builtin_prefetch(&state.youngs_modulus[p]);
+    __builtin_prefetch(&state.poisson_ratio[p]);
   }
 
   // Each particle block scatters into its own tile of tiles_ (no two threads write one value).
