@@ -174,12 +174,15 @@ def taichi(opts):
 
         def block():
             t0, c0 = time.perf_counter(), time.process_time()
-            for _ in range(steps):
-                sim.step(dt)
-            return (time.perf_counter() - t0) / steps, (time.process_time() - c0) / steps
+            stats = [sim.step(dt) for _ in range(steps)]
+            return (time.perf_counter() - t0) / steps, (time.process_time() - c0) / steps, stats
 
         m = harness.measure(block, min_of=3, max_tries=6, figure=lambda v, wall: v[0], max_load=opts.max_load)
-        cpu = m.value[1]
+        cpu, stats = m.value[1], m.value[2]
+        # kinema's per-stage split (median StepStats of the best block) [ms]
+        stages = {k: 1e3 * float(np.median([getattr(s, k + "_seconds") for s in stats]))
+                  for k in ("sort", "p2g", "grid", "g2p")}
+        stages["step"] = 1e3 * float(np.median([s.seconds for s in stats]))
         # Both run 4 * steps substeps from the same start; their mean positions must agree to
         # within the f32 rounding and the differing equations of state (well below a cell).
         check = kinema_scene(kind, start)
@@ -192,11 +195,13 @@ def taichi(opts):
         rec.record("taichi-f32", case, ti_res["seconds"], notes={"cpu_seconds": f"{ti_res['cpu_seconds']:.4g}",
                                                                 "source": ti_res["file"]})
         rec.record("kinema-f64", case, m.seconds, measurement=m, error=drift,
-                   notes={"speedup": f"{speedup:.2f}", "cpu_seconds": f"{cpu:.4g}", "check": "ok" if ok else "FAILED"})
+                   notes={"speedup": f"{speedup:.2f}", "cpu_seconds": f"{cpu:.4g}", "check": "ok" if ok else "FAILED",
+                          **{f"{k}_ms": f"{v:.4g}" for k, v in stages.items()}})
         print(f"{case}: taichi {ti_res['seconds'] * 1e3:.3f} ms/substep (cpu {ti_res['cpu_seconds'] * 1e3:.3f}), "
               f"kinema {m.seconds * 1e3:.3f} ms/substep (cpu {cpu * 1e3:.3f}): {speedup:.2f}x wall, "
               f"{ti_res['cpu_seconds'] / cpu:.2f}x cpu; mean-position difference {drift:.2e} "
-              f"({'ok' if ok else 'FAILED'}), other load {m.other_load:.2f}", flush=True)
+              f"({'ok' if ok else 'FAILED'}), other load {m.other_load:.2f}; kinema stages [ms, median]: "
+              + " / ".join(f"{k} {v:.3f}" for k, v in stages.items()), flush=True)
         if not ok:
             raise SystemExit(f"{kind}: kinema and Taichi disagree ({drift:.3g}); no time recorded as valid")
         summary.append(f"{kind} {speedup:.2f}x (cpu {ti_res['cpu_seconds'] / cpu:.2f}x, load {m.other_load:.2f})")

@@ -123,32 +123,47 @@ class SolverD final : public Solver::Impl {
 
   StepStats step(State& state, Scalar dt, Interrupt& interrupt, const Scalar* forces) override {
     check_dt(dt);
-    Stopwatch total, watch;
+    interrupt.check();
+    Stopwatch total;
     StepStats stats;
     stats.dt = dt;
-    // 1. Bin the particles into blocks, activate the blocks their stencils reach.
-    sort(state);
+    // One parallel region for the whole step: the phases meet at barriers, where the team's
+    // threads are still spinning, instead of each phase waking the sleeping team again (for a
+    // 2D step of 8,192 particles, about 0.4 ms of work, the six region starts of a step cost
+    // more than a second thread saves). Thread 0 takes the stage times as it leaves each phase.
+    double mark[3] = {0, 0, 0};
+    Scalar vmax2 = 0;
+    bool finite = true;
+    prepare_sort(state);
+#pragma omp parallel if (state.n > kParallelParticles)
+    {
+      const bool master = omp_get_thread_num() == 0;
+      // 1. Bin the particles into blocks, activate the blocks their stencils reach.
+      if (sort_phase(state)) {
+        if (master) mark[0] = total.seconds();
+        // 2. P2G (Hu et al. 2018, eq. 16-17) into one tile per particle block.
+        p2g_phase(state, dt, forces);
+        if (master) mark[1] = total.seconds();
+        // 3. Each node's mass and momentum summed from the tiles over it, then its velocity,
+        //    gravity, walls and colliders.
+        grid_phase(dt, nullptr);
+        if (master) mark[2] = total.seconds();
+        // 4. G2P, advection, deformation update and plasticity.
+        g2p_phase(state, dt, vmax2, finite);
+      }
+    }
+    if (bad_ >= 0) throw_bad_particle(state);
+    stats.max_speed = check_g2p(state, dt, vmax2, finite);
     stats.particle_blocks = particle_blocks_;
     stats.active_blocks = static_cast<Index>(slot_key_.size());
-    stats.sort_seconds = watch.seconds();
-    interrupt.check();
-    // 2. P2G (Hu et al. 2018, eq. 16-17) into one tile per particle block.
-    watch.restart();
-    p2g(state, dt, forces);
-    stats.p2g_seconds = watch.seconds();
-    // 3. Each node's mass and momentum summed from the tiles over it, then its velocity,
-    //    gravity, walls and colliders.
-    watch.restart();
-    grid_update(dt);
-    stats.grid_seconds = watch.seconds();
-    // 4. G2P, advection, deformation update and plasticity.
-    watch.restart();
-    stats.max_speed = g2p(state, dt);
-    stats.g2p_seconds = watch.seconds();
+    stats.seconds = total.seconds();
+    stats.sort_seconds = mark[0];
+    stats.p2g_seconds = mark[1] - mark[0];
+    stats.grid_seconds = mark[2] - mark[1];
+    stats.g2p_seconds = stats.seconds - mark[2];
     state.time += dt;
     ++state.steps;
     stats.time = state.time;
-    stats.seconds = total.seconds();
     return stats;
   }
 
@@ -177,22 +192,29 @@ class SolverD final : public Solver::Impl {
 
   Index key_of(const std::array<Index, 3>& b) const { return (b[0] * blocks_[1] + b[1]) * blocks_[2] + b[2]; }
 
-  void sort(const State& state) {
+  // The sort, in three parts: prepare_sort before the step's parallel region, sort_phase
+  // inside it (every thread calls it; false when a particle is bad, for every thread), and
+  // build_blocks, run by one thread in the middle.
+  void prepare_sort(const State& state) {
     const Index n = state.n;
     particle_count_ = n;
     backup_.resize(static_cast<size_t>(n * kRow));
     for (Index key : slot_key_) table_[static_cast<size_t>(key)] = -1;
     slot_key_.clear();
     particle_key_.resize(static_cast<size_t>(n));
+    order_.resize(static_cast<size_t>(n));
+    found_.clear();
+    bad_ = -1;
+    sort_chunks_ = n > kParallelParticles ? kSortChunks : 1;
+  }
+
+  bool sort_phase(const State& state) {
+    const Index n = state.n;
     // Keys of the block holding each particle's first stencil node; positions are checked
     // here because a user may write anything into the x view. In the same pass, the distinct
     // particle blocks: each thread lists the keys it finds unmarked; a key two threads both
     // found is listed twice and dropped after the sort, so the list does not depend on the
     // thread count. They take the first slots, in Morton order.
-    const bool parallel = n > kParallelParticles;
-    Index bad = -1;
-    std::vector<std::pair<std::uint64_t, Index>> found;
-#pragma omp parallel if (parallel)
     {
       std::vector<std::pair<std::uint64_t, Index>> mine;
 #pragma omp for schedule(static) nowait
@@ -211,7 +233,7 @@ class SolverD final : public Solver::Impl {
         inside = inside && std::isfinite(E) && E > 0 && std::isfinite(nu) && nu > -1 && nu < 0.5;
         if (!inside) {
 #pragma omp critical(mpm_bad_particle)
-          bad = bad < 0 ? p : std::min(bad, p);
+          bad_ = bad_ < 0 ? p : std::min(bad_, p);
           continue;
         }
         const Index key = key_of(b);
@@ -227,21 +249,60 @@ class SolverD final : public Solver::Impl {
         }
       }
 #pragma omp critical(mpm_found_blocks)
-      found.insert(found.end(), mine.begin(), mine.end());
+      found_.insert(found_.end(), mine.begin(), mine.end());
     }
-    if (bad >= 0) {
-      for (const auto& f : found) table_[static_cast<size_t>(f.second)] = -1;
-      std::string where = "(";
-      for (int a = 0; a < D; ++a) where += (a ? ", " : "") + format_real(state.x[static_cast<size_t>(bad * D + a)]);
-      throw InvalidArgument("x: particle " + std::to_string(bad) + " at " + where +
-                            ") is outside the domain or not finite (or its material code is not one of the " +
-                            std::to_string(model_.materials.size()) +
-                            " materials, or its youngs_modulus is not > 0 or poisson_ratio not in (-1, 0.5))");
+#pragma omp barrier
+#pragma omp single
+    build_blocks();
+    if (bad_ >= 0) return false;
+    // Counting sort of the particles by block slot, stable (by row within a block): the rows
+    // are cut into a fixed number of chunks (not one per thread, so that the order does not
+    // depend on the thread count), counted per chunk, and each chunk fills its own ranges.
+    const Index chunks = sort_chunks_, pb = particle_blocks_;
+    auto chunk_rows = [&](Index c) { return std::make_pair(n * c / chunks, n * (c + 1) / chunks); };
+#pragma omp for schedule(static)
+    for (Index c = 0; c < chunks; ++c) {
+      const auto [first, last] = chunk_rows(c);
+      Index* count = &fill_[static_cast<size_t>(c * pb)];
+      for (Index p = first; p < last; ++p) ++count[table_[static_cast<size_t>(particle_key_[static_cast<size_t>(p)])]];
     }
-    std::sort(found.begin(), found.end());
-    found.erase(std::unique(found.begin(), found.end()), found.end());
-    particle_blocks_ = static_cast<Index>(found.size());
-    for (const auto& f : found) {
+#pragma omp single
+    {
+      Index running = 0;
+      for (Index s = 0; s < pb; ++s) {
+        block_start_[static_cast<size_t>(s)] = running;
+        Index* starts = &chunk_start_[static_cast<size_t>(s * (chunks + 1))];
+        for (Index c = 0; c < chunks; ++c) {
+          Index& at = fill_[static_cast<size_t>(c * pb + s)];
+          const Index count = at;
+          starts[c] = at = running;
+          running += count;
+        }
+        starts[chunks] = running;
+      }
+      block_start_[static_cast<size_t>(pb)] = running;
+    }
+#pragma omp for schedule(static)
+    for (Index c = 0; c < chunks; ++c) {
+      const auto [first, last] = chunk_rows(c);
+      Index* at = &fill_[static_cast<size_t>(c * pb)];
+      for (Index p = first; p < last; ++p)
+        order_[static_cast<size_t>(at[table_[static_cast<size_t>(particle_key_[static_cast<size_t>(p)])]]++)] = p;
+    }
+    return true;
+  }
+
+  // One thread: the block table from the particle blocks found (or, after a bad particle,
+  // the table's marks undone).
+  void build_blocks() {
+    if (bad_ >= 0) {
+      for (const auto& f : found_) table_[static_cast<size_t>(f.second)] = -1;
+      return;
+    }
+    std::sort(found_.begin(), found_.end());
+    found_.erase(std::unique(found_.begin(), found_.end()), found_.end());
+    particle_blocks_ = static_cast<Index>(found_.size());
+    for (const auto& f : found_) {
       table_[static_cast<size_t>(f.second)] = static_cast<std::int32_t>(slot_key_.size());
       slot_key_.push_back(f.second);
     }
@@ -268,38 +329,6 @@ class SolverD final : public Solver::Impl {
         neighbor_slot_[static_cast<size_t>(s * NEIGHBORS + o)] = table_[static_cast<size_t>(key_of(nc))];
       }
     }
-    // Counting sort of the particles by block slot, stable (by row within a block): the rows
-    // are cut into a fixed number of chunks (not one per thread, so that the order does not
-    // depend on the thread count), counted per chunk, and each chunk fills its own ranges.
-    const Index chunks = parallel ? kSortChunks : 1, pb = particle_blocks_;
-    fill_.assign(static_cast<size_t>(chunks * pb), 0);
-    auto chunk_rows = [&](Index c) { return std::make_pair(n * c / chunks, n * (c + 1) / chunks); };
-#pragma omp parallel for schedule(static) if (parallel)
-    for (Index c = 0; c < chunks; ++c) {
-      const auto [first, last] = chunk_rows(c);
-      Index* count = &fill_[static_cast<size_t>(c * pb)];
-      for (Index p = first; p < last; ++p) ++count[table_[static_cast<size_t>(particle_key_[static_cast<size_t>(p)])]];
-    }
-    block_start_.assign(static_cast<size_t>(pb + 1), 0);
-    Index running = 0;
-    for (Index s = 0; s < pb; ++s) {
-      block_start_[static_cast<size_t>(s)] = running;
-      for (Index c = 0; c < chunks; ++c) {
-        Index& at = fill_[static_cast<size_t>(c * pb + s)];
-        const Index count = at;
-        at = running;
-        running += count;
-      }
-    }
-    block_start_[static_cast<size_t>(pb)] = running;
-    order_.resize(static_cast<size_t>(n));
-#pragma omp parallel for schedule(static) if (parallel)
-    for (Index c = 0; c < chunks; ++c) {
-      const auto [first, last] = chunk_rows(c);
-      Index* at = &fill_[static_cast<size_t>(c * pb)];
-      for (Index p = first; p < last; ++p)
-        order_[static_cast<size_t>(at[table_[static_cast<size_t>(particle_key_[static_cast<size_t>(p)])]]++)] = p;
-    }
     // For every slot, the particle blocks whose tiles reach it: the block itself and its -1
     // neighbours (offset o of source_slot_ is the block at c - o), -1 where there is none.
     source_slot_.resize(static_cast<size_t>(slots * NEIGHBORS));
@@ -316,8 +345,21 @@ class SolverD final : public Solver::Impl {
         source_slot_[static_cast<size_t>(s * NEIGHBORS + o)] = slot < particle_blocks_ ? slot : -1;
       }
     }
+    fill_.assign(static_cast<size_t>(sort_chunks_ * particle_blocks_), 0);
+    chunk_start_.resize(static_cast<size_t>((sort_chunks_ + 1) * particle_blocks_));
+    block_start_.resize(static_cast<size_t>(particle_blocks_ + 1));
     grid_.resize(static_cast<size_t>(slots * BN * S));
-    tiles_.resize(static_cast<size_t>(particle_blocks_ * TN * S));
+    tiles_.resize(static_cast<size_t>(kLanes * particle_blocks_ * TN * S));
+  }
+
+  [[noreturn]] void throw_bad_particle(const State& state) const {
+    const Index bad = bad_;
+    std::string where = "(";
+    for (int a = 0; a < D; ++a) where += (a ? ", " : "") + format_real(state.x[static_cast<size_t>(bad * D + a)]);
+    throw InvalidArgument("x: particle " + std::to_string(bad) + " at " + where +
+                          ") is outside the domain or not finite (or its material code is not one of the " +
+                          std::to_string(model_.materials.size()) +
+                          " materials, or its youngs_modulus is not > 0 or poisson_ratio not in (-1, 0.5))");
   }
 
   std::array<Index, 3> coords_of(Index key) const {
@@ -463,18 +505,56 @@ class SolverD final : public Solver::Impl {
     __builtin_prefetch(&state.volume[p]);
     __builtin_prefetch(&state.material[p]);
     __builtin_prefetch(&state.Jp[p]);
+    __builtin_prefetch(&state.youngs_modulus[p]);
+    __builtin_prefetch(&state.poisson_ratio[p]);
   }
 
-  // Each particle block scatters into its own tile of tiles_ (no two threads write one value).
-  void p2g(const State& state, Scalar dt, const Scalar* forces) {
+  // The transfers' work items: (lane, particle block), lane-major. Lane l holds the rows of
+  // the sort's row chunks c = l, l + kLanes, ... (fixed row ranges, whatever the thread
+  // count), and each item has its own tile, so P2G writes no value two threads write. Shared
+  // out statically, two threads take one lane each, in P2G and in G2P, step after step: each
+  // particle row is read and written by one core only. The rows are in the user's order,
+  // spatially random in Taichi's examples; shared out by blocks (as before), every cache line
+  // of x, v, F, C held rows of both threads and crossed between the cores twice a step.
+  // In 3D (one lane, blocks handed out one at a time) the second lane's doubled tile gathers
+  // and sums cost more than it saved (mpm3d 3-6% slower on 2 threads).
+  static constexpr Index kLanes = D == 2 ? 2 : 1;
+  template <class Fn>
+  void each_item(Fn&& fn) const {
+    if constexpr (kLanes > 1) {
+#pragma omp for schedule(static)
+      for (Index item = 0; item < kLanes * particle_blocks_; ++item) fn(item / particle_blocks_, item % particle_blocks_);
+    } else {
+#pragma omp for schedule(dynamic, 1)
+      for (Index s = 0; s < particle_blocks_; ++s) fn(Index{0}, s);
+    }
+  }
+  // Calls fn(q, end of q's chunk) for the positions q of order_ in lane `lane` of block s.
+  template <class Fn>
+  void each_in_lane(Index lane, Index s, Fn&& fn) const {
+    const Index chunks = sort_chunks_;
+    const Index* starts = &chunk_start_[static_cast<size_t>(s * (chunks + 1))];
+    for (Index c = lane; c < chunks; c += kLanes)
+      for (Index q = starts[c]; q < starts[c + 1]; ++q) fn(q, starts[c + 1]);
+  }
+  bool lane_empty(Index lane, Index s) const {
+    const Index chunks = sort_chunks_;
+    const Index* starts = &chunk_start_[static_cast<size_t>(s * (chunks + 1))];
+    for (Index c = lane; c < chunks; c += kLanes)
+      if (starts[c] < starts[c + 1]) return false;
+    return true;
+  }
+
+  // Each work item scatters into its own tile of tiles_ (no two threads write one value).
+  // Called by every thread of a parallel region (a work-shared loop ending in a barrier).
+  void p2g_phase(const State& state, Scalar dt, const Scalar* forces) {
     const Scalar h = model_.h, stress_scale = 4 * dt / (h * h);
-#pragma omp parallel for schedule(dynamic, 1) if (state.n > kParallelParticles)
-    for (Index s = 0; s < particle_blocks_; ++s) {
+    each_item([&](Index lane, Index s) {
       const auto o = block_origin(s);
-      Scalar* tile = &tiles_[static_cast<size_t>(s * TN * S)];
+      Scalar* tile = &tiles_[static_cast<size_t>((lane * particle_blocks_ + s) * TN * S)];
       std::fill_n(tile, TN * S, 0.0);
-      for (Index q = block_start_[s]; q < block_start_[s + 1]; ++q) {
-        prefetch_row(state, q, block_start_[s + 1]);
+      each_in_lane(lane, s, [&](Index q, Index end) {
+        prefetch_row(state, q, end);
         const Index p = order_[static_cast<size_t>(q)];
         const size_t pd = static_cast<size_t>(p * D);
         const Stencil st = stencil(&state.x[pd], o);
@@ -488,26 +568,30 @@ class SolverD final : public Solver::Impl {
         const Vec<D> q0 = forces ? Vec<D>(m * v + dt * Eigen::Map<const Vec<D>>(forces + pd) - A * st.fx)
                                  : Vec<D>(m * v - A * st.fx);
         scatter(tile, st, m, q0, A);
-      }
-    }
+      });
+    });
   }
 
-  // For every slot, in parallel: sums the tiles over its nodes (the sources in the fixed order
-  // of source_slot_, so a node's sum does not depend on the thread count) into
-  // `sum` (B^d (d + 1)) and calls node_fn(slot, sum).
+  // For every slot, work-shared among the threads of the enclosing parallel region (ending in
+  // a barrier): sums the tiles over its nodes (the sources in the fixed order of source_slot_,
+  // so a node's sum does not depend on the thread count) into `sum` (B^d (d + 1)) and calls
+  // node_fn(slot, sum).
+  // `lanes`: tiles per particle block (lane-major, as each_item).
   template <class Fn>
-  void reduce_tiles(const std::vector<Scalar>& tiles, bool parallel, Fn&& node_fn) const {
+  void reduce_tiles(const std::vector<Scalar>& tiles, Index lanes, Fn&& node_fn) const {
     const Index slots = static_cast<Index>(slot_key_.size());
-#pragma omp parallel for schedule(static) if (parallel)
+#pragma omp for schedule(static)
     for (Index s = 0; s < slots; ++s) {
       alignas(64) Scalar sum[BN * S];
       std::fill_n(sum, BN * S, 0.0);
       for (int o = 0; o < NEIGHBORS; ++o) {
         const std::int32_t src = source_slot_[static_cast<size_t>(s * NEIGHBORS + o)];
         if (src < 0) continue;
-        const Scalar* tile = &tiles[static_cast<size_t>(src) * TN * S];
-        for (const Overlap& ov : overlaps_[static_cast<size_t>(o)])
-          for (int c = 0; c < S; ++c) sum[ov.node * S + c] += tile[ov.tile * S + c];
+        for (Index lane = 0; lane < lanes; ++lane) {
+          const Scalar* tile = &tiles[static_cast<size_t>(lane * particle_blocks_ + src) * TN * S];
+          for (const Overlap& ov : overlaps_[static_cast<size_t>(o)])
+            for (int c = 0; c < S; ++c) sum[ov.node * S + c] += tile[ov.tile * S + c];
+        }
       }
       node_fn(s, sum);
     }
@@ -550,10 +634,10 @@ class SolverD final : public Solver::Impl {
   // The grid pass: each node's mass and momentum summed from the tiles, then
   // v = (m v) / m + dt g and the wall and collider conditions. `pre` (slots B^d d, or null)
   // receives each node's velocity before the conditions, which their adjoint needs.
-  void grid_update(Scalar dt, Scalar* pre = nullptr) {
+  void grid_phase(Scalar dt, Scalar* pre) {
     Vec<D> g;
     for (int a = 0; a < D; ++a) g(a) = config_.gravity[a];
-    reduce_tiles(tiles_, particle_count_ > kParallelParticles, [&](Index s, const Scalar* sum) {
+    reduce_tiles(tiles_, kLanes, [&](Index s, const Scalar* sum) {
       const auto o = block_origin(s);
       Scalar* out = &grid_[static_cast<size_t>(s * BN * S)];
       for (int l = 0; l < BN; ++l) {
@@ -647,17 +731,20 @@ class SolverD final : public Solver::Impl {
     }
   }
 
-  Scalar g2p(State& state, Scalar dt) {
+  // Work-shared among the threads of the enclosing parallel region; each thread's largest
+  // squared speed and finiteness are merged into the shared vmax2_all and finite_all (a max
+  // and an and: the same whatever the thread count).
+  void g2p_phase(State& state, Scalar dt, Scalar& vmax2_all, bool& finite_all) {
     const Scalar h = model_.h;
     Scalar vmax2 = 0;
     bool finite = true;
-#pragma omp parallel for schedule(dynamic, 1) reduction(max : vmax2) reduction(&& : finite) if (state.n > kParallelParticles)
-    for (Index s = 0; s < particle_blocks_; ++s) {
+    each_item([&](Index lane, Index s) {
+      if (lane_empty(lane, s)) return;
       const auto o = block_origin(s);
       alignas(64) Scalar tile[TN * S];
       gather<1>(tile, s, grid_);
-      for (Index q = block_start_[s]; q < block_start_[s + 1]; ++q) {
-        prefetch_row(state, q, block_start_[s + 1]);
+      each_in_lane(lane, s, [&](Index q, Index end) {
+        prefetch_row(state, q, end);
         const Index p = order_[static_cast<size_t>(q)];
         const size_t pd = static_cast<size_t>(p * D);
         save_row(state, p, q);
@@ -678,8 +765,18 @@ class SolverD final : public Solver::Impl {
         }
         finite = finite && v.allFinite() && Fn.allFinite();
         vmax2 = std::max(vmax2, v.squaredNorm());
-      }
+      });
+    });
+#pragma omp critical(mpm_g2p_reduce)
+    {
+      vmax2_all = std::max(vmax2_all, vmax2);
+      finite_all = finite_all && finite;
     }
+  }
+
+  // After G2P: a blow-up restores the State and throws; otherwise the largest speed.
+  Scalar check_g2p(State& state, Scalar dt, Scalar vmax2, bool finite) {
+    const Scalar h = model_.h;
     const Scalar vmax = std::sqrt(vmax2);
     if (!finite || !(vmax * dt <= config_.max_cells_per_step * h)) {
       parallel_for(state.n, [&](Index q) { restore_row(state, order_[static_cast<size_t>(q)], q); });
@@ -801,12 +898,16 @@ class SolverD final : public Solver::Impl {
   std::vector<Index> particle_key_;          // (n,) block key of each particle
   std::vector<Index> block_start_;           // CSR of order_ by particle block
   std::vector<Index> fill_;                  // (sort chunks, particle blocks): counts, then write positions
+  std::vector<Index> chunk_start_;           // (particle blocks, sort chunks + 1): where each chunk's rows start in order_
   std::vector<Index> order_;                 // particle rows sorted by block
   std::vector<std::int32_t> source_slot_;   // (slot, 2^d) -> particle block at c - o (or -1)
-  std::vector<Scalar> tiles_;                // (particle blocks, (B + 2)^d, d + 1): P2G's tiles
+  std::vector<Scalar> tiles_;                // (lanes, particle blocks, (B + 2)^d, d + 1): P2G's tiles
   Index particle_count_ = 0;                 // n of the last sort
   std::vector<Scalar> grid_;                 // (slots, B^d, d + 1): mass, momentum -> velocity
   std::vector<Scalar> backup_;               // (n, kRow): what G2P overwrote, for a failed step
+  std::vector<std::pair<std::uint64_t, Index>> found_;  // (Morton code, key) of the particle blocks
+  Index bad_ = -1;                           // lowest row of a particle outside the domain, or -1
+  Index sort_chunks_ = 1;                    // row chunks of the counting sort
   std::vector<Scalar> pre_;                  // (slots, B^d, d): velocity before the boundary conditions
   std::vector<Scalar> adjoint_grid_;         // (slots, B^d, d + 1): dL/d(mass, momentum)
 };
@@ -827,11 +928,15 @@ void SolverD<D>::step_adjoint(const State& before, const State& after, Scalar dt
   }
   // 1. The step's grid, rebuilt from `before` as step() built it: masses, momenta, and the
   //    velocities before (pre_) and after (grid_) the boundary conditions.
-  sort(before);
-  p2g(before, dt, forces);
-  const Index slots = static_cast<Index>(slot_key_.size());
-  pre_.resize(static_cast<size_t>(slots * BN * D));
-  grid_update(dt, pre_.data());
+  prepare_sort(before);
+#pragma omp parallel if (n > kParallelParticles)
+  if (sort_phase(before)) {
+#pragma omp single
+    pre_.resize(slot_key_.size() * BN * D);
+    p2g_phase(before, dt, forces);
+    grid_phase(dt, pre_.data());
+  }
+  if (bad_ >= 0) throw_bad_particle(before);
   interrupt.check();
   adjoint_grid_.resize(grid_.size());
   const Scalar h = model_.h, apic = 4 / h, stress_scale = 4 * dt / (h * h);
@@ -889,7 +994,8 @@ void SolverD<D>::step_adjoint(const State& before, const State& after, Scalar dt
   //    u = P / M + dt g, then the boundary conditions.
   Vec<D> g;
   for (int a = 0; a < D; ++a) g(a) = config_.gravity[a];
-  reduce_tiles(tiles_, parallel, [&](Index s, const Scalar* sum) {
+#pragma omp parallel if (parallel)
+  reduce_tiles(tiles_, 1, [&](Index s, const Scalar* sum) {
     const auto o = block_origin(s);
     for (int l = 0; l < BN; ++l) {
       const size_t at = static_cast<size_t>((s * BN + l) * S);

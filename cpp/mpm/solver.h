@@ -11,9 +11,10 @@
 // the grid update's transpose node by node, and P2G^T (a gather, per particle).
 // The grid is sparse: storage and work exist only for the blocks of nodes that particles reach.
 // P2G needs no atomics and is deterministic for any thread count: each particle block scatters
-// into its own tile of (B + 2)^d nodes, and the grid pass then gives every node the sum of the
-// 2^d tiles over it in a fixed order (the block's own tile first), fused with the node's
-// velocity update: a step is three parallel loops and two barriers, whatever the dimension.
+// into its own tile of (B + 2)^d nodes (in 2D one per block and row lane, solver.cpp
+// each_item), and the grid pass then gives every node the sum of the tiles over it in a fixed
+// order (the block's own tile first), fused with the node's velocity update. A step is one
+// parallel region whose phases (sort, P2G, grid, G2P) meet at barriers.
 #pragma once
 
 #include <memory>
