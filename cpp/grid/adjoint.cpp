@@ -71,6 +71,12 @@ struct Stencil {
   void scatter(Scalar g, Scalar* target) const {
     for (int n = 0; n < count; ++n) target[node[n]] += g * w[n];
   }
+  // The same for the nodes of nonzero weight only (a stencil centred on a node of its own
+  // layout, or half-way between two, has 4-6 of its 8 weights exactly 0).
+  void scatter_nonzero(Scalar g, Scalar* target) const {
+    for (int n = 0; n < count; ++n)
+      if (w[n] != 0) target[node[n]] += g * w[n];
+  }
   // g times the gradient of the interpolant of f, added to out: the differences along each axis,
   // weighted by the other axes' weights.
   void add_gradient(const Scalar* f, Scalar g, Vec3& out) const {
@@ -221,7 +227,8 @@ struct Tracer {
     return br;
   }
 
-  // dL/du += (d u(y) / d u)^T g; returns (d u(y) / d y)^T g when `moves` (else 0: y is fixed).
+  // dL/du += (d u(y) / d u)^T g; returns (d u(y) / d y)^T g when `moves` (else 0: y is a node,
+  // whose stencils have many zero weights, skipped).
   Vec3 velocity_adjoint(const Brackets& br, const Vec3& g, bool moves = true) const {
     Vec3 gy{0, 0, 0};
     const AxisWeight *face = br.face, *cell = br.cell;
@@ -229,16 +236,22 @@ struct Tracer {
       if (g[a] == 0) continue;
       const Stencil<ThreeD> st(u.layout[a], a == 0 ? face[0] : cell[0], a == 1 ? face[1] : cell[1],
                                a == 2 ? face[2] : cell[2]);
-      st.scatter(g[a], g_u[a]);
-      if (moves) st.add_gradient(u.comp[a], g[a], gy);
+      if (moves) {
+        st.scatter(g[a], g_u[a]);
+        st.add_gradient(u.comp[a], g[a], gy);
+      } else {
+        st.scatter_nonzero(g[a], g_u[a]);
+      }
     }
     return gy;
   }
 
-  // dL/du += (dp/du)^T gp through the stages of p = x - dt k; at(m) = the brackets of stage m
-  // (0: s.x, 1: s.y1, 2: s.y2).
+  // dL/du += (dp/du)^T gp through the stages of p = x - dt k after the first; at(m) = the
+  // brackets of stage m (1: s.y1, 2: s.y2). Returns g1, the gradient of the first stage's
+  // velocity u(x) at the node x itself, which the caller scatters (advect_adjoint_impl: stage0): every pass
+  // and field of a call reads u at the same nodes, so their g1 are summed and scattered once.
   template <class At>
-  void trace_adjoint(Scalar dt, const Vec3& gp, At&& at) const {
+  Vec3 trace_adjoint(Scalar dt, const Vec3& gp, At&& at) const {
     Vec3 g1{0, 0, 0}, g2{0, 0, 0}, g3{0, 0, 0};
     const Scalar c1 = rk == 1 ? 1 : rk == 2 ? 0 : 2.0 / 9, c2 = rk == 2 ? 1 : rk == 3 ? 3.0 / 9 : 0,
                  c3 = rk == 3 ? 4.0 / 9 : 0;
@@ -255,10 +268,7 @@ struct Tracer {
       const Vec3 gy1 = velocity_adjoint(at(1), g2);
       for (int b = 0; b < 3; ++b) g1[b] -= 0.5 * dt * gy1[b];
     }
-    velocity_adjoint(at(0), g1, false);  // the node itself does not move
-  }
-  void trace_adjoint(const Stages& s, Scalar dt, const Vec3& gp) const {
-    trace_adjoint(dt, gp, [&](int m) { return brackets(m == 0 ? s.x : m == 1 ? s.y1 : s.y2); });
+    return g1;
   }
 };
 
@@ -279,6 +289,11 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
   const bool rows = rows_apply(u, L);
   const Index nk = L.n[2];
   const int first = ThreeD ? 0 : 1;
+  // Per node of L and active axis b: the gradient of u_b read at the node (the first
+  // Runge-Kutta stage) summed over the passes and fields of this call.
+  std::array<std::vector<Scalar>, 3> g_node_store;
+  Scalar* g_node[3] = {nullptr, nullptr, nullptr};
+  for (int b = first; b < 3; ++b) g_node_store[b].assign(static_cast<size_t>(n), 0), g_node[b] = g_node_store[b].data();
   struct RowData {
     std::unique_ptr<RowTrace> trace;
     std::vector<int> ints;      // per slot: i0, i1
@@ -318,7 +333,9 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
       st.scatter(g, dst[f]);
       st.add_gradient(src[f], g, gp);
     }
-    if (gp != Vec3{0, 0, 0}) tr.trace_adjoint(step, gp, at);
+    if (gp == Vec3{0, 0, 0}) return;
+    const Vec3 g1 = tr.trace_adjoint(step, gp, at);
+    for (int b = first; b < 3; ++b) g_node[b][c] += g1[b];  // node c is this row's: no other writer
   };
   // One pass traced over `step`: for each node, term(f, c, st) returns dL/d(src[f] at the
   // departure point) after adding the terms that do not go through it; the pass scatters that
@@ -343,7 +360,7 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
       for (int b = first; b < 3; ++b) {
         fill(rd, 18 + b, rt.p[b], L.offset[b], L.n[b], L.period[b]);
         const Index cells = u.layout[b].n[b] - 1, period = u.layout[b].period[b];
-        for (int m = 0; m < rk; ++m) {
+        for (int m = 1; m < rk; ++m) {  // stage 0 (the node) is stage0()'s
           fill(rd, 6 * m + b, stage[m][b], 0, cells + 1, period);
           fill(rd, 6 * m + 3 + b, stage[m][b], 0.5, cells, period);
         }
@@ -362,8 +379,43 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
   auto semi_lagrangian = [&](const Scalar* const* src, const Scalar* const* g, Scalar* const* dst) {
     pass(dt, src, dst, [&](int f, Index c, const Stencil<ThreeD>&) { return g[f][c]; });
   };
+  // The first stage of every trace reads u at the node itself: dL/du_a += W_a(x)^T g_node[a]
+  // for every node x of L, once per call (its stencils reach a slab or two).
+  auto stage0 = [&] {
+    const Index reach0 = 3 < L.n[L.n[0] > 1 ? 0 : 1] ? 3 : -1;
+    Scatter::run(L, reach0, make, [&](RowData& rd, Index i, Index j, Index c0) {
+      auto at_node = [&](Index k) {
+        Vec3 g{0, 0, 0};
+        for (int b = first; b < 3; ++b) g[b] = g_node[b][c0 + k];
+        return g;
+      };
+      if (!rd.trace) {
+        for (Index k = 0; k < nk; ++k) {
+          const Vec3 g = at_node(k);
+          if (g != Vec3{0, 0, 0}) tr.velocity_adjoint(tr.brackets(node(i, j, k)), g, false);
+        }
+        return;
+      }
+      Scalar* x = rd.reals.data() + 2 * kSlots * nk;
+      std::fill(x, x + nk, static_cast<Scalar>(i) + L.offset[0]);
+      std::fill(x + nk, x + 2 * nk, static_cast<Scalar>(j) + L.offset[1]);
+      for (int b = first; b < 3; ++b) {
+        const Index cells = u.layout[b].n[b] - 1, period = u.layout[b].period[b];
+        fill(rd, b, x + b * nk, 0, cells + 1, period);
+        fill(rd, 3 + b, x + b * nk, 0.5, cells, period);
+      }
+      for (Index k = 0; k < nk; ++k) {
+        const Vec3 g = at_node(k);
+        if (g == Vec3{0, 0, 0}) continue;
+        typename Tracer<ThreeD>::Brackets br;
+        for (int b = first; b < 3; ++b) br.face[b] = slot(rd, b, k), br.cell[b] = slot(rd, 3 + b, k);
+        tr.velocity_adjoint(br, g, false);
+      }
+    });
+  };
   if (scheme == AdvectionScheme::SemiLagrangian) {
     semi_lagrangian(q, g_out, g_q);
+    stage0();
     return;
   }
   // The forward pass as run: q^ = SL(q, dt), the clamp bounds lo/hi (values), BFECC's q_bar.
@@ -408,6 +460,7 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
       return -0.5 * g;
     });
     semi_lagrangian(q, g_fwd_p, g_q);
+    stage0();
     return;
   }
   // BFECC: q_bar = q + (q - SL(q^, -dt))/2, out = clamp(SL(q_bar, dt)).
@@ -426,6 +479,7 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
     return -0.5 * g;
   });
   semi_lagrangian(q, g_fwd_p, g_q);
+  stage0();
 }
 
 }  // namespace
@@ -584,7 +638,6 @@ void Solver::step_adjoint(const State& before, Scalar dt, const Scalar* control,
   add_forces(s, dt, control);
   diffuse(s, dt, interrupt);
   interrupt.check();
-
   std::array<std::vector<Scalar>, 3>& g = adjoint.velocity;
   // 4. Projection.
   projection_adjoint(g, dt, interrupt, before.steps);
