@@ -110,8 +110,10 @@ struct PyFluid {
     return out;
   }
 
-  // (dL/d(before) as a dict, dL/dviscosity, dL/dcontrol or None) of one step from `before`.
-  py::tuple step_adjoint(Scalar dt, const py::dict& before, const py::object& control, const py::dict& grads) {
+  // (dL/d(before) as a dict, dL/dviscosity or None when not wanted, dL/dcontrol or None) of one
+  // step from `before`.
+  py::tuple step_adjoint(Scalar dt, const py::dict& before, const py::object& control, const py::dict& grads,
+                         bool want_viscosity) {
     const grid::State b = read_state(before, false);
     grid::State adjoint = read_state(grads, true);
     std::vector<Scalar> buffer;
@@ -121,7 +123,8 @@ struct PyFluid {
     {
       Interrupt interrupt = python_interrupt();
       ReleaseGil release;
-      solver_->step_adjoint(b, dt, u, adjoint, grad_viscosity, u ? grad_control.data() : nullptr, interrupt);
+      solver_->step_adjoint(b, dt, u, adjoint, want_viscosity ? &grad_viscosity : nullptr,
+                            u ? grad_control.data() : nullptr, interrupt);
     }
     py::object gc = py::none();
     if (u) {
@@ -129,7 +132,8 @@ struct PyFluid {
       dims.push_back(shape_.dim);
       gc = to_numpy(std::move(grad_control), dims);
     }
-    return py::make_tuple(write_state(adjoint), grad_viscosity, gc);
+    return py::make_tuple(write_state(adjoint), want_viscosity ? py::object(py::float_(grad_viscosity)) : py::none(),
+                          gc);
   }
 
   // The projection's transpose applied to the velocity gradients of `grads` (tests).
@@ -261,7 +265,7 @@ void bind_grid(py::module_& m) {
       .def_property_readonly("config", [](const PyFluid& f) { return f.solver_->config(); })
       .def("step", &PyFluid::step, py::arg("dt"), py::arg("control") = py::none())
       .def("step_adjoint", &PyFluid::step_adjoint, py::arg("dt"), py::arg("before"), py::arg("control"),
-           py::arg("grads"))
+           py::arg("grads"), py::arg("want_viscosity") = true)
       .def("check_differentiable", [](const PyFluid& f) { f.solver_->check_differentiable(); })
       .def("set_viscosity", [](PyFluid& f, Scalar nu) { f.solver_->set_viscosity(nu); }, py::arg("viscosity"))
       .def("project", [](PyFluid& f, Scalar dt) {

@@ -620,23 +620,29 @@ void Solver::projection_adjoint(std::array<std::vector<Scalar>, 3>& grad, Scalar
 }
 
 void Solver::step_adjoint(const State& before, Scalar dt, const Scalar* control, State& adjoint,
-                          Scalar& grad_viscosity, Scalar* grad_control, Interrupt& interrupt) {
+                          Scalar* grad_viscosity, Scalar* grad_control, Interrupt& interrupt) {
   if (!(dt > 0) || !std::isfinite(dt)) throw InvalidArgument("dt: expected a finite time step > 0, got " + format_real(dt));
   check_differentiable();
   check_state(before);
   check_state(adjoint);
   const int dim = model_.shape.dim;
   const Index cells = cells_.size();
-  // Recompute the step up to the viscosity: s0 is what advection reads, s what the viscosity made.
-  State s = before;
-  refresh_solids(s);
-  apply_sources(s);
-  enforce_boundary(s);
-  const State s0 = s;
-  std::array<AdvectionScratch, 4> kept;  // the advection's forward passes, for its adjoint
-  advect(s, dt, &kept);
-  add_forces(s, dt, control);
-  diffuse(s, dt, interrupt);
+  // Recompute the step up to the viscosity: s0 is what advection reads, s what the viscosity
+  // made (only dL/dnu reads it: without it, s0 and the advection's scratch are enough).
+  State s0 = before;
+  refresh_solids(s0);
+  apply_sources(s0);
+  enforce_boundary(s0);
+  std::array<AdvectionScratch, 4>& kept = adjoint_kept_;  // the advection's forward passes, for its adjoint
+  State s;
+  if (grad_viscosity) {
+    s = s0;
+    advect(s, dt, &kept);
+    add_forces(s, dt, control);
+    diffuse(s, dt, interrupt);
+  } else {
+    advection_scratch(s0, dt, kept);
+  }
   interrupt.check();
   std::array<std::vector<Scalar>, 3>& g = adjoint.velocity;
   // 4. Projection.
@@ -645,11 +651,11 @@ void Solver::step_adjoint(const State& before, Scalar dt, const Scalar* control,
   // dL/dc = -lambda . L x (also at nu = 0, where the forward pass skips the solve).
   enforce_boundary_adjoint(g);
   const Scalar c = config_.viscosity * dt / (model_.h * model_.h);
-  grad_viscosity = 0;
+  Scalar grad_nu = 0;
   {
     std::vector<Scalar> lambda, lx;
     for (int a = 0; a < 3; ++a) {
-      if (!active_[a]) continue;
+      if (!active_[a] || (c == 0 && !grad_viscosity)) continue;  // at nu = 0 the step is the identity
       const Index nf = faces_[a].size();
       lambda = g[a];
       if (c > 0) {
@@ -661,15 +667,17 @@ void Solver::step_adjoint(const State& before, Scalar dt, const Scalar* control,
           throw ConvergenceError("viscosity: the adjoint CG did not reach tol for component " +
                                  std::string(1, "uvw"[a - (3 - dim)]));
       }
-      lx.assign(static_cast<size_t>(nf), 0);
-      apply_viscosity_operator(a, 1, s.velocity[a].data(), lx.data());  // (I + L) x
-      const Scalar* x = s.velocity[a].data();
-      const Scalar* l = lambda.data();
-      const Scalar* y = lx.data();
-      grad_viscosity -= parallel_sum(nf, [&](Index f) { return l[f] * (y[f] - x[f]); });
-      g[a] = lambda;
+      if (grad_viscosity) {
+        lx.assign(static_cast<size_t>(nf), 0);
+        apply_viscosity_operator(a, 1, s.velocity[a].data(), lx.data());  // (I + L) x
+        const Scalar* x = s.velocity[a].data();
+        const Scalar* l = lambda.data();
+        const Scalar* y = lx.data();
+        grad_nu -= parallel_sum(nf, [&](Index f) { return l[f] * (y[f] - x[f]); });
+      }
+      if (c > 0) g[a].swap(lambda);
     }
-    grad_viscosity *= dt / (model_.h * model_.h);
+    if (grad_viscosity) *grad_viscosity = grad_nu * dt / (model_.h * model_.h);
   }
   // 2. Forces: controls and buoyancy are cell values averaged to the free faces.
   if (config_.periodic) enforce_boundary_adjoint(g);

@@ -337,7 +337,7 @@ struct RowPasses {
   }
 
   void run(AdvectionScheme scheme, const Scalar* const* q, Scalar* const* out, Scalar dt, AdvectionScratch& scratch,
-           bool avx2) const {
+           bool avx2, bool scratch_only) const {
     if (scheme == AdvectionScheme::SemiLagrangian) {
       pass(RowJob{RowPass::Plain, dt, q, q, out, nullptr, nullptr}, avx2);
       return;
@@ -346,12 +346,14 @@ struct RowPasses {
     Scalar *const *fwd = s.forward, *const *lo = s.lo, *const *hi = s.hi, *const *bar = s.corrected;
     // q^ = SL(q, dt) with the clamping bounds of Selle et al.
     pass(RowJob{RowPass::Forward, dt, q, q, fwd, lo, hi}, avx2);
+    if (scratch_only && scheme == AdvectionScheme::MacCormack) return;
     if (scheme == AdvectionScheme::MacCormack) {
       pass(RowJob{RowPass::MacCormack, -dt, fwd, q, out, lo, hi}, avx2);
       return;
     }
     // BFECC: the error-compensated field advected forward once more, clamped to q^'s bounds.
     pass(RowJob{RowPass::BFECC, -dt, fwd, q, bar, nullptr, nullptr}, avx2);
+    if (scratch_only) return;
     pass(RowJob{RowPass::Plain, dt, bar, q, out, nullptr, nullptr}, avx2);
     clamp_fields(L, count, out, lo, hi);
   }
@@ -459,14 +461,14 @@ bool rows_apply(const MacVelocity& u, const FieldLayout& L) {
 
 void advect_rows(AdvectionScheme scheme, const MacVelocity& u, const FieldLayout& L, int count,
                  const Scalar* const* q, Scalar* const* out, Scalar dt, int rk_order, AdvectionScratch& scratch,
-                 bool avx2) {
+                 bool avx2, bool scratch_only) {
   const bool periodic = L.period[2] > 0;
   if (u.comp[0]) {
-    if (periodic) RowPasses<true, true>(u, L, count, rk_order).run(scheme, q, out, dt, scratch, avx2);
-    else RowPasses<true, false>(u, L, count, rk_order).run(scheme, q, out, dt, scratch, avx2);
+    if (periodic) RowPasses<true, true>(u, L, count, rk_order).run(scheme, q, out, dt, scratch, avx2, scratch_only);
+    else RowPasses<true, false>(u, L, count, rk_order).run(scheme, q, out, dt, scratch, avx2, scratch_only);
   } else {
-    if (periodic) RowPasses<false, true>(u, L, count, rk_order).run(scheme, q, out, dt, scratch, avx2);
-    else RowPasses<false, false>(u, L, count, rk_order).run(scheme, q, out, dt, scratch, avx2);
+    if (periodic) RowPasses<false, true>(u, L, count, rk_order).run(scheme, q, out, dt, scratch, avx2, scratch_only);
+    else RowPasses<false, false>(u, L, count, rk_order).run(scheme, q, out, dt, scratch, avx2, scratch_only);
   }
 }
 

@@ -22,7 +22,7 @@ bool rows_apply(const MacVelocity& u, const FieldLayout& L);
 // advect_fields by rows; requires rows_apply(u, L), and cpu_has_avx2() (core/simd.h) when avx2.
 void advect_rows(AdvectionScheme scheme, const MacVelocity& u, const FieldLayout& L, int count,
                  const Scalar* const* q, Scalar* const* out, Scalar dt, int rk_order,
-                 AdvectionScratch& scratch, bool avx2);
+                 AdvectionScratch& scratch, bool avx2, bool scratch_only = false);
 
 // The back-traces of advect_rows along one row of L's nodes at a time, with their Runge-Kutta
 // stages kept (for the adjoint): y1 = x - dt/2 k1 (rk >= 2), y2 = x - 3 dt/4 k2 (rk 3) and the
