@@ -216,6 +216,8 @@ struct Tracer {
   // component b, the cell brackets the others.
   struct Brackets {
     AxisWeight face[3], cell[3];
+    const Scalar* const* jac = nullptr;  // nullable: jac[3 a + b][k] = d u_a / d y_b (RowTrace::jac)
+    Index k = 0;
   };
   Brackets brackets(const Vec3& y) const {
     Brackets br;
@@ -238,7 +240,11 @@ struct Tracer {
                                a == 2 ? face[2] : cell[2]);
       if (moves) {
         st.scatter(g[a], g_u[a]);
-        st.add_gradient(u.comp[a], g[a], gy);
+        if (br.jac) {  // the trace's derivatives, times 0 along a clamped axis (as add_gradient)
+          for (int b = ThreeD ? 0 : 1; b < 3; ++b) gy[b] += g[a] * st.d[b] * br.jac[3 * a + b][br.k];
+        } else {
+          st.add_gradient(u.comp[a], g[a], gy);
+        }
       } else {
         st.scatter_nonzero(g[a], g_u[a]);
       }
@@ -370,6 +376,8 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
         node_adjoint(st, c0 + k, step, src, dst, term, [&](int m) {
           typename Tracer<ThreeD>::Brackets br;
           for (int b = first; b < 3; ++b) br.face[b] = slot(rd, 6 * m + b, k), br.cell[b] = slot(rd, 6 * m + 3 + b, k);
+          br.jac = rt.jac[m - 1];
+          br.k = k;
           return br;
         });
       }

@@ -36,7 +36,7 @@ class RowTrace {
   RowTrace(const RowTrace&) = delete;
   RowTrace& operator=(const RowTrace&) = delete;
 
-  void trace(Index i, Index j, Scalar dt);  // fills y1, y2, p for row (i, j)
+  void trace(Index i, Index j, Scalar dt);  // fills y1, y2, p and jac for row (i, j)
 
   // The brackets (kernels.h: bracket) of x[k] - offset, k < L.n[2], on `nodes` nodes of period
   // `period` (0: none; the row passes require every axis periodic or none), and d[k] = d w / d x:
@@ -47,6 +47,9 @@ class RowTrace {
   Scalar* y1[3];
   Scalar* y2[3];
   Scalar* p[3];
+  // jac[m][3 a + b] = d u_a / d y_b at stage m + 1 (y1, y2) in grid units, from the brackets
+  // as computed (no factor for a clamped coordinate; 2D: b = 0 unset).
+  Scalar* jac[2][9];
 
  private:
   struct Impl;
