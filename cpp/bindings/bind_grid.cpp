@@ -212,6 +212,78 @@ struct PyFluid {
   grid::State state_;
 };
 
+// A run kept whole for km.diff (Fluid._diff_record): the steps' states and controls, stepped
+// and reversed in C++ by the same calls as _diff_step and _diff_step_adjoint (the same bits),
+// without a Python round trip per step.
+struct PyRecord {
+  py::object owner;  // the PyFluid
+  PyFluid* fluid = nullptr;
+  Scalar dt = 0;
+  Index steps = 0;
+  std::vector<grid::State> states;  // before step k, k = 0..steps
+  std::vector<Scalar> controls;     // steps x cells x dim, or empty
+
+  // (dL/d(initial state) as a dict, dL/dviscosity summed over the steps or None when not
+  // wanted, dL/dcontrols of shape (steps, *shape, dim) or None).
+  py::tuple backward(const py::dict& grads, bool want_viscosity) {
+    grid::State adjoint = fluid->read_state(grads, true);
+    const Index per_step = fluid->shape_.size() * fluid->shape_.dim;
+    std::vector<Scalar> grad_controls(controls.empty() ? 0 : static_cast<size_t>(steps * per_step));
+    Scalar grad_viscosity = 0;
+    {
+      Interrupt interrupt = python_interrupt();
+      ReleaseGil release;
+      for (Index k = steps - 1; k >= 0; --k) {
+        Scalar g = 0;
+        const Scalar* u = controls.empty() ? nullptr : controls.data() + k * per_step;
+        fluid->solver_->step_adjoint(states[k], dt, u, adjoint, want_viscosity ? &g : nullptr,
+                                     u ? grad_controls.data() + k * per_step : nullptr, interrupt);
+        grad_viscosity = k == steps - 1 ? g : grad_viscosity + g;  // km.diff's order of the sum
+      }
+    }
+    py::object gc = py::none();
+    if (!controls.empty()) {
+      std::vector<Index> dims = fluid->shape_.user_shape();
+      dims.insert(dims.begin(), steps);
+      dims.push_back(fluid->shape_.dim);
+      gc = to_numpy(std::move(grad_controls), dims);
+    }
+    return py::make_tuple(fluid->write_state(adjoint),
+                          want_viscosity ? py::object(py::float_(grad_viscosity)) : py::none(), gc);
+  }
+};
+
+// `steps` steps of dt from the fluid's state with controls (None or steps x cells x dim values),
+// each state kept; the fluid ends at the last one.
+PyRecord record_run(py::object self, Scalar dt, Index steps, const py::object& controls) {
+  PyFluid& f = self.cast<PyFluid&>();
+  if (steps < 0) throw InvalidArgument("steps: expected a count >= 0");
+  PyRecord rec;
+  rec.owner = self;
+  rec.fluid = &f;
+  rec.dt = dt;
+  rec.steps = steps;
+  const Index per_step = f.shape_.size() * f.shape_.dim;
+  if (!controls.is_none()) {
+    const auto a = py::array_t<Scalar, py::array::c_style | py::array::forcecast>::ensure(controls);
+    if (!a || a.size() != steps * per_step)
+      throw InvalidArgument("controls: expected a float array of shape (steps, *shape, " +
+                            std::to_string(f.shape_.dim) + ")");
+    rec.controls.assign(a.data(), a.data() + a.size());
+    for (Scalar x : rec.controls)
+      if (!std::isfinite(x)) throw InvalidArgument("control: expected finite accelerations");
+  }
+  rec.states.reserve(static_cast<size_t>(steps + 1));
+  Interrupt interrupt = python_interrupt();
+  ReleaseGil release;
+  rec.states.push_back(f.state_);
+  for (Index k = 0; k < steps; ++k) {
+    f.solver_->step(f.state_, dt, interrupt, rec.controls.empty() ? nullptr : rec.controls.data() + k * per_step);
+    rec.states.push_back(f.state_);
+  }
+  return rec;
+}
+
 }  // namespace
 
 void bind_grid(py::module_& m) {
@@ -259,6 +331,9 @@ void bind_grid(py::module_& m) {
       .def_readonly("viscosity_seconds", &StepStats::viscosity_seconds)
       .def_readonly("projection_seconds", &StepStats::projection_seconds);
 
+  py::class_<PyRecord>(m, "FluidRecord")
+      .def("backward", &PyRecord::backward, py::arg("grads"), py::arg("want_viscosity"));
+
   py::class_<PyFluid>(m, "Fluid")
       .def(py::init<const std::vector<Index>&, Scalar, const Config&>(), py::arg("shape"), py::arg("h"),
            py::arg("config"))
@@ -266,6 +341,7 @@ void bind_grid(py::module_& m) {
       .def("step", &PyFluid::step, py::arg("dt"), py::arg("control") = py::none())
       .def("step_adjoint", &PyFluid::step_adjoint, py::arg("dt"), py::arg("before"), py::arg("control"),
            py::arg("grads"), py::arg("want_viscosity") = true)
+      .def("record", &record_run, py::arg("dt"), py::arg("steps"), py::arg("controls"))
       .def("check_differentiable", [](const PyFluid& f) { f.solver_->check_differentiable(); })
       .def("set_viscosity", [](PyFluid& f, Scalar nu) { f.solver_->set_viscosity(nu); }, py::arg("viscosity"))
       .def("project", [](PyFluid& f, Scalar dt) {

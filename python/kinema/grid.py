@@ -365,6 +365,11 @@ class Fluid:
     def _diff_step(self, dt, control, step_options):
         self._core.step(time_step(dt), control)
 
+    def _diff_record(self, dt, steps, controls, step_options):
+        """km.diff's path for a run stored whole: the steps and their adjoints in C++ (the same
+        calls, so the same bits, as _diff_step and _diff_step_adjoint)."""
+        return _Record(self, self._core.record(time_step(dt), int(steps), controls))
+
     def _diff_want(self, names):
         # km.diff: the parameters a backward pass wants (None: all); without the viscosity the
         # adjoint recomputes only the advection's first passes of each step
@@ -420,6 +425,18 @@ class Fluid:
 
     def max_speed(self) -> float:
         return finite_result(self._core.max_speed(), "max_speed")
+
+
+class _Record:
+    """A run kept by km.grid for km.diff (Fluid._diff_record)."""
+
+    def __init__(self, fluid, record):
+        self._fluid, self._record = fluid, record
+
+    def backward(self, grad_after, params):
+        want_nu = "viscosity" in params
+        grads, g_nu, g_controls = self._record.backward(grad_after, want_nu)
+        return grads, ({"viscosity": g_nu} if want_nu else {}), g_controls
 
 
 def _max_dt(max_dt):
