@@ -330,6 +330,10 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
   };
   // One node of a pass: its terms at the departure point (stencil st), their scatter, and the
   // trace's adjoint (at(m): the brackets of stage m).
+  // Two passes over the same trace (BFECC's first and last) carry their departure points'
+  // gradients through it once: the first keeps gp per node (gp_keep), the last adds it (gp_add).
+  Scalar* gp_keep[3] = {nullptr, nullptr, nullptr};
+  const Scalar* gp_add[3] = {nullptr, nullptr, nullptr};
   auto node_adjoint = [&](const Stencil<ThreeD>& st, Index c, Scalar step, const Scalar* const* src,
                           Scalar* const* dst, auto&& term, auto&& at) {
     Vec3 gp{0, 0, 0};
@@ -338,6 +342,12 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
       if (g == 0) continue;
       st.scatter(g, dst[f]);
       st.add_gradient(src[f], g, gp);
+    }
+    if (gp_add[first])
+      for (int b = first; b < 3; ++b) gp[b] += gp_add[b][c];
+    if (gp_keep[first]) {
+      for (int b = first; b < 3; ++b) gp_keep[b][c] = gp[b];
+      return;
     }
     if (gp == Vec3{0, 0, 0}) return;
     const Vec3 g1 = tr.trace_adjoint(step, gp, at);
@@ -366,7 +376,7 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
       for (int b = first; b < 3; ++b) {
         fill(rd, 18 + b, rt.p[b], L.offset[b], L.n[b], L.period[b]);
         const Index cells = u.layout[b].n[b] - 1, period = u.layout[b].period[b];
-        for (int m = 1; m < rk; ++m) {  // stage 0 (the node) is stage0()'s
+        for (int m = 1; m < rk && !gp_keep[first]; ++m) {  // stage 0 (the node) is stage0()'s
           fill(rd, 6 * m + b, stage[m][b], 0, cells + 1, period);
           fill(rd, 6 * m + 3 + b, stage[m][b], 0.5, cells, period);
         }
@@ -475,18 +485,22 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
   std::vector<std::vector<Scalar>> g_bar(count, std::vector<Scalar>(n, 0));
   Scalar* g_bar_p[kMaxAdvectedFields];
   for (int f = 0; f < count; ++f) g_bar_p[f] = g_bar[f].data();
+  std::array<std::vector<Scalar>, 3> gp_store;  // this pass's gp, carried by the last one's trace
+  for (int b = first; b < 3; ++b) gp_store[b].assign(static_cast<size_t>(n), 0), gp_keep[b] = gp_store[b].data();
   pass(dt, bar, g_bar_p, [&](int f, Index c, const Stencil<ThreeD>& st) -> Scalar {
     const Scalar g = g_out[f][c];
     if (g == 0 || clamped(f, c, st.value(bar[f]), g, [&]() -> const Stencil<ThreeD>& { return st; })) return 0;
     return g;
   });
+  for (int b = first; b < 3; ++b) gp_keep[b] = nullptr;
   // q_bar = 1.5 q - 0.5 q~
   pass(-dt, fwd, g_fwd_p, [&](int f, Index c, const Stencil<ThreeD>&) -> Scalar {
     const Scalar g = g_bar_p[f][c];
     g_q[f][c] += 1.5 * g;
     return -0.5 * g;
   });
-  semi_lagrangian(q, g_fwd_p, g_q);
+  for (int b = first; b < 3; ++b) gp_add[b] = gp_store[b].data();
+  semi_lagrangian(q, g_fwd_p, g_q);  // the same trace as the first pass
   stage0();
 }
 
