@@ -72,23 +72,30 @@ struct PyFluid {
   // Copies the arrays named in `d` (u, v[, w], pressure, density, temperature: user names and
   // shapes) into a state made by the solver; names left out are zero when `missing_zero`.
   grid::State read_state(const py::dict& d, bool missing_zero) const {
-    grid::State out = solver_->make_state();
+    grid::State out;
     const int dim = shape_.dim;
-    auto read = [&](const std::string& key, std::vector<Scalar>& dst) {
-      if (dst.empty()) return;
+    const grid::Config& config = solver_->config();
+    // each array of make_state's size, written once (from the dict, or zero when missing)
+    auto read = [&](const std::string& key, std::vector<Scalar>& dst, Index size) {
+      if (size == 0) return;
       if (!d.contains(key)) {
-        if (missing_zero) return;
-        throw InvalidArgument("state: missing key '" + key + "'");
+        if (!missing_zero) throw InvalidArgument("state: missing key '" + key + "'");
+        dst.assign(static_cast<size_t>(size), 0);
+        return;
       }
       const auto a = py::array_t<Scalar, py::array::c_style | py::array::forcecast>::ensure(d[key.c_str()]);
-      if (!a || static_cast<size_t>(a.size()) != dst.size())
-        throw InvalidArgument("state['" + key + "']: expected " + std::to_string(dst.size()) + " float values");
-      std::copy(a.data(), a.data() + a.size(), dst.begin());
+      if (!a || static_cast<Index>(a.size()) != size)
+        throw InvalidArgument("state['" + key + "']: expected " + std::to_string(size) + " float values");
+      dst.assign(a.data(), a.data() + a.size());
     };
-    for (int c = 0; c < dim; ++c) read(std::string(1, "uvw"[c]), out.velocity[internal_axis(dim, c)]);
-    read("pressure", out.pressure);
-    read("density", out.density);
-    read("temperature", out.temperature);
+    const Index cells = shape_.size();
+    for (int c = 0; c < dim; ++c) {
+      const int a = internal_axis(dim, c);
+      read(std::string(1, "uvw"[c]), out.velocity[a], solver_->face(a).size());
+    }
+    read("pressure", out.pressure, cells);
+    read("density", out.density, config.density ? cells : 0);
+    read("temperature", out.temperature, config.temperature ? cells : 0);
     if (!missing_zero) {
       if (d.contains("time")) out.time = d["time"].cast<Scalar>();
       if (d.contains("steps")) out.steps = d["steps"].cast<Index>();
