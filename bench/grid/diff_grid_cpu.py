@@ -29,7 +29,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from diff_grid_bench import TOL, kinema_fluid, task  # noqa: E402
 
 
-def case(shape, steps, advection, rk, tol=TOL):
+def setup(shape, steps, advection, rk, tol):
+    """The task's fluid, its initial state, the loss of a control sequence, and the task."""
     h, dt, rho0, controls, weights, direction = task(shape, steps)
     sim = kinema_fluid(shape, h, rho0, advection, rk, tol)
     s0 = sim.state()
@@ -39,6 +40,12 @@ def case(shape, steps, advection, rk, tol=TOL):
         for k in range(steps):
             sim._diff_step(dt, c[k], {})
         return float(np.sum(weights * sim.density))
+
+    return sim, s0, loss, dt, controls, weights, direction
+
+
+def case(shape, steps, advection, rk, tol=TOL):
+    sim, s0, loss, dt, controls, weights, direction = setup(shape, steps, advection, rk, tol)
 
     def cpu(fn, reps=1):
         best = float("inf")
@@ -66,16 +73,7 @@ def case(shape, steps, advection, rk, tol=TOL):
 
 
 def per_gradient(n, tol, steps=16):
-    h, dt, rho0, controls, weights, direction = task((n, n), steps)
-    sim = kinema_fluid((n, n), h, rho0, "semi_lagrangian", 1, tol)
-    s0 = sim.state()
-
-    def loss(c):
-        sim.set_state(s0)
-        for k in range(steps):
-            sim._diff_step(dt, c[k], {})
-        return float(np.sum(weights * sim.density))
-
+    sim, s0, loss, dt, controls, weights, direction = setup((n, n), steps, "semi_lagrangian", 1, tol)
     e = 1e-5
     fd = (loss(controls + e * direction) - loss(controls - e * direction)) / (2 * e)
     best, g = float("inf"), None
