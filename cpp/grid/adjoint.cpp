@@ -254,8 +254,9 @@ struct Tracer {
 
   // dL/du += (dp/du)^T gp through the stages of p = x - dt k after the first; at(m) = the
   // brackets of stage m (1: s.y1, 2: s.y2). Returns g1, the gradient of the first stage's
-  // velocity u(x) at the node x itself, which the caller scatters (advect_adjoint_impl: stage0): every pass
-  // and field of a call reads u at the same nodes, so their g1 are summed and scattered once.
+  // velocity u(x) at the node x itself, which the caller scatters (advect_adjoint_impl's
+  // stage0): every pass and field of a call reads u at the same nodes, so their g1 are summed
+  // and scattered once.
   template <class At>
   Vec3 trace_adjoint(Scalar dt, const Vec3& gp, At&& at) const {
     Vec3 g1{0, 0, 0}, g2{0, 0, 0}, g3{0, 0, 0};
@@ -299,7 +300,8 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
   // Runge-Kutta stage) summed over the passes and fields of this call.
   std::array<std::vector<Scalar>, 3> g_node_store;
   Scalar* g_node[3] = {nullptr, nullptr, nullptr};
-  for (int b = first; b < 3; ++b) g_node_store[b].assign(static_cast<size_t>(n), 0), g_node[b] = g_node_store[b].data();
+  for (int b = first; b < 3; ++b)
+    g_node_store[b].assign(static_cast<size_t>(n), 0), g_node[b] = g_node_store[b].data();
   struct RowData {
     std::unique_ptr<RowTrace> trace;
     std::vector<int> ints;      // per slot: i0, i1
@@ -486,7 +488,8 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
   Scalar* g_bar_p[kMaxAdvectedFields];
   for (int f = 0; f < count; ++f) g_bar_p[f] = g_bar[f].data();
   std::array<std::vector<Scalar>, 3> gp_store;  // this pass's gp, carried by the last one's trace
-  for (int b = first; b < 3; ++b) gp_store[b].assign(static_cast<size_t>(n), 0), gp_keep[b] = gp_store[b].data();
+  for (int b = first; b < 3; ++b)
+    gp_store[b].assign(static_cast<size_t>(n), 0), gp_keep[b] = gp_store[b].data();
   pass(dt, bar, g_bar_p, [&](int f, Index c, const Stencil<ThreeD>& st) -> Scalar {
     const Scalar g = g_out[f][c];
     if (g == 0 || clamped(f, c, st.value(bar[f]), g, [&]() -> const Stencil<ThreeD>& { return st; })) return 0;
