@@ -23,8 +23,10 @@ solves to a relative residual of 1e-10 (kinema: MGPCG). Seconds per gradient (fo
 PhiFlow timed after one warm-up call that traces the graph) and each side's agreement with its
 own central difference. Part 3 (Taichi, its own process): the same task with DiffTaichi's smoke
 discretization (collocated grid, 50 Jacobi iterations per projection, every level on the tape),
-at 64^2, 128^2 and 256^2, beside kinema at pressure tol 1e-10 and at 1e-6 (whose FD agreement
-is still better than the tape's). The last line, SUMMARY, holds every ratio.
+at 64^2, 128^2 and 256^2, beside kinema at pressure tol 1e-10, 1e-6 and 1e-4 (the tape's
+projection is not converged either; each side's FD agreement is printed, and the summary names
+the fastest kinema tolerance whose agreement is at least the tape's). The last line, SUMMARY,
+holds every ratio.
 """
 
 from __future__ import annotations
@@ -219,7 +221,7 @@ def main():
     summary = []
     for shape, steps, advection, rk in ((big2, steps2, "semi_lagrangian", 1), (big2, steps2, "maccormack", 2),
                                         (big2, steps2, "bfecc", 2), (big3, steps3, "semi_lagrangian", 1),
-                                        (big3, steps3, "maccormack", 2)):
+                                        (big3, steps3, "maccormack", 2), (big3, steps3, "bfecc", 2)):
         res = kinema_part(rec, shape, steps, advection, rk, opts)
         summary.append(f"{len(shape)}D {shape[0]}^{len(shape)} {advection} bwd/fwd {res['stored'][2]:.2f} stored, "
                        f"{res['checkpointed'][2]:.2f} checkpointed")
@@ -231,6 +233,9 @@ def main():
         # difference than the Taichi tape is to its own
         loose = kinema_part(rec, (n, n), steps, "semi_lagrangian", 1, opts, tol=1e-6, one_step=False)
         t_lo, err_lo = loose["stored"][0].seconds, loose["stored"][1]
+        # looser still: 4 MGPCG iterations per projection, about Taichi's agreement or better
+        looser = kinema_part(rec, (n, n), steps, "semi_lagrangian", 1, opts, tol=1e-4, one_step=False)
+        t_l4, err_l4 = looser["stored"][0].seconds, looser["stored"][1]
         if not opts.no_phiflow and n <= 128:  # PhiFlow: minutes per gradient at 128^2
             t_phi, err_phi = phiflow_part(rec, n, steps, opts)
             print(f"=> {n}x{n}: kinema {t_km:.3f} s per gradient (|adj - FD|/|FD| {err_km:.1e}) vs PhiFlow "
@@ -240,9 +245,14 @@ def main():
             t_ti, err_ti, jacobi = taichi_part(rec, n, steps, opts)
             print(f"=> {n}x{n}: kinema {t_km:.3f} s vs Taichi {t_ti:.3f} s ({err_ti:.1e}, {jacobi} Jacobi "
                   f"iterations per projection): {t_ti / t_km:.1f}x; kinema tol 1e-6 {t_lo:.3f} s ({err_lo:.1e}): "
-                  f"{t_ti / t_lo:.1f}x", flush=True)
+                  f"{t_ti / t_lo:.1f}x; kinema tol 1e-4 {t_l4:.3f} s ({err_l4:.1e}): {t_ti / t_l4:.1f}x", flush=True)
+            # the fastest kinema tolerance whose FD agreement is at least the tape's
+            fair = [(t, tol) for t, err, tol in ((t_km, err_km, 1e-10), (t_lo, err_lo, 1e-6), (t_l4, err_l4, 1e-4))
+                    if err <= err_ti]
+            best = f", at equal or better FD agreement {t_ti / min(fair)[0]:.1f}x (tol {min(fair)[1]:g})" if fair else ""
             summary.append(f"{n}^2 Taichi/kinema {t_ti / t_km:.1f}x at tol 1e-10 (FD {err_ti:.1e} vs {err_km:.1e}), "
-                           f"{t_ti / t_lo:.1f}x at tol 1e-6 (FD {err_lo:.1e})")
+                           f"{t_ti / t_lo:.1f}x at tol 1e-6 (FD {err_lo:.1e}), {t_ti / t_l4:.1f}x at tol 1e-4 "
+                           f"(FD {err_l4:.1e}){best}")
     print("SUMMARY: " + "; ".join(summary), flush=True)
 
 def taichi_part(rec, n, steps, opts):

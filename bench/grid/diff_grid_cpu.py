@@ -6,8 +6,12 @@ backward after a rollout with every state stored and with K = 2 sqrt(T) checkpoi
 (recomputation included); FD agreement as there.
 
     .venv/bin/python bench/grid/diff_grid_cpu.py [--quick]
+    .venv/bin/python bench/grid/diff_grid_cpu.py --per-gradient [--sizes 64 128 256]
 
-Prints one line per case and a SUMMARY line.
+Prints one line per case and a SUMMARY line. --per-gradient: instead, the CPU time of one
+gradient (rollout stored + backward, best of 3) of the Taichi comparison's task (2D
+semi-Lagrangian RK1, T = 16) at pressure tolerances 1e-10 to 1e-3, each with its FD agreement
+and the mean number of MGPCG iterations per projection.
 """
 
 from __future__ import annotations
@@ -25,7 +29,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from diff_grid_bench import TOL, kinema_fluid, task  # noqa: E402
 
 
-def case(shape, steps, advection, rk, tol=TOL):
+def setup(shape, steps, advection, rk, tol):
+    """The task's fluid, its initial state, the loss of a control sequence, and the task."""
     h, dt, rho0, controls, weights, direction = task(shape, steps)
     sim = kinema_fluid(shape, h, rho0, advection, rk, tol)
     s0 = sim.state()
@@ -35,6 +40,12 @@ def case(shape, steps, advection, rk, tol=TOL):
         for k in range(steps):
             sim._diff_step(dt, c[k], {})
         return float(np.sum(weights * sim.density))
+
+    return sim, s0, loss, dt, controls, weights, direction
+
+
+def case(shape, steps, advection, rk, tol=TOL):
+    sim, s0, loss, dt, controls, weights, direction = setup(shape, steps, advection, rk, tol)
 
     def cpu(fn, reps=1):
         best = float("inf")
@@ -61,11 +72,35 @@ def case(shape, steps, advection, rk, tol=TOL):
     return out
 
 
+def per_gradient(n, tol, steps=16):
+    sim, s0, loss, dt, controls, weights, direction = setup((n, n), steps, "semi_lagrangian", 1, tol)
+    e = 1e-5
+    fd = (loss(controls + e * direction) - loss(controls - e * direction)) / (2 * e)
+    best, g = float("inf"), None
+    for _ in range(3):
+        t = time.process_time()
+        sim.set_state(s0)
+        g = km.diff.rollout(sim, steps, dt, wrt=("controls",), controls=controls).backward({"density": weights})
+        best = min(best, time.process_time() - t)
+    err = abs(float(np.sum(g["controls"] * direction)) - fd) / abs(fd)
+    sim.set_state(s0)
+    its = [sim._core.step(dt, controls[k]).pressure.iterations for k in range(steps)]
+    print(f"{n}^2 tol {tol:g}: per gradient CPU {best * 1e3:.1f} ms, |adj - FD|/|FD| {err:.1e}, "
+          f"MGPCG iterations per projection {np.mean(its):.1f}", flush=True)
+
+
 def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="small sizes (a check that the script runs)")
+    ap.add_argument("--per-gradient", action="store_true", help="the Taichi comparison's gradient per tolerance")
+    ap.add_argument("--sizes", type=int, nargs="+", default=[64, 128, 256])
     opts = ap.parse_args()
     km.set_num_threads(1)
+    if opts.per_gradient:
+        for n in opts.sizes:
+            for tol in (1e-10, 1e-6, 1e-4, 1e-3):
+                per_gradient(n, tol)
+        return
     n2, n3, t2, t3 = (256, 64, 16, 9) if not opts.quick else (32, 12, 4, 4)
     summary = []
     for shape, steps in (((n2, n2), t2), ((n3, n3, n3), t3)):

@@ -72,23 +72,30 @@ struct PyFluid {
   // Copies the arrays named in `d` (u, v[, w], pressure, density, temperature: user names and
   // shapes) into a state made by the solver; names left out are zero when `missing_zero`.
   grid::State read_state(const py::dict& d, bool missing_zero) const {
-    grid::State out = solver_->make_state();
+    grid::State out;
     const int dim = shape_.dim;
-    auto read = [&](const std::string& key, std::vector<Scalar>& dst) {
-      if (dst.empty()) return;
+    const grid::Config& config = solver_->config();
+    // each array of make_state's size, written once (from the dict, or zero when missing)
+    auto read = [&](const std::string& key, std::vector<Scalar>& dst, Index size) {
+      if (size == 0) return;
       if (!d.contains(key)) {
-        if (missing_zero) return;
-        throw InvalidArgument("state: missing key '" + key + "'");
+        if (!missing_zero) throw InvalidArgument("state: missing key '" + key + "'");
+        dst.assign(static_cast<size_t>(size), 0);
+        return;
       }
       const auto a = py::array_t<Scalar, py::array::c_style | py::array::forcecast>::ensure(d[key.c_str()]);
-      if (!a || static_cast<size_t>(a.size()) != dst.size())
-        throw InvalidArgument("state['" + key + "']: expected " + std::to_string(dst.size()) + " float values");
-      std::copy(a.data(), a.data() + a.size(), dst.begin());
+      if (!a || static_cast<Index>(a.size()) != size)
+        throw InvalidArgument("state['" + key + "']: expected " + std::to_string(size) + " float values");
+      dst.assign(a.data(), a.data() + a.size());
     };
-    for (int c = 0; c < dim; ++c) read(std::string(1, "uvw"[c]), out.velocity[internal_axis(dim, c)]);
-    read("pressure", out.pressure);
-    read("density", out.density);
-    read("temperature", out.temperature);
+    const Index cells = shape_.size();
+    for (int c = 0; c < dim; ++c) {
+      const int a = internal_axis(dim, c);
+      read(std::string(1, "uvw"[c]), out.velocity[a], solver_->face(a).size());
+    }
+    read("pressure", out.pressure, cells);
+    read("density", out.density, config.density ? cells : 0);
+    read("temperature", out.temperature, config.temperature ? cells : 0);
     if (!missing_zero) {
       if (d.contains("time")) out.time = d["time"].cast<Scalar>();
       if (d.contains("steps")) out.steps = d["steps"].cast<Index>();
@@ -110,8 +117,10 @@ struct PyFluid {
     return out;
   }
 
-  // (dL/d(before) as a dict, dL/dviscosity, dL/dcontrol or None) of one step from `before`.
-  py::tuple step_adjoint(Scalar dt, const py::dict& before, const py::object& control, const py::dict& grads) {
+  // (dL/d(before) as a dict, dL/dviscosity or None when not wanted, dL/dcontrol or None) of one
+  // step from `before`.
+  py::tuple step_adjoint(Scalar dt, const py::dict& before, const py::object& control, const py::dict& grads,
+                         bool want_viscosity) {
     const grid::State b = read_state(before, false);
     grid::State adjoint = read_state(grads, true);
     std::vector<Scalar> buffer;
@@ -121,7 +130,8 @@ struct PyFluid {
     {
       Interrupt interrupt = python_interrupt();
       ReleaseGil release;
-      solver_->step_adjoint(b, dt, u, adjoint, grad_viscosity, u ? grad_control.data() : nullptr, interrupt);
+      solver_->step_adjoint(b, dt, u, adjoint, want_viscosity ? &grad_viscosity : nullptr,
+                            u ? grad_control.data() : nullptr, interrupt);
     }
     py::object gc = py::none();
     if (u) {
@@ -129,7 +139,8 @@ struct PyFluid {
       dims.push_back(shape_.dim);
       gc = to_numpy(std::move(grad_control), dims);
     }
-    return py::make_tuple(write_state(adjoint), grad_viscosity, gc);
+    return py::make_tuple(write_state(adjoint), want_viscosity ? py::object(py::float_(grad_viscosity)) : py::none(),
+                          gc);
   }
 
   // The projection's transpose applied to the velocity gradients of `grads` (tests).
@@ -208,6 +219,78 @@ struct PyFluid {
   grid::State state_;
 };
 
+// A run kept whole for km.diff (Fluid._diff_record): the steps' states and controls, stepped
+// and reversed in C++ by the same calls as _diff_step and _diff_step_adjoint (the same bits),
+// without a Python round trip per step.
+struct PyRecord {
+  py::object owner;  // the PyFluid
+  PyFluid* fluid = nullptr;
+  Scalar dt = 0;
+  Index steps = 0;
+  std::vector<grid::State> states;  // before step k, k = 0..steps
+  std::vector<Scalar> controls;     // steps x cells x dim, or empty
+
+  // (dL/d(initial state) as a dict, dL/dviscosity summed over the steps or None when not
+  // wanted, dL/dcontrols of shape (steps, *shape, dim) or None).
+  py::tuple backward(const py::dict& grads, bool want_viscosity) {
+    grid::State adjoint = fluid->read_state(grads, true);
+    const Index per_step = fluid->shape_.size() * fluid->shape_.dim;
+    std::vector<Scalar> grad_controls(controls.empty() ? 0 : static_cast<size_t>(steps * per_step));
+    Scalar grad_viscosity = 0;
+    {
+      Interrupt interrupt = python_interrupt();
+      ReleaseGil release;
+      for (Index k = steps - 1; k >= 0; --k) {
+        Scalar g = 0;
+        const Scalar* u = controls.empty() ? nullptr : controls.data() + k * per_step;
+        fluid->solver_->step_adjoint(states[k], dt, u, adjoint, want_viscosity ? &g : nullptr,
+                                     u ? grad_controls.data() + k * per_step : nullptr, interrupt);
+        grad_viscosity = k == steps - 1 ? g : grad_viscosity + g;  // km.diff's order of the sum
+      }
+    }
+    py::object gc = py::none();
+    if (!controls.empty()) {
+      std::vector<Index> dims = fluid->shape_.user_shape();
+      dims.insert(dims.begin(), steps);
+      dims.push_back(fluid->shape_.dim);
+      gc = to_numpy(std::move(grad_controls), dims);
+    }
+    return py::make_tuple(fluid->write_state(adjoint),
+                          want_viscosity ? py::object(py::float_(grad_viscosity)) : py::none(), gc);
+  }
+};
+
+// `steps` steps of dt from the fluid's state with controls (None or steps x cells x dim values),
+// each state kept; the fluid ends at the last one.
+PyRecord record_run(py::object self, Scalar dt, Index steps, const py::object& controls) {
+  PyFluid& f = self.cast<PyFluid&>();
+  if (steps < 0) throw InvalidArgument("steps: expected a count >= 0");
+  PyRecord rec;
+  rec.owner = self;
+  rec.fluid = &f;
+  rec.dt = dt;
+  rec.steps = steps;
+  const Index per_step = f.shape_.size() * f.shape_.dim;
+  if (!controls.is_none()) {
+    const auto a = py::array_t<Scalar, py::array::c_style | py::array::forcecast>::ensure(controls);
+    if (!a || a.size() != steps * per_step)
+      throw InvalidArgument("controls: expected a float array of shape (steps, *shape, " +
+                            std::to_string(f.shape_.dim) + ")");
+    rec.controls.assign(a.data(), a.data() + a.size());
+    for (Scalar x : rec.controls)
+      if (!std::isfinite(x)) throw InvalidArgument("control: expected finite accelerations");
+  }
+  rec.states.reserve(static_cast<size_t>(steps + 1));
+  Interrupt interrupt = python_interrupt();
+  ReleaseGil release;
+  rec.states.push_back(f.state_);
+  for (Index k = 0; k < steps; ++k) {
+    f.solver_->step(f.state_, dt, interrupt, rec.controls.empty() ? nullptr : rec.controls.data() + k * per_step);
+    rec.states.push_back(f.state_);
+  }
+  return rec;
+}
+
 }  // namespace
 
 void bind_grid(py::module_& m) {
@@ -255,13 +338,17 @@ void bind_grid(py::module_& m) {
       .def_readonly("viscosity_seconds", &StepStats::viscosity_seconds)
       .def_readonly("projection_seconds", &StepStats::projection_seconds);
 
+  py::class_<PyRecord>(m, "FluidRecord")
+      .def("backward", &PyRecord::backward, py::arg("grads"), py::arg("want_viscosity"));
+
   py::class_<PyFluid>(m, "Fluid")
       .def(py::init<const std::vector<Index>&, Scalar, const Config&>(), py::arg("shape"), py::arg("h"),
            py::arg("config"))
       .def_property_readonly("config", [](const PyFluid& f) { return f.solver_->config(); })
       .def("step", &PyFluid::step, py::arg("dt"), py::arg("control") = py::none())
       .def("step_adjoint", &PyFluid::step_adjoint, py::arg("dt"), py::arg("before"), py::arg("control"),
-           py::arg("grads"))
+           py::arg("grads"), py::arg("want_viscosity") = true)
+      .def("record", &record_run, py::arg("dt"), py::arg("steps"), py::arg("controls"))
       .def("check_differentiable", [](const PyFluid& f) { f.solver_->check_differentiable(); })
       .def("set_viscosity", [](PyFluid& f, Scalar nu) { f.solver_->set_viscosity(nu); }, py::arg("viscosity"))
       .def("project", [](PyFluid& f, Scalar dt) {

@@ -71,6 +71,12 @@ struct Stencil {
   void scatter(Scalar g, Scalar* target) const {
     for (int n = 0; n < count; ++n) target[node[n]] += g * w[n];
   }
+  // The same for the nodes of nonzero weight only (a stencil centred on a node of its own
+  // layout, or half-way between two, has 4-6 of its 8 weights exactly 0).
+  void scatter_nonzero(Scalar g, Scalar* target) const {
+    for (int n = 0; n < count; ++n)
+      if (w[n] != 0) target[node[n]] += g * w[n];
+  }
   // g times the gradient of the interpolant of f, added to out: the differences along each axis,
   // weighted by the other axes' weights.
   void add_gradient(const Scalar* f, Scalar g, Vec3& out) const {
@@ -210,6 +216,8 @@ struct Tracer {
   // component b, the cell brackets the others.
   struct Brackets {
     AxisWeight face[3], cell[3];
+    const Scalar* const* jac = nullptr;  // nullable: jac[3 a + b][k] = d u_a / d y_b (RowTrace::jac)
+    Index k = 0;
   };
   Brackets brackets(const Vec3& y) const {
     Brackets br;
@@ -221,7 +229,8 @@ struct Tracer {
     return br;
   }
 
-  // dL/du += (d u(y) / d u)^T g; returns (d u(y) / d y)^T g when `moves` (else 0: y is fixed).
+  // dL/du += (d u(y) / d u)^T g; returns (d u(y) / d y)^T g when `moves` (else 0: y is a node,
+  // whose stencils have many zero weights, skipped).
   Vec3 velocity_adjoint(const Brackets& br, const Vec3& g, bool moves = true) const {
     Vec3 gy{0, 0, 0};
     const AxisWeight *face = br.face, *cell = br.cell;
@@ -229,16 +238,27 @@ struct Tracer {
       if (g[a] == 0) continue;
       const Stencil<ThreeD> st(u.layout[a], a == 0 ? face[0] : cell[0], a == 1 ? face[1] : cell[1],
                                a == 2 ? face[2] : cell[2]);
-      st.scatter(g[a], g_u[a]);
-      if (moves) st.add_gradient(u.comp[a], g[a], gy);
+      if (moves) {
+        st.scatter(g[a], g_u[a]);
+        if (br.jac) {  // the trace's derivatives, times 0 along a clamped axis (as add_gradient)
+          for (int b = ThreeD ? 0 : 1; b < 3; ++b) gy[b] += g[a] * st.d[b] * br.jac[3 * a + b][br.k];
+        } else {
+          st.add_gradient(u.comp[a], g[a], gy);
+        }
+      } else {
+        st.scatter_nonzero(g[a], g_u[a]);
+      }
     }
     return gy;
   }
 
-  // dL/du += (dp/du)^T gp through the stages of p = x - dt k; at(m) = the brackets of stage m
-  // (0: s.x, 1: s.y1, 2: s.y2).
+  // dL/du += (dp/du)^T gp through the stages of p = x - dt k after the first; at(m) = the
+  // brackets of stage m (1: s.y1, 2: s.y2). Returns g1, the gradient of the first stage's
+  // velocity u(x) at the node x itself, which the caller scatters (advect_adjoint_impl's
+  // stage0): every pass and field of a call reads u at the same nodes, so their g1 are summed
+  // and scattered once.
   template <class At>
-  void trace_adjoint(Scalar dt, const Vec3& gp, At&& at) const {
+  Vec3 trace_adjoint(Scalar dt, const Vec3& gp, At&& at) const {
     Vec3 g1{0, 0, 0}, g2{0, 0, 0}, g3{0, 0, 0};
     const Scalar c1 = rk == 1 ? 1 : rk == 2 ? 0 : 2.0 / 9, c2 = rk == 2 ? 1 : rk == 3 ? 3.0 / 9 : 0,
                  c3 = rk == 3 ? 4.0 / 9 : 0;
@@ -255,10 +275,7 @@ struct Tracer {
       const Vec3 gy1 = velocity_adjoint(at(1), g2);
       for (int b = 0; b < 3; ++b) g1[b] -= 0.5 * dt * gy1[b];
     }
-    velocity_adjoint(at(0), g1, false);  // the node itself does not move
-  }
-  void trace_adjoint(const Stages& s, Scalar dt, const Vec3& gp) const {
-    trace_adjoint(dt, gp, [&](int m) { return brackets(m == 0 ? s.x : m == 1 ? s.y1 : s.y2); });
+    return g1;
   }
 };
 
@@ -279,6 +296,12 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
   const bool rows = rows_apply(u, L);
   const Index nk = L.n[2];
   const int first = ThreeD ? 0 : 1;
+  // Per node of L and active axis b: the gradient of u_b read at the node (the first
+  // Runge-Kutta stage) summed over the passes and fields of this call.
+  std::array<std::vector<Scalar>, 3> g_node_store;
+  Scalar* g_node[3] = {nullptr, nullptr, nullptr};
+  for (int b = first; b < 3; ++b)
+    g_node_store[b].assign(static_cast<size_t>(n), 0), g_node[b] = g_node_store[b].data();
   struct RowData {
     std::unique_ptr<RowTrace> trace;
     std::vector<int> ints;      // per slot: i0, i1
@@ -309,6 +332,10 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
   };
   // One node of a pass: its terms at the departure point (stencil st), their scatter, and the
   // trace's adjoint (at(m): the brackets of stage m).
+  // Two passes over the same trace (BFECC's first and last) carry their departure points'
+  // gradients through it once: the first keeps gp per node (gp_keep), the last adds it (gp_add).
+  Scalar* gp_keep[3] = {nullptr, nullptr, nullptr};
+  const Scalar* gp_add[3] = {nullptr, nullptr, nullptr};
   auto node_adjoint = [&](const Stencil<ThreeD>& st, Index c, Scalar step, const Scalar* const* src,
                           Scalar* const* dst, auto&& term, auto&& at) {
     Vec3 gp{0, 0, 0};
@@ -318,7 +345,15 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
       st.scatter(g, dst[f]);
       st.add_gradient(src[f], g, gp);
     }
-    if (gp != Vec3{0, 0, 0}) tr.trace_adjoint(step, gp, at);
+    if (gp_add[first])
+      for (int b = first; b < 3; ++b) gp[b] += gp_add[b][c];
+    if (gp_keep[first]) {
+      for (int b = first; b < 3; ++b) gp_keep[b][c] = gp[b];
+      return;
+    }
+    if (gp == Vec3{0, 0, 0}) return;
+    const Vec3 g1 = tr.trace_adjoint(step, gp, at);
+    for (int b = first; b < 3; ++b) g_node[b][c] += g1[b];  // node c is this row's: no other writer
   };
   // One pass traced over `step`: for each node, term(f, c, st) returns dL/d(src[f] at the
   // departure point) after adding the terms that do not go through it; the pass scatters that
@@ -343,7 +378,7 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
       for (int b = first; b < 3; ++b) {
         fill(rd, 18 + b, rt.p[b], L.offset[b], L.n[b], L.period[b]);
         const Index cells = u.layout[b].n[b] - 1, period = u.layout[b].period[b];
-        for (int m = 0; m < rk; ++m) {
+        for (int m = 1; m < rk && !gp_keep[first]; ++m) {  // stage 0 (the node) is stage0()'s
           fill(rd, 6 * m + b, stage[m][b], 0, cells + 1, period);
           fill(rd, 6 * m + 3 + b, stage[m][b], 0.5, cells, period);
         }
@@ -353,6 +388,8 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
         node_adjoint(st, c0 + k, step, src, dst, term, [&](int m) {
           typename Tracer<ThreeD>::Brackets br;
           for (int b = first; b < 3; ++b) br.face[b] = slot(rd, 6 * m + b, k), br.cell[b] = slot(rd, 6 * m + 3 + b, k);
+          br.jac = rt.jac[m - 1];
+          br.k = k;
           return br;
         });
       }
@@ -362,8 +399,43 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
   auto semi_lagrangian = [&](const Scalar* const* src, const Scalar* const* g, Scalar* const* dst) {
     pass(dt, src, dst, [&](int f, Index c, const Stencil<ThreeD>&) { return g[f][c]; });
   };
+  // The first stage of every trace reads u at the node itself: dL/du_a += W_a(x)^T g_node[a]
+  // for every node x of L, once per call (its stencils reach a slab or two).
+  auto stage0 = [&] {
+    const Index reach0 = 3 < L.n[L.n[0] > 1 ? 0 : 1] ? 3 : -1;
+    Scatter::run(L, reach0, make, [&](RowData& rd, Index i, Index j, Index c0) {
+      auto at_node = [&](Index k) {
+        Vec3 g{0, 0, 0};
+        for (int b = first; b < 3; ++b) g[b] = g_node[b][c0 + k];
+        return g;
+      };
+      if (!rd.trace) {
+        for (Index k = 0; k < nk; ++k) {
+          const Vec3 g = at_node(k);
+          if (g != Vec3{0, 0, 0}) tr.velocity_adjoint(tr.brackets(node(i, j, k)), g, false);
+        }
+        return;
+      }
+      Scalar* x = rd.reals.data() + 2 * kSlots * nk;
+      std::fill(x, x + nk, static_cast<Scalar>(i) + L.offset[0]);
+      std::fill(x + nk, x + 2 * nk, static_cast<Scalar>(j) + L.offset[1]);
+      for (int b = first; b < 3; ++b) {
+        const Index cells = u.layout[b].n[b] - 1, period = u.layout[b].period[b];
+        fill(rd, b, x + b * nk, 0, cells + 1, period);
+        fill(rd, 3 + b, x + b * nk, 0.5, cells, period);
+      }
+      for (Index k = 0; k < nk; ++k) {
+        const Vec3 g = at_node(k);
+        if (g == Vec3{0, 0, 0}) continue;
+        typename Tracer<ThreeD>::Brackets br;
+        for (int b = first; b < 3; ++b) br.face[b] = slot(rd, b, k), br.cell[b] = slot(rd, 3 + b, k);
+        tr.velocity_adjoint(br, g, false);
+      }
+    });
+  };
   if (scheme == AdvectionScheme::SemiLagrangian) {
     semi_lagrangian(q, g_out, g_q);
+    stage0();
     return;
   }
   // The forward pass as run: q^ = SL(q, dt), the clamp bounds lo/hi (values), BFECC's q_bar.
@@ -408,24 +480,31 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
       return -0.5 * g;
     });
     semi_lagrangian(q, g_fwd_p, g_q);
+    stage0();
     return;
   }
   // BFECC: q_bar = q + (q - SL(q^, -dt))/2, out = clamp(SL(q_bar, dt)).
   std::vector<std::vector<Scalar>> g_bar(count, std::vector<Scalar>(n, 0));
   Scalar* g_bar_p[kMaxAdvectedFields];
   for (int f = 0; f < count; ++f) g_bar_p[f] = g_bar[f].data();
+  std::array<std::vector<Scalar>, 3> gp_store;  // this pass's gp, carried by the last one's trace
+  for (int b = first; b < 3; ++b)
+    gp_store[b].assign(static_cast<size_t>(n), 0), gp_keep[b] = gp_store[b].data();
   pass(dt, bar, g_bar_p, [&](int f, Index c, const Stencil<ThreeD>& st) -> Scalar {
     const Scalar g = g_out[f][c];
     if (g == 0 || clamped(f, c, st.value(bar[f]), g, [&]() -> const Stencil<ThreeD>& { return st; })) return 0;
     return g;
   });
+  for (int b = first; b < 3; ++b) gp_keep[b] = nullptr;
   // q_bar = 1.5 q - 0.5 q~
   pass(-dt, fwd, g_fwd_p, [&](int f, Index c, const Stencil<ThreeD>&) -> Scalar {
     const Scalar g = g_bar_p[f][c];
     g_q[f][c] += 1.5 * g;
     return -0.5 * g;
   });
-  semi_lagrangian(q, g_fwd_p, g_q);
+  for (int b = first; b < 3; ++b) gp_add[b] = gp_store[b].data();
+  semi_lagrangian(q, g_fwd_p, g_q);  // the same trace as the first pass
+  stage0();
 }
 
 }  // namespace
@@ -566,25 +645,30 @@ void Solver::projection_adjoint(std::array<std::vector<Scalar>, 3>& grad, Scalar
 }
 
 void Solver::step_adjoint(const State& before, Scalar dt, const Scalar* control, State& adjoint,
-                          Scalar& grad_viscosity, Scalar* grad_control, Interrupt& interrupt) {
+                          Scalar* grad_viscosity, Scalar* grad_control, Interrupt& interrupt) {
   if (!(dt > 0) || !std::isfinite(dt)) throw InvalidArgument("dt: expected a finite time step > 0, got " + format_real(dt));
   check_differentiable();
   check_state(before);
   check_state(adjoint);
   const int dim = model_.shape.dim;
   const Index cells = cells_.size();
-  // Recompute the step up to the viscosity: s0 is what advection reads, s what the viscosity made.
-  State s = before;
-  refresh_solids(s);
-  apply_sources(s);
-  enforce_boundary(s);
-  const State s0 = s;
-  std::array<AdvectionScratch, 4> kept;  // the advection's forward passes, for its adjoint
-  advect(s, dt, &kept);
-  add_forces(s, dt, control);
-  diffuse(s, dt, interrupt);
+  // Recompute the step up to the viscosity: s0 is what advection reads, s what the viscosity
+  // made (only dL/dnu reads it: without it, s0 and the advection's scratch are enough).
+  State s0 = before;
+  refresh_solids(s0);
+  apply_sources(s0);
+  enforce_boundary(s0);
+  std::array<AdvectionScratch, 4>& kept = adjoint_kept_;  // the advection's forward passes, for its adjoint
+  State s;
+  if (grad_viscosity) {
+    s = s0;
+    advect(s, dt, &kept);
+    add_forces(s, dt, control);
+    diffuse(s, dt, interrupt);
+  } else {
+    advection_scratch(s0, dt, kept);
+  }
   interrupt.check();
-
   std::array<std::vector<Scalar>, 3>& g = adjoint.velocity;
   // 4. Projection.
   projection_adjoint(g, dt, interrupt, before.steps);
@@ -592,11 +676,11 @@ void Solver::step_adjoint(const State& before, Scalar dt, const Scalar* control,
   // dL/dc = -lambda . L x (also at nu = 0, where the forward pass skips the solve).
   enforce_boundary_adjoint(g);
   const Scalar c = config_.viscosity * dt / (model_.h * model_.h);
-  grad_viscosity = 0;
+  Scalar grad_nu = 0;
   {
     std::vector<Scalar> lambda, lx;
     for (int a = 0; a < 3; ++a) {
-      if (!active_[a]) continue;
+      if (!active_[a] || (c == 0 && !grad_viscosity)) continue;  // at nu = 0 the step is the identity
       const Index nf = faces_[a].size();
       lambda = g[a];
       if (c > 0) {
@@ -608,15 +692,17 @@ void Solver::step_adjoint(const State& before, Scalar dt, const Scalar* control,
           throw ConvergenceError("viscosity: the adjoint CG did not reach tol for component " +
                                  std::string(1, "uvw"[a - (3 - dim)]));
       }
-      lx.assign(static_cast<size_t>(nf), 0);
-      apply_viscosity_operator(a, 1, s.velocity[a].data(), lx.data());  // (I + L) x
-      const Scalar* x = s.velocity[a].data();
-      const Scalar* l = lambda.data();
-      const Scalar* y = lx.data();
-      grad_viscosity -= parallel_sum(nf, [&](Index f) { return l[f] * (y[f] - x[f]); });
-      g[a] = lambda;
+      if (grad_viscosity) {
+        lx.assign(static_cast<size_t>(nf), 0);
+        apply_viscosity_operator(a, 1, s.velocity[a].data(), lx.data());  // (I + L) x
+        const Scalar* x = s.velocity[a].data();
+        const Scalar* l = lambda.data();
+        const Scalar* y = lx.data();
+        grad_nu -= parallel_sum(nf, [&](Index f) { return l[f] * (y[f] - x[f]); });
+      }
+      if (c > 0) g[a].swap(lambda);
     }
-    grad_viscosity *= dt / (model_.h * model_.h);
+    if (grad_viscosity) *grad_viscosity = grad_nu * dt / (model_.h * model_.h);
   }
   // 2. Forces: controls and buoyancy are cell values averaged to the free faces.
   if (config_.periodic) enforce_boundary_adjoint(g);

@@ -124,6 +124,42 @@ template <bool ThreeD, bool Bounds>
   }
 }
 
+// interpolate_row<ThreeD, false> (the same bits in out) plus the interpolant's partial
+// derivatives along each axis in grid units, d[b][k] (d[0] untouched in 2D): the adjoint's
+// d u(y) / d y at the Runge-Kutta stages, from the values the trace gathers anyway.
+template <bool ThreeD>
+[[gnu::always_inline]] inline void interpolate_row_grad(const Scalar* __restrict f, int s0, int s1,
+                                                        const RowAxis& a0, const RowAxis& a1, const RowAxis& a2,
+                                                        Index n, Scalar* __restrict out, Scalar* const* d) {
+  const int *__restrict i0 = a0.i0, *__restrict i1 = a0.i1;
+  const int *__restrict j0 = a1.i0, *__restrict j1 = a1.i1;
+  const int *__restrict k0 = a2.i0, *__restrict k1 = a2.i1;
+  const Scalar *__restrict wi = a0.w, *__restrict wj = a1.w, *__restrict wk = a2.w;
+  Scalar *__restrict d0 = d[0], *__restrict d1 = d[1], *__restrict d2 = d[2];
+  for (Index k = 0; k < n; ++k) {
+    const int r0 = j0[k] * s1, r1 = j1[k] * s1, c0 = k0[k], c1 = k1[k];
+    int o = ThreeD ? i0[k] * s0 : 0;
+    Scalar f00 = f[o + r0 + c0], f01 = f[o + r0 + c1], f10 = f[o + r1 + c0], f11 = f[o + r1 + c1];
+    Scalar a = f00 + wk[k] * (f01 - f00), b = f10 + wk[k] * (f11 - f10);
+    Scalar v = a + wj[k] * (b - a);
+    Scalar dj = b - a, dk = (f01 - f00) + wj[k] * ((f11 - f10) - (f01 - f00));
+    if constexpr (ThreeD) {
+      o = i1[k] * s0;
+      f00 = f[o + r0 + c0], f01 = f[o + r0 + c1], f10 = f[o + r1 + c0], f11 = f[o + r1 + c1];
+      a = f00 + wk[k] * (f01 - f00), b = f10 + wk[k] * (f11 - f10);
+      const Scalar v1 = a + wj[k] * (b - a);
+      const Scalar dj1 = b - a, dk1 = (f01 - f00) + wj[k] * ((f11 - f10) - (f01 - f00));
+      d0[k] = v1 - v;
+      dj = dj + wi[k] * (dj1 - dj);
+      dk = dk + wi[k] * (dk1 - dk);
+      v = v + wi[k] * (v1 - v);
+    }
+    out[k] = v;
+    d1[k] = dj;
+    d2[k] = dk;
+  }
+}
+
 // What one pass over the rows writes.
 enum class RowPass {
   Forward,     // out = src at the departure points, lo/hi = the stencil bounds
@@ -167,16 +203,20 @@ struct RowPasses {
   }
 
   // v = u at the row's points p (MacVelocity::at_lean element-wise): the brackets of each axis
-  // for the face and the cell offset, shared by the components.
-  [[gnu::always_inline]] inline void velocity_row(Scalar* const* p, Index n, Scalar* const* v, RowScratch& s) const {
+  // for the face and the cell offset, shared by the components. jac (nullable, 9 arrays):
+  // jac[3 a + b] = d u_a / d p_b (interpolate_row_grad; no clamping factor).
+  [[gnu::always_inline]] inline void velocity_row(Scalar* const* p, Index n, Scalar* const* v, RowScratch& s,
+                                                  Scalar* const* jac = nullptr) const {
     for (int b = first; b < 3; ++b) {
       bracket_row<Periodic>(p[b], n, 0, cells[b] + 1, period[b], s.face[b]);
       bracket_row<Periodic>(p[b], n, 0.5, cells[b], period[b], s.cell[b]);
     }
-    for (int a = first; a < 3; ++a)
-      interpolate_row<ThreeD, false>(u.comp[a], us0[a], us1[a], a == 0 ? s.face[0] : s.cell[0],
-                                     a == 1 ? s.face[1] : s.cell[1], a == 2 ? s.face[2] : s.cell[2], n, v[a],
-                                     nullptr, nullptr);
+    for (int a = first; a < 3; ++a) {
+      const RowAxis &x0 = a == 0 ? s.face[0] : s.cell[0], &x1 = a == 1 ? s.face[1] : s.cell[1],
+                    &x2 = a == 2 ? s.face[2] : s.cell[2];
+      if (jac) interpolate_row_grad<ThreeD>(u.comp[a], us0[a], us1[a], x0, x1, x2, n, v[a], jac + 3 * a);
+      else interpolate_row<ThreeD, false>(u.comp[a], us0[a], us1[a], x0, x1, x2, n, v[a], nullptr, nullptr);
+    }
   }
 
   // u at node k of row (i, j) by the general interpolation (clamping, periodic wrap).
@@ -233,18 +273,20 @@ struct RowPasses {
   }
 
   // s.p = the departure points of row (i, j) over dt (back_trace_from element-wise); y1, y2
-  // (nullable) receive the points the second and third stages sample the velocity at.
+  // (nullable) receive the points the second and third stages sample the velocity at, j1, j2
+  // (nullable) the velocity's derivatives there (velocity_row's jac).
   [[gnu::always_inline]] inline void trace_row(Index i, Index j, Index n, Scalar dt, RowScratch& s,
-                                               Scalar* const* y1 = nullptr, Scalar* const* y2 = nullptr) const {
+                                               Scalar* const* y1 = nullptr, Scalar* const* y2 = nullptr,
+                                               Scalar* const* j1 = nullptr, Scalar* const* j2 = nullptr) const {
     node_velocity_row(i, j, n, s.k1, s.x2);
     if (rk == 1) return shift_row(i, j, n, dt, s.k1, s);
     shift_row(i, j, n, 0.5 * dt, s.k1, s);
     if (y1) keep(s, n, y1);
-    velocity_row(s.p, n, s.k2, s);
+    velocity_row(s.p, n, s.k2, s, j1);
     if (rk == 2) return shift_row(i, j, n, dt, s.k2, s);
     shift_row(i, j, n, 0.75 * dt, s.k2, s);
     if (y2) keep(s, n, y2);
-    velocity_row(s.p, n, s.k3, s);
+    velocity_row(s.p, n, s.k3, s, j2);
     for (int b = first; b < 3; ++b) {
       Scalar* __restrict k3 = s.k3[b];
       const Scalar *__restrict k1 = s.k1[b], *__restrict k2 = s.k2[b];
@@ -290,10 +332,11 @@ struct RowPasses {
     }
   }
 
-  // The stages of row (i, j)'s back-traces over dt: st[0..2] = y1, st[3..5] = y2, st[6..8] = p.
+  // The stages of row (i, j)'s back-traces over dt: st[0..2] = y1, st[3..5] = y2, st[6..8] = p,
+  // st[9..17] and st[18..26] the velocity's derivatives at y1 and y2 (velocity_row's jac).
   [[gnu::always_inline]] inline void stages(Index i, Index j, Scalar dt, RowScratch& s, Scalar* const* st) const {
     const Index n = L.n[2];
-    trace_row(i, j, n, dt, s, st, st + 3);
+    trace_row(i, j, n, dt, s, st, st + 3, st + 9, st + 18);
     keep(s, n, st + 6);
   }
   static void stages_baseline(const RowPasses& p, Index i, Index j, Scalar dt, RowScratch& s, Scalar* const* st) {
@@ -337,7 +380,7 @@ struct RowPasses {
   }
 
   void run(AdvectionScheme scheme, const Scalar* const* q, Scalar* const* out, Scalar dt, AdvectionScratch& scratch,
-           bool avx2) const {
+           bool avx2, bool scratch_only) const {
     if (scheme == AdvectionScheme::SemiLagrangian) {
       pass(RowJob{RowPass::Plain, dt, q, q, out, nullptr, nullptr}, avx2);
       return;
@@ -346,12 +389,14 @@ struct RowPasses {
     Scalar *const *fwd = s.forward, *const *lo = s.lo, *const *hi = s.hi, *const *bar = s.corrected;
     // q^ = SL(q, dt) with the clamping bounds of Selle et al.
     pass(RowJob{RowPass::Forward, dt, q, q, fwd, lo, hi}, avx2);
+    if (scratch_only && scheme == AdvectionScheme::MacCormack) return;
     if (scheme == AdvectionScheme::MacCormack) {
       pass(RowJob{RowPass::MacCormack, -dt, fwd, q, out, lo, hi}, avx2);
       return;
     }
     // BFECC: the error-compensated field advected forward once more, clamped to q^'s bounds.
     pass(RowJob{RowPass::BFECC, -dt, fwd, q, bar, nullptr, nullptr}, avx2);
+    if (scratch_only) return;
     pass(RowJob{RowPass::Plain, dt, bar, q, out, nullptr, nullptr}, avx2);
     clamp_fields(L, count, out, lo, hi);
   }
@@ -362,7 +407,7 @@ struct RowPasses {
 struct RowTrace::Impl {
   RowScratch scratch;
   std::vector<Scalar> store;
-  Impl(Index n, Scalar offset) : scratch(n, offset), store(static_cast<size_t>(9 * n)) {}
+  Impl(Index n, Scalar offset) : scratch(n, offset), store(static_cast<size_t>(27 * n)) {}
 };
 
 RowTrace::RowTrace(const MacVelocity& u, const FieldLayout& L, int rk_order, bool avx2)
@@ -370,6 +415,8 @@ RowTrace::RowTrace(const MacVelocity& u, const FieldLayout& L, int rk_order, boo
   const Index n = L.n[2];
   Scalar* r = impl_->store.data();
   for (int b = 0; b < 3; ++b) y1[b] = r + b * n, y2[b] = r + (3 + b) * n, p[b] = r + (6 + b) * n;
+  for (int m = 0; m < 2; ++m)
+    for (int e = 0; e < 9; ++e) jac[m][e] = r + (9 + 9 * m + e) * n;
   if (!u.comp[0])  // 2D: axis 0 is the nodes' own coordinate
     for (Scalar* a : {y1[0], y2[0], p[0]}) std::fill(a, a + n, L.offset[0]);
 }
@@ -414,7 +461,8 @@ void trace_stages(const MacVelocity& u, const FieldLayout& L, int rk, bool avx2,
 }  // namespace
 
 void RowTrace::trace(Index i, Index j, Scalar dt) {
-  Scalar* const st[9] = {y1[0], y1[1], y1[2], y2[0], y2[1], y2[2], p[0], p[1], p[2]};
+  Scalar* st[27] = {y1[0], y1[1], y1[2], y2[0], y2[1], y2[2], p[0], p[1], p[2]};
+  for (int m = 0; m < 2; ++m) std::copy_n(jac[m], 9, st + 9 + 9 * m);
   RowScratch& s = impl_->scratch;
   const bool periodic = L_.period[2] > 0;
   if (u_.comp[0]) {
@@ -459,14 +507,14 @@ bool rows_apply(const MacVelocity& u, const FieldLayout& L) {
 
 void advect_rows(AdvectionScheme scheme, const MacVelocity& u, const FieldLayout& L, int count,
                  const Scalar* const* q, Scalar* const* out, Scalar dt, int rk_order, AdvectionScratch& scratch,
-                 bool avx2) {
+                 bool avx2, bool scratch_only) {
   const bool periodic = L.period[2] > 0;
   if (u.comp[0]) {
-    if (periodic) RowPasses<true, true>(u, L, count, rk_order).run(scheme, q, out, dt, scratch, avx2);
-    else RowPasses<true, false>(u, L, count, rk_order).run(scheme, q, out, dt, scratch, avx2);
+    if (periodic) RowPasses<true, true>(u, L, count, rk_order).run(scheme, q, out, dt, scratch, avx2, scratch_only);
+    else RowPasses<true, false>(u, L, count, rk_order).run(scheme, q, out, dt, scratch, avx2, scratch_only);
   } else {
-    if (periodic) RowPasses<false, true>(u, L, count, rk_order).run(scheme, q, out, dt, scratch, avx2);
-    else RowPasses<false, false>(u, L, count, rk_order).run(scheme, q, out, dt, scratch, avx2);
+    if (periodic) RowPasses<false, true>(u, L, count, rk_order).run(scheme, q, out, dt, scratch, avx2, scratch_only);
+    else RowPasses<false, false>(u, L, count, rk_order).run(scheme, q, out, dt, scratch, avx2, scratch_only);
   }
 }
 

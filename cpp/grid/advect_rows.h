@@ -22,7 +22,7 @@ bool rows_apply(const MacVelocity& u, const FieldLayout& L);
 // advect_fields by rows; requires rows_apply(u, L), and cpu_has_avx2() (core/simd.h) when avx2.
 void advect_rows(AdvectionScheme scheme, const MacVelocity& u, const FieldLayout& L, int count,
                  const Scalar* const* q, Scalar* const* out, Scalar dt, int rk_order,
-                 AdvectionScratch& scratch, bool avx2);
+                 AdvectionScratch& scratch, bool avx2, bool scratch_only = false);
 
 // The back-traces of advect_rows along one row of L's nodes at a time, with their Runge-Kutta
 // stages kept (for the adjoint): y1 = x - dt/2 k1 (rk >= 2), y2 = x - 3 dt/4 k2 (rk 3) and the
@@ -36,7 +36,7 @@ class RowTrace {
   RowTrace(const RowTrace&) = delete;
   RowTrace& operator=(const RowTrace&) = delete;
 
-  void trace(Index i, Index j, Scalar dt);  // fills y1, y2, p for row (i, j)
+  void trace(Index i, Index j, Scalar dt);  // fills y1, y2, p and jac for row (i, j)
 
   // The brackets (kernels.h: bracket) of x[k] - offset, k < L.n[2], on `nodes` nodes of period
   // `period` (0: none; the row passes require every axis periodic or none), and d[k] = d w / d x:
@@ -47,6 +47,9 @@ class RowTrace {
   Scalar* y1[3];
   Scalar* y2[3];
   Scalar* p[3];
+  // jac[m][3 a + b] = d u_a / d y_b at stage m + 1 (y1, y2) in grid units, from the brackets
+  // as computed (no factor for a clamped coordinate; 2D: b = 0 unset).
+  Scalar* jac[2][9];
 
  private:
   struct Impl;

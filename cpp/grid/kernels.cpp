@@ -190,21 +190,22 @@ void clamp_fields(const FieldLayout& L, int count, Scalar* const* out, Scalar* c
 
 void advect_fields(AdvectionScheme scheme, const MacVelocity& u, const FieldLayout& L, int count,
                    const Scalar* const* q, Scalar* const* out, Scalar dt, int rk_order,
-                   AdvectionScratch& scratch, int wall_component, AdvectionKernel kernel) {
+                   AdvectionScratch& scratch, int wall_component, AdvectionKernel kernel, bool scratch_only) {
   if (count <= 0) return;
   if (count > kMaxAdvectedFields) throw InvalidArgument("advect: at most 8 fields per call");
   scratch.reserve(L.size(), scheme, count);  // a no-op when the solver reserved enough
   if (kernel != AdvectionKernel::Nodes) {
     const bool rows = rows_apply(u, L);
     if (kernel == AdvectionKernel::Auto && rows) {
-      advect_rows(scheme, u, L, count, q, out, dt, rk_order, scratch, use_avx2());
+      advect_rows(scheme, u, L, count, q, out, dt, rk_order, scratch, use_avx2(), scratch_only);
       return;
     }
     if (kernel != AdvectionKernel::Auto) {
       if (!rows) throw InvalidArgument("advect: the row kernels do not apply to this problem");
       if (kernel == AdvectionKernel::RowsAvx2 && !cpu_has_avx2())
         throw InvalidArgument("advect: this CPU has no AVX2");
-      advect_rows(scheme, u, L, count, q, out, dt, rk_order, scratch, kernel == AdvectionKernel::RowsAvx2);
+      advect_rows(scheme, u, L, count, q, out, dt, rk_order, scratch, kernel == AdvectionKernel::RowsAvx2,
+                  scratch_only);
       return;
     }
   }

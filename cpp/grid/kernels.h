@@ -327,11 +327,13 @@ void clamp_fields(const FieldLayout& L, int count, Scalar* const* out, Scalar* c
 // alias any q) by the chosen scheme. The back-traces are computed once per node and pass and
 // serve every field. `wall_component` >= 0 marks the fields as that velocity component, which
 // then see u.walls next to no-slip walls; -1 for scalars (extended to the walls). A kernel
-// other than Auto or Nodes throws InvalidArgument where it does not apply.
+// other than Auto or Nodes throws InvalidArgument where it does not apply. scratch_only: only
+// the scratch is wanted (for the adjoint: q^, the bounds, BFECC's corrected field); the row
+// kernels then skip the passes after it and leave out unspecified.
 void advect_fields(AdvectionScheme scheme, const MacVelocity& u, const FieldLayout& L, int count,
                    const Scalar* const* q, Scalar* const* out, Scalar dt, int rk_order,
                    AdvectionScratch& scratch, int wall_component = -1,
-                   AdvectionKernel kernel = AdvectionKernel::Auto);
+                   AdvectionKernel kernel = AdvectionKernel::Auto, bool scratch_only = false);
 
 // One advection step of q into out (out must not alias q) by the chosen scheme.
 void advect(AdvectionScheme scheme, const MacVelocity& u, const FieldLayout& L, const Scalar* q,

@@ -58,11 +58,13 @@ class Solver {
 
   // The vector-Jacobian product of step(before, dt, control) (adjoint.cpp): `adjoint` holds
   // dL/d(after) on entry (velocity, density, temperature; pressure ignored) and dL/d(before) on
-  // return (pressure 0: it is only a warm start). grad_viscosity receives dL/dnu of this step,
-  // grad_control (nullable, the control's shape) dL/dcontrol. Throws InvalidArgument naming the
-  // option when the configuration is not differentiable (check_differentiable).
+  // return (pressure 0: it is only a warm start). grad_viscosity (nullable: not wanted) receives
+  // dL/dnu of this step, grad_control (nullable, the control's shape) dL/dcontrol. Throws
+  // InvalidArgument naming the option when the configuration is not differentiable
+  // (check_differentiable). Without grad_viscosity only the advection's first passes are
+  // recomputed (the rest of the step is linear in what it reads, or only dL/dnu reads it).
   void step_adjoint(const State& before, Scalar dt, const Scalar* control, State& adjoint,
-                    Scalar& grad_viscosity, Scalar* grad_control, Interrupt& interrupt);
+                    Scalar* grad_viscosity, Scalar* grad_control, Interrupt& interrupt);
   void check_differentiable() const;
   // The projection alone (u -= dt grad p with the pressure solve) and its transpose, for tests.
   SolveInfo apply_projection(State& state, Scalar dt, Interrupt& interrupt) { return project(state, dt, interrupt); }
@@ -108,6 +110,8 @@ class Solver {
   // kept (nullable): the advection scratch of the scalars (0) and of each velocity component
   // (1 + axis) is left there, for the adjoint (advect_adjoint's `forward`).
   void advect(State& state, Scalar dt, std::array<AdvectionScratch, 4>* kept = nullptr);
+  // Only the scratch advect(state, dt, &kept) leaves, from the passes that make it.
+  void advection_scratch(const State& state, Scalar dt, std::array<AdvectionScratch, 4>& kept);
   void add_forces(State& state, Scalar dt, const Scalar* control);
   Index diffuse(State& state, Scalar dt, Interrupt& interrupt);
   SolveInfo project(State& state, Scalar dt, Interrupt& interrupt);
@@ -163,6 +167,7 @@ class Solver {
   std::vector<Scalar> vorticity_norm_;
   AdvectionScratch advection_scratch_;
   CgWorkspace viscosity_cg_;
+  std::array<AdvectionScratch, 4> adjoint_kept_;  // step_adjoint's advection scratch, kept from call to call
   std::vector<Scalar> adjoint_pressure_;  // the last adjoint pressure solution (a warm start)
   Index adjoint_pressure_step_ = -1;      // the step it belongs to, -1: none
   WallVelocities walls_;  // no-slip and moving walls as interpolation sees them

@@ -365,9 +365,21 @@ class Fluid:
     def _diff_step(self, dt, control, step_options):
         self._core.step(time_step(dt), control)
 
+    def _diff_record(self, dt, steps, controls, step_options):
+        """km.diff's path for a run stored whole: the steps and their adjoints in C++ (the same
+        calls, so the same bits, as _diff_step and _diff_step_adjoint)."""
+        return _Record(self, self._core.record(time_step(dt), int(steps), controls))
+
+    def _diff_want(self, names):
+        # km.diff: the parameters a backward pass wants (None: all); without the viscosity the
+        # adjoint recomputes only the advection's first passes of each step
+        self._diff_wanted = names
+
     def _diff_step_adjoint(self, dt, before, after, control, grad_after, step_options):
-        grads, g_nu, g_control = self._core.step_adjoint(time_step(dt), before, control, grad_after)
-        return grads, {"viscosity": g_nu}, g_control
+        wanted = getattr(self, "_diff_wanted", None)
+        want_nu = wanted is None or "viscosity" in wanted
+        grads, g_nu, g_control = self._core.step_adjoint(time_step(dt), before, control, grad_after, want_nu)
+        return grads, ({"viscosity": g_nu} if want_nu else {}), g_control
 
     def stable_dt(self, cfl=1.0, *, max_dt=None) -> float:
         """The CFL step cfl * h / u_max [s], at most ``max_dt``, where u_max = max|u| +
@@ -413,6 +425,18 @@ class Fluid:
 
     def max_speed(self) -> float:
         return finite_result(self._core.max_speed(), "max_speed")
+
+
+class _Record:
+    """A run kept by km.grid for km.diff (Fluid._diff_record)."""
+
+    def __init__(self, fluid, record):
+        self._fluid, self._record = fluid, record
+
+    def backward(self, grad_after, params):
+        want_nu = "viscosity" in params
+        grads, g_nu, g_controls = self._record.backward(grad_after, want_nu)
+        return grads, ({"viscosity": g_nu} if want_nu else {}), g_controls
 
 
 def _max_dt(max_dt):
