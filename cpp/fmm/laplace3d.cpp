@@ -512,15 +512,67 @@ bool rotate_m2l(int order, const Fmm3dConfig& config) {
   return order >= kRotationOrder;
 }
 
-// With s points per leaf a target costs ~27 s near-field pairs and a leaf ~189 M2L of O(p^3):
-// the work per point A s + B(p) / s is least at s* = sqrt(B / A). The leaves of a uniform
-// tree hold s*/sqrt(8) .. s* sqrt(8) when boxes split above sqrt(8) s*. s* fitted to whole runs
-// at N = 1e6 (2 threads; the octree's levels give 30.5 or 244 points per leaf there): the
-// depth-5 tree is 1.6x cheaper at p = 5, the depth-4 one 1.1x at p = 8 and 1.4x at p = 11,
-// hence s* ~ 66, 93, 106. Where a threshold falls among the counts of one level, only part of
-// it splits; that tree's cost lies between the two (its W and X lists are summed directly
-// when a box is small: direct_below_for).
-Index leaf_size_for(int order) { return std::clamp<Index>(24 * order + 72, 96, 512); }
+// With s points per leaf a target costs ~27 s / 2 near-field pairs (each pair once for both
+// ends) and a leaf ~189 M2L translations: the work per point A s + B(p) / s is least at
+// s* = sqrt(B / A). Measured on whole runs at N = 1e6 (uniform, the leaf level's occupancy set
+// by root_scale_for, one thread, CPU seconds): the best s is ~60 at p = 5, 80..130 at p = 8
+// and ~140 at p = 14, each within 10% of the cost over a factor 1.5 of s; B grows about as
+// (p + 1)^2 over this range (the rotated M2L's O(p^3) terms do not dominate yet), so s* ~ 10 (p + 1).
+Scalar occupancy_for(int order) { return std::clamp(10.0 * (order + 1), 40.0, 400.0); }
+
+// Boxes split above this count: sqrt(8) s*, so that a box of an even region holding s* stays a
+// leaf (its count's spread is ~sqrt(s*)) while its parent, holding 8 s*, splits; in a graded
+// region leaves hold s*/sqrt(8) .. s* sqrt(8).
+Index leaf_size_for(int order) { return static_cast<Index>(std::ceil(std::sqrt(8.0) * occupancy_for(order))); }
+
+// The boxes of level L of a uniform tree hold n / 8^L points: only one level in eight
+// multiples of the best occupancy s* is open to them. Enlarging the root by f in [1, 2)
+// scales every box's count by f^3, so some level holds s* exactly. The counts are measured,
+// not assumed: the point-weighted mean count of the cells of a coarse level L0 (the count a
+// point sees in its own cell) is n0, and f^3 = s* 8^k / n0 for the k that puts it in [1, 8).
+// Clustered points, whose leaves lie on many levels, are indifferent to f; a uniform region
+// (the bench problem) gets leaves of s*.
+Scalar root_scale_for(const Scalar* const sxyz[3], Index n, const Scalar* const txyz[3], Index m,
+                      Scalar occupancy) {
+  const Index most = std::max(n, m);
+  if (most < 8 * occupancy) return 1;
+  Scalar lo[3], hi[3], width = 0;
+  for (int d = 0; d < 3; ++d) {
+    lo[d] = INFINITY, hi[d] = -INFINITY;
+    for (Index i = 0; i < n; ++i) lo[d] = std::min(lo[d], sxyz[d][i]), hi[d] = std::max(hi[d], sxyz[d][i]);
+    for (Index i = 0; i < m; ++i) lo[d] = std::min(lo[d], txyz[d][i]), hi[d] = std::max(hi[d], txyz[d][i]);
+    width = std::max(width, hi[d] - lo[d]);
+  }
+  if (!(width > 0) || !std::isfinite(width)) return 1;
+  int level = 1;  // the finest level whose boxes hold >= s* points on average
+  while (level < 7 && std::pow(8.0, level + 1) * occupancy <= most) ++level;
+  const Index cells = Index{1} << level;
+  const Scalar scale = cells / (width * (1 + 1e-12));
+  Scalar n0 = 0;
+  std::vector<Index> count(static_cast<size_t>(cells * cells * cells));
+  for (int set = 0; set < 2; ++set) {
+    const Scalar* const* xyz = set == 0 ? sxyz : txyz;
+    const Index k = set == 0 ? n : m;
+    if (k == 0 || (set == 1 && xyz == sxyz)) continue;
+    std::fill(count.begin(), count.end(), 0);
+    for (Index i = 0; i < k; ++i) {
+      Index cell = 0;
+      for (int d = 0; d < 3; ++d) {
+        const Scalar mid = 0.5 * (lo[d] + hi[d]);
+        const Index c = static_cast<Index>((xyz[d][i] - mid) * scale + 0.5 * cells);
+        cell = cell * cells + std::clamp<Index>(c, 0, cells - 1);
+      }
+      ++count[static_cast<size_t>(cell)];
+    }
+    Scalar sum = 0;
+    for (Index c : count) sum += static_cast<Scalar>(c) * c;
+    n0 = std::max(n0, sum / k);
+  }
+  if (!(n0 > occupancy)) return 1;
+  Scalar f3 = occupancy / n0;
+  while (f3 < 1) f3 *= 8;
+  return std::clamp(std::cbrt(f3), 1.0, 2.0);
+}
 
 Fmm3dStats fmm3d(const Scalar* sources, Index n, const Scalar* charges, int components,
                  const Scalar* targets, Index m, const Fmm3dConfig& config, Scalar* out,
@@ -565,8 +617,9 @@ Fmm3dStats fmm3d(const Scalar* sources, Index n, const Scalar* charges, int comp
   const Scalar* sp[3] = {sxyz[0].data(), sxyz[1].data(), sxyz[2].data()};
   const Scalar* tp[3] = {txyz[0].data(), txyz[1].data(), txyz[2].data()};
   const int p = stats.order;
-  const Octree tree(sp, n, tp, m, stats.leaf_size, config.min_width,
-                    direct_below_for(p), interrupt);
+  stats.root_scale = config.leaf_size > 0 ? 1 : root_scale_for(sp, n, tp, self ? 0 : m, occupancy_for(p));
+  const Octree tree(sp, n, tp, m, stats.leaf_size, config.min_width, direct_below_for(p),
+                    interrupt, stats.root_scale);
   std::vector<Scalar> q(static_cast<size_t>(n) * components);
   for (Index i = 0; i < n; ++i)
     for (int c = 0; c < components; ++c)
