@@ -41,6 +41,7 @@ py::dict info(const Stats& stats) {
   d["seconds_upward"] = stats.seconds_upward;
   if constexpr (std::is_same_v<Stats, fmm3::Fmm3dStats>) d["seconds_m2l"] = stats.seconds_m2l;
   if constexpr (std::is_same_v<Stats, fmm3::Fmm3dStats>) d["m2l"] = stats.rotation ? "rotation" : "dense";
+  if constexpr (std::is_same_v<Stats, fmm3::Fmm3dStats>) d["root_scale"] = stats.root_scale;
   d["seconds_downward"] = stats.seconds_downward;
   d["seconds_leaves"] = stats.seconds_leaves;
   return d;

@@ -140,26 +140,30 @@ struct Engine {
 
   void upward(const M2lOperators& ops, Interrupt& interrupt) {
     const bool rotate = ops.m2m != nullptr;
+    constexpr Index kBlock = 1024;  // boxes between interrupt checks (P2M of ~1e5 points)
     for (size_t level = tree.levels.size(); level-- > 0;) {
-      interrupt.check();
       const std::vector<Index>& ids = tree.levels[level];
       const Index count = static_cast<Index>(ids.size());
+      for (Index start = 0; start < count; start += kBlock) {
+        interrupt.check();
+        const Index stop = std::min(count, start + kBlock);
 #pragma omp parallel for schedule(dynamic, 4)
-      for (Index i = 0; i < count; ++i) {
-        const Index id = ids[static_cast<size_t>(i)];
-        const Box3& box = tree.boxes[static_cast<size_t>(id)];
-        if (box.source_count() == 0) continue;
-        for (int c = 0; c < nc; ++c) {
-          if (box.leaf) {
-            const Scalar* xyz[3] = {src[0] + box.src_begin, src[1] + box.src_begin, src[2] + box.src_begin};
-            p2m(p, box.c, box.h, xyz, &q[static_cast<size_t>(box.src_begin) * nc + c],
-                box.source_count(), nc, mul(id, c));
-            continue;
-          }
-          if (rotate) continue;
-          for (Index ch : box.child) {
-            if (ch < 0 || tree.boxes[static_cast<size_t>(ch)].source_count() == 0) continue;
-            m2m(p, mul(ch, c), tree.boxes[static_cast<size_t>(ch)].c, box.c, box.h, mul(id, c));
+        for (Index i = start; i < stop; ++i) {
+          const Index id = ids[static_cast<size_t>(i)];
+          const Box3& box = tree.boxes[static_cast<size_t>(id)];
+          if (box.source_count() == 0) continue;
+          for (int c = 0; c < nc; ++c) {
+            if (box.leaf) {
+              const Scalar* xyz[3] = {src[0] + box.src_begin, src[1] + box.src_begin, src[2] + box.src_begin};
+              p2m(p, box.c, box.h, xyz, &q[static_cast<size_t>(box.src_begin) * nc + c],
+                  box.source_count(), nc, mul(id, c));
+              continue;
+            }
+            if (rotate) continue;
+            for (Index ch : box.child) {
+              if (ch < 0 || tree.boxes[static_cast<size_t>(ch)].source_count() == 0) continue;
+              m2m(p, mul(ch, c), tree.boxes[static_cast<size_t>(ch)].c, box.c, box.h, mul(id, c));
+            }
           }
         }
       }
@@ -442,57 +446,59 @@ struct Engine {
     const Scalar softening = config.kernel == NearKernel::Plummer ? config.length : 0.0;
     const int newton = newton_steps(config.eps);
     const bool gradient = width == 4;
-    for (const std::vector<Index>& group : mutual_groups()) {
-      interrupt.check();
-      const Index count = static_cast<Index>(group.size());
-#pragma omp parallel for schedule(dynamic, 1) if (count > 1)
-      for (Index g = 0; g < count; ++g) {
-        const Index a = group[static_cast<size_t>(g)];
-        const Box3& ab = tree.boxes[static_cast<size_t>(a)];
-        const Index na = ab.source_count(), a0 = ab.src_begin;
-        const Scalar* xa[3] = {src[0] + a0, src[1] + a0, src[2] + a0};
-        for (Index t = a0; t < ab.src_end; ++t) {
-          Scalar* out = &result[static_cast<size_t>(t) * width];
-          if (!p2p_fast(gradient, newton, softening, src[0][t], src[1][t], src[2][t], xa[0], xa[1], xa[2],
-                        &q[static_cast<size_t>(a0)], na, out))
-            p2p_generic(config.kernel, config.length, width, src[0][t], src[1][t], src[2][t], xa[0],
-                        xa[1], xa[2], &q[static_cast<size_t>(a0)], 1, na, out);
-        }
-        std::vector<Scalar> out_a, out_b, xb[3], qb;
-        for (Index b : tree.lists[static_cast<size_t>(a)].u) {
-          if (b <= a) continue;
-          const Box3& bb = tree.boxes[static_cast<size_t>(b)];
-          const Index nb = bb.source_count(), b0 = bb.src_begin, stride = (nb + 3) & ~Index{3};
-          // b padded to whole vectors with zero charges at its first point.
-          for (int d = 0; d < 3; ++d) {
-            xb[d].assign(src[d] + b0, src[d] + bb.src_end);
-            xb[d].resize(static_cast<size_t>(stride), src[d][b0]);
+    constexpr Index kBlock = 256;  // tasks between interrupt checks
+    for (const std::vector<Index>& group : mutual_groups())
+      for (Index start = 0; start < static_cast<Index>(group.size()); start += kBlock) {
+        interrupt.check();
+        const Index count = std::min(static_cast<Index>(group.size()), start + kBlock);
+#pragma omp parallel for schedule(dynamic, 1) if (count - start > 1)
+        for (Index g = start; g < count; ++g) {
+          const Index a = group[static_cast<size_t>(g)];
+          const Box3& ab = tree.boxes[static_cast<size_t>(a)];
+          const Index na = ab.source_count(), a0 = ab.src_begin;
+          const Scalar* xa[3] = {src[0] + a0, src[1] + a0, src[2] + a0};
+          for (Index t = a0; t < ab.src_end; ++t) {
+            Scalar* out = &result[static_cast<size_t>(t) * width];
+            if (!p2p_fast(gradient, newton, softening, src[0][t], src[1][t], src[2][t], xa[0], xa[1], xa[2],
+                          &q[static_cast<size_t>(a0)], na, out))
+              p2p_generic(config.kernel, config.length, width, src[0][t], src[1][t], src[2][t], xa[0],
+                          xa[1], xa[2], &q[static_cast<size_t>(a0)], 1, na, out);
           }
-          qb.assign(q.begin() + b0, q.begin() + bb.src_end);
-          qb.resize(static_cast<size_t>(stride), 0.0);
-          out_a.assign(static_cast<size_t>(na * width), 0.0);
-          out_b.assign(static_cast<size_t>(stride * width), 0.0);
-          const Scalar* xbp[3] = {xb[0].data(), xb[1].data(), xb[2].data()};
-          if (p2p_mutual(gradient, newton, softening, xa, &q[static_cast<size_t>(a0)], na, xbp,
-                         qb.data(), stride, stride, out_a.data(), out_b.data())) {
-            for (Index i = 0; i < na; ++i)
-              for (int k = 0; k < width; ++k)
-                result[static_cast<size_t>((a0 + i) * width + k)] += out_a[static_cast<size_t>(i * width + k)];
-            for (Index j = 0; j < nb; ++j)
-              for (int k = 0; k < width; ++k)
-                result[static_cast<size_t>((b0 + j) * width + k)] += out_b[static_cast<size_t>(k * stride + j)];
-            continue;
+          std::vector<Scalar> out_a, out_b, xb[3], qb;
+          for (Index b : tree.lists[static_cast<size_t>(a)].u) {
+            if (b <= a) continue;
+            const Box3& bb = tree.boxes[static_cast<size_t>(b)];
+            const Index nb = bb.source_count(), b0 = bb.src_begin, stride = (nb + 3) & ~Index{3};
+            // b padded to whole vectors with zero charges at its first point.
+            for (int d = 0; d < 3; ++d) {
+              xb[d].assign(src[d] + b0, src[d] + bb.src_end);
+              xb[d].resize(static_cast<size_t>(stride), src[d][b0]);
+            }
+            qb.assign(q.begin() + b0, q.begin() + bb.src_end);
+            qb.resize(static_cast<size_t>(stride), 0.0);
+            out_a.assign(static_cast<size_t>(na * width), 0.0);
+            out_b.assign(static_cast<size_t>(stride * width), 0.0);
+            const Scalar* xbp[3] = {xb[0].data(), xb[1].data(), xb[2].data()};
+            if (p2p_mutual(gradient, newton, softening, xa, &q[static_cast<size_t>(a0)], na, xbp,
+                           qb.data(), stride, stride, out_a.data(), out_b.data())) {
+              for (Index i = 0; i < na; ++i)
+                for (int k = 0; k < width; ++k)
+                  result[static_cast<size_t>((a0 + i) * width + k)] += out_a[static_cast<size_t>(i * width + k)];
+              for (Index j = 0; j < nb; ++j)
+                for (int k = 0; k < width; ++k)
+                  result[static_cast<size_t>((b0 + j) * width + k)] += out_b[static_cast<size_t>(k * stride + j)];
+              continue;
+            }
+            for (Index t = a0; t < ab.src_end; ++t)
+              p2p_generic(config.kernel, config.length, width, src[0][t], src[1][t], src[2][t], src[0] + b0,
+                          src[1] + b0, src[2] + b0, &q[static_cast<size_t>(b0)], 1, nb,
+                          &result[static_cast<size_t>(t) * width]);
+            for (Index t = b0; t < bb.src_end; ++t)
+              p2p_generic(config.kernel, config.length, width, src[0][t], src[1][t], src[2][t], xa[0],
+                          xa[1], xa[2], &q[static_cast<size_t>(a0)], 1, na, &result[static_cast<size_t>(t) * width]);
           }
-          for (Index t = a0; t < ab.src_end; ++t)
-            p2p_generic(config.kernel, config.length, width, src[0][t], src[1][t], src[2][t], src[0] + b0,
-                        src[1] + b0, src[2] + b0, &q[static_cast<size_t>(b0)], 1, nb,
-                        &result[static_cast<size_t>(t) * width]);
-          for (Index t = b0; t < bb.src_end; ++t)
-            p2p_generic(config.kernel, config.length, width, src[0][t], src[1][t], src[2][t], xa[0],
-                        xa[1], xa[2], &q[static_cast<size_t>(a0)], 1, na, &result[static_cast<size_t>(t) * width]);
         }
       }
-    }
   }
 };
 
@@ -512,15 +518,78 @@ bool rotate_m2l(int order, const Fmm3dConfig& config) {
   return order >= kRotationOrder;
 }
 
-// With s points per leaf a target costs ~27 s near-field pairs and a leaf ~189 M2L of O(p^3):
-// the work per point A s + B(p) / s is least at s* = sqrt(B / A). The leaves of a uniform
-// tree hold s*/sqrt(8) .. s* sqrt(8) when boxes split above sqrt(8) s*. s* fitted to whole runs
-// at N = 1e6 (2 threads; the octree's levels give 30.5 or 244 points per leaf there): the
-// depth-5 tree is 1.6x cheaper at p = 5, the depth-4 one 1.1x at p = 8 and 1.4x at p = 11,
-// hence s* ~ 66, 93, 106. Where a threshold falls among the counts of one level, only part of
-// it splits; that tree's cost lies between the two (its W and X lists are summed directly
-// when a box is small: direct_below_for).
-Index leaf_size_for(int order) { return std::clamp<Index>(24 * order + 72, 96, 512); }
+// With s points per leaf a target costs ~27 s / 2 near-field pairs (each pair once for both
+// ends) and a leaf ~189 M2L translations: the work per point A s + B(p) / s is least at
+// s* = sqrt(B / A). Measured on whole runs at N = 1e6 (uniform, the leaf level's occupancy set
+// by root_scale_for, one thread, CPU seconds): the best s is ~60 at p = 5, 80..130 at p = 8,
+// ~140 at p = 14 and >= 270 at p = 26 (12% cheaper than 180), each within 10% of the cost over
+// a factor 1.5 of s; B grows about as (p + 1)^2 over this range (the rotated M2L's O(p^3)
+// terms do not dominate yet), so s* ~ 10 (p + 1).
+Scalar occupancy_for(int order) { return std::clamp(10.0 * (order + 1), 40.0, 400.0); }
+
+// Boxes split above this count: sqrt(8) s*, at most 512, so that a box of an even region
+// holding s* stays a leaf (its count's spread is ~sqrt(s*) < (512 - 400) / 4) while its parent,
+// holding 8 s*, splits; in a graded region leaves hold up to the threshold.
+Index leaf_size_for(int order) {
+  return std::min<Index>(512, static_cast<Index>(std::ceil(std::sqrt(8.0) * occupancy_for(order))));
+}
+
+// The boxes of level L of a uniform tree hold n / 8^L points: only one level in eight
+// multiples of the best occupancy s* is open to them. Enlarging the root by f in [1, 2)
+// scales every box's count by f^3, so some level holds s* exactly. The counts are measured,
+// not assumed: the point-weighted mean count of the cells of a coarse level L0 (the count a
+// point sees in its own cell) is n0, and f^3 = s* 8^k / n0 for the k that puts it in [1, 8).
+// Only evenly spread points are rescaled (the bench problem's leaves then hold s*).
+Scalar root_scale_for(const Scalar* const sxyz[3], Index n, const Scalar* const txyz[3], Index m,
+                      Scalar occupancy) {
+  const Index most = std::max(n, m);
+  if (most < 8 * occupancy) return 1;
+  Scalar lo[3], hi[3], width = 0;
+  for (int d = 0; d < 3; ++d) {
+    lo[d] = INFINITY, hi[d] = -INFINITY;
+    for (Index i = 0; i < n; ++i) lo[d] = std::min(lo[d], sxyz[d][i]), hi[d] = std::max(hi[d], sxyz[d][i]);
+    for (Index i = 0; i < m; ++i) lo[d] = std::min(lo[d], txyz[d][i]), hi[d] = std::max(hi[d], txyz[d][i]);
+    width = std::max(width, hi[d] - lo[d]);
+  }
+  if (!(width > 0) || !std::isfinite(width)) return 1;
+  int level = 1;  // the finest level whose boxes hold >= s* points on average
+  while (level < 7 && std::pow(8.0, level + 1) * occupancy <= most) ++level;
+  const Index cells = Index{1} << level;
+  const Scalar scale = cells / (width * (1 + 1e-12));
+  Scalar n0 = 0;
+  std::vector<Index> count(static_cast<size_t>(cells * cells * cells));
+  for (int set = 0; set < 2; ++set) {
+    const Scalar* const* xyz = set == 0 ? sxyz : txyz;
+    const Index k = set == 0 ? n : m;
+    if (k == 0 || (set == 1 && xyz == sxyz)) continue;
+    std::fill(count.begin(), count.end(), 0);
+    for (Index i = 0; i < k; ++i) {
+      Index cell = 0;
+      for (int d = 0; d < 3; ++d) {
+        const Scalar mid = 0.5 * (lo[d] + hi[d]);
+        const Index c = static_cast<Index>((xyz[d][i] - mid) * scale + 0.5 * cells);
+        cell = cell * cells + std::clamp<Index>(c, 0, cells - 1);
+      }
+      ++count[static_cast<size_t>(cell)];
+    }
+    Scalar sum = 0;
+    Index occupied = 0;
+    for (Index c : count) sum += static_cast<Scalar>(c) * c, occupied += c > 0;
+    // Clustered points (a point's cell holds far more than the occupied cells' mean) keep the
+    // bounding cube: their leaves lie on many levels, and their trees are the ones the order
+    // rule was measured on (a Plummer sphere's W-list error at p = 38 moved from 7e-14 to
+    // 2e-12 with f = 1.25: the M2P's convergence ratio depends on where the levels fall).
+    if (sum / k > 1.5 * static_cast<Scalar>(k) / static_cast<Scalar>(occupied)) return 1;
+    n0 = std::max(n0, sum / k);
+  }
+  if (!(n0 > occupancy)) return 1;
+  Scalar f3 = occupancy / n0;
+  int leaf_level = level;
+  for (; f3 < 1; f3 *= 8) ++leaf_level;
+  // Leaves on level 1 are all adjacent (a direct sum): then the tree keeps its own depth.
+  if (leaf_level < 2) return 1;
+  return std::clamp(std::cbrt(f3), 1.0, 2.0);
+}
 
 Fmm3dStats fmm3d(const Scalar* sources, Index n, const Scalar* charges, int components,
                  const Scalar* targets, Index m, const Fmm3dConfig& config, Scalar* out,
@@ -565,8 +634,9 @@ Fmm3dStats fmm3d(const Scalar* sources, Index n, const Scalar* charges, int comp
   const Scalar* sp[3] = {sxyz[0].data(), sxyz[1].data(), sxyz[2].data()};
   const Scalar* tp[3] = {txyz[0].data(), txyz[1].data(), txyz[2].data()};
   const int p = stats.order;
-  const Octree tree(sp, n, tp, m, stats.leaf_size, config.min_width,
-                    direct_below_for(p), interrupt);
+  stats.root_scale = config.leaf_size > 0 ? 1 : root_scale_for(sp, n, tp, self ? 0 : m, occupancy_for(p));
+  const Octree tree(sp, n, tp, m, stats.leaf_size, config.min_width, direct_below_for(p),
+                    interrupt, stats.root_scale);
   std::vector<Scalar> q(static_cast<size_t>(n) * components);
   for (Index i = 0; i < n; ++i)
     for (int c = 0; c < components; ++c)

@@ -35,6 +35,7 @@ struct Fmm3dStats {
   int order = 0;
   bool rotation = false;  // the M2L ran by rotation
   Index leaf_size = 0;
+  Scalar root_scale = 1;  // the root box over the points' bounding cube
   Index box_count = 0;
   int depth = 0;
   double seconds_tree = 0, seconds_upward = 0, seconds_m2l = 0, seconds_downward = 0,
@@ -47,8 +48,14 @@ constexpr int kMaxOrder3d = 40;
 int order_for(Scalar eps);
 // Whether Auto applies the M2L by rotation at order p.
 bool rotate_m2l(int order, const Fmm3dConfig& config);
-// Leaf size that balances the near-field sums against the translations for order p.
+// Mean leaf occupancy that balances the near-field sums against the translations at order p,
+// and the leaf size (split threshold) that gives it.
+Scalar occupancy_for(int order);
 Index leaf_size_for(int order);
+// Factor in [1, 2) enlarging the root box so that evenly spread points fill the leaves of some
+// level with `occupancy` points (the targets: nullptr / m = 0 when they are the sources).
+Scalar root_scale_for(const Scalar* const sources[3], Index n, const Scalar* const targets[3],
+                      Index m, Scalar occupancy);
 
 // Output width per target and charge component: 1 (phi), 4 (phi, grad) or 10 (phi, grad,
 // hess xx xy xz yy yz zz).

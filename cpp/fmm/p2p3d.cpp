@@ -5,6 +5,8 @@
 #include "core/simd.h"
 
 #include <algorithm>
+#include <cstdlib>
+#include <cstring>
 
 #if KINEMA_HAVE_AVX2_CLONES
 #include <immintrin.h>
@@ -154,6 +156,120 @@ KINEMA_AVX2_FMA bool p2p_mutual_avx2(Scalar a, const Scalar* const xa[3],
                                    _mm256_cmp_pd(largest, _mm256_set1_pd(1e36), _CMP_GT_OQ));
   return _mm256_movemask_pd(bad) == 0;
 }
+
+// AVX-512 versions (eight sources per vector) where the CPU has AVX-512F: the inverse distance
+// from the double-precision estimate rsqrt14 (relative error below 2^-14) refined by Newton
+// steps, 1.5 e^2 each: one leaves 5.6e-9, two reach rounding. So `newton_steps` k (the float
+// path's count, whose accuracy is 2e-7, 6e-14, rounding) maps to min(k, 2) steps here, at least
+// as accurate. The last partial vector runs masked; r^2 + a^2 is range-checked as in AVX2 (the
+// estimate itself covers the double range), so both paths hand the same leaves to the fallback.
+#define KINEMA_AVX512 __attribute__((target("avx512f,avx2,fma")))
+
+KINEMA_AVX512 inline __m512d inverse_sqrt512(__m512d s2, int steps) {
+  __m512d inv = _mm512_rsqrt14_pd(s2);
+  const __m512d hs = _mm512_mul_pd(_mm512_set1_pd(0.5), s2);
+  for (int k = 0; k < steps; ++k)
+    inv = _mm512_mul_pd(inv, _mm512_fnmadd_pd(hs, _mm512_mul_pd(inv, inv), _mm512_set1_pd(1.5)));
+  return inv;
+}
+
+KINEMA_AVX512 inline __mmask8 tail_mask(Index left) {
+  return left >= 8 ? __mmask8(0xFF) : __mmask8((1u << left) - 1);
+}
+
+template <bool Gradient>
+KINEMA_AVX512 bool p2p_avx512(int steps, Scalar a, Scalar x, Scalar y, Scalar z,
+                              const Scalar* sx, const Scalar* sy, const Scalar* sz,
+                              const Scalar* q, Index n, Scalar* out) {
+  const __m512d vx = _mm512_set1_pd(x), vy = _mm512_set1_pd(y), vz = _mm512_set1_pd(z);
+  const __m512d a2 = _mm512_set1_pd(a * a), zero = _mm512_setzero_pd(), one = _mm512_set1_pd(1.0);
+  __m512d phi = zero, gx = zero, gy = zero, gz = zero;
+  __mmask8 bad = 0;
+  for (Index j = 0; j < n; j += 8) {
+    const __mmask8 m = tail_mask(n - j);
+    // Masked-off lanes load the target itself: distance 0, left out below.
+    const __m512d dx = _mm512_sub_pd(vx, _mm512_mask_loadu_pd(vx, m, sx + j));
+    const __m512d dy = _mm512_sub_pd(vy, _mm512_mask_loadu_pd(vy, m, sy + j));
+    const __m512d dz = _mm512_sub_pd(vz, _mm512_mask_loadu_pd(vz, m, sz + j));
+    const __m512d r2 = _mm512_fmadd_pd(dx, dx, _mm512_fmadd_pd(dy, dy, _mm512_mul_pd(dz, dz)));
+    const __mmask8 live = _mm512_cmp_pd_mask(r2, zero, _CMP_GT_OQ);
+    const __m512d s2 = _mm512_add_pd(r2, a2);
+    bad |= live & (_mm512_cmp_pd_mask(s2, _mm512_set1_pd(1e-36), _CMP_LT_OQ) |
+                   _mm512_cmp_pd_mask(s2, _mm512_set1_pd(1e36), _CMP_GT_OQ));
+    const __m512d inv = inverse_sqrt512(_mm512_mask_blend_pd(live, one, s2), steps);
+    const __m512d wi = _mm512_maskz_mul_pd(live, _mm512_maskz_loadu_pd(m, q + j), inv);
+    phi = _mm512_add_pd(phi, wi);
+    if constexpr (Gradient) {
+      const __m512d wi3 = _mm512_mul_pd(wi, _mm512_mul_pd(inv, inv));
+      gx = _mm512_fnmadd_pd(wi3, dx, gx);
+      gy = _mm512_fnmadd_pd(wi3, dy, gy);
+      gz = _mm512_fnmadd_pd(wi3, dz, gz);
+    }
+  }
+  if (bad) return false;
+  out[0] += _mm512_reduce_add_pd(phi);
+  if constexpr (Gradient) {
+    out[1] += _mm512_reduce_add_pd(gx);
+    out[2] += _mm512_reduce_add_pd(gy);
+    out[3] += _mm512_reduce_add_pd(gz);
+  }
+  return true;
+}
+
+template <bool Gradient, int Steps>
+KINEMA_AVX512 bool p2p_mutual_avx512(Scalar a, const Scalar* const xa[3], const Scalar* qa, Index na,
+                                     const Scalar* const xb[3], const Scalar* qb, Index nb,
+                                     Index stride_b, Scalar* out_a, Scalar* out_b) {
+  const __m512d a2 = _mm512_set1_pd(a * a), zero = _mm512_setzero_pd();
+  __m512d smallest = _mm512_set1_pd(1.0), largest = smallest;
+  const Index g = Gradient ? stride_b : 0;
+  Scalar* const bout[4] = {out_b, out_b + g, out_b + 2 * g, out_b + 3 * g};
+  for (Index i = 0; i < na; ++i) {
+    const __m512d vx = _mm512_set1_pd(xa[0][i]), vy = _mm512_set1_pd(xa[1][i]),
+                  vz = _mm512_set1_pd(xa[2][i]), qi = _mm512_set1_pd(qa[i]);
+    __m512d phi = zero, gx = zero, gy = zero, gz = zero;
+    for (Index j = 0; j < nb; j += 8) {
+      const __mmask8 m = tail_mask(nb - j);
+      const __m512d dx = _mm512_sub_pd(vx, _mm512_maskz_loadu_pd(m, xb[0] + j));
+      const __m512d dy = _mm512_sub_pd(vy, _mm512_maskz_loadu_pd(m, xb[1] + j));
+      const __m512d dz = _mm512_sub_pd(vz, _mm512_maskz_loadu_pd(m, xb[2] + j));
+      const __m512d s2 = _mm512_add_pd(
+          _mm512_fmadd_pd(dx, dx, _mm512_fmadd_pd(dy, dy, _mm512_mul_pd(dz, dz))), a2);
+      smallest = _mm512_mask_min_pd(smallest, m, smallest, s2);
+      largest = _mm512_mask_max_pd(largest, m, largest, s2);
+      const __m512d inv = inverse_sqrt512(_mm512_mask_blend_pd(m, _mm512_set1_pd(1.0), s2), Steps);
+      const __m512d qj = _mm512_maskz_loadu_pd(m, qb + j);
+      phi = _mm512_fmadd_pd(qj, inv, phi);
+      _mm512_mask_storeu_pd(bout[0] + j, m, _mm512_fmadd_pd(qi, inv, _mm512_maskz_loadu_pd(m, bout[0] + j)));
+      if constexpr (Gradient) {
+        const __m512d inv3 = _mm512_mul_pd(inv, _mm512_mul_pd(inv, inv));
+        const __m512d wj = _mm512_mul_pd(qj, inv3), wi = _mm512_mul_pd(qi, inv3);
+        gx = _mm512_fnmadd_pd(wj, dx, gx);
+        gy = _mm512_fnmadd_pd(wj, dy, gy);
+        gz = _mm512_fnmadd_pd(wj, dz, gz);
+        _mm512_mask_storeu_pd(bout[1] + j, m, _mm512_fmadd_pd(wi, dx, _mm512_maskz_loadu_pd(m, bout[1] + j)));
+        _mm512_mask_storeu_pd(bout[2] + j, m, _mm512_fmadd_pd(wi, dy, _mm512_maskz_loadu_pd(m, bout[2] + j)));
+        _mm512_mask_storeu_pd(bout[3] + j, m, _mm512_fmadd_pd(wi, dz, _mm512_maskz_loadu_pd(m, bout[3] + j)));
+      }
+    }
+    Scalar* o = out_a + i * (Gradient ? 4 : 1);
+    o[0] += _mm512_reduce_add_pd(phi);
+    if constexpr (Gradient) {
+      o[1] += _mm512_reduce_add_pd(gx);
+      o[2] += _mm512_reduce_add_pd(gy);
+      o[3] += _mm512_reduce_add_pd(gz);
+    }
+  }
+  const __mmask8 bad = _mm512_cmp_pd_mask(smallest, _mm512_set1_pd(1e-36), _CMP_LT_OQ) |
+                       _mm512_cmp_pd_mask(largest, _mm512_set1_pd(1e36), _CMP_GT_OQ);
+  return bad == 0;
+}
+
+bool use_avx512() {
+  const char* choice = std::getenv("KINEMA_SIMD");
+  if (choice != nullptr && (std::strcmp(choice, "baseline") == 0 || std::strcmp(choice, "avx2") == 0)) return false;
+  return __builtin_cpu_supports("avx512f");
+}
 #endif
 
 }  // namespace
@@ -170,7 +286,15 @@ bool p2p_mutual(bool gradient, int newton_steps, Scalar a, const Scalar* const x
                 const Scalar* qa, Index na, const Scalar* const xb[3], const Scalar* qb, Index nb,
                 Index stride_b, Scalar* out_a, Scalar* out_b) {
 #if KINEMA_HAVE_AVX2_CLONES
-  static const bool avx2 = use_avx2();
+  static const bool avx2 = use_avx2(), avx512 = avx2 && use_avx512();
+  if (avx512) {
+    using Kernel = bool (*)(Scalar, const Scalar* const*, const Scalar*, Index, const Scalar* const*,
+                            const Scalar*, Index, Index, Scalar*, Scalar*);
+    static constexpr Kernel kernels[2][2] = {
+        {p2p_mutual_avx512<false, 1>, p2p_mutual_avx512<false, 2>},
+        {p2p_mutual_avx512<true, 1>, p2p_mutual_avx512<true, 2>}};
+    return kernels[gradient][std::clamp(newton_steps, 1, 2) - 1](a, xa, qa, na, xb, qb, nb, stride_b, out_a, out_b);
+  }
   // The Newton steps as a template argument: the inner loop unrolled (1 to 3 steps).
   if (avx2) {
     using Kernel = bool (*)(Scalar, const Scalar* const*, const Scalar*, Index, const Scalar* const*,
@@ -190,7 +314,12 @@ bool p2p_fast(bool gradient, int newton_steps, Scalar a, Scalar x, Scalar y, Sca
               const Scalar* sx, const Scalar* sy, const Scalar* sz, const Scalar* q, Index n,
               Scalar* out) {
 #if KINEMA_HAVE_AVX2_CLONES
-  static const bool avx2 = use_avx2();
+  static const bool avx2 = use_avx2(), avx512 = avx2 && use_avx512();
+  if (avx512) {
+    const int steps = std::clamp(newton_steps, 1, 2);
+    return gradient ? p2p_avx512<true>(steps, a, x, y, z, sx, sy, sz, q, n, out)
+                    : p2p_avx512<false>(steps, a, x, y, z, sx, sy, sz, q, n, out);
+  }
   if (avx2) {
     return gradient ? p2p_avx2<true>(newton_steps, a, x, y, z, sx, sy, sz, q, n, out)
                     : p2p_avx2<false>(newton_steps, a, x, y, z, sx, sy, sz, q, n, out);

@@ -44,7 +44,8 @@ void partition(Index begin, Index end, const Scalar* c, Index* perm, std::vector
 
 template <int D>
 Tree<D>::Tree(const Scalar* const sxyz[D], Index n, const Scalar* const txyz[D], Index m,
-              Index leaf_size, Scalar min_width, Index p2p_below, Interrupt& interrupt)
+              Index leaf_size, Scalar min_width, Index p2p_below, Interrupt& interrupt,
+              Scalar root_scale)
     : src_perm(static_cast<size_t>(n)), tgt_perm(static_cast<size_t>(m)) {
   for (int d = 0; d < D; ++d) {
     s[d].assign(sxyz[d], sxyz[d] + n);
@@ -52,7 +53,7 @@ Tree<D>::Tree(const Scalar* const sxyz[D], Index n, const Scalar* const txyz[D],
   }
   std::iota(src_perm.begin(), src_perm.end(), Index{0});
   std::iota(tgt_perm.begin(), tgt_perm.end(), Index{0});
-  build(leaf_size, min_width, interrupt);
+  build(leaf_size, min_width, root_scale, interrupt);
   build_lists(p2p_below, interrupt);
 }
 
@@ -70,7 +71,7 @@ bool Tree<D>::adjacent(const Box& a, const Box& b) const {
 }
 
 template <int D>
-void Tree<D>::build(Index leaf_size, Scalar min_width, Interrupt& interrupt) {
+void Tree<D>::build(Index leaf_size, Scalar min_width, Scalar root_scale, Interrupt& interrupt) {
   constexpr int kChildren = Box::kChildren;
   const Index n = static_cast<Index>(s[0].size()), m = static_cast<Index>(t[0].size());
   Box root;
@@ -85,7 +86,7 @@ void Tree<D>::build(Index leaf_size, Scalar min_width, Interrupt& interrupt) {
       scale = std::max(scale, std::abs(root.c[d]));
     }
     // A margin keeps points on the far faces inside despite the rounding of the centre.
-    root.h = 0.5 * width * (1 + 1e-12);
+    root.h = 0.5 * width * (1 + 1e-12) * std::max<Scalar>(1, root_scale);
     const Scalar floor = 1e-300 + 1e-15 * scale;
     if (!(root.h > floor)) root.h = std::max(floor, 1.0);
   } else {

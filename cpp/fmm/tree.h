@@ -66,9 +66,12 @@ struct Tree {
   using Box = TreeBox<D>;
   // points: n sources and m targets as D coordinate arrays; sorted copies and permutations
   // live in the tree. `p2p_below`: W boxes with at most this many sources are summed directly
-  // (a multipole of order p costs ~p^(D-1) per target).
+  // (a multipole of order p costs ~p^(D-1) per target). `root_scale` >= 1: the root is the
+  // points' bounding cube enlarged by this factor about its centre (which moves every level's
+  // box width, so the leaves of evenly spread points can hold any count, not only n / 2^(D L)).
   Tree(const Scalar* const source_xyz[D], Index n, const Scalar* const target_xyz[D], Index m,
-       Index leaf_size, Scalar min_width, Index p2p_below, Interrupt& interrupt);
+       Index leaf_size, Scalar min_width, Index p2p_below, Interrupt& interrupt,
+       Scalar root_scale = 1);
 
   std::vector<Box> boxes;                  // boxes[0] is the root; children follow their level
   std::vector<std::vector<Index>> levels;  // box ids per level
@@ -80,7 +83,7 @@ struct Tree {
   bool adjacent(const Box& a, const Box& b) const;
 
  private:
-  void build(Index leaf_size, Scalar min_width, Interrupt& interrupt);
+  void build(Index leaf_size, Scalar min_width, Scalar root_scale, Interrupt& interrupt);
   void build_lists(Index p2p_below, Interrupt& interrupt);
 };
 

@@ -151,7 +151,10 @@ def laplace3d(sources, charges, targets=None, *, eps=1e-10, gradient=False, orde
     the gradient's relative error is of the same size).
     gradient: also return grad phi = -sum_j q_j (x - y_j) / |x - y_j|^3.
     order, leaf_size: override the expansion order p (1..40) and the leaf capacity, otherwise
-    chosen from eps (for benchmarks and studies; eps is then not guaranteed).
+    chosen from eps (for benchmarks and studies; eps is then not guaranteed). By default the
+    root box of evenly spread points is enlarged by a measured factor in [1, 2) so that the
+    leaves hold ~10 (p + 1) points (``last_info()["root_scale"]``); a given leaf_size keeps
+    the points' bounding cube.
     m2l: how the multipole-to-local translations run: "dense" (precomputed (p+1)^2 square
     matrices applied as batched matrix products, O(p^4) each), "rotation" (rotate to the z
     axis, translate along it, rotate back: O(p^3) each) or "auto" (by the order; the two agree
