@@ -113,7 +113,7 @@ void Solver::adjoint_explicit_d(const State& before, const State& after, Scalar 
   const unsigned char* fixed = m.fixed.data();
   Vec<D> g = Vec<D>::Zero();
   if (!m.gravity.empty()) g = Eigen::Map<const Vec<D>>(m.gravity.data());
-  passes_.run<2 * D>(
+  passes_.run<D, 2>(
       true,
       [&](Index begin, Index end, Scalar* out, bool owned) {
         const bool p = owned && with_params;

@@ -46,7 +46,7 @@ Solver::Solver(const Model& model, const Config& config)
   check_config(config_);
   element_vectors_.resize(model_.spring_count * assembly_.element_vector_size());
   f_.resize(assembly_.dof_count());
-  passes_.build(model_.springs.data(), model_.spring_count, model_.vertex_count);
+  passes_.build(model_.springs.data(), model_.spring_count, model_.vertex_count, model_.dim);
 }
 
 SpringPasses& Solver::passes() {
@@ -136,7 +136,7 @@ bool Solver::explicit_step_d(const State& st, Scalar dt, const Scalar* control, 
   // (spring_pass.h); explicit Euler moves x with v_n, symplectic Euler with v_{n+1}.
   const SpringInputs in = passes().inputs(x, v);
   std::atomic<bool> finite{true};  // every free vertex's v' and x' (no re-read)
-  passes_.run<D>(
+  passes_.run<D, 1>(
       false,
       [&](Index begin, Index end, Scalar* out, bool) { spring_forces<D>(in, begin, end, avx2_, out); },
       [](Index, Index) {},

@@ -46,30 +46,33 @@ namespace kinema::massspring {
 // Vertex and slot indices in the passes: 32 bits halve their memory traffic.
 using PassIndex = std::int32_t;
 
+// Indices are element offsets (a vertex i's row of an (n, D) array starts at D i; a ring slot p
+// at D p), so that a pass adds them to a base pointer as they are.
 struct SpringInputs {
-  const PassIndex* springs;  // (m, 2), pass order, ends as in the model
+  const PassIndex* springs;  // (m, 2), pass order, ends as in the model: D i
   const Scalar *x, *v;       // (n, D)
   const Scalar *k, *L, *c;   // (m,), pass order
-  // slot[2 s + a]: where the term of end a of spring s goes in the ring (spring_pass.h's header).
+  // slot[2 s + a]: where the term of end a of spring s goes in the ring (the header): D p.
   const PassIndex* slot;
   const PassIndex* order;  // pass position -> the model's spring index (parameter gradients)
+  Index plane;             // the adjoint's second plane (its gdv) starts this far after the first
 };
 
 // f_i of springs [begin, end) into out (ring of D-vectors), by slot.
 template <int D>
-inline void spring_forces_scalar(const SpringInputs& in, Index begin, Index end, Scalar* out) {
+inline void spring_forces_scalar(const SpringInputs in, Index begin, Index end, Scalar* out) {
   for (Index s = begin; s < end; ++s) {
     const Index a = in.springs[2 * s], b = in.springs[2 * s + 1];
     Scalar d[D], dv[D];
     for (int r = 0; r < D; ++r) {
-      d[r] = in.x[b * D + r] - in.x[a * D + r];
-      dv[r] = in.v[b * D + r] - in.v[a * D + r];
+      d[r] = in.x[b + r] - in.x[a + r];
+      dv[r] = in.v[b + r] - in.v[a + r];
     }
     Scalar l2 = d[0] * d[0];
     for (int r = 1; r < D; ++r) l2 += d[r] * d[r];
     const Scalar l = std::sqrt(l2);
-    Scalar* oa = out + Index{in.slot[2 * s]} * D;
-    Scalar* ob = out + Index{in.slot[2 * s + 1]} * D;
+    Scalar* oa = out + in.slot[2 * s];
+    Scalar* ob = out + in.slot[2 * s + 1];
     if (l == 0) {
       for (int r = 0; r < D; ++r) oa[r] = ob[r] = 0;
       continue;
@@ -87,26 +90,28 @@ inline void spring_forces_scalar(const SpringInputs& in, Index begin, Index end,
   }
 }
 
-// gd, gdv of springs [begin, end) into out (ring of 2D-vectors), by slot; the parameter terms
-// added to dk, dL, dc (model order) when dk is not null.
+// gd, gdv of springs [begin, end) into out's two planes (rings of D-vectors), by slot; the
+// parameter terms added to dk, dL, dc (model order) when dk is not null.
 template <int D>
-inline void spring_adjoint_scalar(const SpringInputs& in, const Scalar* lambda, Index begin,
+inline void spring_adjoint_scalar(const SpringInputs in, const Scalar* lambda, Index begin,
                                   Index end, Scalar* out, Scalar* dk, Scalar* dL, Scalar* dc) {
   for (Index s = begin; s < end; ++s) {
     const Index a = in.springs[2 * s], b = in.springs[2 * s + 1];
     Scalar d[D], dv[D], mu[D];
     for (int r = 0; r < D; ++r) {
-      d[r] = in.x[b * D + r] - in.x[a * D + r];
-      dv[r] = in.v[b * D + r] - in.v[a * D + r];
-      mu[r] = lambda[b * D + r] - lambda[a * D + r];
+      d[r] = in.x[b + r] - in.x[a + r];
+      dv[r] = in.v[b + r] - in.v[a + r];
+      mu[r] = lambda[b + r] - lambda[a + r];
     }
     Scalar l2 = d[0] * d[0];
     for (int r = 1; r < D; ++r) l2 += d[r] * d[r];
     const Scalar l = std::sqrt(l2);
-    Scalar* oa = out + Index{in.slot[2 * s]} * 2 * D;
-    Scalar* ob = out + Index{in.slot[2 * s + 1]} * 2 * D;
+    Scalar* oa = out + in.slot[2 * s];
+    Scalar* ob = out + in.slot[2 * s + 1];
+    Scalar* va = oa + in.plane;
+    Scalar* vb = ob + in.plane;
     if (l == 0) {
-      for (int r = 0; r < 2 * D; ++r) oa[r] = ob[r] = 0;
+      for (int r = 0; r < D; ++r) oa[r] = ob[r] = va[r] = vb[r] = 0;
       continue;
     }
     const Scalar k = in.k[s], L = in.L[s], c = in.c[s], inv = 1 / l;
@@ -123,9 +128,9 @@ inline void spring_adjoint_scalar(const SpringInputs& in, const Scalar* lambda, 
       const Scalar dvp = dv[r] - vn * n[r], mup = mu[r] - mn * n[r];
       // d = x_j - x_i: dL/dx_i = -gd, dL/dx_j = +gd (the same for v).
       ob[r] = -((k * n[r] + c * dvp * inv) * mn + F * mup * inv);
-      ob[D + r] = cm * n[r];
+      vb[r] = cm * n[r];
       oa[r] = -ob[r];
-      oa[D + r] = -ob[D + r];
+      va[r] = -vb[r];
     }
     if (dk) {
       const Index q = in.order[s];
@@ -165,14 +170,16 @@ void spring_adjoint(const SpringInputs& in, const Scalar* lambda, Index begin, I
 // (the header's scheme); one per Solver.
 class SpringPasses {
  public:
-  // springs (m, 2) over n vertices, in the model's order. Throws InvalidArgument when the counts
-  // exceed the passes' 32-bit indices.
-  void build(const Index* springs, Index spring_count, Index vertex_count);
+  // springs (m, 2) over n vertices of dimension dim, in the model's order. Throws
+  // InvalidArgument when the counts exceed the passes' 32-bit indices.
+  void build(const Index* springs, Index spring_count, Index vertex_count, int dim);
   // The model's per-spring parameters (model order) into pass order.
   void set_parameters(const Scalar* k, const Scalar* L, const Scalar* c);
 
   SpringInputs inputs(const Scalar* x, const Scalar* v) const {
-    return {ends_.data(), x, v, k_.data(), L_.data(), c_.data(), slot_.data(), order_.data()};
+    return {ends_.data(), x,           v,
+            k_.data(),    L_.data(),   c_.data(),
+            slot_.data(), order_.data(), ring_size_ * dim_};
   }
 
   // One parallel region: each thread, over its range [a, b) of vertices, calls before(a, b);
@@ -180,11 +187,12 @@ class SpringPasses {
   // springs(begin, end, ring, owned) for the pass-order springs [begin, end) (owned: false for
   // those evaluated only for the terms they bring into the range from below, whose parameter
   // terms belong to another range), block by block, and after(u, w, sums) once the springs of
-  // the block [u, w) are done, sums (w - u, W) holding each vertex's sum of its terms in slot
-  // order.
-  template <int W, class Springs, class Before, class After>
+  // the block [u, w) are done, sums (w - u, Planes D) holding each vertex's sum of its terms in
+  // slot order, plane by plane (a ring of Planes planes of D-vectors).
+  template <int D, int Planes, class Springs, class Before, class After>
   void run(bool barrier, Springs&& springs, Before&& before, After&& after) {
-    using Term = Eigen::Matrix<Scalar, W, 1>;
+    using Term = Eigen::Matrix<Scalar, D, 1>;
+    constexpr int W = Planes * D;
     const int threads = spring_count_ > kParallelSprings ? num_threads() : 1;
     if (static_cast<int>(rings_.size()) < threads) rings_.resize(static_cast<std::size_t>(threads));
 #pragma omp parallel num_threads(threads) if (threads > 1)
@@ -196,9 +204,10 @@ class SpringPasses {
 #pragma omp barrier
       }
       std::vector<Scalar>& ring = rings_[static_cast<std::size_t>(t)];
-      ring.resize(static_cast<std::size_t>((ring_size_ + kBlock) * W));
+      const Index plane = ring_size_ * D;
+      ring.resize(static_cast<std::size_t>(Planes * plane + kBlock * W));
       Scalar* out = ring.data();
-      Scalar* sums = out + ring_size_ * W;
+      Scalar* sums = out + Planes * plane;
       const Index* ptr = incidence_ptr_.data();
       const Index mask = ring_mask_;
       if (a < b) springs(first_[reach_[a]], first_[a], out, false);
@@ -206,9 +215,12 @@ class SpringPasses {
         const Index w = std::min(b, u + kBlock);
         springs(first_[u], first_[w], out, true);
         for (Index i = u; i < w; ++i) {
-          Term sum = Term::Zero();
-          for (Index p = ptr[i]; p < ptr[i + 1]; ++p) sum += Eigen::Map<const Term>(out + (p & mask) * W);
-          Eigen::Map<Term>(sums + (i - u) * W) = sum;
+          Term sum[Planes];
+          for (int k = 0; k < Planes; ++k) sum[k].setZero();
+          for (Index p = ptr[i]; p < ptr[i + 1]; ++p)
+            for (int k = 0; k < Planes; ++k)
+              sum[k] += Eigen::Map<const Term>(out + k * plane + (p & mask) * D);
+          for (int k = 0; k < Planes; ++k) Eigen::Map<Term>(sums + (i - u) * W + k * D) = sum[k];
         }
         after(u, w, static_cast<const Scalar*>(sums));
       }
@@ -231,6 +243,7 @@ class SpringPasses {
   }
 
   Index vertex_count_ = 0, spring_count_ = 0;
+  int dim_ = 0;
   std::vector<PassIndex> ends_, slot_, order_;
   std::vector<Scalar> k_, L_, c_;
   std::vector<Index> first_;          // (n + 1): pass-order springs whose lower end is below v
@@ -240,15 +253,17 @@ class SpringPasses {
   std::vector<std::vector<Scalar>> rings_;  // per thread
 };
 
-inline void SpringPasses::build(const Index* springs, Index spring_count, Index vertex_count) {
+inline void SpringPasses::build(const Index* springs, Index spring_count, Index vertex_count,
+                                int dim) {
   constexpr Index kMax = INT32_MAX;
-  if (vertex_count > kMax || 2 * spring_count > kMax)
+  if (dim * vertex_count > kMax || 2 * dim * spring_count > kMax)
     throw InvalidArgument("springs: the explicit passes index vertices and spring ends with 32 bits; "
                           "got " + std::to_string(vertex_count) + " vertices and " +
                           std::to_string(spring_count) + " springs");
   const Index n = vertex_count, m = spring_count;
   vertex_count_ = n;
   spring_count_ = m;
+  dim_ = dim;
   // Slots: each vertex's spring ends in the model's spring order (CSR).
   incidence_ptr_.assign(static_cast<std::size_t>(n + 1), 0);
   for (Index q = 0; q < 2 * m; ++q) ++incidence_ptr_[springs[q] + 1];
@@ -301,8 +316,8 @@ inline void SpringPasses::build(const Index* springs, Index spring_count, Index 
   for (Index p = 0; p < m; ++p) {
     const Index s = order_[p];
     for (int e = 0; e < 2; ++e) {
-      ends_[2 * p + e] = static_cast<PassIndex>(springs[2 * s + e]);
-      slot_[2 * p + e] = static_cast<PassIndex>(slot[2 * s + e] & ring_mask_);
+      ends_[2 * p + e] = static_cast<PassIndex>(dim * springs[2 * s + e]);
+      slot_[2 * p + e] = static_cast<PassIndex>(dim * (slot[2 * s + e] & ring_mask_));
     }
   }
 }

@@ -12,35 +12,35 @@
 
 namespace kinema::massspring::avx2 {
 
-// (x, y) of vertices i0..i3 of an (n, 2) array, as the vectors (x0..x3), (y0..y3).
+// (x, y) of the rows at element offsets i0..i3 of an (n, 2) array, as the vectors (x0..x3),
+// (y0..y3).
 KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE void load4(const Scalar* a, const PassIndex* i, __m256d& X,
                                                    __m256d& Y) {
-  const __m256d lo = _mm256_insertf128_pd(_mm256_castpd128_pd256(_mm_loadu_pd(a + 2 * Index{i[0]})),
-                                          _mm_loadu_pd(a + 2 * Index{i[2]}), 1);
-  const __m256d hi = _mm256_insertf128_pd(_mm256_castpd128_pd256(_mm_loadu_pd(a + 2 * Index{i[1]})),
-                                          _mm_loadu_pd(a + 2 * Index{i[3]}), 1);
+  const __m256d lo = _mm256_insertf128_pd(_mm256_castpd128_pd256(_mm_loadu_pd(a + i[0])),
+                                          _mm_loadu_pd(a + i[2]), 1);
+  const __m256d hi = _mm256_insertf128_pd(_mm256_castpd128_pd256(_mm_loadu_pd(a + i[1])),
+                                          _mm_loadu_pd(a + i[3]), 1);
   X = _mm256_unpacklo_pd(lo, hi);
   Y = _mm256_unpackhi_pd(lo, hi);
 }
 
-// Stores (X[q], Y[q]) at out + stride slot[2 q] (end a = 0) and its negative at
-// out + stride slot[2 q + 1] (end 1), q = 0..3 (the four springs' slots, spring_pass.h's header);
-// `flip` swaps the ends.
-KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE void store4(Scalar* out, Index stride, const PassIndex* slot,
-                                                    __m256d X, __m256d Y, bool flip) {
+// Stores (X[q], Y[q]) at out + slot[2 q] (end a = 0) and its negative at out + slot[2 q + 1]
+// (end 1), q = 0..3 (the four springs' slots, spring_pass.h's header); `flip` swaps the ends.
+KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE void store4(Scalar* out, const PassIndex* slot, __m256d X,
+                                                    __m256d Y, bool flip) {
   const __m256d sign = _mm256_set1_pd(-0.0);
   const __m256d lo = _mm256_unpacklo_pd(X, Y);  // (x0, y0, x2, y2)
   const __m256d hi = _mm256_unpackhi_pd(X, Y);  // (x1, y1, x3, y3)
   const __m256d nlo = _mm256_xor_pd(lo, sign), nhi = _mm256_xor_pd(hi, sign);
   const int a = flip ? 1 : 0, b = 1 - a;
-  _mm_storeu_pd(out + stride * slot[a], _mm256_castpd256_pd128(lo));
-  _mm_storeu_pd(out + stride * slot[2 + a], _mm256_castpd256_pd128(hi));
-  _mm_storeu_pd(out + stride * slot[4 + a], _mm256_extractf128_pd(lo, 1));
-  _mm_storeu_pd(out + stride * slot[6 + a], _mm256_extractf128_pd(hi, 1));
-  _mm_storeu_pd(out + stride * slot[b], _mm256_castpd256_pd128(nlo));
-  _mm_storeu_pd(out + stride * slot[2 + b], _mm256_castpd256_pd128(nhi));
-  _mm_storeu_pd(out + stride * slot[4 + b], _mm256_extractf128_pd(nlo, 1));
-  _mm_storeu_pd(out + stride * slot[6 + b], _mm256_extractf128_pd(nhi, 1));
+  _mm_storeu_pd(out + slot[a], _mm256_castpd256_pd128(lo));
+  _mm_storeu_pd(out + slot[2 + a], _mm256_castpd256_pd128(hi));
+  _mm_storeu_pd(out + slot[4 + a], _mm256_extractf128_pd(lo, 1));
+  _mm_storeu_pd(out + slot[6 + a], _mm256_extractf128_pd(hi, 1));
+  _mm_storeu_pd(out + slot[b], _mm256_castpd256_pd128(nlo));
+  _mm_storeu_pd(out + slot[2 + b], _mm256_castpd256_pd128(nhi));
+  _mm_storeu_pd(out + slot[4 + b], _mm256_extractf128_pd(nlo, 1));
+  _mm_storeu_pd(out + slot[6 + b], _mm256_extractf128_pd(nhi, 1));
 }
 
 // Springs per batch: the square roots and divisions of a batch run first, in a loop of their
@@ -89,7 +89,7 @@ KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE void geometry(const SpringInputs& in, In
   }
 }
 
-KINEMA_TARGET_AVX2 inline void spring_forces_2d(const SpringInputs& in, Index begin, Index end,
+KINEMA_TARGET_AVX2 inline void spring_forces_2d(const SpringInputs in, Index begin, Index end,
                                                 Scalar* out) {
   Index s = begin;
   const __m256d zero = _mm256_setzero_pd();
@@ -107,7 +107,7 @@ KINEMA_TARGET_AVX2 inline void spring_forces_2d(const SpringInputs& in, Index be
           _mm256_mul_pd(_mm256_loadu_pd(in.k + s), _mm256_sub_pd(l, _mm256_loadu_pd(in.L + s))),
           _mm256_mul_pd(_mm256_loadu_pd(in.c + s), vn));
       const __m256d none = _mm256_cmp_pd(l, zero, _CMP_EQ_OQ);
-      store4(out, 2, in.slot + 2 * s, _mm256_andnot_pd(none, _mm256_mul_pd(F, nx)),
+      store4(out, in.slot + 2 * s, _mm256_andnot_pd(none, _mm256_mul_pd(F, nx)),
              _mm256_andnot_pd(none, _mm256_mul_pd(F, ny)), false);
     }
   }
@@ -136,7 +136,7 @@ KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE void add4(Scalar* p, const PassIndex* or
   for (int q = 0; q < 4; ++q) p[order[q]] += lanes[q];
 }
 
-KINEMA_TARGET_AVX2 inline void spring_adjoint_2d(const SpringInputs& in, const Scalar* lambda,
+KINEMA_TARGET_AVX2 inline void spring_adjoint_2d(const SpringInputs in, const Scalar* lambda,
                                                  Index begin, Index end, Scalar* out, Scalar* dk,
                                                  Scalar* dL, Scalar* dc) {
   Index s = begin;
@@ -162,10 +162,10 @@ KINEMA_TARGET_AVX2 inline void spring_adjoint_2d(const SpringInputs& in, const S
       const __m256d cm = _mm256_mul_pd(_mm256_xor_pd(c, sign), mn);
       const __m256d none = _mm256_cmp_pd(l, zero, _CMP_EQ_OQ);
       // gd belongs to end j (+) and i (-), as the scalar loop's.
-      store4(out, 4, in.slot + 2 * s,
+      store4(out, in.slot + 2 * s,
              _mm256_andnot_pd(none, adjoint_gd(k, c, inv, F, mn, vn, nx, dvx, mux)),
              _mm256_andnot_pd(none, adjoint_gd(k, c, inv, F, mn, vn, ny, dvy, muy)), true);
-      store4(out + 2, 4, in.slot + 2 * s, _mm256_andnot_pd(none, _mm256_mul_pd(cm, nx)),
+      store4(out + in.plane, in.slot + 2 * s, _mm256_andnot_pd(none, _mm256_mul_pd(cm, nx)),
              _mm256_andnot_pd(none, _mm256_mul_pd(cm, ny)), true);
       if (dk) {
         add4(dk, in.order + s, none, _mm256_mul_pd(_mm256_xor_pd(lL, sign), mn));
