@@ -6,10 +6,10 @@
 // operations in the same order as the scalar loop (no FMA), so both give the same bits
 // (core/simd.h).
 //
-// Forward (kernels.h's spring_force): with d = x_j - x_i, l = |d|, n = d / l, dv = v_j - v_i,
+// Forward (kernels.h's spring_force): with d = x_j - x_i, l = |d|, n = d (1 / l) (one division
+// per spring), dv = v_j - v_i,
 //   f_i = (k (l - L) + c dv.n) n               -> out[slot(i) D + r], its negative at slot(j)
-// Adjoint of psi = -mu . f_i (mu = lambda_j - lambda_i, adjoint.cpp's header; n = d (1 / l) here,
-// one division per spring, within rounding of the forward's d / l):
+// Adjoint of psi = -mu . f_i (mu = lambda_j - lambda_i, adjoint.cpp's header):
 //   gd = -((k n + c dv_perp / l) (mu.n) + F mu_perp / l),  gdv = -c (mu.n) n
 //     (dL/dx_j, dL/dv_j)  -> out[slot(j) 2D + ..], their negatives at slot(i)
 //   and, when wanted, dk += -(l - L) mu.n, dL += k mu.n, dc += -(dv.n) mu.n.
