@@ -568,3 +568,21 @@ def test_threaded_explicit_gradients_match_finite_differences(dim, integrator):
                      float(np.sum(grads[k] * delta)), 1e-6 * np.abs(p0).max(), f"{integrator} {dim}D d/d{k}")
     finally:
         km.set_num_threads(before)
+
+
+def test_diverging_stored_run_stops_where_plain_steps_stop():
+    """A stored explicit run steps straight into the states it keeps; a step that diverges
+    raises DivergenceError naming v and leaves the system at the state before that step, as the
+    same steps taken one by one do."""
+    a, _ = big_cloth(2, seed=1, scramble=False)
+    b, _ = big_cloth(2, seed=1, scramble=False)
+    dt = 50 * a.explicit_dt_limit
+    with pytest.raises(km.DivergenceError, match="v: non-finite"):
+        for _ in range(200):
+            a.step(dt, "symplectic")
+    with pytest.raises(km.DivergenceError, match="v: non-finite"):
+        km.diff.rollout(b, 200, dt, wrt=("v",), integrator="symplectic")
+    assert a.state()["step"] == b.state()["step"] > 0
+    assert np.isfinite(b.x).all() and np.isfinite(b.v).all()
+    np.testing.assert_array_equal(b.x, a.x)
+    np.testing.assert_array_equal(b.v, a.v)
