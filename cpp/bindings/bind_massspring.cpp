@@ -345,10 +345,41 @@ void bind_massspring(py::module_& m) {
                to.clamped = from.clamped;
                return to;
              };
+             const auto restore = [&s](const State& last, const FactorRecord& factor) {
+               s.state.x = last.x;
+               s.state.v = last.v;
+               s.state.time = last.time;
+               s.state.step = last.step;
+               s.state.clamped = last.clamped;
+               s.state.factor = factor;
+             };
              {
                ReleaseGil release;
                t->states.reserve(static_cast<std::size_t>(steps) + 1);
                t->states.push_back(kept(s.state));
+               if (s.solver->config().integrator != Integrator::Implicit) {
+                 // Each step straight from the state before it into the next one kept (no
+                 // copies); the System's state takes the last (or, on a failed step, the one
+                 // before it).
+                 for (Index k = 0; k < steps; ++k) {
+                   interrupt.check();
+                   const Scalar* u = forces.empty() ? nullptr : forces.data() + k * n;
+                   State next;
+                   if (!spare.empty()) {
+                     next = std::move(spare.back());
+                     spare.pop_back();
+                   }
+                   try {
+                     s.solver->step(t->states.back(), next, dt, interrupt, u);
+                   } catch (...) {
+                     restore(t->states.back(), s.state.factor);
+                     throw;
+                   }
+                   t->states.push_back(std::move(next));
+                 }
+                 restore(t->states.back(), s.state.factor);
+                 return t;
+               }
                for (Index k = 0; k < steps; ++k) {
                  interrupt.check();
                  const Scalar* u = forces.empty() ? nullptr : forces.data() + k * n;
@@ -358,13 +389,7 @@ void bind_massspring(py::module_& m) {
                  try {
                    s.solver->step(s.state, dt, interrupt, u);
                  } catch (...) {
-                   const State& last = t->states.back();
-                   s.state.x = last.x;
-                   s.state.v = last.v;
-                   s.state.time = last.time;
-                   s.state.step = last.step;
-                   s.state.clamped = last.clamped;
-                   s.state.factor = factor;
+                   restore(t->states.back(), factor);
                    throw;
                  }
                  t->states.push_back(kept(s.state));

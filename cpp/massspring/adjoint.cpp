@@ -98,59 +98,57 @@ void Solver::adjoint_explicit_d(const State& before, const State& after, Scalar 
   const Scalar* v_new = after.v.data();
   const Scalar* v_old = before.v.data();
   // lambda = dL/df = h M^-1 dL/dv'_total; dL/dv = dL/dv'_total (+ h dL/dx' for explicit Euler).
-  std::vector<Scalar>& lambda = scratch(adj_lambda_, n);
+  Scalar* lambda = scratch(adj_lambda_, n).data();
   // dL/dx' is read and overwritten vertex by vertex (each reads only its own).
-  const std::vector<Scalar>& gx = adjoint.x;
-  std::vector<Scalar>& gv = adjoint.v;
-  parallel_for(m.vertex_count, [&](Index i) {
-    for (int r = 0; r < D; ++r) {
-      const Index q = i * D + r;
-      if (m.fixed[i]) {
-        gv[q] = 0;
-        lambda[q] = 0;
-        continue;
-      }
-      const Scalar vbar = gv[q] + (symplectic ? dt * gx[q] : 0);
-      lambda[q] = dt * vbar / m.mass[i];
-      gv[q] = vbar + (symplectic ? 0 : dt * gx[q]);
-    }
-  });
+  Scalar* gx = adjoint.x.data();
+  Scalar* gv = adjoint.v.data();
   const bool with_params = wanted(params);
-  if (with_params)
-    parallel_for(m.vertex_count, [&](Index i) {
-      Scalar s = 0;
-      for (int r = 0; r < D; ++r) {
-        const Index q = i * D + r;
-        const Scalar g = m.gravity.empty() ? 0 : m.gravity[r];
-        s += lambda[q] * (g - (v_new[q] - v_old[q]) / dt);
-      }
-      if (!m.fixed[i]) params.mass[i] += s;
-    });
-  if (adjoint_control) std::copy(lambda.begin(), lambda.end(), adjoint_control);
-  // psi = -mu . f_i per spring, in d (-> x), dv (-> v) and the parameters, each spring once
-  // (spring_pass.h), signed into its ends' slots; then each vertex sums its slots in sequence
-  // (its springs in spring order, as ElementAssembly's gather).
-  const Scalar* x = before.x.data();
-  const Scalar* v = before.v.data();
-  std::vector<Scalar>& terms = scratch(adj_ex_, m.spring_count * 4 * D);  // (2 m, 2 D): by slot
-  spring_adjoint<D>({m.springs.data(), x, v, m.stiffness.data(), m.rest_length.data(), m.damping.data(),
-                     slot_.data()},
-                    lambda.data(), m.spring_count, avx2_, terms.data(),
-                    with_params ? params.stiffness.data() : nullptr, params.rest_length.data(),
-                    params.damping.data());
-  const Scalar* t = terms.data();
-  parallel_for(m.vertex_count, [&](Index vi) {
-    Vec<D> sx = Vec<D>::Zero(), sv = Vec<D>::Zero();
-    for (Index p = incidence_ptr_[vi]; p < incidence_ptr_[vi + 1]; ++p) {
-      sx += Eigen::Map<const Vec<D>>(t + p * 2 * D);
-      sv += Eigen::Map<const Vec<D>>(t + p * 2 * D + D);
-    }
-    for (int r = 0; r < D; ++r) {
-      adjoint.x[vi * D + r] += sx(r);
-      // A fixed vertex's velocity still damps its springs (its own v' is 0 whatever v is).
-      gv[vi * D + r] += sv(r);
-    }
-  });
+  // One parallel region (spring_pass.h): each thread first makes lambda, dL/dv's own term and
+  // the mass gradient of its vertices; after a barrier (the springs read their ends' lambda),
+  // psi = -mu . f_i per spring in d (-> x), dv (-> v) and the parameters, each spring once,
+  // signed into its ends' slots, and each vertex's sum of its slots in sequence (its springs in
+  // spring order, as ElementAssembly's gather).
+  const SpringInputs in = passes().inputs(before.x.data(), before.v.data());
+  const Scalar* mass = m.mass.data();
+  const unsigned char* fixed = m.fixed.data();
+  Vec<D> g = Vec<D>::Zero();
+  if (!m.gravity.empty()) g = Eigen::Map<const Vec<D>>(m.gravity.data());
+  passes_.run<D, 2>(
+      true,
+      [&](Index begin, Index end, Scalar* out, bool owned) {
+        const bool p = owned && with_params;
+        spring_adjoint<D>(in, lambda, begin, end, avx2_, out, p ? params.stiffness.data() : nullptr,
+                          params.rest_length.data(), params.damping.data());
+      },
+      [&, lambda, gx, gv, mass, fixed, v_new, v_old, g, adjoint_control](Index a, Index b) {
+        for (Index i = a; i < b; ++i) {
+          Eigen::Map<Vec<D>> li(lambda + i * D), gvi(gv + i * D);
+          if (fixed[i]) {
+            gvi.setZero();
+            li.setZero();
+          } else {
+            const Eigen::Map<const Vec<D>> gxi(gx + i * D);
+            const Vec<D> vbar = symplectic ? Vec<D>(gvi + dt * gxi) : Vec<D>(gvi);
+            li = dt * vbar / mass[i];
+            gvi = symplectic ? vbar : Vec<D>(vbar + dt * gxi);
+            if (with_params) {
+              const Vec<D> dv = (Eigen::Map<const Vec<D>>(v_new + i * D) -
+                                 Eigen::Map<const Vec<D>>(v_old + i * D)) / dt;
+              Scalar s = li(0) * (g(0) - dv(0));
+              for (int r = 1; r < D; ++r) s += li(r) * (g(r) - dv(r));
+              params.mass[i] += s;
+            }
+          }
+          if (adjoint_control) Eigen::Map<Vec<D>>(adjoint_control + i * D) = li;
+        }
+      },
+      [gx, gv](Index u, Index w, const Scalar* sum) {
+        for (Index i = u; i < w; ++i) {
+          Eigen::Map<Vec<D>>(gx + i * D) += Eigen::Map<const Vec<D>>(sum + (i - u) * 2 * D);
+          // A fixed vertex's velocity still damps its springs (its own v' is 0 whatever v is).
+          Eigen::Map<Vec<D>>(gv + i * D) += Eigen::Map<const Vec<D>>(sum + (i - u) * 2 * D + D);
+        }
+      });
 }
 
 template <int D>

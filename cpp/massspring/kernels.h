@@ -37,7 +37,7 @@ template <int D>
 Vec<D> spring_force(const Vec<D>& d, const Vec<D>& dv, Scalar k, Scalar L, Scalar c) {
   const Scalar l = d.norm();
   if (l == 0) return Vec<D>::Zero();  // direction undefined: no elastic or damping force
-  const Vec<D> n = d / l;
+  const Vec<D> n = d * (1 / l);  // one division (spring_pass.h computes n the same way)
   return (k * (l - L) + c * dv.dot(n)) * n;
 }
 

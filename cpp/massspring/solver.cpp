@@ -46,14 +46,15 @@ Solver::Solver(const Model& model, const Config& config)
   check_config(config_);
   element_vectors_.resize(model_.spring_count * assembly_.element_vector_size());
   f_.resize(assembly_.dof_count());
-  incidence_ptr_.assign(model_.vertex_count + 1, 0);
-  for (Index q = 0; q < 2 * model_.spring_count; ++q) ++incidence_ptr_[model_.springs[q] + 1];
-  for (Index i = 0; i < model_.vertex_count; ++i) incidence_ptr_[i + 1] += incidence_ptr_[i];
-  incidence_.resize(2 * model_.spring_count);
-  std::vector<Index> next(incidence_ptr_.begin(), incidence_ptr_.end() - 1);
-  for (Index q = 0; q < 2 * model_.spring_count; ++q) incidence_[next[model_.springs[q]]++] = q;
-  slot_.resize(incidence_.size());
-  for (std::size_t p = 0; p < incidence_.size(); ++p) slot_[incidence_[p]] = static_cast<Index>(p);
+  passes_.build(model_.springs.data(), model_.spring_count, model_.vertex_count, model_.dim);
+}
+
+SpringPasses& Solver::passes() {
+  if (passes_stale_) {
+    passes_.set_parameters(model_.stiffness.data(), model_.rest_length.data(), model_.damping.data());
+    passes_stale_ = false;
+  }
+  return passes_;
 }
 
 State Solver::initial_state(const Scalar* x0) const {
@@ -119,42 +120,47 @@ void Solver::forces_d(const State& st, const Scalar* control, bool with_damping,
 }
 
 template <int D>
-bool Solver::explicit_step_d(const State& st, Scalar dt, const Scalar* control) {
+bool Solver::explicit_step_d(const State& st, Scalar dt, const Scalar* control, Scalar* x_out,
+                             Scalar* v_out) {
   const Model& m = model_;
   const Scalar* x = st.x.data();
   const Scalar* v = st.v.data();
+  const Scalar* mass = m.mass.data();
+  const unsigned char* fixed = m.fixed.data();
   const bool symplectic = config_.integrator == Integrator::Symplectic;
+  Vec<D> g = Vec<D>::Zero();
+  if (!m.gravity.empty()) g = Eigen::Map<const Vec<D>>(m.gravity.data());
   const bool gravity = !m.gravity.empty();
-  x_new_.resize(st.x.size());
-  v_new_.resize(st.v.size());
-  // f(x_n, v_n): each spring's force once (spring_pass.h), then per vertex the sum of its
-  // springs' in spring order, read in sequence (as forces_d + gather, term for term); explicit Euler moves x
-  // with v_n, symplectic Euler with v_{n+1}.
-  spring_buffer_.resize(static_cast<std::size_t>(m.spring_count * 2 * D));  // (2 m, D): by slot
-  std::atomic<bool> finite{true};  // every free vertex's v' and x' (one pass, no re-read)
-  const Scalar* fs = spring_buffer_.data();
-  spring_forces<D>({m.springs.data(), x, v, m.stiffness.data(), m.rest_length.data(), m.damping.data(),
-                    slot_.data()},
-                   m.spring_count, avx2_, spring_buffer_.data());
-  parallel_for(m.vertex_count, [&](Index i) {
-    Vec<D> f = Vec<D>::Zero();
-    for (Index p = incidence_ptr_[i]; p < incidence_ptr_[i + 1]; ++p) f += vertex<D>(fs, p);
-    for (int r = 0; r < D; ++r) {
-      const Index q = i * D + r;
-      if (m.fixed[i]) {
-        x_new_[q] = x[q];
-        v_new_[q] = 0;
-        continue;
-      }
-      Scalar fq = f(r);
-      if (gravity) fq += m.mass[i] * m.gravity[r];
-      if (control) fq += control[q];
-      const Scalar vq = v[q] + dt * fq / m.mass[i];
-      x_new_[q] = x[q] + dt * (symplectic ? vq : v[q]);
-      v_new_[q] = vq;
-      if (!(std::isfinite(vq) && std::isfinite(x_new_[q]))) finite = false;
-    }
-  });
+  // f(x_n, v_n): each spring's force once, then per vertex the sum of its springs' in spring
+  // order (as forces_d + gather, term for term) and the update of its x and v, in one pass
+  // (spring_pass.h); explicit Euler moves x with v_n, symplectic Euler with v_{n+1}.
+  const SpringInputs in = passes().inputs(x, v);
+  std::atomic<bool> finite{true};  // every free vertex's v' and x' (no re-read)
+  passes_.run<D, 1>(
+      false,
+      [&](Index begin, Index end, Scalar* out, bool) { spring_forces<D>(in, begin, end, avx2_, out); },
+      [](Index, Index) {},
+      [&, x, v, mass, fixed, x_out, v_out, control, g](Index u, Index w, const Scalar* f) {
+        // x' - x' is 0 for a finite x', NaN otherwise: one test per block.
+        Vec<D> check = Vec<D>::Zero();
+        for (Index i = u; i < w; ++i) {
+          const Eigen::Map<const Vec<D>> xi(x + i * D), vi(v + i * D);
+          Eigen::Map<Vec<D>> xo(x_out + i * D), vo(v_out + i * D);
+          if (fixed[i]) {
+            xo = xi;
+            vo.setZero();
+            continue;
+          }
+          Vec<D> fi = Eigen::Map<const Vec<D>>(f + (i - u) * D);
+          if (gravity) fi += mass[i] * g;
+          if (control) fi += Eigen::Map<const Vec<D>>(control + i * D);
+          const Vec<D> vq = vi + dt * fi / mass[i];
+          xo = xi + dt * (symplectic ? vq : Vec<D>(vi));
+          vo = vq;
+          check += (vq - vq) + (xo - xo);
+        }
+        if (!check.allFinite()) finite.store(false, std::memory_order_relaxed);
+      });
   return finite;
 }
 
@@ -272,12 +278,9 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt, const Scal
   const int d = m.dim;
   const Index n = assembly_.dof_count();
   if (config_.integrator != Integrator::Implicit) {
-    const bool finite = d == 2 ? explicit_step_d<2>(state, dt, control)
-                               : explicit_step_d<3>(state, dt, control);
-    if (!finite) {  // the message names the first non-finite quantity
-      check_finite(v_new_, "v", state.step);
-      check_finite(x_new_, "x", state.step);
-    }
+    x_new_.resize(state.x.size());
+    v_new_.resize(state.v.size());
+    explicit_step(state, dt, control, x_new_, v_new_);
     accept_step(state, x_new_, v_new_, dt);
     state.clamped = false;
     stats.time = state.time;
@@ -366,6 +369,40 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt, const Scal
   stats.dt = dt;
   stats.seconds = clock.seconds();
   return stats;
+}
+
+StepStats Solver::step(const State& before, State& after, Scalar dt, Interrupt& interrupt,
+                       const Scalar* control) {
+  if (config_.integrator == Integrator::Implicit) {
+    after = before;
+    return step(after, dt, interrupt, control);
+  }
+  check_dt(dt);
+  check_config(config_);
+  Stopwatch clock;
+  after.x.resize(before.x.size());
+  after.v.resize(before.v.size());
+  explicit_step(before, dt, control, after.x, after.v);
+  after.time = before.time + dt;  // accept_step's arithmetic
+  after.step = before.step + 1;
+  after.clamped = false;
+  after.factor = before.factor;
+  StepStats stats;
+  stats.time = after.time;
+  stats.dt = dt;
+  stats.seconds = clock.seconds();
+  return stats;
+}
+
+void Solver::explicit_step(const State& before, Scalar dt, const Scalar* control,
+                           std::vector<Scalar>& x_out, std::vector<Scalar>& v_out) {
+  const bool finite = model_.dim == 2
+                          ? explicit_step_d<2>(before, dt, control, x_out.data(), v_out.data())
+                          : explicit_step_d<3>(before, dt, control, x_out.data(), v_out.data());
+  if (!finite) {  // the message names the first non-finite quantity
+    check_finite(v_out, "v", before.step);
+    check_finite(x_out, "x", before.step);
+  }
 }
 
 // adjoint.cpp evaluates the same forces.

@@ -17,6 +17,7 @@
 #include "core/simd.h"
 #include "core/step_stats.h"
 #include "linalg/spd_solver.h"
+#include "massspring/spring_pass.h"
 #include "mesh/element_assembly.h"
 
 namespace kinema::massspring {
@@ -105,6 +106,10 @@ class Solver {
 
   // control: n d forces [N] added where gravity is (fixed vertices ignore them), or null.
   StepStats step(State& state, Scalar dt, Interrupt& interrupt, const Scalar* control = nullptr);
+  // The same step from `before` into `after` (resized; its buffers reused, no copy of the new
+  // x and v): what a stored run takes. `after` must not be `before`.
+  StepStats step(const State& before, State& after, Scalar dt, Interrupt& interrupt,
+                 const Scalar* control = nullptr);
 
   // Vector-Jacobian product of step(before, dt, control) -> after. On entry adjoint.x, adjoint.v
   // hold dL/dx', dL/dv'; on exit dL/dx, dL/dv of `before`. dL/d(parameters) of this step are
@@ -125,7 +130,10 @@ class Solver {
                    Params& adjoint_params, Scalar* adjoint_controls, Interrupt& interrupt);
 
   // The model's parameters were changed in place: cached matrices are stale.
-  void model_changed() { factor_known_ = false; }
+  void model_changed() {
+    factor_known_ = false;
+    passes_stale_ = true;
+  }
 
   Scalar kinetic_energy(const State& s) const;
   Scalar spring_energy(const State& s) const;
@@ -137,9 +145,16 @@ class Solver {
 
  private:
   template <int D> void forces_d(const State& s, const Scalar* control, bool with_damping, Scalar* f);
-  // The explicit and symplectic steps into x_new_, v_new_, one pass over the vertices.
-  // False when a v' or x' is not finite.
-  template <int D> bool explicit_step_d(const State& s, Scalar dt, const Scalar* control);
+  // The explicit and symplectic steps into x_out, v_out (not s's), in one pass over the springs
+  // and vertices (spring_pass.h). False when a v' or x' is not finite.
+  template <int D> bool explicit_step_d(const State& s, Scalar dt, const Scalar* control,
+                                        Scalar* x_out, Scalar* v_out);
+  // explicit_step_d into x_out, v_out (sized); throws DivergenceError naming the first
+  // non-finite quantity.
+  void explicit_step(const State& before, Scalar dt, const Scalar* control,
+                     std::vector<Scalar>& x_out, std::vector<Scalar>& v_out);
+  // The spring passes with the model's current parameters.
+  SpringPasses& passes();
   template <int D> void assemble_d(const Scalar* x, Scalar dt, Scalar beta, bool clamp);
   void assemble(const Scalar* x, Scalar dt, Scalar beta, bool clamp);
   CsrView matrix() const;
@@ -156,11 +171,11 @@ class Solver {
   Config config_;
   ElementAssembly assembly_;
   std::vector<Scalar> element_vectors_, element_matrices_, values_, f_, rhs_, x_new_, v_new_;
-  // The springs at each vertex, 2 s + a (a: the vertex's slot in spring s), in spring order:
-  // the order ElementAssembly::gather_vector sums a vertex's contributions in, so a vertex
-  // summing its springs' terms itself (no per-spring buffer, one pass) gives the same bits.
-  std::vector<Index> incidence_ptr_, incidence_;
-  std::vector<Index> slot_;  // slot_[incidence_[p]] = p (spring_pass.h)
+  // The explicit kinds' spring passes: each vertex sums its springs' terms in the model's
+  // spring order, the order ElementAssembly::gather_vector sums a vertex's contributions in, so
+  // the passes give the bits of forces_d + gather.
+  SpringPasses passes_;
+  bool passes_stale_ = true;  // the model's parameters changed since passes_ copied them
   SpdSolver linear_;
   SpdSolver adjoint_linear_;  // its own factor, so a backward pass leaves the forward's alone
   // The step index of the last adjoint: a backward pass visits steps in decreasing order, so
@@ -169,7 +184,6 @@ class Solver {
   // checkpointed, chained or repeated).
   Index adjoint_last_step_ = -1;
   std::vector<Scalar> adj_lambda_, adj_gx_, adj_rhs_, adj_ex_, adj_sum_;  // step_adjoint's
-  std::vector<Scalar> spring_buffer_;  // the explicit step's per-spring forces
   bool avx2_ = use_avx2();             // the 2D spring passes' AVX2 version (core/simd.h)
   FactorRecord factor_;       // what linear_'s lagged factor is (valid while factor_known_)
   bool factor_known_ = true;

@@ -1,63 +1,85 @@
 // The per-spring passes of the explicit and symplectic steps and of their adjoints, each spring
 // evaluated once; its terms go, signed, to its two ends' slots of the vertices' incidence lists,
-// and a vertex then sums its slots in sequence (its springs in spring order, as
-// ElementAssembly::gather_vector does). The 2D passes have an AVX2 version that evaluates four
-// springs per instruction; it performs the same IEEE operations in the same order as the scalar
-// loop (no FMA), so both give the same bits (core/simd.h).
+// and a vertex then sums its slots in sequence (its springs in the model's spring order, as
+// ElementAssembly::gather_vector does). The 2D passes have an AVX2 version
+// (spring_pass_avx2.h) that evaluates four springs per instruction; it performs the same IEEE
+// operations in the same order as the scalar loop (no FMA), so both give the same bits
+// (core/simd.h).
 //
-// Forward (kernels.h's spring_force): with d = x_j - x_i, l = |d|, n = d / l, dv = v_j - v_i,
+// Forward (kernels.h's spring_force): with d = x_j - x_i, l = |d|, n = d (1 / l) (one division
+// per spring), dv = v_j - v_i,
 //   f_i = (k (l - L) + c dv.n) n               -> out[slot(i) D + r], its negative at slot(j)
-// Adjoint of psi = -mu . f_i (mu = lambda_j - lambda_i, adjoint.cpp's header; n = d (1 / l) here,
-// one division per spring, within rounding of the forward's d / l):
+// Adjoint of psi = -mu . f_i (mu = lambda_j - lambda_i, adjoint.cpp's header):
 //   gd = -((k n + c dv_perp / l) (mu.n) + F mu_perp / l),  gdv = -c (mu.n) n
 //     (dL/dx_j, dL/dv_j)  -> out[slot(j) 2D + ..], their negatives at slot(i)
 //   and, when wanted, dk += -(l - L) mu.n, dL += k mu.n, dc += -(dv.n) mu.n.
 // A zero-length spring has no direction: its terms are 0.
+//
+// Why the passes stay in cache (SpringPasses): the springs run in "pass order", sorted by their
+// lower end, in blocks of vertices; once the springs whose lower end lies in a block are done,
+// every term of the block's vertices is written (a spring reaches a vertex only from a lower end
+// at or below it), so the block's sums follow at once, while their terms are in L1/L2. The terms
+// then live only from the spring's block to its higher end's block: a ring of slots as long as
+// that window (a few hundred vertices' worth on a grid-numbered cloth; the whole list when the
+// numbering scatters neighbours) replaces a buffer of every slot. Each thread takes a range of
+// vertices with its own ring and first evaluates the springs from below its range that reach into
+// it (evaluated twice, once per side: the same bits): no thread writes what another reads, and
+// the whole step is one parallel region. A vertex's sum is the same whatever the blocks and
+// threads, so results are bitwise independent of the thread count.
 #pragma once
 
+#include <omp.h>
+
+#include <Eigen/Core>
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
+#include <vector>
 
+#include "core/errors.h"
+#include "core/parallel.h"
 #include "core/simd.h"
 #include "core/types.h"
 
-#if KINEMA_HAVE_AVX2_CLONES
-#include <immintrin.h>
-#endif
-
 namespace kinema::massspring {
 
+// Vertex and slot indices in the passes: 32 bits halve their memory traffic.
+using PassIndex = std::int32_t;
+
+// Indices are element offsets (a vertex i's row of an (n, D) array starts at D i; a ring slot p
+// at D p), so that a pass adds them to a base pointer as they are.
 struct SpringInputs {
-  const Index* springs;  // (m, 2)
-  const Scalar *x, *v;   // (n, D)
-  const Scalar *k, *L, *c;
-  // slot[2 s + a]: where end a of spring s is in the vertices' incidence lists (CSR order, each
-  // vertex's springs in spring order). A pass writes each end's term there, signed, so that a
-  // vertex's sum reads its terms in sequence.
-  const Index* slot;
+  const PassIndex* springs;  // (m, 2), pass order, ends as in the model: D i
+  const Scalar *x, *v;       // (n, D)
+  const Scalar *k, *L, *c;   // (m,), pass order
+  // slot[2 s + a]: where the term of end a of spring s goes in the ring (the header): D p.
+  const PassIndex* slot;
+  const PassIndex* order;  // pass position -> the model's spring index (parameter gradients)
+  Index plane;             // the adjoint's second plane (its gdv) starts this far after the first
 };
 
-// f_i of springs [begin, end) into out (2 m, D), by slot.
+// f_i of springs [begin, end) into out (ring of D-vectors), by slot.
 template <int D>
-inline void spring_forces_scalar(const SpringInputs& in, Index begin, Index end, Scalar* out) {
+inline void spring_forces_scalar(const SpringInputs in, Index begin, Index end, Scalar* out) {
   for (Index s = begin; s < end; ++s) {
     const Index a = in.springs[2 * s], b = in.springs[2 * s + 1];
     Scalar d[D], dv[D];
     for (int r = 0; r < D; ++r) {
-      d[r] = in.x[b * D + r] - in.x[a * D + r];
-      dv[r] = in.v[b * D + r] - in.v[a * D + r];
+      d[r] = in.x[b + r] - in.x[a + r];
+      dv[r] = in.v[b + r] - in.v[a + r];
     }
     Scalar l2 = d[0] * d[0];
     for (int r = 1; r < D; ++r) l2 += d[r] * d[r];
     const Scalar l = std::sqrt(l2);
-    Scalar* oa = out + in.slot[2 * s] * D;
-    Scalar* ob = out + in.slot[2 * s + 1] * D;
+    Scalar* oa = out + in.slot[2 * s];
+    Scalar* ob = out + in.slot[2 * s + 1];
     if (l == 0) {
       for (int r = 0; r < D; ++r) oa[r] = ob[r] = 0;
       continue;
     }
+    const Scalar inv = 1 / l;
     Scalar n[D];
-    for (int r = 0; r < D; ++r) n[r] = d[r] / l;
+    for (int r = 0; r < D; ++r) n[r] = d[r] * inv;
     Scalar vn = dv[0] * n[0];
     for (int r = 1; r < D; ++r) vn += dv[r] * n[r];
     const Scalar F = in.k[s] * (l - in.L[s]) + in.c[s] * vn;
@@ -68,26 +90,28 @@ inline void spring_forces_scalar(const SpringInputs& in, Index begin, Index end,
   }
 }
 
-// gd, gdv of springs [begin, end) into out (2 m, 2 D), by slot; the parameter terms added to dk, dL, dc
-// when dk is not null.
+// gd, gdv of springs [begin, end) into out's two planes (rings of D-vectors), by slot; the
+// parameter terms added to dk, dL, dc (model order) when dk is not null.
 template <int D>
-inline void spring_adjoint_scalar(const SpringInputs& in, const Scalar* lambda, Index begin,
+inline void spring_adjoint_scalar(const SpringInputs in, const Scalar* lambda, Index begin,
                                   Index end, Scalar* out, Scalar* dk, Scalar* dL, Scalar* dc) {
   for (Index s = begin; s < end; ++s) {
     const Index a = in.springs[2 * s], b = in.springs[2 * s + 1];
     Scalar d[D], dv[D], mu[D];
     for (int r = 0; r < D; ++r) {
-      d[r] = in.x[b * D + r] - in.x[a * D + r];
-      dv[r] = in.v[b * D + r] - in.v[a * D + r];
-      mu[r] = lambda[b * D + r] - lambda[a * D + r];
+      d[r] = in.x[b + r] - in.x[a + r];
+      dv[r] = in.v[b + r] - in.v[a + r];
+      mu[r] = lambda[b + r] - lambda[a + r];
     }
     Scalar l2 = d[0] * d[0];
     for (int r = 1; r < D; ++r) l2 += d[r] * d[r];
     const Scalar l = std::sqrt(l2);
-    Scalar* oa = out + in.slot[2 * s] * 2 * D;
-    Scalar* ob = out + in.slot[2 * s + 1] * 2 * D;
+    Scalar* oa = out + in.slot[2 * s];
+    Scalar* ob = out + in.slot[2 * s + 1];
+    Scalar* va = oa + in.plane;
+    Scalar* vb = ob + in.plane;
     if (l == 0) {
-      for (int r = 0; r < 2 * D; ++r) oa[r] = ob[r] = 0;
+      for (int r = 0; r < D; ++r) oa[r] = ob[r] = va[r] = vb[r] = 0;
       continue;
     }
     const Scalar k = in.k[s], L = in.L[s], c = in.c[s], inv = 1 / l;
@@ -104,185 +128,210 @@ inline void spring_adjoint_scalar(const SpringInputs& in, const Scalar* lambda, 
       const Scalar dvp = dv[r] - vn * n[r], mup = mu[r] - mn * n[r];
       // d = x_j - x_i: dL/dx_i = -gd, dL/dx_j = +gd (the same for v).
       ob[r] = -((k * n[r] + c * dvp * inv) * mn + F * mup * inv);
-      ob[D + r] = cm * n[r];
+      vb[r] = cm * n[r];
       oa[r] = -ob[r];
-      oa[D + r] = -ob[D + r];
+      va[r] = -vb[r];
     }
     if (dk) {
-      dk[s] += -(l - L) * mn;
-      dL[s] += k * mn;
-      dc[s] += -vn * mn;
+      const Index q = in.order[s];
+      dk[q] += -(l - L) * mn;
+      dL[q] += k * mn;
+      dc[q] += -vn * mn;
     }
   }
 }
 
+}  // namespace kinema::massspring
+
+#include "massspring/spring_pass_avx2.h"
+
+namespace kinema::massspring {
+
+template <int D>
+void spring_forces(const SpringInputs& in, Index begin, Index end, bool avx2, Scalar* out) {
 #if KINEMA_HAVE_AVX2_CLONES
-namespace avx2 {
-
-// (x, y) of vertices i0..i3 of an (n, 2) array, as the vectors (x0..x3), (y0..y3).
-KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE void load4(const Scalar* a, const Index* i, __m256d& X,
-                                                   __m256d& Y) {
-  const __m256d lo = _mm256_insertf128_pd(_mm256_castpd128_pd256(_mm_loadu_pd(a + 2 * i[0])),
-                                          _mm_loadu_pd(a + 2 * i[2]), 1);
-  const __m256d hi = _mm256_insertf128_pd(_mm256_castpd128_pd256(_mm_loadu_pd(a + 2 * i[1])),
-                                          _mm_loadu_pd(a + 2 * i[3]), 1);
-  X = _mm256_unpacklo_pd(lo, hi);
-  Y = _mm256_unpackhi_pd(lo, hi);
+  if (D == 2 && avx2) return avx2::spring_forces_2d(in, begin, end, out);
+#endif
+  (void)avx2;
+  spring_forces_scalar<D>(in, begin, end, out);
 }
 
-// Stores (X[q], Y[q]) at out + stride slot[2 q] (end a = 0) and its negative at
-// out + stride slot[2 q + 1] (end 1), q = 0..3 (the four springs' slots, spring_pass.h's header);
-// `flip` swaps the ends.
-KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE void store4(Scalar* out, Index stride, const Index* slot,
-                                                    __m256d X, __m256d Y, bool flip) {
-  const __m256d sign = _mm256_set1_pd(-0.0);
-  const __m256d lo = _mm256_unpacklo_pd(X, Y);  // (x0, y0, x2, y2)
-  const __m256d hi = _mm256_unpackhi_pd(X, Y);  // (x1, y1, x3, y3)
-  const __m256d nlo = _mm256_xor_pd(lo, sign), nhi = _mm256_xor_pd(hi, sign);
-  const int a = flip ? 1 : 0, b = 1 - a;
-  _mm_storeu_pd(out + stride * slot[a], _mm256_castpd256_pd128(lo));
-  _mm_storeu_pd(out + stride * slot[2 + a], _mm256_castpd256_pd128(hi));
-  _mm_storeu_pd(out + stride * slot[4 + a], _mm256_extractf128_pd(lo, 1));
-  _mm_storeu_pd(out + stride * slot[6 + a], _mm256_extractf128_pd(hi, 1));
-  _mm_storeu_pd(out + stride * slot[b], _mm256_castpd256_pd128(nlo));
-  _mm_storeu_pd(out + stride * slot[2 + b], _mm256_castpd256_pd128(nhi));
-  _mm_storeu_pd(out + stride * slot[4 + b], _mm256_extractf128_pd(nlo, 1));
-  _mm_storeu_pd(out + stride * slot[6 + b], _mm256_extractf128_pd(nhi, 1));
+template <int D>
+void spring_adjoint(const SpringInputs& in, const Scalar* lambda, Index begin, Index end, bool avx2,
+                    Scalar* out, Scalar* dk, Scalar* dL, Scalar* dc) {
+#if KINEMA_HAVE_AVX2_CLONES
+  if (D == 2 && avx2) return avx2::spring_adjoint_2d(in, lambda, begin, end, out, dk, dL, dc);
+#endif
+  (void)avx2;
+  spring_adjoint_scalar<D>(in, lambda, begin, end, out, dk, dL, dc);
 }
 
-struct Four {
-  Index a[4], b[4];
+// The springs in pass order, their ends' ring slots and the vertex ranges of the threads
+// (the header's scheme); one per Solver.
+class SpringPasses {
+ public:
+  // springs (m, 2) over n vertices of dimension dim, in the model's order. Throws
+  // InvalidArgument when the counts exceed the passes' 32-bit indices.
+  void build(const Index* springs, Index spring_count, Index vertex_count, int dim);
+  // The model's per-spring parameters (model order) into pass order.
+  void set_parameters(const Scalar* k, const Scalar* L, const Scalar* c);
+
+  SpringInputs inputs(const Scalar* x, const Scalar* v) const {
+    return {ends_.data(), x,           v,
+            k_.data(),    L_.data(),   c_.data(),
+            slot_.data(), order_.data(), ring_size_ * dim_};
+  }
+
+  // One parallel region: each thread, over its range [a, b) of vertices, calls before(a, b);
+  // then (after a barrier, when `barrier`: before's writes are read by other threads' springs)
+  // springs(begin, end, ring, owned) for the pass-order springs [begin, end) (owned: false for
+  // those evaluated only for the terms they bring into the range from below, whose parameter
+  // terms belong to another range), block by block, and after(u, w, sums) once the springs of
+  // the block [u, w) are done, sums (w - u, Planes D) holding each vertex's sum of its terms in
+  // slot order, plane by plane (a ring of Planes planes of D-vectors).
+  template <int D, int Planes, class Springs, class Before, class After>
+  void run(bool barrier, Springs&& springs, Before&& before, After&& after) {
+    using Term = Eigen::Matrix<Scalar, D, 1>;
+    constexpr int W = Planes * D;
+    const int threads = spring_count_ > kParallelSprings ? num_threads() : 1;
+    if (static_cast<int>(rings_.size()) < threads) rings_.resize(static_cast<std::size_t>(threads));
+#pragma omp parallel num_threads(threads) if (threads > 1)
+    {
+      const int team = omp_get_num_threads(), t = omp_get_thread_num();
+      const Index a = split(t, team), b = split(t + 1, team);
+      before(a, b);
+      if (barrier) {
+#pragma omp barrier
+      }
+      std::vector<Scalar>& ring = rings_[static_cast<std::size_t>(t)];
+      const Index plane = ring_size_ * D;
+      ring.resize(static_cast<std::size_t>(Planes * plane + kBlock * W));
+      Scalar* out = ring.data();
+      Scalar* sums = out + Planes * plane;
+      const Index* ptr = incidence_ptr_.data();
+      const Index mask = ring_mask_;
+      if (a < b) springs(first_[reach_[a]], first_[a], out, false);
+      for (Index u = a; u < b; u += kBlock) {
+        const Index w = std::min(b, u + kBlock);
+        springs(first_[u], first_[w], out, true);
+        for (Index i = u; i < w; ++i) {
+          Term sum[Planes];
+          for (int k = 0; k < Planes; ++k) sum[k].setZero();
+          for (Index p = ptr[i]; p < ptr[i + 1]; ++p)
+            for (int k = 0; k < Planes; ++k)
+              sum[k] += Eigen::Map<const Term>(out + k * plane + (p & mask) * D);
+          for (int k = 0; k < Planes; ++k) Eigen::Map<Term>(sums + (i - u) * W + k * D) = sum[k];
+        }
+        after(u, w, static_cast<const Scalar*>(sums));
+      }
+    }
+  }
+
+ private:
+  // Vertices per block: the ring spans a block plus the springs' reach around it.
+  static constexpr Index kBlock = 64;
+  // Below this many springs one thread does the pass (waking a team costs more).
+  static constexpr Index kParallelSprings = 2048;
+
+  // The first vertex of thread t's range of `team`: ranges of about equal slot counts.
+  Index split(int t, int team) const {
+    if (t == 0) return 0;
+    if (t == team) return vertex_count_;
+    const Index target = 2 * spring_count_ * t / team;
+    return std::lower_bound(incidence_ptr_.begin(), incidence_ptr_.end(), target) -
+           incidence_ptr_.begin();
+  }
+
+  Index vertex_count_ = 0, spring_count_ = 0;
+  int dim_ = 0;
+  std::vector<PassIndex> ends_, slot_, order_;
+  std::vector<Scalar> k_, L_, c_;
+  std::vector<Index> first_;          // (n + 1): pass-order springs whose lower end is below v
+  std::vector<Index> reach_;          // (n,): the lowest lower end of the springs reaching v or above
+  std::vector<Index> incidence_ptr_;  // (n + 1): vertex i's slots [ptr[i], ptr[i + 1])
+  Index ring_size_ = 0, ring_mask_ = 0;
+  std::vector<std::vector<Scalar>> rings_;  // per thread
 };
 
-KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE Four ends(const Index* springs, Index s) {
-  Four e;
-  for (int q = 0; q < 4; ++q) {
-    e.a[q] = springs[2 * (s + q)];
-    e.b[q] = springs[2 * (s + q) + 1];
+inline void SpringPasses::build(const Index* springs, Index spring_count, Index vertex_count,
+                                int dim) {
+  constexpr Index kMax = INT32_MAX;
+  if (dim * vertex_count > kMax || 2 * dim * spring_count > kMax)
+    throw InvalidArgument("springs: the explicit passes index vertices and spring ends with 32 bits; "
+                          "got " + std::to_string(vertex_count) + " vertices and " +
+                          std::to_string(spring_count) + " springs");
+  const Index n = vertex_count, m = spring_count;
+  vertex_count_ = n;
+  spring_count_ = m;
+  dim_ = dim;
+  // Slots: each vertex's spring ends in the model's spring order (CSR).
+  incidence_ptr_.assign(static_cast<std::size_t>(n + 1), 0);
+  for (Index q = 0; q < 2 * m; ++q) ++incidence_ptr_[springs[q] + 1];
+  for (Index i = 0; i < n; ++i) incidence_ptr_[i + 1] += incidence_ptr_[i];
+  std::vector<Index> slot(static_cast<std::size_t>(2 * m));
+  {
+    std::vector<Index> next(incidence_ptr_.begin(), incidence_ptr_.end() - 1);
+    for (Index q = 0; q < 2 * m; ++q) slot[q] = next[springs[q]]++;
   }
-  return e;
-}
-
-KINEMA_TARGET_AVX2 inline void spring_forces_2d(const SpringInputs& in, Index begin, Index end,
-                                                Scalar* out) {
-  Index s = begin;
-  const __m256d zero = _mm256_setzero_pd();
-  for (; s + 4 <= end; s += 4) {
-    const Four e = ends(in.springs, s);
-    __m256d xa, ya, xb, yb, vxa, vya, vxb, vyb;
-    load4(in.x, e.a, xa, ya);
-    load4(in.x, e.b, xb, yb);
-    load4(in.v, e.a, vxa, vya);
-    load4(in.v, e.b, vxb, vyb);
-    const __m256d dx = _mm256_sub_pd(xb, xa), dy = _mm256_sub_pd(yb, ya);
-    const __m256d dvx = _mm256_sub_pd(vxb, vxa), dvy = _mm256_sub_pd(vyb, vya);
-    const __m256d l = _mm256_sqrt_pd(_mm256_add_pd(_mm256_mul_pd(dx, dx), _mm256_mul_pd(dy, dy)));
-    const __m256d nx = _mm256_div_pd(dx, l), ny = _mm256_div_pd(dy, l);
-    const __m256d vn = _mm256_add_pd(_mm256_mul_pd(dvx, nx), _mm256_mul_pd(dvy, ny));
-    const __m256d F = _mm256_add_pd(
-        _mm256_mul_pd(_mm256_loadu_pd(in.k + s), _mm256_sub_pd(l, _mm256_loadu_pd(in.L + s))),
-        _mm256_mul_pd(_mm256_loadu_pd(in.c + s), vn));
-    const __m256d none = _mm256_cmp_pd(l, zero, _CMP_EQ_OQ);
-    store4(out, 2, in.slot + 2 * s, _mm256_andnot_pd(none, _mm256_mul_pd(F, nx)),
-           _mm256_andnot_pd(none, _mm256_mul_pd(F, ny)), false);
+  // Pass order: by lower end, then by model order (a counting sort).
+  const auto lower = [&](Index s) { return std::min(springs[2 * s], springs[2 * s + 1]); };
+  const auto upper = [&](Index s) { return std::max(springs[2 * s], springs[2 * s + 1]); };
+  first_.assign(static_cast<std::size_t>(n + 1), 0);
+  for (Index s = 0; s < m; ++s) ++first_[lower(s) + 1];
+  for (Index i = 0; i < n; ++i) first_[i + 1] += first_[i];
+  order_.resize(static_cast<std::size_t>(m));
+  {
+    std::vector<Index> next(first_.begin(), first_.end() - 1);
+    for (Index s = 0; s < m; ++s) order_[next[lower(s)]++] = static_cast<PassIndex>(s);
   }
-  spring_forces_scalar<2>(in, s, end, out);
-}
-
-// One component of gd (the header): -((k n + c dv_perp / l) mn + F mu_perp / l), inv = 1 / l.
-KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE __m256d adjoint_gd(__m256d k, __m256d c, __m256d inv, __m256d F,
-                                                           __m256d mn, __m256d vn, __m256d n,
-                                                           __m256d dvr, __m256d mur) {
-  const __m256d dvp = _mm256_sub_pd(dvr, _mm256_mul_pd(vn, n));
-  const __m256d mup = _mm256_sub_pd(mur, _mm256_mul_pd(mn, n));
-  const __m256d t = _mm256_add_pd(
-      _mm256_mul_pd(_mm256_add_pd(_mm256_mul_pd(k, n), _mm256_mul_pd(_mm256_mul_pd(c, dvp), inv)), mn),
-      _mm256_mul_pd(_mm256_mul_pd(F, mup), inv));
-  return _mm256_xor_pd(t, _mm256_set1_pd(-0.0));
-}
-
-// p[0..3] += t, lanes of `none` (zero-length springs, whose t is NaN) left alone.
-KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE void add4(Scalar* p, __m256d none, __m256d t) {
-  _mm256_storeu_pd(p, _mm256_add_pd(_mm256_loadu_pd(p), _mm256_andnot_pd(none, t)));
-}
-
-KINEMA_TARGET_AVX2 inline void spring_adjoint_2d(const SpringInputs& in, const Scalar* lambda,
-                                                 Index begin, Index end, Scalar* out, Scalar* dk,
-                                                 Scalar* dL, Scalar* dc) {
-  Index s = begin;
-  const __m256d zero = _mm256_setzero_pd();
-  for (; s + 4 <= end; s += 4) {
-    const Four e = ends(in.springs, s);
-    __m256d xa, ya, xb, yb, pa, qa, pb, qb;
-    load4(in.x, e.a, xa, ya);
-    load4(in.x, e.b, xb, yb);
-    const __m256d dx = _mm256_sub_pd(xb, xa), dy = _mm256_sub_pd(yb, ya);
-    load4(in.v, e.a, pa, qa);
-    load4(in.v, e.b, pb, qb);
-    const __m256d dvx = _mm256_sub_pd(pb, pa), dvy = _mm256_sub_pd(qb, qa);
-    load4(lambda, e.a, pa, qa);
-    load4(lambda, e.b, pb, qb);
-    const __m256d mux = _mm256_sub_pd(pb, pa), muy = _mm256_sub_pd(qb, qa);
-    const __m256d l = _mm256_sqrt_pd(_mm256_add_pd(_mm256_mul_pd(dx, dx), _mm256_mul_pd(dy, dy)));
-    const __m256d k = _mm256_loadu_pd(in.k + s), L = _mm256_loadu_pd(in.L + s),
-                  c = _mm256_loadu_pd(in.c + s);
-    const __m256d inv = _mm256_div_pd(_mm256_set1_pd(1.0), l);
-    const __m256d nx = _mm256_mul_pd(dx, inv), ny = _mm256_mul_pd(dy, inv);
-    const __m256d mn = _mm256_add_pd(_mm256_mul_pd(mux, nx), _mm256_mul_pd(muy, ny));
-    const __m256d vn = _mm256_add_pd(_mm256_mul_pd(dvx, nx), _mm256_mul_pd(dvy, ny));
-    const __m256d lL = _mm256_sub_pd(l, L);
-    const __m256d F = _mm256_add_pd(_mm256_mul_pd(k, lL), _mm256_mul_pd(c, vn));
-    const __m256d sign = _mm256_set1_pd(-0.0);
-    const __m256d cm = _mm256_mul_pd(_mm256_xor_pd(c, sign), mn);
-    const __m256d none = _mm256_cmp_pd(l, zero, _CMP_EQ_OQ);
-    // gd belongs to end j (+) and i (-), as the scalar loop's.
-    store4(out, 4, in.slot + 2 * s, _mm256_andnot_pd(none, adjoint_gd(k, c, inv, F, mn, vn, nx, dvx, mux)),
-           _mm256_andnot_pd(none, adjoint_gd(k, c, inv, F, mn, vn, ny, dvy, muy)), true);
-    store4(out + 2, 4, in.slot + 2 * s, _mm256_andnot_pd(none, _mm256_mul_pd(cm, nx)),
-           _mm256_andnot_pd(none, _mm256_mul_pd(cm, ny)), true);
-    if (dk) {
-      add4(dk + s, none, _mm256_mul_pd(_mm256_xor_pd(lL, sign), mn));
-      add4(dL + s, none, _mm256_mul_pd(k, mn));
-      add4(dc + s, none, _mm256_mul_pd(_mm256_xor_pd(vn, sign), mn));
+  // The window of live slots around a block of vertices [u, u + kBlock): from the lowest lower
+  // end of a spring reaching u (reach_[u], the prologue's springs start there) to the highest
+  // upper end of a spring starting in the block.
+  std::vector<Index> high(static_cast<std::size_t>(n));
+  reach_.resize(static_cast<std::size_t>(n));
+  for (Index i = 0; i < n; ++i) high[i] = reach_[i] = i;
+  for (Index s = 0; s < m; ++s) {
+    high[lower(s)] = std::max(high[lower(s)], upper(s));
+    reach_[upper(s)] = std::min(reach_[upper(s)], lower(s));
+  }
+  for (Index i = 1; i < n; ++i) high[i] = std::max(high[i], high[i - 1]);
+  for (Index i = n - 2; i >= 0; --i) reach_[i] = std::min(reach_[i], reach_[i + 1]);
+  Index window = 1;
+  for (Index u = 0; u < n; ++u) {
+    const Index top = high[std::min(u + kBlock, n) - 1];
+    window = std::max(window, incidence_ptr_[top + 1] - incidence_ptr_[reach_[u]]);
+  }
+  // A ring of 2^k slots when that is shorter than the list; else the whole list, unmasked.
+  Index ring = 1;
+  while (ring < window) ring *= 2;
+  if (ring < 2 * m) {
+    ring_size_ = ring;
+    ring_mask_ = ring - 1;
+  } else {
+    ring_size_ = std::max<Index>(2 * m, 1);
+    ring_mask_ = ~Index{0};
+  }
+  ends_.resize(static_cast<std::size_t>(2 * m));
+  slot_.resize(static_cast<std::size_t>(2 * m));
+  for (Index p = 0; p < m; ++p) {
+    const Index s = order_[p];
+    for (int e = 0; e < 2; ++e) {
+      ends_[2 * p + e] = static_cast<PassIndex>(dim * springs[2 * s + e]);
+      slot_[2 * p + e] = static_cast<PassIndex>(dim * (slot[2 * s + e] & ring_mask_));
     }
   }
-  spring_adjoint_scalar<2>(in, lambda, s, end, out, dk, dL, dc);
 }
 
-}  // namespace avx2
-#endif
-
-// Blocks of springs, four-aligned, over the threads.
-constexpr Index kSpringBlock = 512;
-
-template <int D, class Pass>
-void for_spring_blocks(Index m, Pass&& pass) {
-  const Index blocks = (m + kSpringBlock - 1) / kSpringBlock;
-#pragma omp parallel for schedule(static) if (m > 4 * kSpringBlock)
-  for (Index b = 0; b < blocks; ++b) pass(b * kSpringBlock, std::min(m, (b + 1) * kSpringBlock));
-}
-
-template <int D>
-void spring_forces(const SpringInputs& in, Index m, bool avx2, Scalar* out) {
-  for_spring_blocks<D>(m, [&](Index begin, Index end) {
-#if KINEMA_HAVE_AVX2_CLONES
-    if (D == 2 && avx2) return avx2::spring_forces_2d(in, begin, end, out);
-#endif
-    (void)avx2;
-    spring_forces_scalar<D>(in, begin, end, out);
-  });
-}
-
-template <int D>
-void spring_adjoint(const SpringInputs& in, const Scalar* lambda, Index m, bool avx2, Scalar* out,
-                    Scalar* dk, Scalar* dL, Scalar* dc) {
-  for_spring_blocks<D>(m, [&](Index begin, Index end) {
-#if KINEMA_HAVE_AVX2_CLONES
-    if (D == 2 && avx2) return avx2::spring_adjoint_2d(in, lambda, begin, end, out, dk, dL, dc);
-#endif
-    (void)avx2;
-    spring_adjoint_scalar<D>(in, lambda, begin, end, out, dk, dL, dc);
-  });
+inline void SpringPasses::set_parameters(const Scalar* k, const Scalar* L, const Scalar* c) {
+  const std::size_t m = order_.size();
+  k_.resize(m);
+  L_.resize(m);
+  c_.resize(m);
+  for (std::size_t p = 0; p < m; ++p) {
+    k_[p] = k[order_[p]];
+    L_[p] = L[order_[p]];
+    c_[p] = c[order_[p]];
+  }
 }
 
 }  // namespace kinema::massspring
