@@ -9,7 +9,7 @@ Writes, into the output folder:
                          loads as an animation with a mesh-sequence add-on)
   body/frame_NNNN.vtu    the neo-Hookean beam (km.fem, implicit Newton) as a tetrahedral mesh
   body/frame_NNNN.obj    its boundary surface, outward-oriented triangles (km.mesh.surface)
-  preview/NNNN.png, deform.mp4   a side-by-side preview (the video when ffmpeg is installed)
+  preview/NNNN.png, deform.mp4   a side-by-side preview (the video when ffmpeg is installed; not with --no-video)
   summary.txt            steps, Newton iterations and timings
 """
 
@@ -76,7 +76,7 @@ def main(argv=None):
     parser.add_argument("--no-video", action="store_true")
     args = parser.parse_args(argv)
     out = Path(args.out)
-    for sub in ("cloth", "body", "preview"):
+    for sub in ("cloth", "body") + (() if args.no_video else ("preview",)):
         (out / sub).mkdir(parents=True, exist_ok=True)
     cloth, tris = cloth_scene(args.cloth)
     body, tets = body_scene(args.cells)

@@ -106,7 +106,7 @@ def draw(scene, path, title):
     ax.set_xlim(lo[0], hi[0])
     ax.set_ylim(lo[2], hi[2])
     ax.set_zlim(lo[1], hi[1])
-    ax.set_box_aspect((1, 1, 1))
+    ax.set_box_aspect(tuple((hi - lo)[[0, 2, 1]]))  # equal scales: a sphere looks round
     ax.set_title(f"{title}, t = {scene.time:.2f} s")
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=100)

@@ -125,7 +125,7 @@ def work_precision(out, sizes):
             ax.loglog(*zip(*pts), "o-", label=method)
     ax.set_xlabel("wall time [s]")
     ax.set_ylabel("max error vs exact solution")
-    ax.set_title(f"2D Poisson, tol 1e-10, {km.get_num_threads()} threads")
+    ax.set_title(f"2D Poisson, tol 1e-10, {km.get_num_threads()} thread(s)")
     ax.legend()
     ax.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
@@ -147,7 +147,7 @@ def main(argv=None):
         parser.error("--frames must be >= 1, --size and --sizes >= 8")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    log(f"kinema {km.__version__}, {km.get_num_threads()} threads, BLAS {km.build_info()['blas']}")
+    log(f"kinema {km.__version__}, {km.get_num_threads()} thread(s), BLAS {km.build_info()['blas']}")
     lines = [poisson_obstacle(out, args.size), heat_movie(out, args.size, args.frames)]
     lines += work_precision(out, args.sizes)
     (out / "summary.txt").write_text("\n".join(lines) + "\n")

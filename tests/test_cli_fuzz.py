@@ -280,49 +280,38 @@ def _collider(collider, solver="", kind="fem"):
 
 SPHERE = 'shape = "sphere"\ncenter = [0.05, -0.5, 0.05]\nradius = 0.5'
 RUN = ["run", "{tmp}/scene.toml", "--out", "{tmp}/o", *QUICK]
+BOX = 'shape = "box"\nlower = [-1.0, -1.0, -1.0]\nupper = [1.0, 0.0, 1.0]'
+PLANE = 'shape = "plane"\npoint = [0.0, 0.0, 0.0]\nnormal = [0.0, 0.0, 0.0]'
+# (case, the collider's keys, the [solver] lines, the error's needle, extra files); "ok": no error
+COLLIDER_CASES = [
+    ("collider-ok", SPHERE, "", None, {}),
+    ("collider-radius-negative", SPHERE.replace("radius = 0.5", "radius = -1.0"), "", "objects[1].radius", {}),
+    ("collider-no-radius", 'shape = "sphere"\ncenter = [0.0, -1.0, 0.0]', "",
+     "objects[1].radius: a sphere collider needs radius", {}),
+    ("collider-box-no-upper", 'shape = "box"\nlower = [0.0, -1.0, 0.0]', "", "objects[1].upper: a box collider needs upper",
+     {}),
+    ("collider-box-inverted", 'shape = "box"\nlower = [1.0, 0.0, 1.0]\nupper = [-1.0, -1.0, -1.0]', "",
+     "objects[1]: lower, upper: expected lower < upper", {}),
+    ("collider-box-rotation-nan", BOX + "\nrotation = [nan, 0.0, 0.0]", "", "objects[1].rotation", {}),
+    ("collider-plane-zero-normal", PLANE, "", "objects[1]: normal: expected a non-zero vector", {}),
+    ("collider-plane-moving", PLANE.replace("normal = [0.0, 0.0, 0.0]", "normal = [0.0, 1.0, 0.0]") +
+     "\nvelocity = [0.0, 1.0, 0.0]", "", "objects[1]: motion: a plane collider is static", {}),
+    ("collider-center-2d", 'shape = "sphere"\ncenter = [0.0, -1.0]\nradius = 0.5', "", "objects[1].center", {}),
+    ("collider-center-inf", 'shape = "sphere"\ncenter = [0.0, -inf, 0.0]\nradius = 0.5', "", "objects[1].center", {}),
+    ("collider-velocity-text", SPHERE + '\nvelocity = "up"', "", "objects[1].velocity", {}),
+    ("collider-unknown-key", SPHERE + "\nradius2 = 1.0", "", "objects[1].radius2", {}),
+    ("collider-unknown-shape", 'shape = "cone"\nradius = 1.0', "", "objects[1].shape", {}),
+    ("collider-friction-negative", SPHERE + "\nfriction = -0.1", "", "objects[1].friction", {}),
+    ("collider-mesh-missing", 'shape = "mesh"\nfile = "none.obj"', "", "objects[1].file", {}),
+    ("collider-mesh-garbage", 'shape = "mesh"\nfile = "g.obj"', "", "objects[1].file", {"g.obj": bytes(range(256))}),
+    ("collider-mesh-no-triangles", 'shape = "mesh"\nfile = "l.obj"', "", "objects[1].file",
+     {"l.obj": "v 0 0 0\nv 1 0 0\nv 0 1 0\nl 1 2\n"}),
+    ("dhat-zero", SPHERE, "dhat = 0.0", "solver.dhat", {}),
+]
 for kind in ("fem", "massspring"):
-    CASES += [
-        Case(f"{kind}-collider-ok", RUN, expect="ok", files={"scene.toml": _collider(SPHERE, kind=kind)}),
-        Case(f"{kind}-collider-radius-negative", RUN, needle="objects[1].radius",
-             files={"scene.toml": _collider(SPHERE.replace("radius = 0.5", "radius = -1.0"), kind=kind)}),
-        Case(f"{kind}-collider-no-radius", RUN, needle="objects[1].radius: a sphere collider needs radius",
-             files={"scene.toml": _collider('shape = "sphere"\ncenter = [0.0, -1.0, 0.0]', kind=kind)}),
-        Case(f"{kind}-collider-box-no-upper", RUN, needle="objects[1].upper: a box collider needs upper",
-             files={"scene.toml": _collider('shape = "box"\nlower = [0.0, -1.0, 0.0]', kind=kind)}),
-        Case(f"{kind}-collider-box-inverted", RUN, needle="objects[1]: lower, upper: expected lower < upper",
-             files={"scene.toml": _collider('shape = "box"\nlower = [1.0, 0.0, 1.0]\nupper = [-1.0, -1.0, -1.0]',
-                                            kind=kind)}),
-        Case(f"{kind}-collider-box-rotation-nan", RUN, needle="objects[1].rotation",
-             files={"scene.toml": _collider('shape = "box"\nlower = [-1.0, -1.0, -1.0]\nupper = [1.0, 0.0, 1.0]\n'
-                                            'rotation = [nan, 0.0, 0.0]', kind=kind)}),
-        Case(f"{kind}-collider-plane-zero-normal", RUN, needle="objects[1]: normal: expected a non-zero vector",
-             files={"scene.toml": _collider('shape = "plane"\npoint = [0.0, 0.0, 0.0]\nnormal = [0.0, 0.0, 0.0]',
-                                            kind=kind)}),
-        Case(f"{kind}-collider-plane-moving", RUN, needle="objects[1]: motion: a plane collider is static",
-             files={"scene.toml": _collider('shape = "plane"\npoint = [0.0, 0.0, 0.0]\nnormal = [0.0, 1.0, 0.0]\n'
-                                            'velocity = [0.0, 1.0, 0.0]', kind=kind)}),
-        Case(f"{kind}-collider-center-2d", RUN, needle="objects[1].center",
-             files={"scene.toml": _collider('shape = "sphere"\ncenter = [0.0, -1.0]\nradius = 0.5', kind=kind)}),
-        Case(f"{kind}-collider-center-inf", RUN, needle="objects[1].center",
-             files={"scene.toml": _collider('shape = "sphere"\ncenter = [0.0, -inf, 0.0]\nradius = 0.5', kind=kind)}),
-        Case(f"{kind}-collider-velocity-text", RUN, needle="objects[1].velocity",
-             files={"scene.toml": _collider(SPHERE + '\nvelocity = "up"', kind=kind)}),
-        Case(f"{kind}-collider-unknown-key", RUN, needle="objects[1].radius2",
-             files={"scene.toml": _collider(SPHERE + "\nradius2 = 1.0", kind=kind)}),
-        Case(f"{kind}-collider-unknown-shape", RUN, needle="objects[1].shape",
-             files={"scene.toml": _collider('shape = "cone"\nradius = 1.0', kind=kind)}),
-        Case(f"{kind}-collider-friction-negative", RUN, needle="objects[1].friction",
-             files={"scene.toml": _collider(SPHERE + "\nfriction = -0.1", kind=kind)}),
-        Case(f"{kind}-collider-mesh-missing", RUN, needle="objects[1].file",
-             files={"scene.toml": _collider('shape = "mesh"\nfile = "none.obj"', kind=kind)}),
-        Case(f"{kind}-collider-mesh-garbage", RUN, needle="objects[1].file",
-             files={"scene.toml": _collider('shape = "mesh"\nfile = "g.obj"', kind=kind), "g.obj": bytes(range(256))}),
-        Case(f"{kind}-collider-mesh-no-triangles", RUN, needle="objects[1].file",
-             files={"scene.toml": _collider('shape = "mesh"\nfile = "l.obj"', kind=kind),
-                    "l.obj": "v 0 0 0\nv 1 0 0\nv 0 1 0\nl 1 2\n"}),
-        Case(f"{kind}-dhat-zero", RUN, needle="solver.dhat",
-             files={"scene.toml": _collider(SPHERE, "dhat = 0.0", kind=kind)}),
-    ]
+    CASES += [Case(f"{kind}-{name}", RUN, **({"expect": "ok"} if needle is None else {"needle": needle}),
+                   files={"scene.toml": _collider(collider, solver, kind=kind), **extra})
+              for name, collider, solver, needle, extra in COLLIDER_CASES]
 CASES += [
     Case("fem-collider-symplectic", RUN, needle="solver.integrator",
          files={"scene.toml": _collider(SPHERE, 'integrator = "symplectic"\n[[objects]]\n' + BODY["fem"].replace(

@@ -79,6 +79,45 @@ def test_bad_input_names_the_argument():
     assert len(km.surface.reconstruct(np.zeros((0, 3)), S).triangles) == 0
 
 
+def test_a_smoothing_too_wide_for_the_liquid_is_named():
+    """A Gaussian 6 spacings wide leaves a small drop's volume fraction below iso everywhere:
+    the error names iso and the smoothing (it was scikit-image's bare "Surface level must be
+    within volume data range")."""
+    with pytest.raises(ValueError, match=r"^iso: .*smoothing = 0\.15 m"):
+        km.surface.reconstruct(lattice_ball(2), S, smoothing=6 * S)
+    with pytest.raises(ValueError, match="^iso: "):
+        km.surface.reconstruct(lattice_ball(3), S, iso=2.0)
+
+
+def test_a_wide_smoothing_on_a_large_grid_stops_at_ctrl_c(monkeypatch):
+    """smoothing = 1 m around a 0.3 m ball of spacing 0.05 is a Gaussian of 40 cells on 1.8e7
+    cells: tens of seconds in scipy's filter, whose C loop does not look for Ctrl-C (the API
+    fuzz found SIGINT unanswered: tests/fuzz, surface.reconstruct[smoothing=np.array(1.0)]).
+    The filter now runs as short 1D passes over slabs of the grid: SIGINT, sent here as the
+    second pass starts, stops the run within a second, a few passes later."""
+    import os
+    import signal
+    import time
+
+    import scipy.ndimage
+
+    original = scipy.ndimage.gaussian_filter1d
+    calls, sent = [], []
+
+    def counted(*args, **kwargs):
+        calls.append(time.perf_counter())
+        if len(calls) == 2:
+            sent.append(time.perf_counter())
+            os.kill(os.getpid(), signal.SIGINT)
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(scipy.ndimage, "gaussian_filter1d", counted)
+    ball = km.mpm.sphere([0.0, 0.0, 0.0], 0.3, 0.05)
+    with pytest.raises(KeyboardInterrupt):
+        km.surface.reconstruct(ball, 0.05, smoothing=1.0)
+    assert sent and time.perf_counter() - sent[0] < 1.0 and len(calls) <= 4, calls
+
+
 def test_example_water_surface_runs(tmp_path):
     import subprocess
     import sys

@@ -31,8 +31,9 @@ from pathlib import Path
 import numpy as np
 
 HERE = Path(__file__).resolve().parent
-sys.path.insert(0, str(HERE.parent / "common"))  # harness.py
+sys.path.insert(0, str(HERE.parent / "common"))  # harness.py, warp_tape.py
 import harness  # noqa: E402
+from warp_tape import TapeRun  # noqa: E402
 
 E, NU, RHO, G, DT = 5e4, 0.0, 1000.0, -9.8, 1e-3
 
@@ -111,47 +112,20 @@ def warp_peer(opts):
         v_out[i] = vn
         x_out[i] = x[i] + h * vn
 
-    @wp.kernel
-    def loss_kernel(x: wp.array(dtype=wp.vec3d), wv: wp.array(dtype=wp.vec3d), loss: wp.array(dtype=wp.float64)):
-        i = wp.tid()
-        wp.atomic_add(loss, 0, wp.dot(wv[i], x[i]))
-
     tets = wp.array(T.astype(np.int32), dtype=wp.int32, device=dev)
     dmi = wp.array(Dm_inv, dtype=wp.mat33d, device=dev)
     volw = wp.array(vol, dtype=wp.float64, device=dev)
     mw = wp.array(mass, dtype=wp.float64, device=dev)
-    wv = wp.array(w, dtype=wp.vec3d, device=dev)
-    n = len(V)
-    xs = [wp.zeros(n, dtype=wp.vec3d, device=dev, requires_grad=True) for _ in range(steps + 1)]
-    vs = [wp.zeros(n, dtype=wp.vec3d, device=dev, requires_grad=True) for _ in range(steps + 1)]
-    fs = [wp.zeros(n, dtype=wp.vec3d, device=dev, requires_grad=True) for _ in range(steps)]
-    loss = wp.zeros(1, dtype=wp.float64, device=dev, requires_grad=True)
     h, g = wp.float64(DT), wp.vec3d(0.0, G, 0.0)
     consts = (wp.float64(mu), wp.float64(lam_p), wp.float64(alpha))
 
-    def forward(vstart):
-        xs[0].assign(V)
-        vs[0].assign(vstart)
-        loss.zero_()
-        for t in range(steps):
-            fs[t].zero_()
-            wp.launch(tet_forces, dim=len(T), inputs=[xs[t], tets, dmi, volw, *consts], outputs=[fs[t]], device=dev)
-            wp.launch(integrate, dim=n, inputs=[xs[t], vs[t], fs[t], mw, h, g], outputs=[xs[t + 1], vs[t + 1]],
-                      device=dev)
-        wp.launch(loss_kernel, dim=n, inputs=[xs[steps], wv], outputs=[loss], device=dev)
+    def step(x, v, f, x_out, v_out):
+        wp.launch(tet_forces, dim=len(T), inputs=[x, tets, dmi, volw, *consts], outputs=[f], device=dev)
+        wp.launch(integrate, dim=len(V), inputs=[x, v, f, mw, h, g], outputs=[x_out, v_out], device=dev)
 
-    def gradient():
-        tape = wp.Tape()
-        with tape:
-            forward(v0)
-        tape.backward(loss)
-        out = vs[0].grad.numpy().copy()
-        tape.zero()
-        return out
-
-    grad, wall, cpu = timed(gradient, opts.min_of)
-    forward(v0)
-    print(json.dumps({"seconds": wall, "cpu_seconds": cpu, "loss": float(loss.numpy()[0]),
+    run = TapeRun(wp, wp.vec3d, V, w, steps, step, dev)
+    grad, wall, cpu = timed(lambda: run.gradient(v0), opts.min_of)
+    print(json.dumps({"seconds": wall, "cpu_seconds": cpu, "loss": run.forward(v0),
                       "directional": float(np.sum(grad * direction)), "threads": 1}), flush=True)
 
 

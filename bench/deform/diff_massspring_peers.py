@@ -13,9 +13,14 @@ framework's directional derivative with the same difference of kinema's forward 
 
 import argparse
 import json
+import sys
 import time
+from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "common"))  # warp_tape.py
+from warp_tape import TapeRun  # noqa: E402
 
 
 def cloth(N):
@@ -150,46 +155,17 @@ def warp_peer(N, steps, dt, threads):
         v_out[i] = vn
         x_out[i] = x[i] + h * vn
 
-    @wp.kernel
-    def compute_loss(x: wp.array(dtype=wp.vec2d), wv: wp.array(dtype=wp.vec2d), loss: wp.array(dtype=wp.float64)):
-        i = wp.tid()
-        wp.atomic_add(loss, 0, wp.dot(wv[i], x[i]))
-
     sp = wp.array(springs, dtype=wp.int32, device=dev)
     Lw = wp.array(rest, dtype=wp.float64, device=dev)
     fr = wp.array(free, dtype=wp.float64, device=dev)
-    wv = wp.array(w, dtype=wp.vec2d, device=dev)
-    xs = [wp.zeros(n, dtype=wp.vec2d, device=dev, requires_grad=True) for _ in range(steps + 1)]
-    vs = [wp.zeros(n, dtype=wp.vec2d, device=dev, requires_grad=True) for _ in range(steps + 1)]
-    fs = [wp.zeros(n, dtype=wp.vec2d, device=dev, requires_grad=True) for _ in range(steps)]
-    loss = wp.zeros(1, dtype=wp.float64, device=dev, requires_grad=True)
     h = wp.float64(dt)
 
-    def forward(vstart):
-        xs[0].assign(x0)
-        vs[0].assign(vstart)
-        loss.zero_()
-        for t in range(steps):
-            fs[t].zero_()
-            wp.launch(forces, dim=m, inputs=[xs[t], vs[t], sp, Lw], outputs=[fs[t]], device=dev)
-            wp.launch(integrate, dim=n, inputs=[xs[t], vs[t], fs[t], fr, h], outputs=[xs[t + 1], vs[t + 1]],
-                      device=dev)
-        wp.launch(compute_loss, dim=n, inputs=[xs[steps], wv], outputs=[loss], device=dev)
+    def step(x, v, f, x_out, v_out):
+        wp.launch(forces, dim=m, inputs=[x, v, sp, Lw], outputs=[f], device=dev)
+        wp.launch(integrate, dim=n, inputs=[x, v, f, fr, h], outputs=[x_out, v_out], device=dev)
 
-    def gradient():
-        tape = wp.Tape()
-        with tape:
-            forward(v0)
-        tape.backward(loss)
-        g = vs[0].grad.numpy().copy()
-        tape.zero()
-        return g
-
-    def value(vv):
-        forward(vv)
-        return float(loss.numpy()[0])
-
-    return run(gradient, value, v0, direction, 1)
+    tape = TapeRun(wp, wp.vec2d, x0, w, steps, step, dev)
+    return run(lambda: tape.gradient(v0), tape.forward, v0, direction, 1)
 
 
 def run(gradient, value, v0, direction, threads, h=1e-5, min_of=3):

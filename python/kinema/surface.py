@@ -179,8 +179,6 @@ def _splashsurf(x, s, c, iso):
 def volume_fraction(x, s, c, sigma):
     """The smoothed volume fraction on a grid of cell ``c`` around the points: (field,
     origin of cell (0, 0, 0)'s centre)."""
-    from scipy.ndimage import gaussian_filter
-
     pad = 3.0 * sigma + s + 2 * c
     lo = x.min(0) - pad
     shape = np.ceil((x.max(0) + pad - lo) / c).astype(np.int64) + 1
@@ -199,7 +197,26 @@ def volume_fraction(x, s, c, sigma):
                 idx = ((i0[:, 0] + dx) * shape[1] + i0[:, 1] + dy) * shape[2] + i0[:, 2] + dz
                 field += np.bincount(idx, w, minlength=field.size)
     field = field.reshape(shape) * weight
-    return gaussian_filter(field, sigma / c, mode="constant", truncate=3.0), lo
+    return _gaussian(field, sigma / c), lo
+
+
+def _gaussian(field, sd):
+    """scipy's gaussian_filter(field, sd, mode="constant", truncate=3.0), bit for bit, one
+    axis at a time in slabs of about a million cells: scipy's C loop does not look for Ctrl-C,
+    and a wide filter on a large grid runs for minutes, so each slab is one short call."""
+    from scipy.ndimage import gaussian_filter1d
+
+    if sd <= 1e-15:  # gaussian_filter leaves such axes alone
+        return field
+    for axis in range(field.ndim):
+        across = 1 if axis == 0 else 0  # slabs are cut across another axis
+        rows = max(1, 2**20 * field.shape[across] // field.size)
+        out = np.empty_like(field)
+        for k in range(0, field.shape[across], rows):
+            part = (slice(None),) * across + (slice(k, k + rows),)
+            out[part] = gaussian_filter1d(field[part], sd, axis=axis, mode="constant", truncate=3.0)
+        field = out
+    return field
 
 
 def _marching_cubes(x, s, c, iso, sigma):
@@ -208,5 +225,9 @@ def _marching_cubes(x, s, c, iso, sigma):
     except ImportError:
         raise ImportError("method='marching_cubes' needs scikit-image: pip install 'kinema[surface]'") from None
     field, lo = volume_fraction(x, s, c, sigma)
+    top = float(field.max())
+    if not 0.0 < iso < top:
+        raise ValueError(f"iso: {iso:g} is outside the smoothed volume fraction's range (0, {top:.3g}), so there is "
+                         f"no surface (smoothing = {sigma:.3g} m: a smoothing wide against the liquid spreads it thin)")
     verts, faces, _, _ = marching_cubes(field, iso, spacing=(c, c, c), allow_degenerate=False)
     return _outward(verts + lo, faces)
