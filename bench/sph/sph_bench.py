@@ -114,15 +114,23 @@ def timed_dt(n, method, tol):
     return started_dt(fluid, method, s), s, fluid.speed_of_sound
 
 
-def steps_of(fluid, dt, iterations):
+def steps_of(fluid, dt, iterations, split=None):
     """The timed call: STEPS steps of dt, their pressure iterations (both solves) appended to
-    ``iterations``; returns the mean compression after them."""
+    ``iterations`` (and, given a dict ``split``, the steps' seconds in the neighbour search, the
+    kernel pass and the solves, summed); returns the mean compression after them."""
 
     def run():
         iterations.clear()
+        parts = dict.fromkeys(("search", "kernel", "solve", "step"), 0.0)
         for _ in range(STEPS):
             st = fluid.step(dt)
             iterations.append(st.iterations + st.divergence_iterations)
+            for key, value in (("search", st.search_seconds), ("kernel", st.kernel_seconds),
+                               ("solve", st.solve_seconds), ("step", st.seconds)):
+                parts[key] += value
+        if split is not None:
+            split.clear()
+            split.update(parts)
         return fluid.density_error()
 
     return run
@@ -301,8 +309,8 @@ def bench_work_precision(n, tols, rec, threads, boundaries=("akinci", "volume-ma
     curves = {}
     for tol in tols:
         fluid = started_fluid(n, "dfsph", tol, dt)
-        iterations = []
-        run = steps_of(fluid, dt, iterations)
+        iterations, split = [], {}
+        run = steps_of(fluid, dt, iterations, split)
 
         m = harness.measure(run, min_of=1, **MEASURE)
         err = m.value
@@ -313,6 +321,10 @@ def bench_work_precision(n, tols, rec, threads, boundaries=("akinci", "volume-ma
                    notes={"tol": tol, "dt": f"{dt:.3g}", "unit": "s per simulated s"})
         print(f"  kinema-dfsph              tol={tol:7.1e} n={fluid.n:7d} density error {err:8.2e} "
               f"{per_sim:8.1f} s/sim s, {np.mean(iterations):5.1f} iterations/step (other load {m.other_load:.2f})",
+              flush=True)
+        step = max(split["step"], 1e-12)  # where the step's time went (the last timed call)
+        print(f"      kinema's step: search {split['search'] / step:4.0%}, kernel pass {split['kernel'] / step:4.0%}, "
+              f"solves {split['solve'] / step:4.0%}, rest {1 - (split['search'] + split['kernel'] + split['solve']) / step:4.0%}",
               flush=True)
         del fluid
     for boundary in boundaries:
@@ -433,8 +445,13 @@ def main(argv=None) -> int:
         curves = bench_work_precision(sizes[0], tuple(args.tols or WP_TOLS), rec, args.threads)
         print("equal measured density error: SPlisHSPlasH (fastest wall model) / kinema, s per simulated s "
               "(target >= 1.5):")
-        for e, ratio, name in equal_accuracy_ratios(curves):
+        ratios = equal_accuracy_ratios(curves)
+        for e, ratio, name in ratios:
             print(f"  error {e:7.1e}: " + (f"{ratio:.2f}x ({name})" if ratio else "n/a (outside a measured curve)"))
+        met = [r is not None and r >= 1.5 for _, r, _ in ratios]
+        print("SUMMARY sph work-precision (SPlisHSPlasH fastest wall model / kinema DFSPH, target >= 1.5x at every error): "
+              + ", ".join(f"{e:.0e}: {f'{r:.2f}x' if r else 'n/a'}" for e, r, _ in ratios)
+              + (" -> target met" if all(met) else " -> target NOT met"))
         plot_and_report(csv_wp, "sph_dfsph_work_precision.png", "sph_dambreak3d_dfsph_work_precision")
         return 0
     csv_path = OUT / "sph.csv"

@@ -382,48 +382,26 @@ class SolverD final : public Solver::Impl {
   // row sums of kernels.h read; nothing stored if grads is null). The later passes then stream
   // the gradients instead of gathering x_j: 12 bytes per entry, and single precision perturbs a
   // gradient by ~1e-7 relative, far below the solvers' tolerances. With a skin the Verlet list
-  // `wide` is filtered into `exact` on the way: each row's kept entries (and gradients) go
-  // first to the row's own place in scratch laid out as `wide` (so the rows fill in parallel
-  // with no shared buffer), then are packed into `exact` (one streaming copy; before, the kept
-  // dW/dr / r were packed and a second pass gathered x_j again to form the gradients: 9% of a
-  // 150k-particle DFSPH step at 3 iterations). Without a skin `wide` is exact already.
+  // `wide` is filtered into `exact` on the way (the factors staged in kept_dw), without it is exact
+  // already.
   template <class Row>
-  void kernel_rows(const NeighborLists& wide, NeighborLists& exact, std::vector<float>* grads, const Scalar* xs,
-                   const Scalar* x, Index n, Row&& row) {
-    auto store = [&](float* to, Scalar dw, const Vec& xij) {
-      Eigen::Map<Eigen::Matrix<float, D, 1>> gradient(to);
-      gradient = stored_gradient(dw, xij);
+  void kernel_rows(const NeighborLists& wide, NeighborLists& exact, std::vector<Scalar>& kept_dw,
+                   std::vector<float>* grads, const Scalar* xs, const Scalar* x, Index n, Row&& row) {
+    auto store = [&](Index k, Scalar dw, const Vec& xij) {
+      if (grads) Eigen::Map<Eigen::Matrix<float, D, 1>>(grads->data() + k * D) = stored_gradient(dw, xij);
     };
     if (lists_->skin > 0) {
-      const size_t room = wide.list.size();
-      if (scratch_list_.size() < room) scratch_list_.resize(room);
-      if (grads && scratch_grads_.size() < room * D) scratch_grads_.resize(room * D);
-      exact.start.resize(static_cast<size_t>(n) + 1);
-      exact.start[0] = 0;
+      exact.fill_with_values(n, kept_dw, [&](Index i, auto&& push) {
+        const Vec xi = CMap(x + i * D);
+        row(i, xi, [&](auto&& entry) {
+          within_support(wide, xs, xi, i, [&](Index j, const Vec& xij, Scalar r) { push(j, entry(j, xij, r)); });
+        });
+      });
+      if (!grads) return;
+      grads->resize(exact.list.size() * D + 1);
       parallel_for(n, [&](Index i) {
         const Vec xi = CMap(x + i * D);
-        const Index base = wide.start[i];
-        std::int32_t* ids = scratch_list_.data() + base;
-        float* g = grads ? scratch_grads_.data() + base * D : nullptr;
-        Index count = 0;
-        row(i, xi, [&](auto&& entry) {
-          within_support(wide, xs, xi, i, [&](Index j, const Vec& xij, Scalar r) {
-            const Scalar dw = entry(j, xij, r);
-            ids[count] = static_cast<std::int32_t>(j);
-            if (g) store(g + count * D, dw, xij);
-            ++count;
-          });
-        });
-        exact.start[i + 1] = count;
-      });
-      for (Index i = 0; i < n; ++i) exact.start[i + 1] += exact.start[i];
-      exact.list.resize(static_cast<size_t>(exact.start[n]));
-      if (grads) grads->resize(exact.list.size() * D + 1);
-      parallel_for(n, [&](Index i) {
-        const Index from = wide.start[i], to = exact.start[i], count = exact.start[i + 1] - to;
-        std::copy(scratch_list_.data() + from, scratch_list_.data() + from + count, exact.list.data() + to);
-        if (grads)
-          std::copy(scratch_grads_.data() + from * D, scratch_grads_.data() + (from + count) * D, grads->data() + to * D);
+        for (Index k = exact.start[i]; k < exact.start[i + 1]; ++k) store(k, kept_dw[k], xi - CMap(xs + Index{exact.list[k]} * D));
       });
       return;
     }
@@ -434,8 +412,7 @@ class SolverD final : public Solver::Impl {
         for (Index k = wide.start[i]; k < wide.start[i + 1]; ++k) {
           const Index j = wide.list[k];
           const Vec xij = xi - CMap(xs + j * D);
-          const Scalar dw = entry(j, xij, std::sqrt(xij.squaredNorm()));
-          if (grads) store(grads->data() + k * D, dw, xij);
+          store(k, entry(j, xij, std::sqrt(xij.squaredNorm())), xij);
         }
       });
     });
@@ -455,7 +432,7 @@ class SolverD final : public Solver::Impl {
     const Scalar* x = s.x.data();
     // With factors, sum_j |m grad W_ij|^2 goes from the fluid pass to the boundary pass in factor_.
     Scalar* sum_sq = factor_.data();
-    kernel_rows(lists_->fluid, fluid_exact_, &fluid_grad_, x, x, s.n, [&](Index i, const Vec&, auto&& entries) {
+    kernel_rows(lists_->fluid, fluid_exact_, fluid_dw_, &fluid_grad_, x, x, s.n, [&](Index i, const Vec&, auto&& entries) {
       Scalar rho = m * W_.w0();
       Vec gsum = Vec::Zero();
       Scalar gsq = 0;
@@ -479,7 +456,7 @@ class SolverD final : public Solver::Impl {
     const Scalar* psi = model_.boundary_psi.data();
     // Below this a particle has (almost) no neighbours and no pressure to apply.
     const Scalar min_denom = 1e-6 * m * m / std::pow(model_.h, 2 * D + 2);
-    kernel_rows(lists_->boundary, boundary_exact_, nullptr, xb, x, s.n, [&](Index i, const Vec&, auto&& entries) {
+    kernel_rows(lists_->boundary, boundary_exact_, boundary_dw_, nullptr, xb, x, s.n, [&](Index i, const Vec&, auto&& entries) {
       Scalar rho = density[i];
       Vec bsum = Vec::Zero();
       entries([&](Index b, const Vec& xib, Scalar r) {
@@ -770,10 +747,9 @@ class SolverD final : public Solver::Impl {
   std::vector<float> fluid_grad_;
   std::vector<Scalar> grad_sum_;           // (n, d) DFSPH: G_i = sum_j m grad W_ij + sum_b psi_b grad W_ib
   std::vector<Scalar> boundary_grad_sum_;  // (n, d) sum_b psi_b grad W_ib
-  // kernel_pass with a skin: the entries kept and (fluid) their gradients, row i at the offset
-  // of its Verlet row, before they are packed into fluid_exact_ / boundary_exact_ and fluid_grad_.
-  std::vector<std::int32_t> scratch_list_;
-  std::vector<float> scratch_grads_;
+  // kernel_pass with a skin: dW/dr / r of the entries kept, one buffer per list so that each
+  // grows to its list's size once (shared, every fluid pass after a boundary pass regrew it).
+  std::vector<Scalar> fluid_dw_, boundary_dw_;
 };
 
 }  // namespace
