@@ -374,14 +374,14 @@ def at(points, e):
     return None
 
 
-def equal_accuracy_ratios(curves, errors=(1e-3, 5e-4, 2e-4, 1e-4)):
-    """Peer / kinema seconds per simulated second at equal measured density error: each curve
-    at that error (at()), the peer at its fastest wall model there. Returns [(error, ratio or
-    None, peer name)]."""
+def peer_ratios(curves, peer_cost, errors=(1e-3, 5e-4, 2e-4, 1e-4)):
+    """Peer / kinema seconds per simulated second at each error e: kinema's curve at e (at())
+    against peer_cost(points, e) of each SPlisHSPlasH curve (None where undefined), the peer at
+    its cheapest wall model. Returns [(error, ratio or None, peer name)]."""
     out = []
     for e in errors:
         k = at(curves.get("kinema-dfsph", []), e)
-        peers = [(at(v, e), name) for name, v in curves.items() if name.startswith("splishsplash")]
+        peers = [(peer_cost(v, e), name) for name, v in curves.items() if name.startswith("splishsplash")]
         peers = [(t, name) for t, name in peers if t is not None]
         if k is None or not peers:
             out.append((e, None, None))
@@ -391,22 +391,17 @@ def equal_accuracy_ratios(curves, errors=(1e-3, 5e-4, 2e-4, 1e-4)):
     return out
 
 
+def equal_accuracy_ratios(curves, errors=(1e-3, 5e-4, 2e-4, 1e-4)):
+    """At equal measured density error: the peer's curve at e too (no extrapolation)."""
+    return peer_ratios(curves, at, errors)
+
+
 def at_least_as_accurate_ratios(curves, errors=(1e-3, 5e-4, 2e-4, 1e-4)):
-    """Peer / kinema where the peer's curve does not span an error e: the peer's cheapest
-    measured run whose error is <= e (it is at least as accurate) against kinema's curve at e
-    (interpolated, no extrapolation). Defined wherever kinema's curve spans e and some peer run
-    is that accurate; where the peer's curve also spans e it can only be below the interpolated
-    ratio's peer cost, so it is the stricter figure. Returns [(error, ratio or None, peer name)]."""
-    out = []
-    for e in errors:
-        k = at(curves.get("kinema-dfsph", []), e)
-        runs = [(t, name) for name, v in curves.items() if name.startswith("splishsplash") for err, t in v if err <= e]
-        if k is None or not runs:
-            out.append((e, None, None))
-            continue
-        t, name = min(runs)
-        out.append((e, t / k, name))
-    return out
+    """Against the peer's cheapest measured run whose error is <= e (at least as accurate as
+    kinema at e): defined also where the peer's curve does not reach e (its cheapest settings
+    already land below it). Where both measures exist they can differ either way (a run just
+    above e may be cheaper than the interpolated cost at e)."""
+    return peer_ratios(curves, lambda v, e: min((t for err, t in v if err <= e), default=None), errors)
 
 
 def print_ratios(sizes, results):
