@@ -515,6 +515,21 @@ def test_state_views_are_zero_copy_and_survive_the_fluid():
     assert np.isfinite(xv.sum())  # the views keep their owner alive
 
 
+@pytest.mark.parametrize("method", ["dfsph", "wcsph"])
+def test_step_stats_split_the_step_time(method):
+    # StepStats says where a step's wall time went: the neighbour search, the kernel pass and
+    # the pressure solves are disjoint parts of the step, so they are >= 0 and sum to at most
+    # the step's seconds; the kernel pass and the solve always run.
+    s = 0.01
+    fluid = km.sph.Fluid(km.sph.block([0, 0, 0], [0.1, 0.2, 0.1], s), s, method=method, gravity=down(3),
+                         domain=([0, 0, 0], [0.4, 0.3, 0.1]))
+    for _ in range(5):
+        st = fluid.step(fluid.stable_dt())
+        parts = (st.search_seconds, st.kernel_seconds, st.solve_seconds)
+        assert min(parts) >= 0 and st.kernel_seconds > 0 and st.solve_seconds > 0, parts
+        assert sum(parts) <= st.seconds, (parts, st.seconds)
+
+
 def test_runs_are_bitwise_reproducible():
     s = 0.01
     x = km.sph.block([0, 0], [0.1, 0.2], s)

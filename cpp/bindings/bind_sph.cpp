@@ -283,6 +283,12 @@ void bind_sph(py::module_& m) {
       .def_readonly("neighbor_count", &StepStats::neighbor_count, "fluid-fluid neighbour entries (2 per pair)")
       .def_readonly("neighbor_rebuild", &StepStats::neighbor_rebuild,
                     "the neighbour lists were rebuilt from the cell grid")
+      .def_readonly("search_seconds", &StepStats::search_seconds,
+                    "wall time of the neighbour search (grid, Verlet lists, reordering) [s]")
+      .def_readonly("kernel_seconds", &StepStats::kernel_seconds,
+                    "wall time of the kernel pass (densities, kernel gradients, DFSPH factors) [s]")
+      .def_readonly("solve_seconds", &StepStats::solve_seconds,
+                    "wall time of the pressure solves (DFSPH) or the pressure force (WCSPH) [s]")
       .def("__repr__", [](const StepStats& s) {
         return "sph.StepStats(time=" + format_real(s.time) + ", dt=" + format_real(s.dt) +
                ", iterations=" + std::to_string(s.iterations) + ", divergence_iterations=" +

@@ -62,6 +62,8 @@ class SolverD final : public Solver::Impl {
     stats.max_speed = check_state(s, dt);
     stats.neighbor_count = fluid().size();
     stats.neighbor_rebuild = rebuilt_;
+    stats.search_seconds = search_seconds_;
+    stats.kernel_seconds = kernel_seconds_;
     stats.seconds = watch.seconds();
     return stats;
   }
@@ -113,7 +115,9 @@ class SolverD final : public Solver::Impl {
     // Accelerations: gravity, viscosity (course notes eq. 33) and the symmetric pressure force
     // a_i = -sum_j m (p_i/rho_i^2 + p_j/rho_j^2) grad W_ij (eq. 5), the boundary mirroring p_i.
     non_pressure_accelerations(s);
+    Stopwatch solve;
     pressure_accelerations(s);
+    stats.solve_seconds = solve.seconds();
     // Symplectic Euler: v += dt a, then x += dt v.
     const Index n = s.n;
     parallel_for(n, [&](Index i) {
@@ -133,12 +137,16 @@ class SolverD final : public Solver::Impl {
     // the step's kernel gradients, densities and the factors alpha_i (eq. 11).
     neighborhoods(s, true, true, s.density.data());
     // Divergence-free solver (Algorithm 2): make D rho / Dt = 0 with the current velocities.
+    Stopwatch solve;
     if (config_.divergence_solve) stats.divergence_iterations = divergence_solve(s, dt, stats, interrupt);
+    stats.solve_seconds = solve.seconds();
     // Non-pressure accelerations (gravity, viscosity) and the predicted velocity v* (eq. 2).
     non_pressure_accelerations(s);
     parallel_for(n, [&](Index i) { Map(s.v.data() + i * D) += dt * CMap(accel_.data() + i * D); });
     // Constant-density solver (Algorithm 3): correct v* so that rho* = rho0.
+    solve.restart();
     stats.iterations = density_solve(s, dt, stats, interrupt);
+    stats.solve_seconds += solve.seconds();
     // Positions: x += dt v*.
     parallel_for(n, [&](Index i) { Map(s.x.data() + i * D) += dt * CMap(s.v.data() + i * D); });
     enforce_domain(s);
@@ -475,6 +483,7 @@ class SolverD final : public Solver::Impl {
   // skin. Morton reordering happens at a rebuild, at most every reorder_every steps.
   void neighborhoods(State& s, bool may_reorder, bool factors, Scalar* density) {
     const Scalar h = model_.h;
+    Stopwatch watch;
     const VerletLists* lists = s.lists.get();
     rebuilt_ = !lists || lists->skin == 0 || lists->x.size() != s.x.size() ||
                2 * max_displacement(s, lists->x) >= 0.999 * lists->skin * h;
@@ -488,7 +497,10 @@ class SolverD final : public Solver::Impl {
       build_lists(s, s.x, config_.neighbor_skin * h >= 4 * travel ? config_.neighbor_skin : 0);
     }
     lists_ = s.lists.get();
+    search_seconds_ = watch.seconds();
+    watch.restart();
     kernel_pass(s, factors, density);
+    kernel_seconds_ = watch.seconds();
   }
 
   // s.lists := the Verlet lists of radius h (1 + skin) at the positions x, in lists the
@@ -723,6 +735,7 @@ class SolverD final : public Solver::Impl {
   NeighborLists fluid_exact_, boundary_exact_;  // their entries within h (kernel_pass; with a skin)
   RowSums<D> rows_;                             // the light passes' row sums (AVX2 or baseline)
   bool rebuilt_ = false;                        // the step rebuilt the lists
+  double search_seconds_ = 0, kernel_seconds_ = 0;  // the last neighborhoods() call's split
   const Scalar* forces_ = nullptr;              // the step's external forces (n, d) by particle id, or null
   std::vector<Scalar> accel_;      // (n, d) accelerations
   std::vector<Scalar> aux_;        // DFSPH: predicted densities or density rates; WCSPH: p_i / rho_i^2

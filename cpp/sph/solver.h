@@ -32,6 +32,12 @@ struct StepStats : StepStatsBase {
   Scalar max_speed = 0;           // after the step [m/s]
   Index neighbor_count = 0;       // fluid-fluid neighbour entries (2 per pair)
   bool neighbor_rebuild = false;  // the neighbour lists were rebuilt from the cell grid
+  // Where the step's wall time went [s]: the neighbour search (grid, Verlet lists, Morton
+  // reordering), the kernel pass (exact pairs, densities, kernel gradients, DFSPH's alpha_i)
+  // and the pressure solves (DFSPH: both; WCSPH: the pressure force).
+  double search_seconds = 0;
+  double kernel_seconds = 0;
+  double solve_seconds = 0;
 };
 
 class Solver {
