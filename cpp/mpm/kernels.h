@@ -172,6 +172,32 @@ Mat<D> snow_project(const Mat<D>& F, const Material& m, Scalar& Jp, Svd<D>& s) {
   return s.U * s.sigma.asDiagonal() * s.V.transpose();
 }
 
+// The same projection in 2D without U and V: F splits into a rotation-like and a
+// reflection-like part, F = [[e, -f], [f, e]] + [[g, k], [k, -g]] with e = (F00 + F11) / 2,
+// f = (F10 - F01) / 2, g = (F00 - F11) / 2, k = (F01 + F10) / 2, whose norms r1 = |(e, f)| and
+// r2 = |(g, k)| give the signed singular values sigma = r1 + r2, r1 - r2 (the convention of
+// svd above: the second is negative for a reflection), and U diag(s1, s2) V^T keeps this form
+// with r1 -> (s1 + s2) / 2 and r2 -> (s1 - s2) / 2. Clamping the singular values therefore only
+// rescales the two parts: two square roots, no eigenvectors, and F is returned bit for bit when
+// nothing clamps. A part of zero norm has an undefined direction; its new norm is then zero too
+// (r2 = 0: s1 = s2 clamp alike) or it is taken as the identity (r1 = 0, as svd above).
+inline Mat<2> snow_project(const Mat<2>& F, const Material& m, Scalar& Jp) {
+  const Scalar e = 0.5 * (F(0, 0) + F(1, 1)), f = 0.5 * (F(1, 0) - F(0, 1));
+  const Scalar g = 0.5 * (F(0, 0) - F(1, 1)), k = 0.5 * (F(0, 1) + F(1, 0));
+  const Scalar r1 = std::sqrt(e * e + f * f), r2 = std::sqrt(g * g + k * k);
+  const Scalar s1 = r1 + r2, s2 = r1 - r2;
+  const Scalar lo = 1 - m.theta_c, hi = 1 + m.theta_s;
+  const Scalar c1 = std::clamp(s1, lo, hi), c2 = std::clamp(s2, lo, hi);
+  if (c1 == s1 && c2 == s2) return F;
+  Jp *= (s1 * s2) / (c1 * c2);
+  const Scalar n1 = 0.5 * (c1 + c2), n2 = 0.5 * (c1 - c2);
+  const Scalar a1 = r1 > 0 ? n1 / r1 : 0, a2 = r2 > 0 ? n2 / r2 : 0;
+  const Scalar E = r1 > 0 ? a1 * e : n1, Fs = a1 * f, G = a2 * g, K = a2 * k;
+  Mat<2> out;
+  out << E + G, K - Fs, Fs + K, E - G;
+  return out;
+}
+
 // Drucker-Prager return mapping in log-strain space (Klar et al. 2016, Sec. 7.3, Algorithm 2):
 // with eps = log(Sigma), its deviator eps^ and the trace measured from the apex,
 //   tr > 0 (tension beyond the apex)   -> eps = apex_trace / d (projection onto the tip),

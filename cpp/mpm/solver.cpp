@@ -864,7 +864,8 @@ class SolverD final : public Solver::Impl {
     Svd<D> s;
     switch (m.kind) {
       case MaterialKind::Snow:
-        F = snow_project<D>(F, m, Jp, s);
+        if constexpr (D == 2) F = snow_project(F, m, Jp);
+        else F = snow_project<D>(F, m, Jp, s);
         break;
       case MaterialKind::Sand: {
         Material own = m;  // the yield surface with this particle's moduli

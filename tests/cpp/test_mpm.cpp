@@ -261,6 +261,61 @@ void stress_adjoints_match_finite_differences() {
   EXPECT_NEAR(E_bar, (mb * (mp - mm) + lb * (lp - lm)) / 2e-3, 1e-6 * std::abs(E_bar));
 }
 
+// The 2D snow projection without an SVD (kernels.h) against the projection through the signed
+// SVD and against Eigen's JacobiSVD (singular values clamped, F = U Sigma V^T rebuilt), on random
+// F and on degenerate ones: repeated singular values (scaled rotations, both inside and outside
+// the clamp), reflections, rank one and zero. The three are the same map; the differences are
+// rounding, a few ulps of |F| (the tolerance 1e-13 |F| covers the sqrt and product chains).
+void snow_projection_without_svd() {
+  const Material snow = make_material(2, MaterialKind::Snow, 400, 1.4e5, 0.2, 0, 0);
+  std::mt19937 rng(11);
+  std::vector<Mat<2>> cases;
+  for (int k = 0; k < 300; ++k) cases.push_back(random_F<2>(rng, k < 100 ? 0.01 : k < 200 ? 0.2 : 1.5));
+  for (Scalar scale : {0.0, 0.5, 0.98, 1.0, 1.005, 1.2}) {
+    for (Scalar angle : {0.0, 0.3, 2.0, M_PI}) {
+      Mat<2> R;
+      R << std::cos(angle), -std::sin(angle), std::sin(angle), std::cos(angle);
+      cases.push_back(scale * R);
+      Mat<2> reflect = scale * R;
+      reflect.col(0) *= -1;
+      cases.push_back(reflect);
+      cases.push_back(R * Eigen::Vector2d(scale, 0).asDiagonal() * R.transpose());  // rank one (or zero)
+    }
+  }
+  for (const Mat<2>& F : cases) {
+    Scalar Jp_fast = 1.3, Jp_svd = 1.3;
+    Svd<2> s;
+    const Mat<2> fast = snow_project(F, snow, Jp_fast);
+    const Mat<2> ref = snow_project<2>(F, snow, Jp_svd, s);
+    const Scalar tol = 1e-13 * (1 + F.norm());
+    EXPECT_LT((fast - ref).norm(), tol) << F;
+    // Eigen's SVD: unsigned singular values; the signed convention moves det's sign onto the
+    // smaller one (clamped to 1 - theta_c when negative, as the signed clamp does).
+    Eigen::JacobiSVD<Mat<2>> jac(F, Eigen::ComputeFullU | Eigen::ComputeFullV);
+    Mat<2> U = jac.matrixU(), V = jac.matrixV();
+    Eigen::Vector2d sigma = jac.singularValues();
+    if (U.determinant() < 0) U.col(1) *= -1, sigma(1) *= -1;
+    if (V.determinant() < 0) V.col(1) *= -1, sigma(1) *= -1;
+    Eigen::Vector2d clamped = sigma;
+    for (int a = 0; a < 2; ++a) clamped(a) = std::clamp(sigma(a), 1 - snow.theta_c, 1 + snow.theta_s);
+    // A scaled reflection (sigma = s, -s) has no unique signed SVD: U V^T is any rotation, and
+    // the clamped F with it; there only the two forms of kernels.h are compared (above).
+    if (!(sigma(1) < 0 && sigma(0) + sigma(1) <= 1e-12 * sigma(0)))
+      EXPECT_LT((fast - U * clamped.asDiagonal() * V.transpose()).norm(), tol) << F;
+    // Jp = 1.3 s1 s2 / (c1 c2): s2 carries an absolute rounding of a few ulps of s1.
+    const Scalar Jp_ref = 1.3 * sigma.prod() / clamped.prod();
+    EXPECT_NEAR(Jp_fast, Jp_ref, 1e-12 * std::abs(Jp_ref) + 1e-13 * 1.3 * sigma(0) * sigma(0) / std::abs(clamped.prod()))
+        << F;
+  }
+  // Inside the clamp the elastic F is kept bit for bit and Jp is untouched.
+  Mat<2> inside;
+  inside << 1.001, 0.002, -0.001, 0.999;
+  Scalar Jp = 1.3;
+  EXPECT_EQ(snow_project(inside, snow, Jp), inside);
+  EXPECT_EQ(Jp, 1.3);
+}
+
+TEST(MpmKernels, SnowProjectionWithoutSvd2D) { snow_projection_without_svd(); }
 TEST(MpmKernels, StressAdjoints2D) { stress_adjoints_match_finite_differences<2>(); }
 TEST(MpmKernels, StressAdjoints3D) { stress_adjoints_match_finite_differences<3>(); }
 TEST(MpmKernels, SignedSvd2D) { svd_cases<2>(); }
