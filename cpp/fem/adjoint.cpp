@@ -129,16 +129,35 @@ void Solver::lame_to_parameters(const std::vector<Scalar>& g_mu, const std::vect
                                 Scalar factor, ParameterGradient& params) const {
   const Parameters& p = model_.parameters;
   const Index count = model_.element_count;
-  params.youngs_modulus.assign(count, 0);
-  params.poisson_ratio.assign(count, 0);
   const bool uniform_E = p.youngs_modulus.size() == 1, uniform_nu = p.poisson_ratio.size() == 1;
-  parallel_for(count, [&](Index e) {
+  const auto chain = [&](Index e, Scalar& dE, Scalar& dnu) {
     const Scalar E = p.youngs_modulus[uniform_E ? 0 : e], nu = p.poisson_ratio[uniform_nu ? 0 : e];
     const Scalar a = 1 + nu, b = 1 - 2 * nu;
     const Scalar dmu_dE = 1 / (2 * a), dmu_dnu = -E / (2 * a * a);
     const Scalar dlam_dE = nu / (a * b), dlam_dnu = E * (1 + 2 * nu * nu) / (a * a * b * b);
-    params.youngs_modulus[e] = factor * (g_mu[e] * dmu_dE + g_lam[e] * dlam_dE);
-    params.poisson_ratio[e] = factor * (g_mu[e] * dmu_dnu + g_lam[e] * dlam_dnu);
+    dE = factor * (g_mu[e] * dmu_dE + g_lam[e] * dlam_dE);
+    dnu = factor * (g_mu[e] * dmu_dnu + g_lam[e] * dlam_dnu);
+  };
+  // A uniform value's gradient is the elements' sum (parallel_sum: the same bits on any thread
+  // count), so a stored run and step-by-step calls add the same per-step values.
+  params.youngs_modulus.assign(uniform_E ? 1 : count, 0);
+  params.poisson_ratio.assign(uniform_nu ? 1 : count, 0);
+  if (!uniform_E || !uniform_nu)
+    parallel_for(count, [&](Index e) {
+      Scalar dE, dnu;
+      chain(e, dE, dnu);
+      if (!uniform_E) params.youngs_modulus[e] = dE;
+      if (!uniform_nu) params.poisson_ratio[e] = dnu;
+    });
+  if (uniform_E) params.youngs_modulus[0] = parallel_sum(count, [&](Index e) {
+    Scalar dE, dnu;
+    chain(e, dE, dnu);
+    return dE;
+  });
+  if (uniform_nu) params.poisson_ratio[0] = parallel_sum(count, [&](Index e) {
+    Scalar dE, dnu;
+    chain(e, dE, dnu);
+    return dnu;
   });
 }
 
@@ -174,6 +193,14 @@ void Solver::step_adjoint(const State& before, const State& after, Scalar dt,
                           const Scalar* control, State& adjoint, ParameterGradient& params,
                           Scalar* grad_control, Interrupt& interrupt,
                           const ParameterMask& wanted) {
+  adjoint_step(before, after, after.factor.x.empty() ? before.factor : after.factor, dt, control,
+               adjoint, params, grad_control, interrupt, wanted);
+}
+
+void Solver::adjoint_step(const State& before, const State& after, const FactorRecord& factor,
+                          Scalar dt, const Scalar* control, State& adjoint,
+                          ParameterGradient& params, Scalar* grad_control, Interrupt& interrupt,
+                          const ParameterMask& wanted) {
   if (!(dt > 0) || !std::isfinite(dt))
     throw InvalidArgument("dt: expected a finite time step > 0 [s], got " + format_real(dt));
   const std::size_t size = model_.rest.size();
@@ -185,7 +212,8 @@ void Solver::step_adjoint(const State& before, const State& after, Scalar dt,
   if (config_.integrator == Integrator::Symplectic)
     adjoint_symplectic(before, after, dt, control, adjoint, params, grad_control, wanted);
   else
-    adjoint_implicit(before, after, dt, control, adjoint, params, grad_control, interrupt, wanted);
+    adjoint_implicit(before, after, factor, dt, control, adjoint, params, grad_control, interrupt,
+                     wanted);
 }
 
 void Solver::adjoint_symplectic(const State& before, const State& after, Scalar dt,
@@ -234,10 +262,10 @@ void Solver::adjoint_symplectic(const State& before, const State& after, Scalar 
   });
 }
 
-void Solver::adjoint_implicit(const State& before, const State& after, Scalar dt,
-                              const Scalar* control, State& adjoint, ParameterGradient& params,
-                              Scalar* grad_control, Interrupt& interrupt,
-                              const ParameterMask& wanted) {
+void Solver::adjoint_implicit(const State& before, const State& after,
+                              const FactorRecord& factor, Scalar dt, const Scalar* control,
+                              State& adjoint, ParameterGradient& params, Scalar* grad_control,
+                              Interrupt& interrupt, const ParameterMask& wanted) {
   (void)control;  // G is linear in u: dG/du = -h^2 I whatever its value
   const Model& m = model_;
   const int d = m.dim;
@@ -263,7 +291,7 @@ void Solver::adjoint_implicit(const State& before, const State& after, Scalar dt
   // step's answer depends on its states only (not on which steps ran before it): checkpointed
   // and repeated backward passes agree bitwise.
   SpdSolveStats s;
-  FactorRecord key = after.factor.x.empty() ? before.factor : after.factor;
+  FactorRecord key = factor;
   key.refactor_pending = false;
   const bool lagged = config_.linear_solver != LinearSolver::CholmodDirect && !key.x.empty() &&
                       key.x.size() == after.x.size();
