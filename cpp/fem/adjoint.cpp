@@ -21,6 +21,8 @@
 
 #include "core/errors.h"
 #include "core/parallel.h"
+#include "fem/element_pass.h"
+#include "fem/neohookean_lanes.h"
 #include "fem/solver.h"
 #include "linalg/cg.h"
 
@@ -48,43 +50,6 @@ Scalar free_dof_sum(const Model& m, Term&& term) {
 template <int D>
 Mat<D> dm_inverse(const Model& m, Index e) {
   return Eigen::Map<const Mat<D>>(m.Dm_inv.data() + e * D * D);
-}
-
-// dP/dF applied to dF without forming the D^2 x D^2 matrix (piola_derivative<D>(F) vec(dF), as
-// fem/kernels.h writes it, term by term); the corotated model's rotation derivative goes
-// through the matrix.
-template <int D>
-Mat<D> piola_differential(const Mat<D>& F, const Mat<D>& dF, Material m, Scalar mu, Scalar lam) {
-  const Mat<D> I = Mat<D>::Identity();
-  switch (m) {
-    case Material::Linear:
-      return mu * (dF + dF.transpose()) + lam * dF.trace() * I;
-    case Material::StVK: {
-      const Mat<D> E = (F.transpose() * F - I) / 2;
-      const Mat<D> S = 2 * mu * E + lam * E.trace() * I;
-      const Mat<D> dE = (dF.transpose() * F + F.transpose() * dF) / 2;
-      return dF * S + F * (2 * mu * dE + lam * dE.trace() * I);
-    }
-    case Material::NeoHookean: {
-      // mu dF + lam' (cof F : dF) cof F + (lam' (J - 1) - mu) d(cof F)[dF], lam' = lam + mu.
-      const Scalar l = lam + mu;
-      const Mat<D> C = cofactor<D>(F);
-      Mat<D> dC;
-      if constexpr (D == 2) {
-        dC = cofactor<D>(dF);  // linear in F
-      } else {
-        dC.col(0) = dF.col(1).cross(F.col(2)) + F.col(1).cross(dF.col(2));
-        dC.col(1) = dF.col(2).cross(F.col(0)) + F.col(2).cross(dF.col(0));
-        dC.col(2) = dF.col(0).cross(F.col(1)) + F.col(0).cross(dF.col(1));
-      }
-      return mu * dF + (l * C.cwiseProduct(dF).sum()) * C + (l * det_minus_one<D>(F - I) - mu) * dC;
-    }
-    case Material::Corotated:
-      break;
-  }
-  Mat<D> dP;
-  Eigen::Map<Eigen::Matrix<Scalar, D * D, 1>>(dP.data()) = piola_derivative<D>(F, m, mu, lam) * vec<D>(dF);
-  return dP;
 }
 
 }  // namespace
@@ -165,26 +130,18 @@ template <int D>
 Scalar Solver::adjoint_elements_d(const Scalar* x, const Scalar* w, Scalar* Kw, Scalar* g_mu,
                                      Scalar* g_lam, bool work) {
   const Model& m = model_;
-  constexpr int K = (D + 1) * D;
+  // K w by the neo-Hookean tetrahedra's lane pass where it applies (whatever else is asked, so
+  // that K w does not depend on which parameter gradients are wanted); the parameter terms in
+  // a pass of their own then.
+  const bool by_lanes = lanes::kAvailable && D == 3 && m.material() == Material::NeoHookean;
+  if (by_lanes) lanes::neohookean_terms(m, x, w, avx2_, element_vectors_.data());
   std::vector<Scalar> element_work(work ? m.element_count : 0);
-  parallel_for(m.element_count, [&](Index e) {
-    const Index* el = m.elements.data() + e * (D + 1);
-    const Mat<D> Dinv = dm_inverse<D>(m, e);
-    const Mat<D> F = deformation_gradient<D>(x, el, Dinv);
-    const Mat<D> dF = deformation_gradient<D>(w, el, Dinv);  // linear in w: Ds(w) Dm^-1
-    const Mat<D> dP = piola_differential<D>(F, dF, m.material(), m.mu[e], m.lam[e]);
-    Eigen::Map<ElementVec<D>>(element_vectors_.data() + e * K) =
-        element_gradient<D>(dP, Dinv, m.volume[e]);
-    if (g_mu) {
-      Mat<D> A, B;
-      piola_lame_derivatives<D>(F, m.material(), A, B);
-      g_mu[e] = m.volume[e] * A.cwiseProduct(dF).sum();
-      g_lam[e] = m.volume[e] * B.cwiseProduct(dF).sum();
-    }
-    if (work)
-      element_work[e] =
-          m.volume[e] * piola<D>(F, m.material(), m.mu[e], m.lam[e]).cwiseProduct(dF).sum();
-  });
+  if (!by_lanes || g_mu || work)
+    parallel_for(m.element_count, [&](Index e) {
+      const Scalar work_e = element_adjoint_term<D>(m, x, w, e, by_lanes ? nullptr : element_vectors_.data(),
+                                                    g_mu, g_lam, work);
+      if (work) element_work[e] = work_e;
+    });
   assembly_.gather_vector(element_vectors_.data(), Kw);
   return work ? parallel_sum(m.element_count, [&](Index e) { return element_work[e]; }) : 0;
 }

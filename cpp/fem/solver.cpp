@@ -11,6 +11,8 @@
 #include "core/parallel.h"
 #include "mesh/vertex_set.h"
 #include "core/timer.h"
+#include "fem/element_pass.h"
+#include "fem/neohookean_lanes.h"
 #include "linalg/cg.h"
 
 namespace kinema::fem {
@@ -84,14 +86,10 @@ Scalar Solver::gravity_energy(const Scalar* x) const {
 template <int D>
 void Solver::elastic_gradient_d(const Scalar* x, Scalar* g) {
   const Model& m = model_;
-  constexpr int K = (D + 1) * D;
-  parallel_for(m.element_count, [&](Index e) {
-    const Mat<D> Dinv = dm_inv<D>(m, e);
-    const Mat<D> F = deformation_gradient<D>(x, m.elements.data() + e * (D + 1), Dinv);
-    const Mat<D> P = piola<D>(F, m.material(), m.mu[e], m.lam[e]);
-    Eigen::Map<ElementVec<D>>(element_vectors_.data() + e * K) =
-        element_gradient<D>(P, Dinv, m.volume[e]);
-  });
+  if (lanes::kAvailable && D == 3 && m.material() == Material::NeoHookean)
+    lanes::neohookean_terms(m, x, nullptr, avx2_, element_vectors_.data());
+  else
+    parallel_for(m.element_count, [&](Index e) { element_force_term<D>(m, x, e, element_vectors_.data()); });
   assembly_.gather_vector(element_vectors_.data(), g);
 }
 

@@ -16,6 +16,7 @@
 #include <vector>
 
 #include "core/interrupt.h"
+#include "core/simd.h"
 #include "core/step_stats.h"
 #include "fem/model.h"
 #include "linalg/spd_solver.h"
@@ -190,6 +191,7 @@ class Solver {
   FactorRecord factor_;
   bool force_refactor_ = false;
   Scalar explicit_dt_limit_ = 0;
+  bool avx2_ = use_avx2();  // the neo-Hookean element passes' AVX2 version (core/simd.h)
 };
 
 }  // namespace kinema::fem
