@@ -22,7 +22,6 @@
 #include "core/errors.h"
 #include "core/parallel.h"
 #include "fem/element_pass.h"
-#include "fem/neohookean_lanes.h"
 #include "fem/solver.h"
 #include "linalg/cg.h"
 
@@ -134,7 +133,7 @@ Scalar Solver::adjoint_elements_d(const Scalar* x, const Scalar* w, Scalar* Kw, 
   // that K w does not depend on which parameter gradients are wanted); the parameter terms in
   // a pass of their own then.
   const bool by_lanes = lanes::kAvailable && D == 3 && m.material() == Material::NeoHookean;
-  if (by_lanes) lanes::neohookean_terms(m, x, w, avx2_, element_vectors_.data());
+  if (by_lanes) lanes::neohookean_terms(m, lane_constants(), x, w, avx2_, element_vectors_.data());
   std::vector<Scalar> element_work(work ? m.element_count : 0);
   if (!by_lanes || g_mu || work)
     parallel_for(m.element_count, [&](Index e) {
@@ -182,7 +181,10 @@ void Solver::adjoint_symplectic(const State& before, const State& after, Scalar 
   const Index n = assembly_.dof_count();
   const Scalar c = m.damping(), rho = m.parameters.density;
   const Scalar damp = 1 / (1 + dt * c);
-  std::vector<Scalar> w(n), Kw(n);
+  std::vector<Scalar>& w = adjoint_w_;
+  std::vector<Scalar>& Kw = adjoint_kw_;
+  w.resize(n);
+  Kw.resize(n);
   // b + h a: dL/dv_{n+1} with x_{n+1} = x_n + h v_{n+1} folded in.
   parallel_for(m.vertex_count, [&](Index i) {
     for (int r = 0; r < d; ++r) {

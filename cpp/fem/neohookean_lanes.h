@@ -14,6 +14,7 @@
 #pragma once
 
 #include <algorithm>
+#include <vector>
 
 #include "core/parallel.h"
 #include "core/simd.h"
@@ -28,29 +29,60 @@ constexpr int W = 4;  // elements per block
 // Four doubles operated on together (GCC/Clang vector extension: one AVX2 instruction, or two
 // SSE2 ones in the baseline build); scalars combine with them lane by lane.
 typedef Scalar Lanes __attribute__((vector_size(W * sizeof(Scalar))));
+// The same held in memory that is only Scalar-aligned (a std::vector's storage need not be
+// aligned beyond the allocator's default).
+typedef Scalar StoredLanes __attribute__((vector_size(W * sizeof(Scalar)), aligned(alignof(Scalar))));
 
-// The inputs and outputs of W elements, one Lanes per value; a short last block repeats its
-// last element in the spare lanes (their results are not written).
+// The model's per-element constants of W elements, one Lanes per value: Dm^-1 (column-major),
+// the rest volume and the Lame parameters; a short last block repeats its last element in the
+// spare lanes (their results are not written). Built once per model (pack), so that a block
+// loads them as whole vectors.
+struct Constants {
+  StoredLanes dinv[9], vol, mu, lam;
+};
+
+inline std::vector<Constants> pack(const Model& m) {
+  std::vector<Constants> packed(static_cast<std::size_t>((m.element_count + W - 1) / W));
+  for (Index e = 0; e < static_cast<Index>(packed.size()) * W; ++e) {
+    Constants& c = packed[static_cast<std::size_t>(e / W)];
+    const Index s = std::min(e, m.element_count - 1);
+    const int l = static_cast<int>(e % W);
+    for (int k = 0; k < 9; ++k) c.dinv[k][l] = m.Dm_inv[s * 9 + k];
+    c.vol[l] = m.volume[s];
+    c.mu[l] = m.mu[s];
+    c.lam[l] = m.lam[s];
+  }
+  return packed;
+}
+
+// One block's inputs (with its constants) and outputs.
 struct Block {
-  Lanes ds[9], dw[9], dinv[9], vol, mu, lam;
+  Lanes ds[9], dw[9];
+  const StoredLanes *dinv, *vol, *mu, *lam;
   Lanes g[12];
 };
 
-KINEMA_ALWAYS_INLINE void gather(const Model& m, const Scalar* x, const Scalar* w, Index e0,
-                                 Index count, Block& b) {
-  for (int l = 0; l < W; ++l) {
-    const Index e = e0 + std::min<Index>(l, count - 1);
-    const Index* el = m.elements.data() + e * 4;
-    for (int c = 0; c < 3; ++c)
-      for (int r = 0; r < 3; ++r) {
-        b.ds[r + 3 * c][l] = x[el[c + 1] * 3 + r] - x[el[0] * 3 + r];
-        if (w) b.dw[r + 3 * c][l] = w[el[c + 1] * 3 + r] - w[el[0] * 3 + r];
-      }
-    for (int k = 0; k < 9; ++k) b.dinv[k][l] = m.Dm_inv[e * 9 + k];
-    b.vol[l] = m.volume[e];
-    b.mu[l] = m.mu[e];
-    b.lam[l] = m.lam[e];
-  }
+// Ds(a) of the block's elements, a = x or w: Ds(r, c) = a[v_{c+1}, r] - a[v_0, r]. Each value is
+// built from the four elements' scalars in registers (not stored lane by lane and reloaded).
+KINEMA_ALWAYS_INLINE void edge_matrices(const Scalar* a, const Index* const* el, Lanes* ds) {
+  for (int c = 0; c < 3; ++c)
+    for (int r = 0; r < 3; ++r)
+      ds[r + 3 * c] = Lanes{a[el[0][c + 1] * 3 + r] - a[el[0][0] * 3 + r],
+                            a[el[1][c + 1] * 3 + r] - a[el[1][0] * 3 + r],
+                            a[el[2][c + 1] * 3 + r] - a[el[2][0] * 3 + r],
+                            a[el[3][c + 1] * 3 + r] - a[el[3][0] * 3 + r]};
+}
+
+KINEMA_ALWAYS_INLINE void gather(const Model& m, const Constants& k, const Scalar* x, const Scalar* w,
+                                 Index e0, Index count, Block& b) {
+  const Index* el[W];
+  for (int l = 0; l < W; ++l) el[l] = m.elements.data() + (e0 + std::min<Index>(l, count - 1)) * 4;
+  edge_matrices(x, el, b.ds);
+  if (w) edge_matrices(w, el, b.dw);
+  b.dinv = k.dinv;
+  b.vol = &k.vol;
+  b.mu = &k.mu;
+  b.lam = &k.lam;
 }
 
 KINEMA_ALWAYS_INLINE void scatter(const Block& b, Index e0, Index count, Scalar* out) {
@@ -59,7 +91,7 @@ KINEMA_ALWAYS_INLINE void scatter(const Block& b, Index e0, Index count, Scalar*
 }
 
 // A = B C for column-major 3 x 3 matrices.
-KINEMA_ALWAYS_INLINE void product(const Lanes* B, const Lanes* C, Lanes* A) {
+KINEMA_ALWAYS_INLINE void product(const Lanes* B, const StoredLanes* C, Lanes* A) {
   for (int c = 0; c < 3; ++c)
     for (int r = 0; r < 3; ++r)
       A[r + 3 * c] = B[r] * C[3 * c] + B[r + 3] * C[1 + 3 * c] + B[r + 6] * C[2 + 3 * c];
@@ -91,11 +123,11 @@ KINEMA_ALWAYS_INLINE Lanes det_minus_one3(const Lanes* H, const Lanes* cofH) {
 // The elements' vertex terms from P: vol P Dm^-T (columns: vertices 1..3; vertex 0 minus
 // their sum).
 KINEMA_ALWAYS_INLINE void vertex_terms(const Lanes* P, Block& b) {
-  const Lanes* Dinv = b.dinv;
+  const StoredLanes* Dinv = b.dinv;
   for (int a = 0; a < 3; ++a)
     for (int r = 0; r < 3; ++r)  // (vol P Dm^-T)(r, a) = vol sum_k P(r, k) Dm^-1(a, k)
       b.g[3 * (a + 1) + r] =
-          b.vol * (P[r] * Dinv[a] + P[r + 3] * Dinv[a + 3] + P[r + 6] * Dinv[a + 6]);
+          *b.vol * (P[r] * Dinv[a] + P[r + 3] * Dinv[a + 3] + P[r + 6] * Dinv[a + 6]);
   for (int r = 0; r < 3; ++r) b.g[r] = -(b.g[3 + r] + b.g[6 + r] + b.g[9 + r]);
 }
 
@@ -105,7 +137,7 @@ KINEMA_ALWAYS_INLINE void force_lanes(Block& b) {
   for (int k = 0; k < 9; ++k) H[k] = k % 4 == 0 ? F[k] - 1 : F[k];
   cofactor3(F, C);
   cofactor3(H, cofH);
-  const Lanes mu = b.mu, lp = b.lam + b.mu;
+  const Lanes mu = *b.mu, lp = *b.lam + *b.mu;
   const Lanes Jm1 = det_minus_one3(H, cofH);
   const Lanes t = H[0] + H[4] + H[8];
   const Lanes s = lp * Jm1;
@@ -132,7 +164,7 @@ KINEMA_ALWAYS_INLINE void hessian_product_lanes(Block& b) {
     cross(F + p, dF + q, t2);
     for (int r = 0; r < 3; ++r) dC[3 * a + r] = t1[r] + t2[r];
   }
-  const Lanes mu = b.mu, lp = b.lam + b.mu;
+  const Lanes mu = *b.mu, lp = *b.lam + *b.mu;
   const Lanes Jm1 = det_minus_one3(H, cofH);
   Lanes CdF = C[0] * dF[0];
   for (int k = 1; k < 9; ++k) CdF += C[k] * dF[k];
@@ -141,35 +173,36 @@ KINEMA_ALWAYS_INLINE void hessian_product_lanes(Block& b) {
   vertex_terms(dP, b);
 }
 
-// Elements [begin, end): the force terms (w null) or the K w terms, into out (12 per element).
-KINEMA_ALWAYS_INLINE void run_blocks(const Model& m, const Scalar* x, const Scalar* w, Index begin,
-                                     Index end, Scalar* out) {
+// Elements [begin, end) (begin a multiple of W): the force terms (w null) or the K w terms,
+// into out (12 per element).
+KINEMA_ALWAYS_INLINE void run_blocks(const Model& m, const Constants* k, const Scalar* x,
+                                     const Scalar* w, Index begin, Index end, Scalar* out) {
   Block b;
   for (Index e0 = begin; e0 < end; e0 += W) {
     const Index count = std::min<Index>(W, end - e0);
-    gather(m, x, w, e0, count, b);
+    gather(m, k[e0 / W], x, w, e0, count, b);
     if (w) hessian_product_lanes(b);
     else force_lanes(b);
     scatter(b, e0, count, out);
   }
 }
 
-inline void run_baseline(const Model& m, const Scalar* x, const Scalar* w, Index begin, Index end,
-                         Scalar* out) {
-  run_blocks(m, x, w, begin, end, out);
+inline void run_baseline(const Model& m, const Constants* k, const Scalar* x, const Scalar* w,
+                         Index begin, Index end, Scalar* out) {
+  run_blocks(m, k, x, w, begin, end, out);
 }
 
 #if KINEMA_HAVE_AVX2_CLONES
-KINEMA_TARGET_AVX2 inline void run_avx2(const Model& m, const Scalar* x, const Scalar* w,
-                                        Index begin, Index end, Scalar* out) {
-  run_blocks(m, x, w, begin, end, out);
+KINEMA_TARGET_AVX2 inline void run_avx2(const Model& m, const Constants* k, const Scalar* x,
+                                        const Scalar* w, Index begin, Index end, Scalar* out) {
+  run_blocks(m, k, x, w, begin, end, out);
 }
 #endif
 
-// Every element of the model (3D, neo-Hookean), over the threads in chunks of whole blocks:
-// the force terms at x (w null) or the K(x) w terms.
-inline void neohookean_terms(const Model& m, const Scalar* x, const Scalar* w, bool avx2,
-                             Scalar* out) {
+// Every element of the model (3D, neo-Hookean; k = pack(m)), over the threads in chunks of
+// whole blocks: the force terms at x (w null) or the K(x) w terms.
+inline void neohookean_terms(const Model& m, const std::vector<Constants>& k, const Scalar* x,
+                             const Scalar* w, bool avx2, Scalar* out) {
   constexpr Index chunk = 64 * W;
   const Index count = m.element_count, chunks = (count + chunk - 1) / chunk;
 #pragma omp parallel for schedule(static) if (count > kParallelGrain)
@@ -177,18 +210,21 @@ inline void neohookean_terms(const Model& m, const Scalar* x, const Scalar* w, b
     const Index begin = c * chunk, end = std::min(count, begin + chunk);
 #if KINEMA_HAVE_AVX2_CLONES
     if (avx2) {
-      run_avx2(m, x, w, begin, end, out);
+      run_avx2(m, k.data(), x, w, begin, end, out);
       continue;
     }
 #endif
     (void)avx2;
-    run_baseline(m, x, w, begin, end, out);
+    run_baseline(m, k.data(), x, w, begin, end, out);
   }
 }
 
 #else
 constexpr bool kAvailable = false;  // callers take the generic element pass
-inline void neohookean_terms(const Model&, const Scalar*, const Scalar*, bool, Scalar*) {}
+struct Constants {};
+inline std::vector<Constants> pack(const Model&) { return {}; }
+inline void neohookean_terms(const Model&, const std::vector<Constants>&, const Scalar*,
+                             const Scalar*, bool, Scalar*) {}
 #endif
 
 }  // namespace kinema::fem::lanes

@@ -19,6 +19,7 @@
 #include "core/simd.h"
 #include "core/step_stats.h"
 #include "fem/model.h"
+#include "fem/neohookean_lanes.h"
 #include "linalg/spd_solver.h"
 #include "mesh/element_assembly.h"
 
@@ -182,6 +183,7 @@ class Solver {
   // Scratch, allocated once.
   std::vector<Scalar> element_vectors_, element_matrices_, values_;
   std::vector<Scalar> grad_, dx_, trial_, rhs_;
+  std::vector<Scalar> adjoint_w_, adjoint_kw_;  // the symplectic adjoint's w and K w
   SpdSolver spd_;
   // The adjoint solves' own factor and the forward record it is of (empty: H's own or none).
   SpdSolver adjoint_spd_;
@@ -192,6 +194,12 @@ class Solver {
   bool force_refactor_ = false;
   Scalar explicit_dt_limit_ = 0;
   bool avx2_ = use_avx2();  // the neo-Hookean element passes' AVX2 version (core/simd.h)
+  // The model's element constants packed for those passes (built on first use).
+  const std::vector<lanes::Constants>& lane_constants() {
+    if (lane_constants_.empty()) lane_constants_ = lanes::pack(model_);
+    return lane_constants_;
+  }
+  std::vector<lanes::Constants> lane_constants_;
 };
 
 }  // namespace kinema::fem
