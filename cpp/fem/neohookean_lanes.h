@@ -111,13 +111,14 @@ KINEMA_ALWAYS_INLINE void cofactor3(const Lanes* A, Lanes* C) {
   cross(A, A + 3, C + 6);
 }
 
-// det(I + H) - 1 = tr H + (tr(H)^2 - tr(H^2)) / 2 + det H, with cof H given.
-KINEMA_ALWAYS_INLINE Lanes det_minus_one3(const Lanes* H, const Lanes* cofH) {
+// det(I + H) - 1 = tr H + (tr(H)^2 - tr(H^2)) / 2 + det H, with cof H given (an out
+// argument: a vector returned by value would change the ABI between the two builds).
+KINEMA_ALWAYS_INLINE void det_minus_one3(const Lanes* H, const Lanes* cofH, Lanes& out) {
   const Lanes t = H[0] + H[4] + H[8];
   const Lanes t2 = H[0] * H[0] + H[4] * H[4] + H[8] * H[8] +
                    2 * (H[3] * H[1] + H[6] * H[2] + H[7] * H[5]);
   const Lanes det = H[0] * cofH[0] + H[1] * cofH[1] + H[2] * cofH[2];
-  return t + (t * t - t2) / 2 + det;
+  out = t + (t * t - t2) / 2 + det;
 }
 
 // The elements' vertex terms from P: vol P Dm^-T (columns: vertices 1..3; vertex 0 minus
@@ -138,7 +139,8 @@ KINEMA_ALWAYS_INLINE void force_lanes(Block& b) {
   cofactor3(F, C);
   cofactor3(H, cofH);
   const Lanes mu = *b.mu, lp = *b.lam + *b.mu;
-  const Lanes Jm1 = det_minus_one3(H, cofH);
+  Lanes Jm1;
+  det_minus_one3(H, cofH, Jm1);
   const Lanes t = H[0] + H[4] + H[8];
   const Lanes s = lp * Jm1;
   for (int c = 0; c < 3; ++c)
@@ -165,7 +167,8 @@ KINEMA_ALWAYS_INLINE void hessian_product_lanes(Block& b) {
     for (int r = 0; r < 3; ++r) dC[3 * a + r] = t1[r] + t2[r];
   }
   const Lanes mu = *b.mu, lp = *b.lam + *b.mu;
-  const Lanes Jm1 = det_minus_one3(H, cofH);
+  Lanes Jm1;
+  det_minus_one3(H, cofH, Jm1);
   Lanes CdF = C[0] * dF[0];
   for (int k = 1; k < 9; ++k) CdF += C[k] * dF[k];
   const Lanes sC = lp * CdF, sdC = lp * Jm1 - mu;
