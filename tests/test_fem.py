@@ -2,6 +2,10 @@
 Hessian (symmetry, definiteness after projection, rigid modes), the patch test, Newton's
 quadratic convergence, a cantilever against beam theory, stress tests and bad input."""
 
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -424,3 +428,71 @@ def test_default_reuses_factor_and_agrees_with_direct_to_newton_tol():
         total_factorizations += ia.factorizations
     # After the first step the lagged factor serves several iterations per factorisation.
     assert total_factorizations < total_iterations / 2, (total_factorizations, total_iterations)
+
+
+def _deformed_neohookean_cube(seed=0):
+    V, T = km.fem.box_mesh([0, 0, 0], [1, 1, 1], 3)
+    rng = np.random.default_rng(seed)
+    E = 1e4 * (1 + rng.random(len(T)))
+    b = km.fem.Body(V, T, model="neohookean", youngs_modulus=E, poisson_ratio=0.3, density=100.0)
+    b.x = V + 0.05 * rng.standard_normal(V.shape)
+    return b, V, T
+
+
+def test_neohookean_lane_pass_forces_equal_the_pointwise_formulas():
+    """The 3D neo-Hookean force pass (four elements per vector, cpp/fem/neohookean_lanes.h) gives
+    -sum_e vol P(F_e) Dm^-T as km.fem.piola (kernels.h) evaluates it, to rounding: the two order
+    the same operations differently, so they differ by a few ulps of the element terms summed
+    at a vertex (bound: 1e-13 times the sum of the terms' magnitudes there)."""
+    b, V, T = _deformed_neohookean_cube()
+    x = b.x.copy()
+    Dm = np.stack([V[T[:, k]] - V[T[:, 0]] for k in (1, 2, 3)], axis=2)
+    Dinv = np.linalg.inv(Dm)
+    Ds = np.stack([x[T[:, k]] - x[T[:, 0]] for k in (1, 2, 3)], axis=2)
+    F = Ds @ Dinv
+    P = np.stack([km.fem.piola(F[e], "neohookean", b.mu[e], b.lam[e]) for e in range(len(T))])
+    H = b.volume[:, None, None] * P @ np.transpose(Dinv, (0, 2, 1))  # columns: vertices 1..3
+    terms = np.concatenate([-H.sum(axis=2)[:, None, :], np.transpose(H, (0, 2, 1))], axis=1)
+    f = np.zeros_like(x)
+    scale = np.zeros_like(x)
+    np.add.at(f, T.ravel(), -terms.reshape(-1, 3))
+    np.add.at(scale, T.ravel(), np.abs(terms).reshape(-1, 3))
+    err = np.abs(b.forces() - f)
+    assert np.all(err <= 1e-13 * scale + 1e-300), f"max error {err.max():.3e}, bound {1e-13 * scale.max():.3e}"
+
+
+def test_neohookean_lane_pass_hessian_product_equals_the_assembled_hessian():
+    """The symplectic adjoint's K(x) w (the lane pass's dP[dF]) against the assembled exact
+    Hessian (kernels.h's dP/dF matrices) times w: dL/dx_n = a - K w with w = h (b + h a) / m."""
+    b, V, T = _deformed_neohookean_cube(1)
+    rng = np.random.default_rng(2)
+    a, bv = rng.standard_normal(b.x.shape), rng.standard_normal(b.x.shape)
+    dt = 1e-4
+    s0 = b.state()
+    b._diff_step(dt, None, {"integrator": "symplectic"})
+    g, _, _ = b._diff_step_adjoint(dt, s0, b.state(), None, {"x": a, "v": bv}, {"integrator": "symplectic"})
+    w = dt * (bv + dt * a) / b.mass[:, None]
+    b.set_state(s0)
+    K = b.hessian()
+    Kw = (K @ w.ravel()).reshape(w.shape)
+    scale = (abs(K) @ np.abs(w).ravel()).reshape(w.shape)
+    err = np.abs((a - g["x"]) - Kw)
+    assert np.all(err <= 1e-12 * scale + 1e-14 * np.abs(a)), f"max error {err.max():.3e}"
+
+
+def test_neohookean_lane_pass_baseline_and_avx2_agree_bitwise():
+    """KINEMA_SIMD=baseline (SSE2) and the default (AVX2 where the CPU has it) run the same
+    operations in the same order: forces and a symplectic run agree bit for bit."""
+    code = ("import numpy as np, kinema as km\n"
+            "V, T = km.fem.box_mesh([0, 0, 0], [1, 1, 1], 3)\n"
+            "b = km.fem.Body(V, T, model='neohookean', youngs_modulus=1e4, poisson_ratio=0.3, density=100.0)\n"
+            "b.x = V + 0.05 * np.random.default_rng(0).standard_normal(V.shape)\n"
+            "f = b.forces()\n"
+            "b.step(1e-4, integrator='symplectic', steps=5)\n"
+            "print(np.concatenate([f.ravel(), b.x.ravel()]).tobytes().hex())\n")
+    outs = []
+    for simd in ("baseline", "default"):
+        env = dict(os.environ, KINEMA_SIMD=simd)
+        done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+        outs.append(done.stdout.strip())
+    assert outs[0] == outs[1]

@@ -15,7 +15,10 @@ kinema's would show there.
 
     .venv/bin/python bench/deform/diff_fem_peers.py [--steps 100] [--n 20] [--min-of 3]
 
-Warp runs in its own process (`--warp`); the last line printed is the one-line summary.
+Warp runs in its own process (`--warp`); the last line printed is the one-line summary. For the
+work each code does, run with OMP_NUM_THREADS=1 (Warp's CPU device uses one thread) and compare
+the CPU times. No Taichi peer: bench/ has no Taichi soft-body gradient (deform_taichi_peer.py
+runs Taichi's implicit_fem example forward only).
 """
 
 from __future__ import annotations

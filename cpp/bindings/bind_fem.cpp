@@ -46,6 +46,23 @@ const Scalar* optional_dofs(const std::optional<ScalarArray>& a, const fem::Mode
   return a->data();
 }
 
+// The parameter gradients named in `wanted` (None: all of them).
+fem::ParameterMask parameter_mask(const std::optional<std::vector<std::string>>& wanted) {
+  fem::ParameterMask mask;
+  if (!wanted) return mask;
+  mask = {false, false, false, false};
+  for (const std::string& name : *wanted) {
+    if (name == "youngs_modulus") mask.youngs_modulus = true;
+    else if (name == "poisson_ratio") mask.poisson_ratio = true;
+    else if (name == "density") mask.density = true;
+    else if (name == "damping") mask.damping = true;
+    else
+      throw InvalidArgument("wanted: unknown parameter '" + name +
+                            "' (expected youngs_modulus, poisson_ratio, density, damping)");
+  }
+  return mask;
+}
+
 // Applies a pointwise function to F of shape (k, D, D) (row-major, as numpy gives it).
 template <int D, class Fn>
 void pointwise(const Scalar* F, Index count, Scalar* out, Index out_size, Fn&& fn) {
@@ -192,6 +209,12 @@ void bind_fem(py::module_& m) {
       .def_readonly("density", &fem::ParameterGradient::density)
       .def_readonly("damping", &fem::ParameterGradient::damping);
 
+  py::class_<fem::StoredRun>(m, "StoredRun", "A run Solver.record kept for run_adjoint.")
+      .def_property_readonly("steps", &fem::StoredRun::steps)
+      .def_property_readonly("distinct_factors", [](const fem::StoredRun& r) {
+        return static_cast<Index>(r.factors.size());
+      }, "factor records held (one per forward refactorisation, shared by the states between)");
+
   py::class_<Solver>(m, "Solver")
       .def(py::init([](const fem::Model& model, const fem::Config& config) {
              ReleaseGil release;
@@ -221,19 +244,7 @@ void bind_fem(py::module_& m) {
               const std::optional<ScalarArray>& control, const ScalarArray& grad_x,
               const ScalarArray& grad_v, const std::optional<std::vector<std::string>>& wanted) {
              const fem::Model& md = s.model();
-             fem::ParameterMask mask;
-             if (wanted) {
-               mask = {false, false, false, false};
-               for (const std::string& name : *wanted) {
-                 if (name == "youngs_modulus") mask.youngs_modulus = true;
-                 else if (name == "poisson_ratio") mask.poisson_ratio = true;
-                 else if (name == "density") mask.density = true;
-                 else if (name == "damping") mask.damping = true;
-                 else
-                   throw InvalidArgument("wanted: unknown parameter '" + name +
-                                         "' (expected youngs_modulus, poisson_ratio, density, damping)");
-               }
-             }
+             const fem::ParameterMask mask = parameter_mask(wanted);
              const Scalar* u = optional_dofs(control, md, "control");
              State adjoint;
              adjoint.x.resize(md.rest.size());
@@ -256,6 +267,63 @@ void bind_fem(py::module_& m) {
            },
            py::arg("before"), py::arg("after"), py::arg("dt"), py::arg("control"),
            py::arg("grad_x"), py::arg("grad_v"), py::arg("wanted") = py::none())
+      .def("record",
+           [](Solver& s, State& state, Scalar dt, Index steps,
+              const std::optional<ScalarArray>& controls) {
+             const Index size = s.model().vertex_count * s.model().dim;
+             if (controls && controls->size() != steps * size)
+               throw InvalidArgument("controls: expected " + std::to_string(steps) + " x " +
+                                     std::to_string(size) + " values, got " +
+                                     std::to_string(controls->size()));
+             auto run = std::make_unique<fem::StoredRun>();
+             Interrupt interrupt = python_interrupt();
+             {
+               ReleaseGil release;
+               s.record(state, dt, steps, controls ? controls->data() : nullptr, *run, interrupt);
+             }
+             return run;
+           },
+           py::arg("state"), py::arg("dt"), py::arg("steps"), py::arg("controls") = py::none(),
+           "Takes `steps` steps of dt from state (controls: None or (steps n d) forces) and "
+           "returns the StoredRun of every state, for run_adjoint.")
+      .def("run_adjoint",
+           [](Solver& s, const fem::StoredRun& run, const std::optional<ScalarArray>& controls,
+              const ScalarArray& grad_x, const ScalarArray& grad_v,
+              const std::optional<std::vector<std::string>>& wanted) {
+             const fem::Model& md = s.model();
+             const fem::ParameterMask mask = parameter_mask(wanted);
+             const Index size = md.vertex_count * md.dim, steps = run.steps();
+             for (const State& st : run.states)
+               if (static_cast<Index>(st.x.size()) != size)
+                 throw InvalidArgument("run: a run of another body (expected states of " +
+                                       std::to_string(md.vertex_count) + " vertices)");
+             if (controls && controls->size() != steps * size)
+               throw InvalidArgument("controls: expected " + std::to_string(steps) + " x " +
+                                     std::to_string(size) + " values, got " +
+                                     std::to_string(controls->size()));
+             State adjoint;
+             adjoint.x.resize(md.rest.size());
+             adjoint.v.resize(md.rest.size());
+             assign(adjoint.x, grad_x, "grad x");
+             assign(adjoint.v, grad_v, "grad v");
+             std::vector<Scalar> grad_controls(controls ? steps * size : 0);
+             fem::ParameterGradient params;
+             Interrupt interrupt = python_interrupt();
+             {
+               ReleaseGil release;
+               s.run_adjoint(run, controls ? controls->data() : nullptr, adjoint, params,
+                             controls ? grad_controls.data() : nullptr, interrupt, mask);
+             }
+             const Index n = md.vertex_count, d = md.dim;
+             py::object gc = py::none();
+             if (controls) gc = to_numpy(std::move(grad_controls), {steps, n, d});
+             return py::make_tuple(to_numpy(std::move(adjoint.x), {n, d}),
+                                   to_numpy(std::move(adjoint.v), {n, d}), params, gc);
+           },
+           py::arg("run"), py::arg("controls"), py::arg("grad_x"), py::arg("grad_v"),
+           py::arg("wanted") = py::none(),
+           "dL/d(first state) from dL/d(end state) over a StoredRun, last step first: "
+           "(grad x, grad v, ParameterGradient summed over the steps, grad controls or None).")
       .def("elastic_energy", [](const Solver& s, const State& st) { return s.elastic_energy(st.x.data()); })
       .def("kinetic_energy", [](const Solver& s, const State& st) { return s.kinetic_energy(st.v.data()); })
       .def("gravity_energy", [](const Solver& s, const State& st) { return s.gravity_energy(st.x.data()); })

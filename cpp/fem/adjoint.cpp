@@ -21,6 +21,7 @@
 
 #include "core/errors.h"
 #include "core/parallel.h"
+#include "fem/element_pass.h"
 #include "fem/solver.h"
 #include "linalg/cg.h"
 
@@ -48,43 +49,6 @@ Scalar free_dof_sum(const Model& m, Term&& term) {
 template <int D>
 Mat<D> dm_inverse(const Model& m, Index e) {
   return Eigen::Map<const Mat<D>>(m.Dm_inv.data() + e * D * D);
-}
-
-// dP/dF applied to dF without forming the D^2 x D^2 matrix (piola_derivative<D>(F) vec(dF), as
-// fem/kernels.h writes it, term by term); the corotated model's rotation derivative goes
-// through the matrix.
-template <int D>
-Mat<D> piola_differential(const Mat<D>& F, const Mat<D>& dF, Material m, Scalar mu, Scalar lam) {
-  const Mat<D> I = Mat<D>::Identity();
-  switch (m) {
-    case Material::Linear:
-      return mu * (dF + dF.transpose()) + lam * dF.trace() * I;
-    case Material::StVK: {
-      const Mat<D> E = (F.transpose() * F - I) / 2;
-      const Mat<D> S = 2 * mu * E + lam * E.trace() * I;
-      const Mat<D> dE = (dF.transpose() * F + F.transpose() * dF) / 2;
-      return dF * S + F * (2 * mu * dE + lam * dE.trace() * I);
-    }
-    case Material::NeoHookean: {
-      // mu dF + lam' (cof F : dF) cof F + (lam' (J - 1) - mu) d(cof F)[dF], lam' = lam + mu.
-      const Scalar l = lam + mu;
-      const Mat<D> C = cofactor<D>(F);
-      Mat<D> dC;
-      if constexpr (D == 2) {
-        dC = cofactor<D>(dF);  // linear in F
-      } else {
-        dC.col(0) = dF.col(1).cross(F.col(2)) + F.col(1).cross(dF.col(2));
-        dC.col(1) = dF.col(2).cross(F.col(0)) + F.col(2).cross(dF.col(0));
-        dC.col(2) = dF.col(0).cross(F.col(1)) + F.col(0).cross(dF.col(1));
-      }
-      return mu * dF + (l * C.cwiseProduct(dF).sum()) * C + (l * det_minus_one<D>(F - I) - mu) * dC;
-    }
-    case Material::Corotated:
-      break;
-  }
-  Mat<D> dP;
-  Eigen::Map<Eigen::Matrix<Scalar, D * D, 1>>(dP.data()) = piola_derivative<D>(F, m, mu, lam) * vec<D>(dF);
-  return dP;
 }
 
 }  // namespace
@@ -129,16 +93,35 @@ void Solver::lame_to_parameters(const std::vector<Scalar>& g_mu, const std::vect
                                 Scalar factor, ParameterGradient& params) const {
   const Parameters& p = model_.parameters;
   const Index count = model_.element_count;
-  params.youngs_modulus.assign(count, 0);
-  params.poisson_ratio.assign(count, 0);
   const bool uniform_E = p.youngs_modulus.size() == 1, uniform_nu = p.poisson_ratio.size() == 1;
-  parallel_for(count, [&](Index e) {
+  const auto chain = [&](Index e, Scalar& dE, Scalar& dnu) {
     const Scalar E = p.youngs_modulus[uniform_E ? 0 : e], nu = p.poisson_ratio[uniform_nu ? 0 : e];
     const Scalar a = 1 + nu, b = 1 - 2 * nu;
     const Scalar dmu_dE = 1 / (2 * a), dmu_dnu = -E / (2 * a * a);
     const Scalar dlam_dE = nu / (a * b), dlam_dnu = E * (1 + 2 * nu * nu) / (a * a * b * b);
-    params.youngs_modulus[e] = factor * (g_mu[e] * dmu_dE + g_lam[e] * dlam_dE);
-    params.poisson_ratio[e] = factor * (g_mu[e] * dmu_dnu + g_lam[e] * dlam_dnu);
+    dE = factor * (g_mu[e] * dmu_dE + g_lam[e] * dlam_dE);
+    dnu = factor * (g_mu[e] * dmu_dnu + g_lam[e] * dlam_dnu);
+  };
+  // A uniform value's gradient is the elements' sum (parallel_sum: the same bits on any thread
+  // count), so a stored run and step-by-step calls add the same per-step values.
+  params.youngs_modulus.assign(uniform_E ? 1 : count, 0);
+  params.poisson_ratio.assign(uniform_nu ? 1 : count, 0);
+  if (!uniform_E || !uniform_nu)
+    parallel_for(count, [&](Index e) {
+      Scalar dE, dnu;
+      chain(e, dE, dnu);
+      if (!uniform_E) params.youngs_modulus[e] = dE;
+      if (!uniform_nu) params.poisson_ratio[e] = dnu;
+    });
+  if (uniform_E) params.youngs_modulus[0] = parallel_sum(count, [&](Index e) {
+    Scalar dE, dnu;
+    chain(e, dE, dnu);
+    return dE;
+  });
+  if (uniform_nu) params.poisson_ratio[0] = parallel_sum(count, [&](Index e) {
+    Scalar dE, dnu;
+    chain(e, dE, dnu);
+    return dnu;
   });
 }
 
@@ -146,26 +129,18 @@ template <int D>
 Scalar Solver::adjoint_elements_d(const Scalar* x, const Scalar* w, Scalar* Kw, Scalar* g_mu,
                                      Scalar* g_lam, bool work) {
   const Model& m = model_;
-  constexpr int K = (D + 1) * D;
+  // K w by the neo-Hookean tetrahedra's lane pass where it applies (whatever else is asked, so
+  // that K w does not depend on which parameter gradients are wanted); the parameter terms in
+  // a pass of their own then.
+  const bool by_lanes = lanes::kAvailable && D == 3 && m.material() == Material::NeoHookean;
+  if (by_lanes) lanes::neohookean_terms(m, lane_constants(), x, w, avx2_, element_vectors_.data());
   std::vector<Scalar> element_work(work ? m.element_count : 0);
-  parallel_for(m.element_count, [&](Index e) {
-    const Index* el = m.elements.data() + e * (D + 1);
-    const Mat<D> Dinv = dm_inverse<D>(m, e);
-    const Mat<D> F = deformation_gradient<D>(x, el, Dinv);
-    const Mat<D> dF = deformation_gradient<D>(w, el, Dinv);  // linear in w: Ds(w) Dm^-1
-    const Mat<D> dP = piola_differential<D>(F, dF, m.material(), m.mu[e], m.lam[e]);
-    Eigen::Map<ElementVec<D>>(element_vectors_.data() + e * K) =
-        element_gradient<D>(dP, Dinv, m.volume[e]);
-    if (g_mu) {
-      Mat<D> A, B;
-      piola_lame_derivatives<D>(F, m.material(), A, B);
-      g_mu[e] = m.volume[e] * A.cwiseProduct(dF).sum();
-      g_lam[e] = m.volume[e] * B.cwiseProduct(dF).sum();
-    }
-    if (work)
-      element_work[e] =
-          m.volume[e] * piola<D>(F, m.material(), m.mu[e], m.lam[e]).cwiseProduct(dF).sum();
-  });
+  if (!by_lanes || g_mu || work)
+    parallel_for(m.element_count, [&](Index e) {
+      const Scalar work_e = element_adjoint_term<D>(m, x, w, e, by_lanes ? nullptr : element_vectors_.data(),
+                                                    g_mu, g_lam, work);
+      if (work) element_work[e] = work_e;
+    });
   assembly_.gather_vector(element_vectors_.data(), Kw);
   return work ? parallel_sum(m.element_count, [&](Index e) { return element_work[e]; }) : 0;
 }
@@ -173,6 +148,14 @@ Scalar Solver::adjoint_elements_d(const Scalar* x, const Scalar* w, Scalar* Kw, 
 void Solver::step_adjoint(const State& before, const State& after, Scalar dt,
                           const Scalar* control, State& adjoint, ParameterGradient& params,
                           Scalar* grad_control, Interrupt& interrupt,
+                          const ParameterMask& wanted) {
+  adjoint_step(before, after, after.factor.x.empty() ? before.factor : after.factor, dt, control,
+               adjoint, params, grad_control, interrupt, wanted);
+}
+
+void Solver::adjoint_step(const State& before, const State& after, const FactorRecord& factor,
+                          Scalar dt, const Scalar* control, State& adjoint,
+                          ParameterGradient& params, Scalar* grad_control, Interrupt& interrupt,
                           const ParameterMask& wanted) {
   if (!(dt > 0) || !std::isfinite(dt))
     throw InvalidArgument("dt: expected a finite time step > 0 [s], got " + format_real(dt));
@@ -185,7 +168,8 @@ void Solver::step_adjoint(const State& before, const State& after, Scalar dt,
   if (config_.integrator == Integrator::Symplectic)
     adjoint_symplectic(before, after, dt, control, adjoint, params, grad_control, wanted);
   else
-    adjoint_implicit(before, after, dt, control, adjoint, params, grad_control, interrupt, wanted);
+    adjoint_implicit(before, after, factor, dt, control, adjoint, params, grad_control, interrupt,
+                     wanted);
 }
 
 void Solver::adjoint_symplectic(const State& before, const State& after, Scalar dt,
@@ -197,7 +181,10 @@ void Solver::adjoint_symplectic(const State& before, const State& after, Scalar 
   const Index n = assembly_.dof_count();
   const Scalar c = m.damping(), rho = m.parameters.density;
   const Scalar damp = 1 / (1 + dt * c);
-  std::vector<Scalar> w(n), Kw(n);
+  std::vector<Scalar>& w = adjoint_w_;
+  std::vector<Scalar>& Kw = adjoint_kw_;
+  w.resize(n);
+  Kw.resize(n);
   // b + h a: dL/dv_{n+1} with x_{n+1} = x_n + h v_{n+1} folded in.
   parallel_for(m.vertex_count, [&](Index i) {
     for (int r = 0; r < d; ++r) {
@@ -234,10 +221,10 @@ void Solver::adjoint_symplectic(const State& before, const State& after, Scalar 
   });
 }
 
-void Solver::adjoint_implicit(const State& before, const State& after, Scalar dt,
-                              const Scalar* control, State& adjoint, ParameterGradient& params,
-                              Scalar* grad_control, Interrupt& interrupt,
-                              const ParameterMask& wanted) {
+void Solver::adjoint_implicit(const State& before, const State& after,
+                              const FactorRecord& factor, Scalar dt, const Scalar* control,
+                              State& adjoint, ParameterGradient& params, Scalar* grad_control,
+                              Interrupt& interrupt, const ParameterMask& wanted) {
   (void)control;  // G is linear in u: dG/du = -h^2 I whatever its value
   const Model& m = model_;
   const int d = m.dim;
@@ -263,7 +250,7 @@ void Solver::adjoint_implicit(const State& before, const State& after, Scalar dt
   // step's answer depends on its states only (not on which steps ran before it): checkpointed
   // and repeated backward passes agree bitwise.
   SpdSolveStats s;
-  FactorRecord key = after.factor.x.empty() ? before.factor : after.factor;
+  FactorRecord key = factor;
   key.refactor_pending = false;
   const bool lagged = config_.linear_solver != LinearSolver::CholmodDirect && !key.x.empty() &&
                       key.x.size() == after.x.size();

@@ -16,8 +16,10 @@
 #include <vector>
 
 #include "core/interrupt.h"
+#include "core/simd.h"
 #include "core/step_stats.h"
 #include "fem/model.h"
+#include "fem/neohookean_lanes.h"
 #include "linalg/spd_solver.h"
 #include "mesh/element_assembly.h"
 
@@ -35,9 +37,11 @@ struct StepStats : StepStatsBase {
   double seconds_assembly = 0, seconds_factor = 0, seconds_solve = 0, seconds_line_search = 0;
 };
 
-// dL/d(parameters) of one adjoint step, per element for youngs_modulus and poisson_ratio.
+// dL/d(parameters) of one adjoint step (or of a stored run's steps, summed), per element for
+// youngs_modulus and poisson_ratio, or one value (the elements' sum, in a fixed order) where the
+// model holds a uniform value.
 struct ParameterGradient {
-  std::vector<Scalar> youngs_modulus, poisson_ratio;  // (m,) [1/Pa], [1]
+  std::vector<Scalar> youngs_modulus, poisson_ratio;  // (m,) or (1,) [1/Pa], [1]
   Scalar density = 0;                                 // [m^d/kg]
   Scalar damping = 0;                                 // [s]
 };
@@ -47,6 +51,18 @@ struct ParameterGradient {
 struct ParameterMask {
   bool youngs_modulus = true, poisson_ratio = true, density = true, damping = true;
   bool elastic() const { return youngs_modulus || poisson_ratio; }
+};
+
+// A run kept for reverse mode (Solver::record, Solver::run_adjoint): the state before every
+// step and the end state, without their factor records, which are held once per distinct
+// value in `factors` (a record changes only when the forward refactorises). The controls stay
+// the caller's (run_adjoint is handed them again).
+struct StoredRun {
+  Scalar dt = 0;
+  std::vector<State> states;          // (T + 1): x, v, time, step; factor left empty
+  std::vector<FactorRecord> factors;  // the distinct records, in order of first use
+  std::vector<Index> factor_of;       // (T + 1): each state's record in factors
+  Index steps() const { return states.empty() ? 0 : static_cast<Index>(states.size()) - 1; }
 };
 
 class Solver {
@@ -75,6 +91,21 @@ class Solver {
   void step_adjoint(const State& before, const State& after, Scalar dt, const Scalar* control,
                     State& adjoint, ParameterGradient& params, Scalar* grad_control,
                     Interrupt& interrupt, const ParameterMask& wanted = {});
+
+  // `steps` calls of step(state, dt, controls + k n d), every state kept in run (whose buffers
+  // are reused when it holds an earlier run). controls: null or (steps, n, d) forces [N]. When a
+  // step throws, state is left at the last completed step (as step-by-step calls leave it).
+  void record(State& state, Scalar dt, Index steps, const Scalar* controls, StoredRun& run,
+              Interrupt& interrupt);
+
+  // step_adjoint over a stored run, last step first, in one call: adjoint holds dL/d(end state)
+  // on entry and dL/d(first state) on exit; params receives the steps' parameter gradients
+  // summed in that order (each step's value added to the sum of the later ones: the sums a
+  // caller adding step_adjoint's results step by step forms, bit for bit); controls: the run's
+  // (null or T n d); grad_controls (T n d, or null) each step's dL/du.
+  void run_adjoint(const StoredRun& run, const Scalar* controls, State& adjoint,
+                   ParameterGradient& params, Scalar* grad_controls, Interrupt& interrupt,
+                   const ParameterMask& wanted = {});
 
   Scalar elastic_energy(const Scalar* x) const;
   Scalar kinetic_energy(const Scalar* v) const;
@@ -115,8 +146,13 @@ class Solver {
 
   StepStats step_implicit(State& state, Scalar dt, const Scalar* control, Interrupt& interrupt);
   StepStats step_symplectic(State& state, Scalar dt, const Scalar* control);
-  void adjoint_implicit(const State& before, const State& after, Scalar dt,
-                        const Scalar* control, State& adjoint, ParameterGradient& params,
+  // step_adjoint with the lagged factor's record the adjoint solve preconditions with given
+  // (step_adjoint takes after's, or before's when after has none).
+  void adjoint_step(const State& before, const State& after, const FactorRecord& factor,
+                    Scalar dt, const Scalar* control, State& adjoint, ParameterGradient& params,
+                    Scalar* grad_control, Interrupt& interrupt, const ParameterMask& wanted);
+  void adjoint_implicit(const State& before, const State& after, const FactorRecord& factor,
+                        Scalar dt, const Scalar* control, State& adjoint, ParameterGradient& params,
                         Scalar* grad_control, Interrupt& interrupt, const ParameterMask& wanted);
   void adjoint_symplectic(const State& before, const State& after, Scalar dt,
                           const Scalar* control, State& adjoint, ParameterGradient& params,
@@ -147,6 +183,7 @@ class Solver {
   // Scratch, allocated once.
   std::vector<Scalar> element_vectors_, element_matrices_, values_;
   std::vector<Scalar> grad_, dx_, trial_, rhs_;
+  std::vector<Scalar> adjoint_w_, adjoint_kw_;  // the symplectic adjoint's w and K w
   SpdSolver spd_;
   // The adjoint solves' own factor and the forward record it is of (empty: H's own or none).
   SpdSolver adjoint_spd_;
@@ -156,6 +193,13 @@ class Solver {
   FactorRecord factor_;
   bool force_refactor_ = false;
   Scalar explicit_dt_limit_ = 0;
+  bool avx2_ = use_avx2();  // the neo-Hookean element passes' AVX2 version (core/simd.h)
+  // The model's element constants packed for those passes (built on first use).
+  const std::vector<lanes::Constants>& lane_constants() {
+    if (lane_constants_.empty()) lane_constants_ = lanes::pack(model_);
+    return lane_constants_;
+  }
+  std::vector<lanes::Constants> lane_constants_;
 };
 
 }  // namespace kinema::fem

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <string>
+#include <type_traits>
 #include <utility>
 
 #include "core/errors.h"
@@ -92,6 +93,21 @@ ElementAssembly::ElementAssembly(Index vertex_count, int d, int k, const Index* 
 }
 
 void ElementAssembly::gather_vector(const Scalar* element_vectors, Scalar* out) const {
+  // Each vertex sums its slots in order into registers (D known at compile time), then stores:
+  // the same additions in the same order as summing into out, without a load and store per slot.
+  const auto gather = [&](auto dim) {
+    constexpr int D = decltype(dim)::value;
+    parallel_for(vertex_count_, [&](Index i) {
+      Scalar sum[D] = {};
+      for (Index p = vertex_ptr_[i]; p < vertex_ptr_[i + 1]; ++p) {
+        const Scalar* f = element_vectors + vertex_slot_[p] * D;  // slot e*k+a -> offset (e*k+a)*d
+        for (int r = 0; r < D; ++r) sum[r] += f[r];
+      }
+      for (int r = 0; r < D; ++r) out[i * D + r] = sum[r];
+    });
+  };
+  if (d_ == 2) return gather(std::integral_constant<int, 2>());
+  if (d_ == 3) return gather(std::integral_constant<int, 3>());
   const int d = d_;
   parallel_for(vertex_count_, [&](Index i) {
     for (int r = 0; r < d; ++r) out[i * d + r] = 0;

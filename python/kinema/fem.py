@@ -442,15 +442,45 @@ class Body:
         gx, gv, gp, gu = self._solver.step_adjoint(core_state(before), core_state(after), real(dt, "dt"),
                                                    u, flat(grad_after["x"]), flat(grad_after["v"]),
                                                    list(wanted))
+        return {"x": gx, "v": gv}, self._parameter_gradients(gp, wanted), gu
+
+    def _parameter_gradients(self, gp, wanted):
+        """The wanted entries of a C++ ParameterGradient (a uniform value's gradient comes summed
+        over the elements in C++, as a (1,) array: a float here)."""
         params = {}
         for name in ("youngs_modulus", "poisson_ratio"):
             if name in wanted:
                 g = np.array(getattr(gp, name))
-                params[name] = float(g.sum()) if np.ndim(self._values[name]) == 0 else g
+                params[name] = float(g[0]) if np.ndim(self._values[name]) == 0 else g
         for name in ("density", "damping"):
             if name in wanted:
                 params[name] = float(getattr(gp, name))
-        return {"x": gx, "v": gv}, params, gu
+        return params
+
+    def _diff_record(self, dt, steps, controls, step_options):
+        """km.diff's path for a run stored whole: the steps and, later, their adjoints in one C++
+        call each (no Python per step). The same states and gradients as the step-by-step path,
+        bit for bit."""
+        options = {k: v for k, v in step_options.items() if k != "steps"}
+        self._configure(**options)
+        u = None if controls is None else np.ascontiguousarray(controls, dtype=np.float64).reshape(-1)
+        run = self._solver.record(self._state, real(dt, "dt"), steps, u)
+        return _Record(self, run, u, options)
+
+
+class _Record:
+    """A run kept by km.fem for km.diff (Body._diff_record): its states live in C++."""
+
+    def __init__(self, body, run, controls, options):
+        self._body, self._run, self._controls, self._options = body, run, controls, options
+
+    def backward(self, grad_after, params):
+        body = self._body
+        body._configure(**self._options)
+        flat = lambda a: np.ascontiguousarray(a, dtype=np.float64).reshape(-1)  # noqa: E731
+        gx, gv, gp, gu = body._solver.run_adjoint(self._run, self._controls, flat(grad_after["x"]),
+                                                  flat(grad_after["v"]), list(params))
+        return {"x": gx, "v": gv}, body._parameter_gradients(gp, params), gu
 
 
 def _cells(n, d, name):
