@@ -120,15 +120,11 @@ def _check_run(sim, steps, dt, names=None, seed=1, where=""):
 
 # ----------------------------------------------------------------------------- projection
 
-@pytest.mark.parametrize("shape", [(16, 12), (8, 6, 10)])
-@pytest.mark.parametrize("case", ["closed", "solid", "open_solid", "periodic"])
-def test_projection_adjoint_is_its_transpose(shape, case):
-    """<P a, b> = <a, P^T b> for random MAC fields a, b, to rounding and the solve's tolerance."""
-    options = {"periodic": {"boundary": "periodic"}, "open_solid": {"open": ("x+", "y-")}}.get(case, {})
-    sim = km.grid.Fluid(shape, 0.1, tol=TOL, **options)
+def _projection_pair(sim, shape, case):
+    """Solids for `case`, and random MAC fields a (set as the velocity) and b: (names, a, b, rng)."""
     if "solid" in case:
         mask = np.zeros(shape, bool)
-        mask[tuple(slice(2, 5) for _ in shape)] = True
+        mask[tuple(slice(2, 5) if max(shape) < 20 else slice(5, 11) for _ in shape)] = True
         sim.solid = mask
         sim.step(1e-9)  # the solver builds its solid faces at a step
     rng = np.random.default_rng(3)
@@ -137,6 +133,16 @@ def test_projection_adjoint_is_its_transpose(shape, case):
     b = {n: rng.normal(size=getattr(sim, n).shape) for n in names}
     for n in names:
         getattr(sim, n)[...] = a[n]
+    return names, a, b, rng
+
+
+@pytest.mark.parametrize("shape", [(16, 12), (8, 6, 10)])
+@pytest.mark.parametrize("case", ["closed", "solid", "open_solid", "periodic"])
+def test_projection_adjoint_is_its_transpose(shape, case):
+    """<P a, b> = <a, P^T b> for random MAC fields a, b, to rounding and the solve's tolerance."""
+    options = {"periodic": {"boundary": "periodic"}, "open_solid": {"open": ("x+", "y-")}}.get(case, {})
+    sim = km.grid.Fluid(shape, 0.1, tol=TOL, **options)
+    names, a, b, _ = _projection_pair(sim, shape, case)
     sim.pressure[...] = 0
     dt = 0.05
     sim._core.project(dt)
@@ -342,3 +348,85 @@ def test_sources_match_finite_differences():
     grads = km.diff.rollout(sim, 2, 0.02, wrt=("density",)).backward(
         {"density": np.ones(sim.shape)})
     assert np.all(grads["density"][region] == 0)
+
+
+# ------------------------------------------------- fixed V-cycle projection (pressure_vcycles)
+# Grids large enough for a hierarchy of at least two levels (the multigrid coarsens while a
+# level has more than 512 cells, and solves the coarsest exactly), so the cycles smooth, restrict
+# and prolong and are not one direct solve.
+VCYCLE_SHAPES = [(64, 48), (16, 12, 20)]
+
+
+@pytest.mark.parametrize("shape", VCYCLE_SHAPES)
+@pytest.mark.parametrize("case", ["closed", "solid", "open_solid", "periodic"])
+@pytest.mark.parametrize("cycles", [1, 3])
+def test_vcycle_projection_adjoint_is_its_transpose(shape, case, cycles):
+    """k V-cycles from zero are a fixed linear map of the divergence; the adjoint runs the same
+    cycles: <P a, b> = <a, P^T b> to rounding alone (no solve tolerance enters)."""
+    options = {"periodic": {"boundary": "periodic"}, "open_solid": {"open": ("x+", "y-")}}.get(case, {})
+    sim = km.grid.Fluid(shape, 0.1, pressure_vcycles=cycles, **options)
+    assert sim._core.multigrid_levels() >= 2
+    names, a, b, rng = _projection_pair(sim, shape, case)
+    sim.pressure[...] = rng.normal(size=sim.shape)  # ignored: the cycles start from zero
+    dt = 0.05
+    info = sim._core.project(dt)
+    pt_b = sim._core.projection_adjoint(dt, b)
+    lhs = sum(float(np.sum(getattr(sim, n) * b[n])) for n in names)
+    rhs = sum(float(np.sum(a[n] * pt_b[n])) for n in names)
+    # each side: sums of ~1e4 products, rounding below 1e4 u per unit of |a| |b| (the cycles'
+    # own rounding, amplified by at most the operator's condition number times u, is smaller)
+    size = sum(np.sqrt(np.sum(a[n] ** 2) * np.sum(b[n] ** 2)) for n in names)
+    bound = 1e4 * U * size
+    assert abs(lhs - rhs) <= bound, f"{case} {shape}: <Pa, b> {lhs!r} vs <a, P^T b> {rhs!r} (bound {bound:.3g})"
+    assert abs(lhs - sum(float(np.sum(a[n] * b[n])) for n in names)) > 1e3 * bound
+    # not converged (a random field is far from smooth): the reported divergence is what is left
+    assert info.iterations == cycles and 1e-8 < info.residual < 1
+
+
+@pytest.mark.parametrize("shape", VCYCLE_SHAPES)
+def test_vcycle_residual_is_the_divergence_left(shape):
+    """StepStats.pressure.residual = ||div u after|| / ||div u before||; it falls with the cycle
+    count by at least the multigrid's convergence factor (below 0.5 per cycle here), and the
+    state's initial pressure plays no part. A periodic box: a random field there is a valid
+    velocity (no wall faces to pin, its divergence sums to zero)."""
+    rng = np.random.default_rng(8)
+    fields = None
+    left = []
+    for cycles in (1, 2, 4):
+        sim = km.grid.Fluid(shape, 1.0 / shape[0], pressure_vcycles=cycles, boundary="periodic")
+        if fields is None:
+            fields = {n: rng.normal(size=getattr(sim, n).shape) for n in "uvw"[:len(shape)]}
+            for c, f in enumerate(fields.values()):  # the duplicate last face holds face 0's value
+                np.moveaxis(f, c, 0)[-1] = np.moveaxis(f, c, 0)[0]
+        for n, f in fields.items():
+            getattr(sim, n)[...] = f
+        before = np.linalg.norm(sim.divergence())
+        sim.pressure[...] = rng.normal(size=sim.shape)
+        stats = sim._core.project(0.1)
+        after = np.linalg.norm(sim.divergence())
+        assert stats.residual == pytest.approx(after / before, rel=1e-8)
+        left.append(stats.residual)
+    assert left[1] < 0.5 * left[0] and left[2] < 0.25 * left[1], left
+    # and the converged projection leaves 1e-6 of it by default
+    sim = km.grid.Fluid(shape, 1.0 / shape[0], boundary="periodic")
+    for n, f in fields.items():
+        getattr(sim, n)[...] = f
+    assert sim._core.project(0.1).residual <= 1e-6
+
+
+def test_vcycle_runs_match_finite_differences():
+    """The gradient of runs with a fixed-cycle projection, 2D (solid, open side) and 3D."""
+    sim = _fluid((40, 32), "semi_lagrangian", 2, solid=True, open=("y+",), gravity=(0.0, -1.0),
+                 pressure_vcycles=2)
+    _check_run(sim, 3, 0.02, names=("u", "v", "density", "viscosity", "controls"), where="2D 2 V-cycles")
+    sim = _fluid((12, 10, 14), "maccormack", 2, pressure_vcycles=1)
+    _check_run(sim, 2, 0.03, names=("w", "temperature", "controls"), where="3D 1 V-cycle")
+
+
+def test_vcycle_refusals_name_the_option():
+    with pytest.raises(ValueError, match="pressure_vcycles"):
+        km.grid.Fluid((8, 8), 0.1, pressure_vcycles=0)
+    with pytest.raises(ValueError, match="pressure_vcycles"):
+        km.grid.Fluid((8, 8), 0.1, pressure_vcycles=2, projection="cg")
+    with pytest.raises(ValueError, match="pressure_vcycles"):
+        km.grid.Fluid((9, 8), 0.1, pressure_vcycles=2, boundary="periodic")

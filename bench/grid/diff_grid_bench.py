@@ -27,6 +27,12 @@ at 64^2, 128^2 and 256^2, beside kinema at pressure tol 1e-10, 1e-6 and 1e-4 (th
 projection is not converged either; each side's FD agreement is printed, and the summary names
 the fastest kinema tolerance whose agreement is at least the tape's). The last line, SUMMARY,
 holds every ratio.
+
+    .venv/bin/python bench/grid/diff_grid_bench.py --vcycles 1 2 4 [--threads 1]
+
+runs only Part 3, kinema with the fixed V-cycle projection (pressure_vcycles = 1, 2, 4: a
+linear map whose adjoint is exact, like the tape's fixed Jacobi sweeps) beside tol 1e-10 and
+the tape, with the divergence each kinema projection leaves (mean pressure.residual).
 """
 
 from __future__ import annotations
@@ -73,18 +79,21 @@ def task(shape, steps, seed=0):
     return h, 0.5 * h, rho0, controls, weights, direction
 
 
-def kinema_fluid(shape, h, rho0, advection, rk_order, tol):
-    sim = km.grid.Fluid(shape, h, advection=advection, rk_order=rk_order, tol=tol, density=True)
+def kinema_fluid(shape, h, rho0, advection, rk_order, tol, vcycles=None):
+    sim = km.grid.Fluid(shape, h, advection=advection, rk_order=rk_order, tol=tol, density=True,
+                        pressure_vcycles=vcycles)
     sim.density = rho0
     return sim
 
 
-def kinema_part(rec, shape, steps, advection, rk_order, opts, tol=TOL, one_step=True):
+def kinema_part(rec, shape, steps, advection, rk_order, opts, tol=TOL, one_step=True, vcycles=None):
     h, dt, rho0, controls, weights, direction = task(shape, steps)
-    sim = kinema_fluid(shape, h, rho0, advection, rk_order, tol)
+    sim = kinema_fluid(shape, h, rho0, advection, rk_order, tol, vcycles)
     s0 = sim.state()
     label = f"{len(shape)}D {'x'.join(map(str, shape))} {advection} rk{rk_order} T={steps}"
-    if tol != TOL:
+    if vcycles:
+        label += f" vcycles={vcycles}"
+    elif tol != TOL:
         label += f" tol={tol:g}"
 
     def loss(c):
@@ -121,7 +130,7 @@ def kinema_part(rec, shape, steps, advection, rk_order, opts, tol=TOL, one_step=
             raise SystemExit(f"{label} {name}: the gradient disagrees with its central difference ({err:.2e})")
         ratio = v["backward"] / fwd.seconds
         rec.record(f"kinema-{name}-{advection}-rk{rk_order}", shape, m.seconds, error=err, measurement=m,
-                   notes={"steps": steps, "tol": tol, "forward_s": f"{fwd.seconds:.4g}", "backward_s": f"{v['backward']:.4g}",
+                   notes={"steps": steps, "tol": tol, "vcycles": vcycles or "", "forward_s": f"{fwd.seconds:.4g}", "backward_s": f"{v['backward']:.4g}",
                           "backward_over_forward": f"{ratio:.3g}", "peak_states": v["peak"],
                           "checkpoints": ck or "all"})
         print(f"kinema {label} {name:12s}: forward {fwd.seconds:.3f} s, rollout {v['forward']:.3f} s, backward "
@@ -213,10 +222,15 @@ def main():
     ap.add_argument("--no-phiflow", action="store_true", help="skip PhiFlow (minutes per gradient at 128^2)")
     ap.add_argument("--no-taichi", action="store_true")
     ap.add_argument("--quick", action="store_true", help="small sizes (a check that the script runs)")
+    ap.add_argument("--vcycles", type=int, nargs="+",
+                    help="only the Taichi comparison, kinema with pressure_vcycles = each of these")
     opts = ap.parse_args()
     km.set_num_threads(opts.threads)
     rec = harness.Recorder(opts.csv, "diff_grid", threads=opts.threads)
     print(f"threads {opts.threads}, commit {rec.commit}", flush=True)
+    if opts.vcycles:
+        vcycle_comparison(rec, opts)
+        return
     big2, big3, steps2, steps3 = ((256, 256), (64, 64, 64), 16, 9) if not opts.quick else ((32, 32), (12, 12, 12), 4, 4)
     summary = []
     for shape, steps, advection, rk in ((big2, steps2, "semi_lagrangian", 1), (big2, steps2, "maccormack", 2),
@@ -254,6 +268,36 @@ def main():
                            f"{t_ti / t_lo:.1f}x at tol 1e-6 (FD {err_lo:.1e}), {t_ti / t_l4:.1f}x at tol 1e-4 "
                            f"(FD {err_l4:.1e}){best}")
     print("SUMMARY: " + "; ".join(summary), flush=True)
+
+def divergence_left(shape, steps, tol=TOL, vcycles=None):
+    """Mean over the task's T projections of ||div u after|| / ||div u before|| (pressure.residual)."""
+    h, dt, rho0, controls, _, _ = task(shape, steps)
+    sim = kinema_fluid(shape, h, rho0, "semi_lagrangian", 1, tol, vcycles)
+    return float(np.mean([sim._core.step(dt, controls[k]).pressure.residual for k in range(steps)]))
+
+
+def vcycle_comparison(rec, opts):
+    """The Taichi task with kinema's fixed V-cycle projection (pressure_vcycles) beside the
+    converged one (tol 1e-10) and the tape; the summary gives Taichi/kinema per gradient for the
+    fewest cycles whose FD agreement is at least the tape's, and the divergence each leaves."""
+    summary = []
+    steps = 16 if not opts.quick else 4
+    for n in ((64, 128, 256) if not opts.quick else (16, 32)):
+        rows = []
+        for vc in [None] + list(opts.vcycles):
+            r = kinema_part(rec, (n, n), steps, "semi_lagrangian", 1, opts, one_step=False, vcycles=vc)
+            m, err, _ = r["stored"]
+            rows.append((vc, m.seconds, err, divergence_left((n, n), steps, vcycles=vc)))
+        t_ti, err_ti, jacobi = taichi_part(rec, n, steps, opts)
+        parts = []
+        for vc, t, err, div in rows:
+            name = f"{vc} V-cycles" if vc else "tol 1e-10"
+            print(f"=> {n}x{n}: kinema {name}: {t:.3f} s per gradient, FD {err:.1e}, divergence left {div:.1e}; "
+                  f"Taichi ({jacobi} Jacobi) {t_ti:.3f} s, FD {err_ti:.1e}: Taichi/kinema {t_ti / t:.1f}x", flush=True)
+            parts.append(f"{name} {t_ti / t:.1f}x (FD {err:.0e}, div left {div:.0e})")
+        summary.append(f"{n}^2 Taichi/kinema (Taichi FD {err_ti:.0e}): " + ", ".join(parts))
+    print("SUMMARY: " + "; ".join(summary), flush=True)
+
 
 def taichi_part(rec, n, steps, opts):
     """DiffTaichi-style smoke gradient on Taichi's CPU backend, in its own process."""

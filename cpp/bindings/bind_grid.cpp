@@ -313,6 +313,8 @@ void bind_grid(py::module_& m) {
       .def_readwrite("projection", &Config::projection, "kinema._core.poisson.Method of the pressure solve")
       .def_readwrite("tol", &Config::tol, "relative residual of the pressure solve")
       .def_readwrite("max_iter", &Config::max_iter, "0: the solver's default")
+      .def_readwrite("pressure_vcycles", &Config::pressure_vcycles,
+                     "0: solve the pressure to tol; k > 0: exactly k multigrid V-cycles from zero")
       .def_readwrite("viscosity", &Config::viscosity, "kinematic viscosity [m^2/s]")
       .def_readwrite("periodic", &Config::periodic)
       .def_readwrite("no_slip", &Config::no_slip)
@@ -375,6 +377,7 @@ void bind_grid(py::module_& m) {
         return static_cast<Index>(f.solver_->model().sources.size());
       })
       .def("divergence", &PyFluid::divergence)
+      .def("multigrid_levels", [](const PyFluid& f) { return f.solver_->multigrid_levels(); })
       .def("velocity_at", &PyFluid::velocity_at, py::arg("points"))
       .def("kinetic_energy", [](const PyFluid& f) { return f.solver_->kinetic_energy(f.state_); })
       .def("max_speed", [](const PyFluid& f) { return f.solver_->max_speed(f.state_); })

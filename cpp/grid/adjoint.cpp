@@ -603,7 +603,14 @@ void Solver::projection_adjoint(std::array<std::vector<Scalar>, 3>& grad, Scalar
     });
   }
   const Scalar norm2 = parallel_sum(n, [&](Index c) { return gp[c] * gp[c]; });
-  if (norm2 > 0) {
+  const bool fixed = config_.pressure_vcycles > 0;
+  if (norm2 > 0 && fixed) {
+    // The forward map b -> p is k V-cycles from zero: Q sum_j (I - B A)^j B with B = Q V Q
+    // symmetric (V is a symmetric cycle, Q the projection off solids and the null space), so
+    // it is symmetric and its transpose is the same k cycles from zero.
+    IterativeOptions options{0, config_.pressure_vcycles};
+    pressure_solver_->solve(gp.data(), w.data(), options, interrupt);
+  } else if (norm2 > 0) {
     // Warm start (as project() does) only when it beats zero.
     if (warm_step >= 0 && adjoint_pressure_step_ == warm_step + 1 &&
         static_cast<Index>(adjoint_pressure_.size()) == n) {

@@ -17,6 +17,10 @@ struct Config {
   PoissonMethod projection = PoissonMethod::MGPCG;
   Scalar tol = 1e-6;                // relative residual of the pressure solve, in (0, 1)
   Index max_iter = 0;               // 0: the solver's default
+  // 0: solve the pressure to tol. k > 0: the projection is exactly k multigrid V-cycles from a zero
+  // pressure (tol, max_iter and projection unused): a fixed symmetric linear map, so its adjoint
+  // is the same k cycles; the divergence it leaves is StepStats::pressure.residual.
+  Index pressure_vcycles = 0;
   Scalar viscosity = 0;             // kinematic viscosity nu [m^2/s]
   bool periodic = false;            // periodic on every axis (else closed walls)
   bool no_slip = false;             // closed walls: u = wall velocity (else free slip)

@@ -88,6 +88,14 @@ void Solver::check_config() const {
   if (!(c.tol > 0 && c.tol < 1))
     throw InvalidArgument("tol: expected a relative tolerance in (0, 1), got " + format_real(c.tol));
   if (c.max_iter < 0) throw InvalidArgument("max_iter: expected a count >= 0 (0: the default)");
+  if (c.pressure_vcycles < 0)
+    throw InvalidArgument("pressure_vcycles: expected a count >= 0 (0: solve to tol), got " +
+                          std::to_string(c.pressure_vcycles));
+  if (c.pressure_vcycles > 0 && c.periodic)
+    for (int a = 0; a < 3; ++a)
+      if (model_.shape.active(a) && model_.shape.n[a] % 2 != 0)
+        throw InvalidArgument("pressure_vcycles: multigrid on a periodic grid needs an even number of cells "
+                              "along every axis");
   if (!(c.viscosity >= 0 && std::isfinite(c.viscosity)))
     throw InvalidArgument("viscosity: expected a finite value >= 0, got " + format_real(c.viscosity));
   if (!(c.vorticity_confinement >= 0 && std::isfinite(c.vorticity_confinement)))
@@ -243,7 +251,7 @@ void Solver::build_solids() {
     }
   }
   PoissonConfig pc;
-  pc.method = config_.projection;
+  pc.method = config_.pressure_vcycles > 0 ? PoissonMethod::Multigrid : config_.projection;
   if (config_.periodic) {
     // red-black smoothing needs an even number of cells along every periodic axis
     for (int a = 0; a < 3; ++a)
@@ -838,16 +846,23 @@ SolveInfo Solver::project(State& state, Scalar dt, Interrupt& interrupt) {
   Scalar* b = rhs_.data();
   divergence(state, b, -1 / dt);
   Scalar* p = state.pressure.data();
-  IterativeOptions options{config_.tol, config_.max_iter};
+  const bool fixed = config_.pressure_vcycles > 0;
+  IterativeOptions options =
+      fixed ? IterativeOptions{0, config_.pressure_vcycles} : IterativeOptions{config_.tol, config_.max_iter};
   SolveInfo info;
   // Warm start from the last pressure only when it beats zero: when the flow nearly stops,
   // b shrinks by orders of magnitude and the rounding error of A p_old alone would exceed
   // tol ||b||, which no iteration can reach.
-  Scalar* r = residual_.data();
-  pressure_solver_->op().residual(b, p, r);
-  const Scalar r_norm2 = parallel_sum(n, [&](Index c) { return r[c] * r[c]; });
-  const Scalar b_norm2 = parallel_sum(n, [&](Index c) { return b[c] * b[c]; });
-  if (!(r_norm2 < b_norm2)) parallel_for(n, [&](Index c) { p[c] = 0; });
+  // Fixed V-cycles always start from zero, so the map b -> p is linear (and symmetric).
+  bool zero = fixed;
+  if (!fixed) {
+    Scalar* r = residual_.data();
+    pressure_solver_->op().residual(b, p, r);
+    const Scalar r_norm2 = parallel_sum(n, [&](Index c) { return r[c] * r[c]; });
+    const Scalar b_norm2 = parallel_sum(n, [&](Index c) { return b[c] * b[c]; });
+    zero = !(r_norm2 < b_norm2);
+  }
+  if (zero) parallel_for(n, [&](Index c) { p[c] = 0; });
   try {
     info = pressure_solver_->solve(b, p, options, interrupt);
   } catch (const DivergenceError& e) {
@@ -857,7 +872,7 @@ SolveInfo Solver::project(State& state, Scalar dt, Interrupt& interrupt) {
     throw ConvergenceError(std::string("pressure: ") + e.what() + " at step " + std::to_string(state.steps + 1) +
                            "; hint: a larger tol");
   }
-  if (!info.converged)
+  if (!info.converged && !fixed)
     throw ConvergenceError("pressure: the projection did not reach tol=" + std::to_string(config_.tol) +
                            " (relative residual " + std::to_string(info.residual) + " after " +
                            std::to_string(info.iterations) + " iterations) at step " +

@@ -75,6 +75,8 @@ class Solver {
                           Index warm_step = -1);
   // Sets the kinematic viscosity nu [m^2/s] (a differentiable parameter).
   void set_viscosity(Scalar viscosity);
+  // Levels of the pressure solver's multigrid hierarchy (0 without one), for tests.
+  int multigrid_levels() const { return pressure_solver_->multigrid() ? pressure_solver_->multigrid()->levels() : 0; }
   // The CFL step dt = cfl h / u_max, at most max_dt, where u_max = max |u| + sqrt(5 h |g|)
   // (Bridson 2015, Sec. 3.2: what gravity adds in one step) also counts the speeds of moving
   // walls and velocity sources, which accelerate a fluid at rest.
