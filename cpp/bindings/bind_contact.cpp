@@ -95,10 +95,15 @@ struct PyScene {
     return grown(model->add_obstacle(x, n, index_data(triangles), m, moving, friction));
   }
 
-  void add_plane(const std::array<Scalar, 3>& point, const std::array<Scalar, 3>& normal, Scalar friction) {
-    model->add_plane(Vec3(point[0], point[1], point[2]), Vec3(normal[0], normal[1], normal[2]), friction);
+  // A moving plane's driven vertex (its point) is appended to the state; returns it, or -1.
+  Index add_plane(const std::array<Scalar, 3>& point, const std::array<Scalar, 3>& normal, Scalar friction,
+                  bool moving) {
+    const Index vertex =
+        model->add_plane(Vec3(point[0], point[1], point[2]), Vec3(normal[0], normal[1], normal[2]), friction, moving);
+    if (vertex >= 0) return grown(vertex);
     state->kappa = 0;
     solver.reset();
+    return -1;
   }
 
   contact::Solver& ready() {
@@ -190,7 +195,7 @@ void bind_contact(py::module_& m) {
       .def("add_springs", &PyScene::add_springs)
       .def("add_obstacle", &PyScene::add_obstacle, py::arg("vertices"), py::arg("triangles"), py::arg("moving"),
            py::arg("friction") = -1.0)
-      .def("add_plane", &PyScene::add_plane, py::arg("point"), py::arg("normal"), py::arg("friction") = -1.0)
+      .def("add_plane", &PyScene::add_plane, py::arg("point"), py::arg("normal"), py::arg("friction") = -1.0, py::arg("moving") = false)
       .def("step", &PyScene::step)
       .def_property_readonly("vertex_count", [](const PyScene& s) { return s.model->vertex_count; })
       .def_property_readonly("x", [](PyScene& s) { return s.view(s.state->x); })

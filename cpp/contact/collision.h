@@ -24,7 +24,9 @@ namespace kinema::contact {
 struct Constraint {
   PairKind kind;
   std::array<Index, 4> v;
-  Index plane = -1;  // >= 0: vertex v[0] against model.planes[plane] (kind PP unused)
+  // >= 0: vertex v[0] against model.planes[plane] (kind PP unused); v[1] is the plane's driven
+  // vertex when it moves (the term then reads both), else -1.
+  Index plane = -1;
   Scalar d = 0;      // squared distance at the positions it was found at
   // Edge-edge pairs, whatever formula they reduce to: the two edges (a0, a1, b0, b1) and the
   // mollifier threshold eps_x > 0 (barrier.h); other pairs: -1 and 0.
@@ -32,7 +34,7 @@ struct Constraint {
   Scalar eps_x = 0;
 
   // The vertices the barrier term reads; its gradient and Hessian are over these, 3 entries each.
-  int stencil_size() const { return eps_x > 0 ? 4 : plane >= 0 ? 1 : vertex_count(kind); }
+  int stencil_size() const { return eps_x > 0 ? 4 : plane >= 0 ? (v[1] >= 0 ? 2 : 1) : vertex_count(kind); }
   const Index* stencil() const { return eps_x > 0 ? edges.data() : v.data(); }
 };
 

@@ -37,6 +37,14 @@ struct Config {
 struct Plane {
   Vec3 point, normal;  // normal: unit, pointing into the allowed side
   Scalar friction = -1;  // Coulomb mu of contacts with this plane; < 0: Config::friction
+  // >= 0: a moving (scripted) plane, translated with this driven vertex of the model, which is
+  // its point (`point` is then unused): the plane's offset is an unknown of the solve held to
+  // its script like a moving obstacle's vertices, so CCD and the barrier see it move.
+  Index vertex = -1;
+
+  Vec3 point_at(const Scalar* x) const {
+    return vertex >= 0 ? Vec3(Eigen::Map<const Vec3>(x + 3 * vertex)) : point;
+  }
 };
 
 struct Model {
@@ -92,7 +100,8 @@ struct Model {
   // friction: the collider's own Coulomb mu (>= 0), or < 0 for the scene's.
   Index add_obstacle(const Scalar* x, Index n, const Index* triangles, Index m, bool moving = false,
                      Scalar friction = -1);
-  void add_plane(const Vec3& point, const Vec3& normal, Scalar friction = -1);
+  // moving: the plane translates with a driven vertex at `point` (returned; -1 when static).
+  Index add_plane(const Vec3& point, const Vec3& normal, Scalar friction = -1, bool moving = false);
 
   Scalar total_mass() const;
   Scalar bbox_diagonal(const Scalar* x) const;

@@ -40,8 +40,10 @@ Eigen::Matrix<Scalar, 2, 1> span_coordinates(const Vec3& e1, const Vec3& e2, con
 void closest_weights(const Model& model, const Constraint& c, const Scalar* x, FrictionContact& f, Vec3& n) {
   f.v = c.v;
   if (c.plane >= 0) {
-    f.count = 1;
+    // Relative to a moving plane's point: its tangential motion drags what rests on it.
+    f.count = c.v[1] >= 0 ? 2 : 1;
     f.w[0] = 1;
+    f.w[1] = -1;
     n = model.planes[static_cast<size_t>(c.plane)].normal;
     return;
   }

@@ -325,8 +325,10 @@ class Scene:
         """A collider, static or moving, with its own Coulomb coefficient ``friction`` for every
         contact with it (default None: the scene's ``friction``). ``shape``:
 
-        * "plane": ``point``, ``normal`` (pointing to the free side): an exact half-space
-          (static only);
+        * "plane": ``point``, ``normal`` (pointing to the free side): an exact half-space;
+          a moving plane translates (its normal is fixed: ``velocity``, or a ``motion``
+          whose rotations, if any, turn about the normal), its point being one driven row of
+          ``x``;
         * "box": ``lower``, ``upper``: a solid box (12 triangles);
         * "sphere": ``center``, ``radius``, ``subdivisions`` (default 3): an icosphere;
         * "mesh": ``vertices`` and ``triangles``, or ``path`` to a file meshio reads
@@ -340,12 +342,12 @@ class Scene:
         the step's end inside the CCD-clamped solve (a stiff augmented-Lagrangian hold), so
         nothing passes through a moving collider either; what it pushes is pushed.
 
-        Returns the collider's rows of ``x`` (None for a plane)."""
+        Returns the collider's rows of ``x`` (None for a static plane; a moving plane's one
+        row is its point)."""
         shape = choice(shape, "shape", ("plane", "box", "sphere", "mesh"))
         mu = -1.0 if friction is None else non_negative(friction, "friction")
-        moving = motion is not None or velocity is not None or angular_velocity is not None
-        if moving and shape == "plane":
-            raise ValueError("motion: a plane collider is static; use a large box for a moving floor or wall")
+        if angular_velocity is not None and shape == "plane":
+            raise ValueError("angular_velocity: a plane collider moves by translation only (its normal is fixed)")
         motion = _motion(motion, velocity, angular_velocity)
         allowed = {"plane": {"point", "normal"}, "box": {"lower", "upper"},
                    "sphere": {"center", "radius", "subdivisions"}, "mesh": {"vertices", "triangles", "path"}}[shape]
@@ -357,11 +359,16 @@ class Scene:
             if not normal.any():
                 raise ValueError("normal: expected a non-zero vector")
             normal = normal / np.abs(normal).max()  # its norm is then representable
-            self._core.add_plane(tuple(point), tuple(normal), mu)
-            self.planes.append((point, normal / np.linalg.norm(normal)))
-            self.colliders.append({"shape": "plane", "point": point, "normal": normal / np.linalg.norm(normal),
-                                   "rows": None, "motion": None})
-            return None
+            start = self._core.add_plane(tuple(point), tuple(normal), mu, motion is not None)
+            unit = normal / np.linalg.norm(normal)
+            self.planes.append((point, unit))
+            rows = None if motion is None else self._slice(start, 1)
+            spec = {"shape": "plane", "point": point, "normal": unit, "rows": rows, "motion": motion,
+                    "rest": point[None, :].copy(), "pivot": point.copy()}
+            self.colliders.append(spec)
+            if motion is not None:
+                self._core.x[rows] = _place(spec, self.time)
+            return rows
         v, t = _surface(shape, kw)
         start = self._core.add_obstacle(v, t, motion is not None, mu)
         rows = self._slice(start, len(v))
@@ -381,7 +388,7 @@ class Scene:
         now) by its script."""
         spec = self.colliders[index]
         if spec["rows"] is None:
-            raise ValueError(f"index: collider {index} is a plane (no vertices)")
+            raise ValueError(f"index: collider {index} is a static plane (no vertices)")
         return _place(spec, self.time if time is None else float(time))
 
     # ------------------------------------------------------------------ stepping
@@ -585,6 +592,9 @@ def _place(spec, t):
         return spec["rest"]
     R, c = spec["motion"](t)
     p = spec["pivot"]
+    if spec["shape"] == "plane" and not np.allclose(R @ spec["normal"], spec["normal"], rtol=0, atol=1e-12):
+        raise ValueError(f"motion: at t = {t} it turns the plane's normal; a plane collider moves by translation "
+                         "only (rotations about its normal are allowed)")
     return (spec["rest"] - p) @ R.T + p + c
 
 
