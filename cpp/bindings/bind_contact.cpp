@@ -24,6 +24,17 @@ LinearSolver contact_linear_solver(const std::string& name) {
   throw InvalidArgument("linear_solver: expected 'simplicial', 'cholmod', 'cholmod-pcg' or 'cg', got '" + name + "'");
 }
 
+contact::Projection contact_projection(const std::string& name) {
+  if (name == "none") return contact::Projection::None;
+  if (name == "clamp") return contact::Projection::Clamp;
+  if (name == "rank-one") return contact::Projection::RankOne;
+  throw InvalidArgument("projection: expected 'rank-one', 'clamp' or 'none', got '" + name + "'");
+}
+
+const char* projection_name(contact::Projection p) {
+  return p == contact::Projection::None ? "none" : p == contact::Projection::Clamp ? "clamp" : "rank-one";
+}
+
 Index rows_of(const py::array& a, Index cols, const char* name) {
   if (a.ndim() != 2 || a.shape(1) != cols)
     throw InvalidArgument(std::string(name) + ": expected shape (n, " + std::to_string(cols) + "), got " +
@@ -151,6 +162,9 @@ void bind_contact(py::module_& m) {
       .def_readwrite("tol", &contact::Config::tol)
       .def_readwrite("max_newton", &contact::Config::max_newton)
       .def_property(
+          "barrier_projection", [](const contact::Config& c) { return projection_name(c.barrier_projection); },
+          [](contact::Config& c, const std::string& s) { c.barrier_projection = contact_projection(s); })
+      .def_property(
           "linear_solver",
           [](const contact::Config& c) {
             return c.linear_solver == LinearSolver::CG        ? "cg"
@@ -246,13 +260,14 @@ void bind_contact(py::module_& m) {
         }
         return to_numpy(std::move(g), {s.model->vertex_count, 3});
       })
-      .def("barrier_hessian", [](PyScene& s, py::array x, bool project) {
+      .def("barrier_hessian", [](PyScene& s, py::array x, const std::string& projection) {
         const Scalar* p = s.positions(x);
+        const contact::Projection how = contact_projection(projection);
         contact::Solver& solver = s.ready();
         SparseMatrix H;
         {
           ReleaseGil release;
-          H = solver.barrier_hessian(p, project);
+          H = solver.barrier_hessian(p, how);
         }
         H.makeCompressed();
         std::vector<Index> ptr(H.outerIndexPtr(), H.outerIndexPtr() + H.outerSize() + 1);

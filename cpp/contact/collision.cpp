@@ -278,7 +278,8 @@ std::vector<Constraint> find_constraints(const Model& model, const Scalar* x, Sc
 }
 
 Scalar constraint_barrier(const Model& model, const Constraint& c, const Scalar* x, Scalar dhat2, Vec<12>* g,
-                          Mat<12>* H, bool project) {
+                          Mat<12>* H, Projection projection) {
+  const bool project = projection != Projection::None;
   if (c.plane >= 0) {
     // s = n . (x_v - p): a moving plane's point p is the stencil's second vertex, and the
     // term's derivatives in it are those in x_v with the sign changed.
@@ -313,8 +314,9 @@ Scalar constraint_barrier(const Model& model, const Constraint& c, const Scalar*
   if (c.eps_x > 0)
     for (int a = 0; a < vertex_count(c.kind); ++a)
       r.slot[a] = static_cast<int>(std::find(ids, ids + 4, c.v[static_cast<size_t>(a)]) - ids);
-  const Scalar e = pair_barrier(r, y, c.eps_x, dhat2, g, H);
-  if (H && project) {
+  bool rank_one = false;
+  const Scalar e = pair_barrier(r, y, c.eps_x, dhat2, g, H, projection == Projection::RankOne, &rank_one);
+  if (H && project && !rank_one) {
     if (n == 4)
       project_psd_translation_free<4>(*H);
     else if (n == 3)
@@ -326,7 +328,7 @@ Scalar constraint_barrier(const Model& model, const Constraint& c, const Scalar*
 }
 
 Scalar evaluate_barriers(const Model& model, const std::vector<Constraint>& constraints, const Scalar* x,
-                         Scalar dhat2, std::vector<Vec<12>>* g, std::vector<Mat<12>>* H, bool project) {
+                         Scalar dhat2, std::vector<Vec<12>>* g, std::vector<Mat<12>>* H, Projection projection) {
   const Index n = static_cast<Index>(constraints.size());
   if (g) g->resize(static_cast<size_t>(n));
   if (H) H->resize(static_cast<size_t>(n));
@@ -335,7 +337,7 @@ Scalar evaluate_barriers(const Model& model, const std::vector<Constraint>& cons
   for (Index i = 0; i < n; ++i) {
     const size_t k = static_cast<size_t>(i);
     energy[k] = constraint_barrier(model, constraints[k], x, dhat2, g ? &(*g)[k] : nullptr,
-                                   g && H ? &(*H)[k] : nullptr, project);
+                                   g && H ? &(*H)[k] : nullptr, projection);
   }
   Scalar sum = 0;
   for (Scalar e : energy) sum += e;

@@ -81,13 +81,13 @@ std::vector<Constraint> find_constraints(const Model& model, const Candidates& c
 // the energies, and per constraint its gradient (g) and Hessian (H) over c.stencil() when the
 // vectors are given (H projected when `project`).
 Scalar evaluate_barriers(const Model& model, const std::vector<Constraint>& constraints, const Scalar* x,
-                         Scalar dhat2, std::vector<Vec<12>>* g, std::vector<Mat<12>>* H, bool project);
+                         Scalar dhat2, std::vector<Vec<12>>* g, std::vector<Mat<12>>* H, Projection projection);
 
 // Barrier term m(s) b(d) of a constraint at x (barrier.h; m = 1 but for edge pairs) and, when g
 // is given, its gradient over c.stencil(); when H is given too, its Hessian, projected to the
-// nearest positive semidefinite matrix when `project` (Li et al. 2020, sec. 4.2).
+// positive semidefinite by `projection`.
 Scalar constraint_barrier(const Model& model, const Constraint& c, const Scalar* x, Scalar dhat2, Vec<12>* g,
-                          Mat<12>* H, bool project);
+                          Mat<12>* H, Projection projection);
 
 // Largest t in [0, 1] such that moving x -> x + t dx keeps every pair apart (conservative).
 Scalar max_safe_step(const Model& model, const Scalar* x, const Scalar* dx, const CcdOptions& options);

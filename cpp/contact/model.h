@@ -14,6 +14,13 @@
 
 namespace kinema::contact {
 
+// How a barrier term's Hessian is made positive semidefinite: not at all (None), by clamping
+// its negative eigenvalues to zero (Clamp: the nearest PSD matrix, Li et al. 2020 sec. 4.2, as
+// the IPC toolkit's CLAMP), or by the rank-one Gauss-Newton matrix of barrier.h (RankOne: the
+// clamped first term b'' grad d grad d^T + b' grad d grad d^T / (2 d), no eigenproblem; Clamp
+// where the edge mollifier is active).
+enum class Projection { None, Clamp, RankOne };
+
 struct Config {
   Vec3 gravity = Vec3::Zero();       // [m/s^2]
   Scalar dhat = 1e-3;                // barrier activation distance [m]
@@ -32,6 +39,9 @@ struct Config {
   // iteration's blocks, analysed afresh whenever it changes (the former behaviour; for tests
   // and benchmarks).
   bool reuse_pattern = true;
+  // The barrier Hessians in the Newton matrix: the rank-one Gauss-Newton matrices (barrier.h),
+  // or the eigen clamp of each (the former behaviour).
+  Projection barrier_projection = Projection::RankOne;
 };
 
 struct Plane {

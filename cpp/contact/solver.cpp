@@ -138,14 +138,14 @@ Scalar Solver::elastic_energy(const Scalar* x) const {
 
 Scalar Solver::barrier_energy(const Scalar* x) const {
   return evaluate_barriers(model_, find_constraints(model_, broad_phase_, x, dhat2_), x, dhat2_, nullptr, nullptr,
-                           false);
+                           Projection::None);
 }
 
 void Solver::barrier_gradient(const Scalar* x, Scalar* g) const {
   std::fill(g, g + 3 * model_.vertex_count, Scalar(0));
   const std::vector<Constraint> constraints = find_constraints(model_, broad_phase_, x, dhat2_);
   std::vector<Vec<12>> gb;
-  evaluate_barriers(model_, constraints, x, dhat2_, &gb, nullptr, false);
+  evaluate_barriers(model_, constraints, x, dhat2_, &gb, nullptr, Projection::None);
   for (size_t k = 0; k < constraints.size(); ++k) {
     const Constraint& c = constraints[k];
     for (int a = 0; a < c.stencil_size(); ++a)
@@ -153,12 +153,12 @@ void Solver::barrier_gradient(const Scalar* x, Scalar* g) const {
   }
 }
 
-SparseMatrix Solver::barrier_hessian(const Scalar* x, bool project) const {
+SparseMatrix Solver::barrier_hessian(const Scalar* x, Projection projection) const {
   std::vector<Eigen::Triplet<Scalar, Index>> t;
   const std::vector<Constraint> constraints = find_constraints(model_, broad_phase_, x, dhat2_);
   std::vector<Vec<12>> gb;
   std::vector<Mat<12>> Hb;
-  evaluate_barriers(model_, constraints, x, dhat2_, &gb, &Hb, project);
+  evaluate_barriers(model_, constraints, x, dhat2_, &gb, &Hb, projection);
   for (size_t i = 0; i < constraints.size(); ++i) {
     const int k = constraints[i].stencil_size();
     const Index* v = constraints[i].stencil();
@@ -252,7 +252,7 @@ Scalar Solver::potential(const std::vector<Scalar>& x, Scalar h, Scalar kappa) c
   }
   Scalar b = 0;
   b = evaluate_barriers(model_, find_constraints(model_, candidates_, x.data(), dhat2_), x.data(), dhat2_, nullptr,
-                        nullptr, false);
+                        nullptr, Projection::None);
   Scalar friction = 0;
   const Scalar eps_v = config_.friction_velocity;
   for (const FrictionContact& f : friction_) {
@@ -328,10 +328,10 @@ void Solver::assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, cons
     He << S, -S, -S, S;
     system.add(ij, 2, He);
   }
-  // Barrier: kappa (b' grad d, b'' grad d grad d^T + b' Hess d), projected per contact.
+  // Barrier: kappa (b' grad d, b'' grad d grad d^T + b' Hess d), made PSD per contact.
   std::vector<Vec<12>> gb;
   std::vector<Mat<12>> Hb;
-  evaluate_barriers(model_, constraints, x.data(), dhat2_, &gb, &Hb, true);
+  evaluate_barriers(model_, constraints, x.data(), dhat2_, &gb, &Hb, config_.barrier_projection);
   for (size_t i = 0; i < constraints.size(); ++i) {
     const Constraint& c = constraints[i];
     const int k = c.stencil_size();

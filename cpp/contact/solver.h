@@ -62,10 +62,10 @@ class Solver {
 
   // Elastic energy Psi(x) [J] (tests and diagnostics).
   Scalar elastic_energy(const Scalar* x) const;
-  // Barrier energy sum_k b(d_k(x)) [m^4] and its gradient (3n) and Hessian (projected or not).
+  // Barrier energy sum_k b(d_k(x)) [m^4] and its gradient (3n) and Hessian (made PSD or not).
   Scalar barrier_energy(const Scalar* x) const;
   void barrier_gradient(const Scalar* x, Scalar* g) const;
-  SparseMatrix barrier_hessian(const Scalar* x, bool project) const;
+  SparseMatrix barrier_hessian(const Scalar* x, Projection projection) const;
   // The active pairs at x and the largest collision-free fraction of the move x -> x + dx,
   // on the solver's broad phase (its trees refit, not rebuilt).
   std::vector<Constraint> constraints(const Scalar* x) const;

@@ -210,6 +210,13 @@ class Scene:
       contact blocks seen so far) and its symbolic analysis between Newton iterations and
       steps (default); False re-analyses whenever the contact pattern changes (for
       comparisons: the results agree to rounding).
+    * ``barrier_projection``: how each contact's barrier Hessian is made positive
+      semidefinite in the Newton matrix: "rank-one" (default: max(b'' + b' / (2 d), 0)
+      grad d grad d^T, the clamped distance-normal term, no eigenproblem; exact for
+      vertex-vertex and vertex-plane pairs, within ``|2 s b'| |Hess s|`` of the clamp
+      otherwise, relatively about gap / edge length) or "clamp" (each contact's negative
+      eigenvalues clamped to zero, Li et al. 2020). The gradient is exact either way, so
+      Newton stops at the same minimiser to ``tol``.
 
     Attributes: ``x`` (n, 3) positions [m] and ``v`` (n, 3) velocities [m/s] of every vertex of
     every body and collider, in the order added (writable views; ``add_*`` returns each
@@ -219,7 +226,7 @@ class Scene:
 
     def __init__(self, *, gravity=None, dhat=1e-3, friction=0.0, friction_velocity=1e-3,
                  barrier_stiffness=None, tol=1e-2, max_newton=500, linear_solver="simplicial",
-                 reuse_pattern=True):
+                 reuse_pattern=True, barrier_projection="rank-one"):
         cfg = _core.contact.Config()
         cfg.gravity = (0.0, 0.0, 0.0) if gravity is None else tuple(_vec3(gravity, "gravity"))
         cfg.dhat = positive(dhat, "dhat")
@@ -232,6 +239,7 @@ class Scene:
         if not isinstance(reuse_pattern, (bool, np.bool_)):
             raise ValueError(f"reuse_pattern: expected True or False, got {reuse_pattern!r}")
         cfg.reuse_pattern = bool(reuse_pattern)
+        cfg.barrier_projection = choice(barrier_projection, "barrier_projection", ("rank-one", "clamp"))
         self._core = _core.contact.Scene(cfg)
         self.config = cfg
         self.planes = []
@@ -537,10 +545,15 @@ class Scene:
         return self._core.barrier_gradient(self.x if x is None else _points(x, "x"))
 
     def barrier_hessian(self, x=None, *, project=False):
-        """Hessian (3n, 3n) scipy.sparse.csr_matrix of ``barrier_energy`` (per-contact PSD
-        projection when ``project``)."""
+        """Hessian (3n, 3n) scipy.sparse.csr_matrix of ``barrier_energy``, made positive
+        semidefinite per contact when ``project``: True or "clamp" (negative eigenvalues of each
+        contact's Hessian clamped to zero, the nearest PSD matrix), "rank-one" (the Gauss-Newton
+        matrix max(b'' + b' / (2 d), 0) grad d grad d^T the solver assembles by default, within
+        |2 s b'| |Hess s| of the clamp in Frobenius norm; see ``barrier_projection``)."""
         import scipy.sparse as sp
-        val, col, ptr = self._core.barrier_hessian(self.x if x is None else _points(x, "x"), bool(project))
+        how = {False: "none", True: "clamp"}.get(project, project) if isinstance(project, (bool, np.bool_)) else project
+        how = choice(how, "project", ("none", "clamp", "rank-one"))
+        val, col, ptr = self._core.barrier_hessian(self.x if x is None else _points(x, "x"), how)
         n = 3 * self._core.vertex_count
         return sp.csr_matrix((val, col, ptr), shape=(n, n))
 
