@@ -144,7 +144,7 @@ Scalar Solver::barrier_energy(const Scalar* x) const {
 void Solver::barrier_gradient(const Scalar* x, Scalar* g) const {
   std::fill(g, g + 3 * model_.vertex_count, Scalar(0));
   const std::vector<Constraint> constraints = find_constraints(model_, broad_phase_, x, dhat2_);
-  std::vector<Vec<12>> gb;
+  std::vector<Vec<12>>& gb = barrier_gradients_;
   evaluate_barriers(model_, constraints, x, dhat2_, &gb, nullptr, Projection::None);
   for (size_t k = 0; k < constraints.size(); ++k) {
     const Constraint& c = constraints[k];
@@ -154,10 +154,11 @@ void Solver::barrier_gradient(const Scalar* x, Scalar* g) const {
 }
 
 SparseMatrix Solver::barrier_hessian(const Scalar* x, Projection projection) const {
-  std::vector<Eigen::Triplet<Scalar, Index>> t;
+  std::vector<Eigen::Triplet<Scalar, Index>>& t = triplets_;
+  t.clear();
   const std::vector<Constraint> constraints = find_constraints(model_, broad_phase_, x, dhat2_);
-  std::vector<Vec<12>> gb;
-  std::vector<Mat<12>> Hb;
+  std::vector<Vec<12>>& gb = barrier_gradients_;
+  std::vector<Mat<12>>& Hb = barrier_hessians_;
   evaluate_barriers(model_, constraints, x, dhat2_, &gb, &Hb, projection);
   for (size_t i = 0; i < constraints.size(); ++i) {
     const int k = constraints[i].stencil_size();
@@ -329,8 +330,8 @@ void Solver::assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, cons
     system.add(ij, 2, He);
   }
   // Barrier: kappa (b' grad d, b'' grad d grad d^T + b' Hess d), made PSD per contact.
-  std::vector<Vec<12>> gb;
-  std::vector<Mat<12>> Hb;
+  std::vector<Vec<12>>& gb = barrier_gradients_;
+  std::vector<Mat<12>>& Hb = barrier_hessians_;
   evaluate_barriers(model_, constraints, x.data(), dhat2_, &gb, &Hb, config_.barrier_projection);
   for (size_t i = 0; i < constraints.size(); ++i) {
     const Constraint& c = constraints[i];

@@ -8,6 +8,7 @@
 #pragma once
 
 #include <Eigen/SparseCholesky>
+#include <Eigen/SparseCore>
 #include <memory>
 #include <vector>
 
@@ -109,6 +110,12 @@ class Solver {
   // line search (x + alpha p, alpha <= 1) finds its active pairs among them.
   mutable BroadPhase broad_phase_;
   Candidates candidates_;
+  // Per-contact barrier derivatives and the Hessian's triplets, kept so that their storage (a
+  // few hundred kB, beyond malloc's mmap threshold) is not returned to the system and faulted
+  // in again on every evaluation.
+  mutable std::vector<Vec<12>> barrier_gradients_;
+  mutable std::vector<Mat<12>> barrier_hessians_;
+  mutable std::vector<Eigen::Triplet<Scalar, Index>> triplets_;
 };
 
 }  // namespace kinema::contact
