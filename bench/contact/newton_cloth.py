@@ -1,8 +1,9 @@
 """Cloth on a sphere and a tilted box: kinema's IPC solver (km.contact) beside NVIDIA Newton's
 VBD cloth (Vertex Block Descent, Chen et al. 2024, on Warp's CPU device), time per step at equal
-step size, in one run.
+step size and at equal measured step accuracy, in one run.
 
     OMP_NUM_THREADS=1 .venv/bin/python bench/contact/newton_cloth.py [--sizes 8 12 16] [--steps 40]
+        [--tols 0.01 0.02 0.03 0.04] [--check-every 2] [--reference-iterations 300] [--quick]
 
 Same scene dimensions on both sides (examples/contact_scenes.py's cloth scene): an n x n-cell
 square cloth 0.8 m wide at height 0.33 m over a sphere of radius 0.3 m at the origin and a
@@ -10,14 +11,19 @@ square cloth 0.8 m wide at height 0.33 m over a sphere of radius 0.3 m at the or
 dt = 1/50 s, cloth density 0.2 kg/m^2. Newton's side: one VBD step per dt with its example's
 10 iterations, self-contact on, sphere and box as static collision shapes (analytic, where
 kinema uses an icosphere and a box mesh). The models differ (kinema: springs and an IPC
-barrier solved to Newton tol 1e-2; VBD: StVK membrane and penalty contact at a fixed iteration
-count), so the time per step at equal dt is compared beside each side's accuracy after every
-step: kinema's exact minimum distance (cloth to sphere/box meshes and to itself), its count of
-penetrations (edges through triangles, exact) and its last Newton step max|dx|/(dt diag) (the
-quantity tol bounds); VBD's smallest signed distance of a cloth vertex to the analytic sphere
-and box, the number of step-vertex pairs found inside either, and the cloth's
-self-intersections (edges through its own triangles, by kinema's exact check on VBD's
-triangles). VBD reports no residual (it stops after its fixed iterations).
+barrier solved by Newton to `tol`; VBD: StVK membrane and penalty contact at a fixed iteration
+count).
+
+Accuracy, both sides alike: every `check_every` steps the step is solved again from the same
+state to convergence (VBD with `reference_iterations` iterations; kinema to Newton tol 1e-4)
+and the step's error is max |x - x_converged| / (dt diag), diag the scene's bounding-box
+diagonal (what kinema's tol bounds through its Newton step). kinema runs once per tolerance in
+`tols`; the summary gives the ratio at the default tol 1e-2 and at equal accuracy: the loosest
+tol whose median step error is at most VBD's. Also after every step: kinema's exact minimum
+distance (cloth to sphere/box meshes and to itself) and penetrations (edges through
+triangles, exact); VBD's smallest signed distance of a cloth vertex to the analytic sphere and
+box, the vertices found inside either, and the cloth's self-intersections (kinema's exact check
+on VBD's triangles).
 
 Warp compiles its CPU kernels on first use: the first steps are run untimed.
 """
