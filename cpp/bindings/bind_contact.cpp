@@ -24,6 +24,17 @@ LinearSolver contact_linear_solver(const std::string& name) {
   throw InvalidArgument("linear_solver: expected 'simplicial', 'cholmod', 'cholmod-pcg' or 'cg', got '" + name + "'");
 }
 
+contact::Projection contact_projection(const std::string& name) {
+  if (name == "none") return contact::Projection::None;
+  if (name == "clamp") return contact::Projection::Clamp;
+  if (name == "rank-one") return contact::Projection::RankOne;
+  throw InvalidArgument("projection: expected 'rank-one', 'clamp' or 'none', got '" + name + "'");
+}
+
+const char* projection_name(contact::Projection p) {
+  return p == contact::Projection::None ? "none" : p == contact::Projection::Clamp ? "clamp" : "rank-one";
+}
+
 Index rows_of(const py::array& a, Index cols, const char* name) {
   if (a.ndim() != 2 || a.shape(1) != cols)
     throw InvalidArgument(std::string(name) + ": expected shape (n, " + std::to_string(cols) + "), got " +
@@ -95,10 +106,15 @@ struct PyScene {
     return grown(model->add_obstacle(x, n, index_data(triangles), m, moving, friction));
   }
 
-  void add_plane(const std::array<Scalar, 3>& point, const std::array<Scalar, 3>& normal, Scalar friction) {
-    model->add_plane(Vec3(point[0], point[1], point[2]), Vec3(normal[0], normal[1], normal[2]), friction);
+  // A moving plane's driven vertex (its point) is appended to the state; returns it, or -1.
+  Index add_plane(const std::array<Scalar, 3>& point, const std::array<Scalar, 3>& normal, Scalar friction,
+                  bool moving) {
+    const Index vertex =
+        model->add_plane(Vec3(point[0], point[1], point[2]), Vec3(normal[0], normal[1], normal[2]), friction, moving);
+    if (vertex >= 0) return grown(vertex);
     state->kappa = 0;
     solver.reset();
+    return -1;
   }
 
   contact::Solver& ready() {
@@ -146,6 +162,9 @@ void bind_contact(py::module_& m) {
       .def_readwrite("tol", &contact::Config::tol)
       .def_readwrite("max_newton", &contact::Config::max_newton)
       .def_property(
+          "barrier_projection", [](const contact::Config& c) { return projection_name(c.barrier_projection); },
+          [](contact::Config& c, const std::string& s) { c.barrier_projection = contact_projection(s); })
+      .def_property(
           "linear_solver",
           [](const contact::Config& c) {
             return c.linear_solver == LinearSolver::CG        ? "cg"
@@ -190,7 +209,7 @@ void bind_contact(py::module_& m) {
       .def("add_springs", &PyScene::add_springs)
       .def("add_obstacle", &PyScene::add_obstacle, py::arg("vertices"), py::arg("triangles"), py::arg("moving"),
            py::arg("friction") = -1.0)
-      .def("add_plane", &PyScene::add_plane, py::arg("point"), py::arg("normal"), py::arg("friction") = -1.0)
+      .def("add_plane", &PyScene::add_plane, py::arg("point"), py::arg("normal"), py::arg("friction") = -1.0, py::arg("moving") = false)
       .def("step", &PyScene::step)
       .def_property_readonly("vertex_count", [](const PyScene& s) { return s.model->vertex_count; })
       .def_property_readonly("x", [](PyScene& s) { return s.view(s.state->x); })
@@ -241,13 +260,14 @@ void bind_contact(py::module_& m) {
         }
         return to_numpy(std::move(g), {s.model->vertex_count, 3});
       })
-      .def("barrier_hessian", [](PyScene& s, py::array x, bool project) {
+      .def("barrier_hessian", [](PyScene& s, py::array x, const std::string& projection) {
         const Scalar* p = s.positions(x);
+        const contact::Projection how = contact_projection(projection);
         contact::Solver& solver = s.ready();
         SparseMatrix H;
         {
           ReleaseGil release;
-          H = solver.barrier_hessian(p, project);
+          H = solver.barrier_hessian(p, how);
         }
         H.makeCompressed();
         std::vector<Index> ptr(H.outerIndexPtr(), H.outerIndexPtr() + H.outerSize() + 1);

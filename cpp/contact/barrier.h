@@ -79,11 +79,32 @@ inline Scalar friction_f1_derivative(Scalar y, Scalar eps_v) {
   return 2 / eps_v - 2 * y / (eps_v * eps_v);
 }
 
+// Rank-one (Gauss-Newton) positive semidefinite Hessian of a barrier term b(d(x)) with d = s^2
+// the squared distance and s the distance: the exact Hessian is
+//   H = b'' grad d grad d^T + b' Hess d = alpha grad s grad s^T + beta Hess s,
+//   alpha = 4 d b'' + 2 b',  beta = 2 s b' <= 0,
+// and R = max(alpha, 0) grad s grad s^T = max(b'' + b' / (2 d), 0) grad d grad d^T is the PSD
+// projection of its first term. The projection P onto the PSD cone is 1-Lipschitz in the
+// Frobenius norm, so |P(H) - R|_F <= |beta| |Hess s|_F: R differs from the eigen clamp P(H) by
+// at most |beta| |Hess s|, relatively about s / (edge length) since alpha ~ 4 dhat^4 / d and
+// |beta| ~ 2 dhat^4 / s for d << dhat^2 (Hess s ~ 1 / edge length). For a point-point pair
+// (Hess s = (I - n n^T) / s, orthogonal to grad s) and a vertex-plane pair (Hess s = 0) R equals
+// P(H) exactly. It needs no Hessian of d and no eigenproblem; a Newton matrix built from it
+// keeps the exact gradient, so Newton converges to the same minimiser.
+inline Scalar rank_one_barrier_weight(Scalar d, Scalar dhat2) {
+  if (!(d < dhat2)) return 0;
+  return std::max(barrier_second(d, dhat2) + barrier_first(d, dhat2) / (2 * d), Scalar(0));
+}
+
 // The barrier term of one pair, m(s) b(d), over its stencil y[0..4) (an edge pair: a0, a1, b0,
 // b1; a point-triangle pair: the formula's own vertices): `r` is the distance formula and the
 // stencil slots it reads; eps_x > 0 applies the edge mollifier. Gradient and Hessian (not
 // projected) over the stencil, 3 entries per vertex, when g and H are given; zero beyond dhat2.
-inline Scalar pair_barrier(const Reduced& r, const Vec3* y, Scalar eps_x, Scalar dhat2, Vec<12>* g, Mat<12>* H) {
+// rank_one: H is the rank-one PSD Hessian above instead where the mollifier is 1 (returns true
+// then; false when H is the exact Hessian).
+inline Scalar pair_barrier(const Reduced& r, const Vec3* y, Scalar eps_x, Scalar dhat2, Vec<12>* g, Mat<12>* H,
+                           bool rank_one = false, bool* is_rank_one = nullptr) {
+  if (is_rank_one) *is_rank_one = false;
   const int k = vertex_count(r.kind);
   Vec3 v[4];
   for (int a = 0; a < k; ++a) v[a] = y[r.slot[a]];
@@ -95,9 +116,23 @@ inline Scalar pair_barrier(const Reduced& r, const Vec3* y, Scalar eps_x, Scalar
   Scalar s = eps_x;
   Vec<12> gs;
   Mat<12> Hs;
-  if (eps_x > 0) s = g ? ee_cross_derivatives(y[0], y[1], y[2], y[3], gs, H ? &Hs : nullptr) : (y[1] - y[0]).cross(y[3] - y[2]).squaredNorm();
+  if (eps_x > 0) {
+    s = (y[1] - y[0]).cross(y[3] - y[2]).squaredNorm();
+    if (g && !(rank_one && H && !(s < eps_x))) s = ee_cross_derivatives(y[0], y[1], y[2], y[3], gs, H ? &Hs : nullptr);
+  }
   const Scalar m = eps_x > 0 ? edge_mollifier(s, eps_x) : Scalar(1);
   if (!g) return m * b;
+  if (rank_one && H && !(s < eps_x)) {
+    // m = 1: g = b' grad d, H = w grad d grad d^T (no Hessian of d needed).
+    Vec<12> gl;
+    reduced_derivatives(r.kind, v, gl, nullptr);
+    Vec<12> gd = Vec<12>::Zero();
+    for (int a = 0; a < k; ++a) gd.segment<3>(3 * r.slot[a]) = gl.segment<3>(3 * a);
+    *g = barrier_first(d, dhat2) * gd;
+    *H = rank_one_barrier_weight(d, dhat2) * gd * gd.transpose();
+    if (is_rank_one) *is_rank_one = true;
+    return b;
+  }
   Vec<12> gl;
   Mat<12> Hl;
   reduced_derivatives(r.kind, v, gl, H ? &Hl : nullptr);

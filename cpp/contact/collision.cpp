@@ -250,13 +250,14 @@ std::vector<Constraint> find_constraints(const Model& model, const Candidates& c
   // plane before its surface, so checking them costs little and needs no surface lookup).
   for (size_t pl = 0; pl < model.planes.size(); ++pl) {
     const Plane& plane = model.planes[pl];
+    const Vec3 point = plane.point_at(x);
     for (Index v : model.points) {
       if (model.fixed[static_cast<size_t>(v)]) continue;
-      const Scalar s = plane.normal.dot(at(x, v) - plane.point);
+      const Scalar s = plane.normal.dot(at(x, v) - point);
       if (s * s >= dhat2 || s < 0) continue;
       Constraint c;
       c.kind = PairKind::PP;
-      c.v = {v, -1, -1, -1};
+      c.v = {v, plane.vertex, -1, -1};
       c.plane = static_cast<Index>(pl);
       c.d = s * s;
       out.push_back(c);
@@ -277,20 +278,31 @@ std::vector<Constraint> find_constraints(const Model& model, const Scalar* x, Sc
 }
 
 Scalar constraint_barrier(const Model& model, const Constraint& c, const Scalar* x, Scalar dhat2, Vec<12>* g,
-                          Mat<12>* H, bool project) {
+                          Mat<12>* H, Projection projection) {
+  const bool project = projection != Projection::None;
   if (c.plane >= 0) {
+    // s = n . (x_v - p): a moving plane's point p is the stencil's second vertex, and the
+    // term's derivatives in it are those in x_v with the sign changed.
     const Plane& plane = model.planes[static_cast<size_t>(c.plane)];
-    const Scalar s = plane.normal.dot(at(x, c.v[0]) - plane.point), d = s * s;
+    const Scalar s = plane.normal.dot(at(x, c.v[0]) - plane.point_at(x)), d = s * s;
+    const bool moving = c.v[1] >= 0;
     if (g) {
       g->setZero();
       g->head<3>() = barrier_first(d, dhat2) * 2 * s * plane.normal;
+      if (moving) g->segment<3>(3) = -g->head<3>();
     }
     if (H) {
-      // b'' (2 s n)(2 s n)^T + b' 2 n n^T: rank one along n.
+      // b'' (2 s n)(2 s n)^T + b' 2 n n^T: rank one along n (along (n, -n) for a moving plane).
       Scalar k = 4 * d * barrier_second(d, dhat2) + 2 * barrier_first(d, dhat2);
       if (project) k = std::max(k, Scalar(0));
       H->setZero();
-      H->topLeftCorner<3, 3>() = k * plane.normal * plane.normal.transpose();
+      const Mat3 K = k * plane.normal * plane.normal.transpose();
+      H->topLeftCorner<3, 3>() = K;
+      if (moving) {
+        H->block<3, 3>(0, 3) = -K;
+        H->block<3, 3>(3, 0) = -K;
+        H->block<3, 3>(3, 3) = K;
+      }
     }
     return barrier(d, dhat2);
   }
@@ -302,8 +314,9 @@ Scalar constraint_barrier(const Model& model, const Constraint& c, const Scalar*
   if (c.eps_x > 0)
     for (int a = 0; a < vertex_count(c.kind); ++a)
       r.slot[a] = static_cast<int>(std::find(ids, ids + 4, c.v[static_cast<size_t>(a)]) - ids);
-  const Scalar e = pair_barrier(r, y, c.eps_x, dhat2, g, H);
-  if (H && project) {
+  bool rank_one = false;
+  const Scalar e = pair_barrier(r, y, c.eps_x, dhat2, g, H, projection == Projection::RankOne, &rank_one);
+  if (H && project && !rank_one) {
     if (n == 4)
       project_psd_translation_free<4>(*H);
     else if (n == 3)
@@ -315,7 +328,7 @@ Scalar constraint_barrier(const Model& model, const Constraint& c, const Scalar*
 }
 
 Scalar evaluate_barriers(const Model& model, const std::vector<Constraint>& constraints, const Scalar* x,
-                         Scalar dhat2, std::vector<Vec<12>>* g, std::vector<Mat<12>>* H, bool project) {
+                         Scalar dhat2, std::vector<Vec<12>>* g, std::vector<Mat<12>>* H, Projection projection) {
   const Index n = static_cast<Index>(constraints.size());
   if (g) g->resize(static_cast<size_t>(n));
   if (H) H->resize(static_cast<size_t>(n));
@@ -324,7 +337,7 @@ Scalar evaluate_barriers(const Model& model, const std::vector<Constraint>& cons
   for (Index i = 0; i < n; ++i) {
     const size_t k = static_cast<size_t>(i);
     energy[k] = constraint_barrier(model, constraints[k], x, dhat2, g ? &(*g)[k] : nullptr,
-                                   g && H ? &(*H)[k] : nullptr, project);
+                                   g && H ? &(*H)[k] : nullptr, projection);
   }
   Scalar sum = 0;
   for (Scalar e : energy) sum += e;
@@ -373,12 +386,16 @@ Scalar max_safe_step(const Model& model, const Candidates& candidates, const Sca
 #pragma omp critical(kinema_contact_ccd)
   t = std::min(t, local);
   }
-  for (const Plane& plane : model.planes)
+  for (const Plane& plane : model.planes) {
+    // A moving plane's point travels with its vertex: the motion that counts is the relative one.
+    const Vec3 point = plane.point_at(x);
+    const Scalar plane_motion = plane.vertex >= 0 ? plane.normal.dot(at(dx, plane.vertex)) : Scalar(0);
     for (Index v : model.points) {
       if (model.fixed[static_cast<size_t>(v)]) continue;
-      t = std::min(t, point_plane_ccd(plane.normal.dot(at(x, v) - plane.point), plane.normal.dot(at(dx, v)), t,
-                                      options));
+      t = std::min(t, point_plane_ccd(plane.normal.dot(at(x, v) - point), plane.normal.dot(at(dx, v)) - plane_motion,
+                                      t, options));
     }
+  }
   return t;
 }
 
@@ -411,12 +428,14 @@ Scalar min_distance(const Model& model, const Scalar* x, Scalar radius) {
     if (d < r2) best = std::min(best, d);
   }
   best = std::sqrt(best);
-  for (const Plane& plane : model.planes)
+  for (const Plane& plane : model.planes) {
+    const Vec3 point = plane.point_at(x);
     for (Index v : model.points) {
       if (model.fixed[static_cast<size_t>(v)]) continue;
-      const Scalar s = plane.normal.dot(at(x, v) - plane.point);
+      const Scalar s = plane.normal.dot(at(x, v) - point);
       if (s < radius) best = std::min(best, s);
     }
+  }
   return best;
 }
 
@@ -452,7 +471,7 @@ std::vector<std::string> find_intersections(const Model& model, const Scalar* x,
   for (size_t pl = 0; pl < model.planes.size() && !full(); ++pl)
     for (Index v = 0; v < model.vertex_count && !full(); ++v) {
       if (model.fixed[static_cast<size_t>(v)]) continue;
-      const Scalar s = model.planes[pl].normal.dot(at(x, v) - model.planes[pl].point);
+      const Scalar s = model.planes[pl].normal.dot(at(x, v) - model.planes[pl].point_at(x));
       if (!(s > 0))
         out.push_back("vertex " + std::to_string(v) + " lies on or behind plane " + std::to_string(pl) +
                       " (signed distance " + format_real(s) + ")");

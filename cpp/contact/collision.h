@@ -24,7 +24,9 @@ namespace kinema::contact {
 struct Constraint {
   PairKind kind;
   std::array<Index, 4> v;
-  Index plane = -1;  // >= 0: vertex v[0] against model.planes[plane] (kind PP unused)
+  // >= 0: vertex v[0] against model.planes[plane] (kind PP unused); v[1] is the plane's driven
+  // vertex when it moves (the term then reads both), else -1.
+  Index plane = -1;
   Scalar d = 0;      // squared distance at the positions it was found at
   // Edge-edge pairs, whatever formula they reduce to: the two edges (a0, a1, b0, b1) and the
   // mollifier threshold eps_x > 0 (barrier.h); other pairs: -1 and 0.
@@ -32,7 +34,7 @@ struct Constraint {
   Scalar eps_x = 0;
 
   // The vertices the barrier term reads; its gradient and Hessian are over these, 3 entries each.
-  int stencil_size() const { return eps_x > 0 ? 4 : plane >= 0 ? 1 : vertex_count(kind); }
+  int stencil_size() const { return eps_x > 0 ? 4 : plane >= 0 ? (v[1] >= 0 ? 2 : 1) : vertex_count(kind); }
   const Index* stencil() const { return eps_x > 0 ? edges.data() : v.data(); }
 };
 
@@ -79,13 +81,13 @@ std::vector<Constraint> find_constraints(const Model& model, const Candidates& c
 // the energies, and per constraint its gradient (g) and Hessian (H) over c.stencil() when the
 // vectors are given (H projected when `project`).
 Scalar evaluate_barriers(const Model& model, const std::vector<Constraint>& constraints, const Scalar* x,
-                         Scalar dhat2, std::vector<Vec<12>>* g, std::vector<Mat<12>>* H, bool project);
+                         Scalar dhat2, std::vector<Vec<12>>* g, std::vector<Mat<12>>* H, Projection projection);
 
 // Barrier term m(s) b(d) of a constraint at x (barrier.h; m = 1 but for edge pairs) and, when g
 // is given, its gradient over c.stencil(); when H is given too, its Hessian, projected to the
-// nearest positive semidefinite matrix when `project` (Li et al. 2020, sec. 4.2).
+// positive semidefinite by `projection`.
 Scalar constraint_barrier(const Model& model, const Constraint& c, const Scalar* x, Scalar dhat2, Vec<12>* g,
-                          Mat<12>* H, bool project);
+                          Mat<12>* H, Projection projection);
 
 // Largest t in [0, 1] such that moving x -> x + t dx keeps every pair apart (conservative).
 Scalar max_safe_step(const Model& model, const Scalar* x, const Scalar* dx, const CcdOptions& options);

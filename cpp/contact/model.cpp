@@ -227,12 +227,21 @@ Index Model::add_obstacle(const Scalar* x, Index n, const Index* triangles, Inde
   return start;
 }
 
-void Model::add_plane(const Vec3& point, const Vec3& normal, Scalar friction) {
+Index Model::add_plane(const Vec3& point, const Vec3& normal, Scalar friction, bool moving) {
   const Scalar len = normal.norm();
   if (!(std::isfinite(len) && len > 0)) throw InvalidArgument("normal: expected a finite non-zero vector");
   if (!point.allFinite()) throw InvalidArgument("point: contains non-finite values");
   check_friction(friction);
-  planes.push_back({point, normal / len, friction});
+  Index vertex = -1;
+  if (moving) {
+    // A driven vertex that is no collision primitive: it only carries the plane's point.
+    vertex = append_vertices(point.data(), 1, "point");
+    body_friction.back() = friction;
+    fixed[static_cast<size_t>(vertex)] = 1;
+    driven[static_cast<size_t>(vertex)] = 1;
+  }
+  planes.push_back({point, normal / len, friction, vertex});
+  return vertex;
 }
 
 Scalar Model::total_mass() const {
@@ -243,12 +252,19 @@ Scalar Model::total_mass() const {
 
 Scalar Model::bbox_diagonal(const Scalar* x) const {
   Vec3 lo = Vec3::Constant(std::numeric_limits<Scalar>::infinity()), hi = -lo;
+  // A moving plane's point is not part of the scene's extent (a static plane's is not either).
+  auto plane_point = [&](Index i) {
+    for (const Plane& p : planes)
+      if (p.vertex == i) return true;
+    return false;
+  };
   for (Index i = 0; i < vertex_count; ++i) {
+    if (driven[static_cast<size_t>(i)] && plane_point(i)) continue;
     const Vec3 p = Eigen::Map<const Vec3>(x + 3 * i);
     lo = lo.cwiseMin(p);
     hi = hi.cwiseMax(p);
   }
-  return vertex_count > 0 ? (hi - lo).norm() : 0;
+  return (hi.array() >= lo.array()).all() ? (hi - lo).norm() : 0;
 }
 
 State make_state(const Model& model) {

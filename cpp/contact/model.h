@@ -14,6 +14,13 @@
 
 namespace kinema::contact {
 
+// How a barrier term's Hessian is made positive semidefinite: not at all (None), by clamping
+// its negative eigenvalues to zero (Clamp: the nearest PSD matrix, Li et al. 2020 sec. 4.2, as
+// the IPC toolkit's CLAMP), or by the rank-one Gauss-Newton matrix of barrier.h (RankOne: the
+// clamped first term b'' grad d grad d^T + b' grad d grad d^T / (2 d), no eigenproblem; Clamp
+// where the edge mollifier is active).
+enum class Projection { None, Clamp, RankOne };
+
 struct Config {
   Vec3 gravity = Vec3::Zero();       // [m/s^2]
   Scalar dhat = 1e-3;                // barrier activation distance [m]
@@ -32,11 +39,22 @@ struct Config {
   // iteration's blocks, analysed afresh whenever it changes (the former behaviour; for tests
   // and benchmarks).
   bool reuse_pattern = true;
+  // The barrier Hessians in the Newton matrix: the rank-one Gauss-Newton matrices (barrier.h),
+  // or the eigen clamp of each (the former behaviour).
+  Projection barrier_projection = Projection::RankOne;
 };
 
 struct Plane {
   Vec3 point, normal;  // normal: unit, pointing into the allowed side
   Scalar friction = -1;  // Coulomb mu of contacts with this plane; < 0: Config::friction
+  // >= 0: a moving (scripted) plane, translated with this driven vertex of the model, which is
+  // its point (`point` is then unused): the plane's offset is an unknown of the solve held to
+  // its script like a moving obstacle's vertices, so CCD and the barrier see it move.
+  Index vertex = -1;
+
+  Vec3 point_at(const Scalar* x) const {
+    return vertex >= 0 ? Vec3(Eigen::Map<const Vec3>(x + 3 * vertex)) : point;
+  }
 };
 
 struct Model {
@@ -92,7 +110,8 @@ struct Model {
   // friction: the collider's own Coulomb mu (>= 0), or < 0 for the scene's.
   Index add_obstacle(const Scalar* x, Index n, const Index* triangles, Index m, bool moving = false,
                      Scalar friction = -1);
-  void add_plane(const Vec3& point, const Vec3& normal, Scalar friction = -1);
+  // moving: the plane translates with a driven vertex at `point` (returned; -1 when static).
+  Index add_plane(const Vec3& point, const Vec3& normal, Scalar friction = -1, bool moving = false);
 
   Scalar total_mass() const;
   Scalar bbox_diagonal(const Scalar* x) const;

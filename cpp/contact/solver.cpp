@@ -40,8 +40,10 @@ Eigen::Matrix<Scalar, 2, 1> span_coordinates(const Vec3& e1, const Vec3& e2, con
 void closest_weights(const Model& model, const Constraint& c, const Scalar* x, FrictionContact& f, Vec3& n) {
   f.v = c.v;
   if (c.plane >= 0) {
-    f.count = 1;
+    // Relative to a moving plane's point: its tangential motion drags what rests on it.
+    f.count = c.v[1] >= 0 ? 2 : 1;
     f.w[0] = 1;
+    f.w[1] = -1;
     n = model.planes[static_cast<size_t>(c.plane)].normal;
     return;
   }
@@ -136,14 +138,14 @@ Scalar Solver::elastic_energy(const Scalar* x) const {
 
 Scalar Solver::barrier_energy(const Scalar* x) const {
   return evaluate_barriers(model_, find_constraints(model_, broad_phase_, x, dhat2_), x, dhat2_, nullptr, nullptr,
-                           false);
+                           Projection::None);
 }
 
 void Solver::barrier_gradient(const Scalar* x, Scalar* g) const {
   std::fill(g, g + 3 * model_.vertex_count, Scalar(0));
   const std::vector<Constraint> constraints = find_constraints(model_, broad_phase_, x, dhat2_);
-  std::vector<Vec<12>> gb;
-  evaluate_barriers(model_, constraints, x, dhat2_, &gb, nullptr, false);
+  std::vector<Vec<12>>& gb = barrier_gradients_;
+  evaluate_barriers(model_, constraints, x, dhat2_, &gb, nullptr, Projection::None);
   for (size_t k = 0; k < constraints.size(); ++k) {
     const Constraint& c = constraints[k];
     for (int a = 0; a < c.stencil_size(); ++a)
@@ -151,12 +153,13 @@ void Solver::barrier_gradient(const Scalar* x, Scalar* g) const {
   }
 }
 
-SparseMatrix Solver::barrier_hessian(const Scalar* x, bool project) const {
-  std::vector<Eigen::Triplet<Scalar, Index>> t;
+SparseMatrix Solver::barrier_hessian(const Scalar* x, Projection projection) const {
+  std::vector<Eigen::Triplet<Scalar, Index>>& t = triplets_;
+  t.clear();
   const std::vector<Constraint> constraints = find_constraints(model_, broad_phase_, x, dhat2_);
-  std::vector<Vec<12>> gb;
-  std::vector<Mat<12>> Hb;
-  evaluate_barriers(model_, constraints, x, dhat2_, &gb, &Hb, project);
+  std::vector<Vec<12>>& gb = barrier_gradients_;
+  std::vector<Mat<12>>& Hb = barrier_hessians_;
+  evaluate_barriers(model_, constraints, x, dhat2_, &gb, &Hb, projection);
   for (size_t i = 0; i < constraints.size(); ++i) {
     const int k = constraints[i].stencil_size();
     const Index* v = constraints[i].stencil();
@@ -250,7 +253,7 @@ Scalar Solver::potential(const std::vector<Scalar>& x, Scalar h, Scalar kappa) c
   }
   Scalar b = 0;
   b = evaluate_barriers(model_, find_constraints(model_, candidates_, x.data(), dhat2_), x.data(), dhat2_, nullptr,
-                        nullptr, false);
+                        nullptr, Projection::None);
   Scalar friction = 0;
   const Scalar eps_v = config_.friction_velocity;
   for (const FrictionContact& f : friction_) {
@@ -326,10 +329,10 @@ void Solver::assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, cons
     He << S, -S, -S, S;
     system.add(ij, 2, He);
   }
-  // Barrier: kappa (b' grad d, b'' grad d grad d^T + b' Hess d), projected per contact.
-  std::vector<Vec<12>> gb;
-  std::vector<Mat<12>> Hb;
-  evaluate_barriers(model_, constraints, x.data(), dhat2_, &gb, &Hb, true);
+  // Barrier: kappa (b' grad d, b'' grad d grad d^T + b' Hess d), made PSD per contact.
+  std::vector<Vec<12>>& gb = barrier_gradients_;
+  std::vector<Mat<12>>& Hb = barrier_hessians_;
+  evaluate_barriers(model_, constraints, x.data(), dhat2_, &gb, &Hb, config_.barrier_projection);
   for (size_t i = 0; i < constraints.size(); ++i) {
     const Constraint& c = constraints[i];
     const int k = c.stencil_size();

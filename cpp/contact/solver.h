@@ -8,6 +8,7 @@
 #pragma once
 
 #include <Eigen/SparseCholesky>
+#include <Eigen/SparseCore>
 #include <memory>
 #include <vector>
 
@@ -62,10 +63,10 @@ class Solver {
 
   // Elastic energy Psi(x) [J] (tests and diagnostics).
   Scalar elastic_energy(const Scalar* x) const;
-  // Barrier energy sum_k b(d_k(x)) [m^4] and its gradient (3n) and Hessian (projected or not).
+  // Barrier energy sum_k b(d_k(x)) [m^4] and its gradient (3n) and Hessian (made PSD or not).
   Scalar barrier_energy(const Scalar* x) const;
   void barrier_gradient(const Scalar* x, Scalar* g) const;
-  SparseMatrix barrier_hessian(const Scalar* x, bool project) const;
+  SparseMatrix barrier_hessian(const Scalar* x, Projection projection) const;
   // The active pairs at x and the largest collision-free fraction of the move x -> x + dx,
   // on the solver's broad phase (its trees refit, not rebuilt).
   std::vector<Constraint> constraints(const Scalar* x) const;
@@ -109,6 +110,12 @@ class Solver {
   // line search (x + alpha p, alpha <= 1) finds its active pairs among them.
   mutable BroadPhase broad_phase_;
   Candidates candidates_;
+  // Per-contact barrier derivatives and the Hessian's triplets, kept so that their storage (a
+  // few hundred kB, beyond malloc's mmap threshold) is not returned to the system and faulted
+  // in again on every evaluation.
+  mutable std::vector<Vec<12>> barrier_gradients_;
+  mutable std::vector<Mat<12>> barrier_hessians_;
+  mutable std::vector<Eigen::Triplet<Scalar, Index>> triplets_;
 };
 
 }  // namespace kinema::contact

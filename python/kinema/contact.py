@@ -210,6 +210,13 @@ class Scene:
       contact blocks seen so far) and its symbolic analysis between Newton iterations and
       steps (default); False re-analyses whenever the contact pattern changes (for
       comparisons: the results agree to rounding).
+    * ``barrier_projection``: how each contact's barrier Hessian is made positive
+      semidefinite in the Newton matrix: "rank-one" (default: max(b'' + b' / (2 d), 0)
+      grad d grad d^T, the clamped distance-normal term, no eigenproblem; exact for
+      vertex-vertex and vertex-plane pairs, within ``|2 s b'| |Hess s|`` of the clamp
+      otherwise, relatively about gap / edge length) or "clamp" (each contact's negative
+      eigenvalues clamped to zero, Li et al. 2020). The gradient is exact either way, so
+      Newton stops at the same minimiser to ``tol``.
 
     Attributes: ``x`` (n, 3) positions [m] and ``v`` (n, 3) velocities [m/s] of every vertex of
     every body and collider, in the order added (writable views; ``add_*`` returns each
@@ -219,7 +226,7 @@ class Scene:
 
     def __init__(self, *, gravity=None, dhat=1e-3, friction=0.0, friction_velocity=1e-3,
                  barrier_stiffness=None, tol=1e-2, max_newton=500, linear_solver="simplicial",
-                 reuse_pattern=True):
+                 reuse_pattern=True, barrier_projection="rank-one"):
         cfg = _core.contact.Config()
         cfg.gravity = (0.0, 0.0, 0.0) if gravity is None else tuple(_vec3(gravity, "gravity"))
         cfg.dhat = positive(dhat, "dhat")
@@ -232,6 +239,7 @@ class Scene:
         if not isinstance(reuse_pattern, (bool, np.bool_)):
             raise ValueError(f"reuse_pattern: expected True or False, got {reuse_pattern!r}")
         cfg.reuse_pattern = bool(reuse_pattern)
+        cfg.barrier_projection = choice(barrier_projection, "barrier_projection", ("rank-one", "clamp"))
         self._core = _core.contact.Scene(cfg)
         self.config = cfg
         self.planes = []
@@ -325,8 +333,10 @@ class Scene:
         """A collider, static or moving, with its own Coulomb coefficient ``friction`` for every
         contact with it (default None: the scene's ``friction``). ``shape``:
 
-        * "plane": ``point``, ``normal`` (pointing to the free side): an exact half-space
-          (static only);
+        * "plane": ``point``, ``normal`` (pointing to the free side): an exact half-space;
+          a moving plane translates (its normal is fixed: ``velocity``, or a ``motion``
+          whose rotations, if any, turn about the normal), its point being one driven row of
+          ``x``;
         * "box": ``lower``, ``upper``: a solid box (12 triangles);
         * "sphere": ``center``, ``radius``, ``subdivisions`` (default 3): an icosphere;
         * "mesh": ``vertices`` and ``triangles``, or ``path`` to a file meshio reads
@@ -340,12 +350,12 @@ class Scene:
         the step's end inside the CCD-clamped solve (a stiff augmented-Lagrangian hold), so
         nothing passes through a moving collider either; what it pushes is pushed.
 
-        Returns the collider's rows of ``x`` (None for a plane)."""
+        Returns the collider's rows of ``x`` (None for a static plane; a moving plane's one
+        row is its point)."""
         shape = choice(shape, "shape", ("plane", "box", "sphere", "mesh"))
         mu = -1.0 if friction is None else non_negative(friction, "friction")
-        moving = motion is not None or velocity is not None or angular_velocity is not None
-        if moving and shape == "plane":
-            raise ValueError("motion: a plane collider is static; use a large box for a moving floor or wall")
+        if angular_velocity is not None and shape == "plane":
+            raise ValueError("angular_velocity: a plane collider moves by translation only (its normal is fixed)")
         motion = _motion(motion, velocity, angular_velocity)
         allowed = {"plane": {"point", "normal"}, "box": {"lower", "upper"},
                    "sphere": {"center", "radius", "subdivisions"}, "mesh": {"vertices", "triangles", "path"}}[shape]
@@ -357,11 +367,16 @@ class Scene:
             if not normal.any():
                 raise ValueError("normal: expected a non-zero vector")
             normal = normal / np.abs(normal).max()  # its norm is then representable
-            self._core.add_plane(tuple(point), tuple(normal), mu)
-            self.planes.append((point, normal / np.linalg.norm(normal)))
-            self.colliders.append({"shape": "plane", "point": point, "normal": normal / np.linalg.norm(normal),
-                                   "rows": None, "motion": None})
-            return None
+            start = self._core.add_plane(tuple(point), tuple(normal), mu, motion is not None)
+            unit = normal / np.linalg.norm(normal)
+            self.planes.append((point, unit))
+            rows = None if motion is None else self._slice(start, 1)
+            spec = {"shape": "plane", "point": point, "normal": unit, "rows": rows, "motion": motion,
+                    "rest": point[None, :].copy(), "pivot": point.copy()}
+            self.colliders.append(spec)
+            if motion is not None:
+                self._core.x[rows] = _place(spec, self.time)
+            return rows
         v, t = _surface(shape, kw)
         start = self._core.add_obstacle(v, t, motion is not None, mu)
         rows = self._slice(start, len(v))
@@ -381,7 +396,7 @@ class Scene:
         now) by its script."""
         spec = self.colliders[index]
         if spec["rows"] is None:
-            raise ValueError(f"index: collider {index} is a plane (no vertices)")
+            raise ValueError(f"index: collider {index} is a static plane (no vertices)")
         return _place(spec, self.time if time is None else float(time))
 
     # ------------------------------------------------------------------ stepping
@@ -530,10 +545,15 @@ class Scene:
         return self._core.barrier_gradient(self.x if x is None else _points(x, "x"))
 
     def barrier_hessian(self, x=None, *, project=False):
-        """Hessian (3n, 3n) scipy.sparse.csr_matrix of ``barrier_energy`` (per-contact PSD
-        projection when ``project``)."""
+        """Hessian (3n, 3n) scipy.sparse.csr_matrix of ``barrier_energy``, made positive
+        semidefinite per contact when ``project``: True or "clamp" (negative eigenvalues of each
+        contact's Hessian clamped to zero, the nearest PSD matrix), "rank-one" (the Gauss-Newton
+        matrix max(b'' + b' / (2 d), 0) grad d grad d^T the solver assembles by default, within
+        |2 s b'| |Hess s| of the clamp in Frobenius norm; see ``barrier_projection``)."""
         import scipy.sparse as sp
-        val, col, ptr = self._core.barrier_hessian(self.x if x is None else _points(x, "x"), bool(project))
+        how = {False: "none", True: "clamp"}.get(project, project) if isinstance(project, (bool, np.bool_)) else project
+        how = choice(how, "project", ("none", "clamp", "rank-one"))
+        val, col, ptr = self._core.barrier_hessian(self.x if x is None else _points(x, "x"), how)
         n = 3 * self._core.vertex_count
         return sp.csr_matrix((val, col, ptr), shape=(n, n))
 
@@ -585,6 +605,9 @@ def _place(spec, t):
         return spec["rest"]
     R, c = spec["motion"](t)
     p = spec["pivot"]
+    if spec["shape"] == "plane" and not np.allclose(R @ spec["normal"], spec["normal"], rtol=0, atol=1e-12):
+        raise ValueError(f"motion: at t = {t} it turns the plane's normal; a plane collider moves by translation "
+                         "only (rotations about its normal are allowed)")
     return (spec["rest"] - p) @ R.T + p + c
 
 

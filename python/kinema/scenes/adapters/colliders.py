@@ -81,7 +81,7 @@ def meshes(contact_scene):
     faces = contact_scene.faces
     for spec in contact_scene.colliders:
         rows = spec["rows"]
-        if rows is None:
+        if rows is None or spec["shape"] == "plane":  # a moving plane's one row is its point
             continue
         sel = (faces >= rows.start).all(axis=1) & (faces < rows.stop).all(axis=1)
         out.append((contact_scene.x, faces[sel], GREY))
@@ -94,7 +94,7 @@ def frame_box(lo, hi, contact_scene, up):
     lo, hi = lo.copy(), hi.copy()
     floors = []
     for spec in contact_scene.colliders:
-        if spec["rows"] is None:
+        if spec["shape"] == "plane":
             if abs(abs(spec["normal"][up]) - 1) < 1e-12:
                 floors.append(spec["point"][up])
             continue
