@@ -38,3 +38,26 @@ def check_directional(loss, base, direction, adjoint, e, where, *, rounding=1e3 
         assert bound <= typical * size, f"{where}: bound {bound:.3g} is not small against |g| |r| / sqrt(n) = {size:.3g}"
     else:
         assert bound <= relative * abs(d1), f"{where}: bound {bound:.3g} is not small against |D| = {abs(d1):.3g}"
+
+
+def step_adjoint_at_thread_counts(sim, dt, control, seed, counts):
+    """One `_diff_step` of `sim` from its current state, then its `_diff_step_adjoint` for random
+    output gradients (rng `seed`) run once at each thread count in `counts`: the list of
+    (grad_before, grad_params, grad_control) results, for bitwise comparisons. The thread count
+    is restored afterwards."""
+    import kinema as km
+
+    rng = np.random.default_rng(seed)
+    before = sim.state()
+    sim._diff_step(dt, control, {})
+    after = sim.state()
+    grads = {n: rng.normal(size=np.shape(after[n])) for n in sim._diff_state_names}
+    old = km.get_num_threads()
+    try:
+        results = []
+        for n in counts:
+            km.set_num_threads(n)
+            results.append(sim._diff_step_adjoint(dt, before, after, control, grads, {}))
+        return results
+    finally:
+        km.set_num_threads(old)

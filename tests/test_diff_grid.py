@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 
 import kinema as km
-from gradcheck import check_directional
+from gradcheck import check_directional, step_adjoint_at_thread_counts
 
 U = np.finfo(float).eps / 2
 TOL = 1e-13
@@ -266,20 +266,8 @@ def test_adjoint_is_the_same_for_any_thread_count(shape, advection, rk_order):
     # block and row, never by thread, so 1, 2 and 3 threads give the same bits.
     sim = _fluid(shape, advection, rk_order)
     dt = 0.02 if len(shape) == 2 else 0.03
-    rng = np.random.default_rng(7)
-    before = sim.state()
-    control = rng.normal(0, 1, sim._diff_control_shape())
-    sim._diff_step(dt, control, {})
-    after = sim.state()
-    grads = {n: rng.normal(size=np.shape(after[n])) for n in sim._diff_state_names}
-    threads = km.get_num_threads()
-    results = []
-    try:
-        for n in (1, 2, 3):
-            km.set_num_threads(n)
-            results.append(sim._diff_step_adjoint(dt, before, after, control, grads, {}))
-    finally:
-        km.set_num_threads(threads)
+    control = np.random.default_rng(7).normal(0, 1, sim._diff_control_shape())
+    results = step_adjoint_at_thread_counts(sim, dt, control, 8, (1, 2, 3))
     first = results[0]
     for other in results[1:]:
         for name in sim._diff_state_names:

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 import kinema as km
-from gradcheck import check_directional
+from gradcheck import check_directional, step_adjoint_at_thread_counts
 
 NAMES = ("x", "v", "F", "C")
 
@@ -241,19 +241,7 @@ def test_one_step_adjoint_is_bitwise_identical_for_1_and_2_threads(d):
     sim.add_particles(x, "elastic", density=1000.0, youngs_modulus=2e3, poisson_ratio=0.3,
                       velocity=rng.normal(0, 0.3, x.shape))
     assert sim.count > 1024, "enough particles for the parallel paths"
-    dt = 1e-3
-    before = sim.state()
-    sim._diff_step(dt, None, {})
-    after = sim.state()
-    grads = {k: rng.normal(size=np.shape(after[k])) for k in sim._diff_state_names}
-    old = km.get_num_threads()
-    results = []
-    try:
-        for threads in (1, 2):
-            km.set_num_threads(threads)
-            results.append(sim._diff_step_adjoint(dt, before, after, None, grads, {}))
-    finally:
-        km.set_num_threads(old)
+    results = step_adjoint_at_thread_counts(sim, 1e-3, None, 4, (1, 2))
     (g1, p1, _), (g2, p2, _) = results
     for k in g1:
         assert np.array_equal(g1[k], g2[k]), f"dL/d{k} differs between 1 and 2 threads"
