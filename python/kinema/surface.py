@@ -249,7 +249,7 @@ def _level_set(field, iso, marching_cubes, cells=2**20):
     key = np.dtype((np.void, 8))  # a vertex's float32 (y, z) as one comparable value
     for k0 in range(0, n0 - 1, layers):
         k1 = min(k0 + layers, n0 - 1)
-        part = field[k0:k1 + 1]
+        part = np.ascontiguousarray(field[k0:k1 + 1], np.float32)  # what scikit-image reads and checks
         if not part.min() <= iso <= part.max():
             seam = None
             continue
