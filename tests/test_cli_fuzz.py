@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scene_toml import cloth, fem_box
 
 OUTCOMES = ("ok", "error", "traceback", "multi-line", "crash", "hang", "wrong")
 
@@ -256,20 +257,8 @@ CASES = [
 ]
 
 # Colliders of fem and mass-spring scenes: objects[1] is the collider each case changes.
-BODY = {"fem": """type = "box"
-lower = [0.0, 0.05, 0.0]
-upper = [0.1, 0.15, 0.1]
-cells = [1, 1, 1]
-youngs_modulus = 1e4
-poisson_ratio = 0.3
-density = 1000.0""",
-        "massspring": """type = "cloth"
-resolution = [3, 3]
-size = [0.2, 0.2]
-origin = [0.0, 0.1, 0.0]
-plane = "xz"
-stiffness = 100.0
-mass = 0.05"""}
+BODY = {"fem": fem_box((0.0, 0.05, 0.0), (0.1, 0.15, 0.1), youngs_modulus=1e4, density=1000.0),
+        "massspring": cloth((3, 3), (0.2, 0.2), (0.0, 0.1, 0.0), stiffness=100.0, mass=0.05)}
 
 
 def _collider(collider, solver="", kind="fem"):
@@ -314,8 +303,8 @@ for kind in ("fem", "massspring"):
               for name, collider, solver, needle, extra in COLLIDER_CASES]
 CASES += [
     Case("fem-collider-symplectic", RUN, needle="solver.integrator",
-         files={"scene.toml": _collider(SPHERE, 'integrator = "symplectic"\n[[objects]]\n' + BODY["fem"].replace(
-             "0.0, 0.05, 0.0", "0.3, 0.05, 0.0").replace("0.1, 0.15, 0.1", "0.4, 0.15, 0.1"))}),
+         files={"scene.toml": _collider(SPHERE, 'integrator = "symplectic"\n[[objects]]\n' + fem_box(
+             (0.3, 0.05, 0.0), (0.4, 0.15, 0.1), youngs_modulus=1e4, density=1000.0))}),
     Case("massspring-collider-rotated-box-symplectic", RUN, needle="solver.integrator: integrator: a mesh collider",
          files={"scene.toml": _collider('shape = "box"\nlower = [-1.0, -1.0, -1.0]\nupper = [1.0, 0.0, 1.0]\n'
                                         'rotation = [0.0, 0.0, 10.0]', 'integrator = "symplectic"', kind="massspring")}),

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 import kinema as km
+from resume import assert_resumes_bitwise
 
 G = 9.81
 
@@ -212,17 +213,7 @@ def test_state_round_trip_resumes_bitwise():
         s.add_collider("plane", point=(0, 0, 0), normal=(0, 1, 0))
         cube(s, (0, 0.01, 0), 0.1)
         return s
-    a = make()
-    for _ in range(5):
-        a.step(0.01)
-    saved = a.state()
-    for _ in range(5):
-        a.step(0.01)
-    b = make()
-    b.set_state(saved)
-    for _ in range(5):
-        b.step(0.01)
-    assert np.array_equal(a.x, b.x) and np.array_equal(a.v, b.v)
+    assert_resumes_bitwise(make, lambda s: s.step(0.01), 5, 5)
 
 
 def test_intersecting_start_is_refused_naming_the_elements():

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 import kinema as km
+from scene_toml import cloth, fem_box
 
 G = (0.0, -9.81, 0.0)
 
@@ -190,31 +191,9 @@ vtu = false
 ply = false
 """
 BODIES = {
-    "fem": """[[objects]]
-type = "box"
-lower = [0.0, 0.05, 0.0]
-upper = [0.1, 0.15, 0.1]
-cells = [1, 1, 1]
-youngs_modulus = 1e5
-poisson_ratio = 0.3
-density = 500.0
-
-[[objects]]
-type = "box"
-lower = [0.0, 0.2, 0.0]
-upper = [0.1, 0.3, 0.1]
-cells = [1, 1, 1]
-youngs_modulus = 1e5
-poisson_ratio = 0.3
-density = 500.0""",
-    "massspring": """[[objects]]
-type = "cloth"
-resolution = [4, 4]
-size = [0.3, 0.3]
-origin = [-0.1, 0.2, -0.1]
-plane = "xz"
-stiffness = 200.0
-mass = 0.05""",
+    "fem": "\n\n".join("[[objects]]\n" + fem_box(lower, upper, youngs_modulus=1e5, density=500.0)
+                       for lower, upper in [((0.0, 0.05, 0.0), (0.1, 0.15, 0.1)), ((0.0, 0.2, 0.0), (0.1, 0.3, 0.1))]),
+    "massspring": "[[objects]]\n" + cloth((4, 4), (0.3, 0.3), (-0.1, 0.2, -0.1), stiffness=200.0, mass=0.05),
 }
 
 

@@ -265,6 +265,28 @@ def test_odd_values_give_one_value_error_naming_the_argument(call, name):
         call()
 
 
+def _scene_with_a_moving_plane():
+    scene = km.contact.Scene()
+    v, t = km.fem.box_mesh((0, 0.01, 0), (0.1, 0.11, 0.1), 1)
+    scene.add_solid(v, t, youngs_modulus=1e5, poisson_ratio=0.3, density=1000)
+    scene.add_collider("plane", velocity=(0, 1, 0))
+    return scene
+
+
+@pytest.mark.parametrize("index, time, name", [(1, None, "index"), (-2, None, "index"), (0.0, None, "index"),
+                                               (0, float("nan"), "time"), (0, float("inf"), "time"),
+                                               (0, "soon", "time")])
+def test_collider_positions_names_a_bad_index_or_time(index, time, name):
+    """(Its index was an IndexError of a list, a NaN time a RuntimeWarning and a message about
+    turning the plane's normal.)"""
+    scene = _scene_with_a_moving_plane()
+    with pytest.raises(ValueError, match=f"^{name}: "):
+        scene.collider_positions(index, time)
+    np.testing.assert_array_equal(scene.collider_positions(-1, 0.5), [[0.0, 0.5, 0.0]])
+    with pytest.raises(ValueError, match="^index: the scene has no colliders"):
+        km.contact.Scene().collider_positions(0)
+
+
 # ------------------------------------------------------------------ threads and copies
 def test_set_num_threads_applies_to_worker_threads():
     before = km.get_num_threads()

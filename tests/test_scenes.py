@@ -56,6 +56,9 @@ def write(tmp_path, text, name="scene.toml"):
     (("shape = \"sphere\"", "shape = \"cone\""), "objects[0].region.shape", "expected one of \"box\", \"sphere\""),
     (("type = \"block\"", "type = \"fluid\""), "objects[1].type", "expected one of \"obstacle\""),
     (("velocity = [1.0, 0.0]", "velocity = [true, 0.0]"), "objects[1].velocity[0]", "expected a number"),
+    (("velocity = [1.0, 0.0]", "velocity = [nan, 0.0]"), "objects[1].velocity[0]",
+     "expected a finite number, got a number nan"),
+    (("radius = 0.1", "radius = inf"), "objects[0].region.radius", "expected a finite number > 0, got a number inf"),
     (("[scene]", "[scenery]\nx = 1\n[scene]"), "scenery", "unknown table"),
     # [output] rendering keys; a 2D grid scene has only the flat view
     (("[solver]", "[output]\nrender = \"raytrace\"\n[solver]"), "output.render",

@@ -24,8 +24,10 @@ search, so no step ever passes through anything: bodies never interpenetrate and
 (the gap stays positive; it is below dhat while in contact). A start that intersects is refused
 with a ValueError naming the elements.
 
-Colliders: infinite planes (exact half-spaces), and static triangle meshes: boxes, spheres
-(icospheres whose vertices lie on the sphere), any mesh given as arrays or read by meshio.
+Colliders, static or scripted (``velocity``, ``angular_velocity`` or a ``motion`` function of
+the time): infinite planes (exact half-spaces; a moving plane translates, its normal fixed) and
+triangle meshes: boxes, spheres (icospheres whose vertices lie on the sphere), any mesh given as
+arrays or read by meshio.
 Contact between bodies and self-contact use the same collision mesh: the boundary triangles of
 each solid, every cloth triangle, every collider triangle.
 
@@ -394,10 +396,14 @@ class Scene:
     def collider_positions(self, index, time=None):
         """(k, 3) vertices [m] of collider ``index`` (in the order added) at ``time`` (default:
         now) by its script."""
+        n = len(self.colliders)
+        if n == 0:
+            raise ValueError("index: the scene has no colliders")
+        index = integer(index, "index", low=-n, high=n - 1)
         spec = self.colliders[index]
         if spec["rows"] is None:
             raise ValueError(f"index: collider {index} is a static plane (no vertices)")
-        return _place(spec, self.time if time is None else float(time))
+        return _place(spec, self.time if time is None else finite(time, "time"))
 
     # ------------------------------------------------------------------ stepping
 

@@ -229,5 +229,54 @@ def _marching_cubes(x, s, c, iso, sigma):
     if not 0.0 < iso < top:
         raise ValueError(f"iso: {iso:g} is outside the smoothed volume fraction's range (0, {top:.3g}), so there is "
                          f"no surface (smoothing = {sigma:.3g} m: a smoothing wide against the liquid spreads it thin)")
-    verts, faces, _, _ = marching_cubes(field, iso, spacing=(c, c, c), allow_degenerate=False)
-    return _outward(verts + lo, faces)
+    verts, faces = _level_set(field, iso, marching_cubes)
+    return _outward(verts * c + lo, faces)
+
+
+def _level_set(field, iso, marching_cubes, cells=2**20):
+    """scikit-image's ``marching_cubes(field, iso)`` (vertices in cell units, float64), run over
+    slabs of about ``cells`` cells along axis 0 that share their boundary planes: its C loop does
+    not look for Ctrl-C, and on a large grid it runs for a minute, so each slab is one short
+    call. Every cube lies in one slab, so the slabs' triangles are the whole call's; a vertex on a
+    shared plane lies on an edge of that plane and both slabs interpolate it from the same two
+    values to the same numbers, so it is merged by value with the slab before's. The result is
+    the whole call's mesh, its coordinates within float32 rounding (scikit-image's precision) of
+    the whole call's: a slab rounds its vertices at their index in the slab, not in the grid."""
+    n0 = field.shape[0]
+    layers = max(1, cells // max(1, field[0].size))
+    verts, faces, count = [], [], 0
+    seam = None  # the slab before's vertices on its last plane: sorted (y, z) keys, indices
+    key = np.dtype((np.void, 8))  # a vertex's float32 (y, z) as one comparable value
+    for k0 in range(0, n0 - 1, layers):
+        k1 = min(k0 + layers, n0 - 1)
+        part = np.ascontiguousarray(field[k0:k1 + 1], np.float32)  # what scikit-image reads and checks
+        if not part.min() <= iso <= part.max():
+            seam = None
+            continue
+        try:
+            v, f, _, _ = marching_cubes(part, iso, allow_degenerate=False)
+        except RuntimeError:  # no vertex in this slab
+            seam = None
+            continue
+        index = np.full(len(v), -1, np.int64)
+        if seam is not None:
+            first = np.flatnonzero(v[:, 0] == 0)
+            keys = np.ascontiguousarray(v[first, 1:]).view(key).ravel()
+            at = np.minimum(np.searchsorted(seam[0], keys), len(seam[0]) - 1) if len(seam[0]) else None
+            if at is not None:
+                hit = seam[0][at] == keys
+                index[first[hit]] = seam[1][at[hit]]
+        new = index < 0
+        index[new] = count + np.arange(np.count_nonzero(new))
+        last = np.flatnonzero((v[:, 0] == k1 - k0) & new)
+        keys = np.ascontiguousarray(v[last, 1:]).view(key).ravel()
+        order = np.argsort(keys, kind="stable")
+        seam = (keys[order], index[last][order])
+        kept = v[new].astype(np.float64)
+        kept[:, 0] += k0
+        verts.append(kept)
+        faces.append(index[f])
+        count += len(kept)
+    if not verts:
+        raise RuntimeError("No surface found at the given iso value.")
+    return np.concatenate(verts), np.concatenate(faces)

@@ -71,7 +71,9 @@ class Real(Spec):
         self.expected = "a number" + (" " + " and ".join(bounds) if bounds else "")
 
     def validate(self, value, ctx, path):
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        if isinstance(value, float) and not math.isfinite(value):  # TOML's nan and inf
+            raise self.fail(value, ctx, path, self.expected.replace("a number", "a finite number", 1))
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise self.fail(value, ctx, path)
         if (self.gt is not None and not value > self.gt) or (self.ge is not None and not value >= self.ge) \
                 or (self.le is not None and not value <= self.le):
