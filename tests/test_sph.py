@@ -274,6 +274,25 @@ def test_dfsph_column_at_rest_tight_tol(d):
     assert r["iterations"].max() <= 100
 
 
+# Known defect (issue 15, open): at tol = 2e-3 the DFSPH column does not stay at rest (measured
+# 2D 0.073, 3D 0.079 m/s rms against the bound above; WCSPH 0.024 / 0.048, and DFSPH with cold
+# solves, warm_start = 0, 0.021 / 0.047 at the same tol). Cause (bench/sph/sph_column_cycle.py
+# --series): a solver limit cycle. The column falls for several steps while the density solve
+# stops after its 2 minimum iterations (its error, the mean compression, stays below tol and
+# the divergence solve's error, ~2e-4 at divergence_tol 1e-3, below its tol), until the
+# compression reaches tol; one step then builds 3-5x the hydrostatic pressure (10-35
+# iterations) to stop it, which sends the column up, and the warm start carries half of that
+# pressure into the next steps, where neither one-sided solve removes the upward velocity.
+# Not a resolution limit: at tol 1e-3 every step iterates to the tol boundary (7-10
+# iterations) and the mean pressure stays within 10% of rho0 g H / 2. strict: a fix turns
+# this into a failure to be replaced by the plain assertion.
+@pytest.mark.xfail(strict=True, reason="issue 15: DFSPH column at rest bounces at tol 2e-3 (warm-start limit cycle)")
+@pytest.mark.parametrize("d", [2, 3])
+def test_dfsph_column_at_rest_loose_tol(d):
+    r = column_at_rest("dfsph", d, tol=2e-3)
+    assert r["v_rms"] < 0.02 * np.sqrt(2 * G * r["H"]), f"{d}D: rms speed {r['v_rms']:.3f} m/s"
+
+
 def test_dfsph_warm_start_saves_iterations():
     # Bender and Koschier 2017, sec. 4.5: starting each solve from half the last step's
     # stiffnesses must take fewer iterations for the same density error (a collapsing column).

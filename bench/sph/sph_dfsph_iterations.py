@@ -4,6 +4,7 @@ figures compare only with other calls of it on an equally quiet machine).
 
     python bench/sph/sph_dfsph_iterations.py                     # 150k particles, 20 steps
     python bench/sph/sph_dfsph_iterations.py 150000 20 '{"warm_start": 0.75}'
+    python bench/sph/sph_dfsph_iterations.py 60000 10 '{"tol": 1e-4, "divergence_tol": 1e-4}'
 
 The run starts as sph_bench.py's does (round(START / dt) steps from rest at the DFSPH step of
 sph_bench.timed_dt, the surge front's CFL step) and prints, per step on average: the
@@ -33,8 +34,8 @@ def main():
     steps = int(sys.argv[2]) if len(sys.argv) > 2 else 20
     kw = json.loads(sys.argv[3]) if len(sys.argv) > 3 else {}
     x, s, domain = sb.scene(n)
-    fluid = km.sph.Fluid(x, s, method="dfsph", gravity=(0, -9.81, 0), domain=domain, tol=1e-3,
-                         divergence_tol=1e-3, **kw)
+    fluid = km.sph.Fluid(x, s, method="dfsph", gravity=(0, -9.81, 0), domain=domain,
+                         **{"tol": 1e-3, "divergence_tol": 1e-3, **kw})
     dt = sb.timed_dt(n, "dfsph", 1e-3)[0]
     for _ in range(max(1, round(sb.START / dt))):  # sph_bench.py's start-up (started_fluid)
         fluid.step(dt)
