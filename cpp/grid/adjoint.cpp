@@ -70,10 +70,15 @@ struct Stencil {
     }
   }
 
-  Scalar value(const Scalar* f) const {
-    Scalar v = 0;
-    for (int n = 0; n < count; ++n) v += w[n] * f[node[n]];
-    return v;
+  // v[n] = f at node n.
+  void gather(const Scalar* f, Scalar* v) const {
+    for (int n = 0; n < count; ++n) v[n] = f[node[n]];
+  }
+  // The interpolant from the gathered values v.
+  Scalar value(const Scalar* v) const {
+    Scalar s = 0;
+    for (int n = 0; n < count; ++n) s += w[n] * v[n];
+    return s;
   }
   // target[node] += g * w for every node.
   void scatter(Scalar g, Scalar* target) const {
@@ -85,11 +90,9 @@ struct Stencil {
     for (int n = 0; n < count; ++n)
       if (w[n] != 0) target[node[n]] += g * w[n];
   }
-  // g times the gradient of the interpolant of f, added to out: the differences along each axis,
-  // weighted by the other axes' weights.
-  void add_gradient(const Scalar* f, Scalar g, Vec3& out) const {
-    Scalar v[8];
-    for (int n = 0; n < count; ++n) v[n] = f[node[n]];
+  // g times the gradient of the interpolant of the gathered values v, added to out: the
+  // differences along each axis, weighted by the other axes' weights.
+  void add_gradient(const Scalar* v, Scalar g, Vec3& out) const {
     const Scalar u1 = 1 - wa[1], u2 = 1 - wa[2];
     if constexpr (ThreeD) {
       const Scalar u0 = 1 - wa[0];
@@ -147,7 +150,10 @@ class Scatter {
     const int axis = L.n[0] > 1 ? 0 : 1;
     const Index n = L.n[axis], n1 = L.n[1], nk = L.n[2];
     const Index width = reach < 0 ? n : std::max<Index>(1, 2 * reach);
-    const Index blocks = std::max<Index>(1, n / width);
+    // a multiple of 4 blocks where there are that many: each colour's share divides evenly
+    // among 1, 2 or 4 threads (the cut depends on the grid and the reach only, never on them)
+    const Index most = std::max<Index>(1, n / width);
+    const Index blocks = most >= 4 ? most / 4 * 4 : most;
     const bool seam = L.period[axis] > 0 && blocks % 2 == 1 && blocks > 1;
     const Index slab_rows = axis == 0 ? n1 : 1;  // rows per slab
     auto block = [&](Index b) {
@@ -251,7 +257,9 @@ struct Tracer {
         if (br.jac) {  // the trace's derivatives, times 0 along a clamped axis (as add_gradient)
           for (int b = ThreeD ? 0 : 1; b < 3; ++b) gy[b] += g[a] * st.d[b] * br.jac[3 * a + b][br.k];
         } else {
-          st.add_gradient(u.comp[a], g[a], gy);
+          Scalar v[8];
+          st.gather(u.comp[a], v);
+          st.add_gradient(v, g[a], gy);
         }
       } else {
         st.scatter_nonzero(g[a], g_u[a]);
@@ -349,10 +357,12 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
                           Scalar* const* dst, auto&& term, auto&& at) {
     Vec3 gp{0, 0, 0};
     for (int f = 0; f < count; ++f) {
-      const Scalar g = term(f, c, st);
+      Scalar v[8];  // src[f] on the stencil, gathered once for the term and the gradient
+      st.gather(src[f], v);
+      const Scalar g = term(f, c, st, v);
       if (g == 0) continue;
       st.scatter(g, dst[f]);
-      st.add_gradient(src[f], g, gp);
+      st.add_gradient(v, g, gp);
     }
     if (gp_add[first])
       for (int b = first; b < 3; ++b) gp[b] += gp_add[b][c];
@@ -364,7 +374,7 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
     const Vec3 g1 = tr.trace_adjoint(step, gp, at);
     for (int b = first; b < 3; ++b) g_node[b][c] += g1[b];  // node c is this row's: no other writer
   };
-  // One pass traced over `step`: for each node, term(f, c, st) returns dL/d(src[f] at the
+  // One pass traced over `step`: for each node, term(f, c, st, at) (at: src[f] on st) returns dL/d(src[f] at the
   // departure point) after adding the terms that do not go through it; the pass scatters that
   // into dst[f] (W^T) and carries (grad src[f]) through the trace into dL/du.
   auto pass = [&](Scalar step, const Scalar* const* src, Scalar* const* dst, auto&& term) {
@@ -406,7 +416,7 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
   };
   // out[f] = SL(src[f]) adjoint: dL/dsrc[f] += W^T g[f], positions through the trace.
   auto semi_lagrangian = [&](const Scalar* const* src, const Scalar* const* g, Scalar* const* dst) {
-    pass(dt, src, dst, [&](int f, Index c, const Stencil<ThreeD>&) { return g[f][c]; });
+    pass(dt, src, dst, [&](int f, Index c, const Stencil<ThreeD>&, const Scalar*) { return g[f][c]; });
   };
   // The first stage of every trace reads u at the node itself: dL/du_a += W_a(x)^T g_node[a]
   // for every node x of L, once per call (its stencils reach a slab or two).
@@ -464,30 +474,29 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
     if (scheme == AdvectionScheme::BFECC) bar[f] = forward->corrected[f].data();
     g_fwd_p[f] = work.zeros(kFwd + f, n);
   }
-  // Where the clamp took a bound, the result is that stencil node of q (st: the stencil of the
-  // forward departure point, for its extreme nodes): true when it did.
-  auto clamped = [&](int f, Index c, Scalar v, Scalar g, auto&& st) {
-    if (v < lo[f][c]) g_q[f][st().argmin(q[f])] += g;
-    else if (hi[f][c] < v) g_q[f][st().argmax(q[f])] += g;
-    else return false;
-    return true;
-  };
   if (scheme == AdvectionScheme::MacCormack) {
-    // out = clamp(q^ + (q - q~)/2), q~ = SL(q^, -dt)
-    pass(-dt, fwd, g_fwd_p, [&](int f, Index c, const Stencil<ThreeD>& st) -> Scalar {
+    // out = clamp(q^ + (q - q~)/2), q~ = SL(q^, -dt). The bounds are those of q over the
+    // stencil of the forward departure point, which the last pass traces again: where the clamp
+    // took a bound, this pass only notes which (1: lo, 2: hi), and the last one sends the
+    // node's gradient to that extreme node of its stencil.
+    std::uint8_t* branch[kMaxAdvectedFields];
+    for (int f = 0; f < count; ++f) branch[f] = work.zero_flags(f, n);
+    pass(-dt, fwd, g_fwd_p, [&](int f, Index c, const Stencil<ThreeD>& st, const Scalar* at) -> Scalar {
       const Scalar g = g_out[f][c];
       if (g == 0) return 0;
-      const Scalar v = fwd[f][c] + 0.5 * (q[f][c] - st.value(fwd[f]));
-      auto forward_stencil = [&] {
-        const Index row = c / L.n[2];
-        return stencil<ThreeD>(L, tr.trace(node(row / L.n[1], row % L.n[1], c % L.n[2]), dt).p);
-      };
-      if (clamped(f, c, v, g, forward_stencil)) return 0;
+      const Scalar v = fwd[f][c] + 0.5 * (q[f][c] - st.value(at));
+      if (v < lo[f][c] || hi[f][c] < v) {
+        branch[f][c] = v < lo[f][c] ? 1 : 2;
+        return 0;
+      }
       g_fwd_p[f][c] += g;
       g_q[f][c] += 0.5 * g;
       return -0.5 * g;
     });
-    semi_lagrangian(q, g_fwd_p, g_q);
+    pass(dt, q, g_q, [&](int f, Index c, const Stencil<ThreeD>& st, const Scalar*) -> Scalar {
+      if (branch[f][c]) g_q[f][branch[f][c] == 1 ? st.argmin(q[f]) : st.argmax(q[f])] += g_out[f][c];
+      return g_fwd_p[f][c];
+    });
     stage0();
     return;
   }
@@ -496,14 +505,20 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
   for (int f = 0; f < count; ++f) g_bar_p[f] = work.zeros(kBar + f, n);
   Scalar* gp_store[3] = {nullptr, nullptr, nullptr};  // this pass's gp, carried by the last one's trace
   for (int b = first; b < 3; ++b) gp_store[b] = gp_keep[b] = work.zeros(kGp + b, n);
-  pass(dt, bar, g_bar_p, [&](int f, Index c, const Stencil<ThreeD>& st) -> Scalar {
+  // Where the clamp took a bound, the result is that extreme node of q on the stencil of the
+  // departure point (the same as the forward's: the same trace).
+  pass(dt, bar, g_bar_p, [&](int f, Index c, const Stencil<ThreeD>& st, const Scalar* at) -> Scalar {
     const Scalar g = g_out[f][c];
-    if (g == 0 || clamped(f, c, st.value(bar[f]), g, [&]() -> const Stencil<ThreeD>& { return st; })) return 0;
-    return g;
+    if (g == 0) return 0;
+    const Scalar v = st.value(at);
+    if (v < lo[f][c]) g_q[f][st.argmin(q[f])] += g;
+    else if (hi[f][c] < v) g_q[f][st.argmax(q[f])] += g;
+    else return g;
+    return 0;
   });
   for (int b = first; b < 3; ++b) gp_keep[b] = nullptr;
   // q_bar = 1.5 q - 0.5 q~
-  pass(-dt, fwd, g_fwd_p, [&](int f, Index c, const Stencil<ThreeD>&) -> Scalar {
+  pass(-dt, fwd, g_fwd_p, [&](int f, Index c, const Stencil<ThreeD>&, const Scalar*) -> Scalar {
     const Scalar g = g_bar_p[f][c];
     g_q[f][c] += 1.5 * g;
     return -0.5 * g;
@@ -518,6 +533,15 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
 Scalar* AdjointScratch::zeros(int slot, Index n) {
   if (static_cast<int>(buffers.size()) <= slot) buffers.resize(static_cast<size_t>(slot) + 1);
   return zero_filled(buffers[static_cast<size_t>(slot)], n);
+}
+
+std::uint8_t* AdjointScratch::zero_flags(int slot, Index n) {
+  if (static_cast<int>(flags.size()) <= slot) flags.resize(static_cast<size_t>(slot) + 1);
+  std::vector<std::uint8_t>& v = flags[static_cast<size_t>(slot)];
+  v.resize(static_cast<size_t>(n));
+  std::uint8_t* p = v.data();
+  parallel_for(n, [&](Index i) { p[i] = 0; });
+  return p;
 }
 
 void advect_adjoint(AdvectionScheme scheme, const MacVelocity& u, const FieldLayout& L, int count,

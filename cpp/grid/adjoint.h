@@ -21,6 +21,9 @@
 // differentiate them (Solver::check_differentiable).
 #pragma once
 
+#include <cstdint>
+#include <vector>
+
 #include "grid/kernels.h"
 
 namespace kinema::grid {
@@ -30,8 +33,10 @@ namespace kinema::grid {
 // about a tenth of a 64^3 step's adjoint; a kept one is only refilled, in parallel.
 struct AdjointScratch {
   std::vector<std::vector<Scalar>> buffers;
+  std::vector<std::vector<std::uint8_t>> flags;
   // Buffer `slot`, resized to n values (its capacity kept), all 0.
   Scalar* zeros(int slot, Index n);
+  std::uint8_t* zero_flags(int slot, Index n);
 };
 
 // The adjoint of advect_fields(scheme, u, L, count, q, out, dt, rk_order): given
