@@ -9,7 +9,17 @@ on the task it writes to an .npz file; prints one JSON line.
 TASK.npz holds rho0 (n, n), controls (T, n, n, 2), weights (n, n), direction (T, n, n, 2), h, dt.
 The loss is <weights, density_T>, the gradient dL/d(controls); reported: seconds per gradient
 (forward + backward on the tape, after one warm-up call that compiles the kernels), and the
-directional derivative along `direction` with its own central difference.
+directional derivative along `direction` with its own central difference. Also what the
+projection leaves of the divergence (computed here in NumPy from Taichi's fields after a plain
+forward run with the task's controls): per step, the RMS of the divergence of the velocity before
+the projection (Taichi's own `div` field) and after it (the same central-difference operator, with
+the same wall rule, applied to the projected velocity v[t+1]; it equals the MAC divergence of the
+face averages of the collocated velocity, the measure kinema's projection drives to zero), their
+ratio, and the relative residual ||h^2 div - (sum of neighbours - 4 p)|| / ||h^2 div|| of the
+Poisson equation the Jacobi sweeps solve, each averaged over the T steps; and the ratio the same
+projection would leave with that equation solved exactly (SciPy's sparse LU): the floor of the
+collocated discretization, whose central-difference gradient and divergence do not compose to the
+five-point Laplacian the sweeps solve.
 """
 
 import argparse
@@ -133,7 +143,69 @@ def main():
 
     fd = (value(controls + e * direction) - value(controls - e * direction)) / (2 * e)
     adj = float(np.sum(g * direction))
-    print(json.dumps({"gradient_seconds": min(times), "adjoint": adj, "fd": fd, "jacobi": J}))
+    value(controls)
+    left = divergence_left(v.to_numpy(), va.to_numpy(), div.to_numpy(), p.to_numpy()[:, J], h)
+    print(json.dumps({"gradient_seconds": min(times), "adjoint": adj, "fd": fd, "jacobi": J, **left}))
+
+
+def central_divergence(vel, h):
+    """The divergence kernel's operator in NumPy: central differences over 2h, the normal
+    velocity beyond a closed wall the negative of the inside one."""
+    vx, vy = vel[..., 0], vel[..., 1]
+    px = np.concatenate([-vx[:1], vx, -vx[-1:]], axis=0)
+    py = np.concatenate([-vy[:, :1], vy, -vy[:, -1:]], axis=1)
+    return (px[2:] - px[:-2] + py[:, 2:] - py[:, :-2]) / (2 * h)
+
+
+def clamped_laplacian(n):
+    """The sweeps' operator as a sparse matrix: sum of the 4 clamped-index neighbours - 4 p."""
+    import scipy.sparse as sp
+    idx = np.arange(n * n).reshape(n, n)
+    rows, cols = [idx.ravel()], [idx.ravel()]
+    vals = [np.full(n * n, -4.0)]
+    for di, dj in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+        i = np.clip(np.arange(n)[:, None] + di, 0, n - 1)
+        j = np.clip(np.arange(n)[None, :] + dj, 0, n - 1)
+        rows.append(idx.ravel()), cols.append(idx[i, j].ravel()), vals.append(np.ones(n * n))
+    return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(n * n, n * n))
+
+
+def project_exactly(va, div, h, solve):
+    """The project kernel's velocity with the sweeps' equation solved exactly (its right-hand
+    side's mean removed: the operator's null space is the constants; one cell pinned)."""
+    n = div.shape[0]
+    b = h * h * div.ravel()
+    b = b - b.mean()
+    b[0] = 0.0
+    p = solve(b).reshape(n, n)
+    q = np.pad(p, 1, mode="edge")
+    grad = np.stack([(q[2:, 1:-1] - q[:-2, 1:-1]) / (2 * h), (q[1:-1, 2:] - q[1:-1, :-2]) / (2 * h)], -1)
+    return va - grad
+
+
+def divergence_left(v, va, div, p, h):
+    """Means over the steps of: RMS divergence before and after the projection [1/s], their
+    ratio, the Jacobi sweeps' relative residual (clamped-index Neumann boundary), and the ratio
+    left with that equation solved exactly."""
+    import scipy.sparse.linalg as spla
+    n = div.shape[1]
+    A = clamped_laplacian(n).tolil()
+    A[0, :] = 0.0
+    A[0, 0] = 1.0
+    solve = spla.factorized(A.tocsc())
+    before, after, ratio, residual, exact = [], [], [], [], []
+    for t in range(div.shape[0]):
+        exact.append(np.sqrt(np.mean(central_divergence(project_exactly(va[t], div[t], h, solve), h) ** 2))
+                     / np.sqrt(np.mean(div[t] ** 2)))
+        d_after = central_divergence(v[t + 1], h)
+        b, a = np.sqrt(np.mean(div[t] ** 2)), np.sqrt(np.mean(d_after ** 2))
+        q = np.pad(p[t], 1, mode="edge")
+        lap = q[:-2, 1:-1] + q[2:, 1:-1] + q[1:-1, :-2] + q[1:-1, 2:] - 4 * p[t]
+        r = np.linalg.norm(h * h * div[t] - lap) / np.linalg.norm(h * h * div[t])
+        before.append(b), after.append(a), ratio.append(a / b), residual.append(r)
+    return {"div_before_rms": float(np.mean(before)), "div_after_rms": float(np.mean(after)),
+            "div_left": float(np.mean(ratio)), "poisson_residual": float(np.mean(residual)),
+            "div_left_exact_solve": float(np.mean(exact))}
 
 
 if __name__ == "__main__":

@@ -21,6 +21,14 @@ namespace kinema::grid {
 
 namespace {
 
+// v resized to n values (its capacity kept), all 0.
+Scalar* zero_filled(std::vector<Scalar>& v, Index n) {
+  v.resize(static_cast<size_t>(n));
+  Scalar* p = v.data();
+  parallel_for(n, [&](Index i) { p[i] = 0; });
+  return p;
+}
+
 // One axis of a stencil: the bracketing nodes, the weight of i1 and d w / d x (1 inside; 0 where
 // bracket() clamped the coordinate to the domain, or read a NaN as 0).
 struct AxisWeight {
@@ -62,10 +70,15 @@ struct Stencil {
     }
   }
 
-  Scalar value(const Scalar* f) const {
-    Scalar v = 0;
-    for (int n = 0; n < count; ++n) v += w[n] * f[node[n]];
-    return v;
+  // v[n] = f at node n.
+  void gather(const Scalar* f, Scalar* v) const {
+    for (int n = 0; n < count; ++n) v[n] = f[node[n]];
+  }
+  // The interpolant from the gathered values v.
+  Scalar value(const Scalar* v) const {
+    Scalar s = 0;
+    for (int n = 0; n < count; ++n) s += w[n] * v[n];
+    return s;
   }
   // target[node] += g * w for every node.
   void scatter(Scalar g, Scalar* target) const {
@@ -77,11 +90,9 @@ struct Stencil {
     for (int n = 0; n < count; ++n)
       if (w[n] != 0) target[node[n]] += g * w[n];
   }
-  // g times the gradient of the interpolant of f, added to out: the differences along each axis,
-  // weighted by the other axes' weights.
-  void add_gradient(const Scalar* f, Scalar g, Vec3& out) const {
-    Scalar v[8];
-    for (int n = 0; n < count; ++n) v[n] = f[node[n]];
+  // g times the gradient of the interpolant of the gathered values v, added to out: the
+  // differences along each axis, weighted by the other axes' weights.
+  void add_gradient(const Scalar* v, Scalar g, Vec3& out) const {
     const Scalar u1 = 1 - wa[1], u2 = 1 - wa[2];
     if constexpr (ThreeD) {
       const Scalar u0 = 1 - wa[0];
@@ -139,7 +150,10 @@ class Scatter {
     const int axis = L.n[0] > 1 ? 0 : 1;
     const Index n = L.n[axis], n1 = L.n[1], nk = L.n[2];
     const Index width = reach < 0 ? n : std::max<Index>(1, 2 * reach);
-    const Index blocks = std::max<Index>(1, n / width);
+    // a multiple of 4 blocks where there are that many: each colour's share divides evenly
+    // among 1, 2 or 4 threads (the cut depends on the grid and the reach only, never on them)
+    const Index most = std::max<Index>(1, n / width);
+    const Index blocks = most >= 4 ? most / 4 * 4 : most;
     const bool seam = L.period[axis] > 0 && blocks % 2 == 1 && blocks > 1;
     const Index slab_rows = axis == 0 ? n1 : 1;  // rows per slab
     auto block = [&](Index b) {
@@ -243,7 +257,9 @@ struct Tracer {
         if (br.jac) {  // the trace's derivatives, times 0 along a clamped axis (as add_gradient)
           for (int b = ThreeD ? 0 : 1; b < 3; ++b) gy[b] += g[a] * st.d[b] * br.jac[3 * a + b][br.k];
         } else {
-          st.add_gradient(u.comp[a], g[a], gy);
+          Scalar v[8];
+          st.gather(u.comp[a], v);
+          st.add_gradient(v, g[a], gy);
         }
       } else {
         st.scatter_nonzero(g[a], g_u[a]);
@@ -282,7 +298,10 @@ struct Tracer {
 template <bool ThreeD>
 void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const FieldLayout& L, int count,
                          const Scalar* const* q, const Scalar* const* g_out, Scalar* const* g_q,
-                         const std::array<Scalar*, 3>& g_u, Scalar dt, int rk, const AdvectionScratch* forward) {
+                         const std::array<Scalar*, 3>& g_u, Scalar dt, int rk, const AdvectionScratch* forward,
+                         AdjointScratch& work) {
+  // work's slots: g_node per axis (0-2), the kept gp per axis (3-5), g_fwd and g_bar per field
+  constexpr int kGp = 3, kFwd = 6, kBar = kFwd + kMaxAdvectedFields;
   const Index n = L.size();
   const Index reach = scatter_reach(u, L, dt);
   auto node = [&](Index i, Index j, Index k) {
@@ -298,10 +317,8 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
   const int first = ThreeD ? 0 : 1;
   // Per node of L and active axis b: the gradient of u_b read at the node (the first
   // Runge-Kutta stage) summed over the passes and fields of this call.
-  std::array<std::vector<Scalar>, 3> g_node_store;
   Scalar* g_node[3] = {nullptr, nullptr, nullptr};
-  for (int b = first; b < 3; ++b)
-    g_node_store[b].assign(static_cast<size_t>(n), 0), g_node[b] = g_node_store[b].data();
+  for (int b = first; b < 3; ++b) g_node[b] = work.zeros(b, n);
   struct RowData {
     std::unique_ptr<RowTrace> trace;
     std::vector<int> ints;      // per slot: i0, i1
@@ -340,10 +357,12 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
                           Scalar* const* dst, auto&& term, auto&& at) {
     Vec3 gp{0, 0, 0};
     for (int f = 0; f < count; ++f) {
-      const Scalar g = term(f, c, st);
+      Scalar v[8];  // src[f] on the stencil, gathered once for the term and the gradient
+      st.gather(src[f], v);
+      const Scalar g = term(f, c, st, v);
       if (g == 0) continue;
       st.scatter(g, dst[f]);
-      st.add_gradient(src[f], g, gp);
+      st.add_gradient(v, g, gp);
     }
     if (gp_add[first])
       for (int b = first; b < 3; ++b) gp[b] += gp_add[b][c];
@@ -355,7 +374,7 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
     const Vec3 g1 = tr.trace_adjoint(step, gp, at);
     for (int b = first; b < 3; ++b) g_node[b][c] += g1[b];  // node c is this row's: no other writer
   };
-  // One pass traced over `step`: for each node, term(f, c, st) returns dL/d(src[f] at the
+  // One pass traced over `step`: for each node, term(f, c, st, at) (at: src[f] on st) returns dL/d(src[f] at the
   // departure point) after adding the terms that do not go through it; the pass scatters that
   // into dst[f] (W^T) and carries (grad src[f]) through the trace into dL/du.
   auto pass = [&](Scalar step, const Scalar* const* src, Scalar* const* dst, auto&& term) {
@@ -397,7 +416,7 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
   };
   // out[f] = SL(src[f]) adjoint: dL/dsrc[f] += W^T g[f], positions through the trace.
   auto semi_lagrangian = [&](const Scalar* const* src, const Scalar* const* g, Scalar* const* dst) {
-    pass(dt, src, dst, [&](int f, Index c, const Stencil<ThreeD>&) { return g[f][c]; });
+    pass(dt, src, dst, [&](int f, Index c, const Stencil<ThreeD>&, const Scalar*) { return g[f][c]; });
   };
   // The first stage of every trace reads u at the node itself: dL/du_a += W_a(x)^T g_node[a]
   // for every node x of L, once per call (its stencils reach a slab or two).
@@ -449,74 +468,93 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
   }
   const Scalar *fwd[kMaxAdvectedFields], *lo[kMaxAdvectedFields], *hi[kMaxAdvectedFields],
       *bar[kMaxAdvectedFields];
-  std::vector<std::vector<Scalar>> g_fwd(count, std::vector<Scalar>(n, 0));
   Scalar* g_fwd_p[kMaxAdvectedFields];
   for (int f = 0; f < count; ++f) {
     fwd[f] = forward->forward[f].data(), lo[f] = forward->lo[f].data(), hi[f] = forward->hi[f].data();
     if (scheme == AdvectionScheme::BFECC) bar[f] = forward->corrected[f].data();
-    g_fwd_p[f] = g_fwd[f].data();
+    g_fwd_p[f] = work.zeros(kFwd + f, n);
   }
-  // Where the clamp took a bound, the result is that stencil node of q (st: the stencil of the
-  // forward departure point, for its extreme nodes): true when it did.
-  auto clamped = [&](int f, Index c, Scalar v, Scalar g, auto&& st) {
-    if (v < lo[f][c]) g_q[f][st().argmin(q[f])] += g;
-    else if (hi[f][c] < v) g_q[f][st().argmax(q[f])] += g;
-    else return false;
-    return true;
-  };
   if (scheme == AdvectionScheme::MacCormack) {
-    // out = clamp(q^ + (q - q~)/2), q~ = SL(q^, -dt)
-    pass(-dt, fwd, g_fwd_p, [&](int f, Index c, const Stencil<ThreeD>& st) -> Scalar {
+    // out = clamp(q^ + (q - q~)/2), q~ = SL(q^, -dt). The bounds are those of q over the
+    // stencil of the forward departure point, which the last pass traces again: where the clamp
+    // took a bound, this pass only notes which (1: lo, 2: hi), and the last one sends the
+    // node's gradient to that extreme node of its stencil.
+    std::uint8_t* branch[kMaxAdvectedFields];
+    for (int f = 0; f < count; ++f) branch[f] = work.zero_flags(f, n);
+    pass(-dt, fwd, g_fwd_p, [&](int f, Index c, const Stencil<ThreeD>& st, const Scalar* at) -> Scalar {
       const Scalar g = g_out[f][c];
       if (g == 0) return 0;
-      const Scalar v = fwd[f][c] + 0.5 * (q[f][c] - st.value(fwd[f]));
-      auto forward_stencil = [&] {
-        const Index row = c / L.n[2];
-        return stencil<ThreeD>(L, tr.trace(node(row / L.n[1], row % L.n[1], c % L.n[2]), dt).p);
-      };
-      if (clamped(f, c, v, g, forward_stencil)) return 0;
+      const Scalar v = fwd[f][c] + 0.5 * (q[f][c] - st.value(at));
+      if (v < lo[f][c] || hi[f][c] < v) {
+        branch[f][c] = v < lo[f][c] ? 1 : 2;
+        return 0;
+      }
       g_fwd_p[f][c] += g;
       g_q[f][c] += 0.5 * g;
       return -0.5 * g;
     });
-    semi_lagrangian(q, g_fwd_p, g_q);
+    pass(dt, q, g_q, [&](int f, Index c, const Stencil<ThreeD>& st, const Scalar*) -> Scalar {
+      if (branch[f][c]) g_q[f][branch[f][c] == 1 ? st.argmin(q[f]) : st.argmax(q[f])] += g_out[f][c];
+      return g_fwd_p[f][c];
+    });
     stage0();
     return;
   }
   // BFECC: q_bar = q + (q - SL(q^, -dt))/2, out = clamp(SL(q_bar, dt)).
-  std::vector<std::vector<Scalar>> g_bar(count, std::vector<Scalar>(n, 0));
   Scalar* g_bar_p[kMaxAdvectedFields];
-  for (int f = 0; f < count; ++f) g_bar_p[f] = g_bar[f].data();
-  std::array<std::vector<Scalar>, 3> gp_store;  // this pass's gp, carried by the last one's trace
-  for (int b = first; b < 3; ++b)
-    gp_store[b].assign(static_cast<size_t>(n), 0), gp_keep[b] = gp_store[b].data();
-  pass(dt, bar, g_bar_p, [&](int f, Index c, const Stencil<ThreeD>& st) -> Scalar {
+  for (int f = 0; f < count; ++f) g_bar_p[f] = work.zeros(kBar + f, n);
+  Scalar* gp_store[3] = {nullptr, nullptr, nullptr};  // this pass's gp, carried by the last one's trace
+  for (int b = first; b < 3; ++b) gp_store[b] = gp_keep[b] = work.zeros(kGp + b, n);
+  // Where the clamp took a bound, the result is that extreme node of q on the stencil of the
+  // departure point (the same as the forward's: the same trace).
+  pass(dt, bar, g_bar_p, [&](int f, Index c, const Stencil<ThreeD>& st, const Scalar* at) -> Scalar {
     const Scalar g = g_out[f][c];
-    if (g == 0 || clamped(f, c, st.value(bar[f]), g, [&]() -> const Stencil<ThreeD>& { return st; })) return 0;
-    return g;
+    if (g == 0) return 0;
+    const Scalar v = st.value(at);
+    if (v < lo[f][c]) g_q[f][st.argmin(q[f])] += g;
+    else if (hi[f][c] < v) g_q[f][st.argmax(q[f])] += g;
+    else return g;
+    return 0;
   });
   for (int b = first; b < 3; ++b) gp_keep[b] = nullptr;
   // q_bar = 1.5 q - 0.5 q~
-  pass(-dt, fwd, g_fwd_p, [&](int f, Index c, const Stencil<ThreeD>&) -> Scalar {
+  pass(-dt, fwd, g_fwd_p, [&](int f, Index c, const Stencil<ThreeD>&, const Scalar*) -> Scalar {
     const Scalar g = g_bar_p[f][c];
     g_q[f][c] += 1.5 * g;
     return -0.5 * g;
   });
-  for (int b = first; b < 3; ++b) gp_add[b] = gp_store[b].data();
+  for (int b = first; b < 3; ++b) gp_add[b] = gp_store[b];
   semi_lagrangian(q, g_fwd_p, g_q);  // the same trace as the first pass
   stage0();
 }
 
 }  // namespace
 
+Scalar* AdjointScratch::zeros(int slot, Index n) {
+  if (static_cast<int>(buffers.size()) <= slot) buffers.resize(static_cast<size_t>(slot) + 1);
+  return zero_filled(buffers[static_cast<size_t>(slot)], n);
+}
+
+std::uint8_t* AdjointScratch::zero_flags(int slot, Index n) {
+  if (static_cast<int>(flags.size()) <= slot) flags.resize(static_cast<size_t>(slot) + 1);
+  std::vector<std::uint8_t>& v = flags[static_cast<size_t>(slot)];
+  v.resize(static_cast<size_t>(n));
+  std::uint8_t* p = v.data();
+  parallel_for(n, [&](Index i) { p[i] = 0; });
+  return p;
+}
+
 void advect_adjoint(AdvectionScheme scheme, const MacVelocity& u, const FieldLayout& L, int count,
                     const Scalar* const* q, const Scalar* const* g_out, Scalar* const* g_q,
-                    const std::array<Scalar*, 3>& g_u, Scalar dt, int rk_order, const AdvectionScratch* forward) {
+                    const std::array<Scalar*, 3>& g_u, Scalar dt, int rk_order, const AdvectionScratch* forward,
+                    AdjointScratch* work) {
   if (count <= 0) return;
   if (count > kMaxAdvectedFields) throw InvalidArgument("advect_adjoint: at most 8 fields per call");
   if (u.walls) throw InvalidArgument("walls: the advection adjoint does not handle no-slip walls");
-  if (u.comp[0]) advect_adjoint_impl<true>(scheme, u, L, count, q, g_out, g_q, g_u, dt, rk_order, forward);
-  else advect_adjoint_impl<false>(scheme, u, L, count, q, g_out, g_q, g_u, dt, rk_order, forward);
+  AdjointScratch local;
+  AdjointScratch& w = work ? *work : local;
+  if (u.comp[0]) advect_adjoint_impl<true>(scheme, u, L, count, q, g_out, g_q, g_u, dt, rk_order, forward, w);
+  else advect_adjoint_impl<false>(scheme, u, L, count, q, g_out, g_q, g_u, dt, rk_order, forward, w);
 }
 
 // --------------------------------------------------------------------------- the step
@@ -581,7 +619,11 @@ void Solver::projection_adjoint(std::array<std::vector<Scalar>, 3>& grad, Scalar
   // forward right-hand side does), then g += div^T w * (-1/dt); the divergence is 0 in solid cells.
   enforce_boundary_adjoint(grad);  // project() ends with enforce_boundary
   const Index n = cells_.size();
-  std::vector<Scalar> gp(static_cast<size_t>(n), 0), w(static_cast<size_t>(n), 0);
+  std::vector<Scalar>& gp = adjoint_gp_;
+  std::vector<Scalar>& w = adjoint_w_;
+  gp.resize(static_cast<size_t>(n));
+  w.resize(static_cast<size_t>(n));
+  parallel_for(n, [&](Index c) { gp[c] = 0, w[c] = 0; });
   const Scalar scale = dt / model_.h;
   const bool periodic = config_.periodic;
   for (int a = 0; a < 3; ++a) {
@@ -614,7 +656,8 @@ void Solver::projection_adjoint(std::array<std::vector<Scalar>, 3>& grad, Scalar
     // Warm start (as project() does) only when it beats zero.
     if (warm_step >= 0 && adjoint_pressure_step_ == warm_step + 1 &&
         static_cast<Index>(adjoint_pressure_.size()) == n) {
-      std::vector<Scalar> r(static_cast<size_t>(n));
+      std::vector<Scalar>& r = adjoint_r_;
+      r.resize(static_cast<size_t>(n));
       pressure_solver_->op().residual(gp.data(), adjoint_pressure_.data(), r.data());
       if (parallel_sum(n, [&](Index c) { return r[c] * r[c]; }) < norm2) w = adjoint_pressure_;
     }
@@ -661,7 +704,8 @@ void Solver::step_adjoint(const State& before, Scalar dt, const Scalar* control,
   const Index cells = cells_.size();
   // Recompute the step up to the viscosity: s0 is what advection reads, s what the viscosity
   // made (only dL/dnu reads it: without it, s0 and the advection's scratch are enough).
-  State s0 = before;
+  State& s0 = adjoint_s0_;
+  s0 = before;  // into the kept arrays
   refresh_solids(s0);
   apply_sources(s0);
   enforce_boundary(s0);
@@ -713,7 +757,8 @@ void Solver::step_adjoint(const State& before, Scalar dt, const Scalar* control,
   }
   // 2. Forces: controls and buoyancy are cell values averaged to the free faces.
   if (config_.periodic) enforce_boundary_adjoint(g);
-  std::vector<Scalar> g_force(static_cast<size_t>(cells));
+  std::vector<Scalar>& g_force = adjoint_force_;
+  g_force.resize(static_cast<size_t>(cells));
   const bool rho = config_.density && config_.alpha != 0, temp = config_.temperature && config_.beta != 0;
   for (int a = 0; a < 3; ++a) {
     if (!active_[a]) continue;
@@ -733,22 +778,22 @@ void Solver::step_adjoint(const State& before, Scalar dt, const Scalar* control,
   enforce_boundary_adjoint(g);
   const MacVelocity u0 = mac_velocity(s0.velocity);
   const Scalar dt_grid = dt / model_.h;
-  std::array<std::vector<Scalar>, 3> g0;
+  std::array<std::vector<Scalar>, 3>& g0 = adjoint_g0_;
   std::array<Scalar*, 3> g0_p{nullptr, nullptr, nullptr};
   for (int a = 0; a < 3; ++a)
-    if (active_[a]) g0[a].assign(faces_[a].size(), 0), g0_p[a] = g0[a].data();
+    if (active_[a]) g0_p[a] = zero_filled(g0[a], faces_[a].size());
   for (int a = 0; a < 3; ++a) {
     if (!active_[a]) continue;
     const Scalar* qa = s0.velocity[a].data();
     const Scalar* ga = g[a].data();
     advect_adjoint(config_.advection, u0, faces_[a], 1, &qa, &ga, &g0_p[a], g0_p, dt_grid, config_.rk_order,
-                   &kept[1 + a]);
+                   &kept[1 + a], &adjoint_work_);
   }
   const Scalar* q[2];
   const Scalar* g_out[2];
   Scalar* g_in[2];
   Scalar* g_scalars[2];
-  std::array<std::vector<Scalar>, 2> g_scalar0;
+  std::array<std::vector<Scalar>, 2>& g_scalar0 = adjoint_scalar0_;
   int count = 0;
   for (auto [field, grad] : {std::pair{&s0.density, &adjoint.density}, std::pair{&s0.temperature, &adjoint.temperature}}) {
     if (field->empty()) continue;
@@ -757,12 +802,12 @@ void Solver::step_adjoint(const State& before, Scalar dt, const Scalar* control,
     g_scalars[count] = gq;
     q[count] = field->data();
     g_out[count] = gq;
-    g_scalar0[count].assign(static_cast<size_t>(cells), 0);
-    g_in[count] = g_scalar0[count].data();
+    g_in[count] = zero_filled(g_scalar0[count], cells);
     ++count;
   }
   if (count > 0 && any_open()) inflow_ambient(s0, g_scalars, count);
-  advect_adjoint(config_.advection, u0, cells_, count, q, g_out, g_in, g0_p, dt_grid, config_.rk_order, &kept[0]);
+  advect_adjoint(config_.advection, u0, cells_, count, q, g_out, g_in, g0_p, dt_grid, config_.rk_order, &kept[0],
+                 &adjoint_work_);
   // 0. Boundary values and sources imposed before the step.
   enforce_boundary_adjoint(g0);
   for (int f = 0; f < count; ++f) std::copy(g_scalar0[f].begin(), g_scalar0[f].end(), g_scalars[f]);
@@ -778,7 +823,7 @@ void Solver::step_adjoint(const State& before, Scalar dt, const Scalar* control,
         for (Index f : src.faces[a])
           if (fixed_[a][f] != 1) g0[a][f] = 0;
   }
-  for (int a = 0; a < 3; ++a) g[a] = std::move(g0[a]);
+  for (int a = 0; a < 3; ++a) g[a].swap(g0[a]);  // g0 keeps g's old arrays for the next call
   std::fill(adjoint.pressure.begin(), adjoint.pressure.end(), Scalar(0));
 }
 

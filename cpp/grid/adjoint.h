@@ -21,19 +21,33 @@
 // differentiate them (Solver::check_differentiable).
 #pragma once
 
+#include <cstdint>
+#include <vector>
+
 #include "grid/kernels.h"
 
 namespace kinema::grid {
+
+// Zeroed buffers of an adjoint, kept from call to call: a fresh vector of a few MB costs a page
+// fault and the kernel's zeroing per 4 KiB on first touch (serial, in the allocating thread),
+// about a tenth of a 64^3 step's adjoint; a kept one is only refilled, in parallel.
+struct AdjointScratch {
+  std::vector<std::vector<Scalar>> buffers;
+  std::vector<std::vector<std::uint8_t>> flags;
+  // Buffer `slot`, resized to n values (its capacity kept), all 0.
+  Scalar* zeros(int slot, Index n);
+  std::uint8_t* zero_flags(int slot, Index n);
+};
 
 // The adjoint of advect_fields(scheme, u, L, count, q, out, dt, rk_order): given
 // g_out[f] = dL/d(out[f]), adds dL/d(q[f]) into g_q[f] and dL/du into g_u[a] (one array per
 // active component of u, on u.layout[a]). g_q[f] may alias g_u[a] (a velocity component advected
 // through itself). u.walls must be null. forward (nullable): the scratch of that advect_fields
 // call (MacCormack and BFECC read its forward pass, bounds and corrected field; recomputed when
-// null).
+// null). work (nullable): buffers kept between calls (a local one when null).
 void advect_adjoint(AdvectionScheme scheme, const MacVelocity& u, const FieldLayout& L, int count,
                     const Scalar* const* q, const Scalar* const* g_out, Scalar* const* g_q,
                     const std::array<Scalar*, 3>& g_u, Scalar dt, int rk_order,
-                    const AdvectionScratch* forward = nullptr);
+                    const AdvectionScratch* forward = nullptr, AdjointScratch* work = nullptr);
 
 }  // namespace kinema::grid

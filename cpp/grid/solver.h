@@ -24,6 +24,7 @@
 #include "core/advance.h"
 #include "core/interrupt.h"
 #include "core/step_stats.h"
+#include "grid/adjoint.h"
 #include "grid/config.h"
 #include "grid/kernels.h"
 #include "grid/model.h"
@@ -170,6 +171,12 @@ class Solver {
   AdvectionScratch advection_scratch_;
   CgWorkspace viscosity_cg_;
   std::array<AdvectionScratch, 4> adjoint_kept_;  // step_adjoint's advection scratch, kept from call to call
+  // step_adjoint's and projection_adjoint's arrays, kept from call to call (AdjointScratch)
+  State adjoint_s0_;
+  std::array<std::vector<Scalar>, 3> adjoint_g0_;
+  std::array<std::vector<Scalar>, 2> adjoint_scalar0_;
+  std::vector<Scalar> adjoint_force_, adjoint_gp_, adjoint_w_, adjoint_r_;
+  AdjointScratch adjoint_work_;
   std::vector<Scalar> adjoint_pressure_;  // the last adjoint pressure solution (a warm start)
   Index adjoint_pressure_step_ = -1;      // the step it belongs to, -1: none
   WallVelocities walls_;  // no-slip and moving walls as interpolation sees them
