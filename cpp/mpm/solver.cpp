@@ -25,9 +25,39 @@ class Solver::Impl {
   virtual void step_adjoint(const State& before, const State& after, Scalar dt, const Scalar* forces,
                             State& adjoint, ParamsAdjoint& adjoint_params, Scalar* adjoint_forces,
                             Interrupt& interrupt) = 0;
+  virtual void sort_rows(State& state) = 0;
 };
 
 namespace {
+
+// Row q of every particle array becomes row from(q) (a permutation of the stored rows), one
+// array at a time through a spare buffer.
+template <class From>
+void permute_rows(State& state, From&& from, std::vector<Scalar>& spare) {
+  const Index n = state.n;
+  const Index d = state.dim;
+  auto permute = [&](std::vector<Scalar>& a, Index width) {
+    spare.resize(a.size());
+    parallel_for(n, [&](Index q) {
+      const Scalar* src = &a[static_cast<size_t>(from(q) * width)];
+      Scalar* dst = &spare[static_cast<size_t>(q * width)];
+      for (Index k = 0; k < width; ++k) dst[k] = src[k];
+    });
+    a.swap(spare);
+  };
+  permute(state.x, d);
+  permute(state.v, d);
+  permute(state.F, d * d);
+  permute(state.C, d * d);
+  permute(state.mass, 1);
+  permute(state.volume, 1);
+  permute(state.Jp, 1);
+  permute(state.youngs_modulus, 1);
+  permute(state.poisson_ratio, 1);
+  std::vector<Index> material(static_cast<size_t>(n));
+  parallel_for(n, [&](Index q) { material[static_cast<size_t>(q)] = state.material[static_cast<size_t>(from(q))]; });
+  state.material.swap(material);
+}
 
 constexpr int ipow(int b, int e) { return e == 0 ? 1 : b * ipow(b, e - 1); }
 
@@ -170,6 +200,21 @@ class SolverD final : public Solver::Impl {
   void step_adjoint(const State& before, const State& after, Scalar dt, const Scalar* forces, State& adjoint,
                     ParamsAdjoint& adjoint_params, Scalar* adjoint_forces, Interrupt& interrupt) override;
 
+  // Stores the rows in the order order_ visits them (the last step's block order).
+  void sort_rows(State& state) override {
+    if (static_cast<Index>(order_.size()) != state.n || particle_count_ != state.n)
+      throw InvalidArgument("state: sort_rows needs the State of the step just taken");
+    std::vector<Index>& from = order_;
+    std::vector<Index> user(static_cast<size_t>(state.n));
+    parallel_for(state.n, [&](Index q) { user[static_cast<size_t>(q)] = state.user_of(from[static_cast<size_t>(q)]); });
+    permute_rows(state, [&](Index q) { return from[static_cast<size_t>(q)]; }, spare_);
+    state.row.resize(static_cast<size_t>(state.n));
+    parallel_for(state.n, [&](Index q) { state.row[static_cast<size_t>(user[static_cast<size_t>(q)])] = q; });
+    state.user = std::move(user);
+    // The rows are now where order_ visits them: a second call changes nothing.
+    parallel_for(state.n, [&](Index q) { order_[static_cast<size_t>(q)] = q; });
+  }
+
  private:
   using RowMap = Eigen::Map<Eigen::Matrix<Scalar, D, D, Eigen::RowMajor>>;
   using ConstRowMap = Eigen::Map<const Eigen::Matrix<Scalar, D, D, Eigen::RowMajor>>;
@@ -232,8 +277,9 @@ class SolverD final : public Solver::Impl {
         const Scalar E = state.youngs_modulus[static_cast<size_t>(p)], nu = state.poisson_ratio[static_cast<size_t>(p)];
         inside = inside && std::isfinite(E) && E > 0 && std::isfinite(nu) && nu > -1 && nu < 0.5;
         if (!inside) {
+          const Index u = state.user_of(p);
 #pragma omp critical(mpm_bad_particle)
-          bad_ = bad_ < 0 ? p : std::min(bad_, p);
+          bad_ = bad_ < 0 ? u : std::min(bad_, u);
           continue;
         }
         const Index key = key_of(b);
@@ -255,16 +301,20 @@ class SolverD final : public Solver::Impl {
 #pragma omp single
     build_blocks();
     if (bad_ >= 0) return false;
-    // Counting sort of the particles by block slot, stable (by row within a block): the rows
-    // are cut into a fixed number of chunks (not one per thread, so that the order does not
-    // depend on the thread count), counted per chunk, and each chunk fills its own ranges.
+    // Counting sort of the particles by block slot, stable (by user row within a block): the
+    // user rows are cut into a fixed number of chunks (not one per thread, so that the order
+    // does not depend on the thread count), counted per chunk, and each chunk fills its own
+    // ranges. order_ holds stored rows (state.row maps user rows to them).
     const Index chunks = sort_chunks_, pb = particle_blocks_;
+    const Index* row = state.row.empty() ? nullptr : state.row.data();
+    auto stored = [row](Index u) { return row ? row[u] : u; };
     auto chunk_rows = [&](Index c) { return std::make_pair(n * c / chunks, n * (c + 1) / chunks); };
 #pragma omp for schedule(static)
     for (Index c = 0; c < chunks; ++c) {
       const auto [first, last] = chunk_rows(c);
       Index* count = &fill_[static_cast<size_t>(c * pb)];
-      for (Index p = first; p < last; ++p) ++count[table_[static_cast<size_t>(particle_key_[static_cast<size_t>(p)])]];
+      for (Index u = first; u < last; ++u)
+        ++count[table_[static_cast<size_t>(particle_key_[static_cast<size_t>(stored(u))])]];
     }
 #pragma omp single
     {
@@ -286,8 +336,10 @@ class SolverD final : public Solver::Impl {
     for (Index c = 0; c < chunks; ++c) {
       const auto [first, last] = chunk_rows(c);
       Index* at = &fill_[static_cast<size_t>(c * pb)];
-      for (Index p = first; p < last; ++p)
+      for (Index u = first; u < last; ++u) {
+        const Index p = stored(u);
         order_[static_cast<size_t>(at[table_[static_cast<size_t>(particle_key_[static_cast<size_t>(p)])]]++)] = p;
+      }
     }
     return true;
   }
@@ -353,9 +405,9 @@ class SolverD final : public Solver::Impl {
   }
 
   [[noreturn]] void throw_bad_particle(const State& state) const {
-    const Index bad = bad_;
+    const Index bad = bad_, p = state.row_of(bad);
     std::string where = "(";
-    for (int a = 0; a < D; ++a) where += (a ? ", " : "") + format_real(state.x[static_cast<size_t>(bad * D + a)]);
+    for (int a = 0; a < D; ++a) where += (a ? ", " : "") + format_real(state.x[static_cast<size_t>(p * D + a)]);
     throw InvalidArgument("x: particle " + std::to_string(bad) + " at " + where +
                           ") is outside the domain or not finite (or its material code is not one of the " +
                           std::to_string(model_.materials.size()) +
@@ -565,7 +617,7 @@ class SolverD final : public Solver::Impl {
         // Affine momentum per unit offset, in cells: (m C - 4 dt V / h^2 tau) h.
         const Mat<D> A = (m * C - (stress_scale * state.volume[static_cast<size_t>(p)]) * tau(state, p, F)) * h;
         // Momentum at offset 0 (the base node); an external force adds dt f, as gravity would.
-        const Vec<D> q0 = forces ? Vec<D>(m * v + dt * Eigen::Map<const Vec<D>>(forces + pd) - A * st.fx)
+        const Vec<D> q0 = forces ? Vec<D>(m * v + dt * Eigen::Map<const Vec<D>>(forces + state.user_of(p) * D) - A * st.fx)
                                  : Vec<D>(m * v - A * st.fx);
         scatter(tile, st, m, q0, A);
       });
@@ -888,6 +940,7 @@ class SolverD final : public Solver::Impl {
   Model model_;
   Config config_;
   Scalar inv_h_ = 1 / model_.h;
+  std::vector<Scalar> spare_;                // scratch of permute_rows
   const std::array<TileNode, TN> tile_nodes_ = make_tile_nodes();
   const std::array<std::vector<Overlap>, NEIGHBORS> overlaps_ = make_overlaps();
   std::array<Index, 3> blocks_{};
@@ -1104,10 +1157,24 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt, const Scal
   return impl_->step(state, dt, interrupt, forces);
 }
 
+void Solver::sort_rows(State& state) {
+  if (state.dim != model_.dim) throw InvalidArgument("state: dimension differs from the model's");
+  impl_->sort_rows(state);
+}
+
+void Solver::user_order(State& state) {
+  if (state.user_ordered()) return;
+  permute_rows(state, [&](Index u) { return state.row[static_cast<size_t>(u)]; }, spare_);
+  state.user.clear();
+  state.row.clear();
+}
+
 void Solver::step_adjoint(const State& before, const State& after, Scalar dt, const Scalar* forces, State& adjoint,
                           ParamsAdjoint& adjoint_params, Scalar* adjoint_forces, Interrupt& interrupt) {
   if (before.dim != model_.dim || after.dim != model_.dim || adjoint.dim != model_.dim)
     throw InvalidArgument("state: dimension differs from the model's");
+  if (!before.user_ordered() || !after.user_ordered() || !adjoint.user_ordered())
+    throw InvalidArgument("state: step_adjoint needs its States' rows in user order (Solver::user_order)");
   const size_t n = static_cast<size_t>(before.n), d = static_cast<size_t>(model_.dim);
   if (after.n != before.n || adjoint.x.size() != n * d || adjoint.v.size() != n * d ||
       adjoint.F.size() != n * d * d || adjoint.C.size() != n * d * d)
@@ -1149,7 +1216,9 @@ Scalar Solver::stable_dt(const State& state, Scalar cfl) const {
 
 Scalar Solver::kinetic_energy(const State& state) const {
   const int d = state.dim;
-  return parallel_sum(state.n, [&](Index p) {
+  // Summed in user-row order, whatever the stored order (the same bits either way).
+  return parallel_sum(state.n, [&](Index u) {
+    const Index p = state.row_of(u);
     Scalar v2 = 0;
     for (int a = 0; a < d; ++a) v2 += state.v[static_cast<size_t>(p * d + a)] * state.v[static_cast<size_t>(p * d + a)];
     return 0.5 * state.mass[static_cast<size_t>(p)] * v2;
@@ -1160,7 +1229,8 @@ std::vector<Scalar> Solver::momentum(const State& state) const {
   const int d = state.dim;
   std::vector<Scalar> out(static_cast<size_t>(d));
   for (int a = 0; a < d; ++a)
-    out[a] = parallel_sum(state.n, [&](Index p) {
+    out[a] = parallel_sum(state.n, [&](Index u) {
+      const Index p = state.row_of(u);
       return state.mass[static_cast<size_t>(p)] * state.v[static_cast<size_t>(p * d + a)];
     });
   return out;
@@ -1171,7 +1241,8 @@ std::vector<Scalar> Solver::angular_momentum(const State& state) const {
   const Scalar inertia = model_.h * model_.h / 4;  // sum w (x_i - x_p)(x_i - x_p)^T = h^2/4 I
   // Component c of x x v + (h^2/4) eps_abc C_ba, for (a, b, c) cyclic.
   auto component = [&](int a, int b) {
-    return parallel_sum(state.n, [&](Index p) {
+    return parallel_sum(state.n, [&](Index u) {
+      const Index p = state.row_of(u);
       const size_t pd = static_cast<size_t>(p * d);
       const Scalar* x = &state.x[pd];
       const Scalar* v = &state.v[pd];
