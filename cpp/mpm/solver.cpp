@@ -321,14 +321,12 @@ class SolverD final : public Solver::Impl {
       Index running = 0;
       for (Index s = 0; s < pb; ++s) {
         block_start_[static_cast<size_t>(s)] = running;
-        Index* starts = &chunk_start_[static_cast<size_t>(s * (chunks + 1))];
         for (Index c = 0; c < chunks; ++c) {
           Index& at = fill_[static_cast<size_t>(c * pb + s)];
           const Index count = at;
-          starts[c] = at = running;
+          at = running;
           running += count;
         }
-        starts[chunks] = running;
       }
       block_start_[static_cast<size_t>(pb)] = running;
     }
@@ -398,10 +396,9 @@ class SolverD final : public Solver::Impl {
       }
     }
     fill_.assign(static_cast<size_t>(sort_chunks_ * particle_blocks_), 0);
-    chunk_start_.resize(static_cast<size_t>((sort_chunks_ + 1) * particle_blocks_));
     block_start_.resize(static_cast<size_t>(particle_blocks_ + 1));
     grid_.resize(static_cast<size_t>(slots * BN * S));
-    tiles_.resize(static_cast<size_t>(kLanes * particle_blocks_ * TN * S));
+    tiles_.resize(static_cast<size_t>(particle_blocks_ * TN * S));
   }
 
   [[noreturn]] void throw_bad_particle(const State& state) const {
@@ -561,51 +558,34 @@ class SolverD final : public Solver::Impl {
     __builtin_prefetch(&state.poisson_ratio[p]);
   }
 
-  // The transfers' work items: (lane, particle block), lane-major. Lane l holds the rows of
-  // the sort's row chunks c = l, l + kLanes, ... (fixed row ranges, whatever the thread
-  // count), and each item has its own tile, so P2G writes no value two threads write. Shared
-  // out statically, two threads take one lane each, in P2G and in G2P, step after step: each
-  // particle row is read and written by one core only. The rows are in the user's order,
-  // spatially random in Taichi's examples; shared out by blocks (as before), every cache line
-  // of x, v, F, C held rows of both threads and crossed between the cores twice a step.
-  // In 3D (one lane, blocks handed out one at a time) the second lane's doubled tile gathers
-  // and sums cost more than it saved (mpm3d 3-6% slower on 2 threads).
-  static constexpr Index kLanes = D == 2 ? 2 : 1;
+  // The transfers' work items are the particle blocks, handed out one at a time (the tiles make
+  // the results independent of which thread takes which). With the rows stored in block order
+  // (sort_rows) a block's rows are one contiguous range, so the two threads share no cache line
+  // of the particle arrays but at the ends of their blocks. (Session 12's 2D lanes, two tiles
+  // per block for two fixed halves of the user rows, kept each row on one core while the rows
+  // were in random user order; with sorted rows the second tile's gathers and sums cost more:
+  // mpm88 on 2 threads 0.39-0.41 against 0.33 ms per substep.)
   template <class Fn>
-  void each_item(Fn&& fn) const {
-    if constexpr (kLanes > 1) {
-#pragma omp for schedule(static)
-      for (Index item = 0; item < kLanes * particle_blocks_; ++item) fn(item / particle_blocks_, item % particle_blocks_);
-    } else {
+  void each_block(Fn&& fn) const {
 #pragma omp for schedule(dynamic, 1)
-      for (Index s = 0; s < particle_blocks_; ++s) fn(Index{0}, s);
-    }
+    for (Index s = 0; s < particle_blocks_; ++s) fn(s);
   }
-  // Calls fn(q, end of q's chunk) for the positions q of order_ in lane `lane` of block s.
+  // Calls fn(q, end) for the positions q of order_ in block s, whose rows end at `end`.
   template <class Fn>
-  void each_in_lane(Index lane, Index s, Fn&& fn) const {
-    const Index chunks = sort_chunks_;
-    const Index* starts = &chunk_start_[static_cast<size_t>(s * (chunks + 1))];
-    for (Index c = lane; c < chunks; c += kLanes)
-      for (Index q = starts[c]; q < starts[c + 1]; ++q) fn(q, starts[c + 1]);
-  }
-  bool lane_empty(Index lane, Index s) const {
-    const Index chunks = sort_chunks_;
-    const Index* starts = &chunk_start_[static_cast<size_t>(s * (chunks + 1))];
-    for (Index c = lane; c < chunks; c += kLanes)
-      if (starts[c] < starts[c + 1]) return false;
-    return true;
+  void each_in_block(Index s, Fn&& fn) const {
+    const Index end = block_start_[static_cast<size_t>(s + 1)];
+    for (Index q = block_start_[static_cast<size_t>(s)]; q < end; ++q) fn(q, end);
   }
 
   // Each work item scatters into its own tile of tiles_ (no two threads write one value).
   // Called by every thread of a parallel region (a work-shared loop ending in a barrier).
   void p2g_phase(const State& state, Scalar dt, const Scalar* forces) {
     const Scalar h = model_.h, stress_scale = 4 * dt / (h * h);
-    each_item([&](Index lane, Index s) {
+    each_block([&](Index s) {
       const auto o = block_origin(s);
-      Scalar* tile = &tiles_[static_cast<size_t>((lane * particle_blocks_ + s) * TN * S)];
+      Scalar* tile = &tiles_[static_cast<size_t>(s * TN * S)];
       std::fill_n(tile, TN * S, 0.0);
-      each_in_lane(lane, s, [&](Index q, Index end) {
+      each_in_block(s, [&](Index q, Index end) {
         prefetch_row(state, q, end);
         const Index p = order_[static_cast<size_t>(q)];
         const size_t pd = static_cast<size_t>(p * D);
@@ -628,9 +608,8 @@ class SolverD final : public Solver::Impl {
   // a barrier): sums the tiles over its nodes (the sources in the fixed order of source_slot_,
   // so a node's sum does not depend on the thread count) into `sum` (B^d (d + 1)) and calls
   // node_fn(slot, sum).
-  // `lanes`: tiles per particle block (lane-major, as each_item).
   template <class Fn>
-  void reduce_tiles(const std::vector<Scalar>& tiles, Index lanes, Fn&& node_fn) const {
+  void reduce_tiles(const std::vector<Scalar>& tiles, Fn&& node_fn) const {
     const Index slots = static_cast<Index>(slot_key_.size());
 #pragma omp for schedule(static)
     for (Index s = 0; s < slots; ++s) {
@@ -639,11 +618,9 @@ class SolverD final : public Solver::Impl {
       for (int o = 0; o < NEIGHBORS; ++o) {
         const std::int32_t src = source_slot_[static_cast<size_t>(s * NEIGHBORS + o)];
         if (src < 0) continue;
-        for (Index lane = 0; lane < lanes; ++lane) {
-          const Scalar* tile = &tiles[static_cast<size_t>(lane * particle_blocks_ + src) * TN * S];
-          for (const Overlap& ov : overlaps_[static_cast<size_t>(o)])
-            for (int c = 0; c < S; ++c) sum[ov.node * S + c] += tile[ov.tile * S + c];
-        }
+        const Scalar* tile = &tiles[static_cast<size_t>(src) * TN * S];
+        for (const Overlap& ov : overlaps_[static_cast<size_t>(o)])
+          for (int c = 0; c < S; ++c) sum[ov.node * S + c] += tile[ov.tile * S + c];
       }
       node_fn(s, sum);
     }
@@ -689,7 +666,7 @@ class SolverD final : public Solver::Impl {
   void grid_phase(Scalar dt, Scalar* pre) {
     Vec<D> g;
     for (int a = 0; a < D; ++a) g(a) = config_.gravity[a];
-    reduce_tiles(tiles_, kLanes, [&](Index s, const Scalar* sum) {
+    reduce_tiles(tiles_, [&](Index s, const Scalar* sum) {
       const auto o = block_origin(s);
       Scalar* out = &grid_[static_cast<size_t>(s * BN * S)];
       for (int l = 0; l < BN; ++l) {
@@ -790,12 +767,11 @@ class SolverD final : public Solver::Impl {
     const Scalar h = model_.h;
     Scalar vmax2 = 0;
     bool finite = true;
-    each_item([&](Index lane, Index s) {
-      if (lane_empty(lane, s)) return;
+    each_block([&](Index s) {
       const auto o = block_origin(s);
       alignas(64) Scalar tile[TN * S];
       gather<1>(tile, s, grid_);
-      each_in_lane(lane, s, [&](Index q, Index end) {
+      each_in_block(s, [&](Index q, Index end) {
         prefetch_row(state, q, end);
         const Index p = order_[static_cast<size_t>(q)];
         const size_t pd = static_cast<size_t>(p * D);
@@ -952,10 +928,9 @@ class SolverD final : public Solver::Impl {
   std::vector<Index> particle_key_;          // (n,) block key of each particle
   std::vector<Index> block_start_;           // CSR of order_ by particle block
   std::vector<Index> fill_;                  // (sort chunks, particle blocks): counts, then write positions
-  std::vector<Index> chunk_start_;           // (particle blocks, sort chunks + 1): where each chunk's rows start in order_
   std::vector<Index> order_;                 // particle rows sorted by block
   std::vector<std::int32_t> source_slot_;   // (slot, 2^d) -> particle block at c - o (or -1)
-  std::vector<Scalar> tiles_;                // (lanes, particle blocks, (B + 2)^d, d + 1): P2G's tiles
+  std::vector<Scalar> tiles_;                // (particle blocks, (B + 2)^d, d + 1): P2G's tiles
   Index particle_count_ = 0;                 // n of the last sort
   std::vector<Scalar> grid_;                 // (slots, B^d, d + 1): mass, momentum -> velocity
   std::vector<Scalar> backup_;               // (n, kRow): what G2P overwrote, for a failed step
@@ -1049,7 +1024,7 @@ void SolverD<D>::step_adjoint(const State& before, const State& after, Scalar dt
   Vec<D> g;
   for (int a = 0; a < D; ++a) g(a) = config_.gravity[a];
 #pragma omp parallel if (parallel)
-  reduce_tiles(tiles_, 1, [&](Index s, const Scalar* sum) {
+  reduce_tiles(tiles_, [&](Index s, const Scalar* sum) {
     const auto o = block_origin(s);
     for (int l = 0; l < BN; ++l) {
       const size_t at = static_cast<size_t>((s * BN + l) * S);

@@ -13,8 +13,7 @@
 // Particles are visited block by block and, within a block, in user-row order (State::user),
 // whatever order the rows are stored in, so no result depends on the stored order either.
 // P2G needs no atomics and is deterministic for any thread count: each particle block scatters
-// into its own tile of (B + 2)^d nodes (in 2D one per block and row lane, solver.cpp
-// each_item), and the grid pass then gives every node the sum of the tiles over it in a fixed
+// into its own tile of (B + 2)^d nodes, and the grid pass then gives every node the sum of the tiles over it in a fixed
 // order (the block's own tile first), fused with the node's velocity update. A step is one
 // parallel region whose phases (sort, P2G, grid, G2P) meet at barriers.
 #pragma once
@@ -70,8 +69,8 @@ class Solver {
 
   // Stores the rows of `state` in the block order of the step just taken (call it right after a
   // step that returned; the State must not have been changed since): the next steps' transfers
-  // then read and write the particle arrays nearly sequentially, and with the 2D lanes each
-  // thread's rows are one contiguous range (no cache line shared between the cores). A
+  // then read and write the particle arrays nearly sequentially, and each block's rows are one
+  // contiguous range (threads taking different blocks share no cache line but at the ends). A
   // permutation of storage only: every later result is bitwise the same as without it, and
   // state.user / state.row record where each user row went. Parallel, O(n).
   void sort_rows(State& state);
