@@ -24,8 +24,10 @@ sphere) may have Coulomb friction.
 
 The grid is sparse (blocks of 4^3 or 8^2 nodes exist only where particles are) and the
 particle-to-grid transfer is deterministic for any thread count. State arrays are writable
-views of the solver's memory; adding particles reallocates them, so take views again after
-:meth:`Simulation.add_particles` (an older view stays valid memory but is detached).
+views of the solver's memory in the order particles were added; adding particles reallocates
+them, so take views again after :meth:`Simulation.add_particles` (an older view stays valid
+memory but is detached). While no view is alive the solver may store the rows sorted into grid
+blocks (faster transfers); taking a view puts them back first. Results do not depend on it.
 """
 
 from __future__ import annotations
