@@ -2,7 +2,7 @@
 
     .venv/bin/python bench/mpm/mpm_bench.py scaling   [--threads 2]   # 3D step time, 1e4..1e6 particles
     .venv/bin/python bench/mpm/mpm_bench.py precision                 # dam-break front error vs wall time
-    .venv/bin/python bench/mpm/mpm_bench.py taichi    [--threads 2]   # beside Taichi's mpm88 / mpm128 / mpm3d
+    .venv/bin/python bench/mpm/mpm_bench.py taichi    [--threads 2] [--repeat 3]   # beside Taichi's mpm88 / mpm128 / mpm3d
 
 scaling: 3D water and sand blocks of 1e4, 1e5 and 1e6 particles (8 per cell) in a 128^3 domain,
 mean time per step over 5 steps after 2 warm-up steps, with the per-stage times (sort, P2G,
@@ -155,8 +155,8 @@ def taichi(opts):
     rec = harness.Recorder(CSV, "mpm_vs_taichi", threads=opts.threads)
     km.set_num_threads(opts.threads)
     steps = opts.steps
-    summary = []
-    for kind in ("mpm88", "mpm128", "mpm3d"):
+    summary, ratios = [], {}
+    for kind in ("mpm88", "mpm128", "mpm3d") * opts.repeat:
         with tempfile.TemporaryDirectory() as tmp:
             start_file = Path(tmp) / "start.npz"
             peer = subprocess.run([sys.executable, str(Path(__file__).with_name("mpm_taichi_peer.py")), kind,
@@ -205,8 +205,12 @@ def taichi(opts):
         if not ok:
             raise SystemExit(f"{kind}: kinema and Taichi disagree ({drift:.3g}); no time recorded as valid")
         summary.append(f"{kind} {speedup:.2f}x (cpu {ti_res['cpu_seconds'] / cpu:.2f}x, load {m.other_load:.2f})")
+        ratios.setdefault(kind, []).append(speedup)
     print(f"summary, Taichi / kinema time per substep, {opts.threads} thread(s), target >= 2x: " + "; ".join(summary),
           flush=True)
+    if opts.repeat > 1:
+        print(f"spread over {opts.repeat} runs (median [min, max]): " + "; ".join(
+            f"{k} {np.median(r):.2f}x [{min(r):.2f}, {max(r):.2f}]" for k, r in ratios.items()), flush=True)
 
 
 def main():
@@ -214,6 +218,7 @@ def main():
     ap.add_argument("what", choices=["scaling", "precision", "taichi"])
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--steps", type=int, default=100)
+    ap.add_argument("--repeat", type=int, default=1, help="taichi: run the three comparisons this many times")
     ap.add_argument("--max-load", type=float, default=harness.DEFAULT_MAX_LOAD,
                     help="other processes' load (cores) above which a run counts as disturbed and is retried")
     opts = ap.parse_args()
