@@ -308,7 +308,9 @@ void bind_mpm(py::module_& m) {
       .def_readwrite("gravity", &mpm::Config::gravity, "[m/s^2], 3 entries, the first d used")
       .def_readwrite("max_cells_per_step", &mpm::Config::max_cells_per_step,
                      "cells a particle may cross in one step before DivergenceError")
-      .def_readwrite("max_dt", &mpm::Config::max_dt, "largest step stable_dt returns [s]");
+      .def_readwrite("max_dt", &mpm::Config::max_dt, "largest step stable_dt returns [s]")
+      .def_readwrite("adapt_threads", &mpm::Config::adapt_threads,
+                     "small steps may run on one thread when it measures clearly faster than the team");
 
   py::class_<mpm::StepStats, StepStatsBase>(m, "StepStats", "Statistics of one MPM step.")
       .def_readonly("max_speed", &mpm::StepStats::max_speed, "largest particle speed after the step [m/s]")
@@ -318,6 +320,7 @@ void bind_mpm(py::module_& m) {
       .def_readonly("p2g_seconds", &mpm::StepStats::p2g_seconds, "stress and particle-to-grid transfer [s]")
       .def_readonly("grid_seconds", &mpm::StepStats::grid_seconds, "grid update and boundary conditions [s]")
       .def_readonly("g2p_seconds", &mpm::StepStats::g2p_seconds, "grid-to-particle transfer and plasticity [s]")
+      .def_readonly("threads", &mpm::StepStats::threads, "threads the step ran on")
       .def("__repr__", [](const mpm::StepStats& s) {
         return "kinema.mpm.StepStats(time=" + format_real(s.time) + ", dt=" + format_real(s.dt) +
                ", max_speed=" + format_real(s.max_speed) + ", seconds=" + format_real(s.seconds) + ")";

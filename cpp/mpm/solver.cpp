@@ -165,7 +165,9 @@ class SolverD final : public Solver::Impl {
     Scalar vmax2 = 0;
     bool finite = true;
     prepare_sort(state);
-#pragma omp parallel if (state.n > kParallelParticles)
+    const bool parallel = state.n > kParallelParticles;
+    const int team = parallel ? choose_team(state.n) : 1;
+#pragma omp parallel num_threads(team) if (parallel)
     {
       const bool master = omp_get_thread_num() == 0;
       // 1. Bin the particles into blocks, activate the blocks their stencils reach.
@@ -187,6 +189,8 @@ class SolverD final : public Solver::Impl {
     stats.particle_blocks = particle_blocks_;
     stats.active_blocks = static_cast<Index>(slot_key_.size());
     stats.seconds = total.seconds();
+    stats.threads = team;
+    record_team(team, stats.seconds);
     stats.sort_seconds = mark[0];
     stats.p2g_seconds = mark[1] - mark[0];
     stats.grid_seconds = mark[2] - mark[1];
@@ -199,6 +203,33 @@ class SolverD final : public Solver::Impl {
 
   void step_adjoint(const State& before, const State& after, Scalar dt, const Scalar* forces, State& adjoint,
                     ParamsAdjoint& adjoint_params, Scalar* adjoint_forces, Interrupt& interrupt) override;
+
+  // The team size of a step (no result depends on it). Steps of up to kAdaptParticles
+  // particles (a 2D step of 8,192 takes about 0.3-0.6 ms) can run slower on two threads than on
+  // one when the two cores are contended (both threads meet at eight barriers a step); with
+  // config.adapt_threads each cycle of kAdaptCycle steps times kProbe steps on one thread and
+  // kProbe on the full team, and runs the rest on one thread only when its best probe was
+  // clearly (by kAdaptMargin) faster: OpenMP's dynamic adjustment of the team, by measurement.
+  static constexpr Index kAdaptParticles = 65536, kAdaptCycle = 256, kProbe = 3;
+  static constexpr double kAdaptMargin = 0.9;
+  int choose_team(Index n) {
+    const int most = omp_get_max_threads();
+    adapting_ = config_.adapt_threads && most > 1 && n <= kAdaptParticles;
+    if (!adapting_) return most;
+    const Index c = cycle_step_ % kAdaptCycle;
+    if (c == 0) probe_best_[0] = probe_best_[1] = std::numeric_limits<double>::infinity();
+    if (c < kProbe) return 1;
+    if (c < 2 * kProbe) return most;
+    return probe_best_[0] < kAdaptMargin * probe_best_[1] ? 1 : most;
+  }
+  void record_team(int team, double seconds) {
+    if (!adapting_) return;
+    if (cycle_step_ % kAdaptCycle < 2 * kProbe) {
+      double& best = probe_best_[team == 1 ? 0 : 1];
+      best = std::min(best, seconds);
+    }
+    ++cycle_step_;
+  }
 
   // Stores the rows in the order order_ visits them (the last step's block order).
   void sort_rows(State& state) override {
@@ -932,6 +963,9 @@ class SolverD final : public Solver::Impl {
   std::vector<std::int32_t> source_slot_;   // (slot, 2^d) -> particle block at c - o (or -1)
   std::vector<Scalar> tiles_;                // (particle blocks, (B + 2)^d, d + 1): P2G's tiles
   Index particle_count_ = 0;                 // n of the last sort
+  bool adapting_ = false;                    // choose_team measures this step
+  Index cycle_step_ = 0;                     // steps measured by choose_team
+  double probe_best_[2] = {0, 0};            // best probe seconds this cycle: one thread, full team
   std::vector<Scalar> grid_;                 // (slots, B^d, d + 1): mass, momentum -> velocity
   std::vector<Scalar> backup_;               // (n, kRow): what G2P overwrote, for a failed step
   std::vector<std::pair<std::uint64_t, Index>> found_;  // (Morton code, key) of the particle blocks

@@ -38,6 +38,7 @@ struct StepStats : StepStatsBase {
   Scalar p2g_seconds = 0;       // stress and particle-to-grid transfer
   Scalar grid_seconds = 0;      // grid velocity update and boundary conditions
   Scalar g2p_seconds = 0;       // grid-to-particle transfer, advection and plasticity
+  int threads = 1;              // threads the step ran on (Config::adapt_threads)
 };
 
 // Gradients with respect to the per-particle parameters of one step.

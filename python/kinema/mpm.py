@@ -118,7 +118,10 @@ class Simulation:
     ``friction`` is the Coulomb coefficient of the
     walls (slip and separate; an addition to the API contract, whose walls are frictionless). ``max_cells_per_step``: a step in which a particle
     crosses more cells than this raises :class:`kinema.DivergenceError`. ``max_dt`` caps
-    :meth:`stable_dt`. These three are the fields of :attr:`config` (a :class:`Config`).
+    :meth:`stable_dt`. ``adapt_threads``: a step of up to 65,536 particles may run on one thread
+    when, timed every 256 steps, one thread is clearly faster than the team (two contended
+    cores; results are bitwise the same; :attr:`StepStats.threads` says which). These four are
+    the fields of :attr:`config` (a :class:`Config`).
 
     Gradients (km.diff): ``parameters`` are ``("youngs_modulus", "poisson_ratio")``, one value per
     particle (views ``youngs_modulus`` and ``poisson_ratio`` (n,), initialised from the
@@ -131,7 +134,7 @@ class Simulation:
     """
 
     def __init__(self, shape, h, *, gravity=None, boundary="slip", origin=None, friction=0.0,
-                 max_cells_per_step=2.0, max_dt=1e-2):
+                 max_cells_per_step=2.0, max_dt=1e-2, adapt_threads=True):
         shape = grid_shape(shape, "shape")
         d = len(shape)
         h = positive(h, "h")
@@ -146,6 +149,9 @@ class Simulation:
         config.gravity = gravity.tolist() + [0.0] * (3 - d)
         config.max_cells_per_step = positive(max_cells_per_step, "max_cells_per_step")
         config.max_dt = positive(max_dt, "max_dt")
+        if not isinstance(adapt_threads, (bool, np.bool_)):
+            raise ValueError(f"adapt_threads: expected True or False, got {adapt_threads!r}")
+        config.adapt_threads = bool(adapt_threads)
         self._sim = _core.mpm.Simulation(list(shape), h, config, _core.mpm.Boundary.__members__[boundary],
                                          origin.tolist(), non_negative(friction, "friction"))
         self.shape = shape
