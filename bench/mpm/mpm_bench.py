@@ -198,6 +198,7 @@ def taichi(opts):
                                                                 "source": ti_res["file"]})
         rec.record("kinema-f64", case, m.seconds, measurement=m, error=drift,
                    notes={"speedup": f"{speedup:.2f}", "cpu_seconds": f"{cpu:.4g}", "check": "ok" if ok else "FAILED",
+                          "one_thread_steps": f"{one_thread:.2f}", "adapt_threads": str(not opts.fixed_team),
                           **{f"{k}_ms": f"{v:.4g}" for k, v in stages.items()}})
         print(f"{case}: taichi {ti_res['seconds'] * 1e3:.3f} ms/substep (cpu {ti_res['cpu_seconds'] * 1e3:.3f}), "
               f"kinema {m.seconds * 1e3:.3f} ms/substep (cpu {cpu * 1e3:.3f}): {speedup:.2f}x wall, "
