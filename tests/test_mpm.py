@@ -12,8 +12,8 @@ import kinema as km
 MATERIALS = ("elastic", "neohookean", "snow", "sand", "water")
 
 
-def _sim(d, n=32, gravity=(0.0, -9.81, 0.0), boundary="slip"):
-    return km.mpm.Simulation((n,) * d, 1.0 / n, gravity=gravity[:d], boundary=boundary)
+def _sim(d, n=32, gravity=(0.0, -9.81, 0.0), boundary="slip", **kw):
+    return km.mpm.Simulation((n,) * d, 1.0 / n, gravity=gravity[:d], boundary=boundary, **kw)
 
 
 def _add(sim, x, material, **kw):
@@ -114,7 +114,8 @@ def test_bitwise_determinism_for_1_and_2_threads_and_checkpoints(d):
         old = km.get_num_threads()
         km.set_num_threads(threads)
         try:
-            sim = _sim(d, 32, boundary="separate")
+            # a fixed team: every step of the 2-thread run on 2 threads (adapt_threads may choose 1)
+            sim = _sim(d, 32, boundary="separate", adapt_threads=False)
             _add(sim, km.mpm.block([0.1] * d, [0.45] + [0.6] * (d - 1), s), "water", youngs_modulus=2e5)
             _add(sim, km.mpm.block([0.55] + [0.1] * (d - 1), [0.9] * d, s), "sand")
             _add(sim, km.mpm.sphere([0.5] + [0.8] * (d - 1), 0.08, s), "snow")
@@ -122,7 +123,7 @@ def test_bitwise_determinism_for_1_and_2_threads_and_checkpoints(d):
             for k in range(12):
                 if checkpoint and k == 6:
                     saved = sim.state()
-                    sim2 = _sim(d, 32, boundary="separate")
+                    sim2 = _sim(d, 32, boundary="separate", adapt_threads=False)
                     _add(sim2, km.mpm.block([0.1] * d, [0.45] + [0.6] * (d - 1), s), "water",
                          youngs_modulus=2e5)
                     _add(sim2, km.mpm.block([0.55] + [0.1] * (d - 1), [0.9] * d, s), "sand")
@@ -130,6 +131,7 @@ def test_bitwise_determinism_for_1_and_2_threads_and_checkpoints(d):
                     sim2.set_state(saved)
                     sim = sim2
                 sim.step(1e-3)
+            assert sim.step(1e-3).threads == threads
             return sim.state()
         finally:
             km.set_num_threads(old)
@@ -141,6 +143,81 @@ def test_bitwise_determinism_for_1_and_2_threads_and_checkpoints(d):
 
 
 # ---------------------------------------------------------------- every material, 2D and 3D
+@pytest.mark.parametrize("d", [2, 3])
+def test_rows_stored_in_block_order_change_no_bit_and_views_show_user_order(d):
+    """The solver stores the rows sorted into grid blocks while no view is alive (after 8 quiet
+    steps, then every 32); a run whose particles are read after every step stays in user
+    order. Both runs, with external forces and advance() too, must agree bitwise, and the
+    views after a sort must show every particle in the row it was added at."""
+    s = 1 / 80 if d == 2 else 1 / 40
+
+    def make():
+        sim = _sim(d, 32, boundary="separate")
+        _add(sim, km.mpm.block([0.1] * d, [0.45] + [0.5] * (d - 1), s), "water", youngs_modulus=2e5)
+        _add(sim, km.mpm.sphere([0.7] + [0.5] * (d - 1), 0.15, s), "snow")
+        sim.youngs_modulus[:] *= 1 + 1e-6 * np.arange(sim.count)  # a particle's E names it
+        return sim
+
+    rng = np.random.default_rng(3)
+    a, b = make(), make()
+    assert a.count > 1024, "enough particles for the parallel paths"
+    E0, codes = a.youngs_modulus.copy(), a.material.copy()
+    forces = [1e-6 * rng.standard_normal((a.count, d)) for _ in range(41)]
+    for k in range(41):
+        a._diff_step(1e-3, forces[k], {})
+        b._diff_step(1e-3, forces[k], {})
+        b.x  # a read: b's rows stay in user order
+        if k == 8:
+            assert a._sim.rows_in_block_order and not b._sim.rows_in_block_order
+    assert a._sim.rows_in_block_order
+    assert a.kinetic_energy() == b.kinetic_energy() and np.array_equal(a.momentum(), b.momentum())
+    assert np.array_equal(np.atleast_1d(a.angular_momentum()), np.atleast_1d(b.angular_momentum()))
+    sa, sb = a.state(), b.state()
+    assert not a._sim.rows_in_block_order, "a view puts the rows back in user order"
+    for k in sa:
+        assert np.array_equal(sa[k], sb[k]), f"{k} differs with the rows stored in block order"
+    assert np.array_equal(sa["youngs_modulus"], E0) and np.array_equal(sa["material"], codes)
+    # advance() sorts as step() does; a view held across the steps keeps user order (and sees them).
+    a.advance(0.02)
+    x = b.x
+    b.advance(0.02)
+    assert a._sim.rows_in_block_order and not b._sim.rows_in_block_order
+    assert np.array_equal(x, b.x) and np.array_equal(a.x, b.x)
+    del x
+    # Adding particles to a simulation whose rows are sorted appends them after the user rows.
+    for k in range(9):
+        a.step(1e-3)
+    assert a._sim.rows_in_block_order
+    rows = a.add_particles(km.mpm.block([0.45] * d, [0.5] * d, s), "water", density=1000.0, youngs_modulus=2e5)
+    assert np.array_equal(a.youngs_modulus[: rows.start], E0) and np.all(a.youngs_modulus[rows] == 2e5)
+
+
+def test_adapt_threads_probes_one_thread_and_the_team_and_changes_no_bit():
+    """adapt_threads times kProbe = 3 steps on one thread and 3 on the team at the start of each
+    256-step cycle, then runs on the faster; a fixed team runs every step on the team. Both
+    give the same bits. A bad flag is a ValueError naming it."""
+    old = km.get_num_threads()
+    km.set_num_threads(2)
+    try:
+        runs = {}
+        for adapt in (True, False):
+            sim = _sim(2, 32, boundary="separate", adapt_threads=adapt)
+            _add(sim, km.mpm.block([0.1, 0.1], [0.6, 0.5], 1 / 160), "water", youngs_modulus=2e5)
+            assert 1024 < sim.count <= 65536
+            threads = [sim.step(1e-4).threads for _ in range(10)]
+            runs[adapt] = sim.state()
+            if adapt:
+                assert threads[:6] == [1, 1, 1, 2, 2, 2] and set(threads[6:]) <= {1, 2}
+            else:
+                assert threads == [2] * 10
+        for k in runs[True]:
+            assert np.array_equal(runs[True][k], runs[False][k]), k
+    finally:
+        km.set_num_threads(old)
+    with pytest.raises(ValueError, match="adapt_threads"):
+        km.mpm.Simulation((8, 8), 0.125, adapt_threads="yes")
+
+
 @pytest.mark.parametrize("d", [2, 3])
 @pytest.mark.parametrize("material", MATERIALS + ("sand_mu_i",))
 def test_every_material_drops_settles_and_behaves(d, material):

@@ -2,7 +2,7 @@
 
     .venv/bin/python bench/mpm/mpm_bench.py scaling   [--threads 2]   # 3D step time, 1e4..1e6 particles
     .venv/bin/python bench/mpm/mpm_bench.py precision                 # dam-break front error vs wall time
-    .venv/bin/python bench/mpm/mpm_bench.py taichi    [--threads 2]   # beside Taichi's mpm88 / mpm128 / mpm3d
+    .venv/bin/python bench/mpm/mpm_bench.py taichi    [--threads 2] [--repeat 3] [--fixed-team]   # beside Taichi's mpm88 / mpm128 / mpm3d
 
 scaling: 3D water and sand blocks of 1e4, 1e5 and 1e6 particles (8 per cell) in a 128^3 domain,
 mean time per step over 5 steps after 2 warm-up steps, with the per-stage times (sort, P2G,
@@ -124,7 +124,7 @@ def precision(opts):
               f"{self_err if cells != finest else float('nan'):.4f}", flush=True)
 
 
-def kinema_scene(kind, start):
+def kinema_scene(kind, start, adapt_threads=True):
     """kinema's version of Taichi's example `kind` from the example's own initial state."""
     # The examples hold the velocities of the nodes within 3 cells of the box's sides
     # (separate); kinema holds the nodes at and beyond its walls, so its domain is the same
@@ -134,7 +134,8 @@ def kinema_scene(kind, start):
     h = 1.0 / n_grid
     vol = (0.5 * h) ** d  # the dynamics depend on density only (mass and stress both scale with it)
     gravity = start["gravity"] if kind == "mpm128" else [0, -9.8] + [0] * (d - 2)
-    sim = km.mpm.Simulation((n_grid - 4,) * d, h, gravity=gravity, boundary="separate", origin=[2 * h] * d)
+    sim = km.mpm.Simulation((n_grid - 4,) * d, h, gravity=gravity, boundary="separate", origin=[2 * h] * d,
+                            adapt_threads=adapt_threads)
     if kind == "mpm128":
         # material 0 water (mu = 0, lambda = lambda_0: tau = lambda_0 J (J - 1) I, kinema's Tait
         # water with K = lambda_0 to first order), 1 jelly (E 0.3 * 5e3), 2 snow (E 5e3, hardening).
@@ -155,8 +156,8 @@ def taichi(opts):
     rec = harness.Recorder(CSV, "mpm_vs_taichi", threads=opts.threads)
     km.set_num_threads(opts.threads)
     steps = opts.steps
-    summary = []
-    for kind in ("mpm88", "mpm128", "mpm3d"):
+    summary, ratios = [], {}
+    for kind in ("mpm88", "mpm128", "mpm3d") * opts.repeat:
         with tempfile.TemporaryDirectory() as tmp:
             start_file = Path(tmp) / "start.npz"
             peer = subprocess.run([sys.executable, str(Path(__file__).with_name("mpm_taichi_peer.py")), kind,
@@ -168,7 +169,7 @@ def taichi(opts):
             start = dict(np.load(start_file))
         dt = float(start["dt"])
         x0, n_grid = start["x"], int(start["n_grid"])
-        sim = kinema_scene(kind, start)
+        sim = kinema_scene(kind, start, adapt_threads=not opts.fixed_team)
         for _ in range(steps):
             sim.step(dt)
 
@@ -183,6 +184,7 @@ def taichi(opts):
         stages = {k: 1e3 * float(np.median([getattr(s, k + "_seconds") for s in stats]))
                   for k in ("sort", "p2g", "grid", "g2p")}
         stages["step"] = 1e3 * float(np.median([s.seconds for s in stats]))
+        one_thread = float(np.mean([s.threads == 1 for s in stats]))
         # Both run 4 * steps substeps from the same start; their mean positions must agree to
         # within the f32 rounding and the differing equations of state (well below a cell).
         check = kinema_scene(kind, start)
@@ -196,17 +198,23 @@ def taichi(opts):
                                                                 "source": ti_res["file"]})
         rec.record("kinema-f64", case, m.seconds, measurement=m, error=drift,
                    notes={"speedup": f"{speedup:.2f}", "cpu_seconds": f"{cpu:.4g}", "check": "ok" if ok else "FAILED",
+                          "one_thread_steps": f"{one_thread:.2f}", "adapt_threads": str(not opts.fixed_team),
                           **{f"{k}_ms": f"{v:.4g}" for k, v in stages.items()}})
         print(f"{case}: taichi {ti_res['seconds'] * 1e3:.3f} ms/substep (cpu {ti_res['cpu_seconds'] * 1e3:.3f}), "
               f"kinema {m.seconds * 1e3:.3f} ms/substep (cpu {cpu * 1e3:.3f}): {speedup:.2f}x wall, "
               f"{ti_res['cpu_seconds'] / cpu:.2f}x cpu; mean-position difference {drift:.2e} "
-              f"({'ok' if ok else 'FAILED'}), other load {m.other_load:.2f}; kinema stages [ms, median]: "
+              f"({'ok' if ok else 'FAILED'}), other load {m.other_load:.2f}; kinema steps on one thread "
+              f"{100 * one_thread:.0f}%; kinema stages [ms, median]: "
               + " / ".join(f"{k} {v:.3f}" for k, v in stages.items()), flush=True)
         if not ok:
             raise SystemExit(f"{kind}: kinema and Taichi disagree ({drift:.3g}); no time recorded as valid")
         summary.append(f"{kind} {speedup:.2f}x (cpu {ti_res['cpu_seconds'] / cpu:.2f}x, load {m.other_load:.2f})")
+        ratios.setdefault(kind, []).append(speedup)
     print(f"summary, Taichi / kinema time per substep, {opts.threads} thread(s), target >= 2x: " + "; ".join(summary),
           flush=True)
+    if opts.repeat > 1:
+        print(f"spread over {opts.repeat} runs (median [min, max]): " + "; ".join(
+            f"{k} {np.median(r):.2f}x [{min(r):.2f}, {max(r):.2f}]" for k, r in ratios.items()), flush=True)
 
 
 def main():
@@ -214,6 +222,9 @@ def main():
     ap.add_argument("what", choices=["scaling", "precision", "taichi"])
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--steps", type=int, default=100)
+    ap.add_argument("--repeat", type=int, default=1, help="taichi: run the three comparisons this many times")
+    ap.add_argument("--fixed-team", action="store_true",
+                    help="taichi: kinema always uses --threads threads (adapt_threads=False)")
     ap.add_argument("--max-load", type=float, default=harness.DEFAULT_MAX_LOAD,
                     help="other processes' load (cores) above which a run counts as disturbed and is retried")
     opts = ap.parse_args()

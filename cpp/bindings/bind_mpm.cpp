@@ -2,6 +2,13 @@
 // State arrays are zero-copy views whose owner is the C++ State itself (held by a shared
 // pointer in the view's capsule): adding particles builds a new State, so a view taken before
 // add_particles stays valid memory but is detached from the simulation.
+//
+// Views show the rows in user order (the order particles were added). While no view is alive
+// and none was taken for a while, the solver may store the rows in grid-block order
+// (mpm::Solver::sort_rows; the transfers then read memory sequentially): all views share one
+// capsule, whose reference count says whether any view (or a slice of one) is alive, and
+// taking a view, or any call that reads the particles, first puts the rows back in user order.
+// Results are bitwise the same either way (solver.h).
 #include <memory>
 #include <optional>
 
@@ -90,6 +97,7 @@ struct PySimulation {
       throw InvalidArgument("friction_law: expected 'constant' or 'mu_i', got '" + friction_law + "'");
     std::vector<Scalar> mass(vol, vol + m);
     for (Scalar& w : mass) w *= density;
+    user_order();
     // A new State (old views keep the old one alive) and a new solver for the new material table.
     auto next = std::make_shared<mpm::State>(*state);
     mpm::Model next_model = model;
@@ -100,6 +108,7 @@ struct PySimulation {
     model = std::move(next_model);
     const Index start = state->n;
     state = std::move(next);
+    owner = py::object();  // views of the old State keep it
     return py::make_tuple(start, state->n);
   }
 
@@ -142,9 +151,36 @@ struct PySimulation {
 
   mpm::StepStats step(Scalar dt, py::object forces) {
     const Scalar* f = forces_of(forces);
+    const bool may_sort = !views_alive();
     Interrupt interrupt = python_interrupt();
     ReleaseGil release;
-    return solver->step(*state, dt, interrupt, f);  // transactional by itself (solver.h)
+    mpm::StepStats stats = solver->step(*state, dt, interrupt, f);  // transactional by itself (solver.h)
+    after_step(may_sort);
+    return stats;
+  }
+
+  // Rows are sorted into block order once kQuietSteps steps have passed with no view alive and
+  // no particle read, then every kResortSteps steps (particles move under a cell per step, so
+  // the order decays slowly; a sort costs about a third of a 2D step of 8,192 particles). A
+  // caller that reads the particles after every step never pays for a sort it cannot use.
+  static constexpr Index kQuietSteps = 8, kResortSteps = 32;
+  void after_step(bool may_sort) {
+    if (!may_sort) {
+      quiet_steps = 0;
+      return;
+    }
+    ++quiet_steps;
+    if (quiet_steps >= kQuietSteps && (quiet_steps - kQuietSteps) % kResortSteps == 0) solver->sort_rows(*state);
+  }
+
+  bool views_alive() const { return owner && owner.ref_count() > 1; }
+
+  // Before anything reads or writes the particles from Python: rows back in user order.
+  void user_order() {
+    quiet_steps = 0;
+    if (state->user_ordered()) return;
+    ReleaseGil release;
+    solver->user_order(*state);
   }
 
   // Steps of stable_dt(cfl) until `duration` has passed (core/advance.h); returns the step
@@ -153,12 +189,17 @@ struct PySimulation {
     if (!(std::isfinite(cfl) && cfl > 0)) throw InvalidArgument("cfl: expected a number > 0, got " + format_real(cfl));
     mpm::StepStats last, sum;
     AdvanceResult result;
+    const bool may_sort = !views_alive();
     {
       Interrupt interrupt = python_interrupt();
       ReleaseGil release;
       result = advance_to(
           *state, duration, [&](const mpm::State& s) { return solver->stable_dt(s, cfl); },
-          [&](mpm::State& s, Scalar dt) { return solver->step(s, dt, interrupt); },
+          [&](mpm::State& s, Scalar dt) {
+            mpm::StepStats stats = solver->step(s, dt, interrupt);
+            after_step(may_sort);
+            return stats;
+          },
           [&](const mpm::StepStats& stats) {
             last = stats;
             sum.sort_seconds += stats.sort_seconds;
@@ -228,18 +269,24 @@ struct PySimulation {
                           to_numpy(std::move(params.poisson_ratio), {n}), fb);
   }
 
-  // A writable view of one State buffer, owned by the State through a capsule.
+  // A writable view of one State buffer (rows in user order), owned by the State through the
+  // capsule all views share.
   template <class T>
-  py::array view(std::vector<T>& buffer, std::vector<py::ssize_t> shape) const {
-    auto* owner = new std::shared_ptr<mpm::State>(state);
-    py::capsule capsule(owner, [](void* p) { delete static_cast<std::shared_ptr<mpm::State>*>(p); });
-    return py::array_t<T>(shape, buffer.data(), capsule);
+  py::array view(std::vector<T>& buffer, std::vector<py::ssize_t> shape) {
+    user_order();
+    if (!owner) {
+      auto* held = new std::shared_ptr<mpm::State>(state);
+      owner = py::capsule(held, [](void* p) { delete static_cast<std::shared_ptr<mpm::State>*>(p); });
+    }
+    return py::array_t<T>(shape, buffer.data(), owner);
   }
 
   mpm::Model model;
   mpm::Config config;
   std::shared_ptr<mpm::State> state;
   std::unique_ptr<mpm::Solver> solver;
+  py::object owner;       // the capsule of every view of `state` (null until one is taken)
+  Index quiet_steps = 0;  // steps since a view was alive or the particles were read
 };
 
 }  // namespace
@@ -261,7 +308,9 @@ void bind_mpm(py::module_& m) {
       .def_readwrite("gravity", &mpm::Config::gravity, "[m/s^2], 3 entries, the first d used")
       .def_readwrite("max_cells_per_step", &mpm::Config::max_cells_per_step,
                      "cells a particle may cross in one step before DivergenceError")
-      .def_readwrite("max_dt", &mpm::Config::max_dt, "largest step stable_dt returns [s]");
+      .def_readwrite("max_dt", &mpm::Config::max_dt, "largest step stable_dt returns [s]")
+      .def_readwrite("adapt_threads", &mpm::Config::adapt_threads,
+                     "small steps may run on one thread when it measures clearly faster than the team");
 
   py::class_<mpm::StepStats, StepStatsBase>(m, "StepStats", "Statistics of one MPM step.")
       .def_readonly("max_speed", &mpm::StepStats::max_speed, "largest particle speed after the step [m/s]")
@@ -271,6 +320,7 @@ void bind_mpm(py::module_& m) {
       .def_readonly("p2g_seconds", &mpm::StepStats::p2g_seconds, "stress and particle-to-grid transfer [s]")
       .def_readonly("grid_seconds", &mpm::StepStats::grid_seconds, "grid update and boundary conditions [s]")
       .def_readonly("g2p_seconds", &mpm::StepStats::g2p_seconds, "grid-to-particle transfer and plasticity [s]")
+      .def_readonly("threads", &mpm::StepStats::threads, "threads the step ran on")
       .def("__repr__", [](const mpm::StepStats& s) {
         return "kinema.mpm.StepStats(time=" + format_real(s.time) + ", dt=" + format_real(s.dt) +
                ", max_speed=" + format_real(s.max_speed) + ", seconds=" + format_real(s.seconds) + ")";
@@ -318,6 +368,8 @@ void bind_mpm(py::module_& m) {
       .def_property_readonly("config", [](const PySimulation& s) { return s.config; })
       .def_property_readonly("dim", &PySimulation::dim)
       .def_property_readonly("count", [](const PySimulation& s) { return s.state->n; })
+      .def_property_readonly("rows_in_block_order", [](const PySimulation& s) { return !s.state->user_ordered(); },
+                             "whether the rows are stored sorted into grid blocks (views show user order either way)")
       .def_property_readonly("x", [](PySimulation& s) { return s.view(s.state->x, {s.state->n, s.dim()}); })
       .def_property_readonly("v", [](PySimulation& s) { return s.view(s.state->v, {s.state->n, s.dim()}); })
       .def_property_readonly("F", [](PySimulation& s) {

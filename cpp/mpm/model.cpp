@@ -153,6 +153,7 @@ void add_collider(Model& model, const Collider& c) {
 void State::append(const Scalar* x0, const Scalar* v0, Index m, const Scalar* mass0, const Scalar* volume0,
                    Index material_code, Scalar youngs_modulus0, Scalar poisson_ratio0) {
   const int d = dim;
+  if (!user_ordered()) throw InvalidArgument("state: append needs the rows in user order (Solver::user_order)");
   x.insert(x.end(), x0, x0 + m * d);
   v.insert(v.end(), v0, v0 + m * d);
   for (Index p = 0; p < m; ++p)

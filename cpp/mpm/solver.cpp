@@ -25,9 +25,39 @@ class Solver::Impl {
   virtual void step_adjoint(const State& before, const State& after, Scalar dt, const Scalar* forces,
                             State& adjoint, ParamsAdjoint& adjoint_params, Scalar* adjoint_forces,
                             Interrupt& interrupt) = 0;
+  virtual void sort_rows(State& state) = 0;
 };
 
 namespace {
+
+// Row q of every particle array becomes row from(q) (a permutation of the stored rows), one
+// array at a time through a spare buffer.
+template <class From>
+void permute_rows(State& state, From&& from, std::vector<Scalar>& spare) {
+  const Index n = state.n;
+  const Index d = state.dim;
+  auto permute = [&](std::vector<Scalar>& a, Index width) {
+    spare.resize(a.size());
+    parallel_for(n, [&](Index q) {
+      const Scalar* src = &a[static_cast<size_t>(from(q) * width)];
+      Scalar* dst = &spare[static_cast<size_t>(q * width)];
+      for (Index k = 0; k < width; ++k) dst[k] = src[k];
+    });
+    a.swap(spare);
+  };
+  permute(state.x, d);
+  permute(state.v, d);
+  permute(state.F, d * d);
+  permute(state.C, d * d);
+  permute(state.mass, 1);
+  permute(state.volume, 1);
+  permute(state.Jp, 1);
+  permute(state.youngs_modulus, 1);
+  permute(state.poisson_ratio, 1);
+  std::vector<Index> material(static_cast<size_t>(n));
+  parallel_for(n, [&](Index q) { material[static_cast<size_t>(q)] = state.material[static_cast<size_t>(from(q))]; });
+  state.material.swap(material);
+}
 
 constexpr int ipow(int b, int e) { return e == 0 ? 1 : b * ipow(b, e - 1); }
 
@@ -135,7 +165,9 @@ class SolverD final : public Solver::Impl {
     Scalar vmax2 = 0;
     bool finite = true;
     prepare_sort(state);
-#pragma omp parallel if (state.n > kParallelParticles)
+    const bool parallel = state.n > kParallelParticles;
+    const int team = parallel ? choose_team(state.n) : 1;
+#pragma omp parallel num_threads(team) if (parallel)
     {
       const bool master = omp_get_thread_num() == 0;
       // 1. Bin the particles into blocks, activate the blocks their stencils reach.
@@ -157,6 +189,8 @@ class SolverD final : public Solver::Impl {
     stats.particle_blocks = particle_blocks_;
     stats.active_blocks = static_cast<Index>(slot_key_.size());
     stats.seconds = total.seconds();
+    stats.threads = team;
+    record_team(team, stats.seconds);
     stats.sort_seconds = mark[0];
     stats.p2g_seconds = mark[1] - mark[0];
     stats.grid_seconds = mark[2] - mark[1];
@@ -169,6 +203,48 @@ class SolverD final : public Solver::Impl {
 
   void step_adjoint(const State& before, const State& after, Scalar dt, const Scalar* forces, State& adjoint,
                     ParamsAdjoint& adjoint_params, Scalar* adjoint_forces, Interrupt& interrupt) override;
+
+  // The team size of a step (no result depends on it). Steps of up to kAdaptParticles
+  // particles (a 2D step of 8,192 takes about 0.3-0.6 ms) can run slower on two threads than on
+  // one when the two cores are contended (both threads meet at eight barriers a step); with
+  // config.adapt_threads each cycle of kAdaptCycle steps times kProbe steps on one thread and
+  // kProbe on the full team, and runs the rest on one thread only when its best probe was
+  // clearly (by kAdaptMargin) faster: OpenMP's dynamic adjustment of the team, by measurement.
+  static constexpr Index kAdaptParticles = 65536, kAdaptCycle = 256, kProbe = 3;
+  static constexpr double kAdaptMargin = 0.9;
+  int choose_team(Index n) {
+    const int most = omp_get_max_threads();
+    adapting_ = config_.adapt_threads && most > 1 && n <= kAdaptParticles;
+    if (!adapting_) return most;
+    const Index c = cycle_step_ % kAdaptCycle;
+    if (c == 0) probe_best_[0] = probe_best_[1] = std::numeric_limits<double>::infinity();
+    if (c < kProbe) return 1;
+    if (c < 2 * kProbe) return most;
+    return probe_best_[0] < kAdaptMargin * probe_best_[1] ? 1 : most;
+  }
+  void record_team(int team, double seconds) {
+    if (!adapting_) return;
+    if (cycle_step_ % kAdaptCycle < 2 * kProbe) {
+      double& best = probe_best_[team == 1 ? 0 : 1];
+      best = std::min(best, seconds);
+    }
+    ++cycle_step_;
+  }
+
+  // Stores the rows in the order order_ visits them (the last step's block order).
+  void sort_rows(State& state) override {
+    if (static_cast<Index>(order_.size()) != state.n || particle_count_ != state.n)
+      throw InvalidArgument("state: sort_rows needs the State of the step just taken");
+    std::vector<Index>& from = order_;
+    std::vector<Index> user(static_cast<size_t>(state.n));
+    parallel_for(state.n, [&](Index q) { user[static_cast<size_t>(q)] = state.user_of(from[static_cast<size_t>(q)]); });
+    permute_rows(state, [&](Index q) { return from[static_cast<size_t>(q)]; }, spare_);
+    state.row.resize(static_cast<size_t>(state.n));
+    parallel_for(state.n, [&](Index q) { state.row[static_cast<size_t>(user[static_cast<size_t>(q)])] = q; });
+    state.user = std::move(user);
+    // The rows are now where order_ visits them: a second call changes nothing.
+    parallel_for(state.n, [&](Index q) { order_[static_cast<size_t>(q)] = q; });
+  }
 
  private:
   using RowMap = Eigen::Map<Eigen::Matrix<Scalar, D, D, Eigen::RowMajor>>;
@@ -232,8 +308,9 @@ class SolverD final : public Solver::Impl {
         const Scalar E = state.youngs_modulus[static_cast<size_t>(p)], nu = state.poisson_ratio[static_cast<size_t>(p)];
         inside = inside && std::isfinite(E) && E > 0 && std::isfinite(nu) && nu > -1 && nu < 0.5;
         if (!inside) {
+          const Index u = state.user_of(p);
 #pragma omp critical(mpm_bad_particle)
-          bad_ = bad_ < 0 ? p : std::min(bad_, p);
+          bad_ = bad_ < 0 ? u : std::min(bad_, u);
           continue;
         }
         const Index key = key_of(b);
@@ -255,30 +332,32 @@ class SolverD final : public Solver::Impl {
 #pragma omp single
     build_blocks();
     if (bad_ >= 0) return false;
-    // Counting sort of the particles by block slot, stable (by row within a block): the rows
-    // are cut into a fixed number of chunks (not one per thread, so that the order does not
-    // depend on the thread count), counted per chunk, and each chunk fills its own ranges.
+    // Counting sort of the particles by block slot, stable (by user row within a block): the
+    // user rows are cut into a fixed number of chunks (not one per thread, so that the order
+    // does not depend on the thread count), counted per chunk, and each chunk fills its own
+    // ranges. order_ holds stored rows (state.row maps user rows to them).
     const Index chunks = sort_chunks_, pb = particle_blocks_;
+    const Index* row = state.row.empty() ? nullptr : state.row.data();
+    auto stored = [row](Index u) { return row ? row[u] : u; };
     auto chunk_rows = [&](Index c) { return std::make_pair(n * c / chunks, n * (c + 1) / chunks); };
 #pragma omp for schedule(static)
     for (Index c = 0; c < chunks; ++c) {
       const auto [first, last] = chunk_rows(c);
       Index* count = &fill_[static_cast<size_t>(c * pb)];
-      for (Index p = first; p < last; ++p) ++count[table_[static_cast<size_t>(particle_key_[static_cast<size_t>(p)])]];
+      for (Index u = first; u < last; ++u)
+        ++count[table_[static_cast<size_t>(particle_key_[static_cast<size_t>(stored(u))])]];
     }
 #pragma omp single
     {
       Index running = 0;
       for (Index s = 0; s < pb; ++s) {
         block_start_[static_cast<size_t>(s)] = running;
-        Index* starts = &chunk_start_[static_cast<size_t>(s * (chunks + 1))];
         for (Index c = 0; c < chunks; ++c) {
           Index& at = fill_[static_cast<size_t>(c * pb + s)];
           const Index count = at;
-          starts[c] = at = running;
+          at = running;
           running += count;
         }
-        starts[chunks] = running;
       }
       block_start_[static_cast<size_t>(pb)] = running;
     }
@@ -286,8 +365,10 @@ class SolverD final : public Solver::Impl {
     for (Index c = 0; c < chunks; ++c) {
       const auto [first, last] = chunk_rows(c);
       Index* at = &fill_[static_cast<size_t>(c * pb)];
-      for (Index p = first; p < last; ++p)
+      for (Index u = first; u < last; ++u) {
+        const Index p = stored(u);
         order_[static_cast<size_t>(at[table_[static_cast<size_t>(particle_key_[static_cast<size_t>(p)])]]++)] = p;
+      }
     }
     return true;
   }
@@ -346,16 +427,15 @@ class SolverD final : public Solver::Impl {
       }
     }
     fill_.assign(static_cast<size_t>(sort_chunks_ * particle_blocks_), 0);
-    chunk_start_.resize(static_cast<size_t>((sort_chunks_ + 1) * particle_blocks_));
     block_start_.resize(static_cast<size_t>(particle_blocks_ + 1));
     grid_.resize(static_cast<size_t>(slots * BN * S));
-    tiles_.resize(static_cast<size_t>(kLanes * particle_blocks_ * TN * S));
+    tiles_.resize(static_cast<size_t>(particle_blocks_ * TN * S));
   }
 
   [[noreturn]] void throw_bad_particle(const State& state) const {
-    const Index bad = bad_;
+    const Index bad = bad_, p = state.row_of(bad);
     std::string where = "(";
-    for (int a = 0; a < D; ++a) where += (a ? ", " : "") + format_real(state.x[static_cast<size_t>(bad * D + a)]);
+    for (int a = 0; a < D; ++a) where += (a ? ", " : "") + format_real(state.x[static_cast<size_t>(p * D + a)]);
     throw InvalidArgument("x: particle " + std::to_string(bad) + " at " + where +
                           ") is outside the domain or not finite (or its material code is not one of the " +
                           std::to_string(model_.materials.size()) +
@@ -509,51 +589,34 @@ class SolverD final : public Solver::Impl {
     __builtin_prefetch(&state.poisson_ratio[p]);
   }
 
-  // The transfers' work items: (lane, particle block), lane-major. Lane l holds the rows of
-  // the sort's row chunks c = l, l + kLanes, ... (fixed row ranges, whatever the thread
-  // count), and each item has its own tile, so P2G writes no value two threads write. Shared
-  // out statically, two threads take one lane each, in P2G and in G2P, step after step: each
-  // particle row is read and written by one core only. The rows are in the user's order,
-  // spatially random in Taichi's examples; shared out by blocks (as before), every cache line
-  // of x, v, F, C held rows of both threads and crossed between the cores twice a step.
-  // In 3D (one lane, blocks handed out one at a time) the second lane's doubled tile gathers
-  // and sums cost more than it saved (mpm3d 3-6% slower on 2 threads).
-  static constexpr Index kLanes = D == 2 ? 2 : 1;
+  // The transfers' work items are the particle blocks, handed out one at a time (the tiles make
+  // the results independent of which thread takes which). With the rows stored in block order
+  // (sort_rows) a block's rows are one contiguous range, so the two threads share no cache line
+  // of the particle arrays but at the ends of their blocks. (Session 12's 2D lanes, two tiles
+  // per block for two fixed halves of the user rows, kept each row on one core while the rows
+  // were in random user order; with sorted rows the second tile's gathers and sums cost more:
+  // mpm88 on 2 threads 0.39-0.41 against 0.33 ms per substep.)
   template <class Fn>
-  void each_item(Fn&& fn) const {
-    if constexpr (kLanes > 1) {
-#pragma omp for schedule(static)
-      for (Index item = 0; item < kLanes * particle_blocks_; ++item) fn(item / particle_blocks_, item % particle_blocks_);
-    } else {
+  void each_block(Fn&& fn) const {
 #pragma omp for schedule(dynamic, 1)
-      for (Index s = 0; s < particle_blocks_; ++s) fn(Index{0}, s);
-    }
+    for (Index s = 0; s < particle_blocks_; ++s) fn(s);
   }
-  // Calls fn(q, end of q's chunk) for the positions q of order_ in lane `lane` of block s.
+  // Calls fn(q, end) for the positions q of order_ in block s, whose rows end at `end`.
   template <class Fn>
-  void each_in_lane(Index lane, Index s, Fn&& fn) const {
-    const Index chunks = sort_chunks_;
-    const Index* starts = &chunk_start_[static_cast<size_t>(s * (chunks + 1))];
-    for (Index c = lane; c < chunks; c += kLanes)
-      for (Index q = starts[c]; q < starts[c + 1]; ++q) fn(q, starts[c + 1]);
-  }
-  bool lane_empty(Index lane, Index s) const {
-    const Index chunks = sort_chunks_;
-    const Index* starts = &chunk_start_[static_cast<size_t>(s * (chunks + 1))];
-    for (Index c = lane; c < chunks; c += kLanes)
-      if (starts[c] < starts[c + 1]) return false;
-    return true;
+  void each_in_block(Index s, Fn&& fn) const {
+    const Index end = block_start_[static_cast<size_t>(s + 1)];
+    for (Index q = block_start_[static_cast<size_t>(s)]; q < end; ++q) fn(q, end);
   }
 
   // Each work item scatters into its own tile of tiles_ (no two threads write one value).
   // Called by every thread of a parallel region (a work-shared loop ending in a barrier).
   void p2g_phase(const State& state, Scalar dt, const Scalar* forces) {
     const Scalar h = model_.h, stress_scale = 4 * dt / (h * h);
-    each_item([&](Index lane, Index s) {
+    each_block([&](Index s) {
       const auto o = block_origin(s);
-      Scalar* tile = &tiles_[static_cast<size_t>((lane * particle_blocks_ + s) * TN * S)];
+      Scalar* tile = &tiles_[static_cast<size_t>(s * TN * S)];
       std::fill_n(tile, TN * S, 0.0);
-      each_in_lane(lane, s, [&](Index q, Index end) {
+      each_in_block(s, [&](Index q, Index end) {
         prefetch_row(state, q, end);
         const Index p = order_[static_cast<size_t>(q)];
         const size_t pd = static_cast<size_t>(p * D);
@@ -565,7 +628,7 @@ class SolverD final : public Solver::Impl {
         // Affine momentum per unit offset, in cells: (m C - 4 dt V / h^2 tau) h.
         const Mat<D> A = (m * C - (stress_scale * state.volume[static_cast<size_t>(p)]) * tau(state, p, F)) * h;
         // Momentum at offset 0 (the base node); an external force adds dt f, as gravity would.
-        const Vec<D> q0 = forces ? Vec<D>(m * v + dt * Eigen::Map<const Vec<D>>(forces + pd) - A * st.fx)
+        const Vec<D> q0 = forces ? Vec<D>(m * v + dt * Eigen::Map<const Vec<D>>(forces + state.user_of(p) * D) - A * st.fx)
                                  : Vec<D>(m * v - A * st.fx);
         scatter(tile, st, m, q0, A);
       });
@@ -576,9 +639,8 @@ class SolverD final : public Solver::Impl {
   // a barrier): sums the tiles over its nodes (the sources in the fixed order of source_slot_,
   // so a node's sum does not depend on the thread count) into `sum` (B^d (d + 1)) and calls
   // node_fn(slot, sum).
-  // `lanes`: tiles per particle block (lane-major, as each_item).
   template <class Fn>
-  void reduce_tiles(const std::vector<Scalar>& tiles, Index lanes, Fn&& node_fn) const {
+  void reduce_tiles(const std::vector<Scalar>& tiles, Fn&& node_fn) const {
     const Index slots = static_cast<Index>(slot_key_.size());
 #pragma omp for schedule(static)
     for (Index s = 0; s < slots; ++s) {
@@ -587,11 +649,9 @@ class SolverD final : public Solver::Impl {
       for (int o = 0; o < NEIGHBORS; ++o) {
         const std::int32_t src = source_slot_[static_cast<size_t>(s * NEIGHBORS + o)];
         if (src < 0) continue;
-        for (Index lane = 0; lane < lanes; ++lane) {
-          const Scalar* tile = &tiles[static_cast<size_t>(lane * particle_blocks_ + src) * TN * S];
-          for (const Overlap& ov : overlaps_[static_cast<size_t>(o)])
-            for (int c = 0; c < S; ++c) sum[ov.node * S + c] += tile[ov.tile * S + c];
-        }
+        const Scalar* tile = &tiles[static_cast<size_t>(src) * TN * S];
+        for (const Overlap& ov : overlaps_[static_cast<size_t>(o)])
+          for (int c = 0; c < S; ++c) sum[ov.node * S + c] += tile[ov.tile * S + c];
       }
       node_fn(s, sum);
     }
@@ -637,7 +697,7 @@ class SolverD final : public Solver::Impl {
   void grid_phase(Scalar dt, Scalar* pre) {
     Vec<D> g;
     for (int a = 0; a < D; ++a) g(a) = config_.gravity[a];
-    reduce_tiles(tiles_, kLanes, [&](Index s, const Scalar* sum) {
+    reduce_tiles(tiles_, [&](Index s, const Scalar* sum) {
       const auto o = block_origin(s);
       Scalar* out = &grid_[static_cast<size_t>(s * BN * S)];
       for (int l = 0; l < BN; ++l) {
@@ -738,12 +798,11 @@ class SolverD final : public Solver::Impl {
     const Scalar h = model_.h;
     Scalar vmax2 = 0;
     bool finite = true;
-    each_item([&](Index lane, Index s) {
-      if (lane_empty(lane, s)) return;
+    each_block([&](Index s) {
       const auto o = block_origin(s);
       alignas(64) Scalar tile[TN * S];
       gather<1>(tile, s, grid_);
-      each_in_lane(lane, s, [&](Index q, Index end) {
+      each_in_block(s, [&](Index q, Index end) {
         prefetch_row(state, q, end);
         const Index p = order_[static_cast<size_t>(q)];
         const size_t pd = static_cast<size_t>(p * D);
@@ -888,6 +947,7 @@ class SolverD final : public Solver::Impl {
   Model model_;
   Config config_;
   Scalar inv_h_ = 1 / model_.h;
+  std::vector<Scalar> spare_;                // scratch of permute_rows
   const std::array<TileNode, TN> tile_nodes_ = make_tile_nodes();
   const std::array<std::vector<Overlap>, NEIGHBORS> overlaps_ = make_overlaps();
   std::array<Index, 3> blocks_{};
@@ -899,11 +959,13 @@ class SolverD final : public Solver::Impl {
   std::vector<Index> particle_key_;          // (n,) block key of each particle
   std::vector<Index> block_start_;           // CSR of order_ by particle block
   std::vector<Index> fill_;                  // (sort chunks, particle blocks): counts, then write positions
-  std::vector<Index> chunk_start_;           // (particle blocks, sort chunks + 1): where each chunk's rows start in order_
   std::vector<Index> order_;                 // particle rows sorted by block
   std::vector<std::int32_t> source_slot_;   // (slot, 2^d) -> particle block at c - o (or -1)
-  std::vector<Scalar> tiles_;                // (lanes, particle blocks, (B + 2)^d, d + 1): P2G's tiles
+  std::vector<Scalar> tiles_;                // (particle blocks, (B + 2)^d, d + 1): P2G's tiles
   Index particle_count_ = 0;                 // n of the last sort
+  bool adapting_ = false;                    // choose_team measures this step
+  Index cycle_step_ = 0;                     // steps measured by choose_team
+  double probe_best_[2] = {0, 0};            // best probe seconds this cycle: one thread, full team
   std::vector<Scalar> grid_;                 // (slots, B^d, d + 1): mass, momentum -> velocity
   std::vector<Scalar> backup_;               // (n, kRow): what G2P overwrote, for a failed step
   std::vector<std::pair<std::uint64_t, Index>> found_;  // (Morton code, key) of the particle blocks
@@ -996,7 +1058,7 @@ void SolverD<D>::step_adjoint(const State& before, const State& after, Scalar dt
   Vec<D> g;
   for (int a = 0; a < D; ++a) g(a) = config_.gravity[a];
 #pragma omp parallel if (parallel)
-  reduce_tiles(tiles_, 1, [&](Index s, const Scalar* sum) {
+  reduce_tiles(tiles_, [&](Index s, const Scalar* sum) {
     const auto o = block_origin(s);
     for (int l = 0; l < BN; ++l) {
       const size_t at = static_cast<size_t>((s * BN + l) * S);
@@ -1104,10 +1166,24 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt, const Scal
   return impl_->step(state, dt, interrupt, forces);
 }
 
+void Solver::sort_rows(State& state) {
+  if (state.dim != model_.dim) throw InvalidArgument("state: dimension differs from the model's");
+  impl_->sort_rows(state);
+}
+
+void Solver::user_order(State& state) {
+  if (state.user_ordered()) return;
+  permute_rows(state, [&](Index u) { return state.row[static_cast<size_t>(u)]; }, spare_);
+  state.user.clear();
+  state.row.clear();
+}
+
 void Solver::step_adjoint(const State& before, const State& after, Scalar dt, const Scalar* forces, State& adjoint,
                           ParamsAdjoint& adjoint_params, Scalar* adjoint_forces, Interrupt& interrupt) {
   if (before.dim != model_.dim || after.dim != model_.dim || adjoint.dim != model_.dim)
     throw InvalidArgument("state: dimension differs from the model's");
+  if (!before.user_ordered() || !after.user_ordered() || !adjoint.user_ordered())
+    throw InvalidArgument("state: step_adjoint needs its States' rows in user order (Solver::user_order)");
   const size_t n = static_cast<size_t>(before.n), d = static_cast<size_t>(model_.dim);
   if (after.n != before.n || adjoint.x.size() != n * d || adjoint.v.size() != n * d ||
       adjoint.F.size() != n * d * d || adjoint.C.size() != n * d * d)
@@ -1149,7 +1225,9 @@ Scalar Solver::stable_dt(const State& state, Scalar cfl) const {
 
 Scalar Solver::kinetic_energy(const State& state) const {
   const int d = state.dim;
-  return parallel_sum(state.n, [&](Index p) {
+  // Summed in user-row order, whatever the stored order (the same bits either way).
+  return parallel_sum(state.n, [&](Index u) {
+    const Index p = state.row_of(u);
     Scalar v2 = 0;
     for (int a = 0; a < d; ++a) v2 += state.v[static_cast<size_t>(p * d + a)] * state.v[static_cast<size_t>(p * d + a)];
     return 0.5 * state.mass[static_cast<size_t>(p)] * v2;
@@ -1160,7 +1238,8 @@ std::vector<Scalar> Solver::momentum(const State& state) const {
   const int d = state.dim;
   std::vector<Scalar> out(static_cast<size_t>(d));
   for (int a = 0; a < d; ++a)
-    out[a] = parallel_sum(state.n, [&](Index p) {
+    out[a] = parallel_sum(state.n, [&](Index u) {
+      const Index p = state.row_of(u);
       return state.mass[static_cast<size_t>(p)] * state.v[static_cast<size_t>(p * d + a)];
     });
   return out;
@@ -1171,7 +1250,8 @@ std::vector<Scalar> Solver::angular_momentum(const State& state) const {
   const Scalar inertia = model_.h * model_.h / 4;  // sum w (x_i - x_p)(x_i - x_p)^T = h^2/4 I
   // Component c of x x v + (h^2/4) eps_abc C_ba, for (a, b, c) cyclic.
   auto component = [&](int a, int b) {
-    return parallel_sum(state.n, [&](Index p) {
+    return parallel_sum(state.n, [&](Index u) {
+      const Index p = state.row_of(u);
       const size_t pd = static_cast<size_t>(p * d);
       const Scalar* x = &state.x[pd];
       const Scalar* v = &state.v[pd];

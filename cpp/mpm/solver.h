@@ -10,9 +10,10 @@
 // km.diff): it rebuilds the step's grid from `before`, then G2P^T (a scatter, coloured as P2G),
 // the grid update's transpose node by node, and P2G^T (a gather, per particle).
 // The grid is sparse: storage and work exist only for the blocks of nodes that particles reach.
+// Particles are visited block by block and, within a block, in user-row order (State::user),
+// whatever order the rows are stored in, so no result depends on the stored order either.
 // P2G needs no atomics and is deterministic for any thread count: each particle block scatters
-// into its own tile of (B + 2)^d nodes (in 2D one per block and row lane, solver.cpp
-// each_item), and the grid pass then gives every node the sum of the tiles over it in a fixed
+// into its own tile of (B + 2)^d nodes, and the grid pass then gives every node the sum of the tiles over it in a fixed
 // order (the block's own tile first), fused with the node's velocity update. A step is one
 // parallel region whose phases (sort, P2G, grid, G2P) meet at barriers.
 #pragma once
@@ -37,6 +38,7 @@ struct StepStats : StepStatsBase {
   Scalar p2g_seconds = 0;       // stress and particle-to-grid transfer
   Scalar grid_seconds = 0;      // grid velocity update and boundary conditions
   Scalar g2p_seconds = 0;       // grid-to-particle transfer, advection and plasticity
+  int threads = 1;              // threads the step ran on (Config::adapt_threads)
 };
 
 // Gradients with respect to the per-particle parameters of one step.
@@ -65,6 +67,17 @@ class Solver {
   // crosses more than config.max_cells_per_step cells in one step. A step that throws leaves
   // the state unchanged (it is transactional by itself; callers need no copy of the State).
   StepStats step(State& state, Scalar dt, Interrupt& interrupt, const Scalar* forces = nullptr);
+
+  // Stores the rows of `state` in the block order of the step just taken (call it right after a
+  // step that returned; the State must not have been changed since): the next steps' transfers
+  // then read and write the particle arrays nearly sequentially, and each block's rows are one
+  // contiguous range (threads taking different blocks share no cache line but at the ends). A
+  // permutation of storage only: every later result is bitwise the same as without it, and
+  // state.user / state.row record where each user row went. Parallel, O(n).
+  void sort_rows(State& state);
+  // Puts the rows back in user order (state.user and state.row become empty). O(n); nothing to
+  // do when they are already.
+  void user_order(State& state);
 
   // The vector-Jacobian product of step(before -> after) with the same dt and forces.
   // On entry `adjoint`'s x, v, F, C (shapes as State's) hold dL/d(after); on return they hold
@@ -99,6 +112,7 @@ class Solver {
   Model model_;
   Config config_;
   std::unique_ptr<Impl> impl_;
+  std::vector<Scalar> spare_;  // scratch of user_order
 };
 
 }  // namespace kinema::mpm

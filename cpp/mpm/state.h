@@ -1,8 +1,11 @@
 // Everything an MPM step reads and writes: the particles and the time. A copy of a State resumes
 // bit for bit (the solver's block lists and grid are rebuilt from the positions every step).
-// Rows keep the order in which particles were added (the solver sorts an index list into grid
-// blocks, not the rows), so the slice add_particles returns stays valid. Buffers are
-// reallocated only when particles are added.
+// Each particle has a user row: its index in the order particles were added (what the slice
+// add_particles returns and the Python views show). The rows may be stored in another order:
+// Solver::sort_rows stores them in grid-block order so that the transfers read memory
+// sequentially, Solver::user_order puts them back. `user` and `row` record the permutation
+// (both empty: stored in user order). No result depends on the stored order: the solver visits
+// the particles of a block in user-row order and reports user rows (solver.h).
 #pragma once
 
 #include <vector>
@@ -28,11 +31,17 @@ struct State {
   // (model.h, lame_parameters). Water reads youngs_modulus as its bulk modulus K.
   std::vector<Scalar> youngs_modulus;  // (n,) E [Pa]
   std::vector<Scalar> poisson_ratio;   // (n,) nu [-]
+  std::vector<Index> user;       // (n,) user row of each stored row, or empty (identity)
+  std::vector<Index> row;        // (n,) stored row of each user row, or empty (identity)
   Scalar time = 0;               // [s]
   Index steps = 0;
 
+  bool user_ordered() const { return user.empty(); }
+  Index user_of(Index stored) const { return user.empty() ? stored : user[static_cast<size_t>(stored)]; }
+  Index row_of(Index user_row) const { return row.empty() ? user_row : row[static_cast<size_t>(user_row)]; }
+
   // Appends m particles at x0 (m, d) with velocity v0 (m, d), F = I, C = 0, Jp = 1 and the
-  // moduli of their material.
+  // moduli of their material. The rows must be stored in user order (Solver::user_order).
   void append(const Scalar* x0, const Scalar* v0, Index m, const Scalar* mass0, const Scalar* volume0,
               Index material_code, Scalar youngs_modulus0, Scalar poisson_ratio0);
 };

@@ -24,8 +24,10 @@ sphere) may have Coulomb friction.
 
 The grid is sparse (blocks of 4^3 or 8^2 nodes exist only where particles are) and the
 particle-to-grid transfer is deterministic for any thread count. State arrays are writable
-views of the solver's memory; adding particles reallocates them, so take views again after
-:meth:`Simulation.add_particles` (an older view stays valid memory but is detached).
+views of the solver's memory in the order particles were added; adding particles reallocates
+them, so take views again after :meth:`Simulation.add_particles` (an older view stays valid
+memory but is detached). While no view is alive the solver may store the rows sorted into grid
+blocks (faster transfers); taking a view puts them back first. Results do not depend on it.
 """
 
 from __future__ import annotations
@@ -116,7 +118,10 @@ class Simulation:
     ``friction`` is the Coulomb coefficient of the
     walls (slip and separate; an addition to the API contract, whose walls are frictionless). ``max_cells_per_step``: a step in which a particle
     crosses more cells than this raises :class:`kinema.DivergenceError`. ``max_dt`` caps
-    :meth:`stable_dt`. These three are the fields of :attr:`config` (a :class:`Config`).
+    :meth:`stable_dt`. ``adapt_threads``: a step of up to 65,536 particles may run on one thread
+    when, timed every 256 steps, one thread is clearly faster than the team (two contended
+    cores; results are bitwise the same; :attr:`StepStats.threads` says which). These four are
+    the fields of :attr:`config` (a :class:`Config`).
 
     Gradients (km.diff): ``parameters`` are ``("youngs_modulus", "poisson_ratio")``, one value per
     particle (views ``youngs_modulus`` and ``poisson_ratio`` (n,), initialised from the
@@ -129,7 +134,7 @@ class Simulation:
     """
 
     def __init__(self, shape, h, *, gravity=None, boundary="slip", origin=None, friction=0.0,
-                 max_cells_per_step=2.0, max_dt=1e-2):
+                 max_cells_per_step=2.0, max_dt=1e-2, adapt_threads=True):
         shape = grid_shape(shape, "shape")
         d = len(shape)
         h = positive(h, "h")
@@ -144,6 +149,9 @@ class Simulation:
         config.gravity = gravity.tolist() + [0.0] * (3 - d)
         config.max_cells_per_step = positive(max_cells_per_step, "max_cells_per_step")
         config.max_dt = positive(max_dt, "max_dt")
+        if not isinstance(adapt_threads, (bool, np.bool_)):
+            raise ValueError(f"adapt_threads: expected True or False, got {adapt_threads!r}")
+        config.adapt_threads = bool(adapt_threads)
         self._sim = _core.mpm.Simulation(list(shape), h, config, _core.mpm.Boundary.__members__[boundary],
                                          origin.tolist(), non_negative(friction, "friction"))
         self.shape = shape
