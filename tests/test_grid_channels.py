@@ -1,8 +1,10 @@
 """km.grid forward flows with closed forms: gravity-driven Poiseuille flow (2D, second order),
 flow in a square duct against its series solution (3D), and Couette flow under a moving lid,
-each in a channel open at both ends (open=("x-", "x+"))."""
+each in a channel open at both ends (open=("x-", "x+")); a periodic shear wave decaying at the
+implicit viscosity's exact rate (2D, 3D); mirror symmetry of a buoyant plume."""
 
 import numpy as np
+import pytest
 
 import kinema as km
 
@@ -70,3 +72,43 @@ def test_couette_flow_under_a_moving_lid_is_linear():
     exact = U * (np.arange(n) + 0.5) / n
     for column in (1, 3 * n // 2):
         assert np.abs(f.u[column] - exact).max() < 1e-5 * U
+
+
+@pytest.mark.parametrize("d", [2, 3])
+@pytest.mark.parametrize("advection", ["semi_lagrangian", "maccormack"])
+def test_periodic_shear_wave_decays_at_the_backward_euler_rate(d, advection):
+    # u = sin(k z) (z the last axis) is divergence free and advects into itself, so only the
+    # implicit viscosity acts on it: each step divides it by 1 + nu dt lam_h with the discrete
+    # eigenvalue lam_h = 4/h^2 sin^2(k h / 2). Exact to rounding, in 2D and 3D.
+    n, nu, dt, steps = 16, 0.3, 0.01, 10
+    h, k = 1.0 / n, 2 * np.pi
+    f = km.grid.Fluid((n,) * d, h, boundary="periodic", viscosity=nu, advection=advection, tol=1e-12)
+    profile = np.sin(k * (np.arange(n) + 0.5) * h)
+    f.u[...] = profile
+    for _ in range(steps):
+        f.step(dt)
+    lam = 4 / h**2 * np.sin(k * h / 2) ** 2
+    expected = profile / (1 + nu * dt * lam) ** steps
+    assert np.abs(f.u - expected).max() < 1e-13
+
+
+def test_mirrored_plume_rises_as_the_mirror_image():
+    # A warm blob left of the centre line and its mirror image right of it: the temperature
+    # and the horizontal velocity are mirror images (u antisymmetric) to the pressure
+    # solve's tolerance 1e-10 (measured 2e-12).
+    def plume(mirror):
+        f = km.grid.Fluid((32, 48), 1 / 32, density=True, temperature=True, buoyancy=(0.0, 2.0),
+                          gravity=(0, -9.81), tol=1e-10)
+        c = (np.arange(32) + 0.5) / 32
+        T0 = np.exp(-((c[:, None] - 0.4) ** 2 + ((np.arange(48) + 0.5) / 32 - 0.3)[None, :] ** 2) / 0.01)
+        f.temperature[...] = T0[::-1] if mirror else T0
+        for _ in range(20):
+            f.step(0.02)
+        return f
+
+    a, b = plume(False), plume(True)
+    scale = np.abs(a.u).max()
+    assert scale > 0.05
+    assert np.abs(a.temperature - b.temperature[::-1]).max() < 1e-9
+    assert np.abs(a.u + b.u[::-1]).max() < 1e-9
+    assert np.abs(a.v - b.v[::-1]).max() < 1e-9
