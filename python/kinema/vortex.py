@@ -67,6 +67,9 @@ class VortexParticles:
         tgt = as_float_array(points, "points", ndim=2)
         if tgt.shape[1] != 2:
             raise ValueError(f"points: expected shape (m, 2), got {tgt.shape}")
+        if tgt.size and np.abs(tgt).max() > 1e100:
+            raise ValueError("points: positions beyond 1e100 (as x: distances squared would overflow); "
+                             "choose other units")
         return finite_result(self._velocity(self.x, tgt), "velocity")
 
     def _velocity(self, x, targets=None):
