@@ -573,3 +573,18 @@ def test_free_body_conserves_linear_momentum(d, integrator, dt):
     body.step(dt, integrator, steps=20)
     # Newton stops at tol 1e-6 of the gradient, which is momentum-neutral: rounding only.
     assert np.abs(body.mass @ body.v - p0).max() < 1e-11 * np.abs(p0).max()
+
+
+def test_triangles_are_plane_strain():
+    # A slender 2D bar (L/W = 20, nu = 0.45) hanging under its weight stretches by
+    # rho g L^2 (1 - nu^2) / (2E) in plane strain, rho g L^2 / (2E) in plane stress (25 %
+    # more). The clamped top changes the strain over a length ~W: an error up to W/L = 5 %
+    # (1.6 % measured).
+    E, rho, g, L, W, nu = 1e7, 1000.0, 9.81, 1.0, 0.05, 0.45
+    V, T = km.fem.rectangle_mesh([0, 0], [W, L], (2, 40))
+    body = km.fem.Body(V, T, model="linear", youngs_modulus=E, poisson_ratio=nu, density=rho,
+                       fixed=np.flatnonzero(np.abs(V[:, 1] - L) < 1e-12), gravity=(0, -g))
+    body.solve_static()
+    stretch = -(body.x - V)[np.abs(V[:, 1]) < 1e-12, 1].mean()
+    plane_strain = rho * g * L**2 * (1 - nu**2) / (2 * E)
+    assert abs(stretch / plane_strain - 1) < W / L, f"stretch {stretch:.4e}, plane strain {plane_strain:.4e}"
