@@ -160,3 +160,22 @@ def test_stepper_matches_step_and_is_reusable(scheme):
     assert np.abs(once - twice).max() <= 1e-9
     with pytest.raises(ValueError, match="T: expected shape"):
         stepper.step(np.zeros((5, 5)))
+
+
+@pytest.mark.parametrize("scheme, bound", [("crank_nicolson", 3e-3), ("ftcs", 3e-3), ("implicit", 3e-2)])
+def test_gaussian_heat_kernel_3d(scheme, bound):
+    # 3D: a Gaussian of variance s0^2 spreads to s0^2 + 2 kappa t with amplitude
+    # (s0^2 / (s0^2 + 2 kappa t))^{3/2}. Errors measured: CN 2.0e-3, FTCS 1.5e-3 (space
+    # O(h^2) dominates), backward Euler 1.7e-2 (O(dt) with 10 steps); heat is conserved.
+    n, L, kappa, s0, t_end = 48, 3.0, 0.5, 0.25, 0.05
+    h = L / n
+    X = centres((n, n, n), h)
+    r2 = sum((x - L / 2) ** 2 for x in X)
+    T0 = np.exp(-r2 / (2 * s0**2))
+    steps = 10 if scheme != "ftcs" else math.ceil(t_end / km.diffusion.stable_dt(h, kappa, 3))
+    T = km.diffusion.step(T0, kappa, t_end / steps, h, scheme=scheme, steps=steps)
+    var = s0**2 + 2 * kappa * t_end
+    exact = (s0**2 / var) ** 1.5 * np.exp(-r2 / (2 * var))
+    err = np.abs(T - exact).max()
+    assert err < bound, f"{scheme}: max error {err:.3e}"
+    assert abs(T.sum() / T0.sum() - 1) < 1e-10

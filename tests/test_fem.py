@@ -496,3 +496,95 @@ def test_neohookean_lane_pass_baseline_and_avx2_agree_bitwise():
         done = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
         outs.append(done.stdout.strip())
     assert outs[0] == outs[1]
+
+
+# ---------------------------------------------------------------- more analytic statics
+
+def hanging_bar(d, n, width=0.25, length=1.0, E=1e7, rho=1000.0, g=9.81):
+    """A bar hanging from its clamped top under its own weight, nu = 0 (no lateral strain):
+    u_axis(s) = -rho g (L s - s^2/2) / E at the distance s below the top."""
+    if d == 2:
+        V, T = km.fem.rectangle_mesh([0, 0], [width, length], (n, 4 * n))
+    else:
+        V, T = km.fem.box_mesh([0, 0, 0], [width, width, length], (n, n, 4 * n))
+    top = np.flatnonzero(np.abs(V[:, -1] - length) < 1e-12)
+    body = km.fem.Body(V, T, model="linear", youngs_modulus=E, poisson_ratio=0.0, density=rho,
+                       fixed=top, gravity=[0.0] * (d - 1) + [-g])
+    body.solve_static()
+    s = length - V[:, -1]
+    exact = -rho * g * (length * s - s * s / 2) / E
+    return np.sqrt(np.mean((body.x[:, -1] - V[:, -1] - exact) ** 2)) / np.abs(exact).max()
+
+
+@pytest.mark.parametrize("d, sizes", [(2, [4, 8, 16]), (3, [2, 4, 8])])
+def test_hanging_bar_converges_at_second_order(d, sizes):
+    # P1 elements with lumped gravity loads: the RMS nodal error falls as h^2 (2D measured
+    # 1.6e-2 -> 5.3e-3 -> 1.4e-3 -> 3.4e-4 from n = 2; 3D 2.0e-2 -> 7.2e-3 -> 1.9e-3, the
+    # first halving pre-asymptotic, hence the rate on the last one).
+    errors = [hanging_bar(d, n) for n in sizes]
+    rate = np.log2(errors[-2] / errors[-1])
+    assert abs(rate - 2) < 0.25 and errors[-1] < 3e-3, f"errors {errors}, last rate {rate:.2f}"
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_lengths_times_ten_give_displacements_times_a_hundred_and_mirror_images_agree(d):
+    # Linear statics under self-weight: u ~ rho g L^2 / E, so scaling every length by 10 scales
+    # u by 100 exactly (to the solve's tolerance). A mirrored neo-Hookean beam (elements
+    # re-oriented) sags as the mirror image of the original one.
+    if d == 2:
+        V, T = km.fem.rectangle_mesh([0, 0], [1, 0.1], (10, 2))
+    else:
+        V, T = km.fem.box_mesh([0, 0, 0], [1, 0.1, 0.1], (10, 1, 1))
+    fixed = np.flatnonzero(V[:, 0] < 1e-12)
+    gravity = [0.0] * (d - 1) + [-9.81]
+    u = []
+    for scale in (1, 10):
+        body = km.fem.Body(V * scale, T, model="linear", youngs_modulus=1e9, poisson_ratio=0.3,
+                           density=1000.0, fixed=fixed, gravity=gravity)
+        body.solve_static(tol=1e-12)
+        u.append(body.x - V * scale)
+    np.testing.assert_allclose(u[1], 100 * u[0], rtol=0, atol=1e-9 * np.abs(100 * u[0]).max())
+    mirror = np.ones(d)
+    mirror[0] = -1
+    flipped = T.copy()
+    flipped[:, [0, 1]] = flipped[:, [1, 0]]
+    sag = []
+    for verts, elems in ((V, T), (V * mirror, flipped)):
+        body = km.fem.Body(verts, elems, model="neohookean", youngs_modulus=1e6, poisson_ratio=0.3,
+                           density=1000.0, fixed=fixed, gravity=gravity)
+        body.solve_static(tol=1e-12)
+        sag.append(body.x - verts)
+    np.testing.assert_allclose(sag[1] * mirror, sag[0], rtol=0, atol=1e-9 * np.abs(sag[0]).max())
+
+
+@pytest.mark.parametrize("integrator, dt", [("implicit", 0.01), ("symplectic", 1e-4)])
+@pytest.mark.parametrize("d", [2, 3])
+def test_free_body_conserves_linear_momentum(d, integrator, dt):
+    # Elastic forces of each element sum to zero and the Hessian's rows annihilate
+    # translations: without gravity or fixed vertices, sum m_i v_i stays to rounding.
+    rng = np.random.default_rng(0)
+    if d == 2:
+        V, T = km.fem.rectangle_mesh([0, 0], [1, 0.5], (4, 2))
+    else:
+        V, T = km.fem.box_mesh([0, 0, 0], [1, 0.5, 0.5], (3, 2, 2))
+    body = km.fem.Body(V, T, model="neohookean", youngs_modulus=1e4, poisson_ratio=0.3, density=100.0)
+    body.v[:] = rng.standard_normal(V.shape)
+    p0 = body.mass @ body.v
+    body.step(dt, integrator, steps=20)
+    # Newton stops at tol 1e-6 of the gradient, which is momentum-neutral: rounding only.
+    assert np.abs(body.mass @ body.v - p0).max() < 1e-11 * np.abs(p0).max()
+
+
+def test_triangles_are_plane_strain():
+    # A slender 2D bar (L/W = 20, nu = 0.45) hanging under its weight stretches by
+    # rho g L^2 (1 - nu^2) / (2E) in plane strain, rho g L^2 / (2E) in plane stress (25 %
+    # more). The clamped top changes the strain over a length ~W: an error up to W/L = 5 %
+    # (1.6 % measured).
+    E, rho, g, L, W, nu = 1e7, 1000.0, 9.81, 1.0, 0.05, 0.45
+    V, T = km.fem.rectangle_mesh([0, 0], [W, L], (2, 40))
+    body = km.fem.Body(V, T, model="linear", youngs_modulus=E, poisson_ratio=nu, density=rho,
+                       fixed=np.flatnonzero(np.abs(V[:, 1] - L) < 1e-12), gravity=(0, -g))
+    body.solve_static()
+    stretch = -(body.x - V)[np.abs(V[:, 1]) < 1e-12, 1].mean()
+    plane_strain = rho * g * L**2 * (1 - nu**2) / (2 * E)
+    assert abs(stretch / plane_strain - 1) < W / L, f"stretch {stretch:.4e}, plane strain {plane_strain:.4e}"

@@ -196,3 +196,73 @@ def test_default_lagged_factor_agrees_with_direct():
         info = c.step(dt, linear_solver="cholmod_pcg", cg_tol=1e-12)
         d.step(dt, linear_solver="cholmod_direct")
     assert not info.refactored and np.abs(c.x - d.x).max() < 1e-8
+
+
+# ---------------------------------------------------------------- closed forms of the steps
+
+@pytest.mark.parametrize("beta", [1.0, 0.5])
+@pytest.mark.parametrize("dt", [0.05, 0.2])
+def test_implicit_step_on_a_stretched_spring_is_its_closed_form(beta, dt):
+    # One spring along x with vertex 0 fixed moves along its axis, where Hooke's force is
+    # linear: [m + beta dt^2 k] v' = m v - dt k (x - L), x' = x + dt v' is a 2x2 linear map A.
+    # 20 steps must equal A^20 applied to (x - L, v) to rounding, in 3D, with k, m, L not 1.
+    k, m, L, a = 40.0, 0.5, 2.0, 0.1
+    w2 = k / m
+    sys = km.massspring.System([[0.0, 0.0, 0.0], [L + a, 0.0, 0.0]], [[0, 1]], stiffness=k, mass=m,
+                               rest_length=L, fixed=[0])
+    sys.step(dt, "implicit", beta=beta, linear_solver="cholmod_direct", steps=20)
+    s = 1 / (1 + beta * dt * dt * w2)
+    A = np.array([[1 - dt * dt * w2 * s, dt * s], [-dt * w2 * s, s]])
+    expected = np.linalg.matrix_power(A, 20) @ [a, 0.0]
+    got = [sys.x[1, 0] - L, sys.v[1, 0]]
+    np.testing.assert_allclose(got, expected, rtol=1e-9, atol=1e-14)
+    assert np.abs(sys.x[1, 1:]).max() == 0 and np.abs(sys.v[1, 1:]).max() == 0
+
+
+def test_free_fall_of_one_vertex_is_the_integrators_closed_form():
+    # No springs: after n steps symplectic and implicit Euler give z = -g dt^2 n(n+1)/2 (the
+    # velocity is updated first), explicit Euler -g dt^2 n(n-1)/2; all give v = -g n dt.
+    g, dt, n = 9.81, 0.1, 10
+    for integrator, factor in [("symplectic", n * (n + 1)), ("implicit", n * (n + 1)),
+                               ("explicit", n * (n - 1))]:
+        sys = km.massspring.System([[0.0, 0.0, 0.0]], np.zeros((0, 2), int), stiffness=1.0,
+                                   gravity=(0, 0, -g))
+        sys.step(dt, integrator, steps=n)
+        assert sys.x[0, 2] == pytest.approx(-g * dt * dt * factor / 2, rel=1e-13), integrator
+        assert sys.v[0, 2] == pytest.approx(-g * n * dt, rel=1e-13), integrator
+
+
+@pytest.mark.parametrize("integrator", ["explicit", "symplectic", "implicit"])
+def test_free_system_conserves_linear_momentum(integrator):
+    # Spring and damping forces come in equal and opposite pairs, and the implicit matrix's
+    # rows of K and C sum to zero: total momentum is conserved to rounding by every integrator
+    # (3D, unequal masses, damping, springs off their rest length).
+    rng = np.random.default_rng(1)
+    x = rng.random((6, 3))
+    springs = [[i, j] for i in range(6) for j in range(i + 1, 6)]
+    m = rng.random(6) + 0.5
+    sys = km.massspring.System(x, springs, stiffness=50.0, mass=m, rest_length=0.3, damping=0.2)
+    sys.v[:] = rng.standard_normal((6, 3))
+    p0 = m @ sys.v
+    sys.step(1e-3, integrator, steps=100)
+    # rounding: ~100 steps x 15 force terms x 1e-16 relative, far below 1e-12
+    assert np.abs(m @ sys.v - p0).max() < 1e-12 * np.abs(p0).max()
+
+
+def test_damped_oscillator_converges_to_the_analytic_solution_at_first_order():
+    # x(t) = a e^{-g t} (cos(w_d t) + g/w_d sin(w_d t)), g = c / 2m, w_d^2 = k/m - g^2, for a
+    # spring damped along its axis; symplectic and implicit Euler are first order.
+    k, m, L, a, c, t = 40.0, 0.5, 2.0, 0.1, 0.8, 1.0
+    g = c / (2 * m)
+    wd = math.sqrt(k / m - g * g)
+    exact = a * math.exp(-g * t) * (math.cos(wd * t) + g / wd * math.sin(wd * t))
+    for integrator in ("symplectic", "implicit"):
+        errors, dts = [], [4e-4, 2e-4, 1e-4]
+        for dt in dts:
+            sys = km.massspring.System([[0.0, 0.0], [L + a, 0.0]], [[0, 1]], stiffness=k, mass=m,
+                                       rest_length=L, fixed=[0], damping=c)
+            sys.step(dt, integrator, steps=int(round(t / dt)), linear_solver="cholmod_direct")
+            errors.append(abs(sys.x[1, 0] - L - exact))
+        p = np.polyfit(np.log(dts), np.log(errors), 1)[0]
+        assert abs(p - 1) < 0.1, f"{integrator}: order {p:.3f}, errors {errors}"
+        assert errors[-1] < 0.01 * a, f"{integrator}: error {errors[-1]:.2e}"

@@ -178,3 +178,55 @@ def test_advance_lands_on_the_end_and_absorbs_a_sliver():
         times = []
         s.advance(duration, 0.1, callback=lambda sy: times.append(sy.time))
         assert times == pytest.approx(expected, abs=1e-15) and s.time == duration
+
+
+def test_leapfrog_is_time_reversible():
+    # Kick-drift-kick is symmetric: 50 steps, velocities reversed, 50 steps more return to the
+    # start to rounding (direct softened sum at N = 300, forces exact).
+    x, v, m = km.nbody.plummer(300, seed=3)
+    sim = km.nbody.System(x, v, m, softening=0.01)
+    for _ in range(50):
+        sim.step(0.01)
+    sim.v[:] *= -1
+    for _ in range(50):
+        sim.step(0.01)
+    assert np.abs(sim.x - x).max() < 1e-12 and np.abs(sim.v + v).max() < 1e-12
+
+
+def test_units_scale_as_dimensional_analysis_says():
+    # Lengths x10 (softening too) at fixed G, M: velocities / sqrt(10), times x 10^1.5, energy
+    # / 10; G x2 with v x sqrt(2) and dt / sqrt(2), or masses x2 with G / 2: the same orbits.
+    x, v, m = km.nbody.plummer(300, seed=3)
+
+    def run(x, v, m, G=1.0, softening=0.01, dt=0.01):
+        sim = km.nbody.System(x, v, m, G=G, softening=softening, eps=1e-12)
+        for _ in range(30):
+            sim.step(dt)
+        return sim
+
+    base = run(x, v, m)
+    big = run(10 * x, v / np.sqrt(10), m, softening=0.1, dt=0.01 * 10**1.5)
+    assert np.abs(big.x / 10 - base.x).max() < 1e-12
+    assert big.energy() / base.energy() == pytest.approx(0.1, rel=1e-12)
+    assert np.abs(run(x, v * np.sqrt(2), m, G=2.0, dt=0.01 / np.sqrt(2)).x - base.x).max() < 1e-12
+    assert np.abs(run(x, v, 2 * m, G=0.5).x - base.x).max() < 1e-12
+    mirror = np.diag([-1.0, 1.0, 1.0])
+    assert np.abs(run(x @ mirror, v @ mirror, m).x @ mirror - base.x).max() < 1e-12
+
+
+def test_coincident_particles_count_in_the_softened_energy():
+    # Pairs at distance zero (which the FMM leaves out) have the softened potential
+    # -G m_i m_j / s; groups of coincident particles against the brute-force pair sum.
+    x = np.vstack([np.zeros((3, 3)), np.ones((2, 3)), [[5.0, 5.0, 5.0]]])
+    m = np.arange(1.0, 7.0)
+    G, s = 3.0, 0.5
+    sim = km.nbody.System(x, np.zeros_like(x), m, G=G, softening=s)
+    i, j = np.triu_indices(6, 1)
+    exact = -G * np.sum(m[i] * m[j] / np.sqrt(((x[i] - x[j]) ** 2).sum(axis=1) + s * s))
+    assert sim.potential_energy() == pytest.approx(exact, rel=1e-13)
+    # Without softening their energy is infinite: said, not returned as a finite number.
+    with pytest.raises(km.DivergenceError, match="coincide"):
+        km.nbody.System(x, np.zeros_like(x), m).energy()
+    # A massless particle on top of another adds nothing.
+    two = km.nbody.System(np.zeros((2, 3)), np.zeros((2, 3)), [1.0, 0.0])
+    assert two.energy() == 0.0

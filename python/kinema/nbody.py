@@ -94,9 +94,32 @@ class System:
         return a
 
     def potential_energy(self) -> float:
-        """-G/2 sum_i m_i sum_{j != i} m_j / sqrt(r_ij^2 + s^2) [J]."""
+        """-G/2 sum_i m_i sum_{j != i} m_j / sqrt(r_ij^2 + s^2) [J].
+
+        Pairs of particles at the same position (which the FMM leaves out) add -G m_i m_j / s;
+        with s = 0 their energy is infinite and a km.DivergenceError says so."""
         phi = self._field(0)[:, 0]
-        return finite_result(float(-0.5 * self.G * np.dot(self.mass, phi)), "potential_energy")
+        energy = -0.5 * self.G * np.dot(self.mass, phi)
+        coincident = self._coincident_mass_products()
+        if coincident > 0:
+            if self.softening == 0:
+                raise DivergenceError(f"potential_energy: particles coincide at step {self.steps} "
+                                      f"(t = {self.time:g}), an infinite energy without softening; "
+                                      "give softening > 0")
+            energy -= self.G * coincident / self.softening
+        return finite_result(float(energy), "potential_energy")
+
+    def _coincident_mass_products(self) -> float:
+        """sum of m_i m_j over the pairs i < j with x_i == x_j."""
+        order = np.lexsort(self.x.T[::-1])
+        xs = self.x[order]
+        same = (xs[1:] == xs[:-1]).all(axis=1)
+        if not same.any():
+            return 0.0
+        group = np.cumsum(np.r_[True, ~same]) - 1
+        m = self.mass[order]
+        total, squares = np.bincount(group, m), np.bincount(group, m * m)
+        return float(0.5 * (total * total - squares).sum())
 
     def kinetic_energy(self) -> float:
         """1/2 sum_i m_i |v_i|^2 [J]."""

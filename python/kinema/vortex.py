@@ -59,11 +59,23 @@ class VortexParticles:
         self.time = 0.0
         self.steps = 0
 
-    def velocity(self, x=None) -> np.ndarray:
-        """u at the particles (or at the vortex positions `x`, for the RK stages): (n, 2) [m/s]."""
-        x = self.x if x is None else x
+    def velocity(self, points=None) -> np.ndarray:
+        """u induced by the vortices at the particles (each one's own term left out), or at
+        `points` (m, 2) [m]: (n or m, 2) [m/s], as VortexParticles3D.velocity."""
+        if points is None:
+            return self._velocity(self.x)
+        tgt = as_float_array(points, "points", ndim=2)
+        if tgt.shape[1] != 2:
+            raise ValueError(f"points: expected shape (m, 2), got {tgt.shape}")
+        if tgt.size and np.abs(tgt).max() > 1e100:
+            raise ValueError("points: positions beyond 1e100 (as x: distances squared would overflow); "
+                             "choose other units")
+        return finite_result(self._velocity(self.x, tgt), "velocity")
+
+    def _velocity(self, x, targets=None):
+        """u at the vortices placed at x (the RK stages), or at `targets` (checked)."""
         try:
-            _, grad = fmm.laplace2d(x, self.circulation, eps=self.eps, gradient=True)
+            _, grad = fmm.laplace2d(x, self.circulation, targets, eps=self.eps, gradient=True)
         except ValueError as exc:
             if "overflows" not in str(exc):
                 raise
@@ -72,7 +84,10 @@ class VortexParticles:
         u = np.empty_like(grad)
         u[:, 0] = -grad[:, 1]
         u[:, 1] = grad[:, 0]
-        self._core_correction(x, u)
+        if targets is None:
+            self._core_correction(x, u)
+        else:
+            self._core_correction_at(x, targets, u)
         return u / (2 * np.pi)
 
     def _core_correction(self, x, u):
@@ -94,6 +109,21 @@ class VortexParticles:
         np.add.at(u[:, 0], j, -self.circulation[i] * kx)
         np.add.at(u[:, 1], j, -self.circulation[i] * ky)
 
+    def _core_correction_at(self, x, targets, u):
+        from scipy.spatial import cKDTree
+
+        if len(x) == 0 or len(targets) == 0:
+            return
+        near = cKDTree(targets).sparse_distance_matrix(cKDTree(x), _CORE_CUTOFF * self.core,
+                                                       output_type="ndarray")
+        i, j = near["i"], near["j"]  # target i, vortex j
+        d = targets[i] - x[j]
+        r2 = np.einsum("ij,ij->i", d, d)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            w = np.where(r2 > 0, -np.exp(-r2 / self.core**2) / r2, 0.0)
+        np.add.at(u[:, 0], i, self.circulation[j] * -d[:, 1] * w)
+        np.add.at(u[:, 1], i, self.circulation[j] * d[:, 0] * w)
+
     def step(self, dt) -> _core.StepStats:
         """One classical RK4 step of dx/dt = u(x); returns its StepStats (time, dt, seconds)."""
         dt = positive(dt, "dt")
@@ -102,10 +132,10 @@ class VortexParticles:
 
         x0 = self.x
         try:
-            k1 = self.velocity(x0)
-            k2 = self.velocity(x0 + 0.5 * dt * k1)
-            k3 = self.velocity(x0 + 0.5 * dt * k2)
-            k4 = self.velocity(x0 + dt * k3)
+            k1 = self._velocity(x0)
+            k2 = self._velocity(x0 + 0.5 * dt * k1)
+            k3 = self._velocity(x0 + 0.5 * dt * k2)
+            k4 = self._velocity(x0 + dt * k3)
         except ValueError as exc:  # a stage left the representable range (x stays as it was)
             raise DivergenceError(f"vortex positions: a stage of the step to t = {self.time + dt:g} "
                                   f"overflowed ({exc}); reduce dt (now {dt:g})") from None

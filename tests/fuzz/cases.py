@@ -196,6 +196,9 @@ NEW_ENTRIES = {
                                   "eps": ("real", "1e-10"), "dt": ("real", "1e-2")}),
     "vortex.VortexParticles3D.velocity": (VX_SYS + "_w.velocity({points})",
                                           {"points": ("array", "rng.random((4, 3))")}),
+    "vortex.VortexParticles.velocity": ("km.vortex.VortexParticles(rng.random((10, 2)), np.ones(10), 0.05)"
+                                        ".velocity({points})",
+                                        {"points": ("array", "rng.random((4, 2))")}),
     "vortex.VortexParticles3D.advance": (VX_SYS + "_w.advance({duration}, {dt}); _w.x",
                                          {"duration": ("real", "2e-2"), "dt": ("real", "1e-2")}),
     "vortex.ring": ("km.vortex.ring({radius}, {core}, {circulation}, {n}, center={center}, axis={axis})",
