@@ -17,7 +17,7 @@
 #include "core/errors.h"
 #include "core/timer.h"
 #include "fmm/kernels3d.h"
-#include "fmm/l2p3d.h"
+#include "fmm/block3d.h"
 #include "fmm/m2l_product.h"
 #include "fmm/rotation3d.h"
 #include "fmm/tree.h"
@@ -156,8 +156,8 @@ struct Engine {
           for (int c = 0; c < nc; ++c) {
             if (box.leaf) {
               const Scalar* xyz[3] = {src[0] + box.src_begin, src[1] + box.src_begin, src[2] + box.src_begin};
-              p2m(p, box.c, box.h, xyz, &q[static_cast<size_t>(box.src_begin) * nc + c],
-                  box.source_count(), nc, mul(id, c));
+              multipole_accumulate(p, box.c, box.h, xyz, &q[static_cast<size_t>(box.src_begin) * nc + c],
+                                   box.source_count(), nc, mul(id, c));
               continue;
             }
             if (rotate) continue;
@@ -182,22 +182,37 @@ struct Engine {
     constexpr int K = RotatedTranslation::kColumns;
     const int ne = coefficient_count(pt);
     const Index columns = static_cast<Index>(list.size()) * nc, blocks = (columns + K - 1) / K;
-#pragma omp parallel for schedule(dynamic, 4) if (blocks > 1)
-    for (Index bk = 0; bk < blocks; ++bk) {
-      const Index begin = bk * K, end = std::min(columns, begin + K);
+#pragma omp parallel if (blocks > 1)
+    {
+      // Per thread: the buffers (~0.9 MB at p = 40) are reused from block to block.
       std::vector<Scalar> in(static_cast<size_t>(ne * K), 0.0), out(in.size()), scratch(op.scratch_size());
-      for (Index col = begin; col < end; ++col) {
-        const std::pair<Index, Index>& pr = list[static_cast<size_t>(col / nc)];
-        const int c = static_cast<int>(col % nc);
-        const Scalar* x = from_multipoles ? mul(pr.second, c) : loc(pr.second, c);
-        for (int k = 0; k < ne; ++k) in[static_cast<size_t>(k * K + col - begin)] = sign[k] * x[k];
-      }
-      op.apply(b, pt, in.data(), out.data(), scratch.data());
-      for (Index col = begin; col < end; ++col) {
-        const std::pair<Index, Index>& pr = list[static_cast<size_t>(col / nc)];
-        const int c = static_cast<int>(col % nc);
-        Scalar* y = to_multipoles ? mul(pr.first, c) : loc(pr.first, c);
-        for (int k = 0; k < ne; ++k) y[k] += sign[k] * scale * out[static_cast<size_t>(k * K + col - begin)];
+#pragma omp for schedule(dynamic, 4)
+      for (Index bk = 0; bk < blocks; ++bk) {
+        const Index begin = bk * K, end = std::min(columns, begin + K);
+        if (end - begin < K) std::fill(in.begin(), in.end(), 0.0);
+        const Scalar* from[K];
+        Scalar* to[K];
+        for (Index col = begin; col < end; ++col) {
+          const std::pair<Index, Index>& pr = list[static_cast<size_t>(col / nc)];
+          const int c = static_cast<int>(col % nc);
+          from[col - begin] = from_multipoles ? mul(pr.second, c) : loc(pr.second, c);
+          to[col - begin] = to_multipoles ? mul(pr.first, c) : loc(pr.first, c);
+        }
+        // Transposed in slices of kSlice coefficients, so that the slice of `in` or `out`
+        // being written or read stays in the first-level cache.
+        constexpr int kSlice = 32;
+        const int used = static_cast<int>(end - begin);
+        for (int k0 = 0; k0 < ne; k0 += kSlice) {
+          const int k1 = std::min(ne, k0 + kSlice);
+          for (int col = 0; col < used; ++col)
+            for (int k = k0; k < k1; ++k) in[static_cast<size_t>(k * K + col)] = sign[k] * from[col][k];
+        }
+        op.apply(b, pt, in.data(), out.data(), scratch.data());
+        for (int k0 = 0; k0 < ne; k0 += kSlice) {
+          const int k1 = std::min(ne, k0 + kSlice);
+          for (int col = 0; col < used; ++col)
+            for (int k = k0; k < k1; ++k) to[col][k] += sign[k] * scale * out[static_cast<size_t>(k * K + col)];
+        }
       }
     }
   }

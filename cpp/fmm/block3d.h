@@ -1,8 +1,8 @@
-// L2P of the 3D Laplace FMM for a block of targets at once: the regular solid harmonics of
-// kernels3d.h by their recurrence, vectorised across kLanes targets (AVX-512 or AVX2 where the
-// CPU has it, as core/simd.h describes), each degree summed against a table of coefficients
-// as soon as it is computed. Every target is evaluated by the same operations in the same
-// order whatever block it is in, so the values do not depend on how targets are grouped.
+// P2M and L2P of the 3D Laplace FMM for blocks of points: the regular solid harmonics of
+// kernels3d.h by their recurrence, vectorised across kLanes points (AVX-512 or AVX2 where the
+// CPU has it, as core/simd.h describes), each degree summed into the outputs as soon as it is
+// computed. A target is evaluated by the same operations in the same order whatever block it
+// is in; a multipole's sums depend only on its sources' order.
 #pragma once
 
 #include <vector>
@@ -36,5 +36,11 @@ class LocalTable {
 // t < kLanes (pad a short block with any finite position).
 void local_evaluate(const LocalTable& table, const Scalar* ux, const Scalar* uy, const Scalar* uz,
                     Scalar* result);
+
+// P2M: multipole += sum_j q_j conj(R((y_j - c)/h)), the sources [0, n) as x, y, z arrays and
+// charges q[j * stride] (kernels3d.h's p2m, kLanes sources at a time: lane sums, then added
+// up lane by lane).
+void multipole_accumulate(int p, const Scalar* c, Scalar h, const Scalar* const xyz[3], const Scalar* q,
+                          Index n, Index stride, Scalar* multipole);
 
 }  // namespace kinema::fmm3
