@@ -17,6 +17,7 @@
 #include "core/errors.h"
 #include "core/timer.h"
 #include "fmm/kernels3d.h"
+#include "fmm/block3d.h"
 #include "fmm/m2l_product.h"
 #include "fmm/rotation3d.h"
 #include "fmm/tree.h"
@@ -155,8 +156,8 @@ struct Engine {
           for (int c = 0; c < nc; ++c) {
             if (box.leaf) {
               const Scalar* xyz[3] = {src[0] + box.src_begin, src[1] + box.src_begin, src[2] + box.src_begin};
-              p2m(p, box.c, box.h, xyz, &q[static_cast<size_t>(box.src_begin) * nc + c],
-                  box.source_count(), nc, mul(id, c));
+              multipole_accumulate(p, box.c, box.h, xyz, &q[static_cast<size_t>(box.src_begin) * nc + c],
+                                   box.source_count(), nc, mul(id, c));
               continue;
             }
             if (rotate) continue;
@@ -181,22 +182,37 @@ struct Engine {
     constexpr int K = RotatedTranslation::kColumns;
     const int ne = coefficient_count(pt);
     const Index columns = static_cast<Index>(list.size()) * nc, blocks = (columns + K - 1) / K;
-#pragma omp parallel for schedule(dynamic, 4) if (blocks > 1)
-    for (Index bk = 0; bk < blocks; ++bk) {
-      const Index begin = bk * K, end = std::min(columns, begin + K);
+#pragma omp parallel if (blocks > 1)
+    {
+      // Per thread: the buffers (~0.9 MB at p = 40) are reused from block to block.
       std::vector<Scalar> in(static_cast<size_t>(ne * K), 0.0), out(in.size()), scratch(op.scratch_size());
-      for (Index col = begin; col < end; ++col) {
-        const std::pair<Index, Index>& pr = list[static_cast<size_t>(col / nc)];
-        const int c = static_cast<int>(col % nc);
-        const Scalar* x = from_multipoles ? mul(pr.second, c) : loc(pr.second, c);
-        for (int k = 0; k < ne; ++k) in[static_cast<size_t>(k * K + col - begin)] = sign[k] * x[k];
-      }
-      op.apply(b, pt, in.data(), out.data(), scratch.data());
-      for (Index col = begin; col < end; ++col) {
-        const std::pair<Index, Index>& pr = list[static_cast<size_t>(col / nc)];
-        const int c = static_cast<int>(col % nc);
-        Scalar* y = to_multipoles ? mul(pr.first, c) : loc(pr.first, c);
-        for (int k = 0; k < ne; ++k) y[k] += sign[k] * scale * out[static_cast<size_t>(k * K + col - begin)];
+#pragma omp for schedule(dynamic, 4)
+      for (Index bk = 0; bk < blocks; ++bk) {
+        const Index begin = bk * K, end = std::min(columns, begin + K);
+        if (end - begin < K) std::fill(in.begin(), in.end(), 0.0);
+        const Scalar* from[K];
+        Scalar* to[K];
+        for (Index col = begin; col < end; ++col) {
+          const std::pair<Index, Index>& pr = list[static_cast<size_t>(col / nc)];
+          const int c = static_cast<int>(col % nc);
+          from[col - begin] = from_multipoles ? mul(pr.second, c) : loc(pr.second, c);
+          to[col - begin] = to_multipoles ? mul(pr.first, c) : loc(pr.first, c);
+        }
+        // Transposed in slices of kSlice coefficients, so that the slice of `in` or `out`
+        // being written or read stays in the first-level cache.
+        constexpr int kSlice = 32;
+        const int used = static_cast<int>(end - begin);
+        for (int k0 = 0; k0 < ne; k0 += kSlice) {
+          const int k1 = std::min(ne, k0 + kSlice);
+          for (int col = 0; col < used; ++col)
+            for (int k = k0; k < k1; ++k) in[static_cast<size_t>(k * K + col)] = sign[k] * from[col][k];
+        }
+        op.apply(b, pt, in.data(), out.data(), scratch.data());
+        for (int k0 = 0; k0 < ne; k0 += kSlice) {
+          const int k1 = std::min(ne, k0 + kSlice);
+          for (int col = 0; col < used; ++col)
+            for (int k = k0; k < k1; ++k) to[col][k] += sign[k] * scale * out[static_cast<size_t>(k * K + col)];
+        }
       }
     }
   }
@@ -360,10 +376,18 @@ struct Engine {
         }
         std::vector<Complex> coeffs(static_cast<size_t>(complex_count(p)));
         std::vector<Complex> values(static_cast<size_t>(complex_count(p + extra)));
-        std::vector<std::vector<std::vector<Complex>>> local_d(static_cast<size_t>(nc));
+        std::vector<std::vector<Complex>> local_d;
+        const Scalar inv_h = 1 / box.h;
+        // L2P: output (c, k), a derivative of order d, is the derived local of order p - d
+        // scaled by h^-d.
+        LocalTable table(p, nc * width);
         for (int c = 0; c < nc; ++c) {
           to_complex(loc(id, c), p, coeffs.data());
-          derived<true>(coeffs.data(), local_d[static_cast<size_t>(c)]);
+          derived<true>(coeffs.data(), local_d);
+          for (int k = 0; k < width; ++k) {
+            const int d = k == 0 ? 0 : k < 4 ? 1 : 2;
+            table.set(c * width + k, local_d[static_cast<size_t>(k)].data(), p - d, d == 0 ? 1 : d == 1 ? inv_h : inv_h * inv_h);
+          }
         }
         // W list: derivative multipoles of each box, per component.
         std::vector<std::vector<std::vector<Complex>>> far_d(lists.m2p.size() * static_cast<size_t>(nc));
@@ -372,19 +396,20 @@ struct Engine {
             to_complex(mul(lists.m2p[w], c), p, coeffs.data());
             derived<false>(coeffs.data(), far_d[w * nc + c]);
           }
-        const Scalar inv_h = 1 / box.h;
+        std::vector<Scalar> block(static_cast<size_t>(nc * width * kLanes));
         for (Index t = box.tgt_begin; t < box.tgt_end; ++t) {
           const Scalar x = tgt[0][t], y = tgt[1][t], z = tgt[2][t];
           Scalar* out = &result[static_cast<size_t>(t) * nc * width];
-          std::fill(out, out + nc * width, 0.0);
-          // L2P: derivative k of order d scales as h^-d.
-          regular((x - box.c[0]) * inv_h, (y - box.c[1]) * inv_h, (z - box.c[2]) * inv_h, p, values.data());
-          for (int c = 0; c < nc; ++c)
-            for (int k = 0; k < width; ++k) {
-              const int d = k == 0 ? 0 : k < 4 ? 1 : 2;
-              const Scalar scale = d == 0 ? 1 : d == 1 ? inv_h : inv_h * inv_h;
-              out[c * width + k] += scale * local_sum(local_d[static_cast<size_t>(c)][static_cast<size_t>(k)].data(), values.data(), p - d);
+          const Index lane = (t - box.tgt_begin) % kLanes;
+          if (lane == 0) {  // L2P of the next kLanes targets (the last block padded with t)
+            Scalar u[3][kLanes];
+            for (Index j = 0; j < kLanes; ++j) {
+              const Index s = t + j < box.tgt_end ? t + j : t;
+              for (int a = 0; a < 3; ++a) u[a][j] = (tgt[a][s] - box.c[a]) * inv_h;
             }
+            local_evaluate(table, u[0], u[1], u[2], block.data());
+          }
+          for (int o = 0; o < nc * width; ++o) out[o] = block[static_cast<size_t>(o * kLanes + lane)];
           // M2P: (1/h) sum M I((x - c)/h), derivative of order d scales as h^-(d+1).
           for (size_t w = 0; w < lists.m2p.size(); ++w) {
             const Box3& sb = tree.boxes[static_cast<size_t>(lists.m2p[w])];

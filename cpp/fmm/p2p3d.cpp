@@ -274,6 +274,14 @@ bool use_avx512() {
 
 }  // namespace
 
+bool use_avx512_kernels() {
+#if KINEMA_HAVE_AVX2_CLONES
+  return use_avx2() && use_avx512();
+#else
+  return false;
+#endif
+}
+
 bool p2p_mutual_available() {
 #if KINEMA_HAVE_AVX2_CLONES
   return use_avx2();

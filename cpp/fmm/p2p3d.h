@@ -90,6 +90,10 @@ bool p2p_fast(bool gradient, int newton_steps, Scalar a, Scalar x, Scalar y, Sca
               const Scalar* sx, const Scalar* sy, const Scalar* sz, const Scalar* q, Index n,
               Scalar* out);
 
+// True when this CPU runs AVX-512F and the AVX-512 kernels are not switched off
+// (KINEMA_SIMD=baseline or avx2, as core/simd.h describes).
+bool use_avx512_kernels();
+
 // True when p2p_mutual has its vectorised form on this CPU (otherwise near fields use
 // p2p_fast in both directions).
 bool p2p_mutual_available();

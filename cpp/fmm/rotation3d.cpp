@@ -8,6 +8,7 @@
 #include <map>
 
 #include "core/simd.h"
+#include "fmm/p2p3d.h"
 
 namespace kinema::fmm3 {
 
@@ -51,32 +52,33 @@ struct Generator {
   }
 };
 
-// dst[r] = sum_j a[r * lda + j] src[j] for r < rows, j < cols, each a row of K values: two
-// rows at a time, so that every load of a source row feeds two multiply-adds.
+// dst[r] = sum_j a[r * lda + j] src[j] for r < rows, j < cols, each a row of K values held in
+// vectors of W doubles: R rows at a time (then fewer), so that every load of a source row
+// feeds R vector multiply-adds and the R x K/W sums stay in registers. Each value is summed
+// over j in order whatever W and R are.
+template <int W, int R>
 KINEMA_ALWAYS_INLINE void rows_product(int rows, int cols, const Scalar* a, int lda,
-                                       const Scalar* const* src, Scalar* const* dst) {
-  int r = 0;
-  for (; r + 1 < rows; r += 2) {
-    Scalar acc0[K] = {}, acc1[K] = {};
-    const Scalar* a0 = a + r * lda;
-    const Scalar* a1 = a0 + lda;
+                                       const Scalar* const* src, Scalar* const* dst, int r = 0) {
+  typedef Scalar V __attribute__((vector_size(W * sizeof(Scalar)), aligned(sizeof(Scalar))));
+  constexpr int NV = K / W;
+  for (; r + R <= rows; r += R) {
+    V acc[R][NV];
+    for (int i = 0; i < R; ++i)
+      for (int v = 0; v < NV; ++v) acc[i][v] = V{};
+    const Scalar* row = a + r * lda;
     for (int j = 0; j < cols; ++j) {
-      const Scalar* x = src[j];
-      const Scalar w0 = a0[j], w1 = a1[j];
-      for (int c = 0; c < K; ++c) {
-        acc0[c] += w0 * x[c];
-        acc1[c] += w1 * x[c];
+      const V* x = reinterpret_cast<const V*>(src[j]);
+      V xv[NV];
+      for (int v = 0; v < NV; ++v) xv[v] = x[v];
+      for (int i = 0; i < R; ++i) {
+        const Scalar w = row[i * lda + j];
+        for (int v = 0; v < NV; ++v) acc[i][v] += w * xv[v];
       }
     }
-    for (int c = 0; c < K; ++c) dst[r][c] = acc0[c], dst[r + 1][c] = acc1[c];
+    for (int i = 0; i < R; ++i)
+      for (int v = 0; v < NV; ++v) reinterpret_cast<V*>(dst[r + i])[v] = acc[i][v];
   }
-  if (r < rows) {
-    Scalar acc[K] = {};
-    const Scalar* a0 = a + r * lda;
-    for (int j = 0; j < cols; ++j)
-      for (int c = 0; c < K; ++c) acc[c] += a0[j] * src[j][c];
-    for (int c = 0; c < K; ++c) dst[r][c] = acc[c];
-  }
+  if constexpr (R > 1) rows_product<W, R / 2>(rows, cols, a, lda, src, dst, r);
 }
 
 // Position of (Re or Im) coefficient (l, m) of the rotated frame, layout grouped by m:
@@ -103,6 +105,7 @@ KINEMA_ALWAYS_INLINE void rotate_z(int l, const Scalar* cos_ma, const Scalar* si
   }
 }
 
+template <int W, int R>
 KINEMA_ALWAYS_INLINE void apply_body(int pt, const Scalar* cos_ma, const Scalar* sin_ma, Scalar s_in, Scalar s_out,
                                      const Scalar* rot, const size_t* block_start,
                                      const Scalar* trans, const size_t* trans_start, int p,
@@ -119,12 +122,12 @@ KINEMA_ALWAYS_INLINE void apply_body(int pt, const Scalar* cos_ma, const Scalar*
       src[m] = x + interleaved(l, m, false) * K;
       dst[m] = y + (group_start(m, pt) + l - m) * K;
     }
-    rows_product(l + 1, l + 1, fre, l + 1, src, dst);
+    rows_product<W, R>(l + 1, l + 1, fre, l + 1, src, dst);
     for (int m = 1; m <= l; ++m) {
       src[m - 1] = x + interleaved(l, m, true) * K;
       dst[m - 1] = y + (group_start(m, pt) + (pt + 1 - m) + l - m) * K;
     }
-    rows_product(l, l, fim, l, src, dst);
+    rows_product<W, R>(l, l, fim, l, src, dst);
   }
   // 3. Along z, one matrix per m for both parts (the sign of the M2L's imaginary part is in
   // the backward rotation).
@@ -134,7 +137,7 @@ KINEMA_ALWAYS_INLINE void apply_body(int pt, const Scalar* cos_ma, const Scalar*
     for (int part = 0; part < (m == 0 ? 1 : 2); ++part) {
       const int base = group_start(m, pt) + part * (pt + 1 - m);
       for (int j = 0; j < count; ++j) src[j] = y + (base + j) * K, dst[j] = x + (base + j) * K;
-      rows_product(count, count, t, stride, src, dst);
+      rows_product<W, R>(count, count, t, stride, src, dst);
     }
   }
   // 4. Back about y (into y, interleaved), 5. back about z into out.
@@ -145,12 +148,12 @@ KINEMA_ALWAYS_INLINE void apply_body(int pt, const Scalar* cos_ma, const Scalar*
       src[m] = x + (group_start(m, pt) + l - m) * K;
       dst[m] = y + interleaved(l, m, false) * K;
     }
-    rows_product(l + 1, l + 1, bre, l + 1, src, dst);
+    rows_product<W, R>(l + 1, l + 1, bre, l + 1, src, dst);
     for (int m = 1; m <= l; ++m) {
       src[m - 1] = x + (group_start(m, pt) + (pt + 1 - m) + l - m) * K;
       dst[m - 1] = y + interleaved(l, m, true) * K;
     }
-    rows_product(l, l, bim, l, src, dst);
+    rows_product<W, R>(l, l, bim, l, src, dst);
     rotate_z(l, cos_ma, sin_ma, s_out, y, out);
   }
 }
@@ -158,7 +161,7 @@ KINEMA_ALWAYS_INLINE void apply_body(int pt, const Scalar* cos_ma, const Scalar*
 void apply_portable(int pt, const Scalar* cos_ma, const Scalar* sin_ma, Scalar s_in, Scalar s_out, const Scalar* rot,
                     const size_t* block_start, const Scalar* trans, const size_t* trans_start,
                     int p, const Scalar* in, Scalar* out, Scalar* x, Scalar* y) {
-  apply_body(pt, cos_ma, sin_ma, s_in, s_out, rot, block_start, trans, trans_start, p, in, out, x, y);
+  apply_body<2, 2>(pt, cos_ma, sin_ma, s_in, s_out, rot, block_start, trans, trans_start, p, in, out, x, y);
 }
 
 #if KINEMA_HAVE_AVX2_CLONES
@@ -166,7 +169,13 @@ __attribute__((target("avx2,fma"))) void apply_avx2(
     int pt, const Scalar* cos_ma, const Scalar* sin_ma, Scalar s_in, Scalar s_out, const Scalar* rot, const size_t* block_start,
     const Scalar* trans, const size_t* trans_start, int p, const Scalar* in, Scalar* out, Scalar* x,
     Scalar* y) {
-  apply_body(pt, cos_ma, sin_ma, s_in, s_out, rot, block_start, trans, trans_start, p, in, out, x, y);
+  apply_body<4, 2>(pt, cos_ma, sin_ma, s_in, s_out, rot, block_start, trans, trans_start, p, in, out, x, y);
+}
+__attribute__((target("avx512f,avx2,fma"))) void apply_avx512(
+    int pt, const Scalar* cos_ma, const Scalar* sin_ma, Scalar s_in, Scalar s_out, const Scalar* rot, const size_t* block_start,
+    const Scalar* trans, const size_t* trans_start, int p, const Scalar* in, Scalar* out, Scalar* x,
+    Scalar* y) {
+  apply_body<8, 4>(pt, cos_ma, sin_ma, s_in, s_out, rot, block_start, trans, trans_start, p, in, out, x, y);
 }
 #endif
 
@@ -285,7 +294,12 @@ void RotatedTranslation::apply(int b, int pt, const Scalar* in, Scalar* out, Sca
   // z phases: multipoles e^{+i m a} in, e^{-i m a} out; locals the reverse.
   const Scalar s_in = kind_ == Translation::L2L ? -1 : 1, s_out = kind_ == Translation::M2M ? -1 : 1;
 #if KINEMA_HAVE_AVX2_CLONES
-  static const bool avx2 = use_avx2();
+  static const bool avx2 = use_avx2(), avx512 = use_avx512_kernels();
+  if (avx512) {
+    apply_avx512(pt, o.cos_ma.data(), o.sin_ma.data(), s_in, s_out, rot, block_start_.data(), trans,
+                 translation_start_.data(), p_, in, out, x, y);
+    return;
+  }
   if (avx2) {
     apply_avx2(pt, o.cos_ma.data(), o.sin_ma.data(), s_in, s_out, rot, block_start_.data(), trans,
                translation_start_.data(), p_, in, out, x, y);

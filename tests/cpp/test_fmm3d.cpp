@@ -1,6 +1,6 @@
 // 3D FMM kernels: the addition theorem of the solid harmonics, each translation (P2M, M2M,
 // M2L matrix, L2L, L2P and its derivatives) against the direct potential it stands for, the
-// M2L product kernel against a plain loop, the mutual near field against the one-way sums,
+// M2L product kernel against a plain loop, the block P2M and L2P against the one-point ones, the mutual near field against the one-way sums,
 // the tree's lists, and the whole FMM against direct3d.
 #include <gtest/gtest.h>
 
@@ -11,6 +11,7 @@
 #include <random>
 #include <vector>
 
+#include "fmm/block3d.h"
 #include "fmm/kernels3d.h"
 #include "fmm/laplace3d.h"
 #include "fmm/m2l_product.h"
@@ -82,6 +83,71 @@ TEST(Fmm3dKernels, MultipoleTranslatedToLocalReproducesThePotential) {
     tp[a] += h, tm[a] -= h;
     const Scalar fd = (direct(s, tp) - direct(s, tm)) / (2 * h);
     EXPECT_NEAR(g, fd, 1e-5 * std::abs(exact)) << "L2P derivative " << a;
+  }
+}
+
+// The block P2M and L2P (block3d.h) compute the sums of p2m and local_sum in another order and
+// with reciprocals instead of divisions: they agree to rounding, bounded per value by
+// (terms + 4 p) * 2^-52 * the sum of the terms' magnitudes (each recurrence step adds at most
+// a few roundings to R_lm). Point counts that are not multiples of kLanes; orders 5 and 40.
+TEST(Fmm3dKernels, BlockP2mAndL2pMatchOnePointKernelsToRounding) {
+  constexpr Scalar u = 0x1p-52;
+  for (int p : {5, 40}) {
+    const Scalar c[3] = {0.1, -0.2, 0.3}, h = 0.5;
+    const Cloud s = cloud(29, c, h, 7);
+    const Scalar* xyz[3] = {s.x[0].data(), s.x[1].data(), s.x[2].data()};
+    std::vector<Scalar> ref(coefficient_count(p), 0.0), block(ref.size(), 0.0);
+    p2m(p, c, h, xyz, s.q.data(), 29, 1, ref.data());
+    multipole_accumulate(p, c, h, xyz, s.q.data(), 29, 1, block.data());
+    std::vector<Complex> r(complex_count(p)), size(complex_count(p), Complex(0));
+    for (int j = 0; j < 29; ++j) {
+      regular((s.x[0][j] - c[0]) / h, (s.x[1][j] - c[1]) / h, (s.x[2][j] - c[2]) / h, p, r.data());
+      for (int k = 0; k < complex_count(p); ++k)
+        size[k] += Complex(std::abs(s.q[j] * r[k].real()), std::abs(s.q[j] * r[k].imag()));
+    }
+    for (int l = 0; l <= p; ++l)
+      for (int m = 0; m <= l; ++m)
+        for (int part = 0; part < (m == 0 ? 1 : 2); ++part) {
+          const int k = l * l + (m == 0 ? 0 : 2 * m - 1 + part);
+          const Scalar bound = (29 + 4 * p) * u * (part ? size[cidx(l, m)].imag() : size[cidx(l, m)].real());
+          EXPECT_LE(std::abs(block[k] - ref[k]), bound) << "P2M p " << p << " l " << l << " m " << m;
+        }
+    // L2P of a local expansion (the multipole's coefficients reused) and its three
+    // derivatives at 13 targets, against local_sum.
+    std::vector<Complex> local(complex_count(p));
+    to_complex(ref.data(), p, local.data());
+    std::vector<std::vector<Complex>> d(3, std::vector<Complex>(complex_count(p)));
+    LocalTable table(p, 4);
+    table.set(0, local.data(), p, 1.0);
+    for (int a = 0; a < 3; ++a) {
+      local_derivative(local.data(), p, a, d[a].data());
+      table.set(1 + a, d[a].data(), p - 1, 2.0);
+    }
+    const Cloud t = cloud(13, c, h, 8);
+    for (int start = 0; start < 13; start += kLanes) {
+      Scalar ux[kLanes], uy[kLanes], uz[kLanes], out[4 * kLanes];
+      for (int i = 0; i < kLanes; ++i) {
+        const int j = std::min(start + i, 12);
+        ux[i] = (t.x[0][j] - c[0]) / h, uy[i] = (t.x[1][j] - c[1]) / h, uz[i] = (t.x[2][j] - c[2]) / h;
+      }
+      local_evaluate(table, ux, uy, uz, out);
+      for (int i = 0; i < kLanes && start + i < 13; ++i) {
+        regular(ux[i], uy[i], uz[i], p, r.data());
+        for (int o = 0; o < 4; ++o) {
+          const Complex* a = o == 0 ? local.data() : d[o - 1].data();
+          const int order = o == 0 ? p : p - 1;
+          const Scalar scale = o == 0 ? 1 : 2;
+          Scalar magnitude = 0;
+          for (int l = 0; l <= order; ++l)
+            for (int m = 0; m <= l; ++m)
+              magnitude += (m ? 2 : 1) * (std::abs(a[cidx(l, m)].real() * r[cidx(l, m)].real()) +
+                                          std::abs(a[cidx(l, m)].imag() * r[cidx(l, m)].imag()));
+          const Scalar expected = scale * local_sum(a, r.data(), order);
+          EXPECT_LE(std::abs(out[o * kLanes + i] - expected), (complex_count(p) + 4 * p) * u * scale * magnitude)
+              << "L2P p " << p << " output " << o << " target " << start + i;
+        }
+      }
+    }
   }
 }
 
