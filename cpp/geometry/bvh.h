@@ -120,20 +120,7 @@ class Bvh {
     while (!stack.empty()) {
       const auto [a, b] = stack.back();
       stack.pop_back();
-      const BvhNode& A = nodes_[static_cast<size_t>(a)];
-      const BvhNode& B = other.nodes_[static_cast<size_t>(b)];
-      if (!overlap(A, B)) continue;
-      if (A.count > 0 && B.count > 0) {
-        for (std::int32_t i = 0; i < A.count; ++i)
-          for (std::int32_t j = 0; j < B.count; ++j)
-            visit(order_[static_cast<size_t>(A.first + i)], other.order_[static_cast<size_t>(B.first + j)]);
-      } else if (B.count > 0 || (A.count == 0 && extent(A) >= extent(B))) {
-        stack.push_back({A.second, b});
-        stack.push_back({a + 1, b});
-      } else {
-        stack.push_back({a, B.second});
-        stack.push_back({a, b + 1});
-      }
+      descend(other, a, b, stack, visit);
     }
   }
   // The same of the tree against itself: `visit(i, j)` once for every unordered pair of
@@ -146,30 +133,16 @@ class Bvh {
       const auto [a, b] = stack.back();
       stack.pop_back();
       const BvhNode& A = nodes_[static_cast<size_t>(a)];
-      if (a == b) {
-        if (A.count > 0) {
-          for (std::int32_t i = 0; i < A.count; ++i)
-            for (std::int32_t j = i + 1; j < A.count; ++j)
-              visit(order_[static_cast<size_t>(A.first + i)], order_[static_cast<size_t>(A.first + j)]);
-        } else {
-          stack.push_back({a + 1, A.second});
-          stack.push_back({A.second, A.second});
-          stack.push_back({a + 1, a + 1});
-        }
-        continue;
-      }
-      const BvhNode& B = nodes_[static_cast<size_t>(b)];
-      if (!overlap(A, B)) continue;
-      if (A.count > 0 && B.count > 0) {
+      if (a != b) {
+        descend(*this, a, b, stack, visit);
+      } else if (A.count > 0) {
         for (std::int32_t i = 0; i < A.count; ++i)
-          for (std::int32_t j = 0; j < B.count; ++j)
-            visit(order_[static_cast<size_t>(A.first + i)], order_[static_cast<size_t>(B.first + j)]);
-      } else if (B.count > 0 || (A.count == 0 && extent(A) >= extent(B))) {
-        stack.push_back({A.second, b});
-        stack.push_back({a + 1, b});
+          for (std::int32_t j = i + 1; j < A.count; ++j)
+            visit(order_[static_cast<size_t>(A.first + i)], order_[static_cast<size_t>(A.first + j)]);
       } else {
-        stack.push_back({a, B.second});
-        stack.push_back({a, b + 1});
+        stack.push_back({a + 1, A.second});
+        stack.push_back({A.second, A.second});
+        stack.push_back({a + 1, a + 1});
       }
     }
   }
@@ -205,6 +178,27 @@ class Bvh {
   }
 
  private:
+  // One step of a two-tree descent at nodes (a of this tree, b of other): visits the primitive
+  // pairs of two overlapping leaves, else stacks the children of the larger interior node.
+  template <class Visit>
+  void descend(const Bvh& other, std::int32_t a, std::int32_t b, std::vector<std::array<std::int32_t, 2>>& stack,
+               Visit& visit) const {
+    const BvhNode& A = nodes_[static_cast<size_t>(a)];
+    const BvhNode& B = other.nodes_[static_cast<size_t>(b)];
+    if (!overlap(A, B)) return;
+    if (A.count > 0 && B.count > 0) {
+      for (std::int32_t i = 0; i < A.count; ++i)
+        for (std::int32_t j = 0; j < B.count; ++j)
+          visit(order_[static_cast<size_t>(A.first + i)], other.order_[static_cast<size_t>(B.first + j)]);
+    } else if (B.count > 0 || (A.count == 0 && extent(A) >= extent(B))) {
+      stack.push_back({A.second, b});
+      stack.push_back({a + 1, b});
+    } else {
+      stack.push_back({a, B.second});
+      stack.push_back({a, b + 1});
+    }
+  }
+
   std::int32_t build(Index begin, Index end, int depth, const std::vector<Scalar>& lo,
                      const std::vector<Scalar>& hi, const std::vector<Scalar>& centroid);
 
