@@ -88,13 +88,12 @@ void collect_in_order(Index n, std::vector<T>& out, Body&& body) {
 
 }  // namespace
 
-void BroadPhase::update(Tree& tree, const std::vector<Index>& prims, int k, const Scalar* x, const Scalar* dx,
-                        Scalar r) {
-  const Index count = static_cast<Index>(prims.size()) / k;
+void BroadPhase::update(Tree& tree, int k, const Scalar* x, const Scalar* dx, Scalar r) {
+  const Index count = static_cast<Index>(tree.ids.size());
   tree.lo.resize(static_cast<size_t>(3 * count));
   tree.hi.resize(static_cast<size_t>(3 * count));
   parallel_for(count, [&](Index p) {
-    primitive_box(&prims[static_cast<size_t>(k * p)], k, x, dx, r, &tree.lo[static_cast<size_t>(3 * p)],
+    primitive_box(&tree.prims[static_cast<size_t>(k * p)], k, x, dx, r, &tree.lo[static_cast<size_t>(3 * p)],
                   &tree.hi[static_cast<size_t>(3 * p)]);
   });
   if (count == 0) return;
@@ -110,61 +109,97 @@ void BroadPhase::update(Tree& tree, const std::vector<Index>& prims, int k, cons
   }
 }
 
-// Point-face pairs: moving points query every face, fixed points only the faces that move;
-// edge pairs: moving edges query every edge, a pair of moving edges is kept once (lower
-// first). Hits of one query are sorted, so the order does not depend on the trees' state.
+namespace {
+
+// Sorts pairs lexicographically: bucketed by the first index (counting sort over [0, n)), each
+// bucket sorted by the second; O(pairs + n) but for the buckets' small sorts.
+void sort_pairs(Pairs& pairs, Index n, std::vector<Index>& start, Pairs& scratch) {
+  start.assign(static_cast<size_t>(n) + 1, 0);
+  for (const auto& q : pairs) ++start[static_cast<size_t>(q[0]) + 1];
+  for (Index i = 0; i < n; ++i) start[static_cast<size_t>(i) + 1] += start[static_cast<size_t>(i)];
+  scratch.resize(pairs.size());
+  for (const auto& q : pairs) scratch[static_cast<size_t>(start[static_cast<size_t>(q[0])]++)] = q;
+  for (Index i = n; i > 0; --i) start[static_cast<size_t>(i)] = start[static_cast<size_t>(i) - 1];
+  start[0] = 0;
+  for (Index i = 0; i < n; ++i) {
+    auto first = scratch.begin() + start[static_cast<size_t>(i)], last = scratch.begin() + start[static_cast<size_t>(i) + 1];
+    if (last - first > 1) std::sort(first, last);
+  }
+  pairs.swap(scratch);
+}
+
+}  // namespace
+
+// Pairs from simultaneous descents of two trees (Bvh::query_pairs / query_self), every box
+// grown by r / 2 (two boxes grown by r / 2 meet exactly where one grown by r meets the other):
+// moving points against every face, fixed points against the faces that move; moving edges
+// against each other (the lower edge first) and against the fixed edges. The pairs are sorted,
+// so the result does not depend on the trees' state.
 void BroadPhase::find(const Model& model, const Scalar* x, const Scalar* dx, Scalar r, Candidates& out) {
   const auto& F = model.faces;
   const auto& E = model.edges;
   auto moving = [&](Index v) { return !model.fixed[static_cast<size_t>(v)]; };
   if (!ready_) {
-    for (Index p : model.points) any_fixed_point_ |= !moving(p);
-    if (any_fixed_point_)
-      for (Index f = 0; f < static_cast<Index>(F.size() / 3); ++f)
-        if (moving(F[3 * f]) || moving(F[3 * f + 1]) || moving(F[3 * f + 2])) moving_face_ids_.push_back(f);
+    for (Index p : model.points) {
+      Tree& t = moving(p) ? moving_points_ : fixed_points_;
+      t.ids.push_back(p);
+      t.prims.push_back(p);
+    }
+    for (Index f = 0; f < static_cast<Index>(F.size() / 3); ++f) {
+      const Index* v = &F[3 * f];
+      faces_.ids.push_back(f);
+      faces_.prims.insert(faces_.prims.end(), v, v + 3);
+      if (!fixed_points_.ids.empty() && (moving(v[0]) || moving(v[1]) || moving(v[2]))) {
+        moving_faces_.ids.push_back(f);
+        moving_faces_.prims.insert(moving_faces_.prims.end(), v, v + 3);
+      }
+    }
+    for (Index e = 0; e < static_cast<Index>(E.size() / 2); ++e) {
+      const Index* v = &E[2 * e];
+      Tree& t = moving(v[0]) || moving(v[1]) ? moving_edges_ : fixed_edges_;
+      t.ids.push_back(e);
+      t.prims.insert(t.prims.end(), v, v + 2);
+    }
     ready_ = true;
   }
-  std::vector<Index> moving_faces;
-  moving_faces.reserve(3 * moving_face_ids_.size());
-  for (Index f : moving_face_ids_) moving_faces.insert(moving_faces.end(), &F[3 * f], &F[3 * f] + 3);
-  update(faces_, F, 3, x, dx, r);
-  update(moving_faces_, moving_faces, 3, x, dx, r);
-  update(edges_, E, 2, x, dx, r);
+  const Scalar half = r / 2;
+  update(moving_points_, 1, x, dx, half);
+  update(fixed_points_, 1, x, dx, half);
+  update(faces_, 3, x, dx, half);
+  update(moving_faces_, 3, x, dx, half);
+  update(moving_edges_, 2, x, dx, half);
+  update(fixed_edges_, 2, x, dx, half);
+  auto boxes_meet = [](const Tree& a, Index i, const Tree& b, Index j) {
+    return overlap(&a.lo[static_cast<size_t>(3 * i)], &a.hi[static_cast<size_t>(3 * i)],
+                   &b.lo[static_cast<size_t>(3 * j)], &b.hi[static_cast<size_t>(3 * j)]);
+  };
 
-  const Index point_count = static_cast<Index>(model.points.size());
-  collect_in_order(point_count, out.point_face, [&](Index i, Pairs& part) {
-    const Index p = model.points[static_cast<size_t>(i)];
-    Scalar lo[3], hi[3];
-    point_box(x, dx, p, 0, lo, hi);
-    const size_t first = part.size();
-    auto visit = [&](const Tree& tree, Index k, Index f) {
-      const Index a = F[3 * f], b = F[3 * f + 1], c = F[3 * f + 2];
-      if (p == a || p == b || p == c) return;
-      if (!overlap(lo, hi, &tree.lo[static_cast<size_t>(3 * k)], &tree.hi[static_cast<size_t>(3 * k)])) return;
-      part.push_back({p, f});
-    };
-    if (moving(p))
-      faces_.bvh.query(lo, hi, [&](Index f) { visit(faces_, f, f); });
-    else
-      moving_faces_.bvh.query(lo, hi, [&](Index k) { visit(moving_faces_, k, moving_face_ids_[static_cast<size_t>(k)]); });
-    std::sort(part.begin() + static_cast<std::ptrdiff_t>(first), part.end());
-  });
-  const Index edge_count = static_cast<Index>(E.size() / 2);
-  collect_in_order(edge_count, out.edge_edge, [&](Index e, Pairs& part) {
-    const Index a0 = E[2 * e], a1 = E[2 * e + 1];
-    if (!moving(a0) && !moving(a1)) return;
-    Scalar lo[3], hi[3];
-    edge_box(x, dx, a0, a1, 0, lo, hi);
-    const size_t first = part.size();
-    edges_.bvh.query(lo, hi, [&](Index f) {
-      const Index b0 = E[2 * f], b1 = E[2 * f + 1];
-      if ((moving(b0) || moving(b1)) && f <= e) return;
-      if (a0 == b0 || a0 == b1 || a1 == b0 || a1 == b1) return;
-      if (!overlap(lo, hi, &edges_.lo[static_cast<size_t>(3 * f)], &edges_.hi[static_cast<size_t>(3 * f)])) return;
-      part.push_back({e, f});
+  out.point_face.clear();
+  auto point_faces = [&](const Tree& points, const Tree& faces) {
+    points.bvh.query_pairs(faces.bvh, [&](Index i, Index k) {
+      const Index p = points.ids[static_cast<size_t>(i)], f = faces.ids[static_cast<size_t>(k)];
+      if (p == F[3 * f] || p == F[3 * f + 1] || p == F[3 * f + 2]) return;
+      if (boxes_meet(points, i, faces, k)) out.point_face.push_back({p, f});
     });
-    std::sort(part.begin() + static_cast<std::ptrdiff_t>(first), part.end());
-  });
+  };
+  point_faces(moving_points_, faces_);
+  point_faces(fixed_points_, moving_faces_);
+  sort_pairs(out.point_face, model.vertex_count, bucket_start_, scratch_);
+
+  out.edge_edge.clear();
+  auto edge_pair = [&](const Tree& a, Index i, const Tree& b, Index j) {
+    const Index e = a.ids[static_cast<size_t>(i)], f = b.ids[static_cast<size_t>(j)];
+    const Index a0 = E[2 * e], a1 = E[2 * e + 1], b0 = E[2 * f], b1 = E[2 * f + 1];
+    if (a0 == b0 || a0 == b1 || a1 == b0 || a1 == b1) return;
+    if (!boxes_meet(a, i, b, j)) return;
+    if (&a == &b && f < e)
+      out.edge_edge.push_back({f, e});
+    else
+      out.edge_edge.push_back({e, f});
+  };
+  moving_edges_.bvh.query_self([&](Index i, Index j) { edge_pair(moving_edges_, i, moving_edges_, j); });
+  moving_edges_.bvh.query_pairs(fixed_edges_.bvh, [&](Index i, Index j) { edge_pair(moving_edges_, i, fixed_edges_, j); });
+  sort_pairs(out.edge_edge, static_cast<Index>(E.size() / 2), bucket_start_, scratch_);
 }
 
 namespace {

@@ -57,16 +57,17 @@ class BroadPhase {
  private:
   struct Tree {
     geometry::Bvh bvh;
-    std::vector<Index> ids;        // primitive k of the tree is faces/edges[ids[k]]
+    std::vector<Index> ids;        // primitive k of the tree is point / face / edge ids[k]
+    std::vector<Index> prims;      // its vertices, 1, 3 or 2 per primitive
     std::vector<Scalar> lo, hi;    // its current boxes
     Scalar built_ratio = 0;
   };
-  void update(Tree& tree, const std::vector<Index>& prims, int k, const Scalar* x, const Scalar* dx, Scalar r);
+  void update(Tree& tree, int k, const Scalar* x, const Scalar* dx, Scalar r);
 
-  Tree faces_, moving_faces_, edges_;
-  std::vector<Index> moving_face_ids_;
+  Tree moving_points_, fixed_points_, faces_, moving_faces_, moving_edges_, fixed_edges_;
+  std::vector<Index> bucket_start_;
+  std::vector<std::array<Index, 2>> scratch_;
   bool ready_ = false;
-  bool any_fixed_point_ = false;
 };
 
 // Every pair of non-adjacent primitives with squared distance < dhat2 at x (planes included),

@@ -30,9 +30,10 @@ struct Config {
   Scalar tol = 1e-2;                 // Newton stops when max |dx| / dt < tol * bbox diagonal [1/s]
   Index max_newton = 500;
   LinearSolver linear_solver = LinearSolver::CholmodDirect;
-  // With CholmodDirect: factorise by Eigen's simplicial LLT (AMD order, analysed once per
-  // pattern) instead of CHOLMOD's supernodal factorisation, which loses on the small, thin
-  // systems of a contact scene (a few hundred vertices: its supernodes are tiny BLAS calls).
+  // With CholmodDirect: factorise by the 3x3-block Cholesky (contact/block_cholesky.h; AMD
+  // order, analysed once per pattern) instead of CHOLMOD's supernodal factorisation, which
+  // loses on the small, thin systems of a contact scene (a few hundred vertices: its
+  // supernodes are tiny BLAS calls).
   bool simplicial = true;
   // Keep the Newton matrix's pattern (elastic blocks plus the contact blocks seen so far) and
   // its symbolic analysis between iterations and steps; false: a pattern of exactly this

@@ -193,13 +193,14 @@ Scalar Solver::initial_kappa(Scalar h) const {
   return 1e11 * average_mass / (4 * d0 * barrier_second(d0, dhat2_));
 }
 
-void Solver::lag_friction(const std::vector<Scalar>& x, Scalar kappa, Scalar h) {
+void Solver::lag_friction(const std::vector<Scalar>& x, const std::vector<Constraint>& constraints, Scalar kappa,
+                          Scalar h) {
   friction_.clear();
   bool any = config_.friction > 0;
   for (Scalar mu : model_.body_friction) any |= mu > 0;
   for (const Plane& plane : model_.planes) any |= plane.friction > 0;
   if (!any) return;
-  for (const Constraint& c : find_constraints(model_, broad_phase_, x.data(), dhat2_)) {
+  for (const Constraint& c : constraints) {
     FrictionContact f;
     // The pair's coefficient: its collider's own, else the scene's.
     f.mu = config_.friction;
@@ -226,7 +227,8 @@ void Solver::lag_friction(const std::vector<Scalar>& x, Scalar kappa, Scalar h) 
   }
 }
 
-Scalar Solver::potential(const std::vector<Scalar>& x, Scalar h, Scalar kappa) const {
+Scalar Solver::potential(const std::vector<Scalar>& x, Scalar h, Scalar kappa, std::vector<Constraint>& constraints,
+                         bool known) const {
   Scalar inertia = 0;
   for (Index i = 0; i < model_.vertex_count; ++i) {
     const size_t k = static_cast<size_t>(i);
@@ -251,9 +253,8 @@ Scalar Solver::potential(const std::vector<Scalar>& x, Scalar h, Scalar kappa) c
                                                                     (at(x.data(), i) - at(xn_.data(), i)));
     inertia += 0.5 * h * model_.spring_damping[static_cast<size_t>(s)] * du * du;
   }
-  Scalar b = 0;
-  b = evaluate_barriers(model_, find_constraints(model_, candidates_, x.data(), dhat2_), x.data(), dhat2_, nullptr,
-                        nullptr, Projection::None);
+  if (!known) constraints = find_constraints(model_, candidates_, x.data(), dhat2_);
+  const Scalar b = evaluate_barriers(model_, constraints, x.data(), dhat2_, nullptr, nullptr, Projection::None);
   Scalar friction = 0;
   const Scalar eps_v = config_.friction_velocity;
   for (const FrictionContact& f : friction_) {
@@ -365,6 +366,34 @@ void Solver::assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, cons
   }
 }
 
+bool Solver::keep_candidates(const Scalar* x, const Scalar* p, bool force) {
+  const size_t k = static_cast<size_t>(3 * model_.vertex_count);
+  if (!force && cover_lo_.size() == k) {
+    bool covered = true;
+    for (size_t i = 0; covered && i < k; ++i) {
+      const Scalar a = x[i], b = p ? x[i] + p[i] : a;
+      covered = std::min(a, b) >= cover_lo_[i] && std::max(a, b) <= cover_hi_[i];
+    }
+    if (covered) return false;
+  }
+  // Boxes swept over x -> x + p, every vertex's grown by the margin delta: a later sweep whose
+  // vertices stay inside their grown boxes meets only pairs whose boxes, grown by dhat + 2 delta
+  // (delta from each side), met here.
+  // delta = dhat: on the 16x16 cloth the broad phase then runs 3-5 times per step instead of
+  // once per Newton iteration (7.6), while the larger candidate set costs the narrow phase
+  // little (larger margins cost more than they save).
+  const Scalar delta = config_.dhat;
+  cover_lo_.resize(k);
+  cover_hi_.resize(k);
+  for (size_t i = 0; i < k; ++i) {
+    const Scalar a = x[i], b = p ? x[i] + p[i] : a;
+    cover_lo_[i] = std::min(a, b) - delta;
+    cover_hi_[i] = std::max(a, b) + delta;
+  }
+  broad_phase_.find(model_, x, p, config_.dhat + 2 * delta, candidates_);
+  return true;
+}
+
 StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
   Stopwatch timer;
   // The incremental potential weighs the elastic and barrier energies by dt^2: that must be finite.
@@ -402,7 +431,11 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
                             " m): the state has diverged or dt is far too long");
   }
   Scalar kappa = state.kappa;
-  lag_friction(xn_, kappa, h);
+  // The active pairs at the current iterate (kept: the assembly, the line search's Phi at x
+  // and the kappa update all read them).
+  keep_candidates(xn_.data(), nullptr, true);
+  std::vector<Constraint> current = find_constraints(model_, candidates_, xn_.data(), dhat2_), next;
+  lag_friction(xn_, current, kappa, h);
   // Spring damping acts along the spring directions at x_n.
   const Index spring_count = static_cast<Index>(model_.spring_rest.size());
   spring_direction_.assign(static_cast<size_t>(spring_count), Vec3::Zero());
@@ -433,12 +466,10 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
   };
 
   std::vector<Scalar> x = xn_, g, p(static_cast<size_t>(3 * n)), trial(static_cast<size_t>(3 * n));
-  broad_phase_.find(model_, x.data(), nullptr, config_.dhat, candidates_);
   if (!system_ || !config_.reuse_pattern) system_ = std::make_unique<NewtonSystem>(model_);
   {
     std::vector<std::vector<Index>> stencils;
-    for (const Constraint& c : find_constraints(model_, candidates_, x.data(), dhat2_))
-      stencils.emplace_back(c.stencil(), c.stencil() + c.stencil_size());
+    for (const Constraint& c : current) stencils.emplace_back(c.stencil(), c.stencil() + c.stencil_size());
     system_->begin_step(stencils);
   }
   const Index m = system_->size();
@@ -450,9 +481,8 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
     interrupt.check();
     // Projected Newton direction: H p = -grad Phi over the degrees of freedom.
     Stopwatch phase;
-    const std::vector<Constraint> constraints = find_constraints(model_, candidates_, x.data(), dhat2_);
     if (!config_.reuse_pattern && it > 0) system_ = std::make_unique<NewtonSystem>(model_);
-    assemble(x, h, kappa, constraints, g, *system_);
+    assemble(x, h, kappa, current, g, *system_);
     system_->finish();
     const bool simplicial = config_.simplicial && config_.linear_solver == LinearSolver::CholmodDirect;
     const CsrView view = system_->view();
@@ -461,11 +491,7 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
       linear_ = std::make_unique<SpdSolver>();
       linear_version_ = system_->version();
       ++stats.pattern_changes;
-      if (simplicial) {
-        // The full symmetric CSR matrix is its own CSC; the factorisation reads the lower half.
-        llt_matrix_ = Eigen::Map<const ColMatrix>(m, m, view.row_ptr[m], view.row_ptr, view.col_index, view.values);
-        llt_.analyzePattern(llt_matrix_);
-      }
+      if (simplicial) block_llt_.analyze(view);
     }
     stats.assemble_seconds += phase.seconds();
     phase.restart();
@@ -474,10 +500,8 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
     std::fill(pd.begin(), pd.end(), Scalar(0));
     bool definite = true;
     if (simplicial) {
-      std::copy(view.values, view.values + view.row_ptr[m], llt_matrix_.valuePtr());
-      llt_.factorize(llt_matrix_);
-      definite = llt_.info() == Eigen::Success;
-      if (definite) Eigen::Map<VectorX>(pd.data(), m) = llt_.solve(Eigen::Map<const VectorX>(rhs.data(), m));
+      definite = block_llt_.factorize(view);
+      if (definite) block_llt_.solve(rhs.data(), pd.data());
     } else {
       // cholmod-pcg: PCG preconditioned by the last factor (refactorised when it stalls) to a
       // relative residual of 1e-8; the direct and CG kinds solve to rounding / 1e-10.
@@ -513,18 +537,19 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
     // Largest intersection-free step by CCD, then backtracking until Phi decreases.
     Stopwatch ccd_timer;
     CcdOptions ccd;
-    // One broad phase per iteration: boxes swept over x -> x + p and grown by dhat hold the CCD
-    // pairs, every line-search trial's active pairs and the next iteration's.
-    broad_phase_.find(model_, x.data(), p.data(), config_.dhat, candidates_);
+    // Candidates covering the sweep x -> x + p hold the CCD pairs, every line-search trial's
+    // active pairs and the next iteration's; the broad phase runs only when the sweep leaves
+    // the region the kept ones cover.
+    keep_candidates(x.data(), p.data(), false);
     Scalar alpha = contact::max_safe_step(model_, candidates_, x.data(), p.data(), ccd);
     stats.ccd_seconds += ccd_timer.seconds();
     stats.min_step_fraction = std::min(stats.min_step_fraction, alpha);
     phase.restart();
-    const Scalar phi0 = potential(x, h, kappa);
+    const Scalar phi0 = potential(x, h, kappa, current, true);
     bool accepted = false;
     for (int ls = 0; ls < 60; ++ls) {
       for (size_t k = 0; k < x.size(); ++k) trial[k] = x[k] + alpha * p[k];
-      if (potential(trial, h, kappa) <= phi0) {
+      if (potential(trial, h, kappa, next, false) <= phi0) {
         accepted = true;
         break;
       }
@@ -539,10 +564,11 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
       break;
     }
     x.swap(trial);
+    current.swap(next);
     // Raise kappa when contacts keep closing in below 1e-9 of the scene size (Li et al. 2020,
     // sec. 4.3), so the gap stays resolvable in floating point.
     Scalar dmin = std::numeric_limits<Scalar>::infinity();
-    for (const Constraint& c : find_constraints(model_, candidates_, x.data(), dhat2_)) dmin = std::min(dmin, std::sqrt(c.d));
+    for (const Constraint& c : current) dmin = std::min(dmin, std::sqrt(c.d));
     const Scalar eps_d = 1e-9 * diag;
     if (prev_min < eps_d && dmin < eps_d && dmin < prev_min) kappa *= 2;
     prev_min = dmin;
@@ -568,8 +594,11 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
     for (Index i = 0; i < n; ++i)
       if (model_.driven[static_cast<size_t>(i)])
         for (int r = 0; r < 3; ++r) rest_move[static_cast<size_t>(3 * i + r)] = target_[static_cast<size_t>(3 * i + r)] - x[static_cast<size_t>(3 * i + r)];
-    if (max_safe_step(x.data(), rest_move.data()) >= 1)
+    if (max_safe_step(x.data(), rest_move.data()) >= 1) {
+      keep_candidates(x.data(), rest_move.data(), false);
       for (size_t k = 0; k < x.size(); ++k) x[k] += rest_move[k];
+      current = find_constraints(model_, candidates_, x.data(), dhat2_);
+    }
   }
   // Velocities from the displacement (implicit Euler).
   for (size_t k = 0; k < x.size(); ++k) state.v[k] = (x[k] - xn_[k]) / h;
@@ -577,7 +606,7 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
   state.time += h;
   state.kappa = kappa;
 
-  const std::vector<Constraint> final_set = find_constraints(model_, candidates_, x.data(), dhat2_);
+  const std::vector<Constraint>& final_set = current;
   stats.contact_count = static_cast<Index>(final_set.size());
   stats.min_distance = std::numeric_limits<Scalar>::infinity();
   for (const Constraint& c : final_set) stats.min_distance = std::min(stats.min_distance, std::sqrt(c.d));

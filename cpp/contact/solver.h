@@ -7,11 +7,11 @@
 // accepted iterate, and the straight path to it, is free of intersections.
 #pragma once
 
-#include <Eigen/SparseCholesky>
 #include <Eigen/SparseCore>
 #include <memory>
 #include <vector>
 
+#include "contact/block_cholesky.h"
 #include "contact/collision.h"
 #include "contact/model.h"
 #include "contact/solver_system.h"
@@ -79,11 +79,16 @@ class Solver {
   const Config& config() const { return config_; }
 
  private:
-  Scalar potential(const std::vector<Scalar>& x, Scalar h, Scalar kappa) const;
+  // Phi(x); `constraints` are x's active pairs when `known`, else they are found and returned.
+  Scalar potential(const std::vector<Scalar>& x, Scalar h, Scalar kappa, std::vector<Constraint>& constraints,
+                   bool known) const;
   void assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, const std::vector<Constraint>& constraints,
                 std::vector<Scalar>& g, NewtonSystem& system) const;
-  void lag_friction(const std::vector<Scalar>& x, Scalar kappa, Scalar h);
+  void lag_friction(const std::vector<Scalar>& x, const std::vector<Constraint>& constraints, Scalar kappa, Scalar h);
   Scalar initial_kappa(Scalar h) const;
+  // Keeps candidates_ covering the sweep x -> x + p (p may be null): true when the broad phase
+  // ran, false when the kept candidates already cover it (force: run it).
+  bool keep_candidates(const Scalar* x, const Scalar* p, bool force);
 
   const Model& model_;
   Config config_;
@@ -99,17 +104,17 @@ class Solver {
   std::unique_ptr<NewtonSystem> system_;
   std::unique_ptr<SpdSolver> linear_;
   std::int64_t linear_version_ = -1;
-  // Config::simplicial: Eigen's simplicial LLT of the lower triangle in the system's own dof
-  // order (AMD of the elastic pattern, fixed), analysed once per pattern version; the matrix
-  // keeps the pattern, its values are copied in.
-  using ColMatrix = Eigen::SparseMatrix<Scalar, Eigen::ColMajor, Index>;
-  ColMatrix llt_matrix_;
-  Eigen::SimplicialLLT<ColMatrix, Eigen::Lower, Eigen::NaturalOrdering<Index>> llt_;
+  // Config::simplicial: the 3x3-block Cholesky of the system in its own dof order (AMD of the
+  // elastic pattern, fixed), analysed once per pattern version.
+  BlockCholesky block_llt_;
   // Broad phase kept between queries (its trees are refit), and the candidate pairs of the
   // current Newton iteration: boxes swept over x -> x + p grown by dhat, so every trial of the
   // line search (x + alpha p, alpha <= 1) finds its active pairs among them.
   mutable BroadPhase broad_phase_;
   Candidates candidates_;
+  // The region the candidates cover: per coordinate, the sweep they were found for grown by a
+  // margin; a sweep inside it reuses them (no broad phase).
+  std::vector<Scalar> cover_lo_, cover_hi_;
   // Per-contact barrier derivatives and the Hessian's triplets, kept so that their storage (a
   // few hundred kB, beyond malloc's mmap threshold) is not returned to the system and faulted
   // in again on every evaluation.

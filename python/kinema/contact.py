@@ -204,8 +204,8 @@ class Scene:
       when contacts get closer than 1e-9 of the scene size.
     * ``tol``: Newton stops when ``max |dx| / dt < tol * (bounding-box diagonal)`` [1/s];
       ``max_newton``: its iteration cap (``km.ConvergenceError`` beyond it).
-    * ``linear_solver``: "simplicial" (default: a direct solve per Newton iteration by
-      Eigen's simplicial Cholesky, fastest on contact scenes of up to a few thousand
+    * ``linear_solver``: "simplicial" (default: a direct solve per Newton iteration by a
+      simplicial Cholesky on 3x3 blocks, fastest on contact scenes of up to a few thousand
       vertices), "cholmod" (the same by CHOLMOD's supernodal factorisation), "cholmod-pcg" (PCG
       preconditioned by the last factor, refactorised when PCG stalls) or "cg" (Jacobi).
     * ``reuse_pattern``: keep the Newton matrix's sparsity pattern (elastic blocks plus the
