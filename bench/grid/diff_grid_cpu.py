@@ -5,7 +5,7 @@ thread). Same task (diff_grid_bench.task): forward = T plain steps; backward = k
 backward after a rollout with every state stored and with K = 2 sqrt(T) checkpoints
 (recomputation included); FD agreement as there.
 
-    .venv/bin/python bench/grid/diff_grid_cpu.py [--quick]
+    .venv/bin/python bench/grid/diff_grid_cpu.py [--quick] [--dims 3] [--schemes maccormack bfecc]
     .venv/bin/python bench/grid/diff_grid_cpu.py --per-gradient [--sizes 64 128 256]
 
 Prints one line per case and a SUMMARY line. --per-gradient: instead, the CPU time of one
@@ -97,6 +97,9 @@ def main():
     ap.add_argument("--quick", action="store_true", help="small sizes (a check that the script runs)")
     ap.add_argument("--per-gradient", action="store_true", help="the Taichi comparison's gradient per tolerance")
     ap.add_argument("--sizes", type=int, nargs="+", default=[64, 128, 256])
+    ap.add_argument("--dims", type=int, nargs="+", default=[2, 3], help="the dimensions to run (2, 3)")
+    ap.add_argument("--schemes", nargs="+", default=["semi_lagrangian", "maccormack", "bfecc"],
+                    help="the advection schemes to run")
     opts = ap.parse_args()
     km.set_num_threads(1)
     if opts.per_gradient:
@@ -109,7 +112,11 @@ def main():
     n2, n3, t2, t3 = (256, 64, 16, 9) if not opts.quick else (32, 12, 4, 4)
     summary = []
     for shape, steps in (((n2, n2), t2), ((n3, n3, n3), t3)):
+        if len(shape) not in opts.dims:
+            continue
         for advection, rk in (("semi_lagrangian", 1), ("maccormack", 2), ("bfecc", 2)):
+            if advection not in opts.schemes:
+                continue
             r = case(shape, steps, advection, rk)
             summary.append(f"{len(shape)}D {advection} {r['stored']:.2f}/{r['checkpointed']:.2f}")
     print("SUMMARY (CPU backward/forward, stored/checkpointed, 1 thread): " + "; ".join(summary), flush=True)
