@@ -243,6 +243,7 @@ class Rollout:
         start = self._copy(sim.state())
         self._start = start
         self._record = None
+        self._spine_kept = {}  # what _diff_step_keep kept of the last step, for the first backward
         if checkpoints is None or checkpoints > steps:
             self._spine = {}
             recorder = getattr(sim, "_diff_record", None)
@@ -270,8 +271,15 @@ class Rollout:
                 offsets.append(i)
                 free -= 1
             marks = set(offsets)
+            keep = getattr(sim, "_diff_step_keep", None)
             for k in range(steps):
-                self._step(k)
+                if k == steps - 1 and keep is not None:  # the step reversed first
+                    control = None if controls is None else controls[k]
+                    kept = keep(dt, control, step_options)
+                    if kept is not None:
+                        self._spine_kept[k] = kept
+                else:
+                    self._step(k)
                 if k + 1 in marks:
                     self._spine[k + 1] = self._copy(sim.state())
                     self._hold(1)
@@ -338,7 +346,8 @@ class Rollout:
         self._grad_controls = None if self._controls is None else np.zeros_like(self._controls)
         self.recomputed_steps = 0
         self._current = None
-        self._kept = {}  # step -> what _diff_step_keep kept of it for its adjoint (at most two held)
+        # step -> what _diff_step_keep kept of it for its adjoint (at most two held)
+        self._kept, self._spine_kept = self._spine_kept, {}
         if self._record is not None:
             base = self.steps + 1
         else:

@@ -378,13 +378,10 @@ class Fluid:
         self._core.step(time_step(dt), control)
 
     def _diff_step_keep(self, dt, control, step_options):
-        # km.diff: a recomputed step whose adjoint comes soon; returns MacCormack's or BFECC's
-        # first advection passes and clamp bounds so the adjoint reads them instead of
-        # recomputing them (None where it would not: semi-Lagrangian, or dL/dviscosity wanted,
-        # which reruns the whole step)
-        wanted = getattr(self, "_diff_wanted", None)
-        if (self.advection == "semi_lagrangian"
-                or wanted is None or "viscosity" in wanted):
+        # km.diff: a step whose adjoint comes soon; returns MacCormack's or BFECC's first
+        # advection passes and clamp bounds so the adjoint reads them instead of recomputing
+        # them (None for semi-Lagrangian, whose adjoint reads none)
+        if self.advection == "semi_lagrangian":
             self._diff_step(dt, control, step_options)
             return None
         return self._core.step_keep(time_step(dt), control)
