@@ -60,15 +60,17 @@ struct PyFluid {
     return solver_->step(state_, dt, interrupt, u);
   }
 
-  // step(dt, control) that also returns its advection scratch, for step_adjoint's `forward`.
-  std::unique_ptr<AdvectionKept> step_keep(Scalar dt, const py::object& control) {
+  // step(dt, control) that also returns its advection scratch, for step_adjoint's `forward`:
+  // into `reuse` when given (a spent one: its arrays are refilled, not allocated again).
+  py::object step_keep(Scalar dt, const py::object& control, py::object reuse) {
     std::vector<Scalar> buffer;
     const Scalar* u = read_control(control, buffer);
-    auto kept = std::make_unique<AdvectionKept>();
+    if (reuse.is_none()) reuse = py::cast(AdvectionKept{});
+    AdvectionKept& kept = reuse.cast<AdvectionKept&>();
     Interrupt interrupt = python_interrupt();
     ReleaseGil release;
-    solver_->step(state_, dt, interrupt, u, &kept->scratch);
-    return kept;
+    solver_->step(state_, dt, interrupt, u, &kept.scratch);
+    return reuse;
   }
 
   // A control of one value per cell and velocity component, or nullptr for None.
@@ -373,7 +375,8 @@ void bind_grid(py::module_& m) {
       .def("step", &PyFluid::step, py::arg("dt"), py::arg("control") = py::none())
       .def("step_adjoint", &PyFluid::step_adjoint, py::arg("dt"), py::arg("before"), py::arg("control"),
            py::arg("grads"), py::arg("want_viscosity") = true, py::arg("forward") = nullptr)
-      .def("step_keep", &PyFluid::step_keep, py::arg("dt"), py::arg("control") = py::none())
+      .def("step_keep", &PyFluid::step_keep, py::arg("dt"), py::arg("control") = py::none(),
+           py::arg("reuse") = py::none())
       .def("record", &record_run, py::arg("dt"), py::arg("steps"), py::arg("controls"),
            py::arg("keep_scratch") = false)
       .def("check_differentiable", [](const PyFluid& f) { f.solver_->check_differentiable(); })

@@ -384,7 +384,9 @@ class Fluid:
         if self.advection == "semi_lagrangian":
             self._diff_step(dt, control, step_options)
             return None
-        return self._core.step_keep(time_step(dt), control)
+        spent = getattr(self, "_diff_spent", None)  # one the last adjoint read, refilled
+        self._diff_spent = None
+        return self._core.step_keep(time_step(dt), control, spent)
 
     def _diff_record(self, dt, steps, controls, step_options):
         """km.diff's path for a run stored whole: the steps and their adjoints in C++ (the same
@@ -405,12 +407,15 @@ class Fluid:
         # km.diff: the parameters a backward pass wants (None: all); without the viscosity the
         # adjoint recomputes only the advection's first passes of each step
         self._diff_wanted = names
+        self._diff_spent = None  # a backward's spent advection scratch goes with it
 
     def _diff_step_adjoint(self, dt, before, after, control, grad_after, step_options, forward=None):
         wanted = getattr(self, "_diff_wanted", None)
         want_nu = wanted is None or "viscosity" in wanted
         grads, g_nu, g_control = self._core.step_adjoint(time_step(dt), before, control, grad_after, want_nu,
                                                          forward)
+        if forward is not None and wanted is not None:  # within km.diff's backward, which drops it
+            self._diff_spent = forward
         return grads, ({"viscosity": g_nu} if want_nu else {}), g_control
 
     def stable_dt(self, cfl=1.0, *, max_dt=None) -> float:
