@@ -74,14 +74,16 @@ def case(shape, steps, advection, rk, tol=TOL, kept=True):
     out = {"forward": forward}
     for name, ck in (("stored", None), ("checkpointed", int(2 * np.sqrt(steps)))):
         sim.set_state(s0)
+        t = time.process_time()
         run = km.diff.rollout(sim, steps, dt, wrt=("controls",), controls=controls, checkpoints=ck)
+        out[name + " rollout"] = time.process_time() - t
         box = {}
         backward = cpu(lambda: box.update(g=run.backward({"density": weights})["controls"]))
         err = abs(float(np.sum(box["g"] * direction)) - fd) / abs(fd)
         out[name] = backward / forward
         out[name + " backward"] = backward
         print(f"{len(shape)}D {'x'.join(map(str, shape))} {advection} rk{rk} T={steps} {name:12s}"
-              f"{'' if kept else ' (recomputed)'}: CPU forward "
+              f"{'' if kept else ' (recomputed)'}: CPU rollout {out[name + ' rollout']:.3f} s, forward "
               f"{forward:.3f} s, backward {backward:.3f} s, backward/forward {backward / forward:.2f}, "
               f"|adj - FD|/|FD| {err:.1e}", flush=True)
     return out
@@ -144,7 +146,9 @@ def main():
                                f"{mean[False]['stored backward']:.3f}/{mean[False]['checkpointed backward']:.3f}, kept "
                                f"{mean[True]['stored backward']:.3f}/{mean[True]['checkpointed backward']:.3f}; "
                                f"backward/forward recomputed {mean[False]['stored']:.2f}/{mean[False]['checkpointed']:.2f}, "
-                               f"kept {mean[True]['stored']:.2f}/{mean[True]['checkpointed']:.2f}")
+                               f"kept {mean[True]['stored']:.2f}/{mean[True]['checkpointed']:.2f}; rollout [s] "
+                               f"recomputed {mean[False]['stored rollout']:.3f}/{mean[False]['checkpointed rollout']:.3f}, "
+                               f"kept {mean[True]['stored rollout']:.3f}/{mean[True]['checkpointed rollout']:.3f}")
                 continue
             r = case(shape, steps, advection, rk)
             summary.append(f"{len(shape)}D {advection} {r['stored']:.2f}/{r['checkpointed']:.2f}")
