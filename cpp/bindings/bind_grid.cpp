@@ -39,6 +39,11 @@ std::vector<Index> user_dims(const grid::FieldLayout& L, int dim) {
   return dim == 2 ? std::vector<Index>{L.n[1], L.n[2]} : std::vector<Index>{L.n[0], L.n[1], L.n[2]};
 }
 
+// The advection scratch one forward step left (Fluid.step_keep), for that step's adjoint.
+struct AdvectionKept {
+  std::array<grid::AdvectionScratch, 4> scratch;
+};
+
 // The Solver and the State it advances, as one Python object.
 struct PyFluid {
   PyFluid(const std::vector<Index>& shape, Scalar h, const grid::Config& config) : shape_(shape) {
@@ -53,6 +58,19 @@ struct PyFluid {
     Interrupt interrupt = python_interrupt();
     ReleaseGil release;
     return solver_->step(state_, dt, interrupt, u);
+  }
+
+  // step(dt, control) that also returns its advection scratch, for step_adjoint's `forward`:
+  // into `reuse` when given (a spent one: its arrays are refilled, not allocated again).
+  py::object step_keep(Scalar dt, const py::object& control, py::object reuse) {
+    std::vector<Scalar> buffer;
+    const Scalar* u = read_control(control, buffer);
+    if (reuse.is_none()) reuse = py::cast(AdvectionKept{});
+    AdvectionKept& kept = reuse.cast<AdvectionKept&>();
+    Interrupt interrupt = python_interrupt();
+    ReleaseGil release;
+    solver_->step(state_, dt, interrupt, u, &kept.scratch);
+    return reuse;
   }
 
   // A control of one value per cell and velocity component, or nullptr for None.
@@ -120,7 +138,7 @@ struct PyFluid {
   // (dL/d(before) as a dict, dL/dviscosity or None when not wanted, dL/dcontrol or None) of one
   // step from `before`.
   py::tuple step_adjoint(Scalar dt, const py::dict& before, const py::object& control, const py::dict& grads,
-                         bool want_viscosity) {
+                         bool want_viscosity, const AdvectionKept* forward) {
     const grid::State b = read_state(before, false);
     grid::State adjoint = read_state(grads, true);
     std::vector<Scalar> buffer;
@@ -131,7 +149,7 @@ struct PyFluid {
       Interrupt interrupt = python_interrupt();
       ReleaseGil release;
       solver_->step_adjoint(b, dt, u, adjoint, want_viscosity ? &grad_viscosity : nullptr,
-                            u ? grad_control.data() : nullptr, interrupt);
+                            u ? grad_control.data() : nullptr, interrupt, forward ? &forward->scratch : nullptr);
     }
     py::object gc = py::none();
     if (u) {
@@ -229,6 +247,7 @@ struct PyRecord {
   Index steps = 0;
   std::vector<grid::State> states;  // before step k, k = 0..steps
   std::vector<Scalar> controls;     // steps x cells x dim, or empty
+  std::vector<AdvectionKept> kept;  // each step's advection scratch, or empty (recomputed)
 
   // (dL/d(initial state) as a dict, dL/dviscosity summed over the steps or None when not
   // wanted, dL/dcontrols of shape (steps, *shape, dim) or None).
@@ -244,7 +263,8 @@ struct PyRecord {
         Scalar g = 0;
         const Scalar* u = controls.empty() ? nullptr : controls.data() + k * per_step;
         fluid->solver_->step_adjoint(states[k], dt, u, adjoint, want_viscosity ? &g : nullptr,
-                                     u ? grad_controls.data() + k * per_step : nullptr, interrupt);
+                                     u ? grad_controls.data() + k * per_step : nullptr, interrupt,
+                                     kept.empty() ? nullptr : &kept[k].scratch);
         grad_viscosity = k == steps - 1 ? g : grad_viscosity + g;  // km.diff's order of the sum
       }
     }
@@ -261,8 +281,9 @@ struct PyRecord {
 };
 
 // `steps` steps of dt from the fluid's state with controls (None or steps x cells x dim values),
-// each state kept; the fluid ends at the last one.
-PyRecord record_run(py::object self, Scalar dt, Index steps, const py::object& controls) {
+// each state kept (and each step's advection scratch when keep_scratch); the fluid ends at the
+// last one.
+PyRecord record_run(py::object self, Scalar dt, Index steps, const py::object& controls, bool keep_scratch) {
   PyFluid& f = self.cast<PyFluid&>();
   if (steps < 0) throw InvalidArgument("steps: expected a count >= 0");
   PyRecord rec;
@@ -284,8 +305,10 @@ PyRecord record_run(py::object self, Scalar dt, Index steps, const py::object& c
   Interrupt interrupt = python_interrupt();
   ReleaseGil release;
   rec.states.push_back(f.state_);
+  if (keep_scratch) rec.kept.resize(static_cast<size_t>(steps));
   for (Index k = 0; k < steps; ++k) {
-    f.solver_->step(f.state_, dt, interrupt, rec.controls.empty() ? nullptr : rec.controls.data() + k * per_step);
+    f.solver_->step(f.state_, dt, interrupt, rec.controls.empty() ? nullptr : rec.controls.data() + k * per_step,
+                    keep_scratch ? &rec.kept[k].scratch : nullptr);
     rec.states.push_back(f.state_);
   }
   return rec;
@@ -340,6 +363,8 @@ void bind_grid(py::module_& m) {
       .def_readonly("viscosity_seconds", &StepStats::viscosity_seconds)
       .def_readonly("projection_seconds", &StepStats::projection_seconds);
 
+  py::class_<AdvectionKept>(m, "AdvectionKept", "A forward step's advection scratch (Fluid.step_keep), "
+                                                 "read by Fluid.step_adjoint instead of recomputing it.");
   py::class_<PyRecord>(m, "FluidRecord")
       .def("backward", &PyRecord::backward, py::arg("grads"), py::arg("want_viscosity"));
 
@@ -349,8 +374,11 @@ void bind_grid(py::module_& m) {
       .def_property_readonly("config", [](const PyFluid& f) { return f.solver_->config(); })
       .def("step", &PyFluid::step, py::arg("dt"), py::arg("control") = py::none())
       .def("step_adjoint", &PyFluid::step_adjoint, py::arg("dt"), py::arg("before"), py::arg("control"),
-           py::arg("grads"), py::arg("want_viscosity") = true)
-      .def("record", &record_run, py::arg("dt"), py::arg("steps"), py::arg("controls"))
+           py::arg("grads"), py::arg("want_viscosity") = true, py::arg("forward") = nullptr)
+      .def("step_keep", &PyFluid::step_keep, py::arg("dt"), py::arg("control") = py::none(),
+           py::arg("reuse") = py::none())
+      .def("record", &record_run, py::arg("dt"), py::arg("steps"), py::arg("controls"),
+           py::arg("keep_scratch") = false)
       .def("check_differentiable", [](const PyFluid& f) { f.solver_->check_differentiable(); })
       .def("set_viscosity", [](PyFluid& f, Scalar nu) { f.solver_->set_viscosity(nu); }, py::arg("viscosity"))
       .def("project", [](PyFluid& f, Scalar dt) {

@@ -695,7 +695,8 @@ void Solver::projection_adjoint(std::array<std::vector<Scalar>, 3>& grad, Scalar
 }
 
 void Solver::step_adjoint(const State& before, Scalar dt, const Scalar* control, State& adjoint,
-                          Scalar* grad_viscosity, Scalar* grad_control, Interrupt& interrupt) {
+                          Scalar* grad_viscosity, Scalar* grad_control, Interrupt& interrupt,
+                          const std::array<AdvectionScratch, 4>* forward) {
   if (!(dt > 0) || !std::isfinite(dt)) throw InvalidArgument("dt: expected a finite time step > 0, got " + format_real(dt));
   check_differentiable();
   check_state(before);
@@ -709,15 +710,16 @@ void Solver::step_adjoint(const State& before, Scalar dt, const Scalar* control,
   refresh_solids(s0);
   apply_sources(s0);
   enforce_boundary(s0);
-  std::array<AdvectionScratch, 4>& kept = adjoint_kept_;  // the advection's forward passes, for its adjoint
+  // The advection's forward passes, for its adjoint: the forward step's when it kept them.
+  const std::array<AdvectionScratch, 4>* kept = forward ? forward : &adjoint_kept_;
   State s;
   if (grad_viscosity) {
     s = s0;
-    advect(s, dt, &kept);
+    advect(s, dt, forward ? nullptr : &adjoint_kept_);
     add_forces(s, dt, control);
     diffuse(s, dt, interrupt);
-  } else {
-    advection_scratch(s0, dt, kept);
+  } else if (!forward) {
+    advection_scratch(s0, dt, adjoint_kept_);
   }
   interrupt.check();
   std::array<std::vector<Scalar>, 3>& g = adjoint.velocity;
@@ -787,7 +789,7 @@ void Solver::step_adjoint(const State& before, Scalar dt, const Scalar* control,
     const Scalar* qa = s0.velocity[a].data();
     const Scalar* ga = g[a].data();
     advect_adjoint(config_.advection, u0, faces_[a], 1, &qa, &ga, &g0_p[a], g0_p, dt_grid, config_.rk_order,
-                   &kept[1 + a], &adjoint_work_);
+                   &(*kept)[1 + a], &adjoint_work_);
   }
   const Scalar* q[2];
   const Scalar* g_out[2];
@@ -806,7 +808,7 @@ void Solver::step_adjoint(const State& before, Scalar dt, const Scalar* control,
     ++count;
   }
   if (count > 0 && any_open()) inflow_ambient(s0, g_scalars, count);
-  advect_adjoint(config_.advection, u0, cells_, count, q, g_out, g_in, g0_p, dt_grid, config_.rk_order, &kept[0],
+  advect_adjoint(config_.advection, u0, cells_, count, q, g_out, g_in, g0_p, dt_grid, config_.rk_order, &(*kept)[0],
                  &adjoint_work_);
   // 0. Boundary values and sources imposed before the step.
   enforce_boundary_adjoint(g0);

@@ -363,13 +363,15 @@ void Solver::check_state(const State& state) const {
     throw InvalidArgument("state: its arrays do not fit this grid and configuration (make it with make_state)");
 }
 
-StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt, const Scalar* control) {
+StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt, const Scalar* control,
+                       std::array<AdvectionScratch, 4>* kept) {
   if (!(dt > 0) || !std::isfinite(dt)) throw InvalidArgument("dt: expected a finite time step > 0, got " + format_real(dt));
   check_state(state);
-  return with_rollback(state, [&] { return step_phases(state, dt, interrupt, control); });
+  return with_rollback(state, [&] { return step_phases(state, dt, interrupt, control, kept); });
 }
 
-StepStats Solver::step_phases(State& state, Scalar dt, Interrupt& interrupt, const Scalar* control) {
+StepStats Solver::step_phases(State& state, Scalar dt, Interrupt& interrupt, const Scalar* control,
+                              std::array<AdvectionScratch, 4>* kept) {
   SerialBelow serial(cells_.size());
   Stopwatch total, clock;
   StepStats stats;
@@ -381,7 +383,7 @@ StepStats Solver::step_phases(State& state, Scalar dt, Interrupt& interrupt, con
   enforce_boundary(state);
 
   // 1. Advection of velocity and scalars (kernels.h; Stam 1999, Selle et al. 2008).
-  advect(state, dt);
+  advect(state, dt, kept);
   stats.advect_seconds = clock.seconds();
   clock.restart();
   // 2. Body forces: gravity, buoyancy, vorticity confinement (Fedkiw et al. 2001, Sec. 3-4),

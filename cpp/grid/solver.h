@@ -55,7 +55,9 @@ class Solver {
   // One splitting step of size dt [s]. When it throws, the state is as it was before.
   // `control` (nullable): per-cell accelerations [m/s^2], (cells, dim) in user component order,
   // averaged to the free faces and added with the body forces (km.diff's controls).
-  StepStats step(State& state, Scalar dt, Interrupt& interrupt, const Scalar* control = nullptr);
+  // kept (nullable): the step's advection scratch is left there (step_adjoint's `forward`).
+  StepStats step(State& state, Scalar dt, Interrupt& interrupt, const Scalar* control = nullptr,
+                 std::array<AdvectionScratch, 4>* kept = nullptr);
 
   // The vector-Jacobian product of step(before, dt, control) (adjoint.cpp): `adjoint` holds
   // dL/d(after) on entry (velocity, density, temperature; pressure ignored) and dL/d(before) on
@@ -64,8 +66,11 @@ class Solver {
   // InvalidArgument naming the option when the configuration is not differentiable
   // (check_differentiable). Without grad_viscosity only the advection's first passes are
   // recomputed (the rest of the step is linear in what it reads, or only dL/dnu reads it).
+  // forward (nullable): the scratch step(before, dt, control, kept) left in `kept`; the
+  // advection's first passes are then read from it instead of recomputed (the same bits).
   void step_adjoint(const State& before, Scalar dt, const Scalar* control, State& adjoint,
-                    Scalar* grad_viscosity, Scalar* grad_control, Interrupt& interrupt);
+                    Scalar* grad_viscosity, Scalar* grad_control, Interrupt& interrupt,
+                    const std::array<AdvectionScratch, 4>* forward = nullptr);
   void check_differentiable() const;
   // The projection alone (u -= dt grad p with the pressure solve) and its transpose, for tests.
   SolveInfo apply_projection(State& state, Scalar dt, Interrupt& interrupt) { return project(state, dt, interrupt); }
@@ -108,7 +113,9 @@ class Solver {
   const FieldLayout& cells() const { return cells_; }
 
  private:
-  StepStats step_phases(State& state, Scalar dt, Interrupt& interrupt, const Scalar* control);  // step() without the rollback
+  // step() without the rollback
+  StepStats step_phases(State& state, Scalar dt, Interrupt& interrupt, const Scalar* control,
+                        std::array<AdvectionScratch, 4>* kept);
   // The five phases of a step, in order.
   // kept (nullable): the advection scratch of the scalars (0) and of each velocity component
   // (1 + axis) is left there, for the adjoint (advect_adjoint's `forward`).

@@ -58,6 +58,10 @@ Optional (a faster path for runs stored whole; km.diff falls back to the steps w
 - ``_diff_want(names or None)``: ``backward`` tells the simulation which parameters it wants
   (a tuple of names) before its adjoint steps and None (all) after them; ``_diff_step_adjoint``
   may then leave the others out of grad_params (they count as zero) and skip their cost.
+- ``_diff_step_keep(dt, control, step_options) -> kept or None``: ``_diff_step`` that also
+  returns what the step's adjoint would otherwise recompute of it; a checkpointed backward calls
+  it for a recomputed step whose adjoint comes soon (at most two held at once) and passes it as
+  ``_diff_step_adjoint(..., forward=kept)``. The gradients must not change (bitwise).
 """
 
 from __future__ import annotations
@@ -239,6 +243,7 @@ class Rollout:
         start = self._copy(sim.state())
         self._start = start
         self._record = None
+        self._spine_kept = {}  # what _diff_step_keep kept of the last step, for the first backward
         if checkpoints is None or checkpoints > steps:
             self._spine = {}
             recorder = getattr(sim, "_diff_record", None)
@@ -266,8 +271,15 @@ class Rollout:
                 offsets.append(i)
                 free -= 1
             marks = set(offsets)
+            keep = getattr(sim, "_diff_step_keep", None)
             for k in range(steps):
-                self._step(k)
+                if k == steps - 1 and keep is not None:  # the step reversed first
+                    control = None if controls is None else controls[k]
+                    kept = keep(dt, control, step_options)
+                    if kept is not None:
+                        self._spine_kept[k] = kept
+                else:
+                    self._step(k)
                 if k + 1 in marks:
                     self._spine[k + 1] = self._copy(sim.state())
                     self._hold(1)
@@ -287,14 +299,24 @@ class Rollout:
         control = None if self._controls is None else self._controls[k]
         self._sim._diff_step(self.dt, control, self._options)
 
-    def _advance(self, state: dict, first: int, count: int) -> dict:
-        """The state `count` steps after `state` (which is the state before step `first`)."""
+    def _advance(self, state: dict, first: int, count: int, keep: bool = False) -> dict:
+        """The state `count` steps after `state` (which is the state before step `first`).
+        keep: the last step's adjoint comes soon; a simulation with `_diff_step_keep` then
+        returns what that adjoint would recompute of the step, held until the adjoint reads it."""
         # set_state can be costly (an implicit solver rebuilds the factor its state records);
         # it is skipped when the simulation already holds `state` (it was the last one made).
         if self._current is not state:
             self._sim.set_state(state)
+        last = first + count - 1
+        stepper = getattr(self._sim, "_diff_step_keep", None) if keep else None
         for k in range(first, first + count):
-            self._step(k)
+            if k == last and stepper is not None:
+                control = None if self._controls is None else self._controls[k]
+                kept = stepper(self.dt, control, self._options)
+                if kept is not None:
+                    self._kept[k] = kept
+            else:
+                self._step(k)
             self.recomputed_steps += 1
         after = self._copy(self._sim.state())
         self._current = after
@@ -324,6 +346,8 @@ class Rollout:
         self._grad_controls = None if self._controls is None else np.zeros_like(self._controls)
         self.recomputed_steps = 0
         self._current = None
+        # step -> what _diff_step_keep kept of it for its adjoint (at most two held)
+        self._kept, self._spine_kept = self._spine_kept, {}
         if self._record is not None:
             base = self.steps + 1
         else:
@@ -353,6 +377,7 @@ class Rollout:
         finally:
             if want is not None:
                 want(None)
+            self._kept = {}
             self._sim.set_state(self._end)
         self._spine = {}  # used up by the first backward call; later calls recompute it
         out = {}
@@ -376,7 +401,9 @@ class Rollout:
     def _adjoint(self, k: int, before: dict, after: dict, g: dict) -> dict:
         self._current = None  # an adjoint step may leave the simulation in any state
         control = None if self._controls is None else self._controls[k]
-        gb, gp, gc = self._sim._diff_step_adjoint(self.dt, before, after, control, g, self._options)
+        kept = self._kept.pop(k, None)
+        extra = {} if kept is None else {"forward": kept}
+        gb, gp, gc = self._sim._diff_step_adjoint(self.dt, before, after, control, g, self._options, **extra)
         for name, value in gp.items():
             self._params[name] = value if name not in self._params else self._params[name] + value
         if control is not None and gc is not None:
@@ -395,17 +422,17 @@ class Rollout:
             length = j - i
             if length == 1:
                 if after is None:
-                    after = self._advance(state_i, i, 1)
+                    after = self._advance(state_i, i, 1, keep=True)
                     self._hold(1)
                 g = self._adjoint(i, state_i, after, g)
                 self._held -= 1
                 return g
             if free == 0:
                 # No slot left: recompute the state before the last step from state_i.
-                before = self._advance(state_i, i, length - 1)
+                before = self._advance(state_i, i, length - 1, keep=True)  # step j - 2: reversed next
                 self._hold(1)
                 if after is None:
-                    after = self._advance(before, j - 1, 1)
+                    after = self._advance(before, j - 1, 1, keep=True)
                     self._hold(1)
                 g = self._adjoint(j - 1, before, after, g)
                 self._held -= 1
@@ -417,7 +444,8 @@ class Rollout:
                 state_m = self._spine.pop(m)
                 self._held -= 1  # moves from the spine to this recursion's slot
             else:
-                state_m = self._advance(state_i, i, m - i)
+                # step m - 1 is reversed next when the sub-segment is a single step
+                state_m = self._advance(state_i, i, m - i, keep=j - m == 1)
             self._hold(1)
             g = self._reverse(m, state_m, j, free - 1, g, after)
             after = state_m  # still held: the state after step m - 1, reversed next

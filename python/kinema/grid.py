@@ -28,6 +28,7 @@ from kinema._checks import (
     as_float_array, checked_state, choice, finite, finite_result, grid_shape, positive_int, real,
     simulation_object, spacing, time_step)
 from kinema._state import assign
+from kinema.diff import _memory_bytes
 
 __all__ = ["Fluid", "StepInfo", "advect", "SCHEMES", "ADVECTION_KERNELS"]
 
@@ -376,20 +377,45 @@ class Fluid:
     def _diff_step(self, dt, control, step_options):
         self._core.step(time_step(dt), control)
 
+    def _diff_step_keep(self, dt, control, step_options):
+        # km.diff: a step whose adjoint comes soon; returns MacCormack's or BFECC's first
+        # advection passes and clamp bounds so the adjoint reads them instead of recomputing
+        # them (None for semi-Lagrangian, whose adjoint reads none)
+        if self.advection == "semi_lagrangian":
+            self._diff_step(dt, control, step_options)
+            return None
+        spent = getattr(self, "_diff_spent", None)  # one the last adjoint read, refilled
+        self._diff_spent = None
+        return self._core.step_keep(time_step(dt), control, spent)
+
     def _diff_record(self, dt, steps, controls, step_options):
         """km.diff's path for a run stored whole: the steps and their adjoints in C++ (the same
         calls, so the same bits, as _diff_step and _diff_step_adjoint)."""
-        return _Record(self, self._core.record(time_step(dt), int(steps), controls))
+        # MacCormack and BFECC: each step's first advection passes and clamp bounds (3 and 4
+        # arrays per advected field) are kept too, so the backward reads them instead of
+        # recomputing them, where the run then still takes at most half the machine's memory
+        keep = False
+        if self.advection != "semi_lagrangian":
+            state = self.state()
+            per_state = sum(v.nbytes for v in state.values() if isinstance(v, np.ndarray))
+            fields = sum(state[name].nbytes for name in self._diff_state_names)  # the advected ones
+            need = (int(steps) + 1) * per_state + int(steps) * fields * (3 if self.advection == "maccormack" else 4)
+            keep = need <= 0.5 * _memory_bytes()
+        return _Record(self, self._core.record(time_step(dt), int(steps), controls, keep))
 
     def _diff_want(self, names):
         # km.diff: the parameters a backward pass wants (None: all); without the viscosity the
         # adjoint recomputes only the advection's first passes of each step
         self._diff_wanted = names
+        self._diff_spent = None  # a backward's spent advection scratch goes with it
 
-    def _diff_step_adjoint(self, dt, before, after, control, grad_after, step_options):
+    def _diff_step_adjoint(self, dt, before, after, control, grad_after, step_options, forward=None):
         wanted = getattr(self, "_diff_wanted", None)
         want_nu = wanted is None or "viscosity" in wanted
-        grads, g_nu, g_control = self._core.step_adjoint(time_step(dt), before, control, grad_after, want_nu)
+        grads, g_nu, g_control = self._core.step_adjoint(time_step(dt), before, control, grad_after, want_nu,
+                                                         forward)
+        if forward is not None and wanted is not None:  # within km.diff's backward, which drops it
+            self._diff_spent = forward
         return grads, ({"viscosity": g_nu} if want_nu else {}), g_control
 
     def stable_dt(self, cfl=1.0, *, max_dt=None) -> float:
