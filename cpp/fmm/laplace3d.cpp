@@ -345,9 +345,10 @@ struct Engine {
     }
   }
 
-  // `mutual`: the targets are the sources, and the near field of adjacent leaves is summed
-  // once per pair of leaves (near_mutual) instead of here.
-  void leaves(std::vector<Scalar>& result, bool mutual, Interrupt& interrupt) {
+  // `self`: the targets are the sources (target t is source t in tree order: a smooth near
+  // kernel leaves out that pair only). `mutual` (self only): the near field of adjacent leaves
+  // is summed once per pair of leaves (near_mutual) instead of here.
+  void leaves(std::vector<Scalar>& result, bool self, bool mutual, Interrupt& interrupt) {
     const Index leaf_count = static_cast<Index>(tree.leaves.size());
     const bool fast = config.kernel != NearKernel::Gaussian && nc == 1 && width <= 4;
     const Scalar softening = config.kernel == NearKernel::Plummer ? config.length : 0.0;
@@ -425,11 +426,12 @@ struct Engine {
           // P2P: the near field with the near kernel.
           for (size_t r = 0; r < ranges.size(); r += 2) {
             const Index b = ranges[r], e = ranges[r + 1];
+            const Index own = self && b <= t && t < e ? t - b : -1;
             if (fast && p2p_fast(width == 4, newton, softening, x, y, z, src[0] + b, src[1] + b,
-                                 src[2] + b, &q[static_cast<size_t>(b)], e - b, out))
+                                 src[2] + b, &q[static_cast<size_t>(b)], e - b, out, own))
               continue;
             p2p_generic(config.kernel, config.length, width, x, y, z, src[0] + b, src[1] + b,
-                        src[2] + b, &q[static_cast<size_t>(b) * nc], nc, e - b, out);
+                        src[2] + b, &q[static_cast<size_t>(b) * nc], nc, e - b, out, own);
           }
         }
       }
@@ -485,9 +487,9 @@ struct Engine {
           for (Index t = a0; t < ab.src_end; ++t) {
             Scalar* out = &result[static_cast<size_t>(t) * width];
             if (!p2p_fast(gradient, newton, softening, src[0][t], src[1][t], src[2][t], xa[0], xa[1], xa[2],
-                          &q[static_cast<size_t>(a0)], na, out))
+                          &q[static_cast<size_t>(a0)], na, out, t - a0))
               p2p_generic(config.kernel, config.length, width, src[0][t], src[1][t], src[2][t], xa[0],
-                          xa[1], xa[2], &q[static_cast<size_t>(a0)], 1, na, out);
+                          xa[1], xa[2], &q[static_cast<size_t>(a0)], 1, na, out, t - a0);
           }
           std::vector<Scalar> out_a, out_b, xb[3], qb;
           for (Index b : tree.lists[static_cast<size_t>(a)].u) {
@@ -688,7 +690,7 @@ Fmm3dStats fmm3d(const Scalar* sources, Index n, const Scalar* charges, int comp
   // leaf's targets are its sources.
   const bool mutual = self && config.kernel != NearKernel::Gaussian && components == 1 &&
                       width <= 4 && p2p_mutual_available();
-  engine.leaves(result, mutual, interrupt);
+  engine.leaves(result, self, mutual, interrupt);
   if (mutual) engine.near_mutual(result, interrupt);
   stats.seconds_leaves = watch.seconds();
 
@@ -702,7 +704,8 @@ Fmm3dStats fmm3d(const Scalar* sources, Index n, const Scalar* charges, int comp
 void direct3d(const Scalar* sources, Index n, const Scalar* charges, int components,
               const Scalar* targets, Index m, const Fmm3dConfig& config, Scalar* out,
               Interrupt& interrupt) {
-  if (targets == nullptr) {
+  const bool self = targets == nullptr;
+  if (self) {
     targets = sources;
     m = n;
   }
@@ -722,7 +725,7 @@ void direct3d(const Scalar* sources, Index n, const Scalar* charges, int compone
       std::fill(o, o + components * width, 0.0);
       p2p_generic(config.kernel, config.length, width, targets[3 * t], targets[3 * t + 1],
                   targets[3 * t + 2], xyz[0].data(), xyz[1].data(), xyz[2].data(), charges,
-                  components, n, o);
+                  components, n, o, self ? t : -1);
     }
   }
 }

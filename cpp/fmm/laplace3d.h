@@ -2,8 +2,9 @@
 //   phi(x) = sum_j q_j / |x - y_j|,   grad phi(x) = -sum_j q_j (x - y_j) / |x - y_j|^3,
 // by the adaptive fast multipole method (Greengard & Rokhlin 1997; Cheng, Greengard & Rokhlin
 // 1999) with solid-harmonic expansions and precomputed dense M2L operators applied as matrix
-// products, in O(N + M) work, or by the direct O(N M) sum. Pairs at distance zero (the self
-// term when the targets are the sources, and coincident points) are left out of both.
+// products, in O(N + M) work, or by the direct O(N M) sum. The self term (when the targets are
+// the sources) is left out of both, and with the 1/r kernel so are all pairs at distance zero
+// (coincident points); a smooth near kernel counts a distinct source at a target's position.
 // The near field (adjacent leaves) can use a softened or regularised kernel instead of 1/r
 // (Plummer softening for N-body, a Gaussian blob for vortex particles): every pair in
 // non-adjacent boxes is at least `Fmm3dConfig::min_width` apart and sees 1/r.

@@ -24,19 +24,26 @@ struct Sums {
 };
 
 // One vector of four sources: the inverse distance by a float estimate and Newton steps
-// y <- y (3/2 - s^2 y^2 / 2); pairs at distance 0 masked out, r^2 + a^2 outside float's
-// normal range flagged.
-template <bool Gradient>
+// y <- y (3/2 - s^2 y^2 / 2); left out: without softening the pairs at distance 0, with it the
+// lanes of `self_lane` (the target itself; s^2 >= a^2 > 0 there). r^2 + a^2 outside float's
+// normal range is flagged.
+template <bool Gradient, bool Softened>
 KINEMA_AVX2_FMA inline void p2p_vector(__m256d dx, __m256d dy, __m256d dz, __m256d w, __m256d a2,
-                                       int newton_steps, Sums& acc) {
+                                       int newton_steps, __m256d self_lane, Sums& acc) {
   const __m256d zero = _mm256_setzero_pd();
   const __m256d r2 = _mm256_fmadd_pd(dx, dx, _mm256_fmadd_pd(dy, dy, _mm256_mul_pd(dz, dz)));
-  const __m256d live = _mm256_cmp_pd(r2, zero, _CMP_GT_OQ);
   const __m256d s2 = _mm256_add_pd(r2, a2);
+  __m256d live, safe;
+  if constexpr (Softened) {
+    live = _mm256_andnot_pd(self_lane, _mm256_castsi256_pd(_mm256_set1_epi64x(-1)));
+    safe = s2;
+  } else {
+    live = _mm256_cmp_pd(r2, zero, _CMP_GT_OQ);
+    safe = _mm256_blendv_pd(_mm256_set1_pd(1.0), s2, live);
+  }
   const __m256d out_of_range = _mm256_or_pd(_mm256_cmp_pd(s2, _mm256_set1_pd(1e-36), _CMP_LT_OQ),
                                             _mm256_cmp_pd(s2, _mm256_set1_pd(1e36), _CMP_GT_OQ));
   acc.bad = _mm256_or_pd(acc.bad, _mm256_and_pd(live, out_of_range));
-  const __m256d safe = _mm256_blendv_pd(_mm256_set1_pd(1.0), s2, live);
   __m256d inv = _mm256_cvtps_pd(_mm_rsqrt_ps(_mm256_cvtpd_ps(safe)));
   const __m256d hs = _mm256_mul_pd(_mm256_set1_pd(0.5), safe);
   for (int k = 0; k < newton_steps; ++k)
@@ -51,35 +58,41 @@ KINEMA_AVX2_FMA inline void p2p_vector(__m256d dx, __m256d dy, __m256d dz, __m25
   }
 }
 
+// All ones in lane k of four (k = 0..3), zeros elsewhere (none for any other k).
+KINEMA_AVX2_FMA inline __m256d lane_is(Index k) {
+  return _mm256_castsi256_pd(_mm256_cmpeq_epi64(_mm256_set_epi64x(3, 2, 1, 0), _mm256_set1_epi64x(k)));
+}
+
 KINEMA_AVX2_FMA inline Scalar horizontal_sum(__m256d v) {
   alignas(32) Scalar t[4];
   _mm256_store_pd(t, v);
   return (t[0] + t[1]) + (t[2] + t[3]);
 }
 
-template <bool Gradient>
+template <bool Gradient, bool Softened>
 KINEMA_AVX2_FMA bool p2p_avx2(int newton_steps, Scalar a, Scalar x, Scalar y, Scalar z,
                               const Scalar* sx, const Scalar* sy, const Scalar* sz,
-                              const Scalar* q, Index n, Scalar* out) {
+                              const Scalar* q, Index n, Scalar* out, Index self) {
   const __m256d vx = _mm256_set1_pd(x), vy = _mm256_set1_pd(y), vz = _mm256_set1_pd(z);
   const __m256d a2 = _mm256_set1_pd(a * a);
   Sums acc{_mm256_setzero_pd(), _mm256_setzero_pd(), _mm256_setzero_pd(), _mm256_setzero_pd(),
            _mm256_setzero_pd()};
   Index j = 0;
   for (; j + 4 <= n; j += 4) {
-    p2p_vector<Gradient>(_mm256_sub_pd(vx, _mm256_loadu_pd(sx + j)),
-                         _mm256_sub_pd(vy, _mm256_loadu_pd(sy + j)),
-                         _mm256_sub_pd(vz, _mm256_loadu_pd(sz + j)), _mm256_loadu_pd(q + j), a2,
-                         newton_steps, acc);
+    p2p_vector<Gradient, Softened>(_mm256_sub_pd(vx, _mm256_loadu_pd(sx + j)),
+                                   _mm256_sub_pd(vy, _mm256_loadu_pd(sy + j)),
+                                   _mm256_sub_pd(vz, _mm256_loadu_pd(sz + j)), _mm256_loadu_pd(q + j),
+                                   a2, newton_steps, Softened ? lane_is(self - j) : a2, acc);
   }
   if (j < n) {
-    // The tail padded with copies of the target (distance 0: masked out) and zero charges.
+    // The tail padded with copies of the target (distance 0: masked out without softening) and
+    // zero charges.
     alignas(32) Scalar bx[4] = {x, x, x, x}, by[4] = {y, y, y, y}, bz[4] = {z, z, z, z},
                        bq[4] = {0, 0, 0, 0};
     for (Index k = 0; j + k < n; ++k) bx[k] = sx[j + k], by[k] = sy[j + k], bz[k] = sz[j + k], bq[k] = q[j + k];
-    p2p_vector<Gradient>(_mm256_sub_pd(vx, _mm256_load_pd(bx)), _mm256_sub_pd(vy, _mm256_load_pd(by)),
-                         _mm256_sub_pd(vz, _mm256_load_pd(bz)), _mm256_load_pd(bq), a2,
-                         newton_steps, acc);
+    p2p_vector<Gradient, Softened>(_mm256_sub_pd(vx, _mm256_load_pd(bx)), _mm256_sub_pd(vy, _mm256_load_pd(by)),
+                                   _mm256_sub_pd(vz, _mm256_load_pd(bz)), _mm256_load_pd(bq), a2,
+                                   newton_steps, Softened ? lane_is(self - j) : a2, acc);
   }
   if (_mm256_movemask_pd(acc.bad) != 0) return false;
   out[0] += horizontal_sum(acc.phi);
@@ -177,22 +190,24 @@ KINEMA_AVX512 inline __mmask8 tail_mask(Index left) {
   return left >= 8 ? __mmask8(0xFF) : __mmask8((1u << left) - 1);
 }
 
-template <bool Gradient>
+template <bool Gradient, bool Softened>
 KINEMA_AVX512 bool p2p_avx512(int steps, Scalar a, Scalar x, Scalar y, Scalar z,
                               const Scalar* sx, const Scalar* sy, const Scalar* sz,
-                              const Scalar* q, Index n, Scalar* out) {
+                              const Scalar* q, Index n, Scalar* out, Index self) {
   const __m512d vx = _mm512_set1_pd(x), vy = _mm512_set1_pd(y), vz = _mm512_set1_pd(z);
   const __m512d a2 = _mm512_set1_pd(a * a), zero = _mm512_setzero_pd(), one = _mm512_set1_pd(1.0);
   __m512d phi = zero, gx = zero, gy = zero, gz = zero;
   __mmask8 bad = 0;
   for (Index j = 0; j < n; j += 8) {
     const __mmask8 m = tail_mask(n - j);
-    // Masked-off lanes load the target itself: distance 0, left out below.
+    // Masked-off lanes load the target itself: distance 0 and a zero charge.
     const __m512d dx = _mm512_sub_pd(vx, _mm512_mask_loadu_pd(vx, m, sx + j));
     const __m512d dy = _mm512_sub_pd(vy, _mm512_mask_loadu_pd(vy, m, sy + j));
     const __m512d dz = _mm512_sub_pd(vz, _mm512_mask_loadu_pd(vz, m, sz + j));
     const __m512d r2 = _mm512_fmadd_pd(dx, dx, _mm512_fmadd_pd(dy, dy, _mm512_mul_pd(dz, dz)));
-    const __mmask8 live = _mm512_cmp_pd_mask(r2, zero, _CMP_GT_OQ);
+    const __mmask8 live =
+        Softened ? _mm512_cmpneq_epi64_mask(_mm512_set_epi64(7, 6, 5, 4, 3, 2, 1, 0), _mm512_set1_epi64(self - j))
+                 : _mm512_cmp_pd_mask(r2, zero, _CMP_GT_OQ);
     const __m512d s2 = _mm512_add_pd(r2, a2);
     bad |= live & (_mm512_cmp_pd_mask(s2, _mm512_set1_pd(1e-36), _CMP_LT_OQ) |
                    _mm512_cmp_pd_mask(s2, _mm512_set1_pd(1e36), _CMP_GT_OQ));
@@ -320,21 +335,24 @@ bool p2p_mutual(bool gradient, int newton_steps, Scalar a, const Scalar* const x
 
 bool p2p_fast(bool gradient, int newton_steps, Scalar a, Scalar x, Scalar y, Scalar z,
               const Scalar* sx, const Scalar* sy, const Scalar* sz, const Scalar* q, Index n,
-              Scalar* out) {
+              Scalar* out, Index self) {
 #if KINEMA_HAVE_AVX2_CLONES
   static const bool avx2 = use_avx2(), avx512 = avx2 && use_avx512();
+  using Kernel = bool (*)(int, Scalar, Scalar, Scalar, Scalar, const Scalar*, const Scalar*,
+                          const Scalar*, const Scalar*, Index, Scalar*, Index);
   if (avx512) {
-    const int steps = std::clamp(newton_steps, 1, 2);
-    return gradient ? p2p_avx512<true>(steps, a, x, y, z, sx, sy, sz, q, n, out)
-                    : p2p_avx512<false>(steps, a, x, y, z, sx, sy, sz, q, n, out);
+    static constexpr Kernel kernels[2][2] = {{p2p_avx512<false, false>, p2p_avx512<false, true>},
+                                             {p2p_avx512<true, false>, p2p_avx512<true, true>}};
+    return kernels[gradient][a > 0](std::clamp(newton_steps, 1, 2), a, x, y, z, sx, sy, sz, q, n, out, self);
   }
   if (avx2) {
-    return gradient ? p2p_avx2<true>(newton_steps, a, x, y, z, sx, sy, sz, q, n, out)
-                    : p2p_avx2<false>(newton_steps, a, x, y, z, sx, sy, sz, q, n, out);
+    static constexpr Kernel kernels[2][2] = {{p2p_avx2<false, false>, p2p_avx2<false, true>},
+                                             {p2p_avx2<true, false>, p2p_avx2<true, true>}};
+    return kernels[gradient][a > 0](newton_steps, a, x, y, z, sx, sy, sz, q, n, out, self);
   }
 #endif
   p2p_generic(a > 0 ? NearKernel::Plummer : NearKernel::Laplace, a, gradient ? 4 : 1, x, y, z, sx,
-              sy, sz, q, 1, n, out);
+              sy, sz, q, 1, n, out, self);
   return true;
 }
 

@@ -2,8 +2,12 @@
 //   phi(x) = sum_j q_j f(|x - y_j|),  grad phi = sum_j q_j f'(r)/r (x - y_j),
 //   hess phi = sum_j q_j [f'/r I + (f'' - f'/r)/r^2 (x - y_j)(x - y_j)^T],
 // for f = 1/r (Laplace), 1/sqrt(r^2 + a^2) (Plummer softening) and erf(r/a)/r (the potential
-// of a Gaussian blob exp(-r^2/a^2)/(pi^{3/2} a^3), Beale & Majda 1985). Pairs at distance 0
-// are left out. The Laplace potential and gradient also have a vectorised path.
+// of a Gaussian blob exp(-r^2/a^2)/(pi^{3/2} a^3), Beale & Majda 1985). What is left out:
+// for Laplace every pair at distance 0 (the self pair, and coincident points, whose
+// interaction is infinite); for the smooth kernels (finite at r = 0) only the self pair, named
+// by its index (`self`, the source that is the target itself, or -1): a distinct source at
+// the target's position adds its finite q_j f(0). The Laplace and Plummer potential and
+// gradient also have a vectorised path.
 #pragma once
 
 #include <cmath>
@@ -50,16 +54,19 @@ inline Radial radial(NearKernel kernel, Scalar r2, Scalar a) {
 
 // Adds to out[c * width + ...] (phi, grad[3], hess[6] = xx xy xz yy yz zz; the first `width`
 // of them, width 1, 4 or 10) the sum over sources [0, n) with charge components
-// q[j * components + c], c < components (the kernel evaluated once per pair).
+// q[j * components + c], c < components (the kernel evaluated once per pair). Source `self`
+// (in [0, n), or -1 for none) is the target itself and skipped; Laplace skips every pair at
+// distance 0 instead.
 inline void p2p_generic(NearKernel kernel, Scalar a, int width, Scalar x, Scalar y, Scalar z,
                         const Scalar* sx, const Scalar* sy, const Scalar* sz, const Scalar* q,
-                        int components, Index n, Scalar* out) {
+                        int components, Index n, Scalar* out, Index self = -1) {
+  const bool laplace = kernel == NearKernel::Laplace;
   constexpr int kMaxComponents = 4;
   Scalar acc[kMaxComponents][10] = {};
   for (Index j = 0; j < n; ++j) {
     const Scalar dx = x - sx[j], dy = y - sy[j], dz = z - sz[j];
     const Scalar r2 = dx * dx + dy * dy + dz * dz;
-    if (r2 == 0) continue;
+    if (laplace ? r2 == 0 : j == self) continue;
     const Radial k = radial(kernel, r2, a);
     const Scalar* w = q + j * components;
     for (int c = 0; c < components; ++c) {
@@ -83,12 +90,13 @@ inline void p2p_generic(NearKernel kernel, Scalar a, int width, Scalar x, Scalar
 // The Laplace (softening a = 0) or Plummer potential and gradient of sources [0, n) with unit
 // stride charges, AVX2 where the CPU has it (a float reciprocal square root refined by Newton
 // steps: one leaves 2e-7, two a relative error below 1e-13, three reach rounding; the
-// mutual kernel takes 1 to 3). Adds to out[0..3].
+// mutual kernel takes 1 to 3). Adds to out[0..3]. Left out as in p2p_generic: with a = 0
+// every pair at distance 0, with a > 0 source `self` (or none for -1).
 // Returns false, leaving out untouched, when a pair's r^2 is outside the range where the float
 // estimate is valid; the caller then uses p2p_generic.
 bool p2p_fast(bool gradient, int newton_steps, Scalar a, Scalar x, Scalar y, Scalar z,
               const Scalar* sx, const Scalar* sy, const Scalar* sz, const Scalar* q, Index n,
-              Scalar* out);
+              Scalar* out, Index self = -1);
 
 // True when this CPU runs AVX-512F and the AVX-512 kernels are not switched off
 // (KINEMA_SIMD=baseline or avx2, as core/simd.h describes).
@@ -100,6 +108,8 @@ bool p2p_mutual_available();
 
 // The Laplace or Plummer near field between two disjoint blocks of points that are sources and
 // targets at once (Newton's third law: each pair's kernel is evaluated once for both ends).
+// No pair is a self pair: Plummer counts coincident points; for Laplace they fail the range
+// check below.
 // Block a: coordinates xa[3][na], charges qa; block b likewise, its arrays readable up to nb
 // rounded up to a multiple of 4 (padding: zero charges at one of b's points). Adds the field
 // of b at a's points to out_a (na x width rows, width 1 or 4: phi[, grad]) and the field of a

@@ -131,7 +131,9 @@ def _eval3d(src, q, tgt, *, eps, derivatives, kernel="laplace", length=0.0, min_
     """The 3D engine shared by laplace3d, km.nbody and km.vortex (checked inputs).
 
     q: (N, C) charge components. Returns (out (M, C, width), info); width 1 (phi), 4 (phi,
-    grad) or 10 (phi, grad, hessian xx xy xz yy yz zz).
+    grad) or 10 (phi, grad, hessian xx xy xz yy yz zz). The smooth kernels ("plummer",
+    "gaussian") are finite at r = 0: only the self pair (tgt None) is left out, and a distinct
+    source at a target's position adds q f(0); "laplace" leaves out every pair at distance 0.
     """
     q2 = np.ascontiguousarray(q[:, None] if q.ndim == 1 else q, dtype=np.float64)
     out, info = _core.fmm.eval3d(src, q2, tgt, float(eps), int(derivatives), _NEAR_KERNELS[kernel],

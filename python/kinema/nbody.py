@@ -96,17 +96,14 @@ class System:
     def potential_energy(self) -> float:
         """-G/2 sum_i m_i sum_{j != i} m_j / sqrt(r_ij^2 + s^2) [J].
 
-        Pairs of particles at the same position (which the FMM leaves out) add -G m_i m_j / s;
+        Particles at the same position add -G m_i m_j / s (counted by the softened near field);
         with s = 0 their energy is infinite and a km.DivergenceError says so."""
         phi = self._field(0)[:, 0]
+        if self.softening == 0 and self._coincident_mass_products() > 0:
+            raise DivergenceError(f"potential_energy: particles coincide at step {self.steps} "
+                                  f"(t = {self.time:g}), an infinite energy without softening; "
+                                  "give softening > 0")
         energy = -0.5 * self.G * np.dot(self.mass, phi)
-        coincident = self._coincident_mass_products()
-        if coincident > 0:
-            if self.softening == 0:
-                raise DivergenceError(f"potential_energy: particles coincide at step {self.steps} "
-                                      f"(t = {self.time:g}), an infinite energy without softening; "
-                                      "give softening > 0")
-            energy -= self.G * coincident / self.softening
         return finite_result(float(energy), "potential_energy")
 
     def _coincident_mass_products(self) -> float:
