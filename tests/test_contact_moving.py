@@ -112,11 +112,44 @@ def test_moving_plane_options_are_checked():
     spin.step(1e-2)
 
 
+def test_overflowing_collider_motion_is_refused_naming_its_argument():
+    V, T = km.fem.box_mesh((0, 5e-4, 0), (0.1, 0.1005, 0.1), 1)
+    for kind, options in [("plane", dict(velocity=(0, 1e300, 0))), ("sphere", dict(center=(0, 1, 0), radius=0.1,
+                          subdivisions=0, velocity=(1e300, 0, 0))),
+                          ("plane", dict(motion=lambda t: (0, 1e308 * (1 - 2 * (t > 0)), 0)))]:
+        scene = km.contact.Scene()
+        scene.add_solid(V, T, youngs_modulus=1e5, poisson_ratio=0.3, density=1000)
+        name = "motion" if "motion" in options else "velocity"
+        scene.add_collider(kind, **options)
+        x0 = scene.x.copy()
+        with pytest.raises(ValueError, match=f"^{name}: a step of dt = 0.01 would move the {kind} collider by"):
+            scene.step(1e-2)
+        assert np.array_equal(scene.x, x0) and scene.time == 0  # refused before anything moved
+    # a finite velocity whose placement overflows later is refused where it is placed
+    scene = km.contact.Scene()
+    scene.add_solid(V, T, youngs_modulus=1e5, poisson_ratio=0.3, density=1000)
+    scene.add_collider("plane", velocity=(0, 1e300, 0))
+    with pytest.raises(ValueError, match="^velocity: at t = 10000000000.0 it places the plane collider at non-fin"):
+        scene.collider_positions(0, time=1e10)
+
+
 def test_fem_body_on_a_rising_plane_collider():
     V, T = km.fem.box_mesh((0, 5e-4, 0), (0.1, 0.1005, 0.1), 2)
     body = km.fem.Body(V, T, youngs_modulus=1e5, poisson_ratio=0.3, density=1000, gravity=(0, -G, 0))
+    tol = 1e-4
+    km.contact.attach(body, tol=tol)
     body.add_collider("plane", point=(0, 0, 0), normal=(0, 1, 0), velocity=(0, 0.1, 0))
     for k in range(20):
         body.step(1e-2)
         assert body.x[:, 1].min() > 0.1 * body.time
-    assert body.v[:, 1].mean() == pytest.approx(0.1, abs=2e-3)
+    # Every vertex rides the plane at 0.1 m/s once the landing's elastic ringing has decayed, so
+    # any mean of the vertex velocities (weighted or not) errs by at most the worst vertex's:
+    # * Newton stops when max |dx| < tol diag dt (diag = 0.1 sqrt 3, the cube's), so each
+    #   vertex's velocity (x_n+1 - x_n) / dt is off the step's solution by <= tol diag;
+    # * the plane's point tracks its target to tol diag dt, so its velocity over a step is off by
+    #   <= 2 tol diag;
+    # * ringing: the slowest mode (omega ~ (pi / 2) sqrt(E / rho) / L = 157 rad/s) is damped by
+    #   implicit Euler by 1 / sqrt(1 + (omega dt)^2) = 0.54 a step: 0.54^20 = 4e-6 of the <= 0.1 m/s
+    #   landing speed, 4e-7 m/s (the softer bounce on the barrier rings longer: measured, the mean
+    #   is off by 1e-6 and the worst vertex by 2.6e-5 m/s, both inside the Newton bound).
+    assert body.v[:, 1].mean() == pytest.approx(0.1, abs=3 * tol * 0.1 * np.sqrt(3) + 1e-6)

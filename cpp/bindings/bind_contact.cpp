@@ -198,7 +198,7 @@ void bind_contact(py::module_& m) {
       .def("__repr__", [](const contact::StepStats& s) {
         return "StepStats(time=" + format_real(s.time) + ", newton_iterations=" + std::to_string(s.newton_iterations) +
                ", contact_count=" + std::to_string(s.contact_count) + ", min_distance=" + format_real(s.min_distance) +
-               ", sticking=" + std::to_string(s.sticking_count) + ", sliding=" + std::to_string(s.sliding_count) +
+               ", sticking_count=" + std::to_string(s.sticking_count) + ", sliding_count=" + std::to_string(s.sliding_count) +
                ", ccd_share=" + format_real(s.ccd_share) + ")";
       });
 

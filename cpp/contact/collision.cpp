@@ -176,10 +176,14 @@ void BroadPhase::find(const Model& model, const Scalar* x, const Scalar* dx, Sca
 
   out.point_face.clear();
   auto point_faces = [&](const Tree& points, const Tree& faces) {
+    // The leaves' pairs are a superset: the primitives' boxes first, then the shared vertices
+    // from the trees' own copies of the vertex indices (no lookup through the mesh arrays).
     points.bvh.query_pairs(faces.bvh, [&](Index i, Index k) {
-      const Index p = points.ids[static_cast<size_t>(i)], f = faces.ids[static_cast<size_t>(k)];
-      if (p == F[3 * f] || p == F[3 * f + 1] || p == F[3 * f + 2]) return;
-      if (boxes_meet(points, i, faces, k)) out.point_face.push_back({p, f});
+      if (!boxes_meet(points, i, faces, k)) return;
+      const Index p = points.prims[static_cast<size_t>(i)];
+      const Index* v = &faces.prims[static_cast<size_t>(3 * k)];
+      if (p == v[0] || p == v[1] || p == v[2]) return;
+      out.point_face.push_back({p, faces.ids[static_cast<size_t>(k)]});
     });
   };
   point_faces(moving_points_, faces_);
@@ -188,10 +192,11 @@ void BroadPhase::find(const Model& model, const Scalar* x, const Scalar* dx, Sca
 
   out.edge_edge.clear();
   auto edge_pair = [&](const Tree& a, Index i, const Tree& b, Index j) {
-    const Index e = a.ids[static_cast<size_t>(i)], f = b.ids[static_cast<size_t>(j)];
-    const Index a0 = E[2 * e], a1 = E[2 * e + 1], b0 = E[2 * f], b1 = E[2 * f + 1];
-    if (a0 == b0 || a0 == b1 || a1 == b0 || a1 == b1) return;
     if (!boxes_meet(a, i, b, j)) return;
+    const Index a0 = a.prims[static_cast<size_t>(2 * i)], a1 = a.prims[static_cast<size_t>(2 * i + 1)];
+    const Index b0 = b.prims[static_cast<size_t>(2 * j)], b1 = b.prims[static_cast<size_t>(2 * j + 1)];
+    if (a0 == b0 || a0 == b1 || a1 == b0 || a1 == b1) return;
+    const Index e = a.ids[static_cast<size_t>(i)], f = b.ids[static_cast<size_t>(j)];
     if (&a == &b && f < e)
       out.edge_edge.push_back({f, e});
     else

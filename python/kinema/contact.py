@@ -245,7 +245,7 @@ class Scene:
         self._core = _core.contact.Scene(cfg)
         self.config = cfg
         self.planes = []
-        self.colliders = []  # dicts: shape, options, rows, rest, pivot, motion
+        self.colliders = []  # dicts: shape, options, rows, rest, pivot, motion, script (the argument naming it)
         self._bodies = []
 
     # ------------------------------------------------------------------ building
@@ -358,6 +358,7 @@ class Scene:
         mu = -1.0 if friction is None else non_negative(friction, "friction")
         if angular_velocity is not None and shape == "plane":
             raise ValueError("angular_velocity: a plane collider moves by translation only (its normal is fixed)")
+        script = "motion" if motion is not None else "velocity" if velocity is not None else "angular_velocity"
         motion = _motion(motion, velocity, angular_velocity)
         allowed = {"plane": {"point", "normal"}, "box": {"lower", "upper"},
                    "sphere": {"center", "radius", "subdivisions"}, "mesh": {"vertices", "triangles", "path"}}[shape]
@@ -374,7 +375,7 @@ class Scene:
             self.planes.append((point, unit))
             rows = None if motion is None else self._slice(start, 1)
             spec = {"shape": "plane", "point": point, "normal": unit, "rows": rows, "motion": motion,
-                    "rest": point[None, :].copy(), "pivot": point.copy()}
+                    "rest": point[None, :].copy(), "pivot": point.copy(), "script": script}
             self.colliders.append(spec)
             if motion is not None:
                 self._core.x[rows] = _place(spec, self.time)
@@ -383,7 +384,7 @@ class Scene:
         start = self._core.add_obstacle(v, t, motion is not None, mu)
         rows = self._slice(start, len(v))
         spec = {"shape": shape, "rows": rows, "rest": v.copy(), "motion": motion,
-                "pivot": 0.5 * (v.min(axis=0) + v.max(axis=0))}
+                "pivot": 0.5 * (v.min(axis=0) + v.max(axis=0)), "script": script}
         if shape == "box":
             spec.update(lower=_vec3(kw["lower"], "lower"), upper=_vec3(kw["upper"], "upper"))
         elif shape == "sphere":
@@ -423,9 +424,14 @@ class Scene:
                 raise DivergenceError(f"{name}: {bad} non-finite value(s) at the start of the step (written into "
                                       "a view, or left by a diverged run)")
         target = self._core.target
+        scale = None
         for spec in self.colliders:
             if spec["motion"] is not None:
-                target[spec["rows"]] = _place(spec, self.time + dt)
+                placed = _place(spec, self.time + dt)
+                if scale is None:
+                    scale = self._motion_scale()
+                _check_reach(spec, self._core.x[spec["rows"]], placed, dt, scale)
+                target[spec["rows"]] = placed
         try:
             stats = self._core.step(dt)
         except ValueError as exc:
@@ -439,6 +445,16 @@ class Scene:
             body.v[...] = self._core.v[rows]
             _set_time(body, self.time)
         return stats
+
+    def _motion_scale(self):
+        """The scene size the solver measures a step's reach by: the bounding-box diagonal of
+        every vertex but the moving planes' points, at least 1 m (as Solver::step)."""
+        keep = np.ones(len(self._core.x), bool)
+        for spec in self.colliders:
+            if spec["shape"] == "plane" and spec["rows"] is not None:
+                keep[spec["rows"]] = False
+        x = self._core.x[keep]
+        return max(float(np.linalg.norm(x.max(axis=0) - x.min(axis=0))) if len(x) else 0.0, 1.0)
 
     def advance(self, duration, dt, *, on_step=None) -> int:
         """Steps of ``dt`` until ``duration`` has passed (the last one shortened to land on it);
@@ -602,7 +618,22 @@ def _motion(motion, velocity, angular_velocity):
         return script
     v = np.zeros(3) if velocity is None else _vec3(velocity, "velocity")
     w = np.zeros(3) if angular_velocity is None else _vec3(angular_velocity, "angular_velocity")
-    return lambda t: (_rotation(w, t), v * t)
+
+    def script(t):
+        with np.errstate(over="ignore"):  # an overflow is refused where the collider is placed
+            return _rotation(w, t), v * t
+    return script
+
+
+def _check_reach(spec, now, placed, dt, scale):
+    """Refuse a scripted collider motion that overflows or moves the collider by more than 1000
+    scene diagonals in one step (the limit Solver::step puts on free vertices): its squared
+    displacement would overflow the incremental potential (or CCD crawl along it for hours)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        reach = np.abs(placed - now).max() if placed.size else 0.0
+    if not (np.isfinite(placed).all() and reach <= 1e3 * scale):
+        raise ValueError(f"{spec['script']}: a step of dt = {dt:g} would move the {spec['shape']} collider by "
+                         f"{reach:g} m, more than 1000 scene diagonals ({scale:g} m): its motion is out of range")
 
 
 def _place(spec, t):
@@ -614,7 +645,12 @@ def _place(spec, t):
     if spec["shape"] == "plane" and not np.allclose(R @ spec["normal"], spec["normal"], rtol=0, atol=1e-12):
         raise ValueError(f"motion: at t = {t} it turns the plane's normal; a plane collider moves by translation "
                          "only (rotations about its normal are allowed)")
-    return (spec["rest"] - p) @ R.T + p + c
+    with np.errstate(over="ignore", invalid="ignore"):  # refused just below
+        placed = (spec["rest"] - p) @ R.T + p + c
+    if not np.isfinite(placed).all():
+        raise ValueError(f"{spec['script']}: at t = {t} it places the {spec['shape']} collider at non-finite "
+                         "coordinates (the motion overflows)")
+    return placed
 
 
 def _set_time(body, t):
