@@ -12,6 +12,7 @@
 
 #include "core/errors.h"
 #include "core/parallel.h"
+#include "core/simd.h"
 #include "core/timer.h"
 #include "mpm/adjoint_kernels.h"
 #include "mpm/kernels.h"
@@ -611,6 +612,14 @@ class SolverD final : public Solver::Impl {
   // Each work item scatters into its own tile of tiles_ (no two threads write one value).
   // Called by every thread of a parallel region (a work-shared loop ending in a barrier).
   void p2g_phase(const State& state, Scalar dt, const Scalar* forces) {
+#if KINEMA_HAVE_AVX2_CLONES
+    if constexpr (D == 2) {
+      if (avx2_) {
+        p2g_lanes_avx2(state, dt, forces);
+        return;
+      }
+    }
+#endif
     const Scalar h = model_.h, stress_scale = 4 * dt / (h * h);
     each_block([&](Index s) {
       const auto o = block_origin(s);
@@ -798,6 +807,12 @@ class SolverD final : public Solver::Impl {
     const Scalar h = model_.h;
     Scalar vmax2 = 0;
     bool finite = true;
+#if KINEMA_HAVE_AVX2_CLONES
+    if constexpr (D == 2) {
+      if (avx2_) g2p_lanes_avx2(state, dt, vmax2, finite);
+    }
+    if (!(D == 2 && avx2_))
+#endif
     each_block([&](Index s) {
       const auto o = block_origin(s);
       alignas(64) Scalar tile[TN * S];
@@ -944,9 +959,196 @@ class SolverD final : public Solver::Impl {
     }
   }
 
+#if KINEMA_HAVE_AVX2_CLONES
+  // ---- 2D transfers four particles wide (AVX2) ----------------------------------------------
+  // The stencil weights, the affine momentum and the weighted sums of four particles of a block
+  // in one vector operation each (GCC vector extension, compiled for AVX2 only; the baseline
+  // build takes the scalar code above). Every value is computed with the scalar code's
+  // operations in the scalar code's order and without FMA, so the results are bitwise those of
+  // the scalar path; P2G's contributions are then added into the tile particle by particle in
+  // block order, so each node's sum keeps its order. The materials' stresses and return
+  // mappings stay per particle (tau, plasticity), as does the backup of the rows.
+  typedef Scalar Lanes __attribute__((vector_size(4 * sizeof(Scalar))));
+  typedef std::int32_t LaneInts __attribute__((vector_size(4 * sizeof(std::int32_t))));
+
+  // Weights and bases of the four particles p[0..3] of a block whose lower node is o:
+  // w[a][k] and fx[a] per axis, base[l] the tile index of particle l's base node.
+  KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE void stencil_lanes(const State& state, const Index* p,
+                                                               const std::array<Index, 3>& o, Lanes w[2][3],
+                                                               Lanes fx[2], int base[4]) const {
+    LaneInts b[2];
+    for (int a = 0; a < 2; ++a) {
+      const Lanes x = {state.x[static_cast<size_t>(p[0] * 2 + a)], state.x[static_cast<size_t>(p[1] * 2 + a)],
+                       state.x[static_cast<size_t>(p[2] * 2 + a)], state.x[static_cast<size_t>(p[3] * 2 + a)]};
+      const Lanes g = (x - model_.origin[a]) * inv_h_ + 1;
+      b[a] = __builtin_convertvector(g - 0.5, LaneInts);  // truncation = floor (g >= 1)
+      fx[a] = g - __builtin_convertvector(b[a], Lanes);
+      const Lanes ca = 1.5 - fx[a], cb = fx[a] - 1.0, cc = fx[a] - 0.5;
+      w[a][0] = 0.5 * ca * ca;
+      w[a][1] = 0.75 - cb * cb;
+      w[a][2] = 0.5 * cc * cc;
+    }
+    for (int l = 0; l < 4; ++l)
+      base[l] = static_cast<int>((b[0][l] - o[0]) * T + (b[1][l] - o[1]));
+  }
+
+  // The rows of block s's positions q .. q + 3 (the last repeated past `end`).
+  void lane_rows(Index q, Index end, Index* p) const {
+    for (int l = 0; l < 4; ++l) p[l] = order_[static_cast<size_t>(std::min<Index>(q + l, end - 1))];
+  }
+
+  KINEMA_TARGET_AVX2 void p2g_lanes_avx2(const State& state, Scalar dt, const Scalar* forces) {
+    const Scalar h = model_.h, stress_scale = 4 * dt / (h * h);
+#pragma omp for schedule(dynamic, 1)
+    for (Index s = 0; s < particle_blocks_; ++s) {
+      const auto o = block_origin(s);
+      Scalar* tile = &tiles_[static_cast<size_t>(s * TN * S)];
+      std::fill_n(tile, TN * S, 0.0);
+      const Index end = block_start_[static_cast<size_t>(s + 1)];
+      for (Index q = block_start_[static_cast<size_t>(s)]; q < end; q += 4) {
+        prefetch_row(state, q, end);
+        const int count = static_cast<int>(std::min<Index>(4, end - q));
+        Index p[4];
+        lane_rows(q, end, p);
+        Lanes w[2][3], fx[2];
+        int base[4];
+        stencil_lanes(state, p, o, w, fx, base);
+        Lanes m, vol, v[2], C[4], tau4[4];
+        for (int l = 0; l < 4; ++l) {
+          const size_t pl = static_cast<size_t>(p[l]);
+          m[l] = state.mass[pl];
+          vol[l] = state.volume[pl];
+          for (int a = 0; a < 2; ++a) v[a][l] = state.v[pl * 2 + a];
+          for (int k = 0; k < 4; ++k) C[k][l] = state.C[pl * 4 + k];
+          Mat<2> F;
+          F << state.F[pl * 4], state.F[pl * 4 + 1], state.F[pl * 4 + 2], state.F[pl * 4 + 3];
+          const Mat<2> t = tau(state, p[l], F);
+          tau4[0][l] = t(0, 0);
+          tau4[1][l] = t(0, 1);
+          tau4[2][l] = t(1, 0);
+          tau4[3][l] = t(1, 1);
+        }
+        // A (row-major) = (m C - 4 dt V / h^2 tau) h; q0 = m v [+ dt f] - A fx.
+        const Lanes sv = stress_scale * vol;
+        Lanes A[4];
+        for (int k = 0; k < 4; ++k) A[k] = (m * C[k] - sv * tau4[k]) * h;
+        Lanes q0[2];
+        for (int r = 0; r < 2; ++r) {
+          Lanes mv = m * v[r];
+          if (forces) {
+            Lanes f;
+            for (int l = 0; l < 4; ++l) f[l] = forces[state.user_of(p[l]) * 2 + r];
+            mv = mv + dt * f;
+          }
+          q0[r] = mv - (A[r * 2] * fx[0] + A[r * 2 + 1] * fx[1]);
+        }
+        // The 9 nodes' contributions (mass, momentum) of the four particles.
+        Lanes add[9][3];
+        for (int i = 0; i < 3; ++i) {
+          const Scalar di = i;
+          const Lanes qi0 = q0[0] + A[0] * di, qi1 = q0[1] + A[2] * di;
+          for (int j = 0; j < 3; ++j) {
+            const Scalar dj = j;
+            const Lanes wn = w[0][i] * w[1][j];
+            Lanes* out = add[i * 3 + j];
+            out[0] = wn * m;
+            out[1] = wn * (qi0 + A[1] * dj);
+            out[2] = wn * (qi1 + A[3] * dj);
+          }
+        }
+        for (int l = 0; l < count; ++l)
+          for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j) {
+              Scalar* node = tile + (base[l] + i * T + j) * S;
+              const Lanes* in = add[i * 3 + j];
+              node[0] += in[0][l];
+              node[1] += in[1][l];
+              node[2] += in[2][l];
+            }
+      }
+    }
+  }
+
+  KINEMA_TARGET_AVX2 void g2p_lanes_avx2(State& state, Scalar dt, Scalar& vmax2, bool& finite) {
+    const Scalar h = model_.h, four_h = 4 / h;
+#pragma omp for schedule(dynamic, 1)
+    for (Index s = 0; s < particle_blocks_; ++s) {
+      const auto o = block_origin(s);
+      alignas(64) Scalar tile[TN * S];
+      gather<1>(tile, s, grid_);
+      const Index end = block_start_[static_cast<size_t>(s + 1)];
+      for (Index q = block_start_[static_cast<size_t>(s)]; q < end; q += 4) {
+        prefetch_row(state, q, end);
+        const int count = static_cast<int>(std::min<Index>(4, end - q));
+        Index p[4];
+        lane_rows(q, end, p);
+        for (int l = 0; l < count; ++l) save_row(state, p[l], q + l);
+        Lanes w[2][3], fx[2];
+        int base[4];
+        stencil_lanes(state, p, o, w, fx, base);
+        // v = sum w v_i, Bm = sum w v_i (node offset)^T (row-major), as gather_sums.
+        Lanes v[2] = {Lanes{} + 0.0, Lanes{} + 0.0}, Bm[4] = {Lanes{} + 0.0, Lanes{} + 0.0, Lanes{} + 0.0, Lanes{} + 0.0};
+        for (int i = 0; i < 3; ++i) {
+          const Scalar di = i;
+          for (int j = 0; j < 3; ++j) {
+            const Scalar dj = j;
+            const Lanes wn = w[0][i] * w[1][j];
+            Lanes n1, n2;
+            for (int l = 0; l < 4; ++l) {
+              const Scalar* node = tile + (base[l] + i * T + j) * S;
+              n1[l] = node[1];
+              n2[l] = node[2];
+            }
+            const Lanes wv0 = wn * n1, wv1 = wn * n2;
+            v[0] += wv0;
+            v[1] += wv1;
+            Bm[0] += wv0 * di;
+            Bm[2] += wv1 * di;
+            Bm[1] += wv0 * dj;
+            Bm[3] += wv1 * dj;
+          }
+        }
+        Lanes C[4], F[4], Fn[4];
+        for (int r = 0; r < 2; ++r)
+          for (int c = 0; c < 2; ++c) C[r * 2 + c] = four_h * (Bm[r * 2 + c] - v[r] * fx[c]);
+        for (int l = 0; l < 4; ++l)
+          for (int k = 0; k < 4; ++k) F[k][l] = state.F[static_cast<size_t>(p[l] * 4 + k)];
+        // (I + dt C) F
+        const Lanes M[4] = {1.0 + dt * C[0], 0.0 + dt * C[1], 0.0 + dt * C[2], 1.0 + dt * C[3]};
+        for (int r = 0; r < 2; ++r)
+          for (int c = 0; c < 2; ++c) Fn[r * 2 + c] = M[r * 2] * F[c] + M[r * 2 + 1] * F[2 + c];
+        Lanes x[2];
+        for (int a = 0; a < 2; ++a) {
+          for (int l = 0; l < 4; ++l) x[a][l] = state.x[static_cast<size_t>(p[l] * 2 + a)];
+          x[a] = x[a] + dt * v[a];
+        }
+        const Lanes speed2 = v[0] * v[0] + v[1] * v[1];
+        for (int l = 0; l < count; ++l) {
+          const size_t pl = static_cast<size_t>(p[l]);
+          for (int k = 0; k < 4; ++k) state.C[pl * 4 + k] = C[k][l];
+          Mat<2> Fl;
+          Fl << Fn[0][l], Fn[1][l], Fn[2][l], Fn[3][l];
+          plasticity(state, p[l], Fl, dt);
+          state.F[pl * 4] = Fl(0, 0);
+          state.F[pl * 4 + 1] = Fl(0, 1);
+          state.F[pl * 4 + 2] = Fl(1, 0);
+          state.F[pl * 4 + 3] = Fl(1, 1);
+          for (int a = 0; a < 2; ++a) {
+            state.x[pl * 2 + a] = std::clamp(x[a][l], model_.origin[a], model_.upper(a));
+            state.v[pl * 2 + a] = v[a][l];
+          }
+          finite = finite && std::isfinite(v[0][l]) && std::isfinite(v[1][l]) && Fl.allFinite();
+          vmax2 = std::max(vmax2, speed2[l]);
+        }
+      }
+    }
+  }
+#endif
+
   Model model_;
   Config config_;
   Scalar inv_h_ = 1 / model_.h;
+  bool avx2_ = use_avx2();                   // 2D transfers four particles wide (p2g_lanes_avx2)
   std::vector<Scalar> spare_;                // scratch of permute_rows
   const std::array<TileNode, TN> tile_nodes_ = make_tile_nodes();
   const std::array<std::vector<Overlap>, NEIGHBORS> overlaps_ = make_overlaps();
