@@ -3,6 +3,9 @@
 #include "mpm/solver.h"
 
 #include <omp.h>
+#if defined(__x86_64__) || defined(__i386__)
+#include <immintrin.h>
+#endif
 
 #include <algorithm>
 #include <array>
@@ -997,6 +1000,59 @@ class SolverD final : public Solver::Impl {
     for (int l = 0; l < 4; ++l) p[l] = order_[static_cast<size_t>(std::min<Index>(q + l, end - 1))];
   }
 
+  // Kirchhoff stress (row-major) of four particles of one material kind, with the operations of
+  // kernels.h's 2D corotated_tau, neohookean_tau and water_tau in their order (so bitwise the
+  // same); false (nothing written) for a kind that stays per particle (sand).
+  KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE bool tau_lanes(MaterialKind kind, Scalar gamma, const Lanes* F,
+                                                          Lanes mu, Lanes lambda, Lanes bulk, Lanes* t) const {
+    const Lanes J = F[0] * F[3] - F[2] * F[1];
+    switch (kind) {
+      case MaterialKind::Elastic:
+      case MaterialKind::Snow: {
+        const Lanes a = F[0] + F[3], b = F[2] - F[1], r2 = a * a + b * b;
+        Lanes r;
+        for (int l = 0; l < 4; ++l) r[l] = std::sqrt(r2[l]);  // vsqrtpd
+        const Lanes one = Lanes{} + 1.0, zero = Lanes{};
+        const Lanes c = r > 0 ? a / r : one, s = r > 0 ? b / r : zero;
+        const Lanes mu2 = 2 * mu;
+        const Lanes X[4] = {mu2 * (F[0] - c), mu2 * (F[1] + s), mu2 * (F[2] - s), mu2 * (F[3] - c)};
+        for (int r0 = 0; r0 < 2; ++r0)
+          for (int c0 = 0; c0 < 2; ++c0) t[r0 * 2 + c0] = X[r0 * 2] * F[c0 * 2] + X[r0 * 2 + 1] * F[c0 * 2 + 1];
+        const Lanes diag = lambda * (J - 1) * J;
+        t[0] += diag;
+        t[3] += diag;
+        return true;
+      }
+      case MaterialKind::NeoHookean: {
+        const Lanes ls = lambda + mu;
+        const Lanes X[4] = {mu * F[0], mu * F[1], mu * F[2], mu * F[3]};
+        for (int r0 = 0; r0 < 2; ++r0)
+          for (int c0 = 0; c0 < 2; ++c0) t[r0 * 2 + c0] = X[r0 * 2] * F[c0 * 2] + X[r0 * 2 + 1] * F[c0 * 2 + 1];
+        const Lanes diag = ls * (J - 1) * J - mu * J;
+        t[0] += diag;
+        t[3] += diag;
+        return true;
+      }
+      case MaterialKind::Water: {
+        const Lanes Jc = J < 1e-6 ? Lanes{} + 1e-6 : J;
+        const Lanes inv = 1 / Jc;
+        Lanes J_gamma;
+        if (gamma == 7) {
+          J_gamma = (inv * inv * inv) * (inv * inv * inv) * inv;
+        } else {
+          for (int l = 0; l < 4; ++l) J_gamma[l] = std::pow(inv[l], gamma);
+        }
+        const Lanes p = bulk / gamma * (J_gamma - 1);
+        const Lanes diag = -J * p;
+        t[0] = t[3] = 1.0 * diag;
+        t[1] = t[2] = 0.0 * diag;
+        return true;
+      }
+      default:
+        return false;
+    }
+  }
+
   KINEMA_TARGET_AVX2 void p2g_lanes_avx2(const State& state, Scalar dt, const Scalar* forces) {
     const Scalar h = model_.h, stress_scale = 4 * dt / (h * h);
 #pragma omp for schedule(dynamic, 1)
@@ -1013,20 +1069,42 @@ class SolverD final : public Solver::Impl {
         Lanes w[2][3], fx[2];
         int base[4];
         stencil_lanes(state, p, o, w, fx, base);
-        Lanes m, vol, v[2], C[4], tau4[4];
+        Lanes m, vol, v[2], C[4], F[4], tau4[4], mu, lambda, bulk;
+        const Index code = state.material[static_cast<size_t>(p[0])];
+        bool one_material = true;
         for (int l = 0; l < 4; ++l) {
           const size_t pl = static_cast<size_t>(p[l]);
           m[l] = state.mass[pl];
           vol[l] = state.volume[pl];
           for (int a = 0; a < 2; ++a) v[a][l] = state.v[pl * 2 + a];
           for (int k = 0; k < 4; ++k) C[k][l] = state.C[pl * 4 + k];
-          Mat<2> F;
-          F << state.F[pl * 4], state.F[pl * 4 + 1], state.F[pl * 4 + 2], state.F[pl * 4 + 3];
-          const Mat<2> t = tau(state, p[l], F);
-          tau4[0][l] = t(0, 0);
-          tau4[1][l] = t(0, 1);
-          tau4[2][l] = t(1, 0);
-          tau4[3][l] = t(1, 1);
+          for (int k = 0; k < 4; ++k) F[k][l] = state.F[pl * 4 + k];
+          one_material = one_material && state.material[pl] == code;
+        }
+        const Material& mat = model_.materials[static_cast<size_t>(code)];
+        bool done = false;
+        if (one_material && mat.kind != MaterialKind::Sand) {
+          for (int l = 0; l < 4; ++l) {
+            particle_lame(state, mat, p[l], mu[l], lambda[l]);
+            bulk[l] = state.youngs_modulus[static_cast<size_t>(p[l])];
+            if (mat.kind == MaterialKind::Snow) {
+              const Scalar harden = std::exp(mat.hardening * (1 - state.Jp[static_cast<size_t>(p[l])]));
+              mu[l] = mu[l] * harden;
+              lambda[l] = lambda[l] * harden;
+            }
+          }
+          done = tau_lanes(mat.kind, mat.gamma, F, mu, lambda, bulk, tau4);
+        }
+        if (!done) {
+          for (int l = 0; l < 4; ++l) {
+            Mat<2> Fl;
+            Fl << F[0][l], F[1][l], F[2][l], F[3][l];
+            const Mat<2> t = tau(state, p[l], Fl);
+            tau4[0][l] = t(0, 0);
+            tau4[1][l] = t(0, 1);
+            tau4[2][l] = t(1, 0);
+            tau4[3][l] = t(1, 1);
+          }
         }
         // A (row-major) = (m C - 4 dt V / h^2 tau) h; q0 = m v [+ dt f] - A fx.
         const Lanes sv = stress_scale * vol;
@@ -1056,14 +1134,23 @@ class SolverD final : public Solver::Impl {
             out[2] = wn * (qi1 + A[3] * dj);
           }
         }
+        // Each particle's (momentum x, y) pairs by one shuffle per two particles, added as one
+        // 2-wide value per node; the mass alone.
+        __m128d pair[9][4];
+        for (int k = 0; k < 9; ++k) {
+          const __m256d lo = _mm256_unpacklo_pd(__m256d(add[k][1]), __m256d(add[k][2]));
+          const __m256d hi = _mm256_unpackhi_pd(__m256d(add[k][1]), __m256d(add[k][2]));
+          pair[k][0] = _mm256_castpd256_pd128(lo);
+          pair[k][1] = _mm256_castpd256_pd128(hi);
+          pair[k][2] = _mm256_extractf128_pd(lo, 1);
+          pair[k][3] = _mm256_extractf128_pd(hi, 1);
+        }
         for (int l = 0; l < count; ++l)
           for (int i = 0; i < 3; ++i)
             for (int j = 0; j < 3; ++j) {
               Scalar* node = tile + (base[l] + i * T + j) * S;
-              const Lanes* in = add[i * 3 + j];
-              node[0] += in[0][l];
-              node[1] += in[1][l];
-              node[2] += in[2][l];
+              node[0] += add[i * 3 + j][0][l];
+              _mm_storeu_pd(node + 1, _mm_add_pd(_mm_loadu_pd(node + 1), pair[i * 3 + j][l]));
             }
       }
     }
@@ -1093,12 +1180,16 @@ class SolverD final : public Solver::Impl {
           for (int j = 0; j < 3; ++j) {
             const Scalar dj = j;
             const Lanes wn = w[0][i] * w[1][j];
-            Lanes n1, n2;
-            for (int l = 0; l < 4; ++l) {
-              const Scalar* node = tile + (base[l] + i * T + j) * S;
-              n1[l] = node[1];
-              n2[l] = node[2];
-            }
+            // (v_x, v_y) of particles 0 and 2 in one register, 1 and 3 in another; one shuffle
+            // each gives the four v_x and the four v_y.
+            const int t = i * T + j;
+            const __m256d even = _mm256_insertf128_pd(
+                _mm256_castpd128_pd256(_mm_loadu_pd(tile + (base[0] + t) * S + 1)),
+                _mm_loadu_pd(tile + (base[2] + t) * S + 1), 1);
+            const __m256d odd = _mm256_insertf128_pd(
+                _mm256_castpd128_pd256(_mm_loadu_pd(tile + (base[1] + t) * S + 1)),
+                _mm_loadu_pd(tile + (base[3] + t) * S + 1), 1);
+            const Lanes n1 = Lanes(_mm256_unpacklo_pd(even, odd)), n2 = Lanes(_mm256_unpackhi_pd(even, odd));
             const Lanes wv0 = wn * n1, wv1 = wn * n2;
             v[0] += wv0;
             v[1] += wv1;
