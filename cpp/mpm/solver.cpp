@@ -974,15 +974,69 @@ class SolverD final : public Solver::Impl {
   typedef Scalar Lanes __attribute__((vector_size(4 * sizeof(Scalar))));
   typedef std::int32_t LaneInts __attribute__((vector_size(4 * sizeof(std::int32_t))));
 
+  // Component k of rows p[0..3] of an array of W values per row (W = 1, 2, 4): out[k][l] =
+  // a[p[l] W + k]. Rows stored in block order (sort_rows) are mostly four consecutive rows: then
+  // W vector loads and a transpose instead of 4 W scalar loads.
+  static bool consecutive(const Index* p) { return p[1] == p[0] + 1 && p[2] == p[0] + 2 && p[3] == p[0] + 3; }
+  template <int W>
+  KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE static void load_lanes(const Scalar* a, const Index* p, bool together,
+                                                                 Lanes* out) {
+    if (together) {
+      const Scalar* r = a + p[0] * W;
+      if constexpr (W == 1) {
+        out[0] = Lanes(_mm256_loadu_pd(r));
+      } else if constexpr (W == 2) {
+        const __m256d u = _mm256_loadu_pd(r), w = _mm256_loadu_pd(r + 4);
+        out[0] = Lanes(_mm256_permute4x64_pd(_mm256_unpacklo_pd(u, w), 0xD8));
+        out[1] = Lanes(_mm256_permute4x64_pd(_mm256_unpackhi_pd(u, w), 0xD8));
+      } else {
+        static_assert(W == 4, "rows of 1, 2 or 4 values");
+        transpose4(_mm256_loadu_pd(r), _mm256_loadu_pd(r + 4), _mm256_loadu_pd(r + 8), _mm256_loadu_pd(r + 12), out);
+      }
+      return;
+    }
+    for (int k = 0; k < W; ++k)
+      out[k] = Lanes{a[p[0] * W + k], a[p[1] * W + k], a[p[2] * W + k], a[p[3] * W + k]};
+  }
+  // The inverse: rows p[0 .. count - 1] of a take their lanes of in.
+  template <int W>
+  KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE static void store_lanes(Scalar* a, const Index* p, int count, bool together,
+                                                                  const Lanes* in) {
+    if (together && count == 4) {
+      Scalar* r = a + p[0] * W;
+      if constexpr (W == 2) {
+        const __m256d lo = _mm256_unpacklo_pd(__m256d(in[0]), __m256d(in[1]));
+        const __m256d hi = _mm256_unpackhi_pd(__m256d(in[0]), __m256d(in[1]));
+        _mm256_storeu_pd(r, _mm256_permute2f128_pd(lo, hi, 0x20));
+        _mm256_storeu_pd(r + 4, _mm256_permute2f128_pd(lo, hi, 0x31));
+      } else {
+        static_assert(W == 4, "rows of 2 or 4 values");
+        Lanes rows[4];
+        transpose4(__m256d(in[0]), __m256d(in[1]), __m256d(in[2]), __m256d(in[3]), rows);
+        for (int k = 0; k < 4; ++k) _mm256_storeu_pd(r + 4 * k, __m256d(rows[k]));
+      }
+      return;
+    }
+    for (int l = 0; l < count; ++l)
+      for (int k = 0; k < W; ++k) a[p[l] * W + k] = in[k][l];
+  }
+  KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE static void transpose4(__m256d r0, __m256d r1, __m256d r2, __m256d r3,
+                                                                 Lanes* out) {
+    const __m256d t0 = _mm256_unpacklo_pd(r0, r1), t1 = _mm256_unpackhi_pd(r0, r1);
+    const __m256d t2 = _mm256_unpacklo_pd(r2, r3), t3 = _mm256_unpackhi_pd(r2, r3);
+    out[0] = Lanes(_mm256_permute2f128_pd(t0, t2, 0x20));
+    out[1] = Lanes(_mm256_permute2f128_pd(t1, t3, 0x20));
+    out[2] = Lanes(_mm256_permute2f128_pd(t0, t2, 0x31));
+    out[3] = Lanes(_mm256_permute2f128_pd(t1, t3, 0x31));
+  }
+
   // Weights and bases of the four particles p[0..3] of a block whose lower node is o:
   // w[a][k] and fx[a] per axis, base[l] the tile index of particle l's base node.
-  KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE void stencil_lanes(const State& state, const Index* p,
-                                                               const std::array<Index, 3>& o, Lanes w[2][3],
-                                                               Lanes fx[2], int base[4]) const {
+  KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE void stencil_lanes(const Lanes* xs, const std::array<Index, 3>& o,
+                                                               Lanes w[2][3], Lanes fx[2], int base[4]) const {
     LaneInts b[2];
     for (int a = 0; a < 2; ++a) {
-      const Lanes x = {state.x[static_cast<size_t>(p[0] * 2 + a)], state.x[static_cast<size_t>(p[1] * 2 + a)],
-                       state.x[static_cast<size_t>(p[2] * 2 + a)], state.x[static_cast<size_t>(p[3] * 2 + a)]};
+      const Lanes x = xs[a];
       const Lanes g = (x - model_.origin[a]) * inv_h_ + 1;
       b[a] = __builtin_convertvector(g - 0.5, LaneInts);  // truncation = floor (g >= 1)
       fx[a] = g - __builtin_convertvector(b[a], Lanes);
@@ -1010,8 +1064,7 @@ class SolverD final : public Solver::Impl {
       case MaterialKind::Elastic:
       case MaterialKind::Snow: {
         const Lanes a = F[0] + F[3], b = F[2] - F[1], r2 = a * a + b * b;
-        Lanes r;
-        for (int l = 0; l < 4; ++l) r[l] = std::sqrt(r2[l]);  // vsqrtpd
+        const Lanes r = Lanes(_mm256_sqrt_pd(__m256d(r2)));
         const Lanes one = Lanes{} + 1.0, zero = Lanes{};
         const Lanes c = r > 0 ? a / r : one, s = r > 0 ? b / r : zero;
         const Lanes mu2 = 2 * mu;
@@ -1066,21 +1119,20 @@ class SolverD final : public Solver::Impl {
         const int count = static_cast<int>(std::min<Index>(4, end - q));
         Index p[4];
         lane_rows(q, end, p);
-        Lanes w[2][3], fx[2];
+        const bool together = consecutive(p);
+        Lanes w[2][3], fx[2], x[2];
         int base[4];
-        stencil_lanes(state, p, o, w, fx, base);
+        load_lanes<2>(state.x.data(), p, together, x);
+        stencil_lanes(x, o, w, fx, base);
         Lanes m, vol, v[2], C[4], F[4], tau4[4], mu, lambda, bulk;
+        load_lanes<1>(state.mass.data(), p, together, &m);
+        load_lanes<1>(state.volume.data(), p, together, &vol);
+        load_lanes<2>(state.v.data(), p, together, v);
+        load_lanes<4>(state.C.data(), p, together, C);
+        load_lanes<4>(state.F.data(), p, together, F);
         const Index code = state.material[static_cast<size_t>(p[0])];
         bool one_material = true;
-        for (int l = 0; l < 4; ++l) {
-          const size_t pl = static_cast<size_t>(p[l]);
-          m[l] = state.mass[pl];
-          vol[l] = state.volume[pl];
-          for (int a = 0; a < 2; ++a) v[a][l] = state.v[pl * 2 + a];
-          for (int k = 0; k < 4; ++k) C[k][l] = state.C[pl * 4 + k];
-          for (int k = 0; k < 4; ++k) F[k][l] = state.F[pl * 4 + k];
-          one_material = one_material && state.material[pl] == code;
-        }
+        for (int l = 1; l < 4; ++l) one_material = one_material && state.material[static_cast<size_t>(p[l])] == code;
         const Material& mat = model_.materials[static_cast<size_t>(code)];
         bool done = false;
         if (one_material && mat.kind != MaterialKind::Sand) {
@@ -1169,10 +1221,12 @@ class SolverD final : public Solver::Impl {
         const int count = static_cast<int>(std::min<Index>(4, end - q));
         Index p[4];
         lane_rows(q, end, p);
+        const bool together = consecutive(p);
         for (int l = 0; l < count; ++l) save_row(state, p[l], q + l);
-        Lanes w[2][3], fx[2];
+        Lanes w[2][3], fx[2], x[2];
         int base[4];
-        stencil_lanes(state, p, o, w, fx, base);
+        load_lanes<2>(state.x.data(), p, together, x);
+        stencil_lanes(x, o, w, fx, base);
         // v = sum w v_i, Bm = sum w v_i (node offset)^T (row-major), as gather_sums.
         Lanes v[2] = {Lanes{} + 0.0, Lanes{} + 0.0}, Bm[4] = {Lanes{} + 0.0, Lanes{} + 0.0, Lanes{} + 0.0, Lanes{} + 0.0};
         for (int i = 0; i < 3; ++i) {
@@ -1202,33 +1256,49 @@ class SolverD final : public Solver::Impl {
         Lanes C[4], F[4], Fn[4];
         for (int r = 0; r < 2; ++r)
           for (int c = 0; c < 2; ++c) C[r * 2 + c] = four_h * (Bm[r * 2 + c] - v[r] * fx[c]);
-        for (int l = 0; l < 4; ++l)
-          for (int k = 0; k < 4; ++k) F[k][l] = state.F[static_cast<size_t>(p[l] * 4 + k)];
+        load_lanes<4>(state.F.data(), p, together, F);
         // (I + dt C) F
         const Lanes M[4] = {1.0 + dt * C[0], 0.0 + dt * C[1], 0.0 + dt * C[2], 1.0 + dt * C[3]};
         for (int r = 0; r < 2; ++r)
           for (int c = 0; c < 2; ++c) Fn[r * 2 + c] = M[r * 2] * F[c] + M[r * 2 + 1] * F[2 + c];
-        Lanes x[2];
         for (int a = 0; a < 2; ++a) {
-          for (int l = 0; l < 4; ++l) x[a][l] = state.x[static_cast<size_t>(p[l] * 2 + a)];
           x[a] = x[a] + dt * v[a];
+          x[a] = x[a] < model_.origin[a] ? Lanes{} + model_.origin[a] : x[a];  // std::clamp
+          x[a] = model_.upper(a) < x[a] ? Lanes{} + model_.upper(a) : x[a];
         }
         const Lanes speed2 = v[0] * v[0] + v[1] * v[1];
-        for (int l = 0; l < count; ++l) {
-          const size_t pl = static_cast<size_t>(p[l]);
-          for (int k = 0; k < 4; ++k) state.C[pl * 4 + k] = C[k][l];
-          Mat<2> Fl;
-          Fl << Fn[0][l], Fn[1][l], Fn[2][l], Fn[3][l];
-          plasticity(state, p[l], Fl, dt);
-          state.F[pl * 4] = Fl(0, 0);
-          state.F[pl * 4 + 1] = Fl(0, 1);
-          state.F[pl * 4 + 2] = Fl(1, 0);
-          state.F[pl * 4 + 3] = Fl(1, 1);
-          for (int a = 0; a < 2; ++a) {
-            state.x[pl * 2 + a] = std::clamp(x[a][l], model_.origin[a], model_.upper(a));
-            state.v[pl * 2 + a] = v[a][l];
+        // Plasticity four wide where the lanes hold one material without a return mapping
+        // (elastic, neo-Hookean) or water (F = sqrt(J) I, as plasticity()); else per particle.
+        const Index code = state.material[static_cast<size_t>(p[0])];
+        bool one_material = true;
+        for (int l = 1; l < 4; ++l) one_material = one_material && state.material[static_cast<size_t>(p[l])] == code;
+        const MaterialKind kind = model_.materials[static_cast<size_t>(code)].kind;
+        const bool lanes_plastic = one_material && (kind == MaterialKind::Elastic || kind == MaterialKind::NeoHookean ||
+                                                    kind == MaterialKind::Water);
+        if (lanes_plastic && kind == MaterialKind::Water) {
+          const Lanes J = Fn[0] * Fn[3] - Fn[2] * Fn[1];
+          const Lanes Jc = J < 1e-6 ? Lanes{} + 1e-6 : J;
+          const Lanes r = Lanes(_mm256_sqrt_pd(__m256d(Jc)));
+          Fn[0] = Fn[3] = 1.0 * r;
+          Fn[1] = Fn[2] = 0.0 * r;
+        }
+        if (!lanes_plastic) {
+          for (int l = 0; l < count; ++l) {
+            Mat<2> Fl;
+            Fl << Fn[0][l], Fn[1][l], Fn[2][l], Fn[3][l];
+            plasticity(state, p[l], Fl, dt);
+            for (int k = 0; k < 4; ++k) Fn[k][l] = Fl(k / 2, k % 2);
           }
-          finite = finite && std::isfinite(v[0][l]) && std::isfinite(v[1][l]) && Fl.allFinite();
+        }
+        store_lanes<4>(state.C.data(), p, count, together, C);
+        store_lanes<4>(state.F.data(), p, count, together, Fn);
+        store_lanes<2>(state.x.data(), p, count, together, x);
+        store_lanes<2>(state.v.data(), p, count, together, v);
+        // 0 in every lane whose v and F are finite (NaN otherwise).
+        const Lanes bad = (v[0] - v[0]) + (v[1] - v[1]) + (Fn[0] - Fn[0]) + (Fn[1] - Fn[1]) + (Fn[2] - Fn[2]) +
+                          (Fn[3] - Fn[3]);
+        for (int l = 0; l < count; ++l) {
+          finite = finite && bad[l] == 0;
           vmax2 = std::max(vmax2, speed2[l]);
         }
       }
