@@ -1049,9 +1049,12 @@ class SolverD final : public Solver::Impl {
       base[l] = static_cast<int>((b[0][l] - o[0]) * T + (b[1][l] - o[1]));
   }
 
-  // The rows of block s's positions q .. q + 3 (the last repeated past `end`).
-  void lane_rows(Index q, Index end, Index* p) const {
+  // The rows p of a block's positions q .. q + 3 (the last repeated past `end`), whether they are
+  // four consecutive rows, and how many are real.
+  int lane_rows(Index q, Index end, Index* p, bool& together) const {
     for (int l = 0; l < 4; ++l) p[l] = order_[static_cast<size_t>(std::min<Index>(q + l, end - 1))];
+    together = consecutive(p);
+    return static_cast<int>(std::min<Index>(4, end - q));
   }
 
   // Kirchhoff stress (row-major) of four particles of one material kind, with the operations of
@@ -1116,10 +1119,9 @@ class SolverD final : public Solver::Impl {
       const Index end = block_start_[static_cast<size_t>(s + 1)];
       for (Index q = block_start_[static_cast<size_t>(s)]; q < end; q += 4) {
         prefetch_row(state, q, end);
-        const int count = static_cast<int>(std::min<Index>(4, end - q));
         Index p[4];
-        lane_rows(q, end, p);
-        const bool together = consecutive(p);
+        bool together;
+        const int count = lane_rows(q, end, p, together);
         Lanes w[2][3], fx[2], x[2];
         int base[4];
         load_lanes<2>(state.x.data(), p, together, x);
@@ -1218,10 +1220,9 @@ class SolverD final : public Solver::Impl {
       const Index end = block_start_[static_cast<size_t>(s + 1)];
       for (Index q = block_start_[static_cast<size_t>(s)]; q < end; q += 4) {
         prefetch_row(state, q, end);
-        const int count = static_cast<int>(std::min<Index>(4, end - q));
         Index p[4];
-        lane_rows(q, end, p);
-        const bool together = consecutive(p);
+        bool together;
+        const int count = lane_rows(q, end, p, together);
         for (int l = 0; l < count; ++l) save_row(state, p[l], q + l);
         Lanes w[2][3], fx[2], x[2];
         int base[4];
