@@ -192,6 +192,52 @@ def test_rows_stored_in_block_order_change_no_bit_and_views_show_user_order(d):
     assert np.array_equal(a.youngs_modulus[: rows.start], E0) and np.all(a.youngs_modulus[rows] == 2e5)
 
 
+def test_avx2_lanes_give_the_baseline_bits_in_2d(monkeypatch):
+    """2D P2G and G2P run four particles wide under AVX2 (weights, stresses, affine momentum,
+    stencil sums) with the scalar code's operations in its order and no FMA, and P2G adds the
+    four particles' contributions into the tile one particle at a time: every result must be
+    bitwise the baseline build's (KINEMA_SIMD=baseline, read when a simulation is made). Every
+    material, lanes that straddle two materials (the per-particle stress), particles with their
+    own moduli, blocks whose particle count is not a multiple of four, external forces, 1 and 2
+    threads, rows in user order (a view read every step) and sorted into blocks."""
+    s = 1 / 128
+
+    def run(simd, threads, read):
+        if simd == "baseline":
+            monkeypatch.setenv("KINEMA_SIMD", "baseline")
+        else:
+            monkeypatch.delenv("KINEMA_SIMD", raising=False)
+        old = km.get_num_threads()
+        km.set_num_threads(threads)
+        try:
+            sim = _sim(2, 32, boundary="separate", adapt_threads=False)
+            _add(sim, km.mpm.block([0.1, 0.1], [0.3, 0.45], s), "water", youngs_modulus=2e5)
+            _add(sim, km.mpm.block([0.3, 0.1], [0.5, 0.3], s), "sand")
+            _add(sim, km.mpm.sphere([0.5, 0.75], 0.08, s), "snow", velocity=(0.5, -2.0))
+            _add(sim, km.mpm.sphere([0.2, 0.75], 0.07, s), "elastic", velocity=(2.0, -1.0))
+            _add(sim, km.mpm.sphere([0.8, 0.55], 0.07, s), "neohookean", velocity=(-2.0, 0.5))
+            sim.youngs_modulus[::7] *= 1.5  # a particle's own moduli (not the material's)
+            sim.poisson_ratio[np.flatnonzero(sim.material != 0)[::5]] = 0.27  # water (0) has none
+            assert sim.count > 2048, "enough particles for the parallel paths"
+            for k in range(40):
+                f = 1e-4 * np.random.default_rng(k).standard_normal((sim.count, 2)) if k % 3 == 0 else None
+                sim._diff_step(1e-3, f, {})
+                if read:
+                    sim.x
+            if not read:
+                assert sim._sim.rows_in_block_order
+            return sim.state()
+        finally:
+            km.set_num_threads(old)
+
+    ref = run("baseline", 1, True)
+    assert np.isfinite(ref["x"]).all() and np.abs(ref["C"]).max() > 1, "the bodies deform"
+    for threads, read in ((1, True), (2, False), (1, False)):
+        got = run("default", threads, read)
+        for k in ref:
+            np.testing.assert_array_equal(got[k], ref[k], err_msg=f"{k}, {threads} threads, read={read}")
+
+
 def test_adapt_threads_probes_one_thread_and_the_team_and_changes_no_bit():
     """adapt_threads times kProbe = 3 steps on one thread and 3 on the team at the start of each
     256-step cycle, then runs on the faster; a fixed team runs every step on the team. Both

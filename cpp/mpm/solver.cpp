@@ -3,6 +3,9 @@
 #include "mpm/solver.h"
 
 #include <omp.h>
+#if defined(__x86_64__) || defined(__i386__)
+#include <immintrin.h>
+#endif
 
 #include <algorithm>
 #include <array>
@@ -12,6 +15,7 @@
 
 #include "core/errors.h"
 #include "core/parallel.h"
+#include "core/simd.h"
 #include "core/timer.h"
 #include "mpm/adjoint_kernels.h"
 #include "mpm/kernels.h"
@@ -611,6 +615,14 @@ class SolverD final : public Solver::Impl {
   // Each work item scatters into its own tile of tiles_ (no two threads write one value).
   // Called by every thread of a parallel region (a work-shared loop ending in a barrier).
   void p2g_phase(const State& state, Scalar dt, const Scalar* forces) {
+#if KINEMA_HAVE_AVX2_CLONES
+    if constexpr (D == 2) {
+      if (avx2_) {
+        p2g_lanes_avx2(state, dt, forces);
+        return;
+      }
+    }
+#endif
     const Scalar h = model_.h, stress_scale = 4 * dt / (h * h);
     each_block([&](Index s) {
       const auto o = block_origin(s);
@@ -798,6 +810,12 @@ class SolverD final : public Solver::Impl {
     const Scalar h = model_.h;
     Scalar vmax2 = 0;
     bool finite = true;
+#if KINEMA_HAVE_AVX2_CLONES
+    if constexpr (D == 2) {
+      if (avx2_) g2p_lanes_avx2(state, dt, vmax2, finite);
+    }
+    if (!(D == 2 && avx2_))
+#endif
     each_block([&](Index s) {
       const auto o = block_origin(s);
       alignas(64) Scalar tile[TN * S];
@@ -944,9 +962,355 @@ class SolverD final : public Solver::Impl {
     }
   }
 
+#if KINEMA_HAVE_AVX2_CLONES
+  // ---- 2D transfers four particles wide (AVX2) ----------------------------------------------
+  // The stencil weights, the affine momentum and the weighted sums of four particles of a block
+  // in one vector operation each (GCC vector extension, compiled for AVX2 only; the baseline
+  // build takes the scalar code above). Every value is computed with the scalar code's
+  // operations in the scalar code's order and without FMA, so the results are bitwise those of
+  // the scalar path; P2G's contributions are then added into the tile particle by particle in
+  // block order, so each node's sum keeps its order. The materials' stresses and return
+  // mappings stay per particle (tau, plasticity), as does the backup of the rows.
+  typedef Scalar Lanes __attribute__((vector_size(4 * sizeof(Scalar))));
+  typedef std::int32_t LaneInts __attribute__((vector_size(4 * sizeof(std::int32_t))));
+
+  // Component k of rows p[0..3] of an array of W values per row (W = 1, 2, 4): out[k][l] =
+  // a[p[l] W + k]. Rows stored in block order (sort_rows) are mostly four consecutive rows: then
+  // W vector loads and a transpose instead of 4 W scalar loads.
+  static bool consecutive(const Index* p) { return p[1] == p[0] + 1 && p[2] == p[0] + 2 && p[3] == p[0] + 3; }
+  template <int W>
+  KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE static void load_lanes(const Scalar* a, const Index* p, bool together,
+                                                                 Lanes* out) {
+    if (together) {
+      const Scalar* r = a + p[0] * W;
+      if constexpr (W == 1) {
+        out[0] = Lanes(_mm256_loadu_pd(r));
+      } else if constexpr (W == 2) {
+        const __m256d u = _mm256_loadu_pd(r), w = _mm256_loadu_pd(r + 4);
+        out[0] = Lanes(_mm256_permute4x64_pd(_mm256_unpacklo_pd(u, w), 0xD8));
+        out[1] = Lanes(_mm256_permute4x64_pd(_mm256_unpackhi_pd(u, w), 0xD8));
+      } else {
+        static_assert(W == 4, "rows of 1, 2 or 4 values");
+        transpose4(_mm256_loadu_pd(r), _mm256_loadu_pd(r + 4), _mm256_loadu_pd(r + 8), _mm256_loadu_pd(r + 12), out);
+      }
+      return;
+    }
+    for (int k = 0; k < W; ++k)
+      out[k] = Lanes{a[p[0] * W + k], a[p[1] * W + k], a[p[2] * W + k], a[p[3] * W + k]};
+  }
+  // The inverse: rows p[0 .. count - 1] of a take their lanes of in.
+  template <int W>
+  KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE static void store_lanes(Scalar* a, const Index* p, int count, bool together,
+                                                                  const Lanes* in) {
+    if (together && count == 4) {
+      Scalar* r = a + p[0] * W;
+      if constexpr (W == 2) {
+        const __m256d lo = _mm256_unpacklo_pd(__m256d(in[0]), __m256d(in[1]));
+        const __m256d hi = _mm256_unpackhi_pd(__m256d(in[0]), __m256d(in[1]));
+        _mm256_storeu_pd(r, _mm256_permute2f128_pd(lo, hi, 0x20));
+        _mm256_storeu_pd(r + 4, _mm256_permute2f128_pd(lo, hi, 0x31));
+      } else {
+        static_assert(W == 4, "rows of 2 or 4 values");
+        Lanes rows[4];
+        transpose4(__m256d(in[0]), __m256d(in[1]), __m256d(in[2]), __m256d(in[3]), rows);
+        for (int k = 0; k < 4; ++k) _mm256_storeu_pd(r + 4 * k, __m256d(rows[k]));
+      }
+      return;
+    }
+    for (int l = 0; l < count; ++l)
+      for (int k = 0; k < W; ++k) a[p[l] * W + k] = in[k][l];
+  }
+  KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE static void transpose4(__m256d r0, __m256d r1, __m256d r2, __m256d r3,
+                                                                 Lanes* out) {
+    const __m256d t0 = _mm256_unpacklo_pd(r0, r1), t1 = _mm256_unpackhi_pd(r0, r1);
+    const __m256d t2 = _mm256_unpacklo_pd(r2, r3), t3 = _mm256_unpackhi_pd(r2, r3);
+    out[0] = Lanes(_mm256_permute2f128_pd(t0, t2, 0x20));
+    out[1] = Lanes(_mm256_permute2f128_pd(t1, t3, 0x20));
+    out[2] = Lanes(_mm256_permute2f128_pd(t0, t2, 0x31));
+    out[3] = Lanes(_mm256_permute2f128_pd(t1, t3, 0x31));
+  }
+
+  // Weights and bases of the four particles p[0..3] of a block whose lower node is o:
+  // w[a][k] and fx[a] per axis, base[l] the tile index of particle l's base node.
+  KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE void stencil_lanes(const Lanes* xs, const std::array<Index, 3>& o,
+                                                               Lanes w[2][3], Lanes fx[2], int base[4]) const {
+    LaneInts b[2];
+    for (int a = 0; a < 2; ++a) {
+      const Lanes x = xs[a];
+      const Lanes g = (x - model_.origin[a]) * inv_h_ + 1;
+      b[a] = __builtin_convertvector(g - 0.5, LaneInts);  // truncation = floor (g >= 1)
+      fx[a] = g - __builtin_convertvector(b[a], Lanes);
+      const Lanes ca = 1.5 - fx[a], cb = fx[a] - 1.0, cc = fx[a] - 0.5;
+      w[a][0] = 0.5 * ca * ca;
+      w[a][1] = 0.75 - cb * cb;
+      w[a][2] = 0.5 * cc * cc;
+    }
+    for (int l = 0; l < 4; ++l)
+      base[l] = static_cast<int>((b[0][l] - o[0]) * T + (b[1][l] - o[1]));
+  }
+
+  // The rows p of a block's positions q .. q + 3 (the last repeated past `end`), whether they are
+  // four consecutive rows, and how many are real.
+  int lane_rows(Index q, Index end, Index* p, bool& together) const {
+    for (int l = 0; l < 4; ++l) p[l] = order_[static_cast<size_t>(std::min<Index>(q + l, end - 1))];
+    together = consecutive(p);
+    return static_cast<int>(std::min<Index>(4, end - q));
+  }
+
+  // Kirchhoff stress (row-major) of four particles of one material kind, with the operations of
+  // kernels.h's 2D corotated_tau, neohookean_tau and water_tau in their order (so bitwise the
+  // same); false (nothing written) for a kind that stays per particle (sand).
+  KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE bool tau_lanes(MaterialKind kind, Scalar gamma, const Lanes* F,
+                                                          Lanes mu, Lanes lambda, Lanes bulk, Lanes* t) const {
+    const Lanes J = F[0] * F[3] - F[2] * F[1];
+    switch (kind) {
+      case MaterialKind::Elastic:
+      case MaterialKind::Snow: {
+        const Lanes a = F[0] + F[3], b = F[2] - F[1], r2 = a * a + b * b;
+        const Lanes r = Lanes(_mm256_sqrt_pd(__m256d(r2)));
+        const Lanes one = Lanes{} + 1.0, zero = Lanes{};
+        const Lanes c = r > 0 ? a / r : one, s = r > 0 ? b / r : zero;
+        const Lanes mu2 = 2 * mu;
+        const Lanes X[4] = {mu2 * (F[0] - c), mu2 * (F[1] + s), mu2 * (F[2] - s), mu2 * (F[3] - c)};
+        for (int r0 = 0; r0 < 2; ++r0)
+          for (int c0 = 0; c0 < 2; ++c0) t[r0 * 2 + c0] = X[r0 * 2] * F[c0 * 2] + X[r0 * 2 + 1] * F[c0 * 2 + 1];
+        const Lanes diag = lambda * (J - 1) * J;
+        t[0] += diag;
+        t[3] += diag;
+        return true;
+      }
+      case MaterialKind::NeoHookean: {
+        const Lanes ls = lambda + mu;
+        const Lanes X[4] = {mu * F[0], mu * F[1], mu * F[2], mu * F[3]};
+        for (int r0 = 0; r0 < 2; ++r0)
+          for (int c0 = 0; c0 < 2; ++c0) t[r0 * 2 + c0] = X[r0 * 2] * F[c0 * 2] + X[r0 * 2 + 1] * F[c0 * 2 + 1];
+        const Lanes diag = ls * (J - 1) * J - mu * J;
+        t[0] += diag;
+        t[3] += diag;
+        return true;
+      }
+      case MaterialKind::Water: {
+        const Lanes Jc = J < 1e-6 ? Lanes{} + 1e-6 : J;
+        const Lanes inv = 1 / Jc;
+        Lanes J_gamma;
+        if (gamma == 7) {
+          J_gamma = (inv * inv * inv) * (inv * inv * inv) * inv;
+        } else {
+          for (int l = 0; l < 4; ++l) J_gamma[l] = std::pow(inv[l], gamma);
+        }
+        const Lanes p = bulk / gamma * (J_gamma - 1);
+        const Lanes diag = -J * p;
+        t[0] = t[3] = 1.0 * diag;
+        t[1] = t[2] = 0.0 * diag;
+        return true;
+      }
+      default:
+        return false;
+    }
+  }
+
+  KINEMA_TARGET_AVX2 void p2g_lanes_avx2(const State& state, Scalar dt, const Scalar* forces) {
+    const Scalar h = model_.h, stress_scale = 4 * dt / (h * h);
+#pragma omp for schedule(dynamic, 1)
+    for (Index s = 0; s < particle_blocks_; ++s) {
+      const auto o = block_origin(s);
+      Scalar* tile = &tiles_[static_cast<size_t>(s * TN * S)];
+      std::fill_n(tile, TN * S, 0.0);
+      const Index end = block_start_[static_cast<size_t>(s + 1)];
+      for (Index q = block_start_[static_cast<size_t>(s)]; q < end; q += 4) {
+        prefetch_row(state, q, end);
+        Index p[4];
+        bool together;
+        const int count = lane_rows(q, end, p, together);
+        Lanes w[2][3], fx[2], x[2];
+        int base[4];
+        load_lanes<2>(state.x.data(), p, together, x);
+        stencil_lanes(x, o, w, fx, base);
+        Lanes m, vol, v[2], C[4], F[4], tau4[4], mu, lambda, bulk;
+        load_lanes<1>(state.mass.data(), p, together, &m);
+        load_lanes<1>(state.volume.data(), p, together, &vol);
+        load_lanes<2>(state.v.data(), p, together, v);
+        load_lanes<4>(state.C.data(), p, together, C);
+        load_lanes<4>(state.F.data(), p, together, F);
+        const Index code = state.material[static_cast<size_t>(p[0])];
+        bool one_material = true;
+        for (int l = 1; l < 4; ++l) one_material = one_material && state.material[static_cast<size_t>(p[l])] == code;
+        const Material& mat = model_.materials[static_cast<size_t>(code)];
+        bool done = false;
+        if (one_material && mat.kind != MaterialKind::Sand) {
+          for (int l = 0; l < 4; ++l) {
+            particle_lame(state, mat, p[l], mu[l], lambda[l]);
+            bulk[l] = state.youngs_modulus[static_cast<size_t>(p[l])];
+            if (mat.kind == MaterialKind::Snow) {
+              const Scalar harden = std::exp(mat.hardening * (1 - state.Jp[static_cast<size_t>(p[l])]));
+              mu[l] = mu[l] * harden;
+              lambda[l] = lambda[l] * harden;
+            }
+          }
+          done = tau_lanes(mat.kind, mat.gamma, F, mu, lambda, bulk, tau4);
+        }
+        if (!done) {
+          for (int l = 0; l < 4; ++l) {
+            Mat<2> Fl;
+            Fl << F[0][l], F[1][l], F[2][l], F[3][l];
+            const Mat<2> t = tau(state, p[l], Fl);
+            tau4[0][l] = t(0, 0);
+            tau4[1][l] = t(0, 1);
+            tau4[2][l] = t(1, 0);
+            tau4[3][l] = t(1, 1);
+          }
+        }
+        // A (row-major) = (m C - 4 dt V / h^2 tau) h; q0 = m v [+ dt f] - A fx.
+        const Lanes sv = stress_scale * vol;
+        Lanes A[4];
+        for (int k = 0; k < 4; ++k) A[k] = (m * C[k] - sv * tau4[k]) * h;
+        Lanes q0[2];
+        for (int r = 0; r < 2; ++r) {
+          Lanes mv = m * v[r];
+          if (forces) {
+            Lanes f;
+            for (int l = 0; l < 4; ++l) f[l] = forces[state.user_of(p[l]) * 2 + r];
+            mv = mv + dt * f;
+          }
+          q0[r] = mv - (A[r * 2] * fx[0] + A[r * 2 + 1] * fx[1]);
+        }
+        // The 9 nodes' contributions (mass, momentum) of the four particles.
+        Lanes add[9][3];
+        for (int i = 0; i < 3; ++i) {
+          const Scalar di = i;
+          const Lanes qi0 = q0[0] + A[0] * di, qi1 = q0[1] + A[2] * di;
+          for (int j = 0; j < 3; ++j) {
+            const Scalar dj = j;
+            const Lanes wn = w[0][i] * w[1][j];
+            Lanes* out = add[i * 3 + j];
+            out[0] = wn * m;
+            out[1] = wn * (qi0 + A[1] * dj);
+            out[2] = wn * (qi1 + A[3] * dj);
+          }
+        }
+        // Each particle's (momentum x, y) pairs by one shuffle per two particles, added as one
+        // 2-wide value per node; the mass alone.
+        __m128d pair[9][4];
+        for (int k = 0; k < 9; ++k) {
+          const __m256d lo = _mm256_unpacklo_pd(__m256d(add[k][1]), __m256d(add[k][2]));
+          const __m256d hi = _mm256_unpackhi_pd(__m256d(add[k][1]), __m256d(add[k][2]));
+          pair[k][0] = _mm256_castpd256_pd128(lo);
+          pair[k][1] = _mm256_castpd256_pd128(hi);
+          pair[k][2] = _mm256_extractf128_pd(lo, 1);
+          pair[k][3] = _mm256_extractf128_pd(hi, 1);
+        }
+        for (int l = 0; l < count; ++l)
+          for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j) {
+              Scalar* node = tile + (base[l] + i * T + j) * S;
+              node[0] += add[i * 3 + j][0][l];
+              _mm_storeu_pd(node + 1, _mm_add_pd(_mm_loadu_pd(node + 1), pair[i * 3 + j][l]));
+            }
+      }
+    }
+  }
+
+  KINEMA_TARGET_AVX2 void g2p_lanes_avx2(State& state, Scalar dt, Scalar& vmax2, bool& finite) {
+    const Scalar h = model_.h, four_h = 4 / h;
+#pragma omp for schedule(dynamic, 1)
+    for (Index s = 0; s < particle_blocks_; ++s) {
+      const auto o = block_origin(s);
+      alignas(64) Scalar tile[TN * S];
+      gather<1>(tile, s, grid_);
+      const Index end = block_start_[static_cast<size_t>(s + 1)];
+      for (Index q = block_start_[static_cast<size_t>(s)]; q < end; q += 4) {
+        prefetch_row(state, q, end);
+        Index p[4];
+        bool together;
+        const int count = lane_rows(q, end, p, together);
+        for (int l = 0; l < count; ++l) save_row(state, p[l], q + l);
+        Lanes w[2][3], fx[2], x[2];
+        int base[4];
+        load_lanes<2>(state.x.data(), p, together, x);
+        stencil_lanes(x, o, w, fx, base);
+        // v = sum w v_i, Bm = sum w v_i (node offset)^T (row-major), as gather_sums.
+        Lanes v[2] = {Lanes{} + 0.0, Lanes{} + 0.0}, Bm[4] = {Lanes{} + 0.0, Lanes{} + 0.0, Lanes{} + 0.0, Lanes{} + 0.0};
+        for (int i = 0; i < 3; ++i) {
+          const Scalar di = i;
+          for (int j = 0; j < 3; ++j) {
+            const Scalar dj = j;
+            const Lanes wn = w[0][i] * w[1][j];
+            // (v_x, v_y) of particles 0 and 2 in one register, 1 and 3 in another; one shuffle
+            // each gives the four v_x and the four v_y.
+            const int t = i * T + j;
+            const __m256d even = _mm256_insertf128_pd(
+                _mm256_castpd128_pd256(_mm_loadu_pd(tile + (base[0] + t) * S + 1)),
+                _mm_loadu_pd(tile + (base[2] + t) * S + 1), 1);
+            const __m256d odd = _mm256_insertf128_pd(
+                _mm256_castpd128_pd256(_mm_loadu_pd(tile + (base[1] + t) * S + 1)),
+                _mm_loadu_pd(tile + (base[3] + t) * S + 1), 1);
+            const Lanes n1 = Lanes(_mm256_unpacklo_pd(even, odd)), n2 = Lanes(_mm256_unpackhi_pd(even, odd));
+            const Lanes wv0 = wn * n1, wv1 = wn * n2;
+            v[0] += wv0;
+            v[1] += wv1;
+            Bm[0] += wv0 * di;
+            Bm[2] += wv1 * di;
+            Bm[1] += wv0 * dj;
+            Bm[3] += wv1 * dj;
+          }
+        }
+        Lanes C[4], F[4], Fn[4];
+        for (int r = 0; r < 2; ++r)
+          for (int c = 0; c < 2; ++c) C[r * 2 + c] = four_h * (Bm[r * 2 + c] - v[r] * fx[c]);
+        load_lanes<4>(state.F.data(), p, together, F);
+        // (I + dt C) F
+        const Lanes M[4] = {1.0 + dt * C[0], 0.0 + dt * C[1], 0.0 + dt * C[2], 1.0 + dt * C[3]};
+        for (int r = 0; r < 2; ++r)
+          for (int c = 0; c < 2; ++c) Fn[r * 2 + c] = M[r * 2] * F[c] + M[r * 2 + 1] * F[2 + c];
+        for (int a = 0; a < 2; ++a) {
+          x[a] = x[a] + dt * v[a];
+          x[a] = x[a] < model_.origin[a] ? Lanes{} + model_.origin[a] : x[a];  // std::clamp
+          x[a] = model_.upper(a) < x[a] ? Lanes{} + model_.upper(a) : x[a];
+        }
+        const Lanes speed2 = v[0] * v[0] + v[1] * v[1];
+        // Plasticity four wide where the lanes hold one material without a return mapping
+        // (elastic, neo-Hookean) or water (F = sqrt(J) I, as plasticity()); else per particle.
+        const Index code = state.material[static_cast<size_t>(p[0])];
+        bool one_material = true;
+        for (int l = 1; l < 4; ++l) one_material = one_material && state.material[static_cast<size_t>(p[l])] == code;
+        const MaterialKind kind = model_.materials[static_cast<size_t>(code)].kind;
+        const bool lanes_plastic = one_material && (kind == MaterialKind::Elastic || kind == MaterialKind::NeoHookean ||
+                                                    kind == MaterialKind::Water);
+        if (lanes_plastic && kind == MaterialKind::Water) {
+          const Lanes J = Fn[0] * Fn[3] - Fn[2] * Fn[1];
+          const Lanes Jc = J < 1e-6 ? Lanes{} + 1e-6 : J;
+          const Lanes r = Lanes(_mm256_sqrt_pd(__m256d(Jc)));
+          Fn[0] = Fn[3] = 1.0 * r;
+          Fn[1] = Fn[2] = 0.0 * r;
+        }
+        if (!lanes_plastic) {
+          for (int l = 0; l < count; ++l) {
+            Mat<2> Fl;
+            Fl << Fn[0][l], Fn[1][l], Fn[2][l], Fn[3][l];
+            plasticity(state, p[l], Fl, dt);
+            for (int k = 0; k < 4; ++k) Fn[k][l] = Fl(k / 2, k % 2);
+          }
+        }
+        store_lanes<4>(state.C.data(), p, count, together, C);
+        store_lanes<4>(state.F.data(), p, count, together, Fn);
+        store_lanes<2>(state.x.data(), p, count, together, x);
+        store_lanes<2>(state.v.data(), p, count, together, v);
+        // 0 in every lane whose v and F are finite (NaN otherwise).
+        const Lanes bad = (v[0] - v[0]) + (v[1] - v[1]) + (Fn[0] - Fn[0]) + (Fn[1] - Fn[1]) + (Fn[2] - Fn[2]) +
+                          (Fn[3] - Fn[3]);
+        for (int l = 0; l < count; ++l) {
+          finite = finite && bad[l] == 0;
+          vmax2 = std::max(vmax2, speed2[l]);
+        }
+      }
+    }
+  }
+#endif
+
   Model model_;
   Config config_;
   Scalar inv_h_ = 1 / model_.h;
+  bool avx2_ = use_avx2();                   // 2D transfers four particles wide (p2g_lanes_avx2)
   std::vector<Scalar> spare_;                // scratch of permute_rows
   const std::array<TileNode, TN> tile_nodes_ = make_tile_nodes();
   const std::array<std::vector<Overlap>, NEIGHBORS> overlaps_ = make_overlaps();
