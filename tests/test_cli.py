@@ -66,7 +66,7 @@ def test_run_reports_scene_errors(tmp_path, capsys):
 @needs_script
 def test_ctrl_c_keeps_frames_and_resume_continues(tmp_path):
     args = ["run", "vortex_sheet", "--quick", "--out", tmp_path, "--set", "output.mp4=false"]
-    proc = subprocess.Popen([str(KINEMA), *map(str, args), "--frames", "400"], stdout=subprocess.PIPE,
+    proc = subprocess.Popen([str(KINEMA), *map(str, args), "--frames", "100000"], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
     deadline = time.time() + 120
     while not (tmp_path / "frames" / "frame_00003.png").exists():
