@@ -1210,6 +1210,33 @@ class SolverD final : public Solver::Impl {
     }
   }
 
+  // kernels.h's 2D snow_project of four particles, with its operations in its order (bitwise
+  // the same): a lane whose singular values do not clamp keeps its F and Jp.
+  KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE static void snow_lanes(const Material& m, const Index* p, int count,
+                                                                 Scalar* Jp, Lanes* F) {
+    const Lanes e = 0.5 * (F[0] + F[3]), f = 0.5 * (F[2] - F[1]);
+    const Lanes g = 0.5 * (F[0] - F[3]), k = 0.5 * (F[1] + F[2]);
+    const Lanes r1 = Lanes(_mm256_sqrt_pd(__m256d(e * e + f * f))), r2 = Lanes(_mm256_sqrt_pd(__m256d(g * g + k * k)));
+    const Lanes s1 = r1 + r2, s2 = r1 - r2;
+    const Scalar lo = 1 - m.theta_c, hi = 1 + m.theta_s;
+    const Lanes lov = Lanes{} + lo, hiv = Lanes{} + hi;
+    // std::clamp(s, lo, hi): s < lo ? lo : (hi < s ? hi : s).
+    const Lanes c1 = s1 < lo ? lov : (hi < s1 ? hiv : s1), c2 = s2 < lo ? lov : (hi < s2 ? hiv : s2);
+    const auto keep = (c1 == s1) & (c2 == s2);
+    bool all_kept = true;
+    for (int l = 0; l < 4; ++l) all_kept = all_kept && keep[l];
+    if (all_kept) return;
+    const Lanes ratio = (s1 * s2) / (c1 * c2);
+    for (int l = 0; l < count; ++l)
+      if (!keep[l]) Jp[p[l]] *= ratio[l];
+    const Lanes n1 = 0.5 * (c1 + c2), n2 = 0.5 * (c1 - c2);
+    const Lanes zero = Lanes{};
+    const Lanes a1 = r1 > 0 ? n1 / r1 : zero, a2 = r2 > 0 ? n2 / r2 : zero;
+    const Lanes E = r1 > 0 ? a1 * e : n1, Fs = a1 * f, G = a2 * g, K = a2 * k;
+    const Lanes out[4] = {E + G, K - Fs, Fs + K, E - G};
+    for (int c = 0; c < 4; ++c) F[c] = keep ? F[c] : out[c];
+  }
+
   KINEMA_TARGET_AVX2 void g2p_lanes_avx2(State& state, Scalar dt, Scalar& vmax2, bool& finite) {
     const Scalar h = model_.h, four_h = 4 / h;
 #pragma omp for schedule(dynamic, 1)
@@ -1275,7 +1302,9 @@ class SolverD final : public Solver::Impl {
         for (int l = 1; l < 4; ++l) one_material = one_material && state.material[static_cast<size_t>(p[l])] == code;
         const MaterialKind kind = model_.materials[static_cast<size_t>(code)].kind;
         const bool lanes_plastic = one_material && (kind == MaterialKind::Elastic || kind == MaterialKind::NeoHookean ||
-                                                    kind == MaterialKind::Water);
+                                                    kind == MaterialKind::Water || kind == MaterialKind::Snow);
+        if (lanes_plastic && kind == MaterialKind::Snow)
+          snow_lanes(model_.materials[static_cast<size_t>(code)], p, count, state.Jp.data(), Fn);
         if (lanes_plastic && kind == MaterialKind::Water) {
           const Lanes J = Fn[0] * Fn[3] - Fn[2] * Fn[1];
           const Lanes Jc = J < 1e-6 ? Lanes{} + 1e-6 : J;
