@@ -153,6 +153,7 @@ class SolverD final : public Solver::Impl {
       block_count_ *= blocks_[a];
     }
     table_.assign(static_cast<size_t>(block_count_), -1);
+    seen_.assign(static_cast<size_t>(block_count_), 0);
   }
 
   StepStats step(State& state, Scalar dt, Interrupt& interrupt, const Scalar* forces) override {
@@ -279,8 +280,12 @@ class SolverD final : public Solver::Impl {
     const Index n = state.n;
     particle_count_ = n;
     backup_.resize(static_cast<size_t>(n * kRow));
-    for (Index key : slot_key_) table_[static_cast<size_t>(key)] = -1;
-    slot_key_.clear();
+    // The block table stays from the last step: build_blocks rebuilds it only when the set of
+    // particle blocks changed (most steps it does not). seen_ marks the blocks found this step.
+    if (++epoch_ == std::numeric_limits<std::int32_t>::max()) {
+      std::fill(seen_.begin(), seen_.end(), 0);
+      epoch_ = 1;
+    }
     particle_key_.resize(static_cast<size_t>(n));
     order_.resize(static_cast<size_t>(n));
     found_.clear();
@@ -319,13 +324,13 @@ class SolverD final : public Solver::Impl {
         }
         const Index key = key_of(b);
         particle_key_[static_cast<size_t>(p)] = key;
-        std::int32_t& mark = table_[static_cast<size_t>(key)];
+        std::int32_t& mark = seen_[static_cast<size_t>(key)];
         std::int32_t seen;
 #pragma omp atomic read
         seen = mark;
-        if (seen < 0) {
+        if (seen != epoch_) {
 #pragma omp atomic write
-          mark = 0;
+          mark = epoch_;
           mine.emplace_back(morton(coords_of(key)), key);
         }
       }
@@ -377,15 +382,26 @@ class SolverD final : public Solver::Impl {
     return true;
   }
 
-  // One thread: the block table from the particle blocks found (or, after a bad particle,
-  // the table's marks undone).
+  // One thread: the block table from the particle blocks found (nothing after a bad particle:
+  // the last step's table stays).
   void build_blocks() {
-    if (bad_ >= 0) {
-      for (const auto& f : found_) table_[static_cast<size_t>(f.second)] = -1;
-      return;
-    }
+    if (bad_ >= 0) return;
     std::sort(found_.begin(), found_.end());
     found_.erase(std::unique(found_.begin(), found_.end()), found_.end());
+    // The same particle blocks as the last step (in Morton order, as slot_key_ lists them):
+    // the table, the slots and their neighbour lists are the ones already built.
+    bool same = static_cast<Index>(found_.size()) == particle_blocks_;
+    for (size_t i = 0; same && i < found_.size(); ++i) same = found_[i].second == slot_key_[i];
+    if (!same) rebuild_table();
+    const Index slots = static_cast<Index>(slot_key_.size());
+    fill_.assign(static_cast<size_t>(sort_chunks_ * particle_blocks_), 0);
+    block_start_.resize(static_cast<size_t>(particle_blocks_ + 1));
+    grid_.resize(static_cast<size_t>(slots * BN * S));
+    tiles_.resize(static_cast<size_t>(particle_blocks_ * TN * S));
+  }
+  void rebuild_table() {
+    for (Index key : slot_key_) table_[static_cast<size_t>(key)] = -1;
+    slot_key_.clear();
     particle_blocks_ = static_cast<Index>(found_.size());
     for (const auto& f : found_) {
       table_[static_cast<size_t>(f.second)] = static_cast<std::int32_t>(slot_key_.size());
@@ -430,10 +446,6 @@ class SolverD final : public Solver::Impl {
         source_slot_[static_cast<size_t>(s * NEIGHBORS + o)] = slot < particle_blocks_ ? slot : -1;
       }
     }
-    fill_.assign(static_cast<size_t>(sort_chunks_ * particle_blocks_), 0);
-    block_start_.resize(static_cast<size_t>(particle_blocks_ + 1));
-    grid_.resize(static_cast<size_t>(slots * BN * S));
-    tiles_.resize(static_cast<size_t>(particle_blocks_ * TN * S));
   }
 
   [[noreturn]] void throw_bad_particle(const State& state) const {
@@ -1346,6 +1358,8 @@ class SolverD final : public Solver::Impl {
   std::array<Index, 3> blocks_{};
   Index block_count_ = 0;
   std::vector<std::int32_t> table_;          // dense block key -> slot (or -1)
+  std::vector<std::int32_t> seen_;           // dense block key -> last epoch_ it held a particle
+  std::int32_t epoch_ = 0;                   // sorts so far (wrapping), the mark of this one
   std::vector<Index> slot_key_;              // slot -> block key; particle blocks first
   Index particle_blocks_ = 0;
   std::vector<std::int32_t> neighbor_slot_;  // (particle block, 2^d) -> slot of the +{0,1}^d block
