@@ -881,26 +881,33 @@ class SolverD final : public Solver::Impl {
   // G2P is the only phase that writes the State, and it can fail (a blow-up): it saves the
   // values it overwrites, particle by particle while they are in cache, so that a step that
   // throws leaves the State as it was without a copy of the whole State before every step.
-  // Row q of the backup is the particle at position q of the block order (sequential writes).
+  // The backup holds one array per field (x, v, F, C, Jp, each of n rows); row q of each is the
+  // particle at position q of the block order (sequential writes), so `rows` consecutive
+  // stored rows at consecutive positions (rows sorted into blocks) are one copy per field.
   static constexpr int kRow = 2 * D + 2 * D * D + 1;  // x, v, F, C, Jp
-  void save_row(const State& state, Index p, Index q) {
-    // Element by element: std::copy_n of these short rows became memmove calls.
-    Scalar* r = &backup_[static_cast<size_t>(q * kRow)];
-    const size_t pd = static_cast<size_t>(p * D);
-    for (int k = 0; k < D; ++k) r[k] = state.x[pd + k];
-    for (int k = 0; k < D; ++k) r[D + k] = state.v[pd + k];
-    for (int k = 0; k < D * D; ++k) r[2 * D + k] = state.F[pd * D + k];
-    for (int k = 0; k < D * D; ++k) r[2 * D + D * D + k] = state.C[pd * D + k];
-    r[kRow - 1] = state.Jp[static_cast<size_t>(p)];
+  Scalar* backup_field(int field) {
+    static constexpr int kOffset[5] = {0, D, 2 * D, 2 * D + D * D, 2 * D + 2 * D * D};
+    return backup_.data() + static_cast<size_t>(particle_count_ * kOffset[field]);
   }
-  void restore_row(State& state, Index p, Index q) const {
-    const Scalar* r = &backup_[static_cast<size_t>(q * kRow)];
-    const size_t pd = static_cast<size_t>(p * D);
-    std::copy_n(r, D, &state.x[pd]);
-    std::copy_n(r + D, D, &state.v[pd]);
-    std::copy_n(r + 2 * D, D * D, &state.F[pd * D]);
-    std::copy_n(r + 2 * D + D * D, D * D, &state.C[pd * D]);
-    state.Jp[static_cast<size_t>(p)] = r[kRow - 1];
+  template <int Rows = 1>
+  void save_row(const State& state, Index p, Index q) {
+    // Element by element with constant counts: std::copy_n of these short rows became memmove calls.
+    const size_t pd = static_cast<size_t>(p * D), qd = static_cast<size_t>(q * D);
+    Scalar *x = backup_field(0) + qd, *v = backup_field(1) + qd;
+    Scalar *F = backup_field(2) + qd * D, *C = backup_field(3) + qd * D, *Jp = backup_field(4) + q;
+    for (int k = 0; k < Rows * D; ++k) x[k] = state.x[pd + k];
+    for (int k = 0; k < Rows * D; ++k) v[k] = state.v[pd + k];
+    for (int k = 0; k < Rows * D * D; ++k) F[k] = state.F[pd * D + k];
+    for (int k = 0; k < Rows * D * D; ++k) C[k] = state.C[pd * D + k];
+    for (int k = 0; k < Rows; ++k) Jp[k] = state.Jp[static_cast<size_t>(p) + k];
+  }
+  void restore_row(State& state, Index p, Index q) {
+    const size_t pd = static_cast<size_t>(p * D), qd = static_cast<size_t>(q * D);
+    std::copy_n(backup_field(0) + qd, D, &state.x[pd]);
+    std::copy_n(backup_field(1) + qd, D, &state.v[pd]);
+    std::copy_n(backup_field(2) + qd * D, D * D, &state.F[pd * D]);
+    std::copy_n(backup_field(3) + qd * D, D * D, &state.C[pd * D]);
+    state.Jp[static_cast<size_t>(p)] = backup_field(4)[q];
   }
 
   // Copies components First..S-1 of the nodes a block's tile covers from `source` (First is a
@@ -1262,7 +1269,9 @@ class SolverD final : public Solver::Impl {
         Index p[4];
         bool together;
         const int count = lane_rows(q, end, p, together);
-        for (int l = 0; l < count; ++l) save_row(state, p[l], q + l);
+        if (together && count == 4) save_row<4>(state, p[0], q);
+        else
+          for (int l = 0; l < count; ++l) save_row(state, p[l], q + l);
         Lanes w[2][3], fx[2], x[2];
         int base[4];
         load_lanes<2>(state.x.data(), p, together, x);
