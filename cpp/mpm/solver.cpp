@@ -153,6 +153,7 @@ class SolverD final : public Solver::Impl {
       block_count_ *= blocks_[a];
     }
     table_.assign(static_cast<size_t>(block_count_), -1);
+    seen_.assign(static_cast<size_t>(block_count_), 0);
   }
 
   StepStats step(State& state, Scalar dt, Interrupt& interrupt, const Scalar* forces) override {
@@ -279,8 +280,12 @@ class SolverD final : public Solver::Impl {
     const Index n = state.n;
     particle_count_ = n;
     backup_.resize(static_cast<size_t>(n * kRow));
-    for (Index key : slot_key_) table_[static_cast<size_t>(key)] = -1;
-    slot_key_.clear();
+    // The block table stays from the last step: build_blocks rebuilds it only when the set of
+    // particle blocks changed (most steps it does not). seen_ marks the blocks found this step.
+    if (++epoch_ == std::numeric_limits<std::int32_t>::max()) {
+      std::fill(seen_.begin(), seen_.end(), 0);
+      epoch_ = 1;
+    }
     particle_key_.resize(static_cast<size_t>(n));
     order_.resize(static_cast<size_t>(n));
     found_.clear();
@@ -319,13 +324,13 @@ class SolverD final : public Solver::Impl {
         }
         const Index key = key_of(b);
         particle_key_[static_cast<size_t>(p)] = key;
-        std::int32_t& mark = table_[static_cast<size_t>(key)];
+        std::int32_t& mark = seen_[static_cast<size_t>(key)];
         std::int32_t seen;
 #pragma omp atomic read
         seen = mark;
-        if (seen < 0) {
+        if (seen != epoch_) {
 #pragma omp atomic write
-          mark = 0;
+          mark = epoch_;
           mine.emplace_back(morton(coords_of(key)), key);
         }
       }
@@ -377,15 +382,26 @@ class SolverD final : public Solver::Impl {
     return true;
   }
 
-  // One thread: the block table from the particle blocks found (or, after a bad particle,
-  // the table's marks undone).
+  // One thread: the block table from the particle blocks found (nothing after a bad particle:
+  // the last step's table stays).
   void build_blocks() {
-    if (bad_ >= 0) {
-      for (const auto& f : found_) table_[static_cast<size_t>(f.second)] = -1;
-      return;
-    }
+    if (bad_ >= 0) return;
     std::sort(found_.begin(), found_.end());
     found_.erase(std::unique(found_.begin(), found_.end()), found_.end());
+    // The same particle blocks as the last step (in Morton order, as slot_key_ lists them):
+    // the table, the slots and their neighbour lists are the ones already built.
+    bool same = static_cast<Index>(found_.size()) == particle_blocks_;
+    for (size_t i = 0; same && i < found_.size(); ++i) same = found_[i].second == slot_key_[i];
+    if (!same) rebuild_table();
+    const Index slots = static_cast<Index>(slot_key_.size());
+    fill_.assign(static_cast<size_t>(sort_chunks_ * particle_blocks_), 0);
+    block_start_.resize(static_cast<size_t>(particle_blocks_ + 1));
+    grid_.resize(static_cast<size_t>(slots * BN * S));
+    tiles_.resize(static_cast<size_t>(particle_blocks_ * TN * S));
+  }
+  void rebuild_table() {
+    for (Index key : slot_key_) table_[static_cast<size_t>(key)] = -1;
+    slot_key_.clear();
     particle_blocks_ = static_cast<Index>(found_.size());
     for (const auto& f : found_) {
       table_[static_cast<size_t>(f.second)] = static_cast<std::int32_t>(slot_key_.size());
@@ -430,10 +446,6 @@ class SolverD final : public Solver::Impl {
         source_slot_[static_cast<size_t>(s * NEIGHBORS + o)] = slot < particle_blocks_ ? slot : -1;
       }
     }
-    fill_.assign(static_cast<size_t>(sort_chunks_ * particle_blocks_), 0);
-    block_start_.resize(static_cast<size_t>(particle_blocks_ + 1));
-    grid_.resize(static_cast<size_t>(slots * BN * S));
-    tiles_.resize(static_cast<size_t>(particle_blocks_ * TN * S));
   }
 
   [[noreturn]] void throw_bad_particle(const State& state) const {
@@ -869,26 +881,33 @@ class SolverD final : public Solver::Impl {
   // G2P is the only phase that writes the State, and it can fail (a blow-up): it saves the
   // values it overwrites, particle by particle while they are in cache, so that a step that
   // throws leaves the State as it was without a copy of the whole State before every step.
-  // Row q of the backup is the particle at position q of the block order (sequential writes).
+  // The backup holds one array per field (x, v, F, C, Jp, each of n rows); row q of each is the
+  // particle at position q of the block order (sequential writes), so `rows` consecutive
+  // stored rows at consecutive positions (rows sorted into blocks) are one copy per field.
   static constexpr int kRow = 2 * D + 2 * D * D + 1;  // x, v, F, C, Jp
-  void save_row(const State& state, Index p, Index q) {
-    // Element by element: std::copy_n of these short rows became memmove calls.
-    Scalar* r = &backup_[static_cast<size_t>(q * kRow)];
-    const size_t pd = static_cast<size_t>(p * D);
-    for (int k = 0; k < D; ++k) r[k] = state.x[pd + k];
-    for (int k = 0; k < D; ++k) r[D + k] = state.v[pd + k];
-    for (int k = 0; k < D * D; ++k) r[2 * D + k] = state.F[pd * D + k];
-    for (int k = 0; k < D * D; ++k) r[2 * D + D * D + k] = state.C[pd * D + k];
-    r[kRow - 1] = state.Jp[static_cast<size_t>(p)];
+  Scalar* backup_field(int field) {
+    static constexpr int kOffset[5] = {0, D, 2 * D, 2 * D + D * D, 2 * D + 2 * D * D};
+    return backup_.data() + static_cast<size_t>(particle_count_ * kOffset[field]);
   }
-  void restore_row(State& state, Index p, Index q) const {
-    const Scalar* r = &backup_[static_cast<size_t>(q * kRow)];
-    const size_t pd = static_cast<size_t>(p * D);
-    std::copy_n(r, D, &state.x[pd]);
-    std::copy_n(r + D, D, &state.v[pd]);
-    std::copy_n(r + 2 * D, D * D, &state.F[pd * D]);
-    std::copy_n(r + 2 * D + D * D, D * D, &state.C[pd * D]);
-    state.Jp[static_cast<size_t>(p)] = r[kRow - 1];
+  template <int Rows = 1>
+  void save_row(const State& state, Index p, Index q) {
+    // Element by element with constant counts: std::copy_n of these short rows became memmove calls.
+    const size_t pd = static_cast<size_t>(p * D), qd = static_cast<size_t>(q * D);
+    Scalar *x = backup_field(0) + qd, *v = backup_field(1) + qd;
+    Scalar *F = backup_field(2) + qd * D, *C = backup_field(3) + qd * D, *Jp = backup_field(4) + q;
+    for (int k = 0; k < Rows * D; ++k) x[k] = state.x[pd + k];
+    for (int k = 0; k < Rows * D; ++k) v[k] = state.v[pd + k];
+    for (int k = 0; k < Rows * D * D; ++k) F[k] = state.F[pd * D + k];
+    for (int k = 0; k < Rows * D * D; ++k) C[k] = state.C[pd * D + k];
+    for (int k = 0; k < Rows; ++k) Jp[k] = state.Jp[static_cast<size_t>(p) + k];
+  }
+  void restore_row(State& state, Index p, Index q) {
+    const size_t pd = static_cast<size_t>(p * D), qd = static_cast<size_t>(q * D);
+    std::copy_n(backup_field(0) + qd, D, &state.x[pd]);
+    std::copy_n(backup_field(1) + qd, D, &state.v[pd]);
+    std::copy_n(backup_field(2) + qd * D, D * D, &state.F[pd * D]);
+    std::copy_n(backup_field(3) + qd * D, D * D, &state.C[pd * D]);
+    state.Jp[static_cast<size_t>(p)] = backup_field(4)[q];
   }
 
   // Copies components First..S-1 of the nodes a block's tile covers from `source` (First is a
@@ -1210,6 +1229,33 @@ class SolverD final : public Solver::Impl {
     }
   }
 
+  // kernels.h's 2D snow_project of four particles, with its operations in its order (bitwise
+  // the same): a lane whose singular values do not clamp keeps its F and Jp.
+  KINEMA_TARGET_AVX2 KINEMA_ALWAYS_INLINE static void snow_lanes(const Material& m, const Index* p, int count,
+                                                                 Scalar* Jp, Lanes* F) {
+    const Lanes e = 0.5 * (F[0] + F[3]), f = 0.5 * (F[2] - F[1]);
+    const Lanes g = 0.5 * (F[0] - F[3]), k = 0.5 * (F[1] + F[2]);
+    const Lanes r1 = Lanes(_mm256_sqrt_pd(__m256d(e * e + f * f))), r2 = Lanes(_mm256_sqrt_pd(__m256d(g * g + k * k)));
+    const Lanes s1 = r1 + r2, s2 = r1 - r2;
+    const Scalar lo = 1 - m.theta_c, hi = 1 + m.theta_s;
+    const Lanes lov = Lanes{} + lo, hiv = Lanes{} + hi;
+    // std::clamp(s, lo, hi): s < lo ? lo : (hi < s ? hi : s).
+    const Lanes c1 = s1 < lo ? lov : (hi < s1 ? hiv : s1), c2 = s2 < lo ? lov : (hi < s2 ? hiv : s2);
+    const auto keep = (c1 == s1) & (c2 == s2);
+    bool all_kept = true;
+    for (int l = 0; l < 4; ++l) all_kept = all_kept && keep[l];
+    if (all_kept) return;
+    const Lanes ratio = (s1 * s2) / (c1 * c2);
+    for (int l = 0; l < count; ++l)
+      if (!keep[l]) Jp[p[l]] *= ratio[l];
+    const Lanes n1 = 0.5 * (c1 + c2), n2 = 0.5 * (c1 - c2);
+    const Lanes zero = Lanes{};
+    const Lanes a1 = r1 > 0 ? n1 / r1 : zero, a2 = r2 > 0 ? n2 / r2 : zero;
+    const Lanes E = r1 > 0 ? a1 * e : n1, Fs = a1 * f, G = a2 * g, K = a2 * k;
+    const Lanes out[4] = {E + G, K - Fs, Fs + K, E - G};
+    for (int c = 0; c < 4; ++c) F[c] = keep ? F[c] : out[c];
+  }
+
   KINEMA_TARGET_AVX2 void g2p_lanes_avx2(State& state, Scalar dt, Scalar& vmax2, bool& finite) {
     const Scalar h = model_.h, four_h = 4 / h;
 #pragma omp for schedule(dynamic, 1)
@@ -1223,7 +1269,9 @@ class SolverD final : public Solver::Impl {
         Index p[4];
         bool together;
         const int count = lane_rows(q, end, p, together);
-        for (int l = 0; l < count; ++l) save_row(state, p[l], q + l);
+        if (together && count == 4) save_row<4>(state, p[0], q);
+        else
+          for (int l = 0; l < count; ++l) save_row(state, p[l], q + l);
         Lanes w[2][3], fx[2], x[2];
         int base[4];
         load_lanes<2>(state.x.data(), p, together, x);
@@ -1275,7 +1323,9 @@ class SolverD final : public Solver::Impl {
         for (int l = 1; l < 4; ++l) one_material = one_material && state.material[static_cast<size_t>(p[l])] == code;
         const MaterialKind kind = model_.materials[static_cast<size_t>(code)].kind;
         const bool lanes_plastic = one_material && (kind == MaterialKind::Elastic || kind == MaterialKind::NeoHookean ||
-                                                    kind == MaterialKind::Water);
+                                                    kind == MaterialKind::Water || kind == MaterialKind::Snow);
+        if (lanes_plastic && kind == MaterialKind::Snow)
+          snow_lanes(model_.materials[static_cast<size_t>(code)], p, count, state.Jp.data(), Fn);
         if (lanes_plastic && kind == MaterialKind::Water) {
           const Lanes J = Fn[0] * Fn[3] - Fn[2] * Fn[1];
           const Lanes Jc = J < 1e-6 ? Lanes{} + 1e-6 : J;
@@ -1317,6 +1367,8 @@ class SolverD final : public Solver::Impl {
   std::array<Index, 3> blocks_{};
   Index block_count_ = 0;
   std::vector<std::int32_t> table_;          // dense block key -> slot (or -1)
+  std::vector<std::int32_t> seen_;           // dense block key -> last epoch_ it held a particle
+  std::int32_t epoch_ = 0;                   // sorts so far (wrapping), the mark of this one
   std::vector<Index> slot_key_;              // slot -> block key; particle blocks first
   Index particle_blocks_ = 0;
   std::vector<std::int32_t> neighbor_slot_;  // (particle block, 2^d) -> slot of the +{0,1}^d block
