@@ -19,7 +19,8 @@ def _recomputing(sim):
         sim, sim._core.record(dt, int(steps), controls, False))
 
 
-@pytest.mark.parametrize("shape,advection", [((12, 10), "maccormack"), ((8, 6, 7), "bfecc")])
+@pytest.mark.parametrize("shape,advection", [((12, 10), "maccormack"), ((12, 10), "bfecc"), ((8, 6, 7), "maccormack"),
+                                             ((8, 6, 7), "bfecc")])
 @pytest.mark.parametrize("checkpoints", [None, 2, 4])
 def test_kept_scratch_gives_the_recomputed_gradients(shape, advection, checkpoints):
     sim = _fluid(shape, advection, 2)
