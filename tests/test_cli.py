@@ -61,6 +61,10 @@ def test_run_reports_scene_errors(tmp_path, capsys):
     assert "examples:" in capsys.readouterr().err
     assert main(["run", "vortex_sheet", "--set", "objects[0].particles=few", "--out", str(tmp_path / "o")]) == 2
     assert "objects[0].particles: expected an integer >= 4, got a string 'few'" in capsys.readouterr().err
+    # view: a folder that is neither a run nor a scene is one line and status 2, no traceback
+    assert main(["view", str(tmp_path / "no_such_run")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("kinema: ") and "no_such_run" in err and "Traceback" not in err
 
 
 @needs_script
