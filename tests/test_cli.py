@@ -171,3 +171,16 @@ def test_info_prints_each_key_once(capsys):
     assert main(["info"]) == 0
     keys = [line.split()[0] for line in capsys.readouterr().out.splitlines() if line.strip()]
     assert keys.count("version") == 1 and len(keys) == len(set(keys))
+
+
+def test_resume_as_the_help_shows_it_repeats_the_set_options(tmp_path, capsys):
+    # `kinema --help` and the scenes guide continue a run made with --set by the same --set and
+    # --resume; without the --set the checkpoint is refused with that advice.
+    out = str(tmp_path / "run")
+    first = ["run", "vortex_sheet", "--quick", "--set", "solver.substeps=1", "--out", out, "--no-progress"]
+    assert main([*first, "--frames", "2"]) == 0
+    capsys.readouterr()
+    assert main(["run", "vortex_sheet", "--quick", "--out", out, "--frames", "3", "--resume"]) == 2
+    assert "--set options of the run that wrote it" in capsys.readouterr().err
+    assert main([*first, "--frames", "3", "--resume"]) == 0
+    assert (tmp_path / "run" / "frames" / "frame_00002.png").exists()
