@@ -167,6 +167,7 @@ def test_step_returns_step_stats():
     stats = s.step(0.01)
     assert isinstance(stats, km._core.StepStats)
     assert stats.time == s.time == pytest.approx(0.01) and stats.dt == 0.01 and stats.seconds >= 0
+    assert repr(stats).startswith("StepStats(time=0.01, dt=0.01, seconds=")  # readable when printed
 
 
 def test_advance_lands_on_the_end_and_absorbs_a_sliver():
