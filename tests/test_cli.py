@@ -61,6 +61,10 @@ def test_run_reports_scene_errors(tmp_path, capsys):
     assert "examples:" in capsys.readouterr().err
     assert main(["run", "vortex_sheet", "--set", "objects[0].particles=few", "--out", str(tmp_path / "o")]) == 2
     assert "objects[0].particles: expected an integer >= 4, got a string 'few'" in capsys.readouterr().err
+    # view: a folder that is neither a run nor a scene is one line and status 2, no traceback
+    assert main(["view", str(tmp_path / "no_such_run")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("kinema: ") and "no_such_run" in err and "Traceback" not in err
 
 
 @needs_script
@@ -167,3 +171,16 @@ def test_info_prints_each_key_once(capsys):
     assert main(["info"]) == 0
     keys = [line.split()[0] for line in capsys.readouterr().out.splitlines() if line.strip()]
     assert keys.count("version") == 1 and len(keys) == len(set(keys))
+
+
+def test_resume_as_the_help_shows_it_repeats_the_set_options(tmp_path, capsys):
+    # `kinema --help` and the scenes guide continue a run made with --set by the same --set and
+    # --resume; without the --set the checkpoint is refused with that advice.
+    out = str(tmp_path / "run")
+    first = ["run", "vortex_sheet", "--quick", "--set", "solver.substeps=1", "--out", out, "--no-progress"]
+    assert main([*first, "--frames", "2"]) == 0
+    capsys.readouterr()
+    assert main(["run", "vortex_sheet", "--quick", "--out", out, "--frames", "3", "--resume"]) == 2
+    assert "--set options of the run that wrote it" in capsys.readouterr().err
+    assert main([*first, "--frames", "3", "--resume"]) == 0
+    assert (tmp_path / "run" / "frames" / "frame_00002.png").exists()

@@ -170,6 +170,58 @@ def test_degenerate_inputs():
     assert phi[-1] == pytest.approx(3000 / np.sqrt(3), rel=1e-8)
 
 
+@pytest.mark.parametrize("d", [1e-200, 1e-160, 1e-120, 1e120, 1e160, 1e200])
+@pytest.mark.parametrize("path", ["direct", "fmm"])
+def test_distinct_points_are_summed_however_close_or_far(d, path):
+    # Two unit charges d apart along a skew direction: phi = 1/d at each, though d^2 under- or
+    # overflows. A pair at distance 0 is the only one left out; here none is. Beside them a
+    # cloud of zero charges makes the FMM run its near field (order given) on the same pair;
+    # 1/d is computed from the scaled difference, so phi is exact to a few roundings (1e-14).
+    e = np.array([1.0, 2.0, 2.0]) / 3
+    cloud = np.random.default_rng(1).random((1000, 3)) * d
+    x = np.r_[[np.zeros(3), d * e], cloud]
+    q = np.r_[1.0, 1.0, np.zeros(len(cloud))]
+    kw = {} if path == "direct" else dict(order=6)
+    phi = km.fmm.laplace3d(x, q, **kw)
+    assert km.fmm.last_info()["direct"] == (path == "direct")
+    assert km.fmm.last_info()["coincident"] == 0
+    assert phi[:2] == pytest.approx([1 / d, 1 / d], rel=1e-14)
+    target = km.fmm.laplace3d(x, q, x[:1] + 0.5 * d * e, **kw)  # halfway: 2/d + 2/d
+    assert target[0] == pytest.approx(4 / d, rel=1e-14)
+    if d > 1e-150:  # 1/d^2 representable
+        # grad at x_0 = -(x_0 - x_1)/d^3 = e/d^2 (the far points' 1/d^2 underflows to 0)
+        _, g = km.fmm.laplace3d(x, q, gradient=True, **kw)
+        assert g[0] == pytest.approx(e / d / d, rel=1e-14, abs=1e-300)
+    else:  # the gradient 1/d^2 is beyond double: said, not returned as 0
+        with pytest.raises(ValueError, match="gradient"):
+            km.fmm.laplace3d(x, q, gradient=True, **kw)
+
+
+@pytest.mark.parametrize("path", ["direct", "fmm"])
+def test_coincident_pairs_are_left_out_and_counted(path):
+    # A rule, not an accident: sources at exactly the same position are left out of each
+    # other's sums (1/0) and counted in last_info()["coincident"] (pairs both charged), in
+    # the direct sum and in the FMM's vectorised near field alike.
+    rng = np.random.default_rng(2)
+    x = rng.random((1200, 3))  # below the direct-sum crossover
+    x[10] = x[11] = x[12] = x[5]  # a group of four: 4 * 3 ordered pairs
+    x[20] = x[21]                  # two more ordered pairs, but 20 has no charge: none
+    q = rng.random(len(x)) + 0.5
+    q[20] = 0.0
+    kw = {} if path == "direct" else dict(order=10)
+    phi = km.fmm.laplace3d(x, q, **kw)
+    assert km.fmm.last_info()["direct"] == (path == "direct")
+    assert km.fmm.last_info()["coincident"] == 12
+    distinct = np.r_[0:5, 6:10, 13:len(x)]
+    d = np.linalg.norm(x[distinct] - x[5], axis=1)
+    expected = np.sum(q[distinct] / d)  # at x_5: every source but itself and its three copies
+    assert phi[5] == pytest.approx(expected, rel=1e-9)
+    # targets given: a target on a charged source leaves that source out and counts it (x_5
+    # sits on four; x_20 = x_21 on source 21 only, source 20 having no charge)
+    km.fmm.laplace3d(x, q, x[[5, 20, 21]], **kw)
+    assert km.fmm.last_info()["coincident"] == 4 + 1 + 1
+
+
 @pytest.mark.parametrize("kwargs, match", [
     (dict(sources=np.zeros((4, 2)), charges=np.ones(4)), "sources"),
     (dict(sources=np.zeros((4, 3)), charges=np.ones(3)), "charges"),

@@ -266,3 +266,33 @@ def test_damped_oscillator_converges_to_the_analytic_solution_at_first_order():
         p = np.polyfit(np.log(dts), np.log(errors), 1)[0]
         assert abs(p - 1) < 0.1, f"{integrator}: order {p:.3f}, errors {errors}"
         assert errors[-1] < 0.01 * a, f"{integrator}: error {errors[-1]:.2e}"
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_chain_normal_mode_has_the_discrete_dispersion_frequency(dim):
+    # A chain of N masses m between two fixed ends, springs k of rest length L, along a skew
+    # direction: longitudinal mode j has the shape sin(j pi i / (N + 1)) and the angular
+    # frequency 2 sqrt(k/m) sin(j pi / (2 (N + 1))) exactly (the lattice's dispersion; c = L
+    # sqrt(k/m) for long waves). Small amplitude (1e-6 L: the nonlinearity of the springs'
+    # transverse term is 1e-12) and symplectic Euler, whose frequency error is
+    # (omega dt)^2 / 24 = 4e-7 at dt = T/500: the period to 1e-5.
+    N, k, m, L, j = 30, 50.0, 0.02, 0.1, 3
+    e = np.array([1.0, 2.0, 2.0][:dim]) / np.linalg.norm([1.0, 2.0, 2.0][:dim])
+    i = np.arange(N + 2)
+    x = np.outer(i * L, e)
+    shape = np.sin(j * np.pi * i / (N + 1))
+    x += 1e-6 * L * np.outer(shape, e)
+    springs = np.c_[i[:-1], i[1:]]
+    sys = km.massspring.System(x, springs, stiffness=k, mass=m, rest_length=L, fixed=[0, N + 1])
+    omega = 2 * math.sqrt(k / m) * math.sin(j * math.pi / (2 * (N + 1)))
+    period = 2 * math.pi / omega
+    dt = period / 500
+    probe = np.argmax(shape)
+    u = np.empty(1300)
+    for n in range(len(u)):
+        sys.step(dt, "symplectic")
+        u[n] = (sys.x[probe] - probe * L * e) @ e
+    c = np.flatnonzero(np.sign(u[1:]) != np.sign(u[:-1]))
+    crossings = dt * (c + 1 + u[c] / (u[c] - u[c + 1]))
+    measured = 2 * (crossings[-1] - crossings[0]) / (len(crossings) - 1)
+    assert abs(measured / period - 1) < 1e-5, (measured, period)

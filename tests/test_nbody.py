@@ -167,6 +167,7 @@ def test_step_returns_step_stats():
     stats = s.step(0.01)
     assert isinstance(stats, km._core.StepStats)
     assert stats.time == s.time == pytest.approx(0.01) and stats.dt == 0.01 and stats.seconds >= 0
+    assert repr(stats).startswith("StepStats(time=0.01, dt=0.01, seconds=")  # readable when printed
 
 
 def test_advance_lands_on_the_end_and_absorbs_a_sliver():
@@ -230,3 +231,23 @@ def test_coincident_particles_count_in_the_softened_energy():
     # A massless particle on top of another adds nothing.
     two = km.nbody.System(np.zeros((2, 3)), np.zeros((2, 3)), [1.0, 0.0])
     assert two.energy() == 0.0
+    # ... and the forces (which the C++ near field checks, so stepping says it too)
+    sim = km.nbody.System(x, np.zeros_like(x), m)
+    with pytest.raises(km.DivergenceError, match="accelerations: particles coincide"):
+        sim.step(1e-3)
+    assert np.array_equal(sim.x, x) and sim.steps == 0
+    assert np.array_equal(two.accelerations(), np.zeros((2, 3)))
+
+
+@pytest.mark.parametrize("d", [1e-200, 1e-120])
+def test_close_but_distinct_particles_are_not_coincident(d):
+    # Distinct particles d apart have energy -G m1 m2 / d however small d^2 is (it underflows
+    # to 0 below 1e-162): never a silent 0; their force G m^2 / d^2 beyond double raises.
+    x = np.array([[0.0, 0.0, 0.0], [0.0, d, 0.0]])
+    sim = km.nbody.System(x, np.zeros_like(x), [2.0, 3.0], G=0.5)
+    assert sim.potential_energy() == pytest.approx(-0.5 * 6.0 / d, rel=1e-14)
+    if d > 1e-150:
+        assert sim.accelerations()[0, 1] == pytest.approx(0.5 * 3.0 / d**2, rel=1e-14)
+    else:
+        with pytest.raises(km.DivergenceError, match="accelerations: non-finite"):
+            sim.accelerations()

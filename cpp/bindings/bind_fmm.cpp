@@ -42,6 +42,7 @@ py::dict info(const Stats& stats) {
   if constexpr (std::is_same_v<Stats, fmm3::Fmm3dStats>) d["seconds_m2l"] = stats.seconds_m2l;
   if constexpr (std::is_same_v<Stats, fmm3::Fmm3dStats>) d["m2l"] = stats.rotation ? "rotation" : "dense";
   if constexpr (std::is_same_v<Stats, fmm3::Fmm3dStats>) d["root_scale"] = stats.root_scale;
+  if constexpr (std::is_same_v<Stats, fmm3::Fmm3dStats>) d["coincident"] = stats.coincident;
   d["seconds_downward"] = stats.seconds_downward;
   d["seconds_leaves"] = stats.seconds_leaves;
   return d;
@@ -133,7 +134,7 @@ void bind_fmm3d(py::module_& m) {
         {
           Interrupt interrupt = python_interrupt();
           ReleaseGil release;
-          if (direct) fmm3::direct3d(src.data, n, q, components, tgt.data, mt, config, out.data(), interrupt);
+          if (direct) stats.coincident = fmm3::direct3d(src.data, n, q, components, tgt.data, mt, config, out.data(), interrupt);
           else stats = fmm3::fmm3d(src.data, n, q, components, tgt.data, mt, config, out.data(), interrupt);
         }
         return py::make_tuple(to_numpy(std::move(out), {mt, components, width}), info(stats));

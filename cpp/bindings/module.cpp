@@ -103,7 +103,11 @@ PYBIND11_MODULE(_core, m) {
            py::kw_only(), py::arg("time"), py::arg("dt"), py::arg("seconds"))
       .def_readonly("time", &StepStatsBase::time, "simulated time at the end of the step [s]")
       .def_readonly("dt", &StepStatsBase::dt, "the step taken [s]")
-      .def_readonly("seconds", &StepStatsBase::seconds, "wall time of the step [s]");
+      .def_readonly("seconds", &StepStatsBase::seconds, "wall time of the step [s]")
+      .def("__repr__", [](const StepStatsBase& s) {
+        return "StepStats(time=" + format_real(s.time) + ", dt=" + format_real(s.dt) +
+               ", seconds=" + format_real(s.seconds) + ")";
+      });
   // The SPD solve dispatch of the implicit mechanics methods (linalg/spd_solver.h), shared by
   // their Configs, so registered once here.
   py::enum_<LinearSolver>(m, "LinearSolver")

@@ -276,6 +276,8 @@ StepStats Solver::minimise(State& state, Scalar* x, const Scalar* y, Scalar a, c
                            const Config& options, Interrupt& interrupt, const char* what) {
   Stopwatch clock;
   StepStats stats;
+  // The static solve's advice names its own options (load_steps, max_iter), not dt.
+  const bool is_static = std::string(what) == "solve_static";
   const Model& m = model_;
   const Index n = assembly_.dof_count();
   const int d = m.dim;
@@ -408,7 +410,10 @@ StepStats Solver::minimise(State& state, Scalar* x, const Scalar* y, Scalar a, c
       if (!solve(true))
         throw ConvergenceError(std::string(what) + ": the projected Newton matrix is singular at "
                                "step " + std::to_string(state.step) +
-                               " (are rigid motions left free in a static solve?)");
+                               (is_static ? " (rigid motions left free by the fixed vertices, or "
+                                            "elements crushed flat by too large a load step: raise "
+                                            "load_steps)"
+                                          : ""));
     }
     Scalar slope = dot(n, grad_.data(), dx_.data());
     if (!(slope < 0) && options.linear_solver != LinearSolver::CG &&
@@ -454,7 +459,7 @@ StepStats Solver::minimise(State& state, Scalar* x, const Scalar* y, Scalar a, c
       throw ConvergenceError(std::string(what) + ": line search found no decrease at step " +
                              std::to_string(state.step) + " after " + std::to_string(it) +
                              " Newton iterations (relative gradient norm " + format_real(g_norm / g0) +
-                             "); reduce dt or tol");
+                             (is_static ? "); raise load_steps or loosen tol" : "); reduce dt or tol"));
     phase.restart();
     g_norm = gradient(x, grad_.data());
     floor = noise_floor(x);
@@ -468,11 +473,12 @@ StepStats Solver::minimise(State& state, Scalar* x, const Scalar* y, Scalar a, c
   if (!stats.converged && (g_norm <= options.tol * g0 || g_norm <= floor + position_noise))
     stats.converged = true;
   if (!stats.converged)
-    throw ConvergenceError(std::string(what) + ": Newton reached max_newton = " +
+    throw ConvergenceError(std::string(what) + ": Newton reached " +
+                           (is_static ? "max_iter = " : "max_newton = ") +
                            std::to_string(options.max_newton) + " iterations at step " +
                            std::to_string(state.step) + " with relative gradient norm " +
                            format_real(g_norm / g0) + " > tol = " + format_real(options.tol) +
-                           "; reduce dt or raise max_newton");
+                           (is_static ? "; raise load_steps or max_iter" : "; reduce dt or raise max_newton"));
   stats.seconds = clock.seconds();
   return stats;
 }

@@ -347,18 +347,20 @@ struct Engine {
 
   // `self`: the targets are the sources (target t is source t in tree order: a smooth near
   // kernel leaves out that pair only). `mutual` (self only): the near field of adjacent leaves
-  // is summed once per pair of leaves (near_mutual) instead of here.
-  void leaves(std::vector<Scalar>& result, bool self, bool mutual, Interrupt& interrupt) {
+  // is summed once per pair of leaves (near_mutual) instead of here. Returns the count of
+  // coincident pairs the Laplace near field left out (p2p_generic).
+  Index leaves(std::vector<Scalar>& result, bool self, bool mutual, Interrupt& interrupt) {
     const Index leaf_count = static_cast<Index>(tree.leaves.size());
     const bool fast = config.kernel != NearKernel::Gaussian && nc == 1 && width <= 4;
     const Scalar softening = config.kernel == NearKernel::Plummer ? config.length : 0.0;
     const int newton = newton_steps(config.eps);
     const Scalar* tgt[3] = {tree.t[0].data(), tree.t[1].data(), tree.t[2].data()};
     constexpr Index kBlock = 256;
+    Index coincident = 0;
     for (Index start = 0; start < leaf_count; start += kBlock) {
       interrupt.check();
       const Index stop = std::min(leaf_count, start + kBlock);
-#pragma omp parallel for schedule(dynamic, 1)
+#pragma omp parallel for schedule(dynamic, 1) reduction(+ : coincident)
       for (Index i = start; i < stop; ++i) {
         const Index id = tree.leaves[static_cast<size_t>(i)];
         const Box3& box = tree.boxes[static_cast<size_t>(id)];
@@ -430,12 +432,13 @@ struct Engine {
             if (fast && p2p_fast(width == 4, newton, softening, x, y, z, src[0] + b, src[1] + b,
                                  src[2] + b, &q[static_cast<size_t>(b)], e - b, out, own))
               continue;
-            p2p_generic(config.kernel, config.length, width, x, y, z, src[0] + b, src[1] + b,
-                        src[2] + b, &q[static_cast<size_t>(b) * nc], nc, e - b, out, own);
+            coincident += p2p_generic(config.kernel, config.length, width, x, y, z, src[0] + b, src[1] + b,
+                                      src[2] + b, &q[static_cast<size_t>(b) * nc], nc, e - b, out, own);
           }
         }
       }
     }
+    return coincident;
   }
 
   // Leaves grouped so that the tasks of one group write disjoint leaves: leaf A's task sums
@@ -469,16 +472,17 @@ struct Engine {
 
   // The near field of adjacent leaves when the targets are the sources, each pair of leaves
   // visited once (p2p_mutual), A with itself by p2p_fast.
-  void near_mutual(std::vector<Scalar>& result, Interrupt& interrupt) {
+  Index near_mutual(std::vector<Scalar>& result, Interrupt& interrupt) {
     const Scalar softening = config.kernel == NearKernel::Plummer ? config.length : 0.0;
     const int newton = newton_steps(config.eps);
     const bool gradient = width == 4;
     constexpr Index kBlock = 256;  // tasks between interrupt checks
+    Index coincident = 0;
     for (const std::vector<Index>& group : mutual_groups())
       for (Index start = 0; start < static_cast<Index>(group.size()); start += kBlock) {
         interrupt.check();
         const Index count = std::min(static_cast<Index>(group.size()), start + kBlock);
-#pragma omp parallel for schedule(dynamic, 1) if (count - start > 1)
+#pragma omp parallel for schedule(dynamic, 1) if (count - start > 1) reduction(+ : coincident)
         for (Index g = start; g < count; ++g) {
           const Index a = group[static_cast<size_t>(g)];
           const Box3& ab = tree.boxes[static_cast<size_t>(a)];
@@ -488,8 +492,8 @@ struct Engine {
             Scalar* out = &result[static_cast<size_t>(t) * width];
             if (!p2p_fast(gradient, newton, softening, src[0][t], src[1][t], src[2][t], xa[0], xa[1], xa[2],
                           &q[static_cast<size_t>(a0)], na, out, t - a0))
-              p2p_generic(config.kernel, config.length, width, src[0][t], src[1][t], src[2][t], xa[0],
-                          xa[1], xa[2], &q[static_cast<size_t>(a0)], 1, na, out, t - a0);
+              coincident += p2p_generic(config.kernel, config.length, width, src[0][t], src[1][t], src[2][t],
+                                        xa[0], xa[1], xa[2], &q[static_cast<size_t>(a0)], 1, na, out, t - a0);
           }
           std::vector<Scalar> out_a, out_b, xb[3], qb;
           for (Index b : tree.lists[static_cast<size_t>(a)].u) {
@@ -517,15 +521,16 @@ struct Engine {
               continue;
             }
             for (Index t = a0; t < ab.src_end; ++t)
-              p2p_generic(config.kernel, config.length, width, src[0][t], src[1][t], src[2][t], src[0] + b0,
+              coincident += p2p_generic(config.kernel, config.length, width, src[0][t], src[1][t], src[2][t], src[0] + b0,
                           src[1] + b0, src[2] + b0, &q[static_cast<size_t>(b0)], 1, nb,
                           &result[static_cast<size_t>(t) * width]);
             for (Index t = b0; t < bb.src_end; ++t)
-              p2p_generic(config.kernel, config.length, width, src[0][t], src[1][t], src[2][t], xa[0],
+              coincident += p2p_generic(config.kernel, config.length, width, src[0][t], src[1][t], src[2][t], xa[0],
                           xa[1], xa[2], &q[static_cast<size_t>(a0)], 1, na, &result[static_cast<size_t>(t) * width]);
           }
         }
       }
+    return coincident;
   }
 };
 
@@ -690,8 +695,8 @@ Fmm3dStats fmm3d(const Scalar* sources, Index n, const Scalar* charges, int comp
   // leaf's targets are its sources.
   const bool mutual = self && config.kernel != NearKernel::Gaussian && components == 1 &&
                       width <= 4 && p2p_mutual_available();
-  engine.leaves(result, self, mutual, interrupt);
-  if (mutual) engine.near_mutual(result, interrupt);
+  stats.coincident = engine.leaves(result, self, mutual, interrupt);
+  if (mutual) stats.coincident += engine.near_mutual(result, interrupt);
   stats.seconds_leaves = watch.seconds();
 
   const size_t row = static_cast<size_t>(components * width);
@@ -701,9 +706,9 @@ Fmm3dStats fmm3d(const Scalar* sources, Index n, const Scalar* charges, int comp
   return stats;
 }
 
-void direct3d(const Scalar* sources, Index n, const Scalar* charges, int components,
-              const Scalar* targets, Index m, const Fmm3dConfig& config, Scalar* out,
-              Interrupt& interrupt) {
+Index direct3d(const Scalar* sources, Index n, const Scalar* charges, int components,
+               const Scalar* targets, Index m, const Fmm3dConfig& config, Scalar* out,
+               Interrupt& interrupt) {
   const bool self = targets == nullptr;
   if (self) {
     targets = sources;
@@ -716,18 +721,20 @@ void direct3d(const Scalar* sources, Index n, const Scalar* charges, int compone
     for (Index i = 0; i < n; ++i) xyz[d][static_cast<size_t>(i)] = sources[3 * i + d];
   }
   const Index block = std::max<Index>(16, (Index{1} << 22) / std::max<Index>(n, 1));
+  Index coincident = 0;
   for (Index start = 0; start < m; start += block) {
     interrupt.check();
     const Index stop = std::min(m, start + block);
-#pragma omp parallel for schedule(static)
+#pragma omp parallel for schedule(static) reduction(+ : coincident)
     for (Index t = start; t < stop; ++t) {
       Scalar* o = out + static_cast<size_t>(t) * components * width;
       std::fill(o, o + components * width, 0.0);
-      p2p_generic(config.kernel, config.length, width, targets[3 * t], targets[3 * t + 1],
+      coincident += p2p_generic(config.kernel, config.length, width, targets[3 * t], targets[3 * t + 1],
                   targets[3 * t + 2], xyz[0].data(), xyz[1].data(), xyz[2].data(), charges,
                   components, n, o, self ? t : -1);
     }
   }
+  return coincident;
 }
 
 }  // namespace kinema::fmm3

@@ -39,6 +39,9 @@ struct Fmm3dStats {
   Scalar root_scale = 1;  // the root box over the points' bounding cube
   Index box_count = 0;
   int depth = 0;
+  // Laplace kernel: pairs of a target and a charged source (not the target itself) at the
+  // same position, left out of the sums (their interaction is infinite).
+  Index coincident = 0;
   double seconds_tree = 0, seconds_upward = 0, seconds_m2l = 0, seconds_downward = 0,
          seconds_leaves = 0;
 };
@@ -68,9 +71,10 @@ Fmm3dStats fmm3d(const Scalar* sources, Index n, const Scalar* charges, int comp
                  const Scalar* targets, Index m, const Fmm3dConfig& config, Scalar* out,
                  Interrupt& interrupt);
 
-// The same sums directly (the exact reference), parallel over targets.
-void direct3d(const Scalar* sources, Index n, const Scalar* charges, int components,
-              const Scalar* targets, Index m, const Fmm3dConfig& config, Scalar* out,
-              Interrupt& interrupt);
+// The same sums directly (the exact reference), parallel over targets; returns the count of
+// coincident pairs left out (Fmm3dStats::coincident).
+Index direct3d(const Scalar* sources, Index n, const Scalar* charges, int components,
+               const Scalar* targets, Index m, const Fmm3dConfig& config, Scalar* out,
+               Interrupt& interrupt);
 
 }  // namespace kinema::fmm3

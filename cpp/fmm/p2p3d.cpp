@@ -26,7 +26,8 @@ struct Sums {
 // One vector of four sources: the inverse distance by a float estimate and Newton steps
 // y <- y (3/2 - s^2 y^2 / 2); left out: without softening the pairs at distance 0, with it the
 // lanes of `self_lane` (the target itself; s^2 >= a^2 > 0 there). r^2 + a^2 outside float's
-// normal range is flagged.
+// normal range is flagged, and so, without softening, is a charged source other than the
+// target itself at distance 0 (p2p_generic then counts it or, if r^2 underflowed, sums it).
 template <bool Gradient, bool Softened>
 KINEMA_AVX2_FMA inline void p2p_vector(__m256d dx, __m256d dy, __m256d dz, __m256d w, __m256d a2,
                                        int newton_steps, __m256d self_lane, Sums& acc) {
@@ -43,7 +44,12 @@ KINEMA_AVX2_FMA inline void p2p_vector(__m256d dx, __m256d dy, __m256d dz, __m25
   }
   const __m256d out_of_range = _mm256_or_pd(_mm256_cmp_pd(s2, _mm256_set1_pd(1e-36), _CMP_LT_OQ),
                                             _mm256_cmp_pd(s2, _mm256_set1_pd(1e36), _CMP_GT_OQ));
-  acc.bad = _mm256_or_pd(acc.bad, _mm256_and_pd(live, out_of_range));
+  if constexpr (Softened) {
+    acc.bad = _mm256_or_pd(acc.bad, _mm256_and_pd(live, out_of_range));
+  } else {
+    const __m256d charged = _mm256_andnot_pd(self_lane, _mm256_cmp_pd(w, zero, _CMP_NEQ_UQ));
+    acc.bad = _mm256_or_pd(acc.bad, _mm256_and_pd(_mm256_or_pd(live, charged), out_of_range));
+  }
   __m256d inv = _mm256_cvtps_pd(_mm_rsqrt_ps(_mm256_cvtpd_ps(safe)));
   const __m256d hs = _mm256_mul_pd(_mm256_set1_pd(0.5), safe);
   for (int k = 0; k < newton_steps; ++k)
@@ -82,7 +88,7 @@ KINEMA_AVX2_FMA bool p2p_avx2(int newton_steps, Scalar a, Scalar x, Scalar y, Sc
     p2p_vector<Gradient, Softened>(_mm256_sub_pd(vx, _mm256_loadu_pd(sx + j)),
                                    _mm256_sub_pd(vy, _mm256_loadu_pd(sy + j)),
                                    _mm256_sub_pd(vz, _mm256_loadu_pd(sz + j)), _mm256_loadu_pd(q + j),
-                                   a2, newton_steps, Softened ? lane_is(self - j) : a2, acc);
+                                   a2, newton_steps, lane_is(self - j), acc);
   }
   if (j < n) {
     // The tail padded with copies of the target (distance 0: masked out without softening) and
@@ -92,7 +98,7 @@ KINEMA_AVX2_FMA bool p2p_avx2(int newton_steps, Scalar a, Scalar x, Scalar y, Sc
     for (Index k = 0; j + k < n; ++k) bx[k] = sx[j + k], by[k] = sy[j + k], bz[k] = sz[j + k], bq[k] = q[j + k];
     p2p_vector<Gradient, Softened>(_mm256_sub_pd(vx, _mm256_load_pd(bx)), _mm256_sub_pd(vy, _mm256_load_pd(by)),
                                    _mm256_sub_pd(vz, _mm256_load_pd(bz)), _mm256_load_pd(bq), a2,
-                                   newton_steps, Softened ? lane_is(self - j) : a2, acc);
+                                   newton_steps, lane_is(self - j), acc);
   }
   if (_mm256_movemask_pd(acc.bad) != 0) return false;
   out[0] += horizontal_sum(acc.phi);
@@ -209,10 +215,17 @@ KINEMA_AVX512 bool p2p_avx512(int steps, Scalar a, Scalar x, Scalar y, Scalar z,
         Softened ? _mm512_cmpneq_epi64_mask(_mm512_set_epi64(7, 6, 5, 4, 3, 2, 1, 0), _mm512_set1_epi64(self - j))
                  : _mm512_cmp_pd_mask(r2, zero, _CMP_GT_OQ);
     const __m512d s2 = _mm512_add_pd(r2, a2);
-    bad |= live & (_mm512_cmp_pd_mask(s2, _mm512_set1_pd(1e-36), _CMP_LT_OQ) |
-                   _mm512_cmp_pd_mask(s2, _mm512_set1_pd(1e36), _CMP_GT_OQ));
+    const __m512d qj = _mm512_maskz_loadu_pd(m, q + j);
+    // Without softening a charged source other than the target at distance 0 is flagged too.
+    const __mmask8 checked =
+        Softened ? live
+                 : __mmask8(live | (_mm512_cmp_pd_mask(qj, zero, _CMP_NEQ_UQ) &
+                                    _mm512_cmpneq_epi64_mask(_mm512_set_epi64(7, 6, 5, 4, 3, 2, 1, 0),
+                                                             _mm512_set1_epi64(self - j))));
+    bad |= checked & (_mm512_cmp_pd_mask(s2, _mm512_set1_pd(1e-36), _CMP_LT_OQ) |
+                      _mm512_cmp_pd_mask(s2, _mm512_set1_pd(1e36), _CMP_GT_OQ));
     const __m512d inv = inverse_sqrt512(_mm512_mask_blend_pd(live, one, s2), steps);
-    const __m512d wi = _mm512_maskz_mul_pd(live, _mm512_maskz_loadu_pd(m, q + j), inv);
+    const __m512d wi = _mm512_maskz_mul_pd(live, qj, inv);
     phi = _mm512_add_pd(phi, wi);
     if constexpr (Gradient) {
       const __m512d wi3 = _mm512_mul_pd(wi, _mm512_mul_pd(inv, inv));
@@ -351,9 +364,10 @@ bool p2p_fast(bool gradient, int newton_steps, Scalar a, Scalar x, Scalar y, Sca
     return kernels[gradient][a > 0](newton_steps, a, x, y, z, sx, sy, sz, q, n, out, self);
   }
 #endif
-  p2p_generic(a > 0 ? NearKernel::Plummer : NearKernel::Laplace, a, gradient ? 4 : 1, x, y, z, sx,
-              sy, sz, q, 1, n, out, self);
-  return true;
+  // Portable build: the caller's p2p_generic (which also counts coincident pairs).
+  (void)gradient, (void)newton_steps, (void)a, (void)x, (void)y, (void)z, (void)sx, (void)sy,
+      (void)sz, (void)q, (void)n, (void)out, (void)self;
+  return false;
 }
 
 }  // namespace kinema::fmm3

@@ -10,6 +10,7 @@
 // gradient also have a vectorised path.
 #pragma once
 
+#include <algorithm>
 #include <cmath>
 
 #include "core/types.h"
@@ -52,23 +53,69 @@ inline Radial radial(NearKernel kernel, Scalar r2, Scalar a) {
   return {f, g, (d2 - g) * inv_r2};
 }
 
+// The Laplace kernel 1/r where r^2 leaves double's comfortable range (r < 1e-50 or r > 1e50,
+// down to distances whose squares underflow to 0): from the unit vector e = d / r and 1/r,
+// phi += w / r, grad += -w e / r^2, hess += w (3 e e^T - I) / r^3, each as accurate as its
+// value is representable (an unrepresentable one overflows to inf, never to a silent 0).
+inline void laplace_scaled(Scalar dx, Scalar dy, Scalar dz, const Scalar* w, int components,
+                           int width, Scalar (*acc)[10]) {
+  const Scalar big = std::max({std::abs(dx), std::abs(dy), std::abs(dz)});
+  const Scalar ux = dx / big, uy = dy / big, uz = dz / big;
+  const Scalar norm = std::sqrt(ux * ux + uy * uy + uz * uz);
+  const Scalar inv = 1 / (big * norm), ex = ux / norm, ey = uy / norm, ez = uz / norm;
+  for (int c = 0; c < components; ++c) {
+    Scalar* o = acc[c];
+    const Scalar f = w[c] * inv;
+    o[0] += f;
+    if (width > 1) {
+      const Scalar g = -f * inv;
+      o[1] += g * ex, o[2] += g * ey, o[3] += g * ez;
+    }
+    if (width > 4) {
+      const Scalar h = f * inv * inv;
+      o[4] += h * (3 * ex * ex - 1), o[5] += 3 * h * ex * ey, o[6] += 3 * h * ex * ez;
+      o[7] += h * (3 * ey * ey - 1), o[8] += 3 * h * ey * ez, o[9] += h * (3 * ez * ez - 1);
+    }
+  }
+}
+
 // Adds to out[c * width + ...] (phi, grad[3], hess[6] = xx xy xz yy yz zz; the first `width`
 // of them, width 1, 4 or 10) the sum over sources [0, n) with charge components
 // q[j * components + c], c < components (the kernel evaluated once per pair). Source `self`
-// (in [0, n), or -1 for none) is the target itself and skipped; Laplace skips every pair at
-// distance 0 instead.
-inline void p2p_generic(NearKernel kernel, Scalar a, int width, Scalar x, Scalar y, Scalar z,
-                        const Scalar* sx, const Scalar* sy, const Scalar* sz, const Scalar* q,
-                        int components, Index n, Scalar* out, Index self = -1) {
+// (in [0, n), or -1 for none) is the target itself and skipped; Laplace skips every source at
+// the target's position (equal coordinates, distance exactly 0) instead and returns how many
+// of them, other than `self`, carry a nonzero charge while the target (source `self`, when
+// there is one) does too: coincident pairs whose interaction is infinite, which callers
+// report. Distinct points are summed however close: a distance whose square underflows is
+// not 0.
+inline Index p2p_generic(NearKernel kernel, Scalar a, int width, Scalar x, Scalar y, Scalar z,
+                         const Scalar* sx, const Scalar* sy, const Scalar* sz, const Scalar* q,
+                         int components, Index n, Scalar* out, Index self = -1) {
   const bool laplace = kernel == NearKernel::Laplace;
   constexpr int kMaxComponents = 4;
   Scalar acc[kMaxComponents][10] = {};
+  Index coincident = 0;
+  const auto charged = [components](const Scalar* w) {
+    return std::any_of(w, w + components, [](Scalar v) { return v != 0; });
+  };
+  const bool target_charged = self < 0 || charged(q + self * components);
   for (Index j = 0; j < n; ++j) {
     const Scalar dx = x - sx[j], dy = y - sy[j], dz = z - sz[j];
     const Scalar r2 = dx * dx + dy * dy + dz * dz;
-    if (laplace ? r2 == 0 : j == self) continue;
-    const Radial k = radial(kernel, r2, a);
     const Scalar* w = q + j * components;
+    if (laplace) {
+      if (dx == 0 && dy == 0 && dz == 0) {
+        if (j != self && target_charged && charged(w)) ++coincident;
+        continue;
+      }
+      if (!(r2 >= 1e-100 && r2 <= 1e100)) {
+        laplace_scaled(dx, dy, dz, w, components, width, acc);
+        continue;
+      }
+    } else if (j == self) {
+      continue;
+    }
+    const Radial k = radial(kernel, r2, a);
     for (int c = 0; c < components; ++c) {
       Scalar* o = acc[c];
       o[0] += w[c] * k.f;
@@ -85,6 +132,7 @@ inline void p2p_generic(NearKernel kernel, Scalar a, int width, Scalar x, Scalar
   }
   for (int c = 0; c < components; ++c)
     for (int i = 0; i < width; ++i) out[c * width + i] += acc[c][i];
+  return coincident;
 }
 
 // The Laplace (softening a = 0) or Plummer potential and gradient of sources [0, n) with unit
@@ -93,7 +141,8 @@ inline void p2p_generic(NearKernel kernel, Scalar a, int width, Scalar x, Scalar
 // mutual kernel takes 1 to 3). Adds to out[0..3]. Left out as in p2p_generic: with a = 0
 // every pair at distance 0, with a > 0 source `self` (or none for -1).
 // Returns false, leaving out untouched, when a pair's r^2 is outside the range where the float
-// estimate is valid; the caller then uses p2p_generic.
+// estimate is valid, when (a = 0) a charged source other than `self` lies at the target, and
+// always in a build without the vectorised kernels; the caller then uses p2p_generic.
 bool p2p_fast(bool gradient, int newton_steps, Scalar a, Scalar x, Scalar y, Scalar z,
               const Scalar* sx, const Scalar* sy, const Scalar* sz, const Scalar* q, Index n,
               Scalar* out, Index self = -1);

@@ -24,7 +24,8 @@ examples:
   kinema list                                   the example scenes shipped with kinema
   kinema run smoke_plume --out out/smoke        an example by name (or a path to a .toml)
   kinema run dam_break --out out/dam --frames 30 --set solver.spacing=0.04
-  kinema run dam_break --out out/dam --frames 60 --resume    continue to 60 frames
+  kinema run dam_break --out out/dam --frames 60 --set solver.spacing=0.04 --resume
+                                                continue to 60 frames (the same --set)
   kinema sweep vortex_merge --quick --param substeps=1,2,4 --out out/sweep
   kinema sweep soft_body --quick --param "objects[0].youngs_modulus=2e5,5e5" --out out/stiff
                                                 (a bare --param KEY is a solver option, or the key of

@@ -147,8 +147,12 @@ def laplace3d(sources, charges, targets=None, *, eps=1e-10, gradient=False, orde
     """phi(x) = sum_j q_j / |x - y_j| (and its gradient) by the fast multipole method.
 
     sources: (N, 3) source positions [m]. charges: (N,) charges q_j (or a scalar for all).
-    targets: (M, 3) evaluation points, or None for the sources themselves (the self term and
-    any pair at distance zero left out).
+    targets: (M, 3) evaluation points, or None for the sources themselves (the self term
+    left out). A target and a charged source at exactly the same position (equal
+    coordinates) are left out too, their 1/0 being infinite; ``last_info()["coincident"]``
+    counts such pairs (in the self case those whose two charges are both nonzero). Distinct
+    points are summed however close or far (a distance whose square underflows or overflows
+    is not 0); a potential or gradient beyond the float range raises ValueError.
     eps: relative 2-norm error of phi to meet, 1e-15 <= eps < 1 (tested from 1e-3 to 1e-12;
     the gradient's relative error is of the same size).
     gradient: also return grad phi = -sum_j q_j (x - y_j) / |x - y_j|^3.
@@ -178,9 +182,9 @@ def laplace3d(sources, charges, targets=None, *, eps=1e-10, gradient=False, orde
     out, info = _eval3d(src, q, tgt, eps=e, derivatives=1 if gradient else 0, order=p,
                         leaf_size=_count(leaf_size, "leaf_size"), direct=direct, m2l=m2l)
     info["direct"] = direct
-    representable(out, "sources, charges", "the potential or its gradient")
     _last_info.clear()
     _last_info.update(info)
+    representable(out, "sources, charges", "the potential or its gradient")
     phi = out[:, 0, 0].copy()
     return (phi, out[:, 0, 1:4].copy()) if gradient else phi
 

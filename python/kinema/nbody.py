@@ -77,46 +77,41 @@ class System:
 
     # ------------------------------------------------------------------ forces
     def _field(self, derivatives):
+        """(N, width) potential [and gradient] per unit G; with s = 0 raises km.DivergenceError
+        when particles of nonzero mass coincide (the C++ near field counts those pairs)."""
         n = len(self.x)
         direct = n * n <= _DIRECT_PAIRS
         kernel = "plummer" if self.softening > 0 else "laplace"
-        out, _ = fmm._eval3d(self.x, self.mass, None, eps=self.eps, derivatives=derivatives,
-                             kernel=kernel, length=self.softening,
-                             min_width=_NEAR_WIDTH * self.softening, direct=direct)
+        out, info = fmm._eval3d(self.x, self.mass, None, eps=self.eps, derivatives=derivatives,
+                                kernel=kernel, length=self.softening,
+                                min_width=_NEAR_WIDTH * self.softening, direct=direct)
+        if self.softening == 0 and info["coincident"] > 0:
+            what = "accelerations" if derivatives else "potential_energy"
+            raise DivergenceError(f"{what}: particles coincide at step {self.steps} "
+                                  f"(t = {self.time:g}), an infinite force and energy without "
+                                  "softening; give softening > 0")
         return out[:, 0, :]
 
     def accelerations(self) -> np.ndarray:
-        """a_i (N, 3) [m/s^2] at the current positions."""
+        """a_i (N, 3) [m/s^2] at the current positions.
+
+        With s = 0, particles of nonzero mass at the same position, or so close that a force
+        exceeds the float range, raise km.DivergenceError (a massless particle exactly on
+        another feels nothing from it)."""
         a = self.G * self._field(1)[:, 1:4]
         if not np.isfinite(a).all():
             raise DivergenceError(f"accelerations: non-finite at step {self.steps} (t = {self.time:g}); "
-                                  "coincident particles need softening > 0")
+                                  "particles this close need softening > 0")
         return a
 
     def potential_energy(self) -> float:
         """-G/2 sum_i m_i sum_{j != i} m_j / sqrt(r_ij^2 + s^2) [J].
 
         Particles at the same position add -G m_i m_j / s (counted by the softened near field);
-        with s = 0 their energy is infinite and a km.DivergenceError says so."""
-        phi = self._field(0)[:, 0]
-        if self.softening == 0 and self._coincident_mass_products() > 0:
-            raise DivergenceError(f"potential_energy: particles coincide at step {self.steps} "
-                                  f"(t = {self.time:g}), an infinite energy without softening; "
-                                  "give softening > 0")
-        energy = -0.5 * self.G * np.dot(self.mass, phi)
+        with s = 0 their energy is infinite and a km.DivergenceError says so (a massless
+        particle adds nothing)."""
+        energy = -0.5 * self.G * np.dot(self.mass, self._field(0)[:, 0])
         return finite_result(float(energy), "potential_energy")
-
-    def _coincident_mass_products(self) -> float:
-        """sum of m_i m_j over the pairs i < j with x_i == x_j."""
-        order = np.lexsort(self.x.T[::-1])
-        xs = self.x[order]
-        same = (xs[1:] == xs[:-1]).all(axis=1)
-        if not same.any():
-            return 0.0
-        group = np.cumsum(np.r_[True, ~same]) - 1
-        m = self.mass[order]
-        total, squares = np.bincount(group, m), np.bincount(group, m * m)
-        return float(0.5 * (total * total - squares).sum())
 
     def kinetic_energy(self) -> float:
         """1/2 sum_i m_i |v_i|^2 [J]."""

@@ -829,9 +829,11 @@ def view(source, **kwargs):
 def cli_view(source):
     """``kinema run SCENE --view`` and ``kinema view OUT_DIR``: the window, or one clear line
     on stderr (exit status 2) where it cannot open."""
+    from kinema.scenes import SceneError
+
     try:
         view(source)
-    except (ViewerUnavailable, FileNotFoundError) as exc:
+    except (ViewerUnavailable, FileNotFoundError, SceneError) as exc:
         print(f"kinema: {exc}", file=sys.stderr)
         return 2
     return 0

@@ -246,7 +246,8 @@ def _run(scene, out, frames, resume, progress, on_frame):
         state, meta = io_out.load_checkpoint(checkpoint)
         if meta["fingerprint"] != scene.fingerprint():
             raise ValueError(f"--resume: {checkpoint} was written by a different scene or different "
-                             f"solver/object settings ({meta.get('scene')}); run without --resume")
+                             f"solver/object settings ({meta.get('scene')}); resume with the scene and "
+                             "--set options of the run that wrote it, or run without --resume")
         try:
             sim.set_state(state)
         except (KeyError, ValueError, TypeError) as exc:
