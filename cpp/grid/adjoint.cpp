@@ -351,9 +351,10 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
   auto trace_array = [](RowTrace& rt, int e) -> Scalar* {
     return e < 3 ? rt.y1[e] : e < 6 ? rt.y2[e - 3] : e < 9 ? rt.p[e - 6] : rt.jac[(e - 9) / 9][(e - 9) % 9];
   };
-  Scalar* stored[kTraceSlots] = {};  // the slots' arrays once allocated (one trace per call)
-  auto trace_store = [&]() -> Scalar** {
-    for (int s = 0; s < n_used; ++s) stored[used[s]] = work.raw(kTrace + used[s], n);
+  Scalar* stored[kTraceSlots] = {};  // the departure points' arrays once allocated (slots 6-8)
+  auto store_departures = [&]() -> Scalar** {
+    for (int s = 0; s < n_used; ++s)
+      if (used[s] >= 6 && used[s] < 9) stored[used[s]] = work.raw(kTrace + used[s], n);
     return stored;
   };
   auto fill = [&](RowData& rd, int sl, const Scalar* x, Scalar offset, Index nodes, Index period) {
@@ -391,9 +392,11 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
   // One pass traced over `step`: for each node, term(f, c, st, at) (at: src[f] on st) returns dL/d(src[f] at the
   // departure point) after adding the terms that do not go through it; the pass scatters that
   // into dst[f] (W^T) and carries (grad src[f]) through the trace into dL/du. load (nullable):
-  // the trace stored per node, read instead of traced; store (nullable): where to store it.
+  // the trace stored per node (advect_rows' trace), read instead of traced: its non-null arrays
+  // must hold all the pass reads (the departure points alone where gp_keep skips the trace's
+  // adjoint).
   auto pass = [&](Scalar step, const Scalar* const* src, Scalar* const* dst, auto&& term,
-                  const Scalar* const* load = nullptr, Scalar* const* store = nullptr) {
+                  const Scalar* const* load = nullptr) {
     Scatter::run(L, reach, make, [&](RowData& rd, Index i, Index j, Index c0) {
       if (!rd.trace) {
         for (Index k = 0; k < nk; ++k) {
@@ -405,11 +408,10 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
       }
       RowTrace& rt = *rd.trace;
       if (load) {
-        for (int s = 0; s < n_used; ++s) std::copy_n(load[used[s]] + c0, nk, trace_array(rt, used[s]));
+        for (int s = 0; s < n_used; ++s)
+          if (load[used[s]]) std::copy_n(load[used[s]] + c0, nk, trace_array(rt, used[s]));
       } else {
         rt.trace(i, j, step);
-        if (store)
-          for (int s = 0; s < n_used; ++s) std::copy_n(trace_array(rt, used[s]), nk, store[used[s]] + c0);
       }
       Scalar* x = rd.reals.data() + 2 * kSlots * nk;  // the nodes' coordinates along axes 0, 1
       std::fill(x, x + nk, static_cast<Scalar>(i) + L.offset[0]);
@@ -437,9 +439,8 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
     });
   };
   // out[f] = SL(src[f]) adjoint: dL/dsrc[f] += W^T g[f], positions through the trace.
-  auto semi_lagrangian = [&](const Scalar* const* src, const Scalar* const* g, Scalar* const* dst,
-                             const Scalar* const* load = nullptr) {
-    pass(dt, src, dst, [&](int f, Index c, const Stencil<ThreeD>&, const Scalar*) { return g[f][c]; }, load);
+  auto semi_lagrangian = [&](const Scalar* const* src, const Scalar* const* g, Scalar* const* dst) {
+    pass(dt, src, dst, [&](int f, Index c, const Stencil<ThreeD>&, const Scalar*) { return g[f][c]; });
   };
   // The first stage of every trace reads u at the node itself: dL/du_a += W_a(x)^T g_node[a]
   // for every node x of L, once per call (its stencils reach a slab or two).
@@ -481,16 +482,19 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
     return;
   }
   // The forward pass as run: q^ = SL(q, dt), the clamp bounds lo/hi (values), BFECC's q_bar.
-  // Recomputed by rows, its back-traces over dt are stored for the adjoint's pass over them.
-  const Scalar* const* traced = nullptr;
+  // Recomputed by rows for BFECC, its departure points are stored for the adjoint's first pass,
+  // which traces the same and reads only them (it carries its gradients through the last pass's
+  // trace). Not the whole trace (15 arrays per node at RK2): storing and reading it costs about
+  // as much as tracing again.
+  const Scalar* const* departures = nullptr;
   if (!forward) {
     AdvectionScratch& own = work.forward;
     if (rows) {
-      Scalar** store = trace_store();
+      Scalar** store = scheme == AdvectionScheme::BFECC ? store_departures() : nullptr;
       Scalar* unused[kMaxAdvectedFields] = {};  // scratch_only: the row passes stop before out
       own.reserve(n, scheme, count);
       advect_rows(scheme, u, L, count, q, unused, dt, rk, own, use_avx2(), true, store);
-      traced = store;
+      departures = store;
     } else {
       std::vector<std::vector<Scalar>> out(count, std::vector<Scalar>(n));
       Scalar* out_p[kMaxAdvectedFields];
@@ -529,7 +533,7 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
     pass(dt, q, g_q, [&](int f, Index c, const Stencil<ThreeD>& st, const Scalar*) -> Scalar {
       if (branch[f][c]) g_q[f][branch[f][c] == 1 ? st.argmin(q[f]) : st.argmax(q[f])] += g_out[f][c];
       return g_fwd_p[f][c];
-    }, traced);
+    });
     stage0();
     return;
   }
@@ -539,9 +543,7 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
   Scalar* gp_store[3] = {nullptr, nullptr, nullptr};  // this pass's gp, carried by the last one's trace
   for (int b = first; b < 3; ++b) gp_store[b] = gp_keep[b] = work.zeros(kGp + b, n);
   // Where the clamp took a bound, the result is that extreme node of q on the stencil of the
-  // departure point (the same as the forward's: the same trace), which the last pass traces
-  // again: stored here unless the forward's recomputation stored it.
-  Scalar* const* store = traced || !rows ? nullptr : trace_store();
+  // departure point (the same as the forward's: the same trace).
   pass(dt, bar, g_bar_p, [&](int f, Index c, const Stencil<ThreeD>& st, const Scalar* at) -> Scalar {
     const Scalar g = g_out[f][c];
     if (g == 0) return 0;
@@ -550,8 +552,7 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
     else if (hi[f][c] < v) g_q[f][st.argmax(q[f])] += g;
     else return g;
     return 0;
-  }, traced, store);
-  if (store) traced = store;
+  }, departures);
   for (int b = first; b < 3; ++b) gp_keep[b] = nullptr;
   // q_bar = 1.5 q - 0.5 q~
   pass(-dt, fwd, g_fwd_p, [&](int f, Index c, const Stencil<ThreeD>&, const Scalar*) -> Scalar {
@@ -560,7 +561,7 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
     return -0.5 * g;
   });
   for (int b = first; b < 3; ++b) gp_add[b] = gp_store[b];
-  semi_lagrangian(q, g_fwd_p, g_q, traced);  // the same trace as the first pass
+  semi_lagrangian(q, g_fwd_p, g_q);  // the same trace as the first pass
   stage0();
 }
 

@@ -302,7 +302,9 @@ struct RowPasses {
     if (job.trace) {
       Scalar* st[kTraceSlots];
       for (int e = 0; e < kTraceSlots; ++e) st[e] = job.trace[e] ? job.trace[e] + c : nullptr;
-      trace_row(i, j, n, job.dt, s, st, st + 3, st + 9, st + 18);  // interpolate_row_grad: the same bits
+      // the stages' arrays where given (axis 2 always is); interpolate_row_grad gives the same bits
+      trace_row(i, j, n, job.dt, s, st[2] ? st : nullptr, st[5] ? st + 3 : nullptr, st[17] ? st + 9 : nullptr,
+                st[26] ? st + 18 : nullptr);
       keep(s, n, st + 6);
     } else {
       trace_row(i, j, n, job.dt, s);

@@ -26,9 +26,9 @@ constexpr int kTraceSlots = 27;
 bool trace_slot_used(int s, int rk_order, bool three_d);
 
 // advect_fields by rows; requires rows_apply(u, L), and cpu_has_avx2() (core/simd.h) when avx2.
-// trace (nullable, kTraceSlots arrays of L.size(), those not trace_slot_used may be null):
-// receives the first pass's back-trace over dt (RowTrace's values, the same bits), which the
-// adjoint's passes over the same trace then read instead of tracing again.
+// trace (nullable, kTraceSlots arrays of L.size(), any of them null, those of a stage all or
+// none): receives the first pass's back-trace over dt (RowTrace's values, the same bits), which
+// the adjoint's passes over the same trace then read instead of tracing again.
 void advect_rows(AdvectionScheme scheme, const MacVelocity& u, const FieldLayout& L, int count,
                  const Scalar* const* q, Scalar* const* out, Scalar dt, int rk_order,
                  AdvectionScratch& scratch, bool avx2, bool scratch_only = false, Scalar* const* trace = nullptr);
