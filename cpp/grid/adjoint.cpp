@@ -755,8 +755,8 @@ void Solver::step_adjoint(const State& before, Scalar dt, const Scalar* control,
   apply_sources(s0);
   enforce_boundary(s0);
   // The advection's forward passes, for its adjoint: the forward step's when it kept them, the
-  // recomputed step's with the viscosity; else advect_adjoint recomputes them (and keeps their
-  // back-traces for its own pass over them).
+  // recomputed step's with the viscosity; else advect_adjoint recomputes them (BFECC's with
+  // their departure points, which its first pass then reads).
   const std::array<AdvectionScratch, 4>* kept = forward ? forward : grad_viscosity ? &adjoint_kept_ : nullptr;
   State s;
   if (grad_viscosity) {

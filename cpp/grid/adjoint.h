@@ -47,7 +47,7 @@ struct AdjointScratch {
 // active component of u, on u.layout[a]). g_q[f] may alias g_u[a] (a velocity component advected
 // through itself). u.walls must be null. forward (nullable): the scratch of that advect_fields
 // call (MacCormack and BFECC read its forward pass, bounds and corrected field; recomputed when
-// null, then with the first pass's back-traces kept for the adjoint's pass over the same trace).
+// null, by rows; BFECC's then with their departure points kept for the adjoint's first pass).
 // work (nullable): buffers kept between calls (a local one when null).
 void advect_adjoint(AdvectionScheme scheme, const MacVelocity& u, const FieldLayout& L, int count,
                     const Scalar* const* q, const Scalar* const* g_out, Scalar* const* g_q,
