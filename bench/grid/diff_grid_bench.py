@@ -5,6 +5,7 @@ and with a DiffTaichi-style Taichi tape gradient (bench/grid/diff_grid_taichi_pe
 
     .venv/bin/python bench/grid/diff_grid_bench.py [--threads 2] [--csv bench/out/diff_grid.csv]
         [--no-phiflow] [--quick] [--taichi-only]
+    .venv/bin/python bench/grid/diff_grid_bench.py --threads 2 --dims 3 --schemes maccormack bfecc --no-per-gradient
 
 The task: a closed box of smoke (a Gaussian blob of density) at rest, T steps of dt = 0.5 h
 (CFL about 0.5 once moving) each adding a random control acceleration field (one d-vector per
@@ -228,6 +229,11 @@ def main():
     ap.add_argument("--quick", action="store_true", help="small sizes (a check that the script runs)")
     ap.add_argument("--taichi-only", action="store_true",
                     help="only the per-gradient comparison (kinema beside Taichi and PhiFlow), no backward/forward cases")
+    ap.add_argument("--dims", type=int, nargs="+", default=[2, 3], help="the backward/forward cases' dimensions")
+    ap.add_argument("--schemes", nargs="+", default=["semi_lagrangian", "maccormack", "bfecc"],
+                    help="the backward/forward cases' advection schemes")
+    ap.add_argument("--no-per-gradient", action="store_true",
+                    help="only the backward/forward cases (no per-gradient comparison with Taichi and PhiFlow)")
     ap.add_argument("--vcycles", type=int, nargs="+",
                     help="only the Taichi comparison, kinema with pressure_vcycles = each of these")
     opts = ap.parse_args()
@@ -242,10 +248,12 @@ def main():
     cases = ((big2, steps2, "semi_lagrangian", 1), (big2, steps2, "maccormack", 2), (big2, steps2, "bfecc", 2),
              (big3, steps3, "semi_lagrangian", 1), (big3, steps3, "maccormack", 2), (big3, steps3, "bfecc", 2))
     for shape, steps, advection, rk in cases if not opts.taichi_only else ():
+        if len(shape) not in opts.dims or advection not in opts.schemes:
+            continue
         res = kinema_part(rec, shape, steps, advection, rk, opts)
         summary.append(f"{len(shape)}D {shape[0]}^{len(shape)} {advection} bwd/fwd {res['stored'][2]:.2f} stored, "
                        f"{res['checkpointed'][2]:.2f} checkpointed")
-    for n in ((64, 128, 256) if not opts.quick else (16,)):
+    for n in ((64, 128, 256) if not opts.quick else (16,)) if not opts.no_per_gradient else ():
         steps = 16 if not opts.quick else 4
         # kinema's projections: solved to a tolerance (1e-10; 1e-6 and 1e-4: looser, 4 MGPCG
         # iterations at 1e-4) and one fixed V-cycle (the cheapest, still more divergence-free

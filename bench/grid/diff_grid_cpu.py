@@ -5,7 +5,7 @@ thread). Same task (diff_grid_bench.task): forward = T plain steps; backward = k
 backward after a rollout with every state stored and with K = 2 sqrt(T) checkpoints
 (recomputation included); FD agreement as there.
 
-    .venv/bin/python bench/grid/diff_grid_cpu.py [--quick] [--dims 3] [--schemes maccormack bfecc]
+    .venv/bin/python bench/grid/diff_grid_cpu.py [--quick] [--dims 3] [--schemes maccormack bfecc] [--reps 3]
     .venv/bin/python bench/grid/diff_grid_cpu.py --dims 3 --schemes maccormack bfecc --ab 3
     .venv/bin/python bench/grid/diff_grid_cpu.py --per-gradient [--sizes 64 128 256]
 
@@ -55,7 +55,7 @@ def recompute(sim):
         sim, sim._core.record(dt, int(steps), controls, False))
 
 
-def case(shape, steps, advection, rk, tol=TOL, kept=True):
+def case(shape, steps, advection, rk, tol=TOL, kept=True, reps=1):
     sim, s0, loss, dt, controls, weights, direction = setup(shape, steps, advection, rk, tol)
     if not kept:
         recompute(sim)
@@ -68,17 +68,19 @@ def case(shape, steps, advection, rk, tol=TOL, kept=True):
             best = min(best, time.process_time() - t)
         return best
 
-    forward = cpu(lambda: loss(controls))
+    forward = cpu(lambda: loss(controls), reps)
     e = 1e-5
     fd = (loss(controls + e * direction) - loss(controls - e * direction)) / (2 * e)
     out = {"forward": forward}
     for name, ck in (("stored", None), ("checkpointed", int(2 * np.sqrt(steps)))):
-        sim.set_state(s0)
-        t = time.process_time()
-        run = km.diff.rollout(sim, steps, dt, wrt=("controls",), controls=controls, checkpoints=ck)
-        out[name + " rollout"] = time.process_time() - t
-        box = {}
-        backward = cpu(lambda: box.update(g=run.backward({"density": weights})["controls"]))
+        box, rollouts, backward = {}, [], float("inf")
+        for _ in range(reps):  # a fresh rollout per backward: a checkpointed one spends its spine
+            sim.set_state(s0)
+            t = time.process_time()
+            run = km.diff.rollout(sim, steps, dt, wrt=("controls",), controls=controls, checkpoints=ck)
+            rollouts.append(time.process_time() - t)
+            backward = min(backward, cpu(lambda: box.update(g=run.backward({"density": weights})["controls"])))
+        out[name + " rollout"] = min(rollouts)
         err = abs(float(np.sum(box["g"] * direction)) - fd) / abs(fd)
         out[name] = backward / forward
         out[name + " backward"] = backward
@@ -117,6 +119,9 @@ def main():
                     help="A/B: per case, ROUNDS alternating runs without and with the forward's kept "
                          "advection scratch (recomputed vs read); prints the mean backward of each")
     ap.add_argument("--dims", type=int, nargs="+", default=[2, 3], help="the dimensions to run (2, 3)")
+    ap.add_argument("--reps", type=int, default=1,
+                    help="the best of this many forward runs and of as many rollout + backward runs per case "
+                         "(more is steadier on a loaded machine)")
     ap.add_argument("--schemes", nargs="+", default=["semi_lagrangian", "maccormack", "bfecc"],
                     help="the advection schemes to run")
     opts = ap.parse_args()
@@ -150,7 +155,7 @@ def main():
                                f"recomputed {mean[False]['stored rollout']:.3f}/{mean[False]['checkpointed rollout']:.3f}, "
                                f"kept {mean[True]['stored rollout']:.3f}/{mean[True]['checkpointed rollout']:.3f}")
                 continue
-            r = case(shape, steps, advection, rk)
+            r = case(shape, steps, advection, rk, reps=opts.reps)
             summary.append(f"{len(shape)}D {advection} {r['stored']:.2f}/{r['checkpointed']:.2f}")
     print("SUMMARY (CPU backward/forward, stored/checkpointed, 1 thread): " + "; ".join(summary), flush=True)
 

@@ -300,8 +300,9 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
                          const Scalar* const* q, const Scalar* const* g_out, Scalar* const* g_q,
                          const std::array<Scalar*, 3>& g_u, Scalar dt, int rk, const AdvectionScratch* forward,
                          AdjointScratch& work) {
-  // work's slots: g_node per axis (0-2), the kept gp per axis (3-5), g_fwd and g_bar per field
-  constexpr int kGp = 3, kFwd = 6, kBar = kFwd + kMaxAdvectedFields;
+  // work's slots: g_node per axis (0-2), the kept gp per axis (3-5), g_fwd and g_bar per field,
+  // the stored back-trace over dt (advect_rows' trace)
+  constexpr int kGp = 3, kFwd = 6, kBar = kFwd + kMaxAdvectedFields, kTrace = kBar + kMaxAdvectedFields;
   const Index n = L.size();
   const Index reach = scatter_reach(u, L, dt);
   auto node = [&](Index i, Index j, Index k) {
@@ -342,6 +343,20 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
     const Scalar* r = rd.reals.data() + 2 * sl * nk;
     return AxisWeight{i[k], i[nk + k], r[k], r[nk + k]};
   };
+  // The back-trace over dt stored per node (advect_rows' trace; rows only): the slots in use, and
+  // RowTrace's array of each.
+  int used[kTraceSlots], n_used = 0;
+  for (int e = 0; e < kTraceSlots; ++e)
+    if (trace_slot_used(e, rk, ThreeD)) used[n_used++] = e;
+  auto trace_array = [](RowTrace& rt, int e) -> Scalar* {
+    return e < 3 ? rt.y1[e] : e < 6 ? rt.y2[e - 3] : e < 9 ? rt.p[e - 6] : rt.jac[(e - 9) / 9][(e - 9) % 9];
+  };
+  Scalar* stored[kTraceSlots] = {};  // the departure points' arrays once allocated (slots 6-8)
+  auto store_departures = [&]() -> Scalar** {
+    for (int s = 0; s < n_used; ++s)
+      if (used[s] >= 6 && used[s] < 9) stored[used[s]] = work.raw(kTrace + used[s], n);
+    return stored;
+  };
   auto fill = [&](RowData& rd, int sl, const Scalar* x, Scalar offset, Index nodes, Index period) {
     int* i = rd.ints.data() + 2 * sl * nk;
     Scalar* r = rd.reals.data() + 2 * sl * nk;
@@ -376,8 +391,12 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
   };
   // One pass traced over `step`: for each node, term(f, c, st, at) (at: src[f] on st) returns dL/d(src[f] at the
   // departure point) after adding the terms that do not go through it; the pass scatters that
-  // into dst[f] (W^T) and carries (grad src[f]) through the trace into dL/du.
-  auto pass = [&](Scalar step, const Scalar* const* src, Scalar* const* dst, auto&& term) {
+  // into dst[f] (W^T) and carries (grad src[f]) through the trace into dL/du. load (nullable):
+  // the trace stored per node (advect_rows' trace), read instead of traced: its non-null arrays
+  // must hold all the pass reads (the departure points alone where gp_keep skips the trace's
+  // adjoint).
+  auto pass = [&](Scalar step, const Scalar* const* src, Scalar* const* dst, auto&& term,
+                  const Scalar* const* load = nullptr) {
     Scatter::run(L, reach, make, [&](RowData& rd, Index i, Index j, Index c0) {
       if (!rd.trace) {
         for (Index k = 0; k < nk; ++k) {
@@ -388,7 +407,12 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
         return;
       }
       RowTrace& rt = *rd.trace;
-      rt.trace(i, j, step);
+      if (load) {
+        for (int s = 0; s < n_used; ++s)
+          if (load[used[s]]) std::copy_n(load[used[s]] + c0, nk, trace_array(rt, used[s]));
+      } else {
+        rt.trace(i, j, step);
+      }
       Scalar* x = rd.reals.data() + 2 * kSlots * nk;  // the nodes' coordinates along axes 0, 1
       std::fill(x, x + nk, static_cast<Scalar>(i) + L.offset[0]);
       std::fill(x + nk, x + 2 * nk, static_cast<Scalar>(j) + L.offset[1]);
@@ -458,12 +482,25 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
     return;
   }
   // The forward pass as run: q^ = SL(q, dt), the clamp bounds lo/hi (values), BFECC's q_bar.
-  AdvectionScratch own;
+  // Recomputed by rows for BFECC, its departure points are stored for the adjoint's first pass,
+  // which traces the same and reads only them (it carries its gradients through the last pass's
+  // trace). Not the whole trace (15 arrays per node at RK2): storing and reading it costs about
+  // as much as tracing again.
+  const Scalar* const* departures = nullptr;
   if (!forward) {
-    std::vector<std::vector<Scalar>> out(count, std::vector<Scalar>(n));
-    Scalar* out_p[kMaxAdvectedFields];
-    for (int f = 0; f < count; ++f) out_p[f] = out[f].data();
-    advect_fields(scheme, u, L, count, q, out_p, dt, rk, own);
+    AdvectionScratch& own = work.forward;
+    if (rows) {
+      Scalar** store = scheme == AdvectionScheme::BFECC ? store_departures() : nullptr;
+      Scalar* unused[kMaxAdvectedFields] = {};  // scratch_only: the row passes stop before out
+      own.reserve(n, scheme, count);
+      advect_rows(scheme, u, L, count, q, unused, dt, rk, own, use_avx2(), true, store);
+      departures = store;
+    } else {
+      std::vector<std::vector<Scalar>> out(count, std::vector<Scalar>(n));
+      Scalar* out_p[kMaxAdvectedFields];
+      for (int f = 0; f < count; ++f) out_p[f] = out[f].data();
+      advect_fields(scheme, u, L, count, q, out_p, dt, rk, own);
+    }
     forward = &own;
   }
   const Scalar *fwd[kMaxAdvectedFields], *lo[kMaxAdvectedFields], *hi[kMaxAdvectedFields],
@@ -515,7 +552,7 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
     else if (hi[f][c] < v) g_q[f][st.argmax(q[f])] += g;
     else return g;
     return 0;
-  });
+  }, departures);
   for (int b = first; b < 3; ++b) gp_keep[b] = nullptr;
   // q_bar = 1.5 q - 0.5 q~
   pass(-dt, fwd, g_fwd_p, [&](int f, Index c, const Stencil<ThreeD>&, const Scalar*) -> Scalar {
@@ -529,6 +566,13 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
 }
 
 }  // namespace
+
+Scalar* AdjointScratch::raw(int slot, Index n) {
+  if (static_cast<int>(buffers.size()) <= slot) buffers.resize(static_cast<size_t>(slot) + 1);
+  std::vector<Scalar>& v = buffers[static_cast<size_t>(slot)];
+  v.resize(static_cast<size_t>(n));
+  return v.data();
+}
 
 Scalar* AdjointScratch::zeros(int slot, Index n) {
   if (static_cast<int>(buffers.size()) <= slot) buffers.resize(static_cast<size_t>(slot) + 1);
@@ -710,16 +754,16 @@ void Solver::step_adjoint(const State& before, Scalar dt, const Scalar* control,
   refresh_solids(s0);
   apply_sources(s0);
   enforce_boundary(s0);
-  // The advection's forward passes, for its adjoint: the forward step's when it kept them.
-  const std::array<AdvectionScratch, 4>* kept = forward ? forward : &adjoint_kept_;
+  // The advection's forward passes, for its adjoint: the forward step's when it kept them, the
+  // recomputed step's with the viscosity; else advect_adjoint recomputes them (BFECC's with
+  // their departure points, which its first pass then reads).
+  const std::array<AdvectionScratch, 4>* kept = forward ? forward : grad_viscosity ? &adjoint_kept_ : nullptr;
   State s;
   if (grad_viscosity) {
     s = s0;
     advect(s, dt, forward ? nullptr : &adjoint_kept_);
     add_forces(s, dt, control);
     diffuse(s, dt, interrupt);
-  } else if (!forward) {
-    advection_scratch(s0, dt, adjoint_kept_);
   }
   interrupt.check();
   std::array<std::vector<Scalar>, 3>& g = adjoint.velocity;
@@ -789,7 +833,7 @@ void Solver::step_adjoint(const State& before, Scalar dt, const Scalar* control,
     const Scalar* qa = s0.velocity[a].data();
     const Scalar* ga = g[a].data();
     advect_adjoint(config_.advection, u0, faces_[a], 1, &qa, &ga, &g0_p[a], g0_p, dt_grid, config_.rk_order,
-                   &(*kept)[1 + a], &adjoint_work_);
+                   kept ? &(*kept)[1 + a] : nullptr, &adjoint_work_);
   }
   const Scalar* q[2];
   const Scalar* g_out[2];
@@ -808,8 +852,8 @@ void Solver::step_adjoint(const State& before, Scalar dt, const Scalar* control,
     ++count;
   }
   if (count > 0 && any_open()) inflow_ambient(s0, g_scalars, count);
-  advect_adjoint(config_.advection, u0, cells_, count, q, g_out, g_in, g0_p, dt_grid, config_.rk_order, &(*kept)[0],
-                 &adjoint_work_);
+  advect_adjoint(config_.advection, u0, cells_, count, q, g_out, g_in, g0_p, dt_grid, config_.rk_order,
+                 kept ? &(*kept)[0] : nullptr, &adjoint_work_);
   // 0. Boundary values and sources imposed before the step.
   enforce_boundary_adjoint(g0);
   for (int f = 0; f < count; ++f) std::copy(g_scalar0[f].begin(), g_scalar0[f].end(), g_scalars[f]);

@@ -34,8 +34,11 @@ namespace kinema::grid {
 struct AdjointScratch {
   std::vector<std::vector<Scalar>> buffers;
   std::vector<std::vector<std::uint8_t>> flags;
+  AdvectionScratch forward;  // the forward's first passes where the caller kept none
   // Buffer `slot`, resized to n values (its capacity kept), all 0.
   Scalar* zeros(int slot, Index n);
+  // The same, its values unspecified (every one is written before it is read).
+  Scalar* raw(int slot, Index n);
   std::uint8_t* zero_flags(int slot, Index n);
 };
 
@@ -44,7 +47,8 @@ struct AdjointScratch {
 // active component of u, on u.layout[a]). g_q[f] may alias g_u[a] (a velocity component advected
 // through itself). u.walls must be null. forward (nullable): the scratch of that advect_fields
 // call (MacCormack and BFECC read its forward pass, bounds and corrected field; recomputed when
-// null). work (nullable): buffers kept between calls (a local one when null).
+// null, by rows; BFECC's then with their departure points kept for the adjoint's first pass).
+// work (nullable): buffers kept between calls (a local one when null).
 void advect_adjoint(AdvectionScheme scheme, const MacVelocity& u, const FieldLayout& L, int count,
                     const Scalar* const* q, const Scalar* const* g_out, Scalar* const* g_q,
                     const std::array<Scalar*, 3>& g_u, Scalar dt, int rk_order,

@@ -176,6 +176,7 @@ struct RowJob {
   Scalar* const* out;
   Scalar* const* lo;
   Scalar* const* hi;
+  Scalar* const* trace = nullptr;  // kTraceSlots arrays over L (advect_rows' trace), or null
 };
 
 // The passes of kernels.cpp (Passes<ThreeD, false>) over rows; every member function that runs
@@ -298,7 +299,16 @@ struct RowPasses {
   // One row of a pass.
   [[gnu::always_inline]] inline void row(const RowJob& job, Index i, Index j, RowScratch& s) const {
     const Index n = L.n[2], c = L.index(i, j, 0);
-    trace_row(i, j, n, job.dt, s);
+    if (job.trace) {
+      Scalar* st[kTraceSlots];
+      for (int e = 0; e < kTraceSlots; ++e) st[e] = job.trace[e] ? job.trace[e] + c : nullptr;
+      // the stages' arrays where given (axis 2 always is); interpolate_row_grad gives the same bits
+      trace_row(i, j, n, job.dt, s, st[2] ? st : nullptr, st[5] ? st + 3 : nullptr, st[17] ? st + 9 : nullptr,
+                st[26] ? st + 18 : nullptr);
+      keep(s, n, st + 6);
+    } else {
+      trace_row(i, j, n, job.dt, s);
+    }
     RowAxis* at = s.face;  // the velocity's brackets are spent: reuse their storage
     for (int b = first; b < 3; ++b)
       bracket_row<Periodic>(s.p[b], n, L.offset[b], static_cast<int>(L.n[b]), static_cast<int>(L.period[b]), at[b]);
@@ -380,15 +390,15 @@ struct RowPasses {
   }
 
   void run(AdvectionScheme scheme, const Scalar* const* q, Scalar* const* out, Scalar dt, AdvectionScratch& scratch,
-           bool avx2, bool scratch_only) const {
+           bool avx2, bool scratch_only, Scalar* const* trace) const {
     if (scheme == AdvectionScheme::SemiLagrangian) {
-      pass(RowJob{RowPass::Plain, dt, q, q, out, nullptr, nullptr}, avx2);
+      pass(RowJob{RowPass::Plain, dt, q, q, out, nullptr, nullptr, trace}, avx2);
       return;
     }
     AdvectionScratch::Fields s = scratch.fields(count, scheme);
     Scalar *const *fwd = s.forward, *const *lo = s.lo, *const *hi = s.hi, *const *bar = s.corrected;
     // q^ = SL(q, dt) with the clamping bounds of Selle et al.
-    pass(RowJob{RowPass::Forward, dt, q, q, fwd, lo, hi}, avx2);
+    pass(RowJob{RowPass::Forward, dt, q, q, fwd, lo, hi, trace}, avx2);
     if (scratch_only && scheme == AdvectionScheme::MacCormack) return;
     if (scheme == AdvectionScheme::MacCormack) {
       pass(RowJob{RowPass::MacCormack, -dt, fwd, q, out, lo, hi}, avx2);
@@ -507,15 +517,27 @@ bool rows_apply(const MacVelocity& u, const FieldLayout& L) {
 
 void advect_rows(AdvectionScheme scheme, const MacVelocity& u, const FieldLayout& L, int count,
                  const Scalar* const* q, Scalar* const* out, Scalar dt, int rk_order, AdvectionScratch& scratch,
-                 bool avx2, bool scratch_only) {
+                 bool avx2, bool scratch_only, Scalar* const* trace) {
   const bool periodic = L.period[2] > 0;
+  const bool s = scratch_only;
   if (u.comp[0]) {
-    if (periodic) RowPasses<true, true>(u, L, count, rk_order).run(scheme, q, out, dt, scratch, avx2, scratch_only);
-    else RowPasses<true, false>(u, L, count, rk_order).run(scheme, q, out, dt, scratch, avx2, scratch_only);
+    if (periodic) RowPasses<true, true>(u, L, count, rk_order).run(scheme, q, out, dt, scratch, avx2, s, trace);
+    else RowPasses<true, false>(u, L, count, rk_order).run(scheme, q, out, dt, scratch, avx2, s, trace);
   } else {
-    if (periodic) RowPasses<false, true>(u, L, count, rk_order).run(scheme, q, out, dt, scratch, avx2, scratch_only);
-    else RowPasses<false, false>(u, L, count, rk_order).run(scheme, q, out, dt, scratch, avx2, scratch_only);
+    if (periodic) RowPasses<false, true>(u, L, count, rk_order).run(scheme, q, out, dt, scratch, avx2, s, trace);
+    else RowPasses<false, false>(u, L, count, rk_order).run(scheme, q, out, dt, scratch, avx2, s, trace);
   }
+}
+
+bool trace_slot_used(int s, int rk_order, bool three_d) {
+  if (s < 0 || s >= kTraceSlots) return false;
+  const int first = three_d ? 0 : 1;
+  if (s < 9) {  // y1, y2, p
+    const int stage = s / 3;
+    return s % 3 >= first && (stage == 2 || rk_order > stage + 1);
+  }
+  const int m = (s - 9) / 9, e = (s - 9) % 9;  // jac at y1 (rk >= 2) or y2 (rk 3)
+  return rk_order > m + 1 && e / 3 >= first && e % 3 >= first;
 }
 
 }  // namespace kinema::grid

@@ -19,10 +19,19 @@ namespace kinema::grid {
 // nodes with 32-bit integers, which AVX2 converts and multiplies in one instruction).
 bool rows_apply(const MacVelocity& u, const FieldLayout& L);
 
+// The arrays of a stored back-trace (advect_rows' `trace`): per node of L, in RowTrace's order,
+// y1 (slots 0-2), y2 (3-5), p (6-8), and d u_a / d y_b at y1 (9 + 3 a + b) and y2 (18 + 3 a + b).
+constexpr int kTraceSlots = 27;
+// Whether slot s holds anything for this order and dimension (2D: none along axis 0).
+bool trace_slot_used(int s, int rk_order, bool three_d);
+
 // advect_fields by rows; requires rows_apply(u, L), and cpu_has_avx2() (core/simd.h) when avx2.
+// trace (nullable, kTraceSlots arrays of L.size(), any of them null, those of a stage all or
+// none): receives the first pass's back-trace over dt (RowTrace's values, the same bits), which
+// the adjoint's passes over the same trace then read instead of tracing again.
 void advect_rows(AdvectionScheme scheme, const MacVelocity& u, const FieldLayout& L, int count,
                  const Scalar* const* q, Scalar* const* out, Scalar dt, int rk_order,
-                 AdvectionScratch& scratch, bool avx2, bool scratch_only = false);
+                 AdvectionScratch& scratch, bool avx2, bool scratch_only = false, Scalar* const* trace = nullptr);
 
 // The back-traces of advect_rows along one row of L's nodes at a time, with their Runge-Kutta
 // stages kept (for the adjoint): y1 = x - dt/2 k1 (rk >= 2), y2 = x - 3 dt/4 k2 (rk 3) and the

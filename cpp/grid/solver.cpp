@@ -494,30 +494,6 @@ void Solver::advect(State& state, Scalar dt, std::array<AdvectionScratch, 4>* ke
   enforce_boundary(state);
 }
 
-void Solver::advection_scratch(const State& state, Scalar dt, std::array<AdvectionScratch, 4>& kept) {
-  if (config_.advection == AdvectionScheme::SemiLagrangian) return;  // its adjoint reads no scratch
-  const MacVelocity u = mac_velocity(state.velocity);
-  const Scalar dt_grid = dt / model_.h;
-  const Scalar* q[2];
-  Scalar* out[2];
-  int count = 0;
-  for (const std::vector<Scalar>* s : {&state.density, &state.temperature}) {
-    if (s->empty()) continue;
-    q[count] = s->data();
-    out[count] = scalar_new_[count].data();  // unspecified on return
-    ++count;
-  }
-  grid::advect_fields(config_.advection, u, cells_, count, q, out, dt_grid, config_.rk_order, kept[0], -1,
-                      config_.advection_kernel, true);
-  for (int a = 0; a < 3; ++a) {
-    if (!active_[a]) continue;
-    const Scalar* qa = state.velocity[a].data();
-    Scalar* oa = velocity_new_[a].data();
-    grid::advect_fields(config_.advection, u, faces_[a], 1, &qa, &oa, dt_grid, config_.rk_order, kept[1 + a], a,
-                        config_.advection_kernel, true);
-  }
-}
-
 // Where fluid enters through an open side it brings ambient air: the scalars of the cells whose
 // open face has an inward velocity become 0 (Dirichlet at inflow; outflow keeps the
 // zero-gradient extension of the clamped back-trace).

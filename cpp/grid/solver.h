@@ -120,8 +120,6 @@ class Solver {
   // kept (nullable): the advection scratch of the scalars (0) and of each velocity component
   // (1 + axis) is left there, for the adjoint (advect_adjoint's `forward`).
   void advect(State& state, Scalar dt, std::array<AdvectionScratch, 4>* kept = nullptr);
-  // Only the scratch advect(state, dt, &kept) leaves, from the passes that make it.
-  void advection_scratch(const State& state, Scalar dt, std::array<AdvectionScratch, 4>& kept);
   void add_forces(State& state, Scalar dt, const Scalar* control);
   Index diffuse(State& state, Scalar dt, Interrupt& interrupt);
   SolveInfo project(State& state, Scalar dt, Interrupt& interrupt);
