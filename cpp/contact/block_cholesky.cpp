@@ -48,11 +48,8 @@ struct V4 {
 };
 #endif
 
-KINEMA_ALWAYS_INLINE V4 load(const Scalar* p) {
-  V4 v;
-  std::memcpy(&v, p, sizeof v);
-  return v;
-}
+// (By reference: a vector returned by value would change the baseline's ABI, -Wpsabi.)
+KINEMA_ALWAYS_INLINE void load(V4& v, const Scalar* p) { std::memcpy(&v, p, sizeof v); }
 KINEMA_ALWAYS_INLINE void store(Scalar* p, const V4& v) { std::memcpy(p, &v, sizeof v); }
 
 // B's entries by (column c, term t) = B(c, t), the factors of the columns of A in A B^T.
@@ -66,13 +63,18 @@ struct Transposed {
 
 // W -= A B^T, column by column: W(:, c) -= A(:, 0) B(c, 0) + A(:, 1) B(c, 1) + A(:, 2) B(c, 2).
 KINEMA_ALWAYS_INLINE void subtract_product(Block& W, const Block& A, const Transposed& B) {
-  const V4 a0 = load(A.v), a1 = load(A.v + 4), a2 = load(A.v + 8);
-  for (int c = 0; c < 3; ++c) store(W.v + 4 * c, load(W.v + 4 * c) - (a0 * B.b[c][0] + a1 * B.b[c][1] + a2 * B.b[c][2]));
+  V4 a0, a1, a2, w;
+  load(a0, A.v), load(a1, A.v + 4), load(a2, A.v + 8);
+  for (int c = 0; c < 3; ++c) {
+    load(w, W.v + 4 * c);
+    store(W.v + 4 * c, w - (a0 * B.b[c][0] + a1 * B.b[c][1] + a2 * B.b[c][2]));
+  }
 }
 
 // W = A B^T.
 KINEMA_ALWAYS_INLINE void set_product(Block& W, const Block& A, const Transposed& B) {
-  const V4 a0 = load(A.v), a1 = load(A.v + 4), a2 = load(A.v + 8);
+  V4 a0, a1, a2;
+  load(a0, A.v), load(a1, A.v + 4), load(a2, A.v + 8);
   for (int c = 0; c < 3; ++c) store(W.v + 4 * c, a0 * B.b[c][0] + a1 * B.b[c][1] + a2 * B.b[c][2]);
 }
 

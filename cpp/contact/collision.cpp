@@ -192,7 +192,6 @@ void BroadPhase::find(const Model& model, const Scalar* x, const Scalar* dx, Sca
                    &b.lo[static_cast<size_t>(3 * j)], &b.hi[static_cast<size_t>(3 * j)]);
   };
 
-  out.point_face.clear();
   auto point_faces = [&](const Tree& points, const Tree& faces) {
     // The leaves' pairs are a superset: the primitives' boxes first, then the shared vertices
     // from the trees' own copies of the vertex indices (no lookup through the mesh arrays).
@@ -204,12 +203,6 @@ void BroadPhase::find(const Model& model, const Scalar* x, const Scalar* dx, Sca
       out.point_face.push_back({p, faces.ids[static_cast<size_t>(k)]});
     });
   };
-  point_faces(moving_points_, moving_faces_);
-  point_faces(moving_points_, fixed_faces_);
-  point_faces(fixed_points_, moving_faces_);
-  sort_pairs(out.point_face, model.vertex_count, bucket_start_, scratch_);
-
-  out.edge_edge.clear();
   auto edge_pair = [&](const Tree& a, Index i, const Tree& b, Index j) {
     if (!boxes_meet(a, i, b, j)) return;
     const Index a0 = a.prims[static_cast<size_t>(2 * i)], a1 = a.prims[static_cast<size_t>(2 * i + 1)];
@@ -221,9 +214,28 @@ void BroadPhase::find(const Model& model, const Scalar* x, const Scalar* dx, Sca
     else
       out.edge_edge.push_back({e, f});
   };
-  moving_edges_.bvh.query_self([&](Index i, Index j) { edge_pair(moving_edges_, i, moving_edges_, j); });
-  moving_edges_.bvh.query_pairs(fixed_edges_.bvh, [&](Index i, Index j) { edge_pair(moving_edges_, i, fixed_edges_, j); });
-  sort_pairs(out.edge_edge, static_cast<Index>(E.size() / 2), bucket_start_, scratch_);
+  // The point-face and the edge-edge pairs are two independent tasks (each with its own output
+  // and sort scratch; each sorted, so the result is the serial one): two threads take one each.
+  const bool both = num_threads() > 1 && moving_points_.ids.size() + moving_edges_.ids.size() > 512;
+#pragma omp parallel sections num_threads(2) if (both)
+  {
+#pragma omp section
+    {
+      out.point_face.clear();
+      point_faces(moving_points_, moving_faces_);
+      point_faces(moving_points_, fixed_faces_);
+      point_faces(fixed_points_, moving_faces_);
+      sort_pairs(out.point_face, model.vertex_count, bucket_start_, scratch_);
+    }
+#pragma omp section
+    {
+      out.edge_edge.clear();
+      moving_edges_.bvh.query_self([&](Index i, Index j) { edge_pair(moving_edges_, i, moving_edges_, j); });
+      moving_edges_.bvh.query_pairs(fixed_edges_.bvh,
+                                    [&](Index i, Index j) { edge_pair(moving_edges_, i, fixed_edges_, j); });
+      sort_pairs(out.edge_edge, static_cast<Index>(E.size() / 2), edge_bucket_start_, edge_scratch_);
+    }
+  }
 }
 
 namespace {

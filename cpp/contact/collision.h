@@ -72,8 +72,9 @@ class BroadPhase {
   void update(Tree& tree, int k, const Scalar* x, const Scalar* dx, Scalar r);
 
   Tree moving_points_, fixed_points_, moving_faces_, fixed_faces_, moving_edges_, fixed_edges_;
-  std::vector<Index> bucket_start_;
-  std::vector<std::array<Index, 2>> scratch_;
+  // Sort scratch of the point-face and of the edge-edge pairs (found by two threads).
+  std::vector<Index> bucket_start_, edge_bucket_start_;
+  std::vector<std::array<Index, 2>> scratch_, edge_scratch_;
   bool ready_ = false;
 };
 
