@@ -16,6 +16,11 @@
 // runs once per pattern; each numeric factorisation visits, for block column j, the earlier
 // columns k with L(j,k) != 0 through linked lists ordered by each column's next row. The
 // operation order depends on the pattern only, so results are deterministic.
+//
+// Blocks are stored by columns padded to four values (the fourth zero), so a block update
+// W -= A B^T is nine products of four-wide columns by broadcast scalars: written once with
+// four-wide vectors, compiled for the baseline (two SSE2 halves) and for AVX2 (core/simd.h),
+// the same operations in the same order either way (no FMA), so both give the same bits.
 #pragma once
 
 #include <Eigen/Core>
@@ -38,17 +43,25 @@ class BlockCholesky {
   // x = A^-1 b (x may alias b).
   void solve(const Scalar* b, Scalar* x) const;
 
+  // A 3x3 block by columns, each padded to four values (v[4 c + r] = B(r, c), v[4 c + 3] = 0).
+  struct alignas(32) Block {
+    Scalar v[12];
+  };
+
  private:
-  using Mat3 = Eigen::Matrix<Scalar, 3, 3>;
+  template <bool Avx2>
+  bool factorize_with(const CsrView& A);
+
   Index n_ = 0;  // block rows
+  bool avx2_ = false;
   // A's block rows: block columns and the offset of each block's first scalar in row 3i.
   std::vector<Index> a_ptr_, a_col_, a_offset_;
   // L below the diagonal, by block columns: rows (sorted) and 3x3 blocks; the inverses of the
   // diagonal blocks (lower triangular).
   std::vector<Index> l_ptr_, l_row_;
-  std::vector<Mat3, Eigen::aligned_allocator<Mat3>> l_, diag_inv_;
+  std::vector<Block> l_, diag_inv_;
   // Numeric scratch: dense block column, linked lists of columns by next row.
-  std::vector<Mat3, Eigen::aligned_allocator<Mat3>> work_;
+  std::vector<Block> work_;
   std::vector<Index> head_, next_, position_;
 };
 

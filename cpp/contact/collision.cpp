@@ -90,6 +90,19 @@ void collect_in_order(Index n, std::vector<T>& out, Body&& body) {
 
 void BroadPhase::update(Tree& tree, int k, const Scalar* x, const Scalar* dx, Scalar r) {
   const Index count = static_cast<Index>(tree.ids.size());
+  if (tree.still) {
+    bool same = r == tree.r && !tree.bvh.nodes().empty();
+    for (size_t a = 0; same && a < tree.verts.size(); ++a)
+      for (int c = 0; same && c < 3; ++c) {
+        const size_t i = static_cast<size_t>(3 * tree.verts[a] + c);
+        same = x[i] == tree.kept[3 * a + static_cast<size_t>(c)] && (!dx || dx[i] == 0);
+      }
+    if (same) return;
+    tree.r = r;
+    tree.kept.resize(3 * tree.verts.size());
+    for (size_t a = 0; a < tree.verts.size(); ++a)
+      for (int c = 0; c < 3; ++c) tree.kept[3 * a + static_cast<size_t>(c)] = x[static_cast<size_t>(3 * tree.verts[a] + c)];
+  }
   tree.lo.resize(static_cast<size_t>(3 * count));
   tree.hi.resize(static_cast<size_t>(3 * count));
   parallel_for(count, [&](Index p) {
@@ -132,7 +145,7 @@ void sort_pairs(Pairs& pairs, Index n, std::vector<Index>& start, Pairs& scratch
 
 // Pairs from simultaneous descents of two trees (Bvh::query_pairs / query_self), every box
 // grown by r / 2 (two boxes grown by r / 2 meet exactly where one grown by r meets the other):
-// moving points against every face, fixed points against the faces that move; moving edges
+// moving points against the moving and the fixed faces, fixed points against the moving ones; moving edges
 // against each other (the lower edge first) and against the fixed edges. The pairs are sorted,
 // so the result does not depend on the trees' state.
 void BroadPhase::find(const Model& model, const Scalar* x, const Scalar* dx, Scalar r, Candidates& out) {
@@ -147,12 +160,9 @@ void BroadPhase::find(const Model& model, const Scalar* x, const Scalar* dx, Sca
     }
     for (Index f = 0; f < static_cast<Index>(F.size() / 3); ++f) {
       const Index* v = &F[3 * f];
-      faces_.ids.push_back(f);
-      faces_.prims.insert(faces_.prims.end(), v, v + 3);
-      if (!fixed_points_.ids.empty() && (moving(v[0]) || moving(v[1]) || moving(v[2]))) {
-        moving_faces_.ids.push_back(f);
-        moving_faces_.prims.insert(moving_faces_.prims.end(), v, v + 3);
-      }
+      Tree& t = moving(v[0]) || moving(v[1]) || moving(v[2]) ? moving_faces_ : fixed_faces_;
+      t.ids.push_back(f);
+      t.prims.insert(t.prims.end(), v, v + 3);
     }
     for (Index e = 0; e < static_cast<Index>(E.size() / 2); ++e) {
       const Index* v = &E[2 * e];
@@ -160,13 +170,21 @@ void BroadPhase::find(const Model& model, const Scalar* x, const Scalar* dx, Sca
       t.ids.push_back(e);
       t.prims.insert(t.prims.end(), v, v + 2);
     }
+    // The fixed trees are still unless a driven (scripted) vertex is among theirs.
+    for (Tree* t : {&fixed_points_, &fixed_faces_, &fixed_edges_}) {
+      t->verts = t->prims;
+      std::sort(t->verts.begin(), t->verts.end());
+      t->verts.erase(std::unique(t->verts.begin(), t->verts.end()), t->verts.end());
+      t->still = std::none_of(t->verts.begin(), t->verts.end(),
+                              [&](Index v) { return model.driven[static_cast<size_t>(v)] != 0; });
+    }
     ready_ = true;
   }
   const Scalar half = r / 2;
   update(moving_points_, 1, x, dx, half);
   update(fixed_points_, 1, x, dx, half);
-  update(faces_, 3, x, dx, half);
   update(moving_faces_, 3, x, dx, half);
+  update(fixed_faces_, 3, x, dx, half);
   update(moving_edges_, 2, x, dx, half);
   update(fixed_edges_, 2, x, dx, half);
   auto boxes_meet = [](const Tree& a, Index i, const Tree& b, Index j) {
@@ -174,7 +192,6 @@ void BroadPhase::find(const Model& model, const Scalar* x, const Scalar* dx, Sca
                    &b.lo[static_cast<size_t>(3 * j)], &b.hi[static_cast<size_t>(3 * j)]);
   };
 
-  out.point_face.clear();
   auto point_faces = [&](const Tree& points, const Tree& faces) {
     // The leaves' pairs are a superset: the primitives' boxes first, then the shared vertices
     // from the trees' own copies of the vertex indices (no lookup through the mesh arrays).
@@ -186,11 +203,6 @@ void BroadPhase::find(const Model& model, const Scalar* x, const Scalar* dx, Sca
       out.point_face.push_back({p, faces.ids[static_cast<size_t>(k)]});
     });
   };
-  point_faces(moving_points_, faces_);
-  point_faces(fixed_points_, moving_faces_);
-  sort_pairs(out.point_face, model.vertex_count, bucket_start_, scratch_);
-
-  out.edge_edge.clear();
   auto edge_pair = [&](const Tree& a, Index i, const Tree& b, Index j) {
     if (!boxes_meet(a, i, b, j)) return;
     const Index a0 = a.prims[static_cast<size_t>(2 * i)], a1 = a.prims[static_cast<size_t>(2 * i + 1)];
@@ -202,9 +214,28 @@ void BroadPhase::find(const Model& model, const Scalar* x, const Scalar* dx, Sca
     else
       out.edge_edge.push_back({e, f});
   };
-  moving_edges_.bvh.query_self([&](Index i, Index j) { edge_pair(moving_edges_, i, moving_edges_, j); });
-  moving_edges_.bvh.query_pairs(fixed_edges_.bvh, [&](Index i, Index j) { edge_pair(moving_edges_, i, fixed_edges_, j); });
-  sort_pairs(out.edge_edge, static_cast<Index>(E.size() / 2), bucket_start_, scratch_);
+  // The point-face and the edge-edge pairs are two independent tasks (each with its own output
+  // and sort scratch; each sorted, so the result is the serial one): two threads take one each.
+  const bool both = num_threads() > 1 && moving_points_.ids.size() + moving_edges_.ids.size() > 512;
+#pragma omp parallel sections num_threads(2) if (both)
+  {
+#pragma omp section
+    {
+      out.point_face.clear();
+      point_faces(moving_points_, moving_faces_);
+      point_faces(moving_points_, fixed_faces_);
+      point_faces(fixed_points_, moving_faces_);
+      sort_pairs(out.point_face, model.vertex_count, bucket_start_, scratch_);
+    }
+#pragma omp section
+    {
+      out.edge_edge.clear();
+      moving_edges_.bvh.query_self([&](Index i, Index j) { edge_pair(moving_edges_, i, moving_edges_, j); });
+      moving_edges_.bvh.query_pairs(fixed_edges_.bvh,
+                                    [&](Index i, Index j) { edge_pair(moving_edges_, i, fixed_edges_, j); });
+      sort_pairs(out.edge_edge, static_cast<Index>(E.size() / 2), edge_bucket_start_, edge_scratch_);
+    }
+  }
 }
 
 namespace {
@@ -257,7 +288,17 @@ std::vector<Constraint> find_constraints(const Model& model, const Candidates& c
   const auto& F = model.faces;
   const auto& E = model.edges;
   // Reduces a pair given by its four vertices to its closest-point formula; keeps it if close.
+  // Candidates are found for sweeps grown by a margin: most are farther apart at x than their
+  // boxes grown by dhat, which rejects them before the closest-point computation (boxes are
+  // closer than the primitives, so no pair within dhat is lost; the growth is widened by far
+  // more than the rounding of the two tests).
+  const Scalar dhat = std::sqrt(dhat2) * (1 + 1e-9);
   auto consider = [&](const Index ids[4], bool edge_edge, std::vector<Constraint>& out) {
+    const int k = edge_edge ? 2 : 1;
+    Scalar lo[3], hi[3], lo2[3], hi2[3];
+    primitive_box(ids, k, x, nullptr, dhat, lo, hi);
+    primitive_box(ids + k, 4 - k, x, nullptr, 0, lo2, hi2);
+    if (!overlap(lo, hi, lo2, hi2)) return;
     const Vec3 y[4] = {at(x, ids[0]), at(x, ids[1]), at(x, ids[2]), at(x, ids[3])};
     const Reduced r = edge_edge ? edge_edge_region(y[0], y[1], y[2], y[3]) : point_triangle_region(y[0], y[1], y[2], y[3]);
     Vec3 v[4];

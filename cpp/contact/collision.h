@@ -61,12 +61,20 @@ class BroadPhase {
     std::vector<Index> prims;      // its vertices, 1, 3 or 2 per primitive
     std::vector<Scalar> lo, hi;    // its current boxes
     Scalar built_ratio = 0;
+    // A tree of static collider primitives (fixed, not driven vertices) keeps its boxes while
+    // its vertices stay where they were at its last update (positions kept), do not move in
+    // the query and r is the same: the colliders' boxes are not recomputed on every query.
+    bool still = false;
+    std::vector<Index> verts;      // its vertices, once each (still trees)
+    std::vector<Scalar> kept;      // their positions at the last update
+    Scalar r = -1;                 // the growth of the last update
   };
   void update(Tree& tree, int k, const Scalar* x, const Scalar* dx, Scalar r);
 
-  Tree moving_points_, fixed_points_, faces_, moving_faces_, moving_edges_, fixed_edges_;
-  std::vector<Index> bucket_start_;
-  std::vector<std::array<Index, 2>> scratch_;
+  Tree moving_points_, fixed_points_, moving_faces_, fixed_faces_, moving_edges_, fixed_edges_;
+  // Sort scratch of the point-face and of the edge-edge pairs (found by two threads).
+  std::vector<Index> bucket_start_, edge_bucket_start_;
+  std::vector<std::array<Index, 2>> scratch_, edge_scratch_;
   bool ready_ = false;
 };
 

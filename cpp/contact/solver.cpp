@@ -283,7 +283,7 @@ void Solver::assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, cons
         const size_t k = static_cast<size_t>(3 * i + r);
         g[k] += driven_stiffness_ * (x[k] - target_[k]) - driven_lambda_[k];
       }
-      system.add(&i, 1, (driven_stiffness_ * Mat3::Identity()).eval());
+      system.add(&elastic_slots_[iv], 1, (driven_stiffness_ * Mat3::Identity()).eval());
       continue;
     }
     if (model_.fixed[iv]) continue;
@@ -292,7 +292,7 @@ void Solver::assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, cons
       const size_t k = static_cast<size_t>(3 * i + r);
       g[k] += m * (x[k] - xhat_[k]) + mc * (x[k] - xn_[k]);
     }
-    system.add(&i, 1, ((m + mc) * Mat3::Identity()).eval());
+    system.add(&elastic_slots_[iv], 1, ((m + mc) * Mat3::Identity()).eval());
   }
   // Elasticity: h^2 grad Psi, h^2 (projected) Hessian per element.
   const Index tet_count = static_cast<Index>(model_.tet_volume.size());
@@ -305,7 +305,7 @@ void Solver::assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, cons
     add_grad(tet, 4, h2 * fem::element_gradient<3>(fem::piola<3>(F, mat, mu, lam), dm_inv, vol));
     fem::HessF<3> dPdF = fem::piola_derivative<3>(F, mat, mu, lam);
     fem::project_psd<3>(dPdF);
-    system.add(tet, 4, (h2 * fem::element_hessian<3>(dPdF, dm_inv, vol)).eval());
+    system.add(&elastic_slots_[static_cast<size_t>(n + 16 * e)], 4, (h2 * fem::element_hessian<3>(dPdF, dm_inv, vol)).eval());
   }
   const Index spring_count = static_cast<Index>(model_.spring_rest.size());
   for (Index s = 0; s < spring_count; ++s) {
@@ -328,7 +328,7 @@ void Solver::assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, cons
     }
     Eigen::Matrix<Scalar, 6, 6> He;
     He << S, -S, -S, S;
-    system.add(ij, 2, He);
+    system.add(&elastic_slots_[static_cast<size_t>(n + 16 * tet_count + 4 * s)], 2, He);
   }
   // Barrier: kappa (b' grad d, b'' grad d grad d^T + b' Hess d), made PSD per contact.
   std::vector<Vec<12>>& gb = barrier_gradients_;
@@ -366,7 +366,21 @@ void Solver::assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, cons
   }
 }
 
-bool Solver::keep_candidates(const Scalar* x, const Scalar* p, bool force) {
+void Solver::refresh_slots(const NewtonSystem& system) {
+  if (&system == slots_system_ && system.layout() == slots_layout_) return;  // (reset when system_ is replaced)
+  const Index n = model_.vertex_count;
+  const Index tet_count = static_cast<Index>(model_.tet_volume.size());
+  const Index spring_count = static_cast<Index>(model_.spring_rest.size());
+  elastic_slots_.resize(static_cast<size_t>(n + 16 * tet_count + 4 * spring_count));
+  for (Index i = 0; i < n; ++i) system.slots(&i, 1, &elastic_slots_[static_cast<size_t>(i)]);
+  for (Index e = 0; e < tet_count; ++e) system.slots(&model_.tets[4 * e], 4, &elastic_slots_[static_cast<size_t>(n + 16 * e)]);
+  for (Index s = 0; s < spring_count; ++s)
+    system.slots(&model_.springs[2 * s], 2, &elastic_slots_[static_cast<size_t>(n + 16 * tet_count + 4 * s)]);
+  slots_system_ = &system;
+  slots_layout_ = system.layout();
+}
+
+bool Solver::keep_candidates(const Scalar* x, const Scalar* p, bool force, StepStats& stats) {
   const size_t k = static_cast<size_t>(3 * model_.vertex_count);
   if (!force && cover_lo_.size() == k) {
     bool covered = true;
@@ -390,7 +404,10 @@ bool Solver::keep_candidates(const Scalar* x, const Scalar* p, bool force) {
     cover_lo_[i] = std::min(a, b) - delta;
     cover_hi_[i] = std::max(a, b) + delta;
   }
+  Stopwatch timer;
   broad_phase_.find(model_, x, p, config_.dhat + 2 * delta, candidates_);
+  stats.broad_phase_seconds += timer.seconds();
+  ++stats.broad_phases;
   return true;
 }
 
@@ -413,6 +430,7 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
   // Inertia target xhat = x_n + h v_n + h^2 g and friction lagged at x_n (Li et al. 2020, eq. 17).
   xn_ = state.x;
   xhat_.resize(xn_.size());
+  sweep_.resize(xn_.size());
   for (Index i = 0; i < n; ++i)
     for (int r = 0; r < 3; ++r) {
       const size_t k = static_cast<size_t>(3 * i + r);
@@ -432,8 +450,11 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
   }
   Scalar kappa = state.kappa;
   // The active pairs at the current iterate (kept: the assembly, the line search's Phi at x
-  // and the kappa update all read them).
-  keep_candidates(xn_.data(), nullptr, true);
+  // and the kappa update all read them). The candidates cover the sweep x_n -> xhat: the first
+  // Newton step heads there, so its CCD and line search mostly reuse them (one broad phase
+  // fewer per step); pairs are sorted, so a larger candidate set finds the same pairs.
+  for (size_t k = 0; k < xhat_.size(); ++k) sweep_[k] = xhat_[k] - xn_[k];
+  keep_candidates(xn_.data(), sweep_.data(), true, stats);
   std::vector<Constraint> current = find_constraints(model_, candidates_, xn_.data(), dhat2_), next;
   lag_friction(xn_, current, kappa, h);
   // Spring damping acts along the spring directions at x_n.
@@ -466,7 +487,10 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
   };
 
   std::vector<Scalar> x = xn_, g, p(static_cast<size_t>(3 * n)), trial(static_cast<size_t>(3 * n));
-  if (!system_ || !config_.reuse_pattern) system_ = std::make_unique<NewtonSystem>(model_);
+  if (!system_ || !config_.reuse_pattern) {
+    system_ = std::make_unique<NewtonSystem>(model_);
+    slots_system_ = nullptr;
+  }
   {
     std::vector<std::vector<Index>> stencils;
     for (const Constraint& c : current) stencils.emplace_back(c.stencil(), c.stencil() + c.stencil_size());
@@ -481,7 +505,11 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
     interrupt.check();
     // Projected Newton direction: H p = -grad Phi over the degrees of freedom.
     Stopwatch phase;
-    if (!config_.reuse_pattern && it > 0) system_ = std::make_unique<NewtonSystem>(model_);
+    if (!config_.reuse_pattern && it > 0) {
+      system_ = std::make_unique<NewtonSystem>(model_);
+      slots_system_ = nullptr;
+    }
+    refresh_slots(*system_);
     assemble(x, h, kappa, current, g, *system_);
     system_->finish();
     const bool simplicial = config_.simplicial && config_.linear_solver == LinearSolver::CholmodDirect;
@@ -500,7 +528,9 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
     std::fill(pd.begin(), pd.end(), Scalar(0));
     bool definite = true;
     if (simplicial) {
+      Stopwatch factor_timer;
       definite = block_llt_.factorize(view);
+      stats.factor_seconds += factor_timer.seconds();
       if (definite) block_llt_.solve(rhs.data(), pd.data());
     } else {
       // cholmod-pcg: PCG preconditioned by the last factor (refactorised when it stalls) to a
@@ -540,7 +570,7 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
     // Candidates covering the sweep x -> x + p hold the CCD pairs, every line-search trial's
     // active pairs and the next iteration's; the broad phase runs only when the sweep leaves
     // the region the kept ones cover.
-    keep_candidates(x.data(), p.data(), false);
+    keep_candidates(x.data(), p.data(), false, stats);
     Scalar alpha = contact::max_safe_step(model_, candidates_, x.data(), p.data(), ccd);
     stats.ccd_seconds += ccd_timer.seconds();
     stats.min_step_fraction = std::min(stats.min_step_fraction, alpha);
@@ -595,7 +625,7 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
       if (model_.driven[static_cast<size_t>(i)])
         for (int r = 0; r < 3; ++r) rest_move[static_cast<size_t>(3 * i + r)] = target_[static_cast<size_t>(3 * i + r)] - x[static_cast<size_t>(3 * i + r)];
     if (max_safe_step(x.data(), rest_move.data()) >= 1) {
-      keep_candidates(x.data(), rest_move.data(), false);
+      keep_candidates(x.data(), rest_move.data(), false, stats);
       for (size_t k = 0; k < x.size(); ++k) x[k] += rest_move[k];
       current = find_constraints(model_, candidates_, x.data(), dhat2_);
     }

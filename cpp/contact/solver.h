@@ -33,6 +33,11 @@ struct StepStats : StepStatsBase {
   Scalar ccd_share = 0;            // ccd_seconds / seconds
   Scalar barrier_stiffness = 0;    // kappa of the step [kg/m^2] (Phi units)
   double assemble_seconds = 0, solve_seconds = 0, line_search_seconds = 0;  // wall time per phase [s]
+  // Parts of those: the numeric factorisations (in solve_seconds) and the broad phases (in
+  // ccd_seconds, but for the step's first, before the Newton loop, and a driven collider's
+  // last move) [s]; how many broad phases ran (the kept candidates cover the other sweeps).
+  double factor_seconds = 0, broad_phase_seconds = 0;
+  Index broad_phases = 0;
   // Symbolic analyses of the Newton matrix in this step: its pattern changed (a contact block
   // not reserved yet, or reserved blocks dropped at the step's start; every iteration when
   // Config::reuse_pattern is off). The other factorisations reuse the analysis.
@@ -86,15 +91,16 @@ class Solver {
                 std::vector<Scalar>& g, NewtonSystem& system) const;
   void lag_friction(const std::vector<Scalar>& x, const std::vector<Constraint>& constraints, Scalar kappa, Scalar h);
   Scalar initial_kappa(Scalar h) const;
+  void refresh_slots(const NewtonSystem& system);
   // Keeps candidates_ covering the sweep x -> x + p (p may be null): true when the broad phase
   // ran, false when the kept candidates already cover it (force: run it).
-  bool keep_candidates(const Scalar* x, const Scalar* p, bool force);
+  bool keep_candidates(const Scalar* x, const Scalar* p, bool force, StepStats& stats);
 
   const Model& model_;
   Config config_;
   Scalar dhat2_;
   // Per-step scratch: the inertia target, the state at the step's start and lagged friction.
-  std::vector<Scalar> xhat_, xn_;
+  std::vector<Scalar> xhat_, xn_, sweep_;
   std::vector<Scalar> target_, driven_lambda_;  // driven vertices' targets and multipliers (3n)
   Scalar driven_stiffness_ = 0;                 // k of the augmented Lagrangian [kg]
   std::vector<Vec3> spring_direction_;          // unit spring directions at x_n
@@ -102,6 +108,11 @@ class Solver {
   // The Newton matrix on its kept pattern and the factorisation of that pattern (analysed
   // once per pattern version).
   std::unique_ptr<NewtonSystem> system_;
+  // Where the elastic blocks live in system_'s values (per vertex its diagonal block, then 16
+  // per tet, 4 per spring), refreshed when its layout changes.
+  std::vector<NewtonSystem::Slot> elastic_slots_;
+  const NewtonSystem* slots_system_ = nullptr;
+  std::int64_t slots_layout_ = -1;
   std::unique_ptr<SpdSolver> linear_;
   std::int64_t linear_version_ = -1;
   // Config::simplicial: the 3x3-block Cholesky of the system in its own dof order (AMD of the

@@ -4,6 +4,7 @@
 #include <Eigen/OrderingMethods>
 #include <Eigen/SparseCore>
 #include <algorithm>
+#include <stdexcept>
 
 namespace kinema::contact {
 
@@ -61,6 +62,22 @@ Index NewtonSystem::find(Index i, Index j) const {
   return it != last && *it == j ? static_cast<Index>(it - bcol_.begin()) : -1;
 }
 
+void NewtonSystem::slots(const Index* verts, int count, Slot* out) const {
+  for (int a = 0; a < count; ++a)
+    for (int b = 0; b < count; ++b) {
+      Slot& slot = out[a * count + b];
+      const Index i = dof(verts[a]), j = dof(verts[b]);
+      if (i < 0 || j < 0) {
+        slot = Slot{};
+        continue;
+      }
+      const Index k = find(i, j);
+      if (k < 0) throw std::logic_error("NewtonSystem::slots: a block outside the pattern");
+      const Index start = bptr_[static_cast<size_t>(i)], len = bptr_[static_cast<size_t>(i) + 1] - start;
+      slot = Slot{9 * start + 3 * (k - start), 3 * len};
+    }
+}
+
 void NewtonSystem::add_block(Index i, Index j, const Scalar* m) {
   const Index k = find(i, j);
   if (k < 0) {
@@ -76,6 +93,7 @@ void NewtonSystem::add_block(Index i, Index j, const Scalar* m) {
 
 void NewtonSystem::rebuild(const std::vector<std::pair<Index, Index>>& blocks) {
   const Index rows = dof_count();
+  ++layout_;
   // Old pattern and values, to carry over.
   const std::vector<Index> old_ptr = std::move(bptr_), old_col = std::move(bcol_);
   const std::vector<Scalar> old_values = std::move(values_);

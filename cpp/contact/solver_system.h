@@ -53,6 +53,18 @@ class NewtonSystem {
   // when the pattern changed since the last call.
   bool finish();
 
+  // Where the blocks of an element whose blocks are all in the pattern live (the elastic
+  // elements': they are part of every pattern), so that repeated assemblies add into them
+  // without searching: valid until layout() changes. offset < 0: a vertex that is no dof.
+  struct Slot {
+    Index offset = -1, stride = 0;  // first value of the block; distance between its rows
+  };
+  void slots(const Index* verts, int count, Slot* out) const;  // count x count slots, row-major
+  template <class Matrix>
+  void add(const Slot* slots, int count, const Matrix& H);
+  // Counts the changes of the storage layout (every rebuild of the pattern).
+  std::int64_t layout() const { return layout_; }
+
   CsrView view() const { return {size(), size(), row_ptr_.data(), col_.data(), values_.data()}; }
   // Number of pattern changes so far (each one a new symbolic analysis for the factorisation).
   std::int64_t version() const { return version_; }
@@ -75,7 +87,7 @@ class NewtonSystem {
   // Blocks an assembly found missing: (i, j) and 9 values each (row-major).
   std::vector<std::pair<Index, Index>> missing_;
   std::vector<Scalar> missing_values_;
-  std::int64_t version_ = 0;
+  std::int64_t version_ = 0, layout_ = 0;
   bool changed_ = true;
 };
 
@@ -93,6 +105,18 @@ void NewtonSystem::add(const Index* verts, int count, const Matrix& H) {
       add_block(i, j, m);
     }
   }
+}
+
+template <class Matrix>
+void NewtonSystem::add(const Slot* slots, int count, const Matrix& H) {
+  for (int a = 0; a < count; ++a)
+    for (int b = 0; b < count; ++b) {
+      const Slot& slot = slots[a * count + b];
+      if (slot.offset < 0) continue;
+      Scalar* out = values_.data() + slot.offset;
+      for (int r = 0; r < 3; ++r)
+        for (int s = 0; s < 3; ++s) out[r * slot.stride + s] += H(3 * a + r, 3 * b + s);
+    }
 }
 
 }  // namespace kinema::contact

@@ -4,12 +4,15 @@
 
 #include <Eigen/Dense>
 #include <algorithm>
+#include <cstdlib>
+#include <cstring>
 #include <random>
 #include <set>
 #include <utility>
 #include <vector>
 
 #include "contact/block_cholesky.h"
+#include "core/simd.h"
 #include "geometry/bvh.h"
 
 namespace kinema::contact {
@@ -102,6 +105,31 @@ TEST(BlockCholesky, SolvesLikeADenseFactorisation) {
     chol.solve(b.data(), x.data());
     EXPECT_LT((x - 0.5 * expected).norm(), 1e-12 * expected.norm()) << seed;
   }
+}
+
+TEST(BlockCholesky, BaselineAndAvx2VersionsGiveTheSameBits) {
+  // The four-wide block updates run on SSE2 halves or AVX2 registers (no FMA): the same
+  // operations in the same order, so the same bits.
+  if (!cpu_has_avx2()) GTEST_SKIP() << "no AVX2 on this CPU";
+  const BlockMatrix M = grid_matrix(9, 8, 0.0, 6);
+  const Index m = M.view().rows;
+  const Eigen::VectorXd b = Eigen::VectorXd::Random(m);
+  auto solve = [&](bool baseline) {
+    if (baseline)
+      setenv("KINEMA_SIMD", "baseline", 1);
+    else
+      unsetenv("KINEMA_SIMD");
+    BlockCholesky chol;
+    chol.analyze(M.view());  // the instruction set is chosen here
+    unsetenv("KINEMA_SIMD");
+    EXPECT_TRUE(chol.factorize(M.view()));
+    Eigen::VectorXd x(m);
+    chol.solve(b.data(), x.data());
+    return x;
+  };
+  const Eigen::VectorXd base = solve(true), wide = solve(false);
+  EXPECT_EQ(std::memcmp(base.data(), wide.data(), sizeof(Scalar) * static_cast<size_t>(m)), 0);
+  EXPECT_LT((base - M.dense.llt().solve(b)).norm(), 1e-12 * base.norm());
 }
 
 TEST(BlockCholesky, RefusesAnIndefiniteMatrix) {
