@@ -30,6 +30,7 @@ struct Config {
   int reorder_every = 16;                    // least steps between Morton reorderings (0: never)
   Scalar neighbor_skin = 0.2;                // Verlet skin of the neighbour lists, fraction of h
   Scalar warm_start = 0.5;                   // DFSPH: share of the last step's stiffnesses to start from
+  bool coarse_correction = true;             // DFSPH: two-level density solve (a coarse correction in height)
 };
 
 }  // namespace kinema::sph
