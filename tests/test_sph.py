@@ -281,7 +281,7 @@ def test_dfsph_column_at_rest_tight_tol(d):
 # while its mean compression stayed below tol, and the step that reached tol built 3-5x the
 # hydrostatic pressure, sending it back up, with the warm start carrying half of that into the
 # next steps. The coarse correction rebuilds the hydrostatic (longest) mode at the start of every
-# solve; measured after: 2D 0.027, 3D 0.052 m/s at 2.9 / 4.5 density iterations per step. The
+# solve; measured after: 2D 0.026, 3D 0.055 m/s at 3.8 / 5.1 density iterations per step. The
 # same column with coarse_correction=False is the test below.
 @pytest.mark.parametrize("d", [2, 3])
 def test_dfsph_column_at_rest_loose_tol(d):
