@@ -594,6 +594,33 @@ def test_runs_do_not_depend_on_the_thread_count(method):
         assert np.array_equal(a, b), f"{method} {name}: 1 vs 2 threads differ by {np.abs(a - b).max():.3e}"
 
 
+@pytest.mark.parametrize("d", [2, 3])
+def test_coarse_correction_engages_and_does_not_depend_on_the_thread_count(d):
+    # A column at rest at tol 2e-3, where the density solve's warm start ends within tol and its
+    # coarse correction (cpp/sph/coarse.h: chunked Galerkin sums, > 4096 particles) runs: 1 and 2
+    # threads bitwise equal, and the run differs from the one-level solve's (it did run).
+    s = 0.005 if d == 2 else 0.012
+    size = [0.5, 0.25] if d == 2 else [0.24, 0.3, 0.12]
+    x = km.sph.block([0] * d, size, s)
+    assert len(x) > 4096
+    box = list(size)
+    box[1] *= 2
+    threads = km.get_num_threads()
+    results = {}
+    try:
+        for t, coarse in ((1, True), (2, True), (2, False)):
+            km.set_num_threads(t)
+            fluid = km.sph.Fluid(x, s, gravity=down(d), domain=([0] * d, box), tol=2e-3, coarse_correction=coarse)
+            stats = [fluid.step(fluid.stable_dt()) for _ in range(6)]
+            results[t, coarse] = (fluid.x.copy(), fluid.v.copy(), [st.iterations for st in stats])
+    finally:
+        km.set_num_threads(threads)
+    (x1, v1, it1), (x2, v2, it2), (x0, _, _) = results[1, True], results[2, True], results[2, False]
+    assert it1 == it2, (it1, it2)
+    assert np.array_equal(x1, x2) and np.array_equal(v1, v2), f"{d}D: 1 vs 2 threads differ by {np.abs(x1 - x2).max():.3e}"
+    assert not np.array_equal(x1, x0), f"{d}D: the coarse correction never ran"
+
+
 @pytest.mark.parametrize("method", ["wcsph", "dfsph"])
 def test_avx2_and_baseline_runs_are_bitwise_equal(method, monkeypatch):
     # The light passes' row sums (3D) take AVX2 where the CPU has it; KINEMA_SIMD=baseline
