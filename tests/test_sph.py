@@ -281,11 +281,13 @@ def test_dfsph_column_at_rest_tight_tol(d):
 # while its mean compression stayed below tol, and the step that reached tol built 3-5x the
 # hydrostatic pressure, sending it back up, with the warm start carrying half of that into the
 # next steps. The coarse correction rebuilds the hydrostatic (longest) mode at the start of every
-# solve; measured after: 2D 0.026, 3D 0.055 m/s at 3.8 / 5.1 density iterations per step. The
-# same column with coarse_correction=False is the test below.
+# solve; measured after: 2D 0.021, 3D 0.042 m/s at 3.7 density iterations per step, and at
+# tol 5e-3 (one-level: 2D 0.021, 3D 0.097) 0.021 / 0.040 at 3.0. The same column with
+# coarse_correction=False is the test below.
+@pytest.mark.parametrize("tol", [2e-3, 5e-3])
 @pytest.mark.parametrize("d", [2, 3])
-def test_dfsph_column_at_rest_loose_tol(d):
-    r = column_at_rest("dfsph", d, tol=2e-3)
+def test_dfsph_column_at_rest_loose_tol(d, tol):
+    r = column_at_rest("dfsph", d, tol=tol)
     assert r["v_rms"] < 0.02 * np.sqrt(2 * G * r["H"]), f"{d}D: rms speed {r['v_rms']:.3f} m/s"
     assert r["slope"] == pytest.approx(1, abs=0.1), f"{d}D: dp/dy = {r['slope']:.3f} rho0 g"
     its = r["iterations"]
