@@ -275,7 +275,8 @@ def test_dfsph_column_at_rest_tight_tol(d):
 
 
 # At tol = 2e-3 the DFSPH column stays at rest too (the bounds above). It did not before the
-# density solve's coarse correction (coarse_correction, on by default; cpp/sph/coarse.h): 2D
+# density solve's coarse correction (coarse_correction, on by default where tol > 1e-3;
+# cpp/sph/coarse.h): 2D
 # 0.073, 3D 0.079 m/s rms (WCSPH 0.024 / 0.048). Cause (bench/sph/sph_column_cycle.py --series):
 # the solve stopped inside its tolerance band after its 2 minimum iterations, the column sank
 # while its mean compression stayed below tol, and the step that reached tol built 3-5x the
@@ -621,6 +622,23 @@ def test_coarse_correction_engages_and_does_not_depend_on_the_thread_count(d):
     assert it1 == it2, (it1, it2)
     assert np.array_equal(x1, x2) and np.array_equal(v1, v2), f"{d}D: 1 vs 2 threads differ by {np.abs(x1 - x2).max():.3e}"
     assert not np.array_equal(x1, x0), f"{d}D: the coarse correction never ran"
+
+
+def test_coarse_correction_default_is_on_only_above_tol_1e_3():
+    # None (auto): the two-level solve where tol > 1e-3 (where the one-level solve let a column
+    # at rest bounce), the one-level solve at tighter tolerances (bitwise main's).
+    s = 0.02
+    x = km.sph.block([0, 0], [1.0, 0.5], s)
+    for tol, same_as in ((1e-3, False), (2e-3, True)):
+        runs = {}
+        for option in (None, True, False):
+            fluid = km.sph.Fluid(x, s, gravity=down(2), domain=([0, 0], [1, 1]), tol=tol, coarse_correction=option)
+            for _ in range(15):
+                fluid.step(fluid.stable_dt())
+            runs[option] = fluid.x.copy()
+        assert np.array_equal(runs[None], runs[same_as]), f"tol {tol}: default is not coarse_correction={same_as}"
+    assert not np.array_equal(runs[True], runs[False]), "tol 2e-3: the coarse correction never ran"
+    assert km.sph.Fluid(x, s).config.coarse_correction == -1
 
 
 @pytest.mark.parametrize("method", ["wcsph", "dfsph"])

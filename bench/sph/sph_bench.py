@@ -306,16 +306,17 @@ def bench_splishsplash(sizes, rec, dts, tol, threads, results, boundaries=("akin
 WP_TOLS = (3e-3, 1e-3, 3e-4, 1e-4, 3e-5)
 
 
-def bench_work_precision(n, tols, rec, threads, boundaries=("akinci", "volume-map"), one_level=False):
+def bench_work_precision(n, tols, rec, threads, boundaries=("akinci", "volume-map"), two_level=False):
     """Seconds per simulated second against the measured mean density error, one point per
     solver tolerance, kinema DFSPH and SPlisHSPlasH DFSPH (each wall model) on the same scene,
     dt and start-up. The error on the x axis is measured (kinema: density_error() after the
     timed steps; SPlisHSPlasH: the same mean compression of its densities), not the tolerance
-    asked for. With one_level, kinema also without its coarse correction ("kinema-dfsph-one-level",
-    the A/B of the two-level density solve in the same run). Returns {code: [(error, s_per_sim_s), ...]}."""
+    asked for. With two_level, kinema also with its coarse correction forced on
+    ("kinema-dfsph-two-level"; by default it is on only where tol > 1e-3): the A/B of the
+    two-level density solve in the same run. Returns {code: [(error, s_per_sim_s), ...]}."""
     dt, s, c = timed_dt(n, "dfsph", tols[0])  # one dt for every point: the same work per step
     curves = {}
-    variants = [("kinema-dfsph", {})] + ([("kinema-dfsph-one-level", {"coarse_correction": False})] if one_level else [])
+    variants = [("kinema-dfsph", {})] + ([("kinema-dfsph-two-level", {"coarse_correction": True})] if two_level else [])
     for (code, options), tol in ((v, tol) for tol in tols for v in variants):
         fluid = started_fluid(n, "dfsph", tol, dt, **options)
         iterations, split = [], {}
@@ -449,8 +450,8 @@ def main(argv=None) -> int:
                    help="SPlisHSPlasH's wall model: Akinci samples as kinema (default), its volume maps, or both")
     p.add_argument("--work-precision", action="store_true",
                    help="DFSPH work-precision: kinema's tol and SPlisHSPlasH's maxError swept, both wall models")
-    p.add_argument("--one-level", action="store_true",
-                   help="--work-precision: also kinema without its coarse correction (the A/B of the two-level solve)")
+    p.add_argument("--two-level", action="store_true",
+                   help="--work-precision: also kinema with its coarse correction forced on (the A/B of the two-level solve)")
     p.add_argument("--tols", type=float, nargs="+", help="tolerances of --work-precision (default %s)" % (WP_TOLS,))
     p.add_argument("--loaded", action="store_true",
                    help="on a busy machine: keep the best of 2 tries instead of waiting for quiet")
@@ -471,11 +472,11 @@ def main(argv=None) -> int:
         print(f"threads {args.threads}, commit {harness.git_commit()}")
         print(f"DFSPH work-precision, 3D dam break, ~{sizes[0]} particles:")
         curves = bench_work_precision(sizes[0], tuple(args.tols or WP_TOLS), rec, args.threads,
-                                      () if args.no_peers else ("akinci", "volume-map"), args.one_level)
-        if args.one_level:
-            ab = [(e, at(curves.get("kinema-dfsph-one-level", []), e), at(curves.get("kinema-dfsph", []), e))
+                                      () if args.no_peers else ("akinci", "volume-map"), args.two_level)
+        if args.two_level:
+            ab = [(e, at(curves.get("kinema-dfsph", []), e), at(curves.get("kinema-dfsph-two-level", []), e))
                   for e in (1e-3, 5e-4, 2e-4, 1e-4)]
-            print("SUMMARY sph two-level A/B (one-level / two-level kinema DFSPH, s per simulated s at equal "
+            print("SUMMARY sph two-level A/B (default / two-level kinema DFSPH, s per simulated s at equal "
                   "measured error): " + ", ".join(f"{e:.0e}: {f'{a / b:.2f}x' if a and b else 'n/a'}" for e, a, b in ab))
         print("equal measured density error: SPlisHSPlasH (fastest wall model) / kinema, s per simulated s "
               "(target >= 1.5):")

@@ -43,7 +43,8 @@ class SolverD final : public Solver::Impl {
   SolverD(const Model& model, const Config& config)
       : Impl(model, config), W_(model.h), c_(model.speed_of_sound), rows_(RowSums<D>::choose(use_avx2())) {
     for (int a = 0; a < D; ++a) g_[a] = config.gravity[a];
-    if (config.coarse_correction && g_.norm() > 0) g_.cwiseAbs().maxCoeff(&coarse_axis_);
+    const bool coarse = config.coarse_correction > 0 || (config.coarse_correction < 0 && config.tol > Config::kCoarseAutoTol);
+    if (coarse && g_.norm() > 0) g_.cwiseAbs().maxCoeff(&coarse_axis_);
     B_ = config.rho0 * c_ * c_ / config.gamma;
   }
 
