@@ -86,12 +86,12 @@ def bench_neighbors(sizes, rec):
 
 # ------------------------------------------------------------------ time per step
 
-def kinema_fluid(n, method, tol):
+def kinema_fluid(n, method, tol, **options):
     import kinema as km
 
     x, s, domain = scene(n)
     fluid = km.sph.Fluid(x, s, method=method, gravity=(0, -9.81, 0), domain=domain, tol=tol,
-                         divergence_tol=tol)
+                         divergence_tol=tol, **options)
     return fluid, s
 
 
@@ -143,13 +143,13 @@ def steps_of(fluid, dt, iterations, split=None, same_steps=False):
     return run
 
 
-def started_fluid(n, method, tol, dt):
+def started_fluid(n, method, tol, dt, **options):
     """kinema's fluid after the start-up every code runs before its timed steps: from rest,
     round(START / dt) steps of the timed dt, as SPlisHSPlasH (fixed dt) and the Taichi WCSPH are
     started. (Started with CFL steps to START instead, kinema would be timed on its first steps
     at the larger dt: a transient at which DFSPH takes 4.2 iterations per step instead of the
     3.0 it takes here, as SPlisHSPlasH does.)"""
-    fluid, _ = kinema_fluid(n, method, tol)
+    fluid, _ = kinema_fluid(n, method, tol, **options)
     for _ in range(max(1, round(START / dt))):
         fluid.step(dt)
     return fluid
@@ -306,27 +306,30 @@ def bench_splishsplash(sizes, rec, dts, tol, threads, results, boundaries=("akin
 WP_TOLS = (3e-3, 1e-3, 3e-4, 1e-4, 3e-5)
 
 
-def bench_work_precision(n, tols, rec, threads, boundaries=("akinci", "volume-map")):
+def bench_work_precision(n, tols, rec, threads, boundaries=("akinci", "volume-map"), two_level=False):
     """Seconds per simulated second against the measured mean density error, one point per
     solver tolerance, kinema DFSPH and SPlisHSPlasH DFSPH (each wall model) on the same scene,
     dt and start-up. The error on the x axis is measured (kinema: density_error() after the
     timed steps; SPlisHSPlasH: the same mean compression of its densities), not the tolerance
-    asked for. Returns {code: [(error, s_per_sim_s), ...]}."""
+    asked for. With two_level, kinema also with its coarse correction forced on
+    ("kinema-dfsph-two-level"; by default it is on only where tol > 1e-3): the A/B of the
+    two-level density solve in the same run. Returns {code: [(error, s_per_sim_s), ...]}."""
     dt, s, c = timed_dt(n, "dfsph", tols[0])  # one dt for every point: the same work per step
     curves = {}
-    for tol in tols:
-        fluid = started_fluid(n, "dfsph", tol, dt)
+    variants = [("kinema-dfsph", {})] + ([("kinema-dfsph-two-level", {"coarse_correction": True})] if two_level else [])
+    for (code, options), tol in ((v, tol) for tol in tols for v in variants):
+        fluid = started_fluid(n, "dfsph", tol, dt, **options)
         iterations, split = [], {}
         run = steps_of(fluid, dt, iterations, split, same_steps=True)
 
         m = harness.measure(run, min_of=1, **MEASURE)
         err = m.value
-        check("kinema-dfsph", np.isfinite(fluid.x).all(), "non-finite positions")
+        check(code, np.isfinite(fluid.x).all(), "non-finite positions")
         per_sim = m.seconds / STEPS / dt
-        curves.setdefault("kinema-dfsph", []).append((err, per_sim))
-        rec.record("kinema-dfsph", fluid.n, per_sim, error=err, measurement=m, iterations=float(np.mean(iterations)),
+        curves.setdefault(code, []).append((err, per_sim))
+        rec.record(code, fluid.n, per_sim, error=err, measurement=m, iterations=float(np.mean(iterations)),
                    notes={"tol": tol, "dt": f"{dt:.3g}", "unit": "s per simulated s"})
-        print(f"  kinema-dfsph              tol={tol:7.1e} n={fluid.n:7d} density error {err:8.2e} "
+        print(f"  {code:25s} tol={tol:7.1e} n={fluid.n:7d} density error {err:8.2e} "
               f"{per_sim:8.1f} s/sim s, {np.mean(iterations):5.1f} iterations/step (other load {m.other_load:.2f})",
               flush=True)
         step = max(split["step"], 1e-12)  # where the step's time went (the last timed call)
@@ -447,6 +450,8 @@ def main(argv=None) -> int:
                    help="SPlisHSPlasH's wall model: Akinci samples as kinema (default), its volume maps, or both")
     p.add_argument("--work-precision", action="store_true",
                    help="DFSPH work-precision: kinema's tol and SPlisHSPlasH's maxError swept, both wall models")
+    p.add_argument("--two-level", action="store_true",
+                   help="--work-precision: also kinema with its coarse correction forced on (the A/B of the two-level solve)")
     p.add_argument("--tols", type=float, nargs="+", help="tolerances of --work-precision (default %s)" % (WP_TOLS,))
     p.add_argument("--loaded", action="store_true",
                    help="on a busy machine: keep the best of 2 tries instead of waiting for quiet")
@@ -466,7 +471,13 @@ def main(argv=None) -> int:
         rec = harness.Recorder(csv_wp, "sph_dambreak3d_dfsph_work_precision", threads=args.threads)
         print(f"threads {args.threads}, commit {harness.git_commit()}")
         print(f"DFSPH work-precision, 3D dam break, ~{sizes[0]} particles:")
-        curves = bench_work_precision(sizes[0], tuple(args.tols or WP_TOLS), rec, args.threads)
+        curves = bench_work_precision(sizes[0], tuple(args.tols or WP_TOLS), rec, args.threads,
+                                      () if args.no_peers else ("akinci", "volume-map"), args.two_level)
+        if args.two_level:
+            ab = [(e, at(curves.get("kinema-dfsph", []), e), at(curves.get("kinema-dfsph-two-level", []), e))
+                  for e in (1e-3, 5e-4, 2e-4, 1e-4)]
+            print("SUMMARY sph two-level A/B (default / two-level kinema DFSPH, s per simulated s at equal "
+                  "measured error): " + ", ".join(f"{e:.0e}: {f'{a / b:.2f}x' if a and b else 'n/a'}" for e, a, b in ab))
         print("equal measured density error: SPlisHSPlasH (fastest wall model) / kinema, s per simulated s "
               "(target >= 1.5):")
         ratios = equal_accuracy_ratios(curves)

@@ -270,7 +270,10 @@ void bind_sph(py::module_& m) {
       .def_readwrite("reorder_every", &Config::reorder_every, "least steps between Morton reorderings (0: never)")
       .def_readwrite("neighbor_skin", &Config::neighbor_skin, "Verlet skin of the neighbour lists, fraction of h")
       .def_readwrite("warm_start", &Config::warm_start,
-                     "DFSPH: share of the last step's stiffnesses a solve starts from");
+                     "DFSPH: share of the last step's stiffnesses a solve starts from")
+      .def_readwrite("coarse_correction", &Config::coarse_correction,
+                     "DFSPH: two-level density solve, a coarse correction in height (needs gravity): "
+                     "1 on, 0 off, -1 on where tol > 1e-3");
 
   using sph::StepStats;
   py::class_<StepStats, StepStatsBase>(m, "StepStats", "What one SPH step did.")

@@ -30,6 +30,11 @@ struct Config {
   int reorder_every = 16;                    // least steps between Morton reorderings (0: never)
   Scalar neighbor_skin = 0.2;                // Verlet skin of the neighbour lists, fraction of h
   Scalar warm_start = 0.5;                   // DFSPH: share of the last step's stiffnesses to start from
+  // DFSPH: two-level density solve (a coarse correction in height, needs gravity): 1 on, 0 off,
+  // -1 on where tol > kCoarseAutoTol (loose tolerances, where the one-level solve let a column at
+  // rest bounce; at tighter ones it holds and the coarse steps cost more than they save).
+  int coarse_correction = -1;
+  static constexpr Scalar kCoarseAutoTol = 1e-3;
 };
 
 }  // namespace kinema::sph

@@ -44,6 +44,8 @@ void check(const Config& c) {
     throw InvalidArgument("reorder_every: expected an integer >= 0, got " + std::to_string(c.reorder_every));
   fraction(c.neighbor_skin, "neighbor_skin");
   fraction(c.warm_start, "warm_start");
+  if (c.coarse_correction < -1 || c.coarse_correction > 1)
+    throw InvalidArgument("coarse_correction: expected -1 (auto), 0 or 1, got " + std::to_string(c.coarse_correction));
 }
 
 State::State(int dim_, Index n_)
