@@ -268,13 +268,13 @@ inline void tridiagonalize(Eigen::Matrix<Scalar, N, N> A, Tridiagonal<N>& t) {
     Scalar w[N], c = 0;
     for (int i = k + 1; i < N; ++i) {
       Scalar s = 0;
-      for (int j = k + 1; j < N; ++j) s += (j <= i ? A(i, j) : A(j, i)) * v[j];
+      for (int j = k + 1; j < N; ++j) s += A(j, i) * v[j];  // A symmetric: down column i
       w[i] = s;
       c += v[i] * s;
     }
     for (int i = k + 1; i < N; ++i) w[i] -= c * v[i];
-    for (int j = k + 1; j < N; ++j)  // the lower triangle (A is read there only)
-      for (int i = j; i < N; ++i) A(i, j) -= 2 * (v[i] * w[j] + w[i] * v[j]);
+    for (int j = k + 1; j < N; ++j)
+      for (int i = k + 1; i < N; ++i) A(i, j) -= 2 * (v[i] * w[j] + w[i] * v[j]);
   }
   t.d[N - 2] = A(N - 2, N - 2);
   t.d[N - 1] = A(N - 1, N - 1);
@@ -404,7 +404,7 @@ inline bool negative_eigenpairs(const Eigen::Matrix<Scalar, N, N>& A, Scalar* la
     Scalar* x = z[k];
     // A start with no special symmetry, then inverse iterations (each orthogonalised against
     // the vectors already found for eigenvalues within 1e-3 |T|, a cluster) until x is an
-    // eigenvector to working accuracy, |T x - lambda x| within rounding of |T| (one or two
+    // eigenvector to working accuracy, |T x - lambda x| within rounding of |T| (two
     // iterations: lambda is exact to rounding); not within three, the caller falls back.
     for (int i = 0; i < N; ++i) x[i] = 1 + Scalar(0.1) * ((5 * i + 3 * k) % 7);
     const ShiftedTridiagonalLu<N> lu(t, lambda[k], tiny);
@@ -429,7 +429,7 @@ inline bool negative_eigenpairs(const Eigen::Matrix<Scalar, N, N>& A, Scalar* la
         if (i + 1 < N) r += t.e[i] * x[i + 1];
         res = std::max(res, std::abs(r));
       }
-      certified = res <= 4 * N * eps * std::max(norm, Scalar(1));
+      certified = it > 0 && res <= 4 * N * eps * std::max(norm, Scalar(1));
     }
     if (!certified) return false;
   }
