@@ -24,6 +24,9 @@ Accuracy, checked before timing (the run stops on a mismatch):
 
 One summary line per kernel: CPU time per call on both sides (best of 5 x 20 calls; wall time
 beside it), their ratio against the 3x target, and the measured difference.
+
+A/B against another build (e.g. main's wheel installed with ``pip install --target DIR``): run
+the same command with ``PYTHONPATH=DIR`` (the first line printed names the kinema imported).
 """
 
 from __future__ import annotations
@@ -179,7 +182,7 @@ def run(rec, quick):
 def main(argv=None):
     args = bench_args(__doc__, argv)
     rec = harness.Recorder(args.out / "contact_kernels.csv", benchmark="contact-kernels")
-    print(f"commit {harness.git_commit()}  threads 1")
+    print(f"commit {harness.git_commit()}  threads 1  kinema {km.__file__}")
     run(rec, args.quick)
 
 
