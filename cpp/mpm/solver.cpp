@@ -120,6 +120,10 @@ Vec<D> apply_boundary_vjp(const Vec<D>& v, const Vec<D>& n, Boundary boundary, S
   return vt_bar - n * n.dot(vt_bar) + n * vn_bar;
 }
 
+// Snow's hardening factor exp(hardening (1 - Jp)) (Stomakhin et al. 2013; model.h); exactly 1
+// without the exp() call for a particle that has not yielded yet (Jp = 1: exp(0) = 1).
+inline Scalar snow_hardening(const Material& m, Scalar Jp) { return Jp == 1 ? 1.0 : std::exp(m.hardening * (1 - Jp)); }
+
 // Lame parameters of particle p from its own moduli (water: mu = lambda = 0).
 inline void particle_lame(const State& state, const Material& m, Index p, Scalar& mu, Scalar& lambda) {
   if (m.kind == MaterialKind::Water) {
@@ -742,7 +746,7 @@ class SolverD final : public Solver::Impl {
       case MaterialKind::NeoHookean:
         return neohookean_tau<D>(F, mu, lambda);
       case MaterialKind::Snow: {
-        const Scalar harden = std::exp(m.hardening * (1 - state.Jp[static_cast<size_t>(p)]));
+        const Scalar harden = snow_hardening(m, state.Jp[static_cast<size_t>(p)]);
         if constexpr (D == 2) return corotated_tau(F, mu * harden, lambda * harden);
         else return corotated_tau<D>(F, svd(F), mu * harden, lambda * harden);
       }
@@ -1332,7 +1336,7 @@ class SolverD final : public Solver::Impl {
             particle_lame(state, mat, p[l], mu[l], lambda[l]);
             bulk[l] = state.youngs_modulus[static_cast<size_t>(p[l])];
             if (mat.kind == MaterialKind::Snow) {
-              const Scalar harden = std::exp(mat.hardening * (1 - state.Jp[static_cast<size_t>(p[l])]));
+              const Scalar harden = snow_hardening(mat, state.Jp[static_cast<size_t>(p[l])]);
               mu[l] = mu[l] * harden;
               lambda[l] = lambda[l] * harden;
             }
@@ -1829,7 +1833,7 @@ Scalar Solver::stable_dt(const State& state, Scalar cfl) const {
     lame_parameters(E, state.poisson_ratio[static_cast<size_t>(p)], mu, lambda);
     const Scalar c = m.kind == MaterialKind::Water ? std::sqrt(E / m.density) : std::sqrt((lambda + 2 * mu) / m.density);
     if (m.kind == MaterialKind::Snow) {
-      harden = std::max(harden, std::exp(m.hardening * (1 - state.Jp[static_cast<size_t>(p)])));
+      harden = std::max(harden, snow_hardening(m, state.Jp[static_cast<size_t>(p)]));
       c_snow = std::max(c_snow, c);
     } else {
       c_elastic = std::max(c_elastic, c);
