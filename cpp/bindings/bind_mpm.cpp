@@ -8,7 +8,9 @@
 // (mpm::Solver::sort_rows; the transfers then read memory sequentially): all views share one
 // capsule, whose reference count says whether any view (or a slice of one) is alive, and
 // taking a view, or any call that reads the particles, first puts the rows back in user order.
-// Results are bitwise the same either way (solver.h).
+// Likewise the solver keeps a step's binning of the particles for the next step only while no
+// view can have written them (mpm::State::binning is cleared when a view is taken, and after a
+// step during which one was alive). Results are bitwise the same either way (solver.h).
 #include <memory>
 #include <optional>
 
