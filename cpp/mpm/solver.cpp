@@ -512,6 +512,26 @@ class SolverD final : public Solver::Impl {
     if (left) moves.list.push_back({morton(b), state.user_of(p), q, key_of(b), static_cast<std::int32_t>(s)});
   }
 
+  // Positions strictly inside (lo, hi) on every axis certainly stay in the block whose lower
+  // node is o, inside the domain: the positions whose base node floor(g - 1/2) lies in the
+  // block (g = (x - origin) / h + 1, grid_coords), origin + (o - 1/2 .. o + B - 1/2) h,
+  // clipped to the domain, narrowed by a margin far above the rounding of grid_coords (so
+  // that G2P can skip track() for them).
+  struct StayBox {
+    Scalar lo[D], hi[D];
+  };
+  StayBox stay_box(const std::array<Index, 3>& o) const {
+    StayBox box;
+    const Scalar h = model_.h;
+    for (int a = 0; a < D; ++a) {
+      const Scalar origin = model_.origin[a], upper = model_.upper(a);
+      const Scalar margin = 1e-6 * h + 64 * std::numeric_limits<Scalar>::epsilon() * (std::abs(origin) + std::abs(upper));
+      box.lo[a] = std::max(origin + (static_cast<Scalar>(o[a]) - 0.5) * h, origin) + margin;
+      box.hi[a] = std::min(origin + (static_cast<Scalar>(o[a] + B) - 0.5) * h, upper) - margin;
+    }
+    return box;
+  }
+
   // After a step that succeeded: the mark that lets the next step keep its binning (none when
   // a particle ended where the next sort must look at it).
   void leave_mark(State& state) {
@@ -1004,6 +1024,7 @@ class SolverD final : public Solver::Impl {
 #endif
     each_block([&](Index s) {
       const auto o = block_origin(s);
+      const StayBox box = stay_box(o);
       alignas(64) Scalar tile[TN * S];
       gather<1>(tile, s, grid_);
       each_in_block(s, [&](Index q, Index end) {
@@ -1026,7 +1047,9 @@ class SolverD final : public Solver::Impl {
           x = std::clamp(x + dt * v(a), model_.origin[a], model_.upper(a));
           state.v[pd + a] = v(a);
         }
-        track(s, o, q, p, state, moves);
+        bool stays = true;
+        for (int a = 0; a < D; ++a) stays = stays && state.x[pd + a] > box.lo[a] && state.x[pd + a] < box.hi[a];
+        if (!stays) track(s, o, q, p, state, moves);
         finite = finite && v.allFinite() && Fn.allFinite();
         vmax2 = std::max(vmax2, v.squaredNorm());
       });
@@ -1436,6 +1459,7 @@ class SolverD final : public Solver::Impl {
 #pragma omp for schedule(dynamic, 1)
     for (Index s = 0; s < particle_blocks_; ++s) {
       const auto o = block_origin(s);
+      const StayBox box = stay_box(o);
       alignas(64) Scalar tile[TN * S];
       gather<1>(tile, s, grid_);
       const Index end = block_start_[static_cast<size_t>(s + 1)];
@@ -1491,13 +1515,7 @@ class SolverD final : public Solver::Impl {
           x[a] = model_.upper(a) < x[a] ? Lanes{} + model_.upper(a) : x[a];
         }
         // Lanes whose particle stays in block s where the next sort looks (track, four wide).
-        auto stays = (x[0] == x[0]);
-        for (int a = 0; a < 2; ++a) {
-          const Lanes g = (x[a] - model_.origin[a]) * inv_h_ + 1;
-          const Lanes node = __builtin_convertvector(__builtin_convertvector(g - 0.5, LaneInts), Lanes);
-          const Scalar lo = static_cast<Scalar>(o[a]), top = static_cast<Scalar>(model_.shape[a] + 1);
-          stays = stays & (g >= 1.0) & (g <= top) & (node >= lo) & (node < lo + B);
-        }
+        const auto stays = (x[0] > box.lo[0]) & (x[0] < box.hi[0]) & (x[1] > box.lo[1]) & (x[1] < box.hi[1]);
         const Lanes speed2 = v[0] * v[0] + v[1] * v[1];
         // Plasticity four wide where the lanes hold one material without a return mapping
         // (elastic, neo-Hookean) or water (F = sqrt(J) I, as plasticity()); else per particle.
