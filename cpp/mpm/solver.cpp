@@ -1047,8 +1047,8 @@ class SolverD final : public Solver::Impl {
           x = std::clamp(x + dt * v(a), model_.origin[a], model_.upper(a));
           state.v[pd + a] = v(a);
         }
-        bool stays = true;
-        for (int a = 0; a < D; ++a) stays = stays && state.x[pd + a] > box.lo[a] && state.x[pd + a] < box.hi[a];
+        bool stays = true;  // (without branches: nearly every particle stays)
+        for (int a = 0; a < D; ++a) stays &= (state.x[pd + a] > box.lo[a]) & (state.x[pd + a] < box.hi[a]);
         if (!stays) track(s, o, q, p, state, moves);
         finite = finite && v.allFinite() && Fn.allFinite();
         vmax2 = std::max(vmax2, v.squaredNorm());
