@@ -192,6 +192,64 @@ def test_rows_stored_in_block_order_change_no_bit_and_views_show_user_order(d):
     assert np.array_equal(a.youngs_modulus[: rows.start], E0) and np.all(a.youngs_modulus[rows] == 2e5)
 
 
+@pytest.mark.parametrize("d", [2, 3])
+def test_kept_binning_moves_crossing_particles_as_a_full_sort_would(d):
+    """A step that follows the last one on an unchanged State keeps its binning into grid blocks
+    and re-bins only the particles G2P saw leave their block (StepStats.rebinned); a step after a
+    view was read, or with one alive, sorts all of them. Fast bodies crossing blocks (blocks
+    emptied and entered), particles added mid-run, a view held across a step and written after
+    it, a step that diverges and is undone: every state must be bitwise that of a run that sorts
+    in full every step (a view read each step), on 1 and 2 threads."""
+    s = 1 / 160 if d == 2 else 1 / 40
+    up = [0.0, 1.0, 0.0][:d]
+
+    def run(threads, full):
+        old = km.get_num_threads()
+        km.set_num_threads(threads)
+        try:
+            sim = _sim(d, 32, boundary="separate", adapt_threads=False)
+            _add(sim, km.mpm.block([0.1] * d, [0.4] + [0.35] * (d - 1), s), "water", youngs_modulus=2e5,
+                 velocity=[4.0, 2.0, -3.0][:d])
+            _add(sim, km.mpm.sphere([0.7] + [0.6] * (d - 1), 0.12, s), "snow", velocity=[-5.0, 1.0, 3.0][:d])
+            assert sim.count > 1024, "enough particles for the parallel paths"
+            stats, counts = [], []
+            for k in range(70):
+                if k == 30:
+                    _add(sim, km.mpm.block([0.45] * d, [0.55] * d, s), "elastic", velocity=up)
+                if k == 45:
+                    held = sim.x  # alive during step 45, written after it
+                if k == 46:
+                    x = held if not full else sim.x
+                    x[0] = 0.5  # particle 0 jumps to the centre: another block
+                    del held, x
+                if full:
+                    sim.x  # a read: this step sorts in full
+                stats.append(sim.step(1e-3))
+                counts.append(sim.count)
+            with pytest.raises(km.DivergenceError):
+                sim.step(1.0)  # undone: the next step must not trust this G2P's moves
+            stats.append(sim.step(1e-3))
+            counts.append(sim.count)
+            return sim.state(), [st.rebinned for st in stats], [st.particle_blocks for st in stats], counts
+        finally:
+            km.set_num_threads(old)
+
+    ref, ref_rebinned, _, ref_counts = run(1, full=True)
+    assert ref_rebinned == ref_counts, "a view read before every step: every step sorts in full"
+    for threads in (1, 2):
+        got, rebinned, blocks, counts = run(threads, full=False)
+        for name in ref:
+            np.testing.assert_array_equal(got[name], ref[name], err_msg=f"{name}, {threads} threads")
+        # in full: the first step, after an add, after a view was taken or alive, after the undone step
+        for k in (0, 30, 45, 46, 70):
+            assert rebinned[k] == counts[k], (k, rebinned[k])
+        kept = [k for k in range(1, 70) if k not in (30, 45, 46)]
+        assert all(rebinned[k] < counts[k] for k in kept) and np.median([rebinned[k] for k in kept]) < counts[-1] / 10, rebinned
+        assert sum(rebinned[k] for k in kept) > 100, "particles crossed blocks"
+        assert any(blocks[k] != blocks[k - 1] for k in kept), "blocks were emptied or entered"
+    assert np.isfinite(ref["x"]).all()
+
+
 def test_avx2_lanes_give_the_baseline_bits_in_2d(monkeypatch):
     """2D P2G and G2P run four particles wide under AVX2 (weights, stresses, affine momentum,
     stencil sums) with the scalar code's operations in its order and no FMA, and P2G adds the

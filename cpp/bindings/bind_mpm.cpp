@@ -8,7 +8,9 @@
 // (mpm::Solver::sort_rows; the transfers then read memory sequentially): all views share one
 // capsule, whose reference count says whether any view (or a slice of one) is alive, and
 // taking a view, or any call that reads the particles, first puts the rows back in user order.
-// Results are bitwise the same either way (solver.h).
+// Likewise the solver keeps a step's binning of the particles for the next step only while no
+// view can have written them (mpm::State::binning is cleared when a view is taken, and after a
+// step during which one was alive). Results are bitwise the same either way (solver.h).
 #include <memory>
 #include <optional>
 
@@ -152,10 +154,14 @@ struct PySimulation {
   mpm::StepStats step(Scalar dt, py::object forces) {
     const Scalar* f = forces_of(forces);
     const bool may_sort = !views_alive();
-    Interrupt interrupt = python_interrupt();
-    ReleaseGil release;
-    mpm::StepStats stats = solver->step(*state, dt, interrupt, f);  // transactional by itself (solver.h)
-    after_step(may_sort);
+    mpm::StepStats stats;
+    {
+      Interrupt interrupt = python_interrupt();
+      ReleaseGil release;
+      stats = solver->step(*state, dt, interrupt, f);  // transactional by itself (solver.h)
+      after_step(may_sort);
+    }
+    drop_binning_if_viewed();
     return stats;
   }
 
@@ -167,6 +173,7 @@ struct PySimulation {
   void after_step(bool may_sort) {
     if (!may_sort) {
       quiet_steps = 0;
+      state->binning = 0;  // a view alive during the step may have been written
       return;
     }
     ++quiet_steps;
@@ -175,9 +182,17 @@ struct PySimulation {
 
   bool views_alive() const { return owner && owner.ref_count() > 1; }
 
-  // Before anything reads or writes the particles from Python: rows back in user order.
+  // The solver keeps a step's binning for the next only while nothing can have written the
+  // particles (mpm::State::binning): not across a view alive after the step.
+  void drop_binning_if_viewed() {
+    if (views_alive()) state->binning = 0;
+  }
+
+  // Before anything reads or writes the particles from Python: rows back in user order (and the
+  // binning kept for the next step dropped).
   void user_order() {
     quiet_steps = 0;
+    state->binning = 0;
     if (state->user_ordered()) return;
     ReleaseGil release;
     solver->user_order(*state);
@@ -210,6 +225,7 @@ struct PySimulation {
           },
           interrupt);
     }
+    drop_binning_if_viewed();
     last.time = state->time;
     last.sort_seconds = sum.sort_seconds;
     last.p2g_seconds = sum.p2g_seconds;
@@ -316,6 +332,8 @@ void bind_mpm(py::module_& m) {
       .def_readonly("max_speed", &mpm::StepStats::max_speed, "largest particle speed after the step [m/s]")
       .def_readonly("particle_blocks", &mpm::StepStats::particle_blocks, "grid blocks holding particles")
       .def_readonly("active_blocks", &mpm::StepStats::active_blocks, "blocks the transfers touch")
+      .def_readonly("rebinned", &mpm::StepStats::rebinned,
+                    "particles binned anew: all after a full sort, else those that left their block")
       .def_readonly("sort_seconds", &mpm::StepStats::sort_seconds, "binning and block activation [s]")
       .def_readonly("p2g_seconds", &mpm::StepStats::p2g_seconds, "stress and particle-to-grid transfer [s]")
       .def_readonly("grid_seconds", &mpm::StepStats::grid_seconds, "grid update and boundary conditions [s]")

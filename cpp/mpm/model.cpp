@@ -167,6 +167,7 @@ void State::append(const Scalar* x0, const Scalar* v0, Index m, const Scalar* ma
   youngs_modulus.resize(youngs_modulus.size() + static_cast<size_t>(m), youngs_modulus0);
   poisson_ratio.resize(poisson_ratio.size() + static_cast<size_t>(m), poisson_ratio0);
   n += m;
+  binning = 0;
 }
 
 }  // namespace kinema::mpm

@@ -9,6 +9,7 @@
 
 #include <algorithm>
 #include <array>
+#include <chrono>
 #include <cmath>
 #include <cstdint>
 #include <limits>
@@ -119,6 +120,10 @@ Vec<D> apply_boundary_vjp(const Vec<D>& v, const Vec<D>& n, Boundary boundary, S
   return vt_bar - n * n.dot(vt_bar) + n * vn_bar;
 }
 
+// Snow's hardening factor exp(hardening (1 - Jp)) (Stomakhin et al. 2013; model.h); exactly 1
+// without the exp() call for a particle that has not yielded yet (Jp = 1: exp(0) = 1).
+inline Scalar snow_hardening(const Material& m, Scalar Jp) { return Jp == 1 ? 1.0 : std::exp(m.hardening * (1 - Jp)); }
+
 // Lame parameters of particle p from its own moduli (water: mu = lambda = 0).
 inline void particle_lame(const State& state, const Material& m, Index p, Scalar& mu, Scalar& lambda) {
   if (m.kind == MaterialKind::Water) {
@@ -169,7 +174,11 @@ class SolverD final : public Solver::Impl {
     double mark[3] = {0, 0, 0};
     Scalar vmax2 = 0;
     bool finite = true;
-    prepare_sort(state);
+    // This solver's last step left this State unchanged (State::binning): its binning stays,
+    // updated for the particles that left their block.
+    const bool kept = mark_ != 0 && state.binning == mark_ && marked_ == &state && state.n == particle_count_;
+    mark_ = 0;  // until this step succeeds
+    prepare_sort(state, kept);
     const bool parallel = state.n > kParallelParticles;
     const int team = parallel ? choose_team(state.n) : 1;
 #pragma omp parallel num_threads(team) if (parallel)
@@ -193,6 +202,8 @@ class SolverD final : public Solver::Impl {
     stats.max_speed = check_g2p(state, dt, vmax2, finite);
     stats.particle_blocks = particle_blocks_;
     stats.active_blocks = static_cast<Index>(slot_key_.size());
+    stats.rebinned = rebinned_;
+    leave_mark(state);
     stats.seconds = total.seconds();
     stats.threads = team;
     record_team(team, stats.seconds);
@@ -275,11 +286,24 @@ class SolverD final : public Solver::Impl {
 
   // The sort, in three parts: prepare_sort before the step's parallel region, sort_phase
   // inside it (every thread calls it; false when a particle is bad, for every thread), and
-  // build_blocks, run by one thread in the middle.
-  void prepare_sort(const State& state) {
+  // build_blocks, run by one thread in the middle. With `kept` (the last step's binning of this
+  // State) prepare_sort does it all: rebin() moves the particles the last G2P listed.
+  void prepare_sort(const State& state, bool kept) {
     const Index n = state.n;
     particle_count_ = n;
     backup_.resize(static_cast<size_t>(n * kRow));
+    bad_ = -1;
+    kept_ = kept;
+    // (never shrunk: a smaller team this step must not drop the moves of the last)
+    const size_t threads = static_cast<size_t>(std::max(1, omp_get_max_threads()));
+    if (moves_by_thread_.size() < threads) moves_by_thread_.resize(threads);
+    if (kept) rebin(state);
+    for (Moves& m : moves_by_thread_) {  // this step's G2P lists its own
+      m.list.clear();
+      m.outside = false;
+    }
+    if (kept) return;
+    rebinned_ = n;
     // The block table stays from the last step: build_blocks rebuilds it only when the set of
     // particle blocks changed (most steps it does not). seen_ marks the blocks found this step.
     if (++epoch_ == std::numeric_limits<std::int32_t>::max()) {
@@ -289,11 +313,11 @@ class SolverD final : public Solver::Impl {
     particle_key_.resize(static_cast<size_t>(n));
     order_.resize(static_cast<size_t>(n));
     found_.clear();
-    bad_ = -1;
     sort_chunks_ = n > kParallelParticles ? kSortChunks : 1;
   }
 
   bool sort_phase(const State& state) {
+    if (kept_) return true;
     const Index n = state.n;
     // Keys of the block holding each particle's first stencil node; positions are checked
     // here because a user may write anything into the x view. In the same pass, the distinct
@@ -393,19 +417,20 @@ class SolverD final : public Solver::Impl {
     bool same = static_cast<Index>(found_.size()) == particle_blocks_;
     for (size_t i = 0; same && i < found_.size(); ++i) same = found_[i].second == slot_key_[i];
     if (!same) rebuild_table();
-    const Index slots = static_cast<Index>(slot_key_.size());
     fill_.assign(static_cast<size_t>(sort_chunks_ * particle_blocks_), 0);
     block_start_.resize(static_cast<size_t>(particle_blocks_ + 1));
-    grid_.resize(static_cast<size_t>(slots * BN * S));
-    tiles_.resize(static_cast<size_t>(particle_blocks_ * TN * S));
   }
+  // The slots of the particle blocks found_ lists (in its order) and of their +1 neighbours,
+  // their neighbour and source lists, and the grid and tiles sized for them.
   void rebuild_table() {
     for (Index key : slot_key_) table_[static_cast<size_t>(key)] = -1;
     slot_key_.clear();
+    slot_code_.clear();
     particle_blocks_ = static_cast<Index>(found_.size());
     for (const auto& f : found_) {
       table_[static_cast<size_t>(f.second)] = static_cast<std::int32_t>(slot_key_.size());
       slot_key_.push_back(f.second);
+      slot_code_.push_back(f.first);
     }
     // Their +1 neighbours receive the tiles' overflow.
     for (Index s = 0; s < particle_blocks_; ++s) {
@@ -446,6 +471,174 @@ class SolverD final : public Solver::Impl {
         source_slot_[static_cast<size_t>(s * NEIGHBORS + o)] = slot < particle_blocks_ ? slot : -1;
       }
     }
+    grid_.resize(static_cast<size_t>(slots * BN * S));
+    tiles_.resize(static_cast<size_t>(particle_blocks_ * TN * S));
+  }
+
+  // ---- the binning kept from step to step -------------------------------------------------
+  // G2P lists the particles that leave their block (track); the next step, when it steps the
+  // same State unchanged (State::binning), moves only them (rebin) instead of sorting all.
+
+  // A particle that left its block: its position q in order_ (block `from`), user row, and the
+  // key and Morton code of the block it entered.
+  struct Move {
+    std::uint64_t code;
+    Index user, q, key;
+    std::int32_t from;
+  };
+  // One thread's moves of a G2P, and whether a particle ended where the sort would reject it
+  // (then the next step sorts in full and reports it). Padded: each thread writes its own.
+  struct alignas(64) Moves {
+    std::vector<Move> list;
+    bool outside = false;
+  };
+
+  // After G2P moved particle p (position q of block s, whose lower node is o): lists it when the
+  // next sort would put it in another block.
+  void track(Index s, const std::array<Index, 3>& o, Index q, Index p, const State& state, Moves& moves) const {
+    const Vec<D> g = grid_coords(&state.x[static_cast<size_t>(p * D)]);
+    std::array<Index, 3> b{0, 0, 0};
+    bool left = false;
+    for (int a = 0; a < D; ++a) {
+      // sort_phase's test (G2P clamps x to the domain, but (x - origin) / h may round past it)
+      if (!(g(a) >= 1 && g(a) <= static_cast<Scalar>(model_.shape[a] + 1))) {
+        moves.outside = true;
+        return;
+      }
+      const Index node = base_node(g(a));
+      left = left || node < o[a] || node >= o[a] + B;
+      b[a] = node / B;
+    }
+    if (left) moves.list.push_back({morton(b), state.user_of(p), q, key_of(b), static_cast<std::int32_t>(s)});
+  }
+
+  // Positions strictly inside (lo, hi) on every axis certainly stay in the block whose lower
+  // node is o, inside the domain: the positions whose base node floor(g - 1/2) lies in the
+  // block (g = (x - origin) / h + 1, grid_coords), origin + (o - 1/2 .. o + B - 1/2) h,
+  // clipped to the domain, narrowed by a margin far above the rounding of grid_coords (so
+  // that G2P can skip track() for them).
+  struct StayBox {
+    Scalar lo[D], hi[D];
+  };
+  StayBox stay_box(const std::array<Index, 3>& o) const {
+    StayBox box;
+    const Scalar h = model_.h;
+    for (int a = 0; a < D; ++a) {
+      const Scalar origin = model_.origin[a], upper = model_.upper(a);
+      const Scalar margin = 1e-6 * h + 64 * std::numeric_limits<Scalar>::epsilon() * (std::abs(origin) + std::abs(upper));
+      box.lo[a] = std::max(origin + (static_cast<Scalar>(o[a]) - 0.5) * h, origin) + margin;
+      box.hi[a] = std::min(origin + (static_cast<Scalar>(o[a] + B) - 0.5) * h, upper) - margin;
+    }
+    return box;
+  }
+
+  // After a step that succeeded: the mark that lets the next step keep its binning (none when
+  // a particle ended where the next sort must look at it).
+  void leave_mark(State& state) {
+    for (const Moves& m : moves_by_thread_)
+      if (m.outside) return;
+    // Unique to this solver and step (a State another solver marked must not match).
+    mark_ = mix64(id_ + static_cast<std::uint64_t>(++marks_)) | 1u;
+    state.binning = mark_;
+    marked_ = &state;
+  }
+  static std::uint64_t mix64(std::uint64_t z) {  // SplitMix64's finaliser
+    z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ull;
+    z = (z ^ (z >> 27)) * 0x94d049bb133111ebull;
+    return z ^ (z >> 31);
+  }
+
+  // The last step's binning with the particles its G2P listed moved to their new blocks: the
+  // order a full sort gives (blocks in Morton order, a block's particles by user row), in one
+  // serial pass (the moves are few; the rest of order_ is copied block by block).
+  void rebin(const State& state) {
+    moves_.clear();
+    for (Moves& m : moves_by_thread_) {
+      moves_.insert(moves_.end(), m.list.begin(), m.list.end());
+      m.list.clear();
+    }
+    rebinned_ = static_cast<Index>(moves_.size());
+    if (moves_.empty()) return;
+    std::sort(moves_.begin(), moves_.end(),
+              [](const Move& a, const Move& b) { return a.code != b.code ? a.code < b.code : a.user < b.user; });
+    const Index old_blocks = particle_blocks_, moved = static_cast<Index>(moves_.size());
+    remaining_.resize(static_cast<size_t>(old_blocks));
+    for (Index s = 0; s < old_blocks; ++s)
+      remaining_[static_cast<size_t>(s)] = block_start_[static_cast<size_t>(s + 1)] - block_start_[static_cast<size_t>(s)];
+    leaving_.clear();
+    for (const Move& m : moves_) {
+      --remaining_[static_cast<size_t>(m.from)];
+      leaving_.push_back(m.q);
+    }
+    std::sort(leaving_.begin(), leaving_.end());
+    // The new particle blocks in Morton order: the old ones that keep or gain particles and the
+    // ones the moves enter, each with its old slot (-1: none) and its range of moves_.
+    next_.clear();
+    Index i = 0;
+    auto moves_end = [&](Index first) {
+      Index j = first;
+      while (j < moved && moves_[static_cast<size_t>(j)].code == moves_[static_cast<size_t>(first)].code) ++j;
+      return j;
+    };
+    for (Index s = 0; s <= old_blocks; ++s) {
+      const std::uint64_t code = s < old_blocks ? slot_code_[static_cast<size_t>(s)] : ~std::uint64_t{0};
+      while (i < moved && moves_[static_cast<size_t>(i)].code < code) {
+        const Index j = moves_end(i);
+        next_.push_back({moves_[static_cast<size_t>(i)].code, moves_[static_cast<size_t>(i)].key, -1, i, j});
+        i = j;
+      }
+      if (s == old_blocks) break;
+      const Index j = i < moved && moves_[static_cast<size_t>(i)].code == code ? moves_end(i) : i;
+      if (remaining_[static_cast<size_t>(s)] > 0 || j > i) next_.push_back({code, slot_key_[static_cast<size_t>(s)], s, i, j});
+      i = j;
+    }
+    // Each new block's rows: its old rows (by user row) less the ones that leave (leaving_, by
+    // position), with the ones that enter (by user row) inserted where their user row falls.
+    start_next_.resize(next_.size() + 1);
+    order_next_.resize(static_cast<size_t>(state.n));
+    Index out = 0;
+    size_t leave = 0;
+    auto copy = [&](Index from, Index to) {
+      std::copy(order_.begin() + from, order_.begin() + to, order_next_.begin() + out);
+      out += to - from;
+    };
+    for (size_t k = 0; k < next_.size(); ++k) {
+      const NextBlock& nb = next_[k];
+      start_next_[k] = out;
+      const Index first = nb.old >= 0 ? block_start_[static_cast<size_t>(nb.old)] : 0;
+      const Index last = nb.old >= 0 ? block_start_[static_cast<size_t>(nb.old + 1)] : 0;
+      while (leave < leaving_.size() && leaving_[leave] < first) ++leave;  // blocks left empty
+      Index at = first;  // old rows before `at` are placed
+      for (Index m = nb.first_move; m <= nb.end_move; ++m) {
+        // where move m enters: before the first old row of a higher user row
+        Index enter = last;
+        if (m < nb.end_move) {  // a binary search of the old rows from `at`
+          const Index u = moves_[static_cast<size_t>(m)].user;
+          Index lo = at;
+          while (lo < enter) {
+            const Index mid = lo + (enter - lo) / 2;
+            if (state.user_of(order_[static_cast<size_t>(mid)]) < u) lo = mid + 1;
+            else enter = mid;
+          }
+        }
+        for (; leave < leaving_.size() && leaving_[leave] < enter; ++leave) {
+          copy(at, leaving_[leave]);
+          at = leaving_[leave] + 1;
+        }
+        copy(at, enter);
+        at = enter;
+        if (m < nb.end_move) order_next_[static_cast<size_t>(out++)] = order_[static_cast<size_t>(moves_[static_cast<size_t>(m)].q)];
+      }
+    }
+    start_next_[next_.size()] = out;
+    order_.swap(order_next_);
+    block_start_.swap(start_next_);
+    bool same = static_cast<Index>(next_.size()) == old_blocks;
+    for (size_t k = 0; same && k < next_.size(); ++k) same = next_[k].old == static_cast<Index>(k);
+    if (same) return;
+    found_.clear();
+    for (const NextBlock& nb : next_) found_.emplace_back(nb.code, nb.key);
+    rebuild_table();
   }
 
   [[noreturn]] void throw_bad_particle(const State& state) const {
@@ -573,7 +766,7 @@ class SolverD final : public Solver::Impl {
       case MaterialKind::NeoHookean:
         return neohookean_tau<D>(F, mu, lambda);
       case MaterialKind::Snow: {
-        const Scalar harden = std::exp(m.hardening * (1 - state.Jp[static_cast<size_t>(p)]));
+        const Scalar harden = snow_hardening(m, state.Jp[static_cast<size_t>(p)]);
         if constexpr (D == 2) return corotated_tau(F, mu * harden, lambda * harden);
         else return corotated_tau<D>(F, svd(F), mu * harden, lambda * harden);
       }
@@ -822,14 +1015,16 @@ class SolverD final : public Solver::Impl {
     const Scalar h = model_.h;
     Scalar vmax2 = 0;
     bool finite = true;
+    Moves& moves = moves_by_thread_[static_cast<size_t>(omp_get_thread_num())];
 #if KINEMA_HAVE_AVX2_CLONES
     if constexpr (D == 2) {
-      if (avx2_) g2p_lanes_avx2(state, dt, vmax2, finite);
+      if (avx2_) g2p_lanes_avx2(state, dt, vmax2, finite, moves);
     }
     if (!(D == 2 && avx2_))
 #endif
     each_block([&](Index s) {
       const auto o = block_origin(s);
+      const StayBox box = stay_box(o);
       alignas(64) Scalar tile[TN * S];
       gather<1>(tile, s, grid_);
       each_in_block(s, [&](Index q, Index end) {
@@ -852,6 +1047,9 @@ class SolverD final : public Solver::Impl {
           x = std::clamp(x + dt * v(a), model_.origin[a], model_.upper(a));
           state.v[pd + a] = v(a);
         }
+        bool stays = true;  // (without branches: nearly every particle stays)
+        for (int a = 0; a < D; ++a) stays &= (state.x[pd + a] > box.lo[a]) & (state.x[pd + a] < box.hi[a]);
+        if (!stays) track(s, o, q, p, state, moves);
         finite = finite && v.allFinite() && Fn.allFinite();
         vmax2 = std::max(vmax2, v.squaredNorm());
       });
@@ -1161,7 +1359,7 @@ class SolverD final : public Solver::Impl {
             particle_lame(state, mat, p[l], mu[l], lambda[l]);
             bulk[l] = state.youngs_modulus[static_cast<size_t>(p[l])];
             if (mat.kind == MaterialKind::Snow) {
-              const Scalar harden = std::exp(mat.hardening * (1 - state.Jp[static_cast<size_t>(p[l])]));
+              const Scalar harden = snow_hardening(mat, state.Jp[static_cast<size_t>(p[l])]);
               mu[l] = mu[l] * harden;
               lambda[l] = lambda[l] * harden;
             }
@@ -1256,11 +1454,12 @@ class SolverD final : public Solver::Impl {
     for (int c = 0; c < 4; ++c) F[c] = keep ? F[c] : out[c];
   }
 
-  KINEMA_TARGET_AVX2 void g2p_lanes_avx2(State& state, Scalar dt, Scalar& vmax2, bool& finite) {
+  KINEMA_TARGET_AVX2 void g2p_lanes_avx2(State& state, Scalar dt, Scalar& vmax2, bool& finite, Moves& moves) {
     const Scalar h = model_.h, four_h = 4 / h;
 #pragma omp for schedule(dynamic, 1)
     for (Index s = 0; s < particle_blocks_; ++s) {
       const auto o = block_origin(s);
+      const StayBox box = stay_box(o);
       alignas(64) Scalar tile[TN * S];
       gather<1>(tile, s, grid_);
       const Index end = block_start_[static_cast<size_t>(s + 1)];
@@ -1315,6 +1514,8 @@ class SolverD final : public Solver::Impl {
           x[a] = x[a] < model_.origin[a] ? Lanes{} + model_.origin[a] : x[a];  // std::clamp
           x[a] = model_.upper(a) < x[a] ? Lanes{} + model_.upper(a) : x[a];
         }
+        // Lanes whose particle stays in block s where the next sort looks (track, four wide).
+        const auto stays = (x[0] > box.lo[0]) & (x[0] < box.hi[0]) & (x[1] > box.lo[1]) & (x[1] < box.hi[1]);
         const Lanes speed2 = v[0] * v[0] + v[1] * v[1];
         // Plasticity four wide where the lanes hold one material without a return mapping
         // (elastic, neo-Hookean) or water (F = sqrt(J) I, as plasticity()); else per particle.
@@ -1345,6 +1546,10 @@ class SolverD final : public Solver::Impl {
         store_lanes<4>(state.F.data(), p, count, together, Fn);
         store_lanes<2>(state.x.data(), p, count, together, x);
         store_lanes<2>(state.v.data(), p, count, together, v);
+        const int left = ~_mm256_movemask_pd(__m256d(stays)) & ((1 << count) - 1);
+        if (left)
+          for (int l = 0; l < count; ++l)
+            if ((left >> l) & 1) track(s, o, q + l, p[l], state, moves);
         // 0 in every lane whose v and F are finite (NaN otherwise).
         const Lanes bad = (v[0] - v[0]) + (v[1] - v[1]) + (Fn[0] - Fn[0]) + (Fn[1] - Fn[1]) + (Fn[2] - Fn[2]) +
                           (Fn[3] - Fn[3]);
@@ -1388,6 +1593,25 @@ class SolverD final : public Solver::Impl {
   Index bad_ = -1;                           // lowest row of a particle outside the domain, or -1
   Index sort_chunks_ = 1;                    // row chunks of the counting sort
   std::vector<Scalar> pre_;                  // (slots, B^d, d): velocity before the boundary conditions
+  // The binning kept from step to step (rebin).
+  struct NextBlock {
+    std::uint64_t code;
+    Index key, old, first_move, end_move;
+  };
+  std::vector<std::uint64_t> slot_code_;     // particle slot -> Morton code of its block
+  bool kept_ = false;                        // this step kept the last step's binning
+  Index rebinned_ = 0;                       // particles binned anew this step
+  std::vector<Moves> moves_by_thread_;       // per thread: G2P's particles that left their block
+  std::vector<Move> moves_;                  // all of them, by (block code, user row)
+  std::vector<Index> remaining_;             // old particle slot -> rows that stay
+  std::vector<Index> leaving_;               // positions in order_ of the particles that move, sorted
+  std::vector<NextBlock> next_;              // the new particle blocks
+  std::vector<Index> order_next_, start_next_;  // the new order_ and block_start_
+  std::uint64_t mark_ = 0;                   // State::binning this solver's last step left (0: none)
+  const State* marked_ = nullptr;            // the State it left it on
+  Index marks_ = 0;                          // marks left so far
+  const std::uint64_t id_ = mix64(reinterpret_cast<std::uintptr_t>(this) ^
+                                  static_cast<std::uint64_t>(std::chrono::steady_clock::now().time_since_epoch().count()));
   std::vector<Scalar> adjoint_grid_;         // (slots, B^d, d + 1): dL/d(mass, momentum)
 };
 
@@ -1406,8 +1630,10 @@ void SolverD<D>::step_adjoint(const State& before, const State& after, Scalar dt
                             material_name(model_.materials[static_cast<size_t>(code)].kind));
   }
   // 1. The step's grid, rebuilt from `before` as step() built it: masses, momenta, and the
-  //    velocities before (pre_) and after (grid_) the boundary conditions.
-  prepare_sort(before);
+  //    velocities before (pre_) and after (grid_) the boundary conditions. (This replaces the
+  //    binning the last step kept.)
+  mark_ = 0;
+  prepare_sort(before, false);
 #pragma omp parallel if (n > kParallelParticles)
   if (sort_phase(before)) {
 #pragma omp single
@@ -1592,6 +1818,7 @@ void Solver::user_order(State& state) {
   permute_rows(state, [&](Index u) { return state.row[static_cast<size_t>(u)]; }, spare_);
   state.user.clear();
   state.row.clear();
+  state.binning = 0;
 }
 
 void Solver::step_adjoint(const State& before, const State& after, Scalar dt, const Scalar* forces, State& adjoint,
@@ -1624,7 +1851,7 @@ Scalar Solver::stable_dt(const State& state, Scalar cfl) const {
     lame_parameters(E, state.poisson_ratio[static_cast<size_t>(p)], mu, lambda);
     const Scalar c = m.kind == MaterialKind::Water ? std::sqrt(E / m.density) : std::sqrt((lambda + 2 * mu) / m.density);
     if (m.kind == MaterialKind::Snow) {
-      harden = std::max(harden, std::exp(m.hardening * (1 - state.Jp[static_cast<size_t>(p)])));
+      harden = std::max(harden, snow_hardening(m, state.Jp[static_cast<size_t>(p)]));
       c_snow = std::max(c_snow, c);
     } else {
       c_elastic = std::max(c_elastic, c);

@@ -1,7 +1,10 @@
 // The material point method solver: MLS-MPM (Hu et al. 2018) with APIC transfers (Jiang et al.
 // 2015) and quadratic B-spline weights, in 2D and 3D. One step, in the order of Hu et al.'s
 // Algorithm 1:
-//   1. sort the particles into grid blocks (Morton order) and activate the blocks they touch;
+//   1. sort the particles into grid blocks (Morton order) and activate the blocks they touch
+//      (a step that follows this solver's last step on the same, unchanged State, see
+//      State::binning, keeps that binning and moves only the particles that left their block:
+//      G2P lists them; the order is the same as a full sort's);
 //   2. P2G: m_i = sum w m_p,  (m v)_i = sum w [m_p v_p + (m_p C_p - 4 dt V_p / h^2 tau_p)(x_i - x_p)];
 //   3. grid update: v_i = (m v)_i / m_i + dt g, then the wall and collider conditions;
 //   4. G2P: v_p = sum w v_i,  C_p = 4 / h^2 sum w v_i (x_i - x_p)^T,  x_p += dt v_p,
@@ -34,6 +37,7 @@ struct StepStats : StepStatsBase {
   Scalar max_speed = 0;         // largest particle speed after the step [m/s]
   Index particle_blocks = 0;    // grid blocks holding particles
   Index active_blocks = 0;      // blocks the transfers touch (with their +1 neighbours)
+  Index rebinned = 0;           // particles binned anew: n after a full sort, else those that left their block
   Scalar sort_seconds = 0;      // binning into blocks and block activation
   Scalar p2g_seconds = 0;       // stress and particle-to-grid transfer
   Scalar grid_seconds = 0;      // grid velocity update and boundary conditions
@@ -75,8 +79,8 @@ class Solver {
   // permutation of storage only: every later result is bitwise the same as without it, and
   // state.user / state.row record where each user row went. Parallel, O(n).
   void sort_rows(State& state);
-  // Puts the rows back in user order (state.user and state.row become empty). O(n); nothing to
-  // do when they are already.
+  // Puts the rows back in user order (state.user and state.row become empty, state.binning 0).
+  // O(n); nothing to do when they are already.
   void user_order(State& state);
 
   // The vector-Jacobian product of step(before -> after) with the same dt and forces.

@@ -8,6 +8,7 @@
 // the particles of a block in user-row order and reports user rows (solver.h).
 #pragma once
 
+#include <cstdint>
 #include <vector>
 
 #include "core/types.h"
@@ -33,6 +34,12 @@ struct State {
   std::vector<Scalar> poisson_ratio;   // (n,) nu [-]
   std::vector<Index> user;       // (n,) user row of each stored row, or empty (identity)
   std::vector<Index> row;        // (n,) stored row of each user row, or empty (identity)
+  // The mark of the step that left this State (0: none). A Solver whose last step left this
+  // mark on this State keeps that step's binning of the particles into grid blocks and re-bins
+  // only those that left their block (solver.h); anything that changes x, material,
+  // youngs_modulus, poisson_ratio or the rows outside Solver::step must set it to 0 (km.mpm's
+  // bindings do whenever a numpy view is taken or alive). No result depends on it.
+  std::uint64_t binning = 0;
   Scalar time = 0;               // [s]
   Index steps = 0;
 

@@ -27,7 +27,9 @@ particle-to-grid transfer is deterministic for any thread count. State arrays ar
 views of the solver's memory in the order particles were added; adding particles reallocates
 them, so take views again after :meth:`Simulation.add_particles` (an older view stays valid
 memory but is detached). While no view is alive the solver may store the rows sorted into grid
-blocks (faster transfers); taking a view puts them back first. Results do not depend on it.
+blocks (faster transfers), and each step keeps the last one's binning of the particles into
+blocks, re-binning only those that left their block; taking a view puts the rows back first and
+makes the next step sort all particles. Results do not depend on either.
 """
 
 from __future__ import annotations
@@ -258,7 +260,8 @@ class Simulation:
     # ---------------------------------------------------------------- stepping
     def step(self, dt) -> StepStats:
         """One MLS-MPM step of ``dt`` [s]; returns its :class:`StepStats` (time, dt, seconds,
-        per-stage seconds, max_speed, active_blocks). Raises DivergenceError on a blow-up."""
+        per-stage seconds, max_speed, active_blocks, rebinned: the particles binned anew).
+        Raises DivergenceError on a blow-up."""
         return self._sim.step(positive(dt, "dt"))
 
     def advance(self, duration, cfl=0.5) -> int:
