@@ -53,8 +53,8 @@ class System:
 
     def __init__(self, x, v, mass, *, G=1.0, softening=0.0, eps=1e-8):
         x = as_float_array(x, "x", ndim=2)
-        if x.shape[1] != 3 or x.shape[0] < 1:
-            raise ValueError(f"x: expected shape (n, 3) with n >= 1, got {x.shape}")
+        if x.shape[1] != 3:  # N = 0 is a valid (empty) system: steps change nothing
+            raise ValueError(f"x: expected shape (n, 3), got {x.shape}")
         v = as_float_array(v, "v", ndim=2)
         if v.shape != x.shape:
             raise ValueError(f"v: expected shape {x.shape} (as x), got {v.shape}")
@@ -134,7 +134,7 @@ class System:
         """2 K / |W| (1 in virial equilibrium)."""
         w = abs(self.potential_energy())
         if w == 0:
-            raise ValueError("virial_ratio: the potential energy is zero (one particle, or no mass)")
+            raise ValueError("virial_ratio: the potential energy is zero (fewer than two particles, or no mass)")
         return 2 * self.kinetic_energy() / w
 
     # ------------------------------------------------------------------ time stepping

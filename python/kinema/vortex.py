@@ -229,8 +229,8 @@ class VortexParticles3D:
 
     def __init__(self, x, strength, core, *, eps=1e-10):
         self.x = as_float_array(x, "x", ndim=2).copy()
-        if self.x.shape[1] != 3 or len(self.x) < 1:
-            raise ValueError(f"x: expected shape (n, 3) with n >= 1, got {self.x.shape}")
+        if self.x.shape[1] != 3:  # n = 0 is a valid (empty) system, as in 2D
+            raise ValueError(f"x: expected shape (n, 3), got {self.x.shape}")
         self.strength = as_float_array(strength, "strength", ndim=2).copy()
         if self.strength.shape != self.x.shape:
             raise ValueError(f"strength: expected shape {self.x.shape} (as x), got {self.strength.shape}")
