@@ -91,9 +91,9 @@ class VortexParticles:
         return u / (2 * np.pi)
 
     def _core_correction(self, x, u):
-        from scipy.spatial import cKDTree
-
-        pairs = cKDTree(x).query_pairs(_CORE_CUTOFF * self.core, output_type="ndarray")
+        # The C++ cell-grid search (GIL released): scipy.spatial's cKDTree costs ~0.5 s to
+        # import (its package pulls in scipy.special and qhull) on the first step.
+        pairs = _core.sph.neighbor_pairs(x, _CORE_CUTOFF * self.core)
         if len(pairs) == 0:
             return
         i, j = pairs[:, 0], pairs[:, 1]
