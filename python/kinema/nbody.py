@@ -42,7 +42,8 @@ MAX_PLUMMER = 10**8
 class System:
     """N self-gravitating particles.
 
-    x: (N, 3) positions [m], v: (N, 3) velocities [m/s] (writable arrays, the state).
+    x: (N, 3) positions [m], v: (N, 3) velocities [m/s] (writable arrays, the state); N = 0
+    is a valid system (steps change nothing, energies are 0).
     mass: (N,) masses [kg] or one for all. G: gravitational constant [m^3 kg^-1 s^-2].
     softening: Plummer length s [m] (phi = -G m / sqrt(r^2 + s^2)). eps: relative accuracy of
     the FMM's far field.

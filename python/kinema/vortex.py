@@ -221,7 +221,8 @@ class VortexParticles3D:
     evolve by the classical stretching term d alpha_j/dt = (alpha_j . grad) u(x_j); positions
     and strengths advance together by classical RK4.
 
-    x: (n, 3) positions [m] and strength: (n, 3) alpha [m^3/s] (writable arrays, the state);
+    x: (n, 3) positions [m] and strength: (n, 3) alpha [m^3/s] (writable arrays, the state;
+    n = 0 is a valid system whose steps change nothing, as in 2D);
     core: radius [m]; eps: relative accuracy of the FMM. time [s].
     """
 
