@@ -637,3 +637,55 @@ def test_static_solve_failure_advises_its_own_options():
     with pytest.raises(km.ConvergenceError, match="solve_static: .*load_steps") as info:
         body.solve_static(max_iter=20)
     assert "dt" not in str(info.value) and "max_newton" not in str(info.value)
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_duplicate_and_repeated_vertex_elements_are_refused(d):
+    # A duplicated element (same vertex set, any order) doubles its mass and stiffness.
+    if d == 2:
+        V, T = km.fem.rectangle_mesh([0, 0], [1, 1], (2, 2))
+    else:
+        V, T = km.fem.box_mesh([0, 0, 0], [1, 1, 1], 1)
+    args = dict(youngs_modulus=1e5, poisson_ratio=0.3, density=1.0)
+    dup = np.vstack([T, T[3][::-1]])  # reversed order: still the same element
+    with pytest.raises(ValueError, match=f"elements: elements 3 and {len(T)} have the same vertices"):
+        km.fem.Body(V, dup, orient=True, **args)
+    rep = T.copy()
+    rep[1, 1] = rep[1, 0]  # a vertex twice within one element
+    with pytest.raises(ValueError, match="elements: element 1 is degenerate"):
+        km.fem.Body(V, rep, **args)
+
+
+def test_material_overflow_is_refused_naming_the_argument():
+    V, T = km.fem.rectangle_mesh([0, 0], [1, 1], (2, 2))
+    # Lame's lambda = E nu / ((1 + nu)(1 - 2 nu)) overflows float64.
+    with pytest.raises(ValueError, match="youngs_modulus, poisson_ratio: the stiffness of element 0 overflows"):
+        km.fem.Body(V, T, youngs_modulus=1e300, poisson_ratio=0.4999999999, density=1.0)
+    with pytest.raises(ValueError, match="density: the mass of vertex"):
+        km.fem.Body(V * 1e5, T, youngs_modulus=1.0, poisson_ratio=0.3, density=1e300)
+    with pytest.raises(ValueError, match="youngs_modulus"):
+        km.fem.Body(V, T, youngs_modulus=np.inf, poisson_ratio=0.3, density=1.0)
+
+
+@pytest.mark.parametrize("E", [1e160, 1e300])
+def test_stiffness_beyond_float64_resolution_is_refused(E):
+    # dt^2 K / M > 1/eps: the mass term is below the rounding of K, so a free body's rigid
+    # motion (here its fall under gravity) is lost; E = 1e160 used to return x unchanged.
+    V, T = km.fem.rectangle_mesh([0, 0], [1, 1], (2, 2))
+    body = km.fem.Body(V, T, youngs_modulus=E, poisson_ratio=0.3, density=1.0, gravity=(0, -9.81))
+    with pytest.raises(ValueError, match="youngs_modulus, dt: dt\\^2 K / M reaches"):
+        body.step(0.01)
+    # One pin leaves the rotation about it free (it used to come back unrotated): refused too.
+    hinged = km.fem.Body(V, T, youngs_modulus=E, poisson_ratio=0.3, density=1.0, fixed=[0],
+                         gravity=(0, -9.81))
+    with pytest.raises(ValueError, match="youngs_modulus, dt"):
+        hinged.step(0.01)
+    # Two pins hold every rigid motion: the step runs and the body barely moves (~g rho / E).
+    pinned = km.fem.Body(V, T, youngs_modulus=E, poisson_ratio=0.3, density=1.0, fixed=[0, 1],
+                         gravity=(0, -9.81))
+    pinned.step(0.01)
+    assert np.abs(pinned.x - V).max() < 1e3 * 9.81 / E
+    # An ordinary free body well inside the limit falls as gravity says (rigid translation).
+    soft = km.fem.Body(V, T, youngs_modulus=1e5, poisson_ratio=0.3, density=1.0, gravity=(0, -9.81))
+    soft.step(0.01)
+    assert np.allclose(soft.x - V, [0, -9.81 * 0.01**2], rtol=1e-9, atol=1e-12)

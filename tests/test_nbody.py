@@ -251,3 +251,19 @@ def test_close_but_distinct_particles_are_not_coincident(d):
     else:
         with pytest.raises(km.DivergenceError, match="accelerations: non-finite"):
             sim.accelerations()
+
+
+@pytest.mark.parametrize("mass", [1.0, np.zeros(0)])
+def test_empty_system_is_valid(mass):
+    # No particles: steps change nothing, every energy is 0, accelerations are (0, 3).
+    s = km.nbody.System(np.zeros((0, 3)), np.zeros((0, 3)), mass, softening=0.1)
+    assert s.accelerations().shape == (0, 3)
+    assert s.energy() == 0.0 and s.kinetic_energy() == 0.0 and s.potential_energy() == 0.0
+    assert np.array_equal(s.momentum(), np.zeros(3)) and np.array_equal(s.angular_momentum(), np.zeros(3))
+    s.advance(0.3, 0.1)
+    assert s.steps == 3 and s.time == pytest.approx(0.3) and s.x.shape == (0, 3)
+    s.set_state(s.state())
+    with pytest.raises(ValueError, match="potential energy is zero"):
+        s.virial_ratio()
+    with pytest.raises(ValueError, match="x"):
+        km.nbody.System(np.zeros((0, 2)), np.zeros((0, 2)), 1.0)

@@ -118,3 +118,17 @@ def test_velocity_at_points_is_the_lamb_oseen_field_and_the_regularised_sum():
     for bad in (np.zeros((3, 3)), np.full((2, 2), 1e200)):
         with pytest.raises(ValueError, match="points"):
             sim.velocity(bad)
+
+
+def test_first_step_does_not_import_scipy_spatial():
+    # scipy.spatial costs ~0.5 s to import (it pulls in scipy.special and qhull); the core
+    # correction's pair search is the C++ cell grid, so a step must not load it.
+    import subprocess
+    import sys
+
+    code = ("import sys, kinema as km\n"
+            "x, g, c = km.vortex.merging_patches(200)\n"
+            "km.vortex.VortexParticles(x, g, c).step(0.01)\n"
+            "print('scipy.spatial' in sys.modules)\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"

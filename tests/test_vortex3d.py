@@ -149,3 +149,29 @@ def test_step_returns_step_stats():
     stats = s.step(0.05)
     assert isinstance(stats, km._core.StepStats)
     assert stats.time == s.time == pytest.approx(0.05) and stats.dt == 0.05 and s.steps == 1
+
+
+def test_empty_particle_set_is_a_valid_system():
+    # As the 2D VortexParticles: no particles is a system whose steps change nothing.
+    s = km.vortex.VortexParticles3D(np.zeros((0, 3)), np.zeros((0, 3)), 0.2)
+    s.advance(0.3, 0.1)
+    assert s.x.shape == (0, 3) and s.strength.shape == (0, 3)
+    assert s.steps == 3 and s.time == pytest.approx(0.3)
+    assert s.velocity().shape == (0, 3)
+    u = s.velocity(np.array([[0.0, 0.0, 0.0], [1.0, 2.0, 3.0]]))
+    assert np.array_equal(u, np.zeros((2, 3)))
+    assert np.array_equal(s.linear_impulse(), np.zeros(3))
+    assert np.array_equal(s.total_strength(), np.zeros(3))
+    st = s.state()
+    s.set_state(st)
+    with pytest.raises(ValueError, match="x"):
+        km.vortex.VortexParticles3D(np.zeros((0, 2)), np.zeros((0, 2)), 0.2)
+
+
+def test_empty_2d_particle_set_is_a_valid_system():
+    s = km.vortex.VortexParticles(np.zeros((0, 2)), np.zeros(0), 0.2)
+    s.advance(0.3, 0.1)
+    assert s.x.shape == (0, 2) and s.steps == 3
+    assert s.velocity().shape == (0, 2)
+    assert np.array_equal(s.velocity(np.ones((2, 2))), np.zeros((2, 2)))
+    assert s.total_circulation() == 0.0 and np.array_equal(s.linear_impulse(), np.zeros(2))

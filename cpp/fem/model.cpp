@@ -1,9 +1,12 @@
 #include "fem/model.h"
 
 #include <algorithm>
+#include <array>
+#include <cstdint>
 #include <cmath>
 #include <limits>
 #include <string>
+#include <unordered_map>
 #include <utility>
 
 #include "core/errors.h"
@@ -61,6 +64,34 @@ void check_per_element(const std::vector<Scalar>& a, Index element_count, const 
                             (a.size() > 1 ? " at element " + std::to_string(e) : std::string()));
 }
 
+// Two elements on the same vertex set (in any order) double its mass and stiffness: refused,
+// naming both. Each element's sorted vertices are hashed; O(m).
+void check_duplicates(const std::vector<Index>& elements, Index element_count, int nodes) {
+  struct Key {
+    std::array<Index, 4> v{};
+    bool operator==(const Key& o) const { return v == o.v; }
+  };
+  struct Hash {
+    std::size_t operator()(const Key& k) const {
+      std::uint64_t h = 1469598103934665603ull;
+      for (Index i : k.v) h = (h ^ static_cast<std::uint64_t>(i)) * 1099511628211ull;
+      return static_cast<std::size_t>(h);
+    }
+  };
+  std::unordered_map<Key, Index, Hash> seen;
+  seen.reserve(static_cast<std::size_t>(element_count));
+  for (Index e = 0; e < element_count; ++e) {
+    Key k;
+    std::copy(elements.begin() + e * nodes, elements.begin() + (e + 1) * nodes, k.v.begin());
+    std::sort(k.v.begin(), k.v.begin() + nodes);
+    auto [it, inserted] = seen.emplace(k, e);
+    if (!inserted)
+      throw InvalidArgument("elements: elements " + std::to_string(it->second) + " and " + std::to_string(e) +
+                            " have the same vertices (a duplicate doubles their mass and stiffness); "
+                            "remove one");
+  }
+}
+
 }  // namespace
 
 Model make_model(int dim, const Scalar* rest, Index vertex_count, const Index* elements,
@@ -97,20 +128,35 @@ Model make_model(int dim, const Scalar* rest, Index vertex_count, const Index* e
       throw InvalidArgument("elements: element " + std::to_string(s / (dim + 1)) +
                             " refers to vertex " + std::to_string(elements[s]) +
                             ", outside [0, " + std::to_string(vertex_count) + ")");
+  check_duplicates(m.elements, element_count, dim + 1);
   if (dim == 2) build_rest_shape<2>(m);
   else build_rest_shape<3>(m);
 
   m.mu.resize(element_count);
   m.lam.resize(element_count);
   const bool uniform_E = p.youngs_modulus.size() == 1, uniform_nu = p.poisson_ratio.size() == 1;
-  for (Index e = 0; e < element_count; ++e)
-    lame(p.youngs_modulus[uniform_E ? 0 : e], p.poisson_ratio[uniform_nu ? 0 : e], m.mu[e], m.lam[e]);
+  for (Index e = 0; e < element_count; ++e) {
+    const Scalar E = p.youngs_modulus[uniform_E ? 0 : e], nu = p.poisson_ratio[uniform_nu ? 0 : e];
+    lame(E, nu, m.mu[e], m.lam[e]);
+    // The element's stiffness scale (2 mu + |lam|) V |Dm^-1|_F^2 [N/m] must be a float64.
+    const Scalar k = (2 * m.mu[e] + std::abs(m.lam[e])) * m.volume[e] *
+                     Eigen::Map<const Eigen::Matrix<Scalar, Eigen::Dynamic, 1>>(
+                         m.Dm_inv.data() + e * dim * dim, dim * dim).squaredNorm();
+    if (!std::isfinite(m.lam[e]) || !std::isfinite(k))
+      throw InvalidArgument("youngs_modulus, poisson_ratio: the stiffness of element " + std::to_string(e) +
+                            " overflows float64 (E = " + format_real(E) + ", lam = " + format_real(m.lam[e]) +
+                            "); choose other units");
+  }
 
   // Lumped masses: each element gives rho V / (d + 1) to each of its vertices.
   m.mass.assign(vertex_count, 0);
   for (Index e = 0; e < element_count; ++e)
     for (int a = 0; a <= dim; ++a)
       m.mass[m.elements[e * (dim + 1) + a]] += p.density * m.volume[e] / (dim + 1);
+  for (Index i = 0; i < vertex_count; ++i)
+    if (!std::isfinite(m.mass[i]))
+      throw InvalidArgument("density: the mass of vertex " + std::to_string(i) + " overflows float64 (density " +
+                            format_real(p.density) + "); choose other units");
   for (Index i = 0; i < vertex_count; ++i)
     if (m.mass[i] == 0)
       throw InvalidArgument("vertices: vertex " + std::to_string(i) +

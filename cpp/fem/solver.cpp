@@ -1,5 +1,6 @@
 #include "fem/solver.h"
 
+#include <Eigen/Eigenvalues>
 #include <algorithm>
 #include <cmath>
 #include <limits>
@@ -27,6 +28,23 @@ const Mat<D> dm_inv(const Model& m, Index e) {
   return Eigen::Map<const Mat<D>>(m.Dm_inv.data() + e * D * D);
 }
 
+// When the Newton matrix (a + b) M + s K is singular: if the stiffest row's s K / M exceeds
+// 1 / eps_machine (4.5e15) the mass term is below the rounding of the stiffness one, so the
+// rigid motions of an unpinned body are unresolvable in float64; says so, naming the inputs.
+// s omega_max^2 / (a + b), omega_max^2 = 4 / dt_limit^2 (0 without a finite limit).
+Scalar stiffness_ratio(Scalar dt_limit, Scalar s_over_a) {
+  if (!(dt_limit > 0) || !std::isfinite(dt_limit)) return 0;
+  return s_over_a * 4 / (dt_limit * dt_limit);
+}
+
+std::string stiffness_advice(Scalar dt_limit, Scalar s_over_a) {
+  const Scalar ratio = stiffness_ratio(dt_limit, s_over_a);
+  if (!(ratio > 1 / std::numeric_limits<Scalar>::epsilon())) return "";
+  return ": dt^2 K / M reaches " + format_real(ratio) +
+         ", beyond the 4.5e15 float64 resolves, so the mass term is lost to rounding (youngs_modulus "
+         "too large for this density and dt); reduce dt, fix vertices, or choose other units";
+}
+
 }  // namespace
 
 Solver::Solver(const Model& model, const Config& config)
@@ -49,6 +67,20 @@ Solver::Solver(const Model& model, const Config& config)
     w2 = std::max(w2, row / model_.mass[q / d]);
   }
   explicit_dt_limit_ = w2 > 0 ? 2 / std::sqrt(w2) : std::numeric_limits<Scalar>::infinity();
+  // Rigid motions are all held when the fixed vertices' rest positions span an affine set of
+  // dimension >= d - 1 (two distinct points in 2D, three non-collinear ones in 3D).
+  Eigen::Matrix3d scatter = Eigen::Matrix3d::Zero();
+  Index first = -1;
+  for (Index i = 0; i < model_.vertex_count; ++i) {
+    if (!model_.fixed[i]) continue;
+    if (first < 0) first = i;
+    Eigen::Vector3d r = Eigen::Vector3d::Zero();
+    for (int a = 0; a < d; ++a) r[a] = model_.rest[i * d + a] - model_.rest[first * d + a];
+    scatter += r * r.transpose();
+  }
+  const Eigen::Vector3d ev = Eigen::SelfAdjointEigenSolver<Eigen::Matrix3d>(scatter).eigenvalues();
+  const int rank = static_cast<int>((ev.array() > 1e-12 * ev.maxCoeff()).count());
+  rigid_motion_free_ = first < 0 || rank < d - 1;
   std::vector<Scalar>().swap(element_matrices_);
 }
 
@@ -214,6 +246,15 @@ StepStats Solver::step_implicit(State& state, Scalar dt, const Scalar* control,
   const Model& m = model_;
   const Index n = assembly_.dof_count();
   const int d = m.dim;
+  // Rigid motions the fixed vertices leave free are resolved by the mass term alone; past
+  // dt^2 K / M = 1 / eps it is below the rounding of K's rows and the step would return
+  // motion-free garbage (or a singular matrix): refused.
+  const Scalar ratio = stiffness_ratio(explicit_dt_limit_, dt * dt);
+  if (rigid_motion_free_ && ratio > 1 / std::numeric_limits<Scalar>::epsilon())
+    throw InvalidArgument("youngs_modulus, dt: dt^2 K / M reaches " + format_real(ratio) +
+                          " (E too large for this density and dt), beyond the 4.5e15 float64 resolves, "
+                          "so the rigid motions its fixed vertices leave free are lost to rounding; reduce "
+                          "dt, fix more vertices, or choose other units");
   // Inertial guess y = x_n + h v_n (fixed vertices stay where they are).
   std::vector<Scalar> y(n), x(n);
   parallel_for(m.vertex_count, [&](Index i) {
@@ -413,7 +454,7 @@ StepStats Solver::minimise(State& state, Scalar* x, const Scalar* y, Scalar a, c
                                (is_static ? " (rigid motions left free by the fixed vertices, or "
                                             "elements crushed flat by too large a load step: raise "
                                             "load_steps)"
-                                          : ""));
+                                          : stiffness_advice(explicit_dt_limit_, s / (a + b))));
     }
     Scalar slope = dot(n, grad_.data(), dx_.data());
     if (!(slope < 0) && options.linear_solver != LinearSolver::CG &&

@@ -121,9 +121,12 @@ class Body:
     """An elastic body of linear triangles (2D, plane strain) or tetrahedra (3D).
 
     vertices: (n, d) rest positions [m]; elements: (m, d + 1) vertex indices, positively
-        oriented (degenerate or inverted rest elements raise ValueError naming the element).
+        oriented (degenerate or inverted rest elements raise ValueError naming the element, as
+        do two elements on the same vertex set, which would double its mass and stiffness).
     model: one of MODELS; youngs_modulus [Pa] and poisson_ratio in (-1, 0.5): scalars or one
-        value per element (m,); density [kg/m^d].
+        value per element (m,); density [kg/m^d]. A stiffness or mass beyond float64 raises
+        ValueError naming them, as does an implicit step whose dt^2 K / M exceeds 1/eps (4.5e15)
+        while the fixed vertices leave a rigid motion free (lost to rounding).
     fixed: vertex indices held in place; gravity: (d,) [m/s^2] or None (no gravity);
         damping: c [1/s], mass-proportional.
     orient: re-orient negatively oriented elements (by :func:`kinema.mesh.orient`) instead of

@@ -42,7 +42,8 @@ MAX_PLUMMER = 10**8
 class System:
     """N self-gravitating particles.
 
-    x: (N, 3) positions [m], v: (N, 3) velocities [m/s] (writable arrays, the state).
+    x: (N, 3) positions [m], v: (N, 3) velocities [m/s] (writable arrays, the state); N = 0
+    is a valid system (steps change nothing, energies are 0).
     mass: (N,) masses [kg] or one for all. G: gravitational constant [m^3 kg^-1 s^-2].
     softening: Plummer length s [m] (phi = -G m / sqrt(r^2 + s^2)). eps: relative accuracy of
     the FMM's far field.
@@ -53,8 +54,8 @@ class System:
 
     def __init__(self, x, v, mass, *, G=1.0, softening=0.0, eps=1e-8):
         x = as_float_array(x, "x", ndim=2)
-        if x.shape[1] != 3 or x.shape[0] < 1:
-            raise ValueError(f"x: expected shape (n, 3) with n >= 1, got {x.shape}")
+        if x.shape[1] != 3:  # N = 0 is a valid (empty) system: steps change nothing
+            raise ValueError(f"x: expected shape (n, 3), got {x.shape}")
         v = as_float_array(v, "v", ndim=2)
         if v.shape != x.shape:
             raise ValueError(f"v: expected shape {x.shape} (as x), got {v.shape}")
@@ -134,7 +135,7 @@ class System:
         """2 K / |W| (1 in virial equilibrium)."""
         w = abs(self.potential_energy())
         if w == 0:
-            raise ValueError("virial_ratio: the potential energy is zero (one particle, or no mass)")
+            raise ValueError("virial_ratio: the potential energy is zero (fewer than two particles, or no mass)")
         return 2 * self.kinetic_energy() / w
 
     # ------------------------------------------------------------------ time stepping

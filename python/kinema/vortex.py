@@ -91,9 +91,9 @@ class VortexParticles:
         return u / (2 * np.pi)
 
     def _core_correction(self, x, u):
-        from scipy.spatial import cKDTree
-
-        pairs = cKDTree(x).query_pairs(_CORE_CUTOFF * self.core, output_type="ndarray")
+        # The C++ cell-grid search (GIL released): scipy.spatial's cKDTree costs ~0.5 s to
+        # import (its package pulls in scipy.special and qhull) on the first step.
+        pairs = _core.sph.neighbor_pairs(x, _CORE_CUTOFF * self.core)
         if len(pairs) == 0:
             return
         i, j = pairs[:, 0], pairs[:, 1]
@@ -221,7 +221,8 @@ class VortexParticles3D:
     evolve by the classical stretching term d alpha_j/dt = (alpha_j . grad) u(x_j); positions
     and strengths advance together by classical RK4.
 
-    x: (n, 3) positions [m] and strength: (n, 3) alpha [m^3/s] (writable arrays, the state);
+    x: (n, 3) positions [m] and strength: (n, 3) alpha [m^3/s] (writable arrays, the state;
+    n = 0 is a valid system whose steps change nothing, as in 2D);
     core: radius [m]; eps: relative accuracy of the FMM. time [s].
     """
 
@@ -229,8 +230,8 @@ class VortexParticles3D:
 
     def __init__(self, x, strength, core, *, eps=1e-10):
         self.x = as_float_array(x, "x", ndim=2).copy()
-        if self.x.shape[1] != 3 or len(self.x) < 1:
-            raise ValueError(f"x: expected shape (n, 3) with n >= 1, got {self.x.shape}")
+        if self.x.shape[1] != 3:  # n = 0 is a valid (empty) system, as in 2D
+            raise ValueError(f"x: expected shape (n, 3), got {self.x.shape}")
         self.strength = as_float_array(strength, "strength", ndim=2).copy()
         if self.strength.shape != self.x.shape:
             raise ValueError(f"strength: expected shape {self.x.shape} (as x), got {self.strength.shape}")
