@@ -367,9 +367,10 @@ class Fluid:
     def step(self, dt, check=True):
         """Advances by dt [s]; returns the step's ``kinema._core.sph.StepStats`` (time, dt,
         seconds, iterations, divergence_iterations, density_error, divergence_error,
-        max_speed, neighbor_count, neighbor_rebuild, and the step's wall time split into
-        search_seconds, kernel_seconds and solve_seconds: the neighbour search, the kernel pass
-        and the pressure solves).
+        density_converged and divergence_converged (DFSPH: False when the solve stopped at
+        max_iter above its tolerance), max_speed, neighbor_count, neighbor_rebuild, and the
+        step's wall time split into search_seconds, kernel_seconds and solve_seconds: the
+        neighbour search, the kernel pass and the pressure solves).
 
         check: raise km.StabilityError (naming dt) for a step beyond :meth:`stability_limit`,
         the limit of the scheme's explicit parts; ``check=False`` takes it anyway. Raises
