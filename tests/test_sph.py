@@ -1,6 +1,8 @@
 """km.sph: neighbour search against brute force, the kernel, scene helpers, hydrostatic tank,
 dam break against Martin and Moyce (1952), stability under abuse, zero-copy state and bad input."""
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -208,14 +210,20 @@ def column_at_rest(method, d, tol=1e-3, **options):
     box[1] = 2 * H
     fluid = km.sph.Fluid(km.sph.block([0] * d, size, s), s, gravity=down(d), method=method, domain=([0] * d, box),
                          viscosity=0.01, tol=tol, **options)
-    while fluid.time < SETTLE - 1e-9:
-        fluid.advance(0.02)
-        fluid.v[:] = 0
+    with warnings.catch_warnings():
+        # The settling builds the pressure of a lattice released without any: at tol 1e-4 a
+        # few of its steps stop at max_iter (advance warns); the free steps are checked.
+        warnings.simplefilter("ignore", RuntimeWarning)
+        while fluid.time < SETTLE - 1e-9:
+            fluid.advance(0.02)
+            fluid.v[:] = 0
     iterations, energies, ys, ps = [], [], [], []
+    unconverged = 0
     end = fluid.time + FREE
     while fluid.time < end - 1e-12:
         st = fluid.step(min(fluid.stable_dt(), end - fluid.time))
         iterations.append(st.iterations)
+        unconverged += not (st.density_converged and st.divergence_converged)
         energies.append(fluid.kinetic_energy())
         if fluid.time > end - 0.1:  # the last 0.1 s: 2.5 periods of WCSPH's acoustic ringing
             ys.append(fluid.x[:, 1].copy())
@@ -227,7 +235,7 @@ def column_at_rest(method, d, tol=1e-3, **options):
     mask = (y > 2 * s) & (y < top - 3 * s)
     slope, intercept = np.polyfit(y[mask], p[mask], 1)
     return dict(H=H, s=s, v_rms=v_rms, slope=slope / (-1000 * G), p0=-intercept / slope, top=top,
-                iterations=np.array(iterations))
+                iterations=np.array(iterations), unconverged=unconverged)
 
 
 # Bounds. Velocity: the rms speed of the free second half, at most 2% of sqrt(2 g H) (the speed
@@ -261,17 +269,19 @@ def test_viscous_column_at_rest(method, d):
     if method == "dfsph":
         its = r["iterations"]
         assert its.mean() <= 10 and its.max() <= 60, f"{d}D: iterations per step mean {its.mean():.1f}, max {its.max()}"
+        assert r["unconverged"] == 0, f"{d}D: {r['unconverged']} free steps stopped at max_iter"
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("d", [2, 3])
+@pytest.mark.parametrize("d", [2, pytest.param(3, marks=pytest.mark.xfail(
+    strict=True, reason="issue 15: 1 free step of the 3D column stops at max_iter = 100 at tol 1e-4"))])
 def test_dfsph_column_at_rest_tight_tol(d):
     # At tol = 1e-4 DFSPH's column holds in both dimensions, with the pressure of the bounds
     # above.
     r = column_at_rest("dfsph", d, tol=1e-4)
     assert r["v_rms"] < 0.02 * np.sqrt(2 * G * r["H"]), f"{d}D: rms speed {r['v_rms']:.3f} m/s"
     assert r["slope"] == pytest.approx(1, abs=0.1), f"{d}D: dp/dy = {r['slope']:.3f} rho0 g"
-    assert r["iterations"].max() <= 100
+    assert r["unconverged"] == 0, f"{d}D: {r['unconverged']} free steps stopped at max_iter"
 
 
 # At tol = 2e-3 the DFSPH column stays at rest too (the bounds above). It did not before the
@@ -498,13 +508,65 @@ def test_single_particle_free_fall(d):
         assert fluid.v[0, 1] == pytest.approx(-G * dt * n, rel=1e-12)
 
 
-@pytest.mark.parametrize("spacing", [0.05, 0.0025])
+# advance() warns (RuntimeWarning, an error under pytest) when a DFSPH pressure solve stops at
+# max_iter. At 2.5 mm the column below reaches the cap in 3 of its 17 steps (density error
+# 1.4e-3 > tol 1e-3) and its fine run is not at rest at all: see the next test.
+@pytest.mark.parametrize("spacing", [0.05, pytest.param(0.0025, marks=pytest.mark.xfail(
+    strict=True, raises=RuntimeWarning, reason="issue 15: the density solve stops at max_iter (3 of 17 steps)"))])
 def test_coarse_and_fine_spacing(spacing):
     L = 0.1
     x = km.sph.block([0, 0], [L, L / 2], spacing)
     fluid = km.sph.Fluid(x, spacing, gravity=down(2), domain=([0, 0], [L, L]))
     fluid.advance(0.05)
     assert np.isfinite(fluid.x).all() and fluid.density_error() < 0.01
+
+
+# A column at rest that fills its closed tank (0.1 m wide, 0.05 m deep, inviscid) has nowhere to
+# go: what it may do is settle (WCSPH compresses by ~(v/c)^2, the lattice rearranges), which
+# releases potential energy, never gains it. Checked every step of 0.3 s at the steps
+# stable_dt() gives: kinetic + potential energy at most 1% of the available energy (e0 minus
+# the lowest possible state, as test_long_run_without_energy_gain) above its start; speed below
+# sqrt(2 g H) (0.99 m/s, a fall over the whole depth: a particle cannot be faster without
+# energy from elsewhere); each DFSPH solve within its tolerance (not stopped at max_iter); the
+# density error of the positions reached below 1%.
+# Measured (the gain as a fraction of the available energy, the top speed): DFSPH 2D 2.5 mm
+# 0.37, 1.74 m/s, 3 solves at the cap, density error up to 3.3%; 2D 5 mm 0.019, 0.24 m/s; 3D
+# 5 mm 0.056, 0.91 m/s; WCSPH 2D 2.5 mm 1.88, 5.0 m/s; 2D 5 mm 1.23, 2.6 m/s; 3D 5 mm 1.74,
+# 3.9 m/s. The energy grows from particle-scale noise next to the walls (fastest particles in
+# the bottom corners). One cause found: the walls' mirrored pressure term 2 k_i B_i (apply_kappa,
+# pressure_accelerations) is twice the gradient of the fluid's energy with respect to x_i and
+# not a conservative force; with Akinci's single term k_i B_i WCSPH 2D 2.5 mm keeps its energy
+# (-0.4% over 0.3 s, 0.19 m/s peak) but the 3D columns at rest lose their hydrostatic slope
+# (the reason the mirror was introduced), and DFSPH still gains 17% in its first 0.05 s. Not
+# fixed yet: strict, so that the fix is noticed.
+FILLED = [pytest.param(method, d, s, id=f"{method}-{d}d-{s}") for method in ("dfsph", "wcsph")
+          for d, s in ((2, 0.0025), (2, 0.005), (3, 0.005))]
+
+
+@pytest.mark.xfail(strict=True, reason="issue 15: a column at rest filling its tank gains energy (walls)")
+@pytest.mark.parametrize("method, d, s", FILLED)
+def test_column_filling_its_tank_stays_at_rest(method, d, s):
+    L, H = 0.1, 0.05
+    upper = [L] * d
+    upper[1] = H
+    fluid = km.sph.Fluid(km.sph.block([0] * d, upper, s), s, gravity=down(d), method=method,
+                         domain=([0] * d, [L] * d))
+    mass = fluid.mass
+
+    def energy():
+        return fluid.kinetic_energy() + mass * G * fluid.x[:, 1].sum()
+
+    e0 = energy()
+    available = e0 - mass * G * (s / 2) * fluid.n
+    end = 0.3
+    while fluid.time < end - 1e-12:
+        st = fluid.step(min(fluid.stable_dt(), end - fluid.time))
+        where = f"{method} {d}D s={s} step {fluid.steps} (t = {fluid.time:.4f} s)"
+        assert st.density_converged and st.divergence_converged, f"{where}: a pressure solve stopped at max_iter"
+        assert st.max_speed < np.sqrt(2 * G * H), f"{where}: speed {st.max_speed:.3f} m/s"
+        gain = (energy() - e0) / available
+        assert gain < 0.01, f"{where}: energy rose by {gain:.2%} of the available energy"
+        assert fluid.density_error() < 0.01, f"{where}: density error {fluid.density_error():.2e}"
 
 
 def test_long_run_without_energy_gain():

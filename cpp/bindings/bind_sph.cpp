@@ -138,15 +138,24 @@ struct PyFluid {
   py::tuple advance(Scalar duration, Scalar cfl) {
     sph::StepStats last;
     AdvanceResult result;
+    Index unconverged = 0;  // DFSPH steps whose density or divergence solve stopped at max_iter
+    Scalar worst = 0;       // their largest density error
     {
       Interrupt interrupt = python_interrupt();
       ReleaseGil release;
       result = advance_to(
           state, duration, [&](const sph::State& s) { return solver->stable_dt(s, cfl); },
           [&](sph::State&, Scalar dt) { return step_or_rollback(dt, interrupt); },
-          [&](const sph::StepStats& stats) { last = stats; }, interrupt);
+          [&](const sph::StepStats& stats) {
+            last = stats;
+            if (!stats.density_converged || !stats.divergence_converged) {
+              ++unconverged;
+              worst = std::max(worst, stats.density_error);
+            }
+          },
+          interrupt);
     }
-    return py::make_tuple(result.steps, last);
+    return py::make_tuple(result.steps, last, unconverged, worst);
   }
 
   // The ids view is writable (checkpoints restore it), so a step first checks that it still
@@ -282,6 +291,10 @@ void bind_sph(py::module_& m) {
       .def_readonly("density_error", &StepStats::density_error,
                     "mean compression max(rho/rho0 - 1, 0) (DFSPH: what the density solve reached)")
       .def_readonly("divergence_error", &StepStats::divergence_error, "the divergence solve's error (DFSPH)")
+      .def_readonly("density_converged", &StepStats::density_converged,
+                    "DFSPH: the density solve ended within tol (False: stopped at max_iter)")
+      .def_readonly("divergence_converged", &StepStats::divergence_converged,
+                    "DFSPH: the divergence solve ended within divergence_tol (False: stopped at max_iter)")
       .def_readonly("max_speed", &StepStats::max_speed, "after the step [m/s]")
       .def_readonly("neighbor_count", &StepStats::neighbor_count, "fluid-fluid neighbour entries (2 per pair)")
       .def_readonly("neighbor_rebuild", &StepStats::neighbor_rebuild,

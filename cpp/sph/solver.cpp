@@ -141,7 +141,10 @@ class SolverD final : public Solver::Impl {
     neighborhoods(s, true, true, s.density.data());
     // Divergence-free solver (Algorithm 2): make D rho / Dt = 0 with the current velocities.
     Stopwatch solve;
-    if (config_.divergence_solve) stats.divergence_iterations = divergence_solve(s, dt, stats, interrupt);
+    if (config_.divergence_solve) {
+      stats.divergence_iterations = divergence_solve(s, dt, stats, interrupt);
+      stats.divergence_converged = stats.divergence_error <= config_.divergence_tol;
+    }
     stats.solve_seconds = solve.seconds();
     // Non-pressure accelerations (gravity, viscosity) and the predicted velocity v* (eq. 2).
     non_pressure_accelerations(s);
@@ -149,6 +152,7 @@ class SolverD final : public Solver::Impl {
     // Constant-density solver (Algorithm 3): correct v* so that rho* = rho0.
     solve.restart();
     stats.iterations = density_solve(s, dt, stats, interrupt);
+    stats.density_converged = stats.density_error <= config_.tol;
     stats.solve_seconds += solve.seconds();
     // Positions: x += dt v*.
     parallel_for(n, [&](Index i) { Map(s.x.data() + i * D) += dt * CMap(s.v.data() + i * D); });

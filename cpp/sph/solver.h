@@ -29,6 +29,10 @@ struct StepStats : StepStatsBase {
   Scalar density_error = 0;       // mean compression max(rho/rho0 - 1, 0) (DFSPH: the density solve's error, of the
                                   // predicted densities)
   Scalar divergence_error = 0;    // the divergence solve's error (DFSPH)
+  // DFSPH: each solve ended within its tolerance (false: it stopped at max_iter with the error
+  // above; WCSPH: always true). advance() counts the steps that did not.
+  bool density_converged = true;
+  bool divergence_converged = true;
   Scalar max_speed = 0;           // after the step [m/s]
   Index neighbor_count = 0;       // fluid-fluid neighbour entries (2 per pair)
   bool neighbor_rebuild = false;  // the neighbour lists were rebuilt from the cell grid

@@ -18,6 +18,8 @@ h = 2 * spacing; particle mass = rho0 * spacing^d.
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 
 from kinema import _core
@@ -365,9 +367,10 @@ class Fluid:
     def step(self, dt, check=True):
         """Advances by dt [s]; returns the step's ``kinema._core.sph.StepStats`` (time, dt,
         seconds, iterations, divergence_iterations, density_error, divergence_error,
-        max_speed, neighbor_count, neighbor_rebuild, and the step's wall time split into
-        search_seconds, kernel_seconds and solve_seconds: the neighbour search, the kernel pass
-        and the pressure solves).
+        density_converged and divergence_converged (DFSPH: False when the solve stopped at
+        max_iter above its tolerance), max_speed, neighbor_count, neighbor_rebuild, and the
+        step's wall time split into search_seconds, kernel_seconds and solve_seconds: the
+        neighbour search, the kernel pass and the pressure solves).
 
         check: raise km.StabilityError (naming dt) for a step beyond :meth:`stability_limit`,
         the limit of the scheme's explicit parts; ``check=False`` takes it anyway. Raises
@@ -403,12 +406,20 @@ class Fluid:
 
     def advance(self, duration, cfl=0.4) -> int:
         """Advances by ``duration`` [s] in steps of :meth:`stable_dt` (cfl), the last one
-        landing on the end; returns the step count (the last step's stats in ``last_stats``)."""
+        landing on the end; returns the step count (the last step's stats in ``last_stats``).
+
+        DFSPH: when a pressure solve stops at ``max_iter`` above its tolerance (the step's
+        ``density_converged`` / ``divergence_converged`` are False), warns (RuntimeWarning) once
+        per call with the count of such steps and their largest density error."""
         duration = real(duration, "duration")
         cfl = real(cfl, "cfl")
         if duration == 0:
             return 0
-        steps, self.last_stats = self._core.advance(duration, cfl)
+        steps, self.last_stats, unconverged, worst = self._core.advance(duration, cfl)
+        if unconverged:
+            warnings.warn(f"sph: in {unconverged} of {steps} steps a DFSPH pressure solve stopped at max_iter="
+                          f"{self.config.max_iter} above its tolerance (largest density error {worst:.3g}, tol "
+                          f"{self.config.tol:.3g}); raise max_iter or lower cfl", RuntimeWarning, stacklevel=2)
         return steps
 
     def stable_dt(self, cfl=0.4) -> float:
