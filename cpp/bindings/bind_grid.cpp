@@ -53,8 +53,8 @@ struct PyFluid {
   }
 
   grid::StepStats step(Scalar dt, const py::object& control) {
-    std::vector<Scalar> buffer;
-    const Scalar* u = read_control(control, buffer);
+    py::object holder;
+    const Scalar* u = read_control(control, holder);
     Interrupt interrupt = python_interrupt();
     ReleaseGil release;
     return solver_->step(state_, dt, interrupt, u);
@@ -63,8 +63,8 @@ struct PyFluid {
   // step(dt, control) that also returns its advection scratch, for step_adjoint's `forward`:
   // into `reuse` when given (a spent one: its arrays are refilled, not allocated again).
   py::object step_keep(Scalar dt, const py::object& control, py::object reuse) {
-    std::vector<Scalar> buffer;
-    const Scalar* u = read_control(control, buffer);
+    py::object holder;
+    const Scalar* u = read_control(control, holder);
     if (reuse.is_none()) reuse = py::cast(AdvectionKept{});
     AdvectionKept& kept = reuse.cast<AdvectionKept&>();
     Interrupt interrupt = python_interrupt();
@@ -73,18 +73,21 @@ struct PyFluid {
     return reuse;
   }
 
-  // A control of one value per cell and velocity component, or nullptr for None.
-  const Scalar* read_control(const py::object& control, std::vector<Scalar>& buffer) const {
+  // A control of one value per cell and velocity component, or nullptr for None: read in place
+  // when `control` is a C-contiguous float64 array (held by `holder` while it is read), else
+  // converted once into `holder`; checked finite.
+  const Scalar* read_control(const py::object& control, py::object& holder) const {
     if (control.is_none()) return nullptr;
     const Index size = shape_.size() * shape_.dim;
     const auto a = py::array_t<Scalar, py::array::c_style | py::array::forcecast>::ensure(control);
     if (!a || a.size() != size)
       throw InvalidArgument("control: expected a float array of shape (*shape, " + std::to_string(shape_.dim) +
                             ") with " + std::to_string(size) + " values");
-    buffer.assign(a.data(), a.data() + size);
-    for (Scalar x : buffer)
-      if (!std::isfinite(x)) throw InvalidArgument("control: expected finite accelerations");
-    return buffer.data();
+    holder = a;
+    const Scalar* data = a.data();
+    for (Index i = 0; i < size; ++i)
+      if (!std::isfinite(data[i])) throw InvalidArgument("control: expected finite accelerations");
+    return data;
   }
 
   // Copies the arrays named in `d` (u, v[, w], pressure, density, temperature: user names and
@@ -121,17 +124,18 @@ struct PyFluid {
     return out;
   }
 
-  py::dict write_state(const grid::State& s) const {
+  // The arrays of `s` (spent: its vectors are moved into the arrays, not copied) by user name.
+  py::dict write_state(grid::State&& s) const {
     py::dict out;
     const int dim = shape_.dim;
     for (int c = 0; c < dim; ++c) {
       const int a = internal_axis(dim, c);
       out[py::str(std::string(1, "uvw"[c]))] =
-          to_numpy(std::vector<Scalar>(s.velocity[a]), user_dims(solver_->face(a), dim));
+          to_numpy(std::move(s.velocity[a]), user_dims(solver_->face(a), dim));
     }
-    if (!s.density.empty()) out["density"] = to_numpy(std::vector<Scalar>(s.density), shape_.user_shape());
+    if (!s.density.empty()) out["density"] = to_numpy(std::move(s.density), shape_.user_shape());
     if (!s.temperature.empty())
-      out["temperature"] = to_numpy(std::vector<Scalar>(s.temperature), shape_.user_shape());
+      out["temperature"] = to_numpy(std::move(s.temperature), shape_.user_shape());
     return out;
   }
 
@@ -141,9 +145,9 @@ struct PyFluid {
                          bool want_viscosity, const AdvectionKept* forward) {
     const grid::State b = read_state(before, false);
     grid::State adjoint = read_state(grads, true);
-    std::vector<Scalar> buffer;
-    const Scalar* u = read_control(control, buffer);
-    std::vector<Scalar> grad_control(u ? buffer.size() : 0);
+    py::object holder;
+    const Scalar* u = read_control(control, holder);
+    std::vector<Scalar> grad_control(u ? static_cast<size_t>(shape_.size() * shape_.dim) : 0);
     Scalar grad_viscosity = 0;
     {
       Interrupt interrupt = python_interrupt();
@@ -157,7 +161,7 @@ struct PyFluid {
       dims.push_back(shape_.dim);
       gc = to_numpy(std::move(grad_control), dims);
     }
-    return py::make_tuple(write_state(adjoint), want_viscosity ? py::object(py::float_(grad_viscosity)) : py::none(),
+    return py::make_tuple(write_state(std::move(adjoint)), want_viscosity ? py::object(py::float_(grad_viscosity)) : py::none(),
                           gc);
   }
 
@@ -169,7 +173,7 @@ struct PyFluid {
       ReleaseGil release;
       solver_->projection_adjoint(adjoint.velocity, dt, interrupt);
     }
-    return write_state(adjoint);
+    return write_state(std::move(adjoint));
   }
 
   py::tuple advance(Scalar duration, Scalar cfl, Scalar max_dt) {
@@ -275,7 +279,7 @@ struct PyRecord {
       dims.push_back(fluid->shape_.dim);
       gc = to_numpy(std::move(grad_controls), dims);
     }
-    return py::make_tuple(fluid->write_state(adjoint),
+    return py::make_tuple(fluid->write_state(std::move(adjoint)),
                           want_viscosity ? py::object(py::float_(grad_viscosity)) : py::none(), gc);
   }
 };

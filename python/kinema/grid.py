@@ -340,6 +340,8 @@ class Fluid:
         return self._core.step(time_step(dt))
 
     # ------------------------------------------------------------ km.diff protocol
+    _diff_state_copies = True  # state() makes new arrays on every call (km.diff holds them as they are)
+
     @property
     def _diff_state_names(self):
         names = tuple("uvw"[:self.dim])
