@@ -5,6 +5,8 @@
 // axis c + 3 - dim.
 #include <cmath>
 #include <cstdint>
+#include <cstring>
+#include <memory>
 #include <limits>
 
 #include "bindings/common.h"
@@ -44,6 +46,12 @@ struct AdvectionKept {
   std::array<grid::AdvectionScratch, 4> scratch;
 };
 
+// A copy of a fluid's state (Fluid.state_copy) whose arrays are handed out as numpy views, each
+// keeping it alive; step_adjoint reads a dict of such views in place instead of copying it.
+struct HeldState {
+  grid::State state;
+};
+
 // The Solver and the State it advances, as one Python object.
 struct PyFluid {
   PyFluid(const std::vector<Index>& shape, Scalar h, const grid::Config& config) : shape_(shape) {
@@ -53,8 +61,8 @@ struct PyFluid {
   }
 
   grid::StepStats step(Scalar dt, const py::object& control) {
-    std::vector<Scalar> buffer;
-    const Scalar* u = read_control(control, buffer);
+    py::object holder;
+    const Scalar* u = read_control(control, holder);
     Interrupt interrupt = python_interrupt();
     ReleaseGil release;
     return solver_->step(state_, dt, interrupt, u);
@@ -63,8 +71,8 @@ struct PyFluid {
   // step(dt, control) that also returns its advection scratch, for step_adjoint's `forward`:
   // into `reuse` when given (a spent one: its arrays are refilled, not allocated again).
   py::object step_keep(Scalar dt, const py::object& control, py::object reuse) {
-    std::vector<Scalar> buffer;
-    const Scalar* u = read_control(control, buffer);
+    py::object holder;
+    const Scalar* u = read_control(control, holder);
     if (reuse.is_none()) reuse = py::cast(AdvectionKept{});
     AdvectionKept& kept = reuse.cast<AdvectionKept&>();
     Interrupt interrupt = python_interrupt();
@@ -73,18 +81,86 @@ struct PyFluid {
     return reuse;
   }
 
-  // A control of one value per cell and velocity component, or nullptr for None.
-  const Scalar* read_control(const py::object& control, std::vector<Scalar>& buffer) const {
+  // A control of one value per cell and velocity component, or nullptr for None: read in place
+  // when `control` is a C-contiguous float64 array (held by `holder` while it is read), else
+  // converted once into `holder`; checked finite.
+  const Scalar* read_control(const py::object& control, py::object& holder) const {
     if (control.is_none()) return nullptr;
     const Index size = shape_.size() * shape_.dim;
     const auto a = py::array_t<Scalar, py::array::c_style | py::array::forcecast>::ensure(control);
     if (!a || a.size() != size)
       throw InvalidArgument("control: expected a float array of shape (*shape, " + std::to_string(shape_.dim) +
                             ") with " + std::to_string(size) + " values");
-    buffer.assign(a.data(), a.data() + size);
-    for (Scalar x : buffer)
-      if (!std::isfinite(x)) throw InvalidArgument("control: expected finite accelerations");
-    return buffer.data();
+    holder = a;
+    const Scalar* data = a.data();
+    for (Index i = 0; i < size; ++i)
+      if (!std::isfinite(data[i])) throw InvalidArgument("control: expected finite accelerations");
+    return data;
+  }
+
+  // A copy of the state as a dict of views (u, v[, w], pressure, density, temperature) of one
+  // HeldState; time and steps are the caller's to add.
+  static py::dict state_copy(py::object self) {
+    PyFluid& f = self.cast<PyFluid&>();
+    auto held = std::make_unique<HeldState>();
+    {
+      ReleaseGil release;
+      held->state = f.state_;
+    }
+    py::object owner = py::cast(held.release(), py::return_value_policy::take_ownership);
+    const grid::State& s = owner.cast<const HeldState&>().state;
+    const int dim = f.shape_.dim;
+    py::dict out;
+    auto add = [&](const char* key, const std::vector<Scalar>& q, const std::vector<Index>& dims) {
+      out[key] = view(owner, const_cast<Scalar*>(q.data()), dims);
+    };
+    for (int c = 0; c < dim; ++c) {
+      const int a = internal_axis(dim, c);
+      add(std::string(1, "uvw"[c]).c_str(), s.velocity[a], user_dims(f.solver_->face(a), dim));
+    }
+    add("pressure", s.pressure, f.shape_.user_shape());
+    if (!s.density.empty()) add("density", s.density, f.shape_.user_shape());
+    if (!s.temperature.empty()) add("temperature", s.temperature, f.shape_.user_shape());
+    return out;
+  }
+
+  // The HeldState whose arrays `d` holds, unchanged in place (the views state_copy made, every
+  // one of one HeldState, of this fluid's sizes, with its time and steps), or nullptr.
+  const grid::State* held_state(const py::dict& d) const {
+    const grid::State* held = nullptr;
+    auto same = [&](const std::string& key, const std::vector<Scalar> grid::State::*field, int axis,
+                    Index size) {
+      if (!d.contains(key)) return size == 0;
+      const py::object obj = d[key.c_str()];
+      if (!py::isinstance<py::array_t<Scalar, py::array::c_style>>(obj)) return false;
+      const auto a = py::reinterpret_borrow<py::array>(obj);
+      const py::handle base = a.base();
+      if (!base || !py::isinstance<HeldState>(base)) return false;
+      const grid::State& s = base.cast<const HeldState&>().state;
+      if (held && held != &s) return false;
+      held = &s;
+      const std::vector<Scalar>& q = axis >= 0 ? s.velocity[axis] : s.*field;
+      return static_cast<Index>(q.size()) == size && static_cast<Index>(a.size()) == size && a.data() == q.data();
+    };
+    const int dim = shape_.dim;
+    const grid::Config& config = solver_->config();
+    const Index cells = shape_.size();
+    for (int c = 0; c < dim; ++c) {
+      const int a = internal_axis(dim, c);
+      if (!same(std::string(1, "uvw"[c]), nullptr, a, solver_->face(a).size())) return nullptr;
+    }
+    if (!same("pressure", &grid::State::pressure, -1, cells) ||
+        !same("density", &grid::State::density, -1, config.density ? cells : 0) ||
+        !same("temperature", &grid::State::temperature, -1, config.temperature ? cells : 0) || !held)
+      return nullptr;
+    for (int a = 0; a < 3 - dim; ++a)
+      if (!held->velocity[a].empty()) return nullptr;
+    const Scalar time = d.contains("time") ? d["time"].cast<Scalar>() : 0;
+    const Index steps = d.contains("steps") ? d["steps"].cast<Index>() : 0;
+    std::uint64_t t0, t1;
+    std::memcpy(&t0, &time, sizeof time);
+    std::memcpy(&t1, &held->time, sizeof time);
+    return t0 == t1 && steps == held->steps ? held : nullptr;
   }
 
   // Copies the arrays named in `d` (u, v[, w], pressure, density, temperature: user names and
@@ -121,17 +197,18 @@ struct PyFluid {
     return out;
   }
 
-  py::dict write_state(const grid::State& s) const {
+  // The arrays of `s` (spent: its vectors are moved into the arrays, not copied) by user name.
+  py::dict write_state(grid::State&& s) const {
     py::dict out;
     const int dim = shape_.dim;
     for (int c = 0; c < dim; ++c) {
       const int a = internal_axis(dim, c);
       out[py::str(std::string(1, "uvw"[c]))] =
-          to_numpy(std::vector<Scalar>(s.velocity[a]), user_dims(solver_->face(a), dim));
+          to_numpy(std::move(s.velocity[a]), user_dims(solver_->face(a), dim));
     }
-    if (!s.density.empty()) out["density"] = to_numpy(std::vector<Scalar>(s.density), shape_.user_shape());
+    if (!s.density.empty()) out["density"] = to_numpy(std::move(s.density), shape_.user_shape());
     if (!s.temperature.empty())
-      out["temperature"] = to_numpy(std::vector<Scalar>(s.temperature), shape_.user_shape());
+      out["temperature"] = to_numpy(std::move(s.temperature), shape_.user_shape());
     return out;
   }
 
@@ -139,16 +216,18 @@ struct PyFluid {
   // step from `before`.
   py::tuple step_adjoint(Scalar dt, const py::dict& before, const py::object& control, const py::dict& grads,
                          bool want_viscosity, const AdvectionKept* forward) {
-    const grid::State b = read_state(before, false);
+    // `before` read in place when it is a state_copy dict (km.diff's), else copied
+    const grid::State* held = held_state(before);
+    const grid::State b = held ? grid::State{} : read_state(before, false);
     grid::State adjoint = read_state(grads, true);
-    std::vector<Scalar> buffer;
-    const Scalar* u = read_control(control, buffer);
-    std::vector<Scalar> grad_control(u ? buffer.size() : 0);
+    py::object holder;
+    const Scalar* u = read_control(control, holder);
+    std::vector<Scalar> grad_control(u ? static_cast<size_t>(shape_.size() * shape_.dim) : 0);
     Scalar grad_viscosity = 0;
     {
       Interrupt interrupt = python_interrupt();
       ReleaseGil release;
-      solver_->step_adjoint(b, dt, u, adjoint, want_viscosity ? &grad_viscosity : nullptr,
+      solver_->step_adjoint(held ? *held : b, dt, u, adjoint, want_viscosity ? &grad_viscosity : nullptr,
                             u ? grad_control.data() : nullptr, interrupt, forward ? &forward->scratch : nullptr);
     }
     py::object gc = py::none();
@@ -157,7 +236,7 @@ struct PyFluid {
       dims.push_back(shape_.dim);
       gc = to_numpy(std::move(grad_control), dims);
     }
-    return py::make_tuple(write_state(adjoint), want_viscosity ? py::object(py::float_(grad_viscosity)) : py::none(),
+    return py::make_tuple(write_state(std::move(adjoint)), want_viscosity ? py::object(py::float_(grad_viscosity)) : py::none(),
                           gc);
   }
 
@@ -169,7 +248,7 @@ struct PyFluid {
       ReleaseGil release;
       solver_->projection_adjoint(adjoint.velocity, dt, interrupt);
     }
-    return write_state(adjoint);
+    return write_state(std::move(adjoint));
   }
 
   py::tuple advance(Scalar duration, Scalar cfl, Scalar max_dt) {
@@ -275,7 +354,7 @@ struct PyRecord {
       dims.push_back(fluid->shape_.dim);
       gc = to_numpy(std::move(grad_controls), dims);
     }
-    return py::make_tuple(fluid->write_state(adjoint),
+    return py::make_tuple(fluid->write_state(std::move(adjoint)),
                           want_viscosity ? py::object(py::float_(grad_viscosity)) : py::none(), gc);
   }
 };
@@ -363,6 +442,7 @@ void bind_grid(py::module_& m) {
       .def_readonly("viscosity_seconds", &StepStats::viscosity_seconds)
       .def_readonly("projection_seconds", &StepStats::projection_seconds);
 
+  py::class_<HeldState>(m, "HeldState", "A copy of a Fluid's state, owner of the arrays of Fluid.state_copy().");
   py::class_<AdvectionKept>(m, "AdvectionKept", "A forward step's advection scratch (Fluid.step_keep), "
                                                  "read by Fluid.step_adjoint instead of recomputing it.");
   py::class_<PyRecord>(m, "FluidRecord")
@@ -372,6 +452,7 @@ void bind_grid(py::module_& m) {
       .def(py::init<const std::vector<Index>&, Scalar, const Config&>(), py::arg("shape"), py::arg("h"),
            py::arg("config"))
       .def_property_readonly("config", [](const PyFluid& f) { return f.solver_->config(); })
+      .def("state_copy", &PyFluid::state_copy)
       .def("step", &PyFluid::step, py::arg("dt"), py::arg("control") = py::none())
       .def("step_adjoint", &PyFluid::step_adjoint, py::arg("dt"), py::arg("before"), py::arg("control"),
            py::arg("grads"), py::arg("want_viscosity") = true, py::arg("forward") = nullptr)

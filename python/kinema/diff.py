@@ -58,6 +58,9 @@ Optional (a faster path for runs stored whole; km.diff falls back to the steps w
 - ``_diff_want(names or None)``: ``backward`` tells the simulation which parameters it wants
   (a tuple of names) before its adjoint steps and None (all) after them; ``_diff_step_adjoint``
   may then leave the others out of grad_params (they count as zero) and skip their cost.
+- ``_diff_state_copies = True``: every ``state()`` call returns arrays newly made for that
+  call, which the simulation neither holds nor writes later; km.diff then holds them without
+  copying them again.
 - ``_diff_step_keep(dt, control, step_options) -> kept or None``: ``_diff_step`` that also
   returns what the step's adjoint would otherwise recompute of it; a checkpointed backward calls
   it for a recomputed step whose adjoint comes soon (at most two held at once) and passes it as
@@ -97,21 +100,30 @@ def _split(length: int, free: int) -> int:
 
 
 def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
-    return (a.shape == b.shape and a.dtype == b.dtype and
-            np.array_equal(np.ascontiguousarray(a).view(np.uint8), np.ascontiguousarray(b).view(np.uint8)))
+    if a.shape != b.shape or a.dtype != b.dtype:
+        return False
+    a = np.ascontiguousarray(a).reshape(-1).view(np.uint8)
+    b = np.ascontiguousarray(b).reshape(-1).view(np.uint8)
+    head = min(a.size, 4096)  # most arrays that changed differ at the start: no full pass then
+    return np.array_equal(a[:head], b[:head]) and np.array_equal(a[head:], b[head:])
 
 
-def _copy_state(state: dict, previous: dict | None = None) -> dict:
+def _copy_state(state: dict, previous: dict | None = None, fresh: bool = False) -> dict:
     """A copy of `state` whose arrays are new, except those bitwise equal to the same entry of
     `previous` (an earlier copy), which are shared: what did not change between two copies (a
-    lagged factor's record, a static field) is held once. Held copies are never written."""
+    lagged factor's record, a static field) is held once. Held copies are never written.
+    fresh: `state` is a state() dict of a simulation whose state() arrays are its own new copies
+    (``_diff_state_copies``): they are held as they are, not copied again."""
     out = {}
     for k, v in state.items():
         if not isinstance(v, np.ndarray):
             out[k] = v
             continue
         p = None if previous is None else previous.get(k)
-        out[k] = p if isinstance(p, np.ndarray) and _same_bits(p, v) else np.array(v, copy=True)
+        if isinstance(p, np.ndarray) and _same_bits(p, v):
+            out[k] = p
+        else:
+            out[k] = v if fresh else np.array(v, copy=True)
     return out
 
 
@@ -240,6 +252,7 @@ class Rollout:
         self.recomputed_steps = 0
         self._held = 0
         self._last = None
+        self._fresh = getattr(sim, "_diff_state_copies", False) is True
         start = self._copy(sim.state())
         self._start = start
         self._record = None
@@ -287,7 +300,7 @@ class Rollout:
         self.outputs = {name: np.array(self._end[name], copy=True) for name in self._state_names}
 
     def _copy(self, state: dict) -> dict:
-        self._last = _copy_state(state, self._last)
+        self._last = _copy_state(state, self._last, self._fresh)
         return self._last
 
     # -- bookkeeping of the states held, to verify the memory bound
@@ -343,7 +356,8 @@ class Rollout:
                 raise ValueError(f"grads: unknown name {name!r}; expected names of the outputs "
                                  f"{self._state_names}")
         self._params = {}
-        self._grad_controls = None if self._controls is None else np.zeros_like(self._controls)
+        # np.zeros, not zeros_like: its pages are mapped lazily, written once by the steps
+        self._grad_controls = None if self._controls is None else np.zeros(self._controls.shape)
         self.recomputed_steps = 0
         self._current = None
         # step -> what _diff_step_keep kept of it for its adjoint (at most two held)
@@ -383,7 +397,7 @@ class Rollout:
         out = {}
         for name in self.wrt:
             if name == "controls":
-                out[name] = self._grad_controls.copy()
+                out[name] = self._grad_controls  # made anew by each backward call
             elif name in self._state_names:
                 out[name] = g[name]
             else:
