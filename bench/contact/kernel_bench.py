@@ -22,6 +22,14 @@ Accuracy, checked before timing (the run stops on a mismatch):
   which ipctk's mesh has no plane for, are added on its side in numpy);
 * ccd: every returned step is checked by kinema's exact intersection test and minimum distance.
 
+Work per timed call (like for like): both sides find their candidate pairs inside every call.
+ipctk's calls include ``NormalCollisions.build`` (its broad phase from scratch: a new BVH) or,
+for CCD, its swept broad phase; kinema's calls run its broad phase too (BroadPhase::find: box
+update, tree descents and the pairs' sort), on trees the scene keeps between calls and refits
+to each query's boxes, as its solver does between Newton iterations (a kept structure, not a
+kept result: no call reuses a previous call's pairs, distances or values). The Hessian calls
+return a scipy CSR matrix on both sides.
+
 One summary line per kernel: CPU time per call on both sides (best of 5 x 20 calls; wall time
 beside it), their ratio against the 3x target, and the measured difference.
 

@@ -2,6 +2,8 @@
 // (distances, barrier, CCD) for tests and benchmarks. State arrays are zero-copy views whose
 // owner is the C++ State (a shared pointer in the view's capsule); adding a body builds a new
 // State, so views taken before an add stay valid memory but are detached from the scene.
+#include <cstdint>
+#include <limits>
 #include <memory>
 
 #include "bindings/common.h"
@@ -267,18 +269,24 @@ void bind_contact(py::module_& m) {
         const Scalar* p = s.positions(x);
         const contact::Projection how = contact_projection(projection);
         contact::Solver& solver = s.ready();
-        SparseMatrix H;
-        {
-          ReleaseGil release;
-          H = solver.barrier_hessian(p, how);
-        }
-        H.makeCompressed();
-        std::vector<Index> ptr(H.outerIndexPtr(), H.outerIndexPtr() + H.outerSize() + 1);
-        std::vector<Index> col(H.innerIndexPtr(), H.innerIndexPtr() + H.nonZeros());
-        std::vector<Scalar> val(H.valuePtr(), H.valuePtr() + H.nonZeros());
-        const Index nnz = H.nonZeros();
-        return py::make_tuple(to_numpy(std::move(val), {nnz}), to_numpy(std::move(col), {nnz}),
-                              to_numpy(std::move(ptr), {H.outerSize() + 1}));
+        // CSR arrays assembled in place and handed to numpy without a copy; 32-bit indices
+        // (scipy's own choice, so it does not convert them) while the entries fit.
+        auto build = [&](auto index) -> py::tuple {
+          using I = decltype(index);
+          std::vector<I> ptr, col;
+          std::vector<Scalar> val;
+          {
+            ReleaseGil release;
+            solver.barrier_hessian(p, how, ptr, col, val);
+          }
+          const Index nnz = static_cast<Index>(val.size()), rows = static_cast<Index>(ptr.size());
+          return py::make_tuple(to_numpy(std::move(val), {nnz}), to_numpy(std::move(col), {nnz}),
+                                to_numpy(std::move(ptr), {rows}));
+        };
+        // int32 surely holds every index when even the dense matrix's (3n)^2 entries fit.
+        const Index rows = 3 * s.model->vertex_count;
+        const bool small = rows < 46340 && rows * rows < std::numeric_limits<int32_t>::max();
+        return small ? build(int32_t(0)) : build(int64_t(0));
       })
       .def("max_safe_step", [](PyScene& s, py::array x, py::array dx) {
         const Scalar* p = s.positions(x);

@@ -348,7 +348,7 @@ std::vector<Constraint> find_constraints(const Model& model, const Candidates& c
 }
 
 std::vector<Constraint> find_constraints(const Model& model, BroadPhase& broad, const Scalar* x, Scalar dhat2) {
-  Candidates candidates;
+  Candidates& candidates = broad.scratch();
   broad.find(model, x, nullptr, std::sqrt(dhat2), candidates);
   return find_constraints(model, candidates, x, dhat2);
 }
@@ -482,7 +482,7 @@ Scalar max_safe_step(const Model& model, const Candidates& candidates, const Sca
 
 Scalar max_safe_step(const Model& model, BroadPhase& broad, const Scalar* x, const Scalar* dx,
                      const CcdOptions& options) {
-  Candidates candidates;
+  Candidates& candidates = broad.scratch();
   broad.find(model, x, dx, 0, candidates);
   return max_safe_step(model, candidates, x, dx, options);
 }

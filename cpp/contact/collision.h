@@ -53,6 +53,9 @@ class BroadPhase {
   // Pairs whose boxes, swept over x -> x + dx (dx may be null) and grown by r, meet, in a
   // deterministic order (the same for any thread count).
   void find(const Model& model, const Scalar* x, const Scalar* dx, Scalar r, Candidates& out);
+  // Candidate storage kept between one-shot queries (find_constraints, max_safe_step), so that
+  // its vectors are not grown from empty on every query.
+  Candidates& scratch() { return scratch_candidates_; }
 
  private:
   struct Tree {
@@ -75,6 +78,7 @@ class BroadPhase {
   // Sort scratch of the point-face and of the edge-edge pairs (found by two threads).
   std::vector<Index> bucket_start_, edge_bucket_start_;
   std::vector<std::array<Index, 2>> scratch_, edge_scratch_;
+  Candidates scratch_candidates_;
   bool ready_ = false;
 };
 

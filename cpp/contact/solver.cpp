@@ -153,23 +153,82 @@ void Solver::barrier_gradient(const Scalar* x, Scalar* g) const {
   }
 }
 
-SparseMatrix Solver::barrier_hessian(const Scalar* x, Projection projection) const {
-  std::vector<Eigen::Triplet<Scalar, Index>>& t = triplets_;
-  t.clear();
+template <class I>
+void Solver::barrier_hessian(const Scalar* x, Projection projection, std::vector<I>& ptr, std::vector<I>& col,
+                             std::vector<Scalar>& val) const {
   const std::vector<Constraint> constraints = find_constraints(model_, broad_phase_, x, dhat2_);
   std::vector<Vec<12>>& gb = barrier_gradients_;
   std::vector<Mat<12>>& Hb = barrier_hessians_;
   evaluate_barriers(model_, constraints, x, dhat2_, &gb, &Hb, projection);
-  for (size_t i = 0; i < constraints.size(); ++i) {
-    const int k = constraints[i].stencil_size();
-    const Index* v = constraints[i].stencil();
-    for (int a = 0; a < 3 * k; ++a)
-      for (int b = 0; b < 3 * k; ++b) t.emplace_back(3 * v[a / 3] + a % 3, 3 * v[b / 3] + b % 3, Hb[i](a, b));
+  // CSR straight from the contact blocks (no triplets): the 3x3 blocks (v_a, v_b) of every
+  // contact, bucketed by row vertex in contact order (counting sort), each row's entries
+  // stably sorted by column vertex; equal blocks are summed in contact order, as
+  // setFromTriplets sums duplicates, so the values are those of the triplet assembly.
+  const Index n = model_.vertex_count;
+  std::vector<Index>& start = hessian_row_start_;
+  std::vector<HessianEntry>& entries = hessian_entries_;
+  start.assign(static_cast<size_t>(n) + 1, 0);
+  size_t total = 0;
+  for (const Constraint& c : constraints) {
+    const int k = c.stencil_size();
+    for (int a = 0; a < k; ++a) start[static_cast<size_t>(c.stencil()[a]) + 1] += k;
+    total += static_cast<size_t>(k * k);
   }
-  SparseMatrix A(3 * model_.vertex_count, 3 * model_.vertex_count);
-  A.setFromTriplets(t.begin(), t.end());
-  return A;
+  for (Index v = 0; v < n; ++v) start[static_cast<size_t>(v) + 1] += start[static_cast<size_t>(v)];
+  entries.resize(total);
+  {
+    std::vector<Index>& next = hessian_row_next_;
+    next.assign(start.begin(), start.end() - 1);
+    for (size_t i = 0; i < constraints.size(); ++i) {
+      const int k = constraints[i].stencil_size();
+      const Index* v = constraints[i].stencil();
+      for (int a = 0; a < k; ++a)
+        for (int b = 0; b < k; ++b)
+          entries[static_cast<size_t>(next[static_cast<size_t>(v[a])]++)] =
+              HessianEntry{v[b], static_cast<Index>(i), static_cast<int>(a), static_cast<int>(b)};
+    }
+  }
+  // Distinct column vertices per row vertex; scalar rows 3v..3v+2 each hold 3 per block.
+  std::vector<Index>& blocks = hessian_row_blocks_;
+  blocks.assign(static_cast<size_t>(n), 0);
+  for (Index v = 0; v < n; ++v) {
+    auto first = entries.begin() + start[static_cast<size_t>(v)], last = entries.begin() + start[static_cast<size_t>(v) + 1];
+    if (first == last) continue;
+    std::stable_sort(first, last, [](const HessianEntry& p, const HessianEntry& q) { return p.col < q.col; });
+    Index m = 1;
+    for (auto it = first + 1; it != last; ++it) m += it->col != (it - 1)->col;
+    blocks[static_cast<size_t>(v)] = m;
+  }
+  ptr.assign(static_cast<size_t>(3 * n) + 1, 0);
+  for (Index v = 0; v < n; ++v)
+    for (int r = 0; r < 3; ++r)
+      ptr[static_cast<size_t>(3 * v + r) + 1] = ptr[static_cast<size_t>(3 * v + r)] + static_cast<I>(3 * blocks[static_cast<size_t>(v)]);
+  const size_t nnz = static_cast<size_t>(ptr.back());
+  col.resize(nnz);
+  val.assign(nnz, Scalar(0));
+  for (Index v = 0; v < n; ++v) {
+    Index slot = -1, last_col = -1;
+    for (Index e = start[static_cast<size_t>(v)]; e < start[static_cast<size_t>(v) + 1]; ++e) {
+      const HessianEntry& h = entries[static_cast<size_t>(e)];
+      if (h.col != last_col) {
+        ++slot;
+        last_col = h.col;
+        for (int r = 0; r < 3; ++r)
+          for (int c = 0; c < 3; ++c)
+            col[static_cast<size_t>(ptr[static_cast<size_t>(3 * v + r)] + 3 * slot + c)] = static_cast<I>(3 * h.col + c);
+      }
+      const Mat<12>& H = Hb[static_cast<size_t>(h.contact)];
+      for (int r = 0; r < 3; ++r)
+        for (int c = 0; c < 3; ++c)
+          val[static_cast<size_t>(ptr[static_cast<size_t>(3 * v + r)] + 3 * slot + c)] += H(3 * h.a + r, 3 * h.b + c);
+    }
+  }
 }
+
+template void Solver::barrier_hessian<int32_t>(const Scalar*, Projection, std::vector<int32_t>&,
+                                               std::vector<int32_t>&, std::vector<Scalar>&) const;
+template void Solver::barrier_hessian<int64_t>(const Scalar*, Projection, std::vector<int64_t>&,
+                                               std::vector<int64_t>&, std::vector<Scalar>&) const;
 
 std::vector<Constraint> Solver::constraints(const Scalar* x) const {
   return find_constraints(model_, broad_phase_, x, dhat2_);

@@ -8,6 +8,7 @@
 #pragma once
 
 #include <Eigen/SparseCore>
+#include <cstdint>
 #include <memory>
 #include <vector>
 
@@ -71,7 +72,12 @@ class Solver {
   // Barrier energy sum_k b(d_k(x)) [m^4] and its gradient (3n) and Hessian (made PSD or not).
   Scalar barrier_energy(const Scalar* x) const;
   void barrier_gradient(const Scalar* x, Scalar* g) const;
-  SparseMatrix barrier_hessian(const Scalar* x, Projection projection) const;
+  // The Hessian as CSR arrays (3n rows; row pointers, column indices sorted in each row,
+  // values), assembled directly from the contact blocks; I is int32_t or int64_t (the caller
+  // checks that the entries fit).
+  template <class I>
+  void barrier_hessian(const Scalar* x, Projection projection, std::vector<I>& ptr, std::vector<I>& col,
+                       std::vector<Scalar>& val) const;
   // The active pairs at x and the largest collision-free fraction of the move x -> x + dx,
   // on the solver's broad phase (its trees refit, not rebuilt).
   std::vector<Constraint> constraints(const Scalar* x) const;
@@ -126,12 +132,18 @@ class Solver {
   // The region the candidates cover: per coordinate, the sweep they were found for grown by a
   // margin; a sweep inside it reuses them (no broad phase).
   std::vector<Scalar> cover_lo_, cover_hi_;
-  // Per-contact barrier derivatives and the Hessian's triplets, kept so that their storage (a
+  // Per-contact barrier derivatives, kept so that their storage (a
   // few hundred kB, beyond malloc's mmap threshold) is not returned to the system and faulted
   // in again on every evaluation.
   mutable std::vector<Vec<12>> barrier_gradients_;
   mutable std::vector<Mat<12>> barrier_hessians_;
-  mutable std::vector<Eigen::Triplet<Scalar, Index>> triplets_;
+  // The Hessian's CSR assembly scratch: its 3x3 blocks bucketed by row vertex.
+  struct HessianEntry {
+    Index col, contact;
+    int a, b;
+  };
+  mutable std::vector<HessianEntry> hessian_entries_;
+  mutable std::vector<Index> hessian_row_start_, hessian_row_next_, hessian_row_blocks_;
 };
 
 }  // namespace kinema::contact
