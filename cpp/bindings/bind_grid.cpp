@@ -214,8 +214,11 @@ struct PyFluid {
 
   // (dL/d(before) as a dict, dL/dviscosity or None when not wanted, dL/dcontrol or None) of one
   // step from `before`.
+  // warm_start: the pressure solve may start from the last call's solution when that was the
+  // adjoint of the next step (km.diff's backward chain, reset by reset_adjoint_warm_start at its
+  // start); else from zero, so a lone call's bits do not depend on the calls before it.
   py::tuple step_adjoint(Scalar dt, const py::dict& before, const py::object& control, const py::dict& grads,
-                         bool want_viscosity, const AdvectionKept* forward) {
+                         bool want_viscosity, const AdvectionKept* forward, bool warm_start) {
     // `before` read in place when it is a state_copy dict (km.diff's), else copied
     const grid::State* held = held_state(before);
     const grid::State b = held ? grid::State{} : read_state(before, false);
@@ -227,6 +230,7 @@ struct PyFluid {
     {
       Interrupt interrupt = python_interrupt();
       ReleaseGil release;
+      if (!warm_start) solver_->reset_adjoint_warm_start();
       solver_->step_adjoint(held ? *held : b, dt, u, adjoint, want_viscosity ? &grad_viscosity : nullptr,
                             u ? grad_control.data() : nullptr, interrupt, forward ? &forward->scratch : nullptr);
     }
@@ -338,6 +342,7 @@ struct PyRecord {
     {
       Interrupt interrupt = python_interrupt();
       ReleaseGil release;
+      fluid->solver_->reset_adjoint_warm_start();  // a chain of its own steps only
       for (Index k = steps - 1; k >= 0; --k) {
         Scalar g = 0;
         const Scalar* u = controls.empty() ? nullptr : controls.data() + k * per_step;
@@ -455,7 +460,9 @@ void bind_grid(py::module_& m) {
       .def("state_copy", &PyFluid::state_copy)
       .def("step", &PyFluid::step, py::arg("dt"), py::arg("control") = py::none())
       .def("step_adjoint", &PyFluid::step_adjoint, py::arg("dt"), py::arg("before"), py::arg("control"),
-           py::arg("grads"), py::arg("want_viscosity") = true, py::arg("forward") = nullptr)
+           py::arg("grads"), py::arg("want_viscosity") = true, py::arg("forward") = nullptr,
+           py::arg("warm_start") = false)
+      .def("reset_adjoint_warm_start", [](PyFluid& f) { f.solver_->reset_adjoint_warm_start(); })
       .def("step_keep", &PyFluid::step_keep, py::arg("dt"), py::arg("control") = py::none(),
            py::arg("reuse") = py::none())
       .def("record", &record_run, py::arg("dt"), py::arg("steps"), py::arg("controls"),

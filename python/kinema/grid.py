@@ -410,12 +410,16 @@ class Fluid:
         # adjoint recomputes only the advection's first passes of each step
         self._diff_wanted = names
         self._diff_spent = None  # a backward's spent advection scratch goes with it
+        if names is not None:  # a backward starts: its adjoint pressure solves chain from zero
+            self._core.reset_adjoint_warm_start()
 
     def _diff_step_adjoint(self, dt, before, after, control, grad_after, step_options, forward=None):
         wanted = getattr(self, "_diff_wanted", None)
         want_nu = wanted is None or "viscosity" in wanted
+        # inside km.diff's backward (wanted set) each pressure solve warm-starts from the one of
+        # the step after it, the previous call of that backward; a lone call starts from zero
         grads, g_nu, g_control = self._core.step_adjoint(time_step(dt), before, control, grad_after, want_nu,
-                                                         forward)
+                                                         forward, wanted is not None)
         if forward is not None and wanted is not None:  # within km.diff's backward, which drops it
             self._diff_spent = forward
         return grads, ({"viscosity": g_nu} if want_nu else {}), g_control
