@@ -55,26 +55,10 @@ def recompute(sim):
         sim, sim._core.record(dt, int(steps), controls, False))
 
 
-def copying_state(sim):
-    """sim with km.diff's state copies of before the held-copy views: state() copies each view
-    with numpy and km.diff copies the dict again (``_diff_state_copies`` off), so every adjoint
-    step reads a copied `before` (the A/B of that change, in one process; the same bits)."""
-    sim._diff_state_copies = False
-
-    def state():
-        out = {name: view.copy() for name, view in sim._state_arrays().items()}
-        out["time"], out["steps"] = np.float64(sim.time), np.int64(sim.steps)
-        return out
-
-    sim.state = state
-
-
-def case(shape, steps, advection, rk, tol=TOL, kept=True, reps=1, copies=True):
+def case(shape, steps, advection, rk, tol=TOL, kept=True, reps=1):
     sim, s0, loss, dt, controls, weights, direction = setup(shape, steps, advection, rk, tol)
     if not kept:
         recompute(sim)
-    if not copies:
-        copying_state(sim)
 
     def cpu(fn, reps=1):
         best = float("inf")
@@ -101,7 +85,7 @@ def case(shape, steps, advection, rk, tol=TOL, kept=True, reps=1, copies=True):
         out[name] = backward / forward
         out[name + " backward"] = backward
         print(f"{len(shape)}D {'x'.join(map(str, shape))} {advection} rk{rk} T={steps} {name:12s}"
-              f"{'' if kept else ' (recomputed)'}{'' if copies else ' (state copied)'}: CPU rollout {out[name + ' rollout']:.3f} s, forward "
+              f"{'' if kept else ' (recomputed)'}: CPU rollout {out[name + ' rollout']:.3f} s, forward "
               f"{forward:.3f} s, backward {backward:.3f} s, backward/forward {backward / forward:.2f}, "
               f"|adj - FD|/|FD| {err:.1e}", flush=True)
     return out
@@ -134,10 +118,6 @@ def main():
     ap.add_argument("--ab", type=int, default=0, metavar="ROUNDS",
                     help="A/B: per case, ROUNDS alternating runs without and with the forward's kept "
                          "advection scratch (recomputed vs read); prints the mean backward of each")
-    ap.add_argument("--copies-ab", type=int, default=0, metavar="ROUNDS",
-                    help="A/B: per case, ROUNDS alternating runs with state() copied twice on its way into "
-                         "km.diff and with the held-copy views (_diff_state_copies); prints the mean rollout "
-                         "+ backward of each")
     ap.add_argument("--dims", type=int, nargs="+", default=[2, 3], help="the dimensions to run (2, 3)")
     ap.add_argument("--reps", type=int, default=1,
                     help="the best of this many forward runs and of as many rollout + backward runs per case "
@@ -174,18 +154,6 @@ def main():
                                f"kept {mean[True]['stored']:.2f}/{mean[True]['checkpointed']:.2f}; rollout [s] "
                                f"recomputed {mean[False]['stored rollout']:.3f}/{mean[False]['checkpointed rollout']:.3f}, "
                                f"kept {mean[True]['stored rollout']:.3f}/{mean[True]['checkpointed rollout']:.3f}")
-                continue
-            if opts.copies_ab:
-                runs = {False: [], True: []}
-                for _ in range(opts.copies_ab):
-                    for copies in (False, True):
-                        runs[copies].append(case(shape, steps, advection, rk, reps=opts.reps, copies=copies))
-                total = {c: [[r[k + " rollout"] + r[k + " backward"] for r in rs] for k in ("stored", "checkpointed")]
-                         for c, rs in runs.items()}
-                summary.append(f"{len(shape)}D {advection} rollout + backward stored/checkpointed [s] mean (min-max) "
-                               + ", ".join(f"{'views' if c else 'copied'} "
-                                           + "/".join(f"{np.mean(t):.3f} ({min(t):.3f}-{max(t):.3f})" for t in ts)
-                                           for c, ts in total.items()))
                 continue
             r = case(shape, steps, advection, rk, reps=opts.reps)
             summary.append(f"{len(shape)}D {advection} {r['stored']:.2f}/{r['checkpointed']:.2f}")

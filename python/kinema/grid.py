@@ -313,7 +313,7 @@ class Fluid:
         """Everything a step evolves, as copies: u, v[, w] [m/s], pressure [m^2/s^2] (the warm
         start of the next projection), density and temperature when enabled, time [s] and
         steps. :meth:`set_state` of this dict resumes bit for bit."""
-        out = self._core.state_copy()  # views of one C++ copy, which km.diff's adjoint reads in place
+        out = {name: view.copy() for name, view in self._state_arrays().items()}
         out["time"], out["steps"] = np.float64(self.time), np.int64(self.steps)
         return out
 
@@ -340,8 +340,6 @@ class Fluid:
         return self._core.step(time_step(dt))
 
     # ------------------------------------------------------------ km.diff protocol
-    _diff_state_copies = True  # state() makes new arrays on every call (km.diff holds them as they are)
-
     @property
     def _diff_state_names(self):
         names = tuple("uvw"[:self.dim])
