@@ -731,8 +731,10 @@ class SolverD final : public Solver::Impl {
 
   void pressures(State& s) {
     parallel_for(s.n, [&](Index i) { s.pressure[i] = tait_pressure(s.density[i], config_.rho0, B_, config_.gamma); });
+    // The walls' P_b, where a particle is near (no other is read).
     if (walls_.size() > 0)
       parallel_for(walls_.rows(), [&](Index c) {
+        if (walls_.start[c] == walls_.start[c + 1]) return;
         const Index b = walls_.begin + c;
         const Scalar rho = wall_rho_[b];
         wall_P_[b] = tait_pressure(rho, config_.rho0, B_, config_.gamma) / (rho * rho);
