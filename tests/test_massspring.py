@@ -320,3 +320,11 @@ def test_implicit_step_names_the_real_cause_of_a_singular_matrix(d):
     ok.x[2, 0] = 2.1
     ok.step(0.1)
     assert np.isfinite(ok.x).all() and ok.x[2, 0] < 2.1
+
+
+def test_an_empty_spring_list_is_no_springs():
+    # numpy makes [] float64: System(x, []) was refused as "expected integer indices".
+    s = km.massspring.System(np.zeros((2, 2)), [], stiffness=1.0, gravity=(0, -9.81))
+    assert s.springs.shape == (0, 2)
+    s.step(0.1)
+    np.testing.assert_allclose(s.x[:, 1], -9.81 * 0.1**2)

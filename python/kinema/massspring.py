@@ -75,11 +75,11 @@ def _enum(value, name, enum, options):
     return getattr(enum, choice(value, name, options))
 
 
-@simulation_object
 def _implicit(config) -> bool:
     return config.integrator == Integrator.implicit
 
 
+@simulation_object
 class System:
     """A mass-spring system.
 
