@@ -514,7 +514,13 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
   // fewer per step); pairs are sorted, so a larger candidate set finds the same pairs.
   for (size_t k = 0; k < xhat_.size(); ++k) sweep_[k] = xhat_[k] - xn_[k];
   keep_candidates(xn_.data(), sweep_.data(), true, stats);
-  std::vector<Constraint> current = find_constraints(model_, candidates_, xn_.data(), dhat2_), next;
+  // The active pairs at x_n: those the last step ended with when the state is still where it
+  // left it (bitwise; the pairs are a function of x), else found.
+  std::vector<Constraint> current, next;
+  if (end_x_ == xn_)
+    current = end_constraints_;
+  else
+    current = find_constraints(model_, candidates_, xn_.data(), dhat2_);
   lag_friction(xn_, current, kappa, h);
   // Spring damping acts along the spring directions at x_n.
   const Index spring_count = static_cast<Index>(model_.spring_rest.size());
@@ -560,6 +566,10 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
   stats.unknowns = m;
   Scalar prev_min = std::numeric_limits<Scalar>::infinity();
   bool converged = false;
+  // Phi at the current iterate, known after an accepted line search (the trial's value: same x,
+  // same pairs, so the same bits) until kappa or a driven multiplier changes.
+  Scalar phi_x = 0;
+  bool phi_known = false;
   for (Index it = 0; it < config_.max_newton; ++it) {
     interrupt.check();
     // Projected Newton direction: H p = -grad Phi over the degrees of freedom.
@@ -621,6 +631,7 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
             const size_t k = static_cast<size_t>(3 * i + r);
             driven_lambda_[k] -= driven_stiffness_ * (x[k] - target_[k]);
           }
+      phi_known = false;
       continue;
     }
     // Largest intersection-free step by CCD, then backtracking until Phi decreases.
@@ -634,12 +645,15 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
     stats.ccd_seconds += ccd_timer.seconds();
     stats.min_step_fraction = std::min(stats.min_step_fraction, alpha);
     phase.restart();
-    const Scalar phi0 = potential(x, h, kappa, current, true);
+    const Scalar phi0 = phi_known ? phi_x : potential(x, h, kappa, current, true);
     bool accepted = false;
     for (int ls = 0; ls < 60; ++ls) {
       for (size_t k = 0; k < x.size(); ++k) trial[k] = x[k] + alpha * p[k];
-      if (potential(trial, h, kappa, next, false) <= phi0) {
+      const Scalar phi = potential(trial, h, kappa, next, false);
+      if (phi <= phi0) {
         accepted = true;
+        phi_x = phi;
+        phi_known = true;
         break;
       }
       alpha /= 2;
@@ -659,7 +673,10 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
     Scalar dmin = std::numeric_limits<Scalar>::infinity();
     for (const Constraint& c : current) dmin = std::min(dmin, std::sqrt(c.d));
     const Scalar eps_d = 1e-9 * diag;
-    if (prev_min < eps_d && dmin < eps_d && dmin < prev_min) kappa *= 2;
+    if (prev_min < eps_d && dmin < eps_d && dmin < prev_min) {
+      kappa *= 2;
+      phi_known = false;
+    }
     prev_min = dmin;
   }
   if (!converged) {
@@ -689,6 +706,9 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
       current = find_constraints(model_, candidates_, x.data(), dhat2_);
     }
   }
+  // Kept for the next step's start (x_n is then this x unless the user moved it).
+  end_x_ = x;
+  end_constraints_ = current;
   // Velocities from the displacement (implicit Euler).
   for (size_t k = 0; k < x.size(); ++k) state.v[k] = (x[k] - xn_[k]) / h;
   state.x = x;

@@ -129,6 +129,10 @@ class Solver {
   // line search (x + alpha p, alpha <= 1) finds its active pairs among them.
   mutable BroadPhase broad_phase_;
   Candidates candidates_;
+  // The positions the last step ended at and their active pairs (the next step's pairs at x_n
+  // when the state was not moved in between).
+  std::vector<Scalar> end_x_;
+  std::vector<Constraint> end_constraints_;
   // The region the candidates cover: per coordinate, the sweep they were found for grown by a
   // margin; a sweep inside it reuses them (no broad phase).
   std::vector<Scalar> cover_lo_, cover_hi_;
