@@ -439,7 +439,7 @@ void Solver::refresh_slots(const NewtonSystem& system) {
   slots_layout_ = system.layout();
 }
 
-bool Solver::keep_candidates(const Scalar* x, const Scalar* p, bool force, StepStats& stats) {
+bool Solver::keep_candidates(const Scalar* x, const Scalar* p, Scalar reach, bool force, StepStats& stats) {
   const size_t k = static_cast<size_t>(3 * model_.vertex_count);
   if (!force && cover_lo_.size() == k) {
     bool covered = true;
@@ -456,6 +456,16 @@ bool Solver::keep_candidates(const Scalar* x, const Scalar* p, bool force, StepS
   // once per Newton iteration (7.6), while the larger candidate set costs the narrow phase
   // little (larger margins cost more than they save).
   const Scalar delta = config_.dhat;
+  // The region covers the sweep x -> x + reach p: inside the Newton loop reach = 2, since the
+  // iterates that follow mostly go on in p's direction (in Newton's linear phase every full
+  // step falls short, and the next ones continue along much the same path):
+  // on the 16x16 cloth 2.5 broad phases per step instead of 3.65 (at reach 3, 2.3, but the
+  // larger candidate set then costs more than it saves; a uniformly larger delta more still).
+  if (p && reach != 1) {
+    reach_.resize(k);
+    for (size_t i = 0; i < k; ++i) reach_[i] = reach * p[i];
+    p = reach_.data();
+  }
   cover_lo_.resize(k);
   cover_hi_.resize(k);
   for (size_t i = 0; i < k; ++i) {
@@ -513,7 +523,7 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
   // Newton step heads there, so its CCD and line search mostly reuse them (one broad phase
   // fewer per step); pairs are sorted, so a larger candidate set finds the same pairs.
   for (size_t k = 0; k < xhat_.size(); ++k) sweep_[k] = xhat_[k] - xn_[k];
-  keep_candidates(xn_.data(), sweep_.data(), true, stats);
+  keep_candidates(xn_.data(), sweep_.data(), 1, true, stats);
   // The active pairs at x_n: those the last step ended with when the state is still where it
   // left it (bitwise; the pairs are a function of x), else found.
   std::vector<Constraint> current, next;
@@ -640,7 +650,7 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
     // Candidates covering the sweep x -> x + p hold the CCD pairs, every line-search trial's
     // active pairs and the next iteration's; the broad phase runs only when the sweep leaves
     // the region the kept ones cover.
-    keep_candidates(x.data(), p.data(), false, stats);
+    keep_candidates(x.data(), p.data(), 2, false, stats);
     Scalar alpha = contact::max_safe_step(model_, candidates_, x.data(), p.data(), ccd);
     stats.ccd_seconds += ccd_timer.seconds();
     stats.min_step_fraction = std::min(stats.min_step_fraction, alpha);
@@ -701,7 +711,7 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
       if (model_.driven[static_cast<size_t>(i)])
         for (int r = 0; r < 3; ++r) rest_move[static_cast<size_t>(3 * i + r)] = target_[static_cast<size_t>(3 * i + r)] - x[static_cast<size_t>(3 * i + r)];
     if (max_safe_step(x.data(), rest_move.data()) >= 1) {
-      keep_candidates(x.data(), rest_move.data(), false, stats);
+      keep_candidates(x.data(), rest_move.data(), 1, false, stats);
       for (size_t k = 0; k < x.size(); ++k) x[k] += rest_move[k];
       current = find_constraints(model_, candidates_, x.data(), dhat2_);
     }

@@ -99,8 +99,9 @@ class Solver {
   Scalar initial_kappa(Scalar h) const;
   void refresh_slots(const NewtonSystem& system);
   // Keeps candidates_ covering the sweep x -> x + p (p may be null): true when the broad phase
-  // ran, false when the kept candidates already cover it (force: run it).
-  bool keep_candidates(const Scalar* x, const Scalar* p, bool force, StepStats& stats);
+  // ran, false when the kept candidates already cover it (force: run it). A broad phase that
+  // runs covers the longer sweep x -> x + reach p.
+  bool keep_candidates(const Scalar* x, const Scalar* p, Scalar reach, bool force, StepStats& stats);
 
   const Model& model_;
   Config config_;
@@ -135,7 +136,7 @@ class Solver {
   std::vector<Constraint> end_constraints_;
   // The region the candidates cover: per coordinate, the sweep they were found for grown by a
   // margin; a sweep inside it reuses them (no broad phase).
-  std::vector<Scalar> cover_lo_, cover_hi_;
+  std::vector<Scalar> cover_lo_, cover_hi_, reach_;
   // Per-contact barrier derivatives, kept so that their storage (a
   // few hundred kB, beyond malloc's mmap threshold) is not returned to the system and faulted
   // in again on every evaluation.
