@@ -329,7 +329,8 @@ void Solver::assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, cons
   g.assign(static_cast<size_t>(3 * n), 0);
   system.clear();
   const Scalar h2 = h * h;
-  auto add_grad = [&](const Index* verts, int count, const Eigen::Ref<const VectorX>& ge) {
+  // (Generic: an element's gradient expression is read in place, not copied into a heap vector.)
+  auto add_grad = [&](const Index* verts, int count, const auto& ge) {
     for (int a = 0; a < count; ++a)
       for (int r = 0; r < 3; ++r) g[static_cast<size_t>(3 * verts[a] + r)] += ge[3 * a + r];
   };
@@ -397,7 +398,7 @@ void Solver::assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, cons
     const Constraint& c = constraints[i];
     const int k = c.stencil_size();
     add_grad(c.stencil(), k, kappa * gb[i].head(3 * k));
-    system.add(c.stencil(), k, (kappa * Hb[i]).eval());
+    system.add(c.stencil(), k, kappa * Hb[i]);
   }
   // Friction: h^2 mu lambda (f1(y)/y u/h through T, and the PSD tangent Hessian).
   const Scalar eps_v = config_.friction_velocity;
@@ -414,8 +415,8 @@ void Solver::assemble(const std::vector<Scalar>& x, Scalar h, Scalar kappa, cons
     }
     const Eigen::Matrix<Scalar, 3, 1> g3 = f.P * gu;
     const Mat3 H3 = f.P * Hu * f.P.transpose();
-    VectorX ge(3 * f.count);
-    MatrixX He(3 * f.count, 3 * f.count);
+    Vec<12> ge;
+    Mat<12> He;
     for (int a = 0; a < f.count; ++a) {
       ge.segment<3>(3 * a) = f.w[a] * g3;
       for (int b = 0; b < f.count; ++b) He.block<3, 3>(3 * a, 3 * b) = f.w[a] * f.w[b] * H3;
