@@ -467,6 +467,9 @@ bool Solver::keep_candidates(const Scalar* x, const Scalar* p, Scalar reach, boo
     for (size_t i = 0; i < k; ++i) reach_[i] = reach * p[i];
     p = reach_.data();
   }
+  Stopwatch timer;
+  cover_lo_.clear();  // (no cover while the candidates are being replaced)
+  broad_phase_.find(model_, x, p, config_.dhat + 2 * delta, candidates_);
   cover_lo_.resize(k);
   cover_hi_.resize(k);
   for (size_t i = 0; i < k; ++i) {
@@ -474,8 +477,6 @@ bool Solver::keep_candidates(const Scalar* x, const Scalar* p, Scalar reach, boo
     cover_lo_[i] = std::min(a, b) - delta;
     cover_hi_[i] = std::max(a, b) + delta;
   }
-  Stopwatch timer;
-  broad_phase_.find(model_, x, p, config_.dhat + 2 * delta, candidates_);
   stats.broad_phase_seconds += timer.seconds();
   ++stats.broad_phases;
   return true;
@@ -520,18 +521,20 @@ StepStats Solver::step(State& state, Scalar dt, Interrupt& interrupt) {
   }
   Scalar kappa = state.kappa;
   // The active pairs at the current iterate (kept: the assembly, the line search's Phi at x
-  // and the kappa update all read them). The candidates cover the sweep x_n -> xhat: the first
-  // Newton step heads there, so its CCD and line search mostly reuse them (one broad phase
-  // fewer per step); pairs are sorted, so a larger candidate set finds the same pairs.
-  for (size_t k = 0; k < xhat_.size(); ++k) sweep_[k] = xhat_[k] - xn_[k];
-  keep_candidates(xn_.data(), sweep_.data(), 1, true, stats);
-  // The active pairs at x_n: those the last step ended with when the state is still where it
-  // left it (bitwise; the pairs are a function of x), else found.
+  // and the kappa update all read them). At x_n: those the last step ended with when the state
+  // is still where it left it (bitwise; the pairs are a function of x), and then no broad phase
+  // here: the kept candidates serve until a Newton sweep leaves the region they cover (on the
+  // 16x16 cloth 1.6 broad phases per step instead of 2.5 with one covering x_n -> xhat first).
+  // Else the candidates cover the sweep x_n -> xhat, where the first Newton step heads. Pairs
+  // are sorted, so a larger candidate set finds the same pairs.
   std::vector<Constraint> current, next;
-  if (end_x_ == xn_)
+  if (!end_x_.empty() && end_x_ == xn_) {
     current = end_constraints_;
-  else
+  } else {
+    for (size_t k = 0; k < xhat_.size(); ++k) sweep_[k] = xhat_[k] - xn_[k];
+    keep_candidates(xn_.data(), sweep_.data(), 1, true, stats);
     current = find_constraints(model_, candidates_, xn_.data(), dhat2_);
+  }
   lag_friction(xn_, current, kappa, h);
   // Spring damping acts along the spring directions at x_n.
   const Index spring_count = static_cast<Index>(model_.spring_rest.size());

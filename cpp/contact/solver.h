@@ -35,8 +35,9 @@ struct StepStats : StepStatsBase {
   Scalar barrier_stiffness = 0;    // kappa of the step [kg/m^2] (Phi units)
   double assemble_seconds = 0, solve_seconds = 0, line_search_seconds = 0;  // wall time per phase [s]
   // Parts of those: the numeric factorisations (in solve_seconds) and the broad phases (in
-  // ccd_seconds, but for the step's first, before the Newton loop, and a driven collider's
-  // last move) [s]; how many broad phases ran (the kept candidates cover the other sweeps).
+  // ccd_seconds, but for one before the Newton loop, when the state moved since the last step
+  // ended, and a driven collider's last move) [s]; how many broad phases ran (the kept
+  // candidates cover the other sweeps).
   double factor_seconds = 0, broad_phase_seconds = 0;
   Index broad_phases = 0;
   // Symbolic analyses of the Newton matrix in this step: its pattern changed (a contact block
