@@ -460,7 +460,7 @@ bool Solver::keep_candidates(const Scalar* x, const Scalar* p, Scalar reach, boo
   // The region covers the sweep x -> x + reach p: inside the Newton loop reach = 2, since the
   // iterates that follow mostly go on in p's direction (in Newton's linear phase every full
   // step falls short, and the next ones continue along much the same path):
-  // on the 16x16 cloth 1.6 broad phases per step instead of 2.7 at reach 1 (reach 3: 1.4, but
+  // on the 16x16 cloth 1.6 broad phases per step instead of 3.0 at reach 1 (reach 3: 1.4, but
   // the larger candidate set then costs about what it saves; a uniformly larger delta more).
   if (p && reach != 1) {
     reach_.resize(k);
