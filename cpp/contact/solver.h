@@ -35,8 +35,9 @@ struct StepStats : StepStatsBase {
   Scalar barrier_stiffness = 0;    // kappa of the step [kg/m^2] (Phi units)
   double assemble_seconds = 0, solve_seconds = 0, line_search_seconds = 0;  // wall time per phase [s]
   // Parts of those: the numeric factorisations (in solve_seconds) and the broad phases (in
-  // ccd_seconds, but for the step's first, before the Newton loop, and a driven collider's
-  // last move) [s]; how many broad phases ran (the kept candidates cover the other sweeps).
+  // ccd_seconds, but for one before the Newton loop, when the state moved since the last step
+  // ended, and a driven collider's last move) [s]; how many broad phases ran (the kept
+  // candidates cover the other sweeps).
   double factor_seconds = 0, broad_phase_seconds = 0;
   Index broad_phases = 0;
   // Symbolic analyses of the Newton matrix in this step: its pattern changed (a contact block
@@ -99,8 +100,9 @@ class Solver {
   Scalar initial_kappa(Scalar h) const;
   void refresh_slots(const NewtonSystem& system);
   // Keeps candidates_ covering the sweep x -> x + p (p may be null): true when the broad phase
-  // ran, false when the kept candidates already cover it (force: run it).
-  bool keep_candidates(const Scalar* x, const Scalar* p, bool force, StepStats& stats);
+  // ran, false when the kept candidates already cover it (force: run it). A broad phase that
+  // runs covers the longer sweep x -> x + reach p.
+  bool keep_candidates(const Scalar* x, const Scalar* p, Scalar reach, bool force, StepStats& stats);
 
   const Model& model_;
   Config config_;
@@ -129,9 +131,13 @@ class Solver {
   // line search (x + alpha p, alpha <= 1) finds its active pairs among them.
   mutable BroadPhase broad_phase_;
   Candidates candidates_;
+  // The positions the last step ended at and their active pairs (the next step's pairs at x_n
+  // when the state was not moved in between).
+  std::vector<Scalar> end_x_;
+  std::vector<Constraint> end_constraints_;
   // The region the candidates cover: per coordinate, the sweep they were found for grown by a
   // margin; a sweep inside it reuses them (no broad phase).
-  std::vector<Scalar> cover_lo_, cover_hi_;
+  std::vector<Scalar> cover_lo_, cover_hi_, reach_;
   // Per-contact barrier derivatives, kept so that their storage (a
   // few hundred kB, beyond malloc's mmap threshold) is not returned to the system and faulted
   // in again on every evaluation.
