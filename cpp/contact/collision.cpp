@@ -176,7 +176,8 @@ void sort_pairs(Pairs& pairs, Index n, std::vector<Index>& start, Pairs& scratch
 
 }  // namespace
 
-// Pairs from simultaneous descents of two trees (Bvh::query_pairs / query_self), every box
+// Pairs from simultaneous descents of two trees that test the primitives' own boxes in the
+// leaves (Bvh::query_box_pairs / query_box_self: exactly the overlapping pairs), every box
 // grown by r / 2 (two boxes grown by r / 2 meet exactly where one grown by r meets the other):
 // moving points against the moving and the fixed faces, fixed points against the moving ones; moving edges
 // against each other (the lower edge first) and against the fixed edges. The pairs are sorted,

@@ -1,7 +1,9 @@
 // Bounding volume hierarchy over axis-aligned boxes of primitives (the renderer's spheres and
 // triangles, the contact solver's points, edges and faces), built top-down with the binned
-// surface area heuristic. Two queries: a ray walk, near child first (rendering), and all boxes
-// overlapping a given box (contact broad phase).
+// surface area heuristic. Queries: a ray walk, near child first (rendering), all boxes
+// overlapping a given box, and simultaneous descents of two trees (or of one against itself)
+// for the overlapping primitive pairs (contact broad phase; the exact ones test the primitive
+// boxes the tree keeps in leaf order).
 //
 //   SAH cost of a split: C = C_trav + (A_L / A) N_L C_isect + (A_R / A) N_R C_isect
 // evaluated at the boundaries of 16 centroid bins along the widest centroid axis (Wald, "On fast
