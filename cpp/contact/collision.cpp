@@ -17,23 +17,47 @@ namespace {
 
 Vec3 at(const Scalar* x, Index i) { return Eigen::Map<const Vec3>(x + 3 * i); }
 
-// Box of the primitive (k vertices at prim) at x, swept to x + dx when dx is given, grown by r.
-void primitive_box(const Index* prim, int k, const Scalar* x, const Scalar* dx, Scalar r, Scalar* lo, Scalar* hi) {
+// Box of the primitive (K vertices at prim) at x, swept to x + dx when Swept, grown by r.
+template <int K, bool Swept>
+inline void primitive_box(const Index* prim, const Scalar* x, const Scalar* dx, Scalar r, Scalar* lo, Scalar* hi) {
+  const Scalar* y[K];
+  const Scalar* z[K];
+  for (int a = 0; a < K; ++a) {
+    y[a] = x + 3 * prim[a];
+    if constexpr (Swept) z[a] = dx + 3 * prim[a];
+  }
   for (int c = 0; c < 3; ++c) {
-    Scalar l = std::numeric_limits<Scalar>::infinity(), h = -l;
-    for (int a = 0; a < k; ++a) {
-      const Scalar y = x[3 * prim[a] + c];
-      l = std::min(l, y);
-      h = std::max(h, y);
-      if (dx) {
-        const Scalar z = y + dx[3 * prim[a] + c];
-        l = std::min(l, z);
-        h = std::max(h, z);
+    Scalar l = y[0][c], h = l;
+    if constexpr (Swept) {
+      const Scalar w = l + z[0][c];
+      l = std::min(l, w);
+      h = std::max(h, w);
+    }
+    for (int a = 1; a < K; ++a) {
+      const Scalar v = y[a][c];
+      l = std::min(l, v);
+      h = std::max(h, v);
+      if constexpr (Swept) {
+        const Scalar w = v + z[a][c];
+        l = std::min(l, w);
+        h = std::max(h, w);
       }
     }
     lo[c] = l - r;
     hi[c] = h + r;
   }
+}
+
+// The same for k = 1, 2 or 3 vertices, swept when dx is given.
+void primitive_box(const Index* prim, int k, const Scalar* x, const Scalar* dx, Scalar r, Scalar* lo, Scalar* hi) {
+  if (dx) {
+    if (k == 1) return primitive_box<1, true>(prim, x, dx, r, lo, hi);
+    if (k == 2) return primitive_box<2, true>(prim, x, dx, r, lo, hi);
+    return primitive_box<3, true>(prim, x, dx, r, lo, hi);
+  }
+  if (k == 1) return primitive_box<1, false>(prim, x, dx, r, lo, hi);
+  if (k == 2) return primitive_box<2, false>(prim, x, dx, r, lo, hi);
+  return primitive_box<3, false>(prim, x, dx, r, lo, hi);
 }
 
 geometry::Bvh primitive_bvh(const std::vector<Index>& prims, int k, const Scalar* x, const Scalar* dx, Scalar r) {
@@ -105,10 +129,19 @@ void BroadPhase::update(Tree& tree, int k, const Scalar* x, const Scalar* dx, Sc
   }
   tree.lo.resize(static_cast<size_t>(3 * count));
   tree.hi.resize(static_cast<size_t>(3 * count));
-  parallel_for(count, [&](Index p) {
-    primitive_box(&tree.prims[static_cast<size_t>(k * p)], k, x, dx, r, &tree.lo[static_cast<size_t>(3 * p)],
-                  &tree.hi[static_cast<size_t>(3 * p)]);
-  });
+  auto boxes = [&](auto vertices, auto swept) {
+    constexpr int K = decltype(vertices)::value;
+    parallel_for(count, [&](Index p) {
+      primitive_box<K, decltype(swept)::value>(&tree.prims[static_cast<size_t>(K * p)], x, dx, r,
+                                                &tree.lo[static_cast<size_t>(3 * p)],
+                                                &tree.hi[static_cast<size_t>(3 * p)]);
+    });
+  };
+  using Yes = std::true_type;
+  using No = std::false_type;
+  if (k == 1) dx ? boxes(std::integral_constant<int, 1>{}, Yes{}) : boxes(std::integral_constant<int, 1>{}, No{});
+  else if (k == 2) dx ? boxes(std::integral_constant<int, 2>{}, Yes{}) : boxes(std::integral_constant<int, 2>{}, No{});
+  else dx ? boxes(std::integral_constant<int, 3>{}, Yes{}) : boxes(std::integral_constant<int, 3>{}, No{});
   if (count == 0) return;
   if (tree.bvh.nodes().empty()) {
     tree.bvh = geometry::Bvh(tree.lo, tree.hi);
@@ -143,7 +176,8 @@ void sort_pairs(Pairs& pairs, Index n, std::vector<Index>& start, Pairs& scratch
 
 }  // namespace
 
-// Pairs from simultaneous descents of two trees (Bvh::query_pairs / query_self), every box
+// Pairs from simultaneous descents of two trees that test the primitives' own boxes in the
+// leaves (Bvh::query_box_pairs / query_box_self: exactly the overlapping pairs), every box
 // grown by r / 2 (two boxes grown by r / 2 meet exactly where one grown by r meets the other):
 // moving points against the moving and the fixed faces, fixed points against the moving ones; moving edges
 // against each other (the lower edge first) and against the fixed edges. The pairs are sorted,
@@ -187,16 +221,11 @@ void BroadPhase::find(const Model& model, const Scalar* x, const Scalar* dx, Sca
   update(fixed_faces_, 3, x, dx, half);
   update(moving_edges_, 2, x, dx, half);
   update(fixed_edges_, 2, x, dx, half);
-  auto boxes_meet = [](const Tree& a, Index i, const Tree& b, Index j) {
-    return overlap(&a.lo[static_cast<size_t>(3 * i)], &a.hi[static_cast<size_t>(3 * i)],
-                   &b.lo[static_cast<size_t>(3 * j)], &b.hi[static_cast<size_t>(3 * j)]);
-  };
-
   auto point_faces = [&](const Tree& points, const Tree& faces) {
-    // The leaves' pairs are a superset: the primitives' boxes first, then the shared vertices
-    // from the trees' own copies of the vertex indices (no lookup through the mesh arrays).
-    points.bvh.query_pairs(faces.bvh, [&](Index i, Index k) {
-      if (!boxes_meet(points, i, faces, k)) return;
+    // The pairs of overlapping boxes (the trees test the primitives' boxes they were refit
+    // to), then the shared vertices from the trees' own copies of the vertex indices (no
+    // lookup through the mesh arrays).
+    points.bvh.query_box_pairs(faces.bvh, [&](Index i, Index k) {
       const Index p = points.prims[static_cast<size_t>(i)];
       const Index* v = &faces.prims[static_cast<size_t>(3 * k)];
       if (p == v[0] || p == v[1] || p == v[2]) return;
@@ -204,7 +233,6 @@ void BroadPhase::find(const Model& model, const Scalar* x, const Scalar* dx, Sca
     });
   };
   auto edge_pair = [&](const Tree& a, Index i, const Tree& b, Index j) {
-    if (!boxes_meet(a, i, b, j)) return;
     const Index a0 = a.prims[static_cast<size_t>(2 * i)], a1 = a.prims[static_cast<size_t>(2 * i + 1)];
     const Index b0 = b.prims[static_cast<size_t>(2 * j)], b1 = b.prims[static_cast<size_t>(2 * j + 1)];
     if (a0 == b0 || a0 == b1 || a1 == b0 || a1 == b1) return;
@@ -230,8 +258,8 @@ void BroadPhase::find(const Model& model, const Scalar* x, const Scalar* dx, Sca
 #pragma omp section
     {
       out.edge_edge.clear();
-      moving_edges_.bvh.query_self([&](Index i, Index j) { edge_pair(moving_edges_, i, moving_edges_, j); });
-      moving_edges_.bvh.query_pairs(fixed_edges_.bvh,
+      moving_edges_.bvh.query_box_self([&](Index i, Index j) { edge_pair(moving_edges_, i, moving_edges_, j); });
+      moving_edges_.bvh.query_box_pairs(fixed_edges_.bvh,
                                     [&](Index i, Index j) { edge_pair(moving_edges_, i, fixed_edges_, j); });
       sort_pairs(out.edge_edge, static_cast<Index>(E.size() / 2), edge_bucket_start_, edge_scratch_);
     }

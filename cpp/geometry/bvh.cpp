@@ -26,6 +26,12 @@ struct Box {
   }
 };
 
+Scalar node_area(const BvhNode& n) {
+  Box b;
+  b.grow(n.lo, n.hi);
+  return b.area();
+}
+
 // Relative cost of a traversal step against one primitive test (PBRT's 1/8).
 constexpr Scalar kTraversalCost = 0.125;
 
@@ -41,6 +47,20 @@ Bvh::Bvh(const std::vector<Scalar>& lo, const std::vector<Scalar>& hi) {
   for (Index i = 0; i < n; ++i) order_[static_cast<size_t>(i)] = i;
   nodes_.reserve(static_cast<size_t>(2 * n));
   build(0, n, 0, lo, hi, centroid);
+  keep_leaf_boxes(lo, hi);
+  area_sum_ = 0;
+  for (size_t k = nodes_.size(); k-- > 0;) area_sum_ += node_area(nodes_[k]);
+}
+
+void Bvh::keep_leaf_boxes(const std::vector<Scalar>& lo, const std::vector<Scalar>& hi) {
+  leaf_box_.resize(2 * lo.size());
+  for (size_t j = 0; j < order_.size(); ++j) {
+    const size_t p = 3 * static_cast<size_t>(order_[j]);
+    for (int c = 0; c < 3; ++c) {
+      leaf_box_[6 * j + c] = lo[p + c];
+      leaf_box_[6 * j + 3 + c] = hi[p + c];
+    }
+  }
 }
 
 std::int32_t Bvh::build(Index begin, Index end, int depth, const std::vector<Scalar>& lo,
@@ -147,14 +167,17 @@ std::int32_t Bvh::build(Index begin, Index end, int depth, const std::vector<Sca
 void Bvh::refit(const std::vector<Scalar>& lo, const std::vector<Scalar>& hi) {
   if (lo.size() != 3 * order_.size() || hi.size() != lo.size())
     throw InvalidArgument("bvh: refit needs the bounds of the same primitives");
-  // Children follow their parent in the depth-first layout, so a reverse sweep sees them first.
+  keep_leaf_boxes(lo, hi);
+  // Children follow their parent in the depth-first layout, so a reverse sweep sees them first;
+  // a leaf's primitives are contiguous in the leaf-ordered bounds.
+  Scalar sum = 0;
   for (size_t k = nodes_.size(); k-- > 0;) {
     BvhNode& node = nodes_[k];
     Box b;
     if (node.count > 0) {
       for (std::int32_t i = 0; i < node.count; ++i) {
-        const size_t p = 3 * static_cast<size_t>(order_[static_cast<size_t>(node.first + i)]);
-        b.grow(&lo[p], &hi[p]);
+        const size_t p = 6 * static_cast<size_t>(node.first + i);
+        b.grow(&leaf_box_[p], &leaf_box_[p + 3]);
       }
     } else {
       const BvhNode& left = nodes_[k + 1];
@@ -164,20 +187,15 @@ void Bvh::refit(const std::vector<Scalar>& lo, const std::vector<Scalar>& hi) {
     }
     std::copy(b.lo, b.lo + 3, node.lo);
     std::copy(b.hi, b.hi + 3, node.hi);
+    sum += b.area();
   }
+  area_sum_ = sum;
 }
 
 Scalar Bvh::area_ratio() const {
   if (nodes_.empty()) return 0;
-  auto area = [](const BvhNode& n) {
-    Box b;
-    b.grow(n.lo, n.hi);
-    return b.area();
-  };
-  Scalar sum = 0;
-  for (const BvhNode& n : nodes_) sum += area(n);
-  const Scalar root = area(nodes_[0]);
-  return root > 0 ? sum / root : 0;
+  const Scalar root = node_area(nodes_[0]);
+  return root > 0 ? area_sum_ / root : 0;
 }
 
 }  // namespace kinema::geometry

@@ -1,7 +1,9 @@
 // Bounding volume hierarchy over axis-aligned boxes of primitives (the renderer's spheres and
 // triangles, the contact solver's points, edges and faces), built top-down with the binned
-// surface area heuristic. Two queries: a ray walk, near child first (rendering), and all boxes
-// overlapping a given box (contact broad phase).
+// surface area heuristic. Queries: a ray walk, near child first (rendering), all boxes
+// overlapping a given box, and simultaneous descents of two trees (or of one against itself)
+// for the overlapping primitive pairs (contact broad phase; the exact ones test the primitive
+// boxes the tree keeps in leaf order).
 //
 //   SAH cost of a split: C = C_trav + (A_L / A) N_L C_isect + (A_R / A) N_R C_isect
 // evaluated at the boundaries of 16 centroid bins along the widest centroid axis (Wald, "On fast
@@ -15,6 +17,10 @@
 #include <cstdint>
 #include <limits>
 #include <vector>
+
+#if defined(__SSE2__)
+#include <emmintrin.h>
+#endif
 
 #include "core/types.h"
 
@@ -47,7 +53,7 @@ inline bool hit_box(const Scalar lo[3], const Scalar hi[3], const Vec3& origin, 
 
 
 struct BvhNode {
-  Scalar lo[3], hi[3];
+  Scalar lo[3], hi[3];  // contiguous: Bvh::overlap6 reads the six as one box
   std::int32_t second;  // interior: index of the second child; leaf: -1
   std::int32_t axis;    // interior: split axis (the near child is chosen by the ray's sign)
   std::int32_t first;   // leaf: first entry in Bvh::order
@@ -115,36 +121,25 @@ class Bvh {
   // one simultaneous descent of both trees (far fewer box tests than a query per primitive).
   template <class Visit>
   void query_pairs(const Bvh& other, Visit&& visit) const {
-    if (nodes_.empty() || other.nodes_.empty()) return;
-    std::vector<std::array<std::int32_t, 2>> stack{{0, 0}};
-    while (!stack.empty()) {
-      const auto [a, b] = stack.back();
-      stack.pop_back();
-      descend(other, a, b, stack, visit);
-    }
+    pair_descent<false>(other, 0, visit);
   }
   // The same of the tree against itself: `visit(i, j)` once for every unordered pair of
   // different primitives in overlapping leaves (i and j in either order).
   template <class Visit>
   void query_self(Visit&& visit) const {
-    if (nodes_.empty()) return;
-    std::vector<std::array<std::int32_t, 2>> stack{{0, 0}};
-    while (!stack.empty()) {
-      const auto [a, b] = stack.back();
-      stack.pop_back();
-      const BvhNode& A = nodes_[static_cast<size_t>(a)];
-      if (a != b) {
-        descend(*this, a, b, stack, visit);
-      } else if (A.count > 0) {
-        for (std::int32_t i = 0; i < A.count; ++i)
-          for (std::int32_t j = i + 1; j < A.count; ++j)
-            visit(order_[static_cast<size_t>(A.first + i)], order_[static_cast<size_t>(A.first + j)]);
-      } else {
-        stack.push_back({a + 1, A.second});
-        stack.push_back({A.second, A.second});
-        stack.push_back({a + 1, a + 1});
-      }
-    }
+    pair_descent<false>(*this, 1, visit);
+  }
+  // As query_pairs / query_self, but `visit(i, j)` only for the pairs whose own primitive boxes
+  // (the bounds last given to the constructor or to refit) overlap, closed boxes: the exact
+  // overlapping pairs. The tree keeps those bounds in leaf order, so a leaf pair is tested in
+  // contiguous memory, each primitive first against the other leaf's box.
+  template <class Visit>
+  void query_box_pairs(const Bvh& other, Visit&& visit) const {
+    pair_descent<true>(other, 0, visit);
+  }
+  template <class Visit>
+  void query_box_self(Visit&& visit) const {
+    pair_descent<true>(*this, 1, visit);
   }
 
   // Visits the leaves whose boxes the ray meets within (t_min, t_max), near first; `leaf(first,
@@ -178,32 +173,85 @@ class Bvh {
   }
 
  private:
-  // One step of a two-tree descent at nodes (a of this tree, b of other): visits the primitive
-  // pairs of two overlapping leaves, else stacks the children of the larger interior node.
-  template <class Visit>
-  void descend(const Bvh& other, std::int32_t a, std::int32_t b, std::vector<std::array<std::int32_t, 2>>& stack,
-               Visit& visit) const {
-    const BvhNode& A = nodes_[static_cast<size_t>(a)];
-    const BvhNode& B = other.nodes_[static_cast<size_t>(b)];
-    if (!overlap(A, B)) return;
-    if (A.count > 0 && B.count > 0) {
-      for (std::int32_t i = 0; i < A.count; ++i)
-        for (std::int32_t j = 0; j < B.count; ++j)
-          visit(order_[static_cast<size_t>(A.first + i)], other.order_[static_cast<size_t>(B.first + j)]);
-    } else if (B.count > 0 || (A.count == 0 && extent(A) >= extent(B))) {
-      stack.push_back({A.second, b});
-      stack.push_back({a + 1, b});
-    } else {
-      stack.push_back({a, B.second});
-      stack.push_back({a, b + 1});
+  // Closed-box overlap of boxes stored as (lo[3], hi[3]): lo_a <= hi_b and lo_b <= hi_a in
+  // every axis. With SSE2 two axes per comparison; the same six comparisons either way.
+  static bool overlap6(const Scalar* a, const Scalar* b) {
+#if defined(__SSE2__)
+    const __m128d x = _mm_cmple_pd(_mm_loadu_pd(a), _mm_loadu_pd(b + 3));
+    const __m128d y = _mm_cmple_pd(_mm_loadu_pd(b), _mm_loadu_pd(a + 3));
+    const __m128d z = _mm_cmple_pd(_mm_unpacklo_pd(_mm_load_sd(a + 2), _mm_load_sd(b + 2)),
+                                   _mm_unpacklo_pd(_mm_load_sd(b + 5), _mm_load_sd(a + 5)));
+    return _mm_movemask_pd(_mm_and_pd(_mm_and_pd(x, y), z)) == 3;
+#else
+    return (a[0] <= b[3]) & (b[0] <= a[3]) & (a[1] <= b[4]) & (b[1] <= a[4]) & (a[2] <= b[5]) & (b[2] <= a[5]);
+#endif
+  }
+
+  // The primitive pairs of leaves A (of this tree) and B (of `other`), j > i only when `upper`
+  // (a leaf against itself); with `exact`, only those whose primitive boxes overlap.
+  template <bool exact, class Visit>
+  void leaf_pairs(const Bvh& other, const BvhNode& A, const BvhNode& B, bool upper, Visit& visit) const {
+    for (std::int32_t i = 0; i < A.count; ++i) {
+      const size_t a = static_cast<size_t>(A.first + i);
+      if constexpr (exact) {
+        if (!upper && !overlap6(&leaf_box_[6 * a], B.lo)) continue;
+      }
+      for (std::int32_t j = upper ? i + 1 : 0; j < B.count; ++j) {
+        const size_t b = static_cast<size_t>(B.first + j);
+        if constexpr (exact) {
+          if (!overlap6(&leaf_box_[6 * a], &other.leaf_box_[6 * b])) continue;
+        }
+        visit(order_[a], other.order_[b]);
+      }
+    }
+  }
+
+  // Simultaneous descent from the roots (self: of the tree against itself, each unordered
+  // pair of leaves once). The stack holds at most the two depths' sum per level of the self
+  // descent: 4 * kStackSize covers the deepest trees the builder makes (bvh.cpp bounds the
+  // depth by kMaxSahDepth plus the median splits of at most 2^29 primitives).
+  template <bool exact, class Visit>
+  void pair_descent(const Bvh& other, int self, Visit& visit) const {
+    if (nodes_.empty() || other.nodes_.empty()) return;
+    std::array<std::int32_t, 2> stack[4 * kStackSize];
+    int top = 0;
+    stack[top++] = {0, 0};
+    while (top > 0) {
+      const auto [a, b] = stack[--top];
+      const BvhNode& A = nodes_[static_cast<size_t>(a)];
+      if (self && a == b) {
+        if (A.count > 0) {
+          leaf_pairs<exact>(*this, A, A, true, visit);
+        } else {
+          stack[top++] = {a + 1, A.second};
+          stack[top++] = {A.second, A.second};
+          stack[top++] = {a + 1, a + 1};
+        }
+        continue;
+      }
+      const BvhNode& B = other.nodes_[static_cast<size_t>(b)];
+      if (!overlap6(A.lo, B.lo)) continue;
+      if (A.count > 0 && B.count > 0) {
+        leaf_pairs<exact>(other, A, B, false, visit);
+      } else if (B.count > 0 || (A.count == 0 && extent(A) >= extent(B))) {
+        stack[top++] = {A.second, b};
+        stack[top++] = {a + 1, b};
+      } else {
+        stack[top++] = {a, B.second};
+        stack[top++] = {a, b + 1};
+      }
     }
   }
 
   std::int32_t build(Index begin, Index end, int depth, const std::vector<Scalar>& lo,
                      const std::vector<Scalar>& hi, const std::vector<Scalar>& centroid);
 
+  void keep_leaf_boxes(const std::vector<Scalar>& lo, const std::vector<Scalar>& hi);
+
   std::vector<BvhNode> nodes_;
   std::vector<Index> order_;
+  std::vector<Scalar> leaf_box_;  // primitive order_[j]'s bounds (lo[3], hi[3]) at 6 j (leaf order)
+  Scalar area_sum_ = 0;                    // sum of the nodes' surface areas (area_ratio)
   int depth_ = 0;
 };
 

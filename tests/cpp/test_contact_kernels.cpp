@@ -3,13 +3,19 @@
 // eigendecomposition it replaces, on matrices with chosen spectra (repeated, clustered and
 // zero eigenvalues) and on the barrier Hessians of every pair kind near contact; and the
 // structural properties of the result (positive semidefinite, nearest: H - P is the negative
-// part, orthogonal to P).
+// part, orthogonal to P). The broad phase's exact box-pair descents (Bvh::query_box_pairs /
+// query_box_self, before and after a refit) and BroadPhase::find against the brute-force pair
+// sets, on random boxes and on degenerate ones: coincident, zero-extent (points, flat boxes),
+// far apart, touching, many equal coordinates.
 #include <gtest/gtest.h>
 
 #include <Eigen/Eigenvalues>
 #include <random>
+#include <set>
 
 #include "contact/barrier.h"
+#include "contact/collision.h"
+#include "geometry/bvh.h"
 
 namespace kinema::contact {
 namespace {
@@ -136,6 +142,245 @@ TEST(ContactProjection, FastClampEqualsFullEigendecompositionOnBarrierHessians) 
     if (pair_barrier(r, y, eps_x, dhat2, &g, &H) > 0) check_projection<4>(H, "ee");
   }
   EXPECT_GT(indefinite, 300);  // the clamp had work to do on most of the ~1000 Hessians
+}
+
+
+using Boxes = std::vector<Scalar>;
+using PairSet = std::set<std::pair<Index, Index>>;
+
+bool boxes_meet(const Boxes& lo, const Boxes& hi, size_t i, const Boxes& lo2, const Boxes& hi2, size_t j) {
+  for (int a = 0; a < 3; ++a)
+    if (!(lo[3 * i + a] <= hi2[3 * j + a] && lo2[3 * j + a] <= hi[3 * i + a])) return false;
+  return true;
+}
+
+// Both exact descents against brute force: every overlapping pair exactly once, nothing else.
+void expect_exact_pairs(const Boxes& alo, const Boxes& ahi, const Boxes& blo, const Boxes& bhi,
+                        const geometry::Bvh& A, const geometry::Bvh& B, const char* what) {
+  const size_t na = alo.size() / 3, nb = blo.size() / 3;
+  PairSet pairs, self, want_pairs, want_self;
+  size_t pair_visits = 0, self_visits = 0;
+  A.query_box_pairs(B, [&](Index i, Index j) {
+    ++pair_visits;
+    pairs.insert({i, j});
+  });
+  A.query_box_self([&](Index i, Index j) {
+    ++self_visits;
+    EXPECT_NE(i, j) << what;
+    self.insert({std::min(i, j), std::max(i, j)});
+  });
+  for (size_t i = 0; i < na; ++i) {
+    for (size_t j = 0; j < nb; ++j)
+      if (boxes_meet(alo, ahi, i, blo, bhi, j)) want_pairs.insert({static_cast<Index>(i), static_cast<Index>(j)});
+    for (size_t j = i + 1; j < na; ++j)
+      if (boxes_meet(alo, ahi, i, alo, ahi, j)) want_self.insert({static_cast<Index>(i), static_cast<Index>(j)});
+  }
+  EXPECT_EQ(pair_visits, pairs.size()) << what;  // no pair twice
+  EXPECT_EQ(self_visits, self.size()) << what;
+  EXPECT_EQ(pairs, want_pairs) << what;
+  EXPECT_EQ(self, want_self) << what;
+}
+
+void expect_exact_pairs(const Boxes& alo, const Boxes& ahi, const Boxes& blo, const Boxes& bhi, const char* what) {
+  expect_exact_pairs(alo, ahi, blo, bhi, geometry::Bvh(alo, ahi), geometry::Bvh(blo, bhi), what);
+}
+
+TEST(BroadPhase, ExactBoxPairDescentsEqualBruteForce) {
+  std::mt19937 rng(11);
+  std::uniform_real_distribution<Scalar> u(0, 1);
+  auto random_boxes = [&](size_t n, Scalar size, Boxes& lo, Boxes& hi) {
+    lo.resize(3 * n);
+    hi.resize(3 * n);
+    for (size_t i = 0; i < lo.size(); ++i) {
+      lo[i] = u(rng);
+      hi[i] = lo[i] + size * u(rng);
+    }
+  };
+  Boxes alo, ahi, blo, bhi;
+  random_boxes(300, 0.15, alo, ahi);
+  random_boxes(200, 0.15, blo, bhi);
+  expect_exact_pairs(alo, ahi, blo, bhi, "random");
+  {
+    // Refit to other boxes of the same primitives: the kept leaf boxes follow.
+    geometry::Bvh A(alo, ahi), B(blo, bhi);
+    Boxes alo2, ahi2, blo2, bhi2;
+    random_boxes(300, 0.3, alo2, ahi2);
+    random_boxes(200, 0.05, blo2, bhi2);
+    A.refit(alo2, ahi2);
+    B.refit(blo2, bhi2);
+    expect_exact_pairs(alo2, ahi2, blo2, bhi2, A, B, "refit");
+  }
+  // Coincident: every box the same (one SAH bin; median splits).
+  alo.assign(3 * 40, 0.25);
+  ahi.assign(3 * 40, 0.5);
+  blo.assign(3 * 30, 0.25);
+  bhi.assign(3 * 30, 0.5);
+  expect_exact_pairs(alo, ahi, blo, bhi, "coincident");
+  // Zero extent: points, some at the same place, against flat boxes (zero extent in one axis)
+  // that they touch exactly.
+  alo.clear();
+  for (int i = 0; i < 60; ++i)
+    for (int a = 0; a < 3; ++a) alo.push_back(Scalar((i * (a + 2)) % 5) / 4);
+  ahi = alo;
+  blo.clear();
+  bhi.clear();
+  for (int i = 0; i < 50; ++i) {
+    const int flat = i % 3;
+    for (int a = 0; a < 3; ++a) {
+      const Scalar c = Scalar((i * (a + 1)) % 5) / 4;
+      blo.push_back(c);
+      bhi.push_back(a == flat ? c : c + 0.25);
+    }
+  }
+  expect_exact_pairs(alo, ahi, blo, bhi, "points and flat boxes");
+  // Many equal coordinates: unit cells of a grid (neighbours touch at faces, edges, corners).
+  alo.clear();
+  for (int i = 0; i < 4; ++i)
+    for (int j = 0; j < 4; ++j)
+      for (int k = 0; k < 4; ++k) alo.insert(alo.end(), {Scalar(i), Scalar(j), Scalar(k)});
+  ahi = alo;
+  for (Scalar& v : ahi) v += 1;
+  blo = alo;
+  bhi = ahi;
+  for (Scalar& v : blo) v += 0.5;
+  for (Scalar& v : bhi) v += 0.5;
+  expect_exact_pairs(alo, ahi, blo, bhi, "grid");
+  // Far apart: two clusters 1e6 apart, no pair across.
+  random_boxes(100, 0.2, alo, ahi);
+  random_boxes(100, 0.2, blo, bhi);
+  for (size_t i = 0; i < blo.size(); ++i) blo[i] += 1e6, bhi[i] += 1e6;
+  expect_exact_pairs(alo, ahi, blo, bhi, "far apart");
+  // One primitive, and an empty tree.
+  expect_exact_pairs(Boxes{0, 0, 0}, Boxes{1, 1, 1}, Boxes{1, 1, 1}, Boxes{2, 2, 2}, "single");
+  expect_exact_pairs(Boxes{0, 0, 0}, Boxes{1, 1, 1}, Boxes{}, Boxes{}, "empty");
+}
+
+// A model of triangles only (no springs or tets needed by the broad phase).
+Model surface_model(const std::vector<Scalar>& x, const std::vector<Index>& faces, const std::vector<char>& fixed) {
+  Model m;
+  m.vertex_count = static_cast<Index>(x.size() / 3);
+  m.rest = x;
+  m.fixed = fixed;
+  m.driven.assign(fixed.size(), 0);
+  m.faces = faces;
+  std::set<std::pair<Index, Index>> edges;
+  for (size_t f = 0; f < faces.size(); f += 3)
+    for (int k = 0; k < 3; ++k) {
+      const Index a = faces[f + k], b = faces[f + (k + 1) % 3];
+      edges.insert({std::min(a, b), std::max(a, b)});
+    }
+  for (const auto& [a, b] : edges) m.edges.insert(m.edges.end(), {a, b});
+  std::set<Index> used(faces.begin(), faces.end());
+  m.points.assign(used.begin(), used.end());
+  return m;
+}
+
+// BroadPhase::find against the brute-force pair sets of its definition (collision.h): every
+// non-adjacent (point, face) and (edge, edge) pair, not all fixed, whose boxes swept over
+// x -> x + dx and grown by r / 2 each meet; in lexicographic order, the same on a kept
+// (refit) broad phase as on a fresh one.
+size_t expect_find_equals_brute_force(const Model& m, const std::vector<Scalar>& x, const Scalar* dx, Scalar r,
+                                      BroadPhase& kept, const char* what) {
+  auto box = [&](std::initializer_list<Index> vs, Scalar* lo, Scalar* hi) {
+    for (int c = 0; c < 3; ++c) {
+      lo[c] = geometry::kInfinity;
+      hi[c] = -geometry::kInfinity;
+      for (Index v : vs) {
+        const Scalar y = x[static_cast<size_t>(3 * v + c)];
+        const Scalar z = dx ? y + dx[static_cast<size_t>(3 * v + c)] : y;
+        lo[c] = std::min({lo[c], y, z});
+        hi[c] = std::max({hi[c], y, z});
+      }
+      lo[c] -= r / 2;
+      hi[c] += r / 2;
+    }
+  };
+  auto meet = [](const Scalar* lo, const Scalar* hi, const Scalar* lo2, const Scalar* hi2) {
+    for (int c = 0; c < 3; ++c)
+      if (!(lo[c] <= hi2[c] && lo2[c] <= hi[c])) return false;
+    return true;
+  };
+  auto fixed = [&](Index v) { return m.fixed[static_cast<size_t>(v)] != 0; };
+  std::vector<std::array<Index, 2>> want_pf, want_ee;
+  const Index nf = static_cast<Index>(m.faces.size() / 3), ne = static_cast<Index>(m.edges.size() / 2);
+  for (Index p : m.points)
+    for (Index f = 0; f < nf; ++f) {
+      const Index* t = &m.faces[static_cast<size_t>(3 * f)];
+      if (p == t[0] || p == t[1] || p == t[2]) continue;
+      if (fixed(p) && fixed(t[0]) && fixed(t[1]) && fixed(t[2])) continue;
+      Scalar lo[3], hi[3], lo2[3], hi2[3];
+      box({p}, lo, hi);
+      box({t[0], t[1], t[2]}, lo2, hi2);
+      if (meet(lo, hi, lo2, hi2)) want_pf.push_back({p, f});
+    }
+  for (Index e = 0; e < ne; ++e)
+    for (Index g = e + 1; g < ne; ++g) {
+      const Index* a = &m.edges[static_cast<size_t>(2 * e)];
+      const Index* b = &m.edges[static_cast<size_t>(2 * g)];
+      if (a[0] == b[0] || a[0] == b[1] || a[1] == b[0] || a[1] == b[1]) continue;
+      const bool fa = fixed(a[0]) && fixed(a[1]), fb = fixed(b[0]) && fixed(b[1]);
+      if (fa && fb) continue;
+      Scalar lo[3], hi[3], lo2[3], hi2[3];
+      box({a[0], a[1]}, lo, hi);
+      box({b[0], b[1]}, lo2, hi2);
+      if (!meet(lo, hi, lo2, hi2)) continue;
+      // A moving edge against a fixed one comes moving edge first.
+      if (fa)
+        want_ee.push_back({g, e});
+      else
+        want_ee.push_back({e, g});
+    }
+  std::sort(want_pf.begin(), want_pf.end());
+  std::sort(want_ee.begin(), want_ee.end());
+  Candidates fresh_out, kept_out;
+  BroadPhase fresh;
+  fresh.find(m, x.data(), dx, r, fresh_out);
+  kept.find(m, x.data(), dx, r, kept_out);
+  EXPECT_EQ(fresh_out.point_face, want_pf) << what;
+  EXPECT_EQ(fresh_out.edge_edge, want_ee) << what;
+  EXPECT_EQ(kept_out.point_face, want_pf) << what;
+  EXPECT_EQ(kept_out.edge_edge, want_ee) << what;
+  return want_pf.size() + want_ee.size();
+}
+
+TEST(BroadPhase, FindEqualsBruteForceOnDegenerateMeshes) {
+  // A moving n x n grid of triangles (flat: zero extent along z, many equal coordinates) over a
+  // fixed copy of itself; then the moving grid coincident with the fixed one, collapsed to
+  // zero-area triangles, far apart, and swept through it.
+  const int n = 6;
+  std::vector<Scalar> x;
+  std::vector<Index> faces;
+  for (int copy = 0; copy < 2; ++copy) {
+    const Index base = static_cast<Index>(x.size() / 3);
+    for (int i = 0; i <= n; ++i)
+      for (int j = 0; j <= n; ++j) x.insert(x.end(), {Scalar(i) / n, Scalar(j) / n, copy ? Scalar(0) : Scalar(0.05)});
+    for (int i = 0; i < n; ++i)
+      for (int j = 0; j < n; ++j) {
+        const Index a = base + i * (n + 1) + j, b = a + 1, c = a + (n + 1), d = c + 1;
+        faces.insert(faces.end(), {a, b, d, a, d, c});
+      }
+  }
+  const Index half = static_cast<Index>(x.size() / 6);
+  std::vector<char> fixed(x.size() / 3, 0);
+  for (Index v = half; v < 2 * half; ++v) fixed[static_cast<size_t>(v)] = 1;
+  const Model m = surface_model(x, faces, fixed);
+  BroadPhase kept;
+  expect_find_equals_brute_force(m, x, nullptr, 0.01, kept, "grid above grid");
+  EXPECT_GT(expect_find_equals_brute_force(m, x, nullptr, 0.2, kept, "grid above grid, wide"), 500u);
+  std::vector<Scalar> y = x;
+  for (Index v = 0; v < half; ++v) y[static_cast<size_t>(3 * v + 2)] = 0;
+  expect_find_equals_brute_force(m, y, nullptr, 0, kept, "coincident grids, r = 0");
+  EXPECT_GT(expect_find_equals_brute_force(m, y, nullptr, 1e-3, kept, "coincident grids"), 500u);
+  for (Index v = 0; v < half; ++v)
+    for (int c = 0; c < 3; ++c) y[static_cast<size_t>(3 * v + c)] = Scalar(0.5);
+  EXPECT_GT(expect_find_equals_brute_force(m, y, nullptr, 1e-3, kept, "collapsed to a point"), 500u);
+  y = x;
+  for (Index v = 0; v < half; ++v) y[static_cast<size_t>(3 * v)] += 1e6;
+  expect_find_equals_brute_force(m, y, nullptr, 1e-3, kept, "far apart");
+  std::vector<Scalar> dx(x.size(), 0);
+  for (Index v = 0; v < half; ++v) dx[static_cast<size_t>(3 * v + 2)] = -0.1 - 0.01 * Scalar(v % 3);
+  EXPECT_GT(expect_find_equals_brute_force(m, x, dx.data(), 0, kept, "swept through"), 500u);
+  expect_find_equals_brute_force(m, x, nullptr, 0.01, kept, "back at the start");
 }
 
 }  // namespace
