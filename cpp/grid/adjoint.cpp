@@ -750,7 +750,8 @@ void Solver::step_adjoint(const State& before, Scalar dt, const Scalar* control,
   // Recompute the step up to the viscosity: s0 is what advection reads, s what the viscosity
   // made (only dL/dnu reads it: without it, s0 and the advection's scratch are enough).
   State& s0 = adjoint_s0_;
-  s0 = before;  // into the kept arrays
+  const Index before_steps = before.steps;  // before may be s0 itself (adjoint_before)
+  if (&before != &s0) s0 = before;  // into the kept arrays
   refresh_solids(s0);
   apply_sources(s0);
   enforce_boundary(s0);
@@ -768,7 +769,7 @@ void Solver::step_adjoint(const State& before, Scalar dt, const Scalar* control,
   interrupt.check();
   std::array<std::vector<Scalar>, 3>& g = adjoint.velocity;
   // 4. Projection.
-  projection_adjoint(g, dt, interrupt, before.steps);
+  projection_adjoint(g, dt, interrupt, before_steps);
   // 3. Viscosity: (I + c L) x = u*, c = nu dt / h^2: lambda = (I + c L)^-1 g, dL/du* = lambda,
   // dL/dc = -lambda . L x (also at nu = 0, where the forward pass skips the solve).
   enforce_boundary_adjoint(g);

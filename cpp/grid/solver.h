@@ -72,6 +72,9 @@ class Solver {
                     Scalar* grad_viscosity, Scalar* grad_control, Interrupt& interrupt,
                     const std::array<AdvectionScratch, 4>* forward = nullptr);
   void check_differentiable() const;
+  // The kept state step_adjoint recomputes the step's start in: a `before` read into it is used
+  // in place (not copied again).
+  State& adjoint_before() { return adjoint_s0_; }
   // The projection alone (u -= dt grad p with the pressure solve) and its transpose, for tests.
   SolveInfo apply_projection(State& state, Scalar dt, Interrupt& interrupt) { return project(state, dt, interrupt); }
   // warm_step >= 0: the adjoint solve of the step from state.steps = warm_step starts from the
