@@ -154,7 +154,8 @@ struct PyFluid {
                          bool want_viscosity, const AdvectionKept* forward, bool warm_start) {
     grid::State& b = solver_->adjoint_before();  // read once, into the arrays the adjoint recomputes in
     read_state(before, false, b);
-    grid::State adjoint = read_state(grads, true);
+    grid::State& adjoint = adjoint_grads_;  // its returned arrays move out below
+    read_state(grads, true, adjoint);
     py::object holder;
     const Scalar* u = read_control(control, holder);
     std::vector<Scalar> grad_control(u ? static_cast<size_t>(shape_.size() * shape_.dim) : 0);
@@ -250,6 +251,7 @@ struct PyFluid {
   GridShape shape_;
   std::unique_ptr<grid::Solver> solver_;
   grid::State state_;
+  grid::State adjoint_grads_;  // step_adjoint's gradients: the pressure array (never returned) kept
 };
 
 // A run kept whole for km.diff (Fluid._diff_record): the steps' states and controls, stepped

@@ -638,7 +638,7 @@ void Solver::enforce_boundary_adjoint(std::array<std::vector<Scalar>, 3>& grad) 
   }
 }
 
-void Solver::cell_force_adjoint(int axis, const Scalar* g, Scalar* out, Index stride) const {
+void Solver::cell_force_adjoint(int axis, const Scalar* g, Scalar* out, Index stride, Scalar scale) const {
   // A free face gets 0.5 (f[lo] + f[hi]), or f of its one cell on an open side: gathered per cell
   // over its lower face (idx) and upper face (idx + 1, or face 0 across a periodic seam).
   const FieldLayout& F = faces_[axis];
@@ -652,7 +652,7 @@ void Solver::cell_force_adjoint(int axis, const Scalar* g, Scalar* out, Index st
     Scalar s = 0;
     if (!fixed[lower]) s += (!periodic && ia == 0 ? 1 : 0.5) * g[lower];
     if (!fixed[upper]) s += (!periodic && ia == n_axis - 1 ? 1 : 0.5) * g[upper];
-    out[c * stride] = s;
+    out[c * stride] = s * scale;
   });
 }
 
@@ -811,11 +811,10 @@ void Solver::step_adjoint(const State& before, Scalar dt, const Scalar* control,
     if (!active_[a]) continue;
     if (grad_control) {
       const int user = a - (3 - dim);
-      cell_force_adjoint(a, g[a].data(), grad_control + user, dim);
-      parallel_for(cells, [&](Index cc) { grad_control[cc * dim + user] *= dt; });
+      cell_force_adjoint(a, g[a].data(), grad_control + user, dim, dt);
     }
     if ((rho || temp) && config_.up[a] != 0) {
-      cell_force_adjoint(a, g[a].data(), g_force.data(), 1);
+      cell_force_adjoint(a, g[a].data(), g_force.data(), 1, 1);
       const Scalar up = config_.up[a] * dt;
       if (rho) parallel_for(cells, [&](Index cc) { adjoint.density[cc] -= config_.alpha * up * g_force[cc]; });
       if (temp) parallel_for(cells, [&](Index cc) { adjoint.temperature[cc] += config_.beta * up * g_force[cc]; });
@@ -857,7 +856,10 @@ void Solver::step_adjoint(const State& before, Scalar dt, const Scalar* control,
                  kept ? &(*kept)[0] : nullptr, &adjoint_work_);
   // 0. Boundary values and sources imposed before the step.
   enforce_boundary_adjoint(g0);
-  for (int f = 0; f < count; ++f) std::copy(g_scalar0[f].begin(), g_scalar0[f].end(), g_scalars[f]);
+  // the result moves into the returned arrays; the solver keeps the spent ones (no copy)
+  int moved = 0;
+  for (auto [field, grad] : {std::pair{&s0.density, &adjoint.density}, std::pair{&s0.temperature, &adjoint.temperature}})
+    if (!field->empty()) grad->swap(g_scalar0[moved++]);
   for (const Model::Source& src : model_.sources) {
     for (Index cc : src.cells) {
       if (!fluid_cell(cc)) continue;
