@@ -84,12 +84,6 @@ struct Stencil {
   void scatter(Scalar g, Scalar* target) const {
     for (int n = 0; n < count; ++n) target[node[n]] += g * w[n];
   }
-  // The same for the nodes of nonzero weight only (a stencil centred on a node of its own
-  // layout, or half-way between two, has 4-6 of its 8 weights exactly 0).
-  void scatter_nonzero(Scalar g, Scalar* target) const {
-    for (int n = 0; n < count; ++n)
-      if (w[n] != 0) target[node[n]] += g * w[n];
-  }
   // g times the gradient of the interpolant of the gathered values v, added to out: the
   // differences along each axis, weighted by the other axes' weights.
   void add_gradient(const Scalar* v, Scalar g, Vec3& out) const {
@@ -125,6 +119,29 @@ struct Stencil {
     return best;
   }
 };
+
+// target[node] += g * w over the nodes of nonzero weight of Stencil(L, x0, x1, x2): its weights,
+// products and order, without forming the nodes behind a zero factor (a stencil centred on a
+// node of its own layout, or half-way between two, has 4-6 of its 8 weights exactly 0; weights
+// are finite, so a zero factor makes a zero weight).
+template <bool ThreeD>
+void scatter_sparse(const FieldLayout& L, const AxisWeight& x0, const AxisWeight& x1, const AxisWeight& x2, Scalar g,
+                    Scalar* target) {
+  const Index s0 = L.stride(0), s1 = L.stride(1);
+  for (int a0 = 0; a0 < (ThreeD ? 2 : 1); ++a0) {
+    const Scalar f0 = ThreeD ? (a0 ? x0.w : 1 - x0.w) : 1;
+    if (f0 == 0) continue;
+    const Index n0 = ThreeD ? (a0 ? x0.i1 : x0.i0) * s0 : 0;
+    for (int a1 = 0; a1 < 2; ++a1) {
+      const Scalar f1 = f0 * (a1 ? x1.w : 1 - x1.w);
+      if (f1 == 0) continue;
+      const Index n1 = n0 + (a1 ? x1.i1 : x1.i0) * s1;
+      const Scalar lo = f1 * (1 - x2.w), hi = f1 * x2.w;
+      if (lo != 0) target[n1 + x2.i0] += g * lo;
+      if (hi != 0) target[n1 + x2.i1] += g * hi;
+    }
+  }
+}
 
 // The stencil of point x (grid units) in layout L.
 template <bool ThreeD>
@@ -250,19 +267,20 @@ struct Tracer {
     const AxisWeight *face = br.face, *cell = br.cell;
     for (int a = ThreeD ? 0 : 1; a < 3; ++a) {
       if (g[a] == 0) continue;
+      if (!moves) {
+        scatter_sparse<ThreeD>(u.layout[a], a == 0 ? face[0] : cell[0], a == 1 ? face[1] : cell[1],
+                               a == 2 ? face[2] : cell[2], g[a], g_u[a]);
+        continue;
+      }
       const Stencil<ThreeD> st(u.layout[a], a == 0 ? face[0] : cell[0], a == 1 ? face[1] : cell[1],
                                a == 2 ? face[2] : cell[2]);
-      if (moves) {
-        st.scatter(g[a], g_u[a]);
-        if (br.jac) {  // the trace's derivatives, times 0 along a clamped axis (as add_gradient)
-          for (int b = ThreeD ? 0 : 1; b < 3; ++b) gy[b] += g[a] * st.d[b] * br.jac[3 * a + b][br.k];
-        } else {
-          Scalar v[8];
-          st.gather(u.comp[a], v);
-          st.add_gradient(v, g[a], gy);
-        }
+      st.scatter(g[a], g_u[a]);
+      if (br.jac) {  // the trace's derivatives, times 0 along a clamped axis (as add_gradient)
+        for (int b = ThreeD ? 0 : 1; b < 3; ++b) gy[b] += g[a] * st.d[b] * br.jac[3 * a + b][br.k];
       } else {
-        st.scatter_nonzero(g[a], g_u[a]);
+        Scalar v[8];
+        st.gather(u.comp[a], v);
+        st.add_gradient(v, g[a], gy);
       }
     }
     return gy;
