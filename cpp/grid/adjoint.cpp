@@ -84,6 +84,11 @@ struct Stencil {
   void scatter(Scalar g, Scalar* target) const {
     for (int n = 0; n < count; ++n) target[node[n]] += g * w[n];
   }
+  // The same for the nodes of nonzero weight only.
+  void scatter_nonzero(Scalar g, Scalar* target) const {
+    for (int n = 0; n < count; ++n)
+      if (w[n] != 0) target[node[n]] += g * w[n];
+  }
   // g times the gradient of the interpolant of the gathered values v, added to out: the
   // differences along each axis, weighted by the other axes' weights.
   void add_gradient(const Scalar* v, Scalar g, Vec3& out) const {
@@ -267,13 +272,17 @@ struct Tracer {
     const AxisWeight *face = br.face, *cell = br.cell;
     for (int a = ThreeD ? 0 : 1; a < 3; ++a) {
       if (g[a] == 0) continue;
-      if (!moves) {
+      if (!moves && ThreeD) {
         scatter_sparse<ThreeD>(u.layout[a], a == 0 ? face[0] : cell[0], a == 1 ? face[1] : cell[1],
                                a == 2 ? face[2] : cell[2], g[a], g_u[a]);
         continue;
       }
       const Stencil<ThreeD> st(u.layout[a], a == 0 ? face[0] : cell[0], a == 1 ? face[1] : cell[1],
                                a == 2 ? face[2] : cell[2]);
+      if (!moves) {  // 2D: 2-3 of 4 weights exactly 0
+        st.scatter_nonzero(g[a], g_u[a]);
+        continue;
+      }
       st.scatter(g[a], g_u[a]);
       if (br.jac) {  // the trace's derivatives, times 0 along a clamped axis (as add_gradient)
         for (int b = ThreeD ? 0 : 1; b < 3; ++b) gy[b] += g[a] * st.d[b] * br.jac[3 * a + b][br.k];
