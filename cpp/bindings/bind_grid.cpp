@@ -95,6 +95,11 @@ struct PyFluid {
   // shapes) into a state made by the solver; names left out are zero when `missing_zero`.
   grid::State read_state(const py::dict& d, bool missing_zero) const {
     grid::State out;
+    read_state(d, missing_zero, out);
+    return out;
+  }
+  // The same into `out`, whose arrays keep their capacity (no fresh pages to fault in).
+  void read_state(const py::dict& d, bool missing_zero, grid::State& out) const {
     const int dim = shape_.dim;
     const grid::Config& config = solver_->config();
     // each array of make_state's size, written once (from the dict, or zero when missing)
@@ -118,11 +123,11 @@ struct PyFluid {
     read("pressure", out.pressure, cells);
     read("density", out.density, config.density ? cells : 0);
     read("temperature", out.temperature, config.temperature ? cells : 0);
+    out.time = 0, out.steps = 0;
     if (!missing_zero) {
       if (d.contains("time")) out.time = d["time"].cast<Scalar>();
       if (d.contains("steps")) out.steps = d["steps"].cast<Index>();
     }
-    return out;
   }
 
   // The arrays of `s` (spent: its vectors are moved into the arrays, not copied) by user name.
@@ -147,8 +152,10 @@ struct PyFluid {
   // start); else from zero, so a lone call's bits do not depend on the calls before it.
   py::tuple step_adjoint(Scalar dt, const py::dict& before, const py::object& control, const py::dict& grads,
                          bool want_viscosity, const AdvectionKept* forward, bool warm_start) {
-    const grid::State b = read_state(before, false);
-    grid::State adjoint = read_state(grads, true);
+    grid::State& b = solver_->adjoint_before();  // read once, into the arrays the adjoint recomputes in
+    read_state(before, false, b);
+    grid::State& adjoint = adjoint_grads_;  // its returned arrays move out below
+    read_state(grads, true, adjoint);
     py::object holder;
     const Scalar* u = read_control(control, holder);
     std::vector<Scalar> grad_control(u ? static_cast<size_t>(shape_.size() * shape_.dim) : 0);
@@ -244,6 +251,7 @@ struct PyFluid {
   GridShape shape_;
   std::unique_ptr<grid::Solver> solver_;
   grid::State state_;
+  grid::State adjoint_grads_;  // step_adjoint's gradients: the pressure array (never returned) kept
 };
 
 // A run kept whole for km.diff (Fluid._diff_record): the steps' states and controls, stepped

@@ -84,8 +84,7 @@ struct Stencil {
   void scatter(Scalar g, Scalar* target) const {
     for (int n = 0; n < count; ++n) target[node[n]] += g * w[n];
   }
-  // The same for the nodes of nonzero weight only (a stencil centred on a node of its own
-  // layout, or half-way between two, has 4-6 of its 8 weights exactly 0).
+  // The same for the nodes of nonzero weight only.
   void scatter_nonzero(Scalar g, Scalar* target) const {
     for (int n = 0; n < count; ++n)
       if (w[n] != 0) target[node[n]] += g * w[n];
@@ -125,6 +124,29 @@ struct Stencil {
     return best;
   }
 };
+
+// target[node] += g * w over the nodes of nonzero weight of Stencil(L, x0, x1, x2): its weights,
+// products and order, without forming the nodes behind a zero factor (a stencil centred on a
+// node of its own layout, or half-way between two, has 4-6 of its 8 weights exactly 0; weights
+// are finite, so a zero factor makes a zero weight).
+template <bool ThreeD>
+void scatter_sparse(const FieldLayout& L, const AxisWeight& x0, const AxisWeight& x1, const AxisWeight& x2, Scalar g,
+                    Scalar* target) {
+  const Index s0 = L.stride(0), s1 = L.stride(1);
+  for (int a0 = 0; a0 < (ThreeD ? 2 : 1); ++a0) {
+    const Scalar f0 = ThreeD ? (a0 ? x0.w : 1 - x0.w) : 1;
+    if (f0 == 0) continue;
+    const Index n0 = ThreeD ? (a0 ? x0.i1 : x0.i0) * s0 : 0;
+    for (int a1 = 0; a1 < 2; ++a1) {
+      const Scalar f1 = f0 * (a1 ? x1.w : 1 - x1.w);
+      if (f1 == 0) continue;
+      const Index n1 = n0 + (a1 ? x1.i1 : x1.i0) * s1;
+      const Scalar lo = f1 * (1 - x2.w), hi = f1 * x2.w;
+      if (lo != 0) target[n1 + x2.i0] += g * lo;
+      if (hi != 0) target[n1 + x2.i1] += g * hi;
+    }
+  }
+}
 
 // The stencil of point x (grid units) in layout L.
 template <bool ThreeD>
@@ -250,19 +272,24 @@ struct Tracer {
     const AxisWeight *face = br.face, *cell = br.cell;
     for (int a = ThreeD ? 0 : 1; a < 3; ++a) {
       if (g[a] == 0) continue;
+      if (!moves && ThreeD) {
+        scatter_sparse<ThreeD>(u.layout[a], a == 0 ? face[0] : cell[0], a == 1 ? face[1] : cell[1],
+                               a == 2 ? face[2] : cell[2], g[a], g_u[a]);
+        continue;
+      }
       const Stencil<ThreeD> st(u.layout[a], a == 0 ? face[0] : cell[0], a == 1 ? face[1] : cell[1],
                                a == 2 ? face[2] : cell[2]);
-      if (moves) {
-        st.scatter(g[a], g_u[a]);
-        if (br.jac) {  // the trace's derivatives, times 0 along a clamped axis (as add_gradient)
-          for (int b = ThreeD ? 0 : 1; b < 3; ++b) gy[b] += g[a] * st.d[b] * br.jac[3 * a + b][br.k];
-        } else {
-          Scalar v[8];
-          st.gather(u.comp[a], v);
-          st.add_gradient(v, g[a], gy);
-        }
-      } else {
+      if (!moves) {  // 2D: 2-3 of 4 weights exactly 0
         st.scatter_nonzero(g[a], g_u[a]);
+        continue;
+      }
+      st.scatter(g[a], g_u[a]);
+      if (br.jac) {  // the trace's derivatives, times 0 along a clamped axis (as add_gradient)
+        for (int b = ThreeD ? 0 : 1; b < 3; ++b) gy[b] += g[a] * st.d[b] * br.jac[3 * a + b][br.k];
+      } else {
+        Scalar v[8];
+        st.gather(u.comp[a], v);
+        st.add_gradient(v, g[a], gy);
       }
     }
     return gy;
@@ -638,7 +665,7 @@ void Solver::enforce_boundary_adjoint(std::array<std::vector<Scalar>, 3>& grad) 
   }
 }
 
-void Solver::cell_force_adjoint(int axis, const Scalar* g, Scalar* out, Index stride) const {
+void Solver::cell_force_adjoint(int axis, const Scalar* g, Scalar* out, Index stride, Scalar scale) const {
   // A free face gets 0.5 (f[lo] + f[hi]), or f of its one cell on an open side: gathered per cell
   // over its lower face (idx) and upper face (idx + 1, or face 0 across a periodic seam).
   const FieldLayout& F = faces_[axis];
@@ -652,7 +679,7 @@ void Solver::cell_force_adjoint(int axis, const Scalar* g, Scalar* out, Index st
     Scalar s = 0;
     if (!fixed[lower]) s += (!periodic && ia == 0 ? 1 : 0.5) * g[lower];
     if (!fixed[upper]) s += (!periodic && ia == n_axis - 1 ? 1 : 0.5) * g[upper];
-    out[c * stride] = s;
+    out[c * stride] = s * scale;
   });
 }
 
@@ -750,7 +777,8 @@ void Solver::step_adjoint(const State& before, Scalar dt, const Scalar* control,
   // Recompute the step up to the viscosity: s0 is what advection reads, s what the viscosity
   // made (only dL/dnu reads it: without it, s0 and the advection's scratch are enough).
   State& s0 = adjoint_s0_;
-  s0 = before;  // into the kept arrays
+  const Index before_steps = before.steps;  // before may be s0 itself (adjoint_before)
+  if (&before != &s0) s0 = before;  // into the kept arrays
   refresh_solids(s0);
   apply_sources(s0);
   enforce_boundary(s0);
@@ -768,7 +796,7 @@ void Solver::step_adjoint(const State& before, Scalar dt, const Scalar* control,
   interrupt.check();
   std::array<std::vector<Scalar>, 3>& g = adjoint.velocity;
   // 4. Projection.
-  projection_adjoint(g, dt, interrupt, before.steps);
+  projection_adjoint(g, dt, interrupt, before_steps);
   // 3. Viscosity: (I + c L) x = u*, c = nu dt / h^2: lambda = (I + c L)^-1 g, dL/du* = lambda,
   // dL/dc = -lambda . L x (also at nu = 0, where the forward pass skips the solve).
   enforce_boundary_adjoint(g);
@@ -810,11 +838,10 @@ void Solver::step_adjoint(const State& before, Scalar dt, const Scalar* control,
     if (!active_[a]) continue;
     if (grad_control) {
       const int user = a - (3 - dim);
-      cell_force_adjoint(a, g[a].data(), grad_control + user, dim);
-      parallel_for(cells, [&](Index cc) { grad_control[cc * dim + user] *= dt; });
+      cell_force_adjoint(a, g[a].data(), grad_control + user, dim, dt);
     }
     if ((rho || temp) && config_.up[a] != 0) {
-      cell_force_adjoint(a, g[a].data(), g_force.data(), 1);
+      cell_force_adjoint(a, g[a].data(), g_force.data(), 1, 1);
       const Scalar up = config_.up[a] * dt;
       if (rho) parallel_for(cells, [&](Index cc) { adjoint.density[cc] -= config_.alpha * up * g_force[cc]; });
       if (temp) parallel_for(cells, [&](Index cc) { adjoint.temperature[cc] += config_.beta * up * g_force[cc]; });
@@ -856,7 +883,10 @@ void Solver::step_adjoint(const State& before, Scalar dt, const Scalar* control,
                  kept ? &(*kept)[0] : nullptr, &adjoint_work_);
   // 0. Boundary values and sources imposed before the step.
   enforce_boundary_adjoint(g0);
-  for (int f = 0; f < count; ++f) std::copy(g_scalar0[f].begin(), g_scalar0[f].end(), g_scalars[f]);
+  // the result moves into the returned arrays; the solver keeps the spent ones (no copy)
+  int moved = 0;
+  for (auto [field, grad] : {std::pair{&s0.density, &adjoint.density}, std::pair{&s0.temperature, &adjoint.temperature}})
+    if (!field->empty()) grad->swap(g_scalar0[moved++]);
   for (const Model::Source& src : model_.sources) {
     for (Index cc : src.cells) {
       if (!fluid_cell(cc)) continue;

@@ -72,6 +72,9 @@ class Solver {
                     Scalar* grad_viscosity, Scalar* grad_control, Interrupt& interrupt,
                     const std::array<AdvectionScratch, 4>* forward = nullptr);
   void check_differentiable() const;
+  // The kept state step_adjoint recomputes the step's start in: a `before` read into it is used
+  // in place (not copied again).
+  State& adjoint_before() { return adjoint_s0_; }
   // The projection alone (u -= dt grad p with the pressure solve) and its transpose, for tests.
   SolveInfo apply_projection(State& state, Scalar dt, Interrupt& interrupt) { return project(state, dt, interrupt); }
   // warm_step >= 0: the adjoint solve of the step from state.steps = warm_step starts from the
@@ -140,9 +143,9 @@ class Solver {
   void enforce_boundary(State& state) const;  // fixed faces to their values, periodic copies in sync
   // u_a += dt * (face average of f[c * stride]) + du on the free faces
   void add_cell_force(State& state, int axis, const Scalar* f, Index stride, Scalar dt, Scalar du) const;
-  // The transpose of add_cell_force's face average: out[c * stride] = sum over the free faces of
-  // cell c of the face's weight times g[face].
-  void cell_force_adjoint(int axis, const Scalar* g, Scalar* out, Index stride) const;
+  // The transpose of add_cell_force's face average: out[c * stride] = scale times the sum over the
+  // free faces of cell c of the face's weight times g[face].
+  void cell_force_adjoint(int axis, const Scalar* g, Scalar* out, Index stride, Scalar scale) const;
   // The adjoint of enforce_boundary: pinned faces get 0, a duplicate's gradient moves to face 0.
   void enforce_boundary_adjoint(std::array<std::vector<Scalar>, 3>& grad) const;
   // Fedkiw et al. 2001, Eq. (9)-(11), plus the buoyancy when `buoyant`, into force_
