@@ -14,7 +14,6 @@
 #include "particles/neighbor_lists.h"
 #include "sph/coarse.h"
 #include "sph/kernels.h"
-#include "sph/pair_blocks.h"
 #include "sph/solver.h"
 
 namespace kinema::sph {
@@ -140,10 +139,8 @@ class SolverD final : public Solver::Impl {
     // Neighbourhoods of the current positions (Verlet lists; Morton reordering every few steps),
     // the step's kernel gradients, densities and the factors alpha_i (eq. 11).
     neighborhoods(s, true, true, s.density.data());
-    Stopwatch solve;
-    const Pairs f = fluid_pairs();
-    pairs_.build(n, f.start, f.list, f.grads);  // the solves' light passes read each pair once
     // Divergence-free solver (Algorithm 2): make D rho / Dt = 0 with the current velocities.
+    Stopwatch solve;
     if (config_.divergence_solve) {
       stats.divergence_iterations = divergence_solve(s, dt, stats, interrupt);
       stats.divergence_converged = stats.divergence_error <= config_.divergence_tol;
@@ -198,12 +195,9 @@ class SolverD final : public Solver::Impl {
   // Rate of density change of i under the velocities v (eq. 9),
   //   D rho_i / Dt = sum_j m (v_i - v_j) . grad W_ij + sum_b psi_b v_i . grad W_ib
   //                = v_i . G_i - m sum_j v_j . grad W_ij.
-  // rate(i, D rho_i / Dt) for every particle i (pairs_: the sum over j, each pair read once).
-  template <class Rate>
-  void density_rates(const Scalar* v, Rate&& rate) {
-    pairs_.dot(v, rows_.avx2, [&](Index i, Scalar sum) {
-      rate(i, CMap(v + i * D).dot(CMap(grad_sum_.data() + i * D)) - model_.mass * sum);
-    });
+  Scalar density_rate(const Pairs& f, const Scalar* v, Index i) const {
+    return CMap(v + i * D).dot(CMap(grad_sum_.data() + i * D)) -
+           model_.mass * rows_.dot(f.list, f.grads, f.start[i], f.start[i + 1], v);
   }
 
   // The velocity change of one iteration's stiffness increments k_i = kappa_i / rho_i (in
@@ -217,12 +211,11 @@ class SolverD final : public Solver::Impl {
   // (1.32 within h of a side wall, 1.02-1.03 away from it, where WCSPH reads 1.02), its bottom
   // row 1.7 (2D) and 2.1 (3D) rho0 g (H - y) (issue 15).
   // Written in place: the pass reads no velocity.
-  // The sums over j come from pairs_ (each pair read once), row by row.
   void apply_kappa(State& s, Scalar dt) {
+    const Pairs f = fluid_pairs();
     const Scalar m = model_.mass;
-    pairs_.weighted(kappa_.data(), rows_.avx2, [&](Index i, const auto& sum) {
-      const Vec dv = m * Vec(Eigen::Map<const Vec>(reinterpret_cast<const Scalar*>(&sum))) +
-                     (2 * kappa_[i]) * CMap(boundary_grad_sum_.data() + i * D);
+    parallel_for(s.n, [&](Index i) {
+      const Vec dv = m * symmetric_gradient_sum(f, kappa_.data(), i) + (2 * kappa_[i]) * CMap(boundary_grad_sum_.data() + i * D);
       Map(s.v.data() + i * D) -= dt * dv;
     });
   }
@@ -353,9 +346,9 @@ class SolverD final : public Solver::Impl {
     auto residual = [&] {
       const Pairs f = fluid_pairs();
       const Index* b = boundary().start.data();
-      density_rates(s.v.data(), [&](Index i, Scalar rate) {
+      parallel_for(n, [&](Index i) {
         const bool full = f.start[i + 1] - f.start[i] + b[i + 1] - b[i] >= min_neighbors;
-        aux_[i] = full ? rate : 0;
+        aux_[i] = full ? density_rate(f, s.v.data(), i) : 0;
       });
       return parallel_sum(n, [&](Index i) { return std::max<Scalar>(aux_[i], 0); }) / std::max<Index>(n, 1) * dt /
              config_.rho0;
@@ -376,7 +369,8 @@ class SolverD final : public Solver::Impl {
     const Index n = s.n;
     const Scalar rho0 = config_.rho0;
     auto residual = [&] {
-      density_rates(s.v.data(), [&](Index i, Scalar rate) { aux_[i] = s.density[i] + dt * rate - rho0; });
+      const Pairs f = fluid_pairs();
+      parallel_for(n, [&](Index i) { aux_[i] = s.density[i] + dt * density_rate(f, s.v.data(), i) - rho0; });
       return parallel_sum(n, [&](Index i) { return std::max<Scalar>(aux_[i], 0); }) / std::max<Index>(n, 1) / rho0;
     };
     // Warm start: k_i = p_i / rho_i^2 holds up a fluid at rest whatever dt, but the part that
@@ -800,7 +794,6 @@ class SolverD final : public Solver::Impl {
   const VerletLists* lists_ = nullptr;          // the step's Verlet lists (the state's)
   NeighborLists fluid_exact_, boundary_exact_;  // their entries within h (kernel_pass; with a skin)
   RowSums<D> rows_;                             // the light passes' row sums (AVX2 or baseline)
-  PairBlocks<D> pairs_;                         // DFSPH: the step's fluid pairs, once each (pair_blocks.h)
   bool rebuilt_ = false;                        // the step rebuilt the lists
   double search_seconds_ = 0, kernel_seconds_ = 0;  // the last neighborhoods() call's split
   const Scalar* forces_ = nullptr;              // the step's external forces (n, d) by particle id, or null
