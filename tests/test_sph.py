@@ -284,6 +284,16 @@ def test_dfsph_column_at_rest_tight_tol(d):
     assert r["unconverged"] == 0, f"{d}D: {r['unconverged']} free steps stopped at max_iter"
 
 
+@pytest.mark.parametrize("d", [2, 3])
+def test_dfsph_column_at_rest_momentum_tol(d):
+    # At tol = 3e-4 the density solve runs with momentum (cpp/sph/solver.cpp kMomentum, on where
+    # tol < 1e-3): the column holds with the bounds above, every solve within its tolerance.
+    r = column_at_rest("dfsph", d, tol=3e-4)
+    assert r["v_rms"] < 0.02 * np.sqrt(2 * G * r["H"]), f"{d}D: rms speed {r['v_rms']:.3f} m/s"
+    assert r["slope"] == pytest.approx(1, abs=0.1), f"{d}D: dp/dy = {r['slope']:.3f} rho0 g"
+    assert r["unconverged"] == 0, f"{d}D: {r['unconverged']} free steps stopped at max_iter"
+
+
 # At tol = 2e-3 the DFSPH column stays at rest too (the bounds above). It did not before the
 # density solve's coarse correction (coarse_correction, on by default where tol > 1e-3;
 # cpp/sph/coarse.h): 2D
