@@ -179,3 +179,10 @@ def test_gaussian_heat_kernel_3d(scheme, bound):
     err = np.abs(T - exact).max()
     assert err < bound, f"{scheme}: max error {err:.3e}"
     assert abs(T.sum() / T0.sum() - 1) < 1e-10
+
+
+@pytest.mark.parametrize("shape", [5, None, (4,), (0, 4)])
+def test_stepper_shape_is_checked(shape):
+    # Stepper took len(shape) before any check: a bare int raised TypeError.
+    with pytest.raises(ValueError, match="^shape: "):
+        km.diffusion.Stepper(shape, 1.0, 0.01, 0.1)

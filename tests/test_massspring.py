@@ -296,3 +296,35 @@ def test_chain_normal_mode_has_the_discrete_dispersion_frequency(dim):
     crossings = dt * (c + 1 + u[c] / (u[c] - u[c + 1]))
     measured = 2 * (crossings[-1] - crossings[0]) / (len(crossings) - 1)
     assert abs(measured / period - 1) < 1e-5, (measured, period)
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_implicit_step_names_the_real_cause_of_a_singular_matrix(d):
+    # A NaN written into the x view was reported as "dt: ... makes the implicit matrix
+    # non-finite"; a stiffness whose dt^2 k / m exceeds 1/eps (the mass term lost to rounding)
+    # as "not positive definite; check for negative stiffness".
+    x = np.zeros((3, d))
+    x[:, 0] = [0, 1, 2]
+    springs = [[0, 1], [1, 2]]
+    for name, value in (("x", np.nan), ("v", np.inf)):
+        s = km.massspring.System(x, springs, stiffness=1.0)
+        getattr(s, name)[1, 0] = value
+        with pytest.raises(ValueError, match=f"^{name}: holds 1 non-finite value\\(s\\) \\(first at vertex 1\\)"):
+            s.step(0.01)
+    stiff = km.massspring.System(x, springs, stiffness=1e300)
+    stiff.x[2, 0] = 2.1
+    with pytest.raises(ValueError, match="^stiffness, dt: dt\\^2 K / M reaches"):
+        stiff.step(0.1)
+    # Within float64's resolution the same system steps (and a stretched spring pulls back).
+    ok = km.massspring.System(x, springs, stiffness=1e12)
+    ok.x[2, 0] = 2.1
+    ok.step(0.1)
+    assert np.isfinite(ok.x).all() and ok.x[2, 0] < 2.1
+
+
+def test_an_empty_spring_list_is_no_springs():
+    # numpy makes [] float64: System(x, []) was refused as "expected integer indices".
+    s = km.massspring.System(np.zeros((2, 2)), [], stiffness=1.0, gravity=(0, -9.81))
+    assert s.springs.shape == (0, 2)
+    s.step(0.1)
+    np.testing.assert_allclose(s.x[:, 1], -9.81 * 0.1**2)

@@ -696,3 +696,41 @@ def test_cantilever_small_deflection_matches_fem():
         sim.C[...] *= 0.999
     mpm_tip = (sim.x[tip, 1] - x[tip, 1]).mean()
     assert abs(mpm_tip - fem_tip) < 0.1 * abs(fem_tip), f"tip deflection MPM {mpm_tip:.5f} vs FEM {fem_tip:.5f} m"
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_bad_values_written_through_views_are_named(d):
+    # A value written through a view is checked where the step reads it, and the error names
+    # the array: mass and volume <= 0 used to run silently (a negative grid mass), the
+    # material, modulus and ratio were all reported as "x: ... outside the domain", and a NaN
+    # in F or v as a blow-up ("use a dt below stable_dt()").
+    def sim():
+        s = km.mpm.Simulation((16,) * d, 1 / 16)
+        s.add_particles(km.mpm.block([0.4] * d, [0.6] * d, 1 / 32), "elastic", density=1e3,
+                        youngs_modulus=1e4, poisson_ratio=0.3)
+        s.step(1e-4)
+        return s
+
+    cases = [("mass", 0.0), ("mass", -1.0), ("volume", np.nan), ("youngs_modulus", -1.0),
+             ("poisson_ratio", 0.5), ("material", 7), ("x", np.nan), ("F", np.nan), ("v", np.inf),
+             ("C", np.nan)]
+    for name, value in cases:
+        s = sim()
+        before = s.state()
+        view = getattr(s, name)
+        view[3] = value
+        del view
+        with pytest.raises(ValueError, match=f"^{name}: particle 3 "):
+            s.step(1e-4)
+        # the State is left as it was (the bad value included)
+        after = s.state()
+        for key in ("x", "F"):
+            if key != name:
+                np.testing.assert_array_equal(after[key], before[key])
+
+
+@pytest.mark.parametrize("h", [1e-160, 1e-300, 1e120])
+def test_spacing_beyond_float64_is_refused(h):
+    # 1/h^2 (the APIC inertia) or h^3 overflowed into a DivergenceError blaming dt.
+    with pytest.raises(ValueError, match="^h: "):
+        km.mpm.Simulation((16, 16, 16), h)

@@ -493,3 +493,22 @@ def test_non_cubic_3d_box_with_spacing_and_single_precision_input(bc):
         hs.append(h)
     p = slope(hs, errors)
     assert abs(p - 2) < 0.15, f"observed order {p:.3f} (errors {errors})"
+
+
+@pytest.mark.parametrize("shape", [(16, 12), (8, 6, 7)])
+@pytest.mark.parametrize("c", [1e-310, 1e-200, 1e200, 1e300])
+def test_tiny_and_huge_right_hand_sides_are_solved_by_linearity(shape, c):
+    # -lap u = c f has the solution c u: the norms (sums of squares) used to underflow for
+    # c = 1e-200 and below (u = 0 returned as converged with residual 0) and overflow for
+    # c = 1e200 and above (a representable solution refused as "overflows float64").
+    f = np.random.default_rng(5).standard_normal(shape)
+    for method in km.poisson.METHODS:
+        if method == "jacobi":
+            continue  # slow to 1e-8 on these grids, and it shares the loop with multigrid
+        u1, _ = km.poisson.solve(f, 0.1, method=method, tol=1e-10)
+        with np.errstate(under="ignore"):
+            uc, info = km.poisson.solve(c * f, 0.1, method=method, tol=1e-10)
+            assert info.converged and info.residual <= 1e-10
+            # tol 1e-10 on both solves; subnormal c f keeps ~16 - 14 = 2 fewer digits
+            err = np.abs(uc / c - u1).max() / np.abs(u1).max()
+        assert err < (1e-6 if c < 1e-300 else 1e-8), (method, err)

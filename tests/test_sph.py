@@ -530,21 +530,25 @@ def test_coarse_and_fine_spacing(spacing):
 # sqrt(2 g H) (0.99 m/s, a fall over the whole depth: a particle cannot be faster without
 # energy from elsewhere); each DFSPH solve within its tolerance (not stopped at max_iter); the
 # density error of the positions reached below 1%.
-# Measured (the gain as a fraction of the available energy, the top speed): DFSPH 2D 2.5 mm
-# 0.37, 1.74 m/s, 3 solves at the cap, density error up to 3.3%; 2D 5 mm 0.019, 0.24 m/s; 3D
-# 5 mm 0.056, 0.91 m/s; WCSPH 2D 2.5 mm 1.88, 5.0 m/s; 2D 5 mm 1.23, 2.6 m/s; 3D 5 mm 1.74,
-# 3.9 m/s. The energy grows from particle-scale noise next to the walls (fastest particles in
-# the bottom corners). One cause found: the walls' mirrored pressure term 2 k_i B_i (apply_kappa,
-# pressure_accelerations) is twice the gradient of the fluid's energy with respect to x_i and
-# not a conservative force; with Akinci's single term k_i B_i WCSPH 2D 2.5 mm keeps its energy
-# (-0.4% over 0.3 s, 0.19 m/s peak) but the 3D columns at rest lose their hydrostatic slope
-# (the reason the mirror was introduced), and DFSPH still gains 17% in its first 0.05 s. Not
-# fixed yet: strict, so that the fix is noticed.
-FILLED = [pytest.param(method, d, s, id=f"{method}-{d}d-{s}") for method in ("dfsph", "wcsph")
-          for d, s in ((2, 0.0025), (2, 0.005), (3, 0.005))]
+# WCSPH keeps its energy (measured over 0.3 s: gain -0.000 of the available energy in all three
+# cases, top speed 0.11 / 0.10 / 0.16 m/s): its box walls carry the pressure of their own
+# density (cpp/sph/solver.cpp, "WCSPH's walls"), the force is the gradient of the fluid's
+# energy walls included. Before, the walls mirrored the pressure, 2 P_i B_i, twice the walls'
+# share of that gradient: +188% / +123% / +174%, 5.0 / 2.6 / 3.9 m/s.
+# DFSPH still mirrors (2 k_i B_i, apply_kappa) and gains: 2D 2.5 mm +37% (1.74 m/s, 3 solves at
+# max_iter), 2D 5 mm +1.9%, 3D 5 mm +5.6%. Two causes were found (issue 15): the mirror, and at
+# 2.5 mm the time step: the column's bottom rows rearrange at 1-15 g, the density solve's linear
+# prediction rho + dt D rho / Dt misses their second-order compression (predicted 1e-3, reached
+# 3%), and the next step removes it by velocities from nowhere. With the walls' densities as
+# constraints of the solve and the step's force condition on the last step's largest
+# acceleration the three DFSPH columns kept their energy (<= +0.2%), but that wall model made a
+# falling column's impact blow up and the dam-break fronts run 20% ahead: not in yet. Strict,
+# so that the fix is noticed.
+_DFSPH_GAINS = pytest.mark.xfail(strict=True, reason="issue 15: DFSPH's mirrored walls are not conservative")
+FILLED = [pytest.param(method, d, s, id=f"{method}-{d}d-{s}", marks=[_DFSPH_GAINS] if method == "dfsph" else [])
+          for method in ("dfsph", "wcsph") for d, s in ((2, 0.0025), (2, 0.005), (3, 0.005))]
 
 
-@pytest.mark.xfail(strict=True, reason="issue 15: a column at rest filling its tank gains energy (walls)")
 @pytest.mark.parametrize("method, d, s", FILLED)
 def test_column_filling_its_tank_stays_at_rest(method, d, s):
     L, H = 0.1, 0.05

@@ -5,7 +5,6 @@
 // axis c + 3 - dim.
 #include <cmath>
 #include <cstdint>
-#include <cstring>
 #include <memory>
 #include <limits>
 
@@ -44,12 +43,6 @@ std::vector<Index> user_dims(const grid::FieldLayout& L, int dim) {
 // The advection scratch one forward step left (Fluid.step_keep), for that step's adjoint.
 struct AdvectionKept {
   std::array<grid::AdvectionScratch, 4> scratch;
-};
-
-// A copy of a fluid's state (Fluid.state_copy) whose arrays are handed out as numpy views, each
-// keeping it alive; step_adjoint reads a dict of such views in place instead of copying it.
-struct HeldState {
-  grid::State state;
 };
 
 // The Solver and the State it advances, as one Python object.
@@ -96,71 +89,6 @@ struct PyFluid {
     for (Index i = 0; i < size; ++i)
       if (!std::isfinite(data[i])) throw InvalidArgument("control: expected finite accelerations");
     return data;
-  }
-
-  // A copy of the state as a dict of views (u, v[, w], pressure, density, temperature) of one
-  // HeldState; time and steps are the caller's to add.
-  static py::dict state_copy(py::object self) {
-    PyFluid& f = self.cast<PyFluid&>();
-    auto held = std::make_unique<HeldState>();
-    {
-      ReleaseGil release;
-      held->state = f.state_;
-    }
-    py::object owner = py::cast(held.release(), py::return_value_policy::take_ownership);
-    const grid::State& s = owner.cast<const HeldState&>().state;
-    const int dim = f.shape_.dim;
-    py::dict out;
-    auto add = [&](const char* key, const std::vector<Scalar>& q, const std::vector<Index>& dims) {
-      out[key] = view(owner, const_cast<Scalar*>(q.data()), dims);
-    };
-    for (int c = 0; c < dim; ++c) {
-      const int a = internal_axis(dim, c);
-      add(std::string(1, "uvw"[c]).c_str(), s.velocity[a], user_dims(f.solver_->face(a), dim));
-    }
-    add("pressure", s.pressure, f.shape_.user_shape());
-    if (!s.density.empty()) add("density", s.density, f.shape_.user_shape());
-    if (!s.temperature.empty()) add("temperature", s.temperature, f.shape_.user_shape());
-    return out;
-  }
-
-  // The HeldState whose arrays `d` holds, unchanged in place (the views state_copy made, every
-  // one of one HeldState, of this fluid's sizes, with its time and steps), or nullptr.
-  const grid::State* held_state(const py::dict& d) const {
-    const grid::State* held = nullptr;
-    auto same = [&](const std::string& key, const std::vector<Scalar> grid::State::*field, int axis,
-                    Index size) {
-      if (!d.contains(key)) return size == 0;
-      const py::object obj = d[key.c_str()];
-      if (!py::isinstance<py::array_t<Scalar, py::array::c_style>>(obj)) return false;
-      const auto a = py::reinterpret_borrow<py::array>(obj);
-      const py::handle base = a.base();
-      if (!base || !py::isinstance<HeldState>(base)) return false;
-      const grid::State& s = base.cast<const HeldState&>().state;
-      if (held && held != &s) return false;
-      held = &s;
-      const std::vector<Scalar>& q = axis >= 0 ? s.velocity[axis] : s.*field;
-      return static_cast<Index>(q.size()) == size && static_cast<Index>(a.size()) == size && a.data() == q.data();
-    };
-    const int dim = shape_.dim;
-    const grid::Config& config = solver_->config();
-    const Index cells = shape_.size();
-    for (int c = 0; c < dim; ++c) {
-      const int a = internal_axis(dim, c);
-      if (!same(std::string(1, "uvw"[c]), nullptr, a, solver_->face(a).size())) return nullptr;
-    }
-    if (!same("pressure", &grid::State::pressure, -1, cells) ||
-        !same("density", &grid::State::density, -1, config.density ? cells : 0) ||
-        !same("temperature", &grid::State::temperature, -1, config.temperature ? cells : 0) || !held)
-      return nullptr;
-    for (int a = 0; a < 3 - dim; ++a)
-      if (!held->velocity[a].empty()) return nullptr;
-    const Scalar time = d.contains("time") ? d["time"].cast<Scalar>() : 0;
-    const Index steps = d.contains("steps") ? d["steps"].cast<Index>() : 0;
-    std::uint64_t t0, t1;
-    std::memcpy(&t0, &time, sizeof time);
-    std::memcpy(&t1, &held->time, sizeof time);
-    return t0 == t1 && steps == held->steps ? held : nullptr;
   }
 
   // Copies the arrays named in `d` (u, v[, w], pressure, density, temperature: user names and
@@ -214,11 +142,12 @@ struct PyFluid {
 
   // (dL/d(before) as a dict, dL/dviscosity or None when not wanted, dL/dcontrol or None) of one
   // step from `before`.
+  // warm_start: the pressure solve may start from the last call's solution when that was the
+  // adjoint of the next step (km.diff's backward chain, reset by reset_adjoint_warm_start at its
+  // start); else from zero, so a lone call's bits do not depend on the calls before it.
   py::tuple step_adjoint(Scalar dt, const py::dict& before, const py::object& control, const py::dict& grads,
-                         bool want_viscosity, const AdvectionKept* forward) {
-    // `before` read in place when it is a state_copy dict (km.diff's), else copied
-    const grid::State* held = held_state(before);
-    const grid::State b = held ? grid::State{} : read_state(before, false);
+                         bool want_viscosity, const AdvectionKept* forward, bool warm_start) {
+    const grid::State b = read_state(before, false);
     grid::State adjoint = read_state(grads, true);
     py::object holder;
     const Scalar* u = read_control(control, holder);
@@ -227,7 +156,8 @@ struct PyFluid {
     {
       Interrupt interrupt = python_interrupt();
       ReleaseGil release;
-      solver_->step_adjoint(held ? *held : b, dt, u, adjoint, want_viscosity ? &grad_viscosity : nullptr,
+      if (!warm_start) solver_->reset_adjoint_warm_start();
+      solver_->step_adjoint(b, dt, u, adjoint, want_viscosity ? &grad_viscosity : nullptr,
                             u ? grad_control.data() : nullptr, interrupt, forward ? &forward->scratch : nullptr);
     }
     py::object gc = py::none();
@@ -338,6 +268,7 @@ struct PyRecord {
     {
       Interrupt interrupt = python_interrupt();
       ReleaseGil release;
+      fluid->solver_->reset_adjoint_warm_start();  // a chain of its own steps only
       for (Index k = steps - 1; k >= 0; --k) {
         Scalar g = 0;
         const Scalar* u = controls.empty() ? nullptr : controls.data() + k * per_step;
@@ -442,7 +373,6 @@ void bind_grid(py::module_& m) {
       .def_readonly("viscosity_seconds", &StepStats::viscosity_seconds)
       .def_readonly("projection_seconds", &StepStats::projection_seconds);
 
-  py::class_<HeldState>(m, "HeldState", "A copy of a Fluid's state, owner of the arrays of Fluid.state_copy().");
   py::class_<AdvectionKept>(m, "AdvectionKept", "A forward step's advection scratch (Fluid.step_keep), "
                                                  "read by Fluid.step_adjoint instead of recomputing it.");
   py::class_<PyRecord>(m, "FluidRecord")
@@ -452,10 +382,11 @@ void bind_grid(py::module_& m) {
       .def(py::init<const std::vector<Index>&, Scalar, const Config&>(), py::arg("shape"), py::arg("h"),
            py::arg("config"))
       .def_property_readonly("config", [](const PyFluid& f) { return f.solver_->config(); })
-      .def("state_copy", &PyFluid::state_copy)
       .def("step", &PyFluid::step, py::arg("dt"), py::arg("control") = py::none())
       .def("step_adjoint", &PyFluid::step_adjoint, py::arg("dt"), py::arg("before"), py::arg("control"),
-           py::arg("grads"), py::arg("want_viscosity") = true, py::arg("forward") = nullptr)
+           py::arg("grads"), py::arg("want_viscosity") = true, py::arg("forward") = nullptr,
+           py::arg("warm_start") = false)
+      .def("reset_adjoint_warm_start", [](PyFluid& f) { f.solver_->reset_adjoint_warm_start(); })
       .def("step_keep", &PyFluid::step_keep, py::arg("dt"), py::arg("control") = py::none(),
            py::arg("reuse") = py::none())
       .def("record", &record_run, py::arg("dt"), py::arg("steps"), py::arg("controls"),

@@ -265,6 +265,8 @@ void piola_lame_derivatives(const Mat<D>& F, Material m, Mat<D>& A, Mat<D>& B) {
       return;
     }
   }
+  A.setZero();  // unreachable (every Material returns above), as psi's and piola's 0
+  B.setZero();
 }
 
 // dP/dF on vec(F) (symmetric: it is the Hessian of psi).

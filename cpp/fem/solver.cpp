@@ -67,6 +67,8 @@ Solver::Solver(const Model& model, const Config& config)
     w2 = std::max(w2, row / model_.mass[q / d]);
   }
   explicit_dt_limit_ = w2 > 0 ? 2 / std::sqrt(w2) : std::numeric_limits<Scalar>::infinity();
+  for (Index e = 0; e < model_.element_count; ++e)
+    energy_scale_ += model_.volume[e] * (2 * model_.mu[e] + std::abs(model_.lam[e])) * d;
   // Rigid motions are all held when the fixed vertices' rest positions span an affine set of
   // dimension >= d - 1 (two distinct points in 2D, three non-collinear ones in 3D).
   Eigen::Matrix3d scatter = Eigen::Matrix3d::Zero();
@@ -401,6 +403,22 @@ StepStats Solver::minimise(State& state, Scalar* x, const Scalar* y, Scalar a, c
     return 1e-13 * std::sqrt(dot(n, magnitude.data(), magnitude.data()));
   };
   Scalar floor = noise_floor(x);
+  // Rounding level of the objective g: the relative part below, plus a few dozen ulps of the
+  // sizes of the terms summed into it, which g's value does not show when they cancel or when
+  // the strain is small: psi(F) ~ (2 mu + |lam|) d at |F| ~ 1 per unit volume whatever the
+  // strain (a spinning body's elastic energy is noise of that size), and the load's - m g . x.
+  Scalar value_terms = energy_scale_;
+  if (gravity || control)
+    value_terms += parallel_sum(m.vertex_count, [&](Index i) {
+      Scalar t = 0;
+      for (int r = 0; r < d; ++r) {
+        const Index q = i * d + r;
+        if (gravity) t += std::abs(load * m.mass[i] * m.gravity()[r] * x[q]);
+        if (control && !m.fixed[i]) t += std::abs(control[q] * x[q]);
+      }
+      return t;
+    });
+  const Scalar value_noise = 64 * std::numeric_limits<Scalar>::epsilon() * s * value_terms;
   // Rounding of the positions themselves (x - x0 in Ds loses digits) through the stiffness:
   // ~ a few ulps of |H_qq x_q|, known once a Hessian has been assembled.
   Scalar position_noise = 0;
@@ -475,7 +493,7 @@ StepStats Solver::minimise(State& state, Scalar* x, const Scalar* y, Scalar a, c
                              " (the linear solve failed); try linear_solver='cholmod_direct'");
 
     // Backtracking line search on g (Armijo, c = 1e-4). Near the solution g changes by less
-    // than its rounding error, so a step that lowers the gradient norm there is accepted too.
+    // than its rounding error (value_noise), so a step that lowers the gradient norm there is accepted too.
     phase.restart();
     Scalar alpha = 1;
     bool accepted = false;
@@ -485,7 +503,8 @@ StepStats Solver::minimise(State& state, Scalar* x, const Scalar* y, Scalar a, c
       if (!std::isfinite(value)) continue;
       if (value <= g_value + 1e-4 * alpha * slope) {
         accepted = true;
-      } else if (std::abs(value - g_value) <= 1e-12 * (std::abs(g_value) + std::abs(value))) {
+      } else if (std::abs(value - g_value) <=
+                 1e-12 * (std::abs(g_value) + std::abs(value)) + value_noise) {
         std::vector<Scalar> g_trial(n);
         if (gradient(trial_.data(), g_trial.data()) < g_norm) accepted = true;
       }

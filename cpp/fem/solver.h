@@ -193,6 +193,7 @@ class Solver {
   FactorRecord factor_;
   bool force_refactor_ = false;
   Scalar explicit_dt_limit_ = 0;
+  Scalar energy_scale_ = 0;  // sum_e V_e (2 mu_e + |lam_e|) d [J]: psi's term sizes at |F| ~ 1
   bool rigid_motion_free_ = true;  // the fixed vertices leave some rigid motion of the body free
   bool avx2_ = use_avx2();  // the neo-Hookean element passes' AVX2 version (core/simd.h)
   // The model's element constants packed for those passes (built on first use).

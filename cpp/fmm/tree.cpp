@@ -76,17 +76,26 @@ void Tree<D>::build(Index leaf_size, Scalar min_width, Scalar root_scale, Interr
   const Index n = static_cast<Index>(s[0].size()), m = static_cast<Index>(t[0].size());
   Box root;
   if (n + m > 0) {
-    Scalar width = 0, scale = 0;
+    Scalar width = 0, scale = 0, extent[D];
     for (int d = 0; d < D; ++d) {
       Scalar lo = INFINITY, hi = -INFINITY;
       for (Scalar v : s[d]) lo = std::min(lo, v), hi = std::max(hi, v);
       for (Scalar v : t[d]) lo = std::min(lo, v), hi = std::max(hi, v);
       root.c[d] = 0.5 * (lo + hi);
+      extent[d] = hi - lo;
       width = std::max(width, hi - lo);
       scale = std::max(scale, std::abs(root.c[d]));
     }
     // A margin keeps points on the far faces inside despite the rounding of the centre.
     root.h = 0.5 * width * (1 + 1e-12) * std::max<Scalar>(1, root_scale);
+    // Along an axis where the points span at most half the root (a plane z = const in 3D, a
+    // line in 2D), centred they would lie on the faces between the children at every level,
+    // each box's points at its worst distance from its centre: a 3D plane's error then fell
+    // ~0.16 decades per order instead of ~0.3 (3x the asked eps at 1e-10, 18x at 1e-12).
+    // The root is shifted by h/3 there, so that they lie at 1/3 or 2/3 of every box (1/3 has
+    // no finite binary expansion) and stay inside ([mid - h/2, mid + h/2] in [c - h, c + h]).
+    for (int d = 0; d < D; ++d)
+      if (extent[d] <= root.h) root.c[d] += root.h / 3;
     const Scalar floor = 1e-300 + 1e-15 * scale;
     if (!(root.h > floor)) root.h = std::max(floor, 1.0);
   } else {

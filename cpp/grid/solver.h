@@ -79,6 +79,10 @@ class Solver {
   // reverse, and consecutive adjoint pressures differ little, as the forward pressures do).
   void projection_adjoint(std::array<std::vector<Scalar>, 3>& grad, Scalar dt, Interrupt& interrupt,
                           Index warm_step = -1);
+  // Forgets the last adjoint pressure solution: the next step adjoint's solve starts from zero.
+  // A backward pass calls it first, so its gradients depend on its own chain of adjoint steps
+  // only, never on adjoint calls made before it (the same bits in any order of calls).
+  void reset_adjoint_warm_start() { adjoint_pressure_step_ = -1; }
   // Sets the kinematic viscosity nu [m^2/s] (a differentiable parameter).
   void set_viscosity(Scalar viscosity);
   // Levels of the pressure solver's multigrid hierarchy (0 without one), for tests.

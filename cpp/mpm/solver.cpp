@@ -340,6 +340,8 @@ class SolverD final : public Solver::Impl {
         inside = inside && code >= 0 && code < static_cast<Index>(model_.materials.size());
         const Scalar E = state.youngs_modulus[static_cast<size_t>(p)], nu = state.poisson_ratio[static_cast<size_t>(p)];
         inside = inside && std::isfinite(E) && E > 0 && std::isfinite(nu) && nu > -1 && nu < 0.5;
+        const Scalar mp = state.mass[static_cast<size_t>(p)], vp = state.volume[static_cast<size_t>(p)];
+        inside = inside && mp > 0 && std::isfinite(mp) && vp > 0 && std::isfinite(vp);
         if (!inside) {
           const Index u = state.user_of(p);
 #pragma omp critical(mpm_bad_particle)
@@ -641,14 +643,44 @@ class SolverD final : public Solver::Impl {
     rebuild_table();
   }
 
+  // The particle sort_phase found bad (a value written through a view): names what is wrong.
   [[noreturn]] void throw_bad_particle(const State& state) const {
-    const Index bad = bad_, p = state.row_of(bad);
+    const Index bad = bad_;
+    const size_t p = static_cast<size_t>(state.row_of(bad));
+    const std::string which = "particle " + std::to_string(bad);
+    const Index code = state.material[p];
+    if (code < 0 || code >= static_cast<Index>(model_.materials.size()))
+      throw InvalidArgument("material: " + which + " has material code " + std::to_string(code) +
+                            ", not one of the " + std::to_string(model_.materials.size()) + " materials");
+    const Scalar E = state.youngs_modulus[p], nu = state.poisson_ratio[p];
+    if (!(std::isfinite(E) && E > 0))
+      throw InvalidArgument("youngs_modulus: " + which + " has " + format_real(E) + ", expected a finite value > 0");
+    if (!(nu > -1 && nu < 0.5))
+      throw InvalidArgument("poisson_ratio: " + which + " has " + format_real(nu) + ", expected a value in (-1, 0.5)");
+    if (!(state.mass[p] > 0 && std::isfinite(state.mass[p])))
+      throw InvalidArgument("mass: " + which + " has " + format_real(state.mass[p]) + ", expected a finite value > 0");
+    if (!(state.volume[p] > 0 && std::isfinite(state.volume[p])))
+      throw InvalidArgument("volume: " + which + " has " + format_real(state.volume[p]) +
+                            ", expected a finite value > 0");
     std::string where = "(";
-    for (int a = 0; a < D; ++a) where += (a ? ", " : "") + format_real(state.x[static_cast<size_t>(p * D + a)]);
-    throw InvalidArgument("x: particle " + std::to_string(bad) + " at " + where +
-                          ") is outside the domain or not finite (or its material code is not one of the " +
-                          std::to_string(model_.materials.size()) +
-                          " materials, or its youngs_modulus is not > 0 or poisson_ratio not in (-1, 0.5))");
+    for (int a = 0; a < D; ++a) where += (a ? ", " : "") + format_real(state.x[p * D + a]);
+    throw InvalidArgument("x: " + which + " at " + where + ") is outside the domain or not finite");
+  }
+
+  // After a step whose G2P met a non-finite value (the State restored): the first particle
+  // whose v, F, C or Jp was already non-finite before the step (written through a view), named
+  // as bad input; empty when the input was finite (a blow-up).
+  std::string bad_input(const State& state) const {
+    const Index n = state.n;
+    const struct { const std::vector<Scalar>& a; int width; const char* name; } fields[] = {
+        {state.v, D, "v"}, {state.F, D * D, "F"}, {state.C, D * D, "C"}, {state.Jp, 1, "Jp"}};
+    for (const auto& f : fields)
+      for (Index p = 0; p < n; ++p)
+        for (int k = 0; k < f.width; ++k)
+          if (!std::isfinite(f.a[static_cast<size_t>(p * f.width + k)]))
+            return std::string(f.name) + ": particle " + std::to_string(state.user_of(p)) +
+                   " holds a non-finite value (written through the view?)";
+    return "";
   }
 
   std::array<Index, 3> coords_of(Index key) const {
@@ -1067,6 +1099,10 @@ class SolverD final : public Solver::Impl {
     const Scalar vmax = std::sqrt(vmax2);
     if (!finite || !(vmax * dt <= config_.max_cells_per_step * h)) {
       parallel_for(state.n, [&](Index q) { restore_row(state, order_[static_cast<size_t>(q)], q); });
+      if (!finite) {
+        const std::string input = bad_input(state);
+        if (!input.empty()) throw InvalidArgument(input);
+      }
       throw DivergenceError(
           "mpm: " + std::string(finite ? "particles moved " + format_real(vmax * dt / h) + " cells in one step"
                                        : "a velocity or deformation gradient became non-finite") +

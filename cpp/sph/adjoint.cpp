@@ -1,8 +1,11 @@
 // The vector-Jacobian product of one WCSPH step (adjoint.h gives the step's equations). With
 // lambda_i = dL/da_i = dt (dL/dv'_i + dt dL/dx'_i), grad W_ij = F(r) x_ij (F = W'(r) / r) and
 // its Jacobian H_ij = d(grad W_ij)/dx_i = F I + (F'(r) / r) x_ij x_ij^T (symmetric in i, j):
-//   pressure:  dL/dP_i = -m sum_j (lambda_i - lambda_j) . grad W_ij - 2 lambda_i . B_i,
-//              dL/dx_i += -m sum_j (P_i + P_j) H_ij (lambda_i - lambda_j) - 2 P_i sum_b psi_b H_ib lambda_i,
+//   pressure:  dL/dP_i = -m sum_j (lambda_i - lambda_j) . grad W_ij - lambda_i . B_i,
+//              dL/dx_i += -m sum_j (P_i + P_j) H_ij (lambda_i - lambda_j) - sum_b psi_b (P_i + P_b) H_ib lambda_i,
+//   walls:     (the samples that carry pressure, solver.cpp "The walls"; P_b = 0 for the others)
+//              dL/dP_b = -psi_b sum_i lambda_i . grad W_ib, dL/drho_b = dL/dP_b dP_b/drho_b,
+//              dL/dx_i += m sum_b dL/drho_b grad W_ib (rho_b = wall_rho_b + sum_i m W_ib),
 //   viscosity: each ordered pair (i, j) with c_ij = K nu V_j s_ij (K = 2 (d + 2), V_j = m / rho_j,
 //              s_ij = v_ij . x_ij / (|x_ij|^2 + 0.01 h^2)) and mu_ij = lambda_i . grad W_ij gives
 //              dL/dv_ij = K nu V_j mu_ij x_ij / den, dL/dx_ij = K nu V_j mu_ij ds/dx_ij + c_ij H_ij lambda_i,
@@ -29,12 +32,15 @@
 #include "particles/neighbor_lists.h"
 #include "sph/kernels.h"
 #include "sph/solver.h"
+#include "sph/walls.h"
 
 namespace kinema::sph {
 
 // step_adjoint's buffers, sized once and overwritten by every call, and its neighbour search.
 struct AdjointScratch {
   std::vector<Scalar> x, v, rho, P, dP, B, lambda, grho, gx, gv, gnu;
+  std::vector<Scalar> wall_P, wall_dP, wall_grho;  // (M,) the walls' P_b, dP_b/drho_b, dL/drho_b
+  WallRows walls;
   std::vector<Index> order, row_of;
   NeighborGrid<2> grid2, boundary_grid2;
   NeighborGrid<3> grid3, boundary_grid3;
@@ -150,6 +156,27 @@ void adjoint_d(const Model& model, const Config& config, AdjointScratch& s, cons
     s.dP[i] = dp / (rho * rho) - 2 * p / (rho * rho * rho);
   });
 
+  // The walls' P_b = p_b / rho_b^2 and dP_b / drho_b (zero for the samples without pressure).
+  const Index wall_begin = model.wall_begin;
+  const bool has_walls = wall_begin < nb;
+  s.wall_P.assign(static_cast<size_t>(nb), 0);
+  s.wall_dP.assign(static_cast<size_t>(nb), 0);
+  s.wall_grho.assign(static_cast<size_t>(nb), 0);
+  if (has_walls) {
+    s.walls.build(s.boundary, n, wall_begin, nb);
+    parallel_for(s.walls.rows(), [&](Index c) {
+      const Index b = wall_begin + c;
+      const Vec xbb = CMap(xb + b * D);
+      Scalar rho = model.wall_rho[b];
+      for (Index e = s.walls.start[c]; e < s.walls.start[c + 1]; ++e)
+        rho += m * kernel.W.w((CMap(x + Index{s.walls.particle[e]} * D) - xbb).norm());
+      const Scalar p = tait_pressure(rho, rho0, Bt, gamma);
+      const Scalar dp = rho > rho0 ? Bt * gamma * std::pow(rho / rho0, gamma - 1) / rho0 : 0;
+      s.wall_P[b] = p / (rho * rho);
+      s.wall_dP[b] = dp / (rho * rho) - 2 * p / (rho * rho * rho);
+    });
+  }
+
   // Through the domain clamp and the integrator: x' = x + dt v*, v* = v + dt a.
   s.lambda.resize(nd);
   s.gx.resize(nd);
@@ -208,14 +235,15 @@ void adjoint_d(const Model& model, const Config& config, AdjointScratch& s, cons
       gxi += (K * nu * Vi * mu_ji) * ds - c_ji * H(lj);
       grho -= c_ji * mu_ji / s.rho[i];
     }
-    // the boundary's mirrored pressure -2 P_i B_i
+    // the boundary's pressure -P_i B_i - sum_b psi_b P_b grad W_ib
     const Vec Bi = CMap(s.B.data() + i * D);
-    gP -= 2 * li.dot(Bi);
+    gP -= li.dot(Bi);
     for (Index k = bs[i]; k < bs[i + 1]; ++k) {
-      const Vec xib = xi - CMap(xb + Index{bl[k]} * D);
+      const Index b = bl[k];
+      const Vec xib = xi - CMap(xb + b * D);
       Scalar F, dF;
       kernel(xib.norm(), F, dF);
-      gxi -= 2 * s.P[i] * psi[bl[k]] * (F * li + (dF * xib.dot(li)) * xib);
+      gxi -= (s.P[i] + s.wall_P[b]) * psi[b] * (F * li + (dF * xib.dot(li)) * xib);
     }
     s.grho[i] = grho + gP * s.dP[i];
     s.gnu[i] = gnu;
@@ -223,10 +251,32 @@ void adjoint_d(const Model& model, const Config& config, AdjointScratch& s, cons
     Map(s.gv.data() + i * D) += gvi;
   });
 
-  // Densities: dL/dx_i += m sum_j (dL/drho_i + dL/drho_j) grad W_ij + dL/drho_i B_i.
+  // The walls' dL/drho_b = -psi_b sum_i lambda_i . grad W_ib dP_b/drho_b.
+  if (has_walls)
+    parallel_for(s.walls.rows(), [&](Index c) {
+      const Index b = wall_begin + c;
+      const Vec xbb = CMap(xb + b * D);
+      Scalar gP = 0;
+      for (Index e = s.walls.start[c]; e < s.walls.start[c + 1]; ++e) {
+        const Index i = s.walls.particle[e];
+        const Vec xib = CMap(x + i * D) - xbb;
+        gP -= CMap(lambda + i * D).dot(kernel.W.grad_factor(xib.norm()) * xib);
+      }
+      s.wall_grho[b] = psi[b] * gP * s.wall_dP[b];
+    });
+
+  // Densities: dL/dx_i += m sum_j (dL/drho_i + dL/drho_j) grad W_ij + dL/drho_i B_i
+  //                      + m sum_b dL/drho_b grad W_ib.
   parallel_for(n, [&](Index i) {
     const Vec xi = CMap(x + i * D);
     Vec gxi = s.grho[i] * CMap(s.B.data() + i * D);
+    if (has_walls)
+      for (Index k = bs[i]; k < bs[i + 1]; ++k) {
+        const Index b = bl[k];
+        if (b < wall_begin) continue;
+        const Vec xib = xi - CMap(xb + b * D);
+        gxi += (m * s.wall_grho[b] * kernel.W.grad_factor(xib.norm())) * xib;
+      }
     for (Index k = fs[i]; k < fs[i + 1]; ++k) {
       const Index j = fl[k];
       const Vec xij = xi - CMap(x + j * D);

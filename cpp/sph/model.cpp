@@ -106,6 +106,27 @@ std::vector<Scalar> akinci_psi(const std::vector<Scalar>& xb, Scalar h, Scalar r
   return psi;
 }
 
+// The boundary's own density at each sample, sum_k psi_k W_bk (itself included).
+template <int D>
+std::vector<Scalar> wall_density(const std::vector<Scalar>& xb, const std::vector<Scalar>& psi, Scalar h) {
+  using Vec = Eigen::Matrix<Scalar, D, 1>;
+  const Index m = static_cast<Index>(psi.size());
+  std::vector<Scalar> rho(static_cast<size_t>(m), 0);
+  if (m == 0) return rho;
+  NeighborGrid<D> grid;
+  grid.build(xb.data(), m, h);
+  const CubicSpline<D> W(h);
+  parallel_for(m, [&](Index b) {
+    const Vec xi = Eigen::Map<const Vec>(xb.data() + b * D);
+    Scalar sum = 0;
+    grid.for_each_candidate(xi, [&](Index k) {
+      sum += psi[static_cast<size_t>(k)] * W.w((Eigen::Map<const Vec>(xb.data() + k * D) - xi).norm());
+    });
+    rho[static_cast<size_t>(b)] = sum;
+  });
+  return rho;
+}
+
 }  // namespace
 
 Model make_model(const Config& config, const State& initial, Scalar spacing, std::vector<Scalar> boundary,
@@ -135,6 +156,7 @@ Model make_model(const Config& config, const State& initial, Scalar spacing, std
   model.boundary_x = std::move(boundary);
   model.boundary_psi = dim == 2 ? akinci_psi<2>(model.boundary_x, model.h, rho0)
                                 : akinci_psi<3>(model.boundary_x, model.h, rho0);
+  model.wall_begin = model.boundary_count();
   if (lower && upper) {
     model.has_domain = true;
     for (int a = 0; a < dim; ++a) {
@@ -155,6 +177,8 @@ Model make_model(const Config& config, const State& initial, Scalar spacing, std
     model.boundary_x.insert(model.boundary_x.end(), walls.begin(), walls.end());
     model.boundary_psi.resize(model.boundary_x.size() / static_cast<size_t>(dim), rho0 * volume);
   }
+  model.wall_rho = dim == 2 ? wall_density<2>(model.boundary_x, model.boundary_psi, model.h)
+                            : wall_density<3>(model.boundary_x, model.boundary_psi, model.h);
   return model;
 }
 

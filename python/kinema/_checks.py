@@ -265,7 +265,8 @@ def indices(value, name, n, shape_tail=None):
     (m, *shape_tail) when ``shape_tail`` is given (ValueError naming ``name`` otherwise)."""
     a = np.asarray(value)
     if a.size == 0:
-        a = a.reshape((0,) + (shape_tail or ()))
+        # an empty list ([] is float64 to numpy) holds no index of the wrong type
+        a = a.reshape((0,) + (shape_tail or ())).astype(np.int64)
     if a.dtype.kind not in "iu":
         raise ValueError(f"{name}: expected integer indices, got dtype {a.dtype}")
     a = np.ascontiguousarray(a, dtype=np.int64)

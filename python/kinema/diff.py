@@ -58,9 +58,6 @@ Optional (a faster path for runs stored whole; km.diff falls back to the steps w
 - ``_diff_want(names or None)``: ``backward`` tells the simulation which parameters it wants
   (a tuple of names) before its adjoint steps and None (all) after them; ``_diff_step_adjoint``
   may then leave the others out of grad_params (they count as zero) and skip their cost.
-- ``_diff_state_copies = True``: every ``state()`` call returns arrays newly made for that
-  call, which the simulation neither holds nor writes later; km.diff then holds them without
-  copying them again.
 - ``_diff_step_keep(dt, control, step_options) -> kept or None``: ``_diff_step`` that also
   returns what the step's adjoint would otherwise recompute of it; a checkpointed backward calls
   it for a recomputed step whose adjoint comes soon (at most two held at once) and passes it as
@@ -108,22 +105,17 @@ def _same_bits(a: np.ndarray, b: np.ndarray) -> bool:
     return np.array_equal(a[:head], b[:head]) and np.array_equal(a[head:], b[head:])
 
 
-def _copy_state(state: dict, previous: dict | None = None, fresh: bool = False) -> dict:
+def _copy_state(state: dict, previous: dict | None = None) -> dict:
     """A copy of `state` whose arrays are new, except those bitwise equal to the same entry of
     `previous` (an earlier copy), which are shared: what did not change between two copies (a
-    lagged factor's record, a static field) is held once. Held copies are never written.
-    fresh: `state` is a state() dict of a simulation whose state() arrays are its own new copies
-    (``_diff_state_copies``): they are held as they are, not copied again."""
+    lagged factor's record, a static field) is held once. Held copies are never written."""
     out = {}
     for k, v in state.items():
         if not isinstance(v, np.ndarray):
             out[k] = v
             continue
         p = None if previous is None else previous.get(k)
-        if isinstance(p, np.ndarray) and _same_bits(p, v):
-            out[k] = p
-        else:
-            out[k] = v if fresh else np.array(v, copy=True)
+        out[k] = p if isinstance(p, np.ndarray) and _same_bits(p, v) else np.array(v, copy=True)
     return out
 
 
@@ -252,7 +244,6 @@ class Rollout:
         self.recomputed_steps = 0
         self._held = 0
         self._last = None
-        self._fresh = getattr(sim, "_diff_state_copies", False) is True
         start = self._copy(sim.state())
         self._start = start
         self._record = None
@@ -300,7 +291,7 @@ class Rollout:
         self.outputs = {name: np.array(self._end[name], copy=True) for name in self._state_names}
 
     def _copy(self, state: dict) -> dict:
-        self._last = _copy_state(state, self._last, self._fresh)
+        self._last = _copy_state(state, self._last)
         return self._last
 
     # -- bookkeeping of the states held, to verify the memory bound

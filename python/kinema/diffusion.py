@@ -18,7 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from kinema._checks import as_float_array, choice, grid_array, positive, positive_int, representable, spacing
+from kinema._checks import (as_float_array, choice, grid_array, grid_shape, positive, positive_int, representable,
+                            spacing)
 from kinema.errors import DivergenceError, StabilityError
 from kinema.poisson import Solver
 
@@ -48,7 +49,7 @@ class Stepper:
         self.h = spacing(h, "h")
         self.scheme = choice(scheme, "scheme", SCHEMES)
         self.tol = positive(tol, "tol")
-        d = len(shape)
+        d = len(grid_shape(shape, "shape"))  # (a bare int raised TypeError from len)
         self._c = self.kappa * self.dt
         if not (np.isfinite(self._c) and np.isfinite(1 / self._c) if self._c > 0 else False):
             raise ValueError(f"kappa, dt: kappa*dt = {self.kappa}*{self.dt} is not representable as a "

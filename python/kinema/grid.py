@@ -313,7 +313,7 @@ class Fluid:
         """Everything a step evolves, as copies: u, v[, w] [m/s], pressure [m^2/s^2] (the warm
         start of the next projection), density and temperature when enabled, time [s] and
         steps. :meth:`set_state` of this dict resumes bit for bit."""
-        out = self._core.state_copy()  # views of one C++ copy, which km.diff's adjoint reads in place
+        out = {name: view.copy() for name, view in self._state_arrays().items()}
         out["time"], out["steps"] = np.float64(self.time), np.int64(self.steps)
         return out
 
@@ -340,8 +340,6 @@ class Fluid:
         return self._core.step(time_step(dt))
 
     # ------------------------------------------------------------ km.diff protocol
-    _diff_state_copies = True  # state() makes new arrays on every call (km.diff holds them as they are)
-
     @property
     def _diff_state_names(self):
         names = tuple("uvw"[:self.dim])
@@ -410,12 +408,16 @@ class Fluid:
         # adjoint recomputes only the advection's first passes of each step
         self._diff_wanted = names
         self._diff_spent = None  # a backward's spent advection scratch goes with it
+        if names is not None:  # a backward starts: its adjoint pressure solves chain from zero
+            self._core.reset_adjoint_warm_start()
 
     def _diff_step_adjoint(self, dt, before, after, control, grad_after, step_options, forward=None):
         wanted = getattr(self, "_diff_wanted", None)
         want_nu = wanted is None or "viscosity" in wanted
+        # inside km.diff's backward (wanted set) each pressure solve warm-starts from the one of
+        # the step after it, the previous call of that backward; a lone call starts from zero
         grads, g_nu, g_control = self._core.step_adjoint(time_step(dt), before, control, grad_after, want_nu,
-                                                         forward)
+                                                         forward, wanted is not None)
         if forward is not None and wanted is not None:  # within km.diff's backward, which drops it
             self._diff_spent = forward
         return grads, ({"viscosity": g_nu} if want_nu else {}), g_control

@@ -43,6 +43,7 @@ from kinema._checks import (
     as_float_array, choice, finite_result, gravity_vector, indices, positive_int, real, simulation_object,
     spacing)
 from kinema._state import assign
+from kinema.errors import DivergenceError
 
 __all__ = ["System", "Config", "StepStats", "Integrator", "cloth", "INTEGRATORS"]
 
@@ -72,6 +73,10 @@ def _enum(value, name, enum, options):
     if isinstance(value, enum):
         return value
     return getattr(enum, choice(value, name, options))
+
+
+def _implicit(config) -> bool:
+    return config.integrator == Integrator.implicit
 
 
 @simulation_object
@@ -202,7 +207,23 @@ class System:
         dt = real(dt, "dt")
         try:
             return self._core.step(dt, positive_int(steps, "steps"), control)
-        except ValueError as exc:
+        except (ValueError, DivergenceError) as exc:
+            # The error paths only: a NaN/Inf written into the x or v view is the cause to name
+            # (not dt); a matrix whose dt^2 K / M exceeds 1/eps has lost its mass term (and the
+            # rigid motions it alone holds) to rounding: not an indefinite matrix.
+            for name in ("x", "v"):
+                bad = ~np.isfinite(getattr(self._core, name))
+                if bad.any():
+                    raise ValueError(f"{name}: holds {int(bad.sum())} non-finite value(s) (first at vertex "
+                                     f"{int(np.flatnonzero(bad.any(axis=1))[0])}), written through the "
+                                     "view or left by a diverged run") from None
+            if isinstance(exc, DivergenceError):
+                raise
+            ratio = dt**2 * 4 / self.explicit_dt_limit**2
+            if _implicit(self._core.config) and ratio > 1 / np.finfo(float).eps:
+                raise ValueError(f"stiffness, dt: dt^2 K / M reaches {ratio:.3g} (Gershgorin), beyond the "
+                                 "4.5e15 float64 resolves: the mass term is lost to rounding; reduce dt or "
+                                 "the stiffness, or choose other units") from None
             if not str(exc).startswith("A:"):
                 raise
             # the implicit matrix M - h C - beta h^2 K overflowed: dt is the argument to blame

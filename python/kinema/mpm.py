@@ -140,6 +140,12 @@ class Simulation:
         shape = grid_shape(shape, "shape")
         d = len(shape)
         h = positive(h, "h")
+        with np.errstate(all="ignore"):
+            hh = np.float64(h)
+            resolved = np.isfinite(4 / hh**2) and 0 < hh**d < np.inf and np.isfinite(hh * max(shape))
+        if not resolved:
+            raise ValueError(f"h: {h:g} m is outside what float64 resolves for the transfers (1/h^2, "
+                             f"h^{d} and the domain shape * h must be finite and nonzero); choose other units")
         gravity = np.zeros(d) if gravity is None else as_float_array(gravity, "gravity", ndim=1)
         if gravity.size != d:
             raise ValueError(f"gravity: expected {d} components, got {gravity.size}")

@@ -152,6 +152,19 @@ class Solver:
             u = np.zeros(self.shape)
         else:
             u = self._cell_array(x0, "x0").copy()
+        # The solvers' norms are sums of squares: for max |f| below ~1e-154 they underflow to 0
+        # (u = 0 was returned as converged with residual 0) and above ~1e150 they overflow (a
+        # representable solution was refused). The problem is linear: f and x0 are scaled by a
+        # power of two (exact) into a safe range and u scaled back. Ordinary f is untouched.
+        shift = 0  # f is scaled by 2^shift
+        f_max = float(np.abs(f).max()) if f.size else 0.0
+        if f_max > 0 and not 2.0**-450 < f_max < 2.0**450:
+            shift = -int(np.frexp(f_max)[1])
+            f = np.ldexp(f, shift)
+            with np.errstate(over="ignore", under="ignore"):
+                u = np.ldexp(u, shift)
+            if not np.isfinite(u).all():
+                u[...] = 0  # x0 beyond the range of this f: start from zero
         try:
             if self.method == "cholmod":
                 info = self._solve_direct(f, u, tol)
@@ -159,8 +172,11 @@ class Solver:
                 info = self._core.solve(f, u, tol, max_iter)
         except DivergenceError:
             # f and x0 are finite and the operator is definite: only overflow makes u non-finite
-            raise ValueError(f"f: the solution overflows float64 (max |f| = {np.abs(f).max():.3g}, "
+            raise ValueError(f"f: the solution overflows float64 (max |f| = {f_max:.3g}, "
                              f"h = {self.h:g}); scale f into a smaller range") from None
+        if shift:
+            with np.errstate(over="ignore", under="ignore"):
+                u = np.ldexp(u, -shift)
         representable(u, "f", "the solution")
         if not info.converged and raise_on_failure:
             err = ConvergenceError(

@@ -130,7 +130,13 @@ class Fluid:
     viscosity: kinematic viscosity [m^2/s] (0 skips the pass). gravity: (d,) [m/s^2]; None
     means no gravity (pass ``(0, -9.81)`` or ``(0, -9.81, 0)`` for water in a tank).
     domain: (lower, upper) of a closed box. boundary: (M, d) static boundary samples of any
-    solid. speed_of_sound: WCSPH's c [m/s], default 10 sqrt(2 |g| H) for the initial fluid
+    solid. Walls (docs/guide/sph.md, "Walls and energy"): under WCSPH the domain's walls carry
+    the pressure of their own density rho_b = sum_k psi_k W_bk + sum_i m W_ib, so the wall
+    force is the gradient of the fluid's energy (a column at rest keeps its energy) and the
+    pressure beside a wall is hydrostatic; ``boundary`` samples act with Akinci et al. 2012's
+    single term (conservative, about twice the hydrostatic pressure beside them). DFSPH's
+    walls mirror the pressure (hydrostatic beside them, but not conservative: issue 15).
+    speed_of_sound: WCSPH's c [m/s], default 10 sqrt(2 |g| H) for the initial fluid
     height H. gamma: Tait exponent.
     Further keywords: velocity ((n, d) initial velocities), tol (DFSPH mean density error,
     default 1e-3), divergence_tol (1e-3), max_iter (100), divergence_solve (True),
