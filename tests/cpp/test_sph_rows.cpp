@@ -105,4 +105,27 @@ TEST(SphRows, Avx2EqualsBaselineBitwise) {
   }
 }
 
+// row_dot over the velocities padded to 4 doubles per particle (the fourth 0), which the DFSPH
+// rate sums read under AVX2: the same sums as the baseline's over the packed velocities.
+TEST(SphRows, PaddedVelocityDotEqualsBaselineBitwise) {
+  if (!cpu_has_avx2()) GTEST_SKIP() << "this CPU has no AVX2";
+#if defined(__FMA__)
+  GTEST_SKIP() << "built with FMA (-march=native): the baseline may contract its multiply-adds";
+#endif
+  const auto baseline = sph::RowSums<3>::choose(false);
+  const auto wide = sph::RowSums<3>::choose(true);
+  ASSERT_EQ(baseline.dot4, nullptr);
+  ASSERT_NE(wide.dot4, nullptr);
+  const RandomRows r;
+  std::vector<Scalar> v4(static_cast<size_t>(4 * r.n), 0);
+  for (Index j = 0; j < r.n; ++j)
+    for (int a = 0; a < 3; ++a) v4[static_cast<size_t>(4 * j + a)] = r.v[static_cast<size_t>(3 * j + a)];
+  for (Index i = 0; i < r.n; ++i) {
+    const Index b = r.start[i], e = r.start[i + 1];
+    ASSERT_EQ(baseline.dot(r.list.data(), r.grads.data(), b, e, r.v.data()),
+              wide.dot4(r.list.data(), r.grads.data(), b, e, v4.data()))
+        << "row " << i;
+  }
+}
+
 }  // namespace kinema
