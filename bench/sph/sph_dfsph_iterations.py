@@ -40,17 +40,20 @@ def main():
     for _ in range(max(1, round(sb.START / dt))):  # sph_bench.py's start-up (started_fluid)
         fluid.step(dt)
     density_its, divergence_its, errors = [], [], []
+    split = np.zeros(3)
     cpu, wall = time.process_time(), time.perf_counter()
     for _ in range(steps):
         st = fluid.step(dt)
         density_its.append(st.iterations)
         divergence_its.append(st.divergence_iterations)
         errors.append(st.density_error)
+        split += (st.search_seconds, st.kernel_seconds, st.solve_seconds)
     cpu = (time.process_time() - cpu) / steps * 1e3
     wall = (time.perf_counter() - wall) / steps * 1e3
     print(f"n={fluid.n} {kw} dt={dt:.3g}: density iterations {np.mean(density_its):.2f}, divergence "
           f"{np.mean(divergence_its):.2f}, solver error {np.mean(errors):.2e}, compression at the end "
-          f"{fluid.density_error():.2e}, {cpu:.1f} CPU ms / {wall:.1f} ms per step")
+          f"{fluid.density_error():.2e}, {cpu:.1f} CPU ms / {wall:.1f} ms per step (search / kernel pass / "
+          f"solves {' / '.join(f'{1e3 * t / steps:.1f}' for t in split)} ms; {st.neighbor_count} neighbour entries)")
 
 
 if __name__ == "__main__":

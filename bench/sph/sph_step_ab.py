@@ -3,7 +3,7 @@
 acoustic CFL step). Each (build, method, threads) run is a fresh process, and the builds are
 alternated round by round, so that a shared machine's load falls on both alike.
 
-    python bench/sph/sph_step_ab.py BEFORE_PYTHON AFTER_PYTHON [--rounds 3] [--steps 10]
+    python bench/sph/sph_step_ab.py BEFORE_PYTHON AFTER_PYTHON [--rounds 3] [--steps 10] [--tol 1e-3]
 
 e.g. ``python bench/sph/sph_step_ab.py build/venv-before/bin/python .venv/bin/python`` (a build is
 named by its Python interpreter; a wrapper script that sets PYTHONPATH names a copied install). A run starts
@@ -32,13 +32,13 @@ def stat(st, name):
     return st[name] if isinstance(st, dict) else getattr(st, name)
 
 
-def worker(method: str, steps: int) -> None:
+def worker(method: str, steps: int, tol: float = 1e-3) -> None:
     sys.path.insert(0, str(HERE))
     sys.path.insert(0, str(HERE.parent / "common"))  # harness.py
     import harness
     import sph_bench as sb
 
-    fluid, s = sb.kinema_fluid(150_000, method, 1e-3)
+    fluid, s = sb.kinema_fluid(150_000, method, tol)  # tol and divergence_tol (DFSPH)
     dt = sb.started_dt(fluid, method, s)
     fluid.step(dt)
     its, errors = [], []
@@ -55,9 +55,9 @@ def worker(method: str, steps: int) -> None:
                           density_error=sum(errors) / steps, dt=dt)))
 
 
-def run(python: str, method: str, threads: int, steps: int) -> dict:
+def run(python: str, method: str, threads: int, steps: int, tol: float) -> dict:
     env = {"OMP_NUM_THREADS": str(threads), "PATH": "/usr/bin:/bin"}
-    out = subprocess.run([python, __file__, "--worker", method, "--steps", str(steps)], env=env,
+    out = subprocess.run([python, __file__, "--worker", method, "--steps", str(steps), "--tol", str(tol)], env=env,
                          capture_output=True, text=True, check=True)
     return json.loads(out.stdout.strip().splitlines()[-1])
 
@@ -70,10 +70,11 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=10)
     ap.add_argument("--methods", default="dfsph,wcsph")
     ap.add_argument("--threads", default="1,2")
+    ap.add_argument("--tol", type=float, default=1e-3, help="DFSPH tol and divergence_tol")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.worker:
-        worker(args.worker, args.steps)
+        worker(args.worker, args.steps, args.tol)
         return
     builds = {"before": args.before, "after": args.after}
     results = {}
@@ -81,7 +82,7 @@ def main() -> None:
         for method in args.methods.split(","):
             for threads in map(int, args.threads.split(",")):
                 for name, python in builds.items():
-                    res = run(python, method, threads, args.steps)
+                    res = run(python, method, threads, args.steps, args.tol)
                     results.setdefault((method, threads, name), []).append(res)
                     print(f"round {r} {method} {threads} thread(s) {name}: {res['cpu_ms']:.1f} CPU ms / "
                           f"{res['wall_ms']:.1f} ms per step, other_load {res['other_load']:.2f}, "

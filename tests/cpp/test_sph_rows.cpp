@@ -1,5 +1,5 @@
-// The neighbour-row sums of the SPH light passes (sph/kernels.h: row_dot, row_weighted): the
-// AVX2 versions equal the baseline bit for bit (same operations in the same order, no FMA), and
+// The neighbour-row sums of the SPH light passes (sph/kernels.h: row_dot, row_weighted, and
+// row_dot over padded velocities): the AVX2 versions equal the baseline bit for bit (same operations in the same order, no FMA), and
 // both agree with a long-double reference within the rounding bound of their summation.
 #include <gtest/gtest.h>
 
@@ -93,11 +93,20 @@ TEST(SphRows, Avx2EqualsBaselineBitwise) {
   ASSERT_FALSE(baseline.avx2);
   ASSERT_TRUE(wide.avx2);
   const RandomRows r;
+  // The rate sums of DFSPH read the velocities padded to 4 doubles per particle (the fourth 0).
+  ASSERT_EQ(baseline.dot4, nullptr);
+  ASSERT_NE(wide.dot4, nullptr);
+  std::vector<Scalar> v4(static_cast<size_t>(4 * r.n), 0);
+  for (Index j = 0; j < r.n; ++j)
+    for (int a = 0; a < 3; ++a) v4[static_cast<size_t>(4 * j + a)] = r.v[static_cast<size_t>(3 * j + a)];
   for (Index i = 0; i < r.n; ++i) {
     const Index b = r.start[i], e = r.start[i + 1];
     ASSERT_EQ(baseline.dot(r.list.data(), r.grads.data(), b, e, r.v.data()),
               wide.dot(r.list.data(), r.grads.data(), b, e, r.v.data()))
         << "row_dot, row " << i;
+    ASSERT_EQ(baseline.dot(r.list.data(), r.grads.data(), b, e, r.v.data()),
+              wide.dot4(r.list.data(), r.grads.data(), b, e, v4.data()))
+        << "row_dot over padded velocities, row " << i;
     Scalar out0[3], out1[3];
     baseline.weighted(r.list.data(), r.grads.data(), b, e, r.c[i], r.c.data(), out0);
     wide.weighted(r.list.data(), r.grads.data(), b, e, r.c[i], r.c.data(), out1);
