@@ -5,6 +5,7 @@ holds at tol 1e-3 and bounces at looser tolerances (a probe, no timing; its figu
     python bench/sph/sph_column_cycle.py --d 2 3 --tol 1e-3 1.3e-3 2e-3 5e-3  # rms speed per tol
     python bench/sph/sph_column_cycle.py --d 2 3 --tol 2e-3 --warm-start 0    # the same, cold solves
     python bench/sph/sph_column_cycle.py --d 2 3 --method wcsph               # WCSPH's column (its walls)
+    python bench/sph/sph_column_cycle.py --d 2 3 --tol 1e-3 2e-3 5e-3 --walls shepard  # DFSPH's walls="shepard"
 
 Set-up as the test's column_at_rest: a column of depth 0.5 m (2D: 1 m wide, spacing 0.02; 3D:
 0.3 x 0.15 m, spacing 0.025) in a closed tank, nu = 0.01, settled for 0.5 s by zeroing the
@@ -27,7 +28,7 @@ REST = {2: dict(s=0.02, size=[1.0, 0.5]), 3: dict(s=0.025, size=[0.3, 0.5, 0.15]
 SETTLE, FREE = 0.5, 0.5
 
 
-def run(d, tol, warm_start, divergence_tol, series, method="dfsph"):
+def run(d, tol, warm_start, divergence_tol, series, method="dfsph", walls="mirror"):
     import kinema as km
 
     s, size = REST[d]["s"], REST[d]["size"]
@@ -37,7 +38,8 @@ def run(d, tol, warm_start, divergence_tol, series, method="dfsph"):
     gravity = [0.0] * d
     gravity[1] = -G
     fluid = km.sph.Fluid(km.sph.block([0] * d, size, s), s, gravity=gravity, method=method, domain=([0] * d, box),
-                         viscosity=0.01, tol=tol, warm_start=warm_start, divergence_tol=divergence_tol)
+                         viscosity=0.01, tol=tol, warm_start=warm_start, divergence_tol=divergence_tol,
+                         walls=walls if method == "dfsph" else "mirror")
     while fluid.time < SETTLE - 1e-9:
         fluid.advance(0.02)
         fluid.v[:] = 0
@@ -66,7 +68,7 @@ def run(d, tol, warm_start, divergence_tol, series, method="dfsph"):
     # The bottom row against rho0 g (H - y) (the walls' consistency).
     bottom = y < s
     ratio = np.mean(p[bottom] / (1000 * G * (top - y[bottom])))
-    print(f"{method} {d}D tol {tol:g} warm_start {warm_start:g} divergence_tol {divergence_tol:g}: rms speed {v_rms:.4f} m/s "
+    print(f"{method}{' walls=' + walls if method == 'dfsph' else ''} {d}D tol {tol:g} warm_start {warm_start:g} divergence_tol {divergence_tol:g}: rms speed {v_rms:.4f} m/s "
           f"(bound {0.02 * np.sqrt(2 * G * H):.4f}), slope {slope:.3f} rho0 g, density iterations "
           f"{its.mean():.1f} / {its.max()} per step, bottom row {ratio:.2f} rho0 g (H - y)", flush=True)
 
@@ -79,10 +81,11 @@ def main():
     p.add_argument("--divergence-tol", type=float, default=1e-3)
     p.add_argument("--series", action="store_true", help="print the steps of each run")
     p.add_argument("--method", default="dfsph", choices=["dfsph", "wcsph"], help="wcsph: tol and warm start unused")
+    p.add_argument("--walls", default="mirror", choices=["mirror", "shepard"], help="DFSPH's walls")
     args = p.parse_args()
     for d in args.d:
         for tol in args.tol:
-            run(d, tol, args.warm_start, args.divergence_tol, args.series, args.method)
+            run(d, tol, args.warm_start, args.divergence_tol, args.series, args.method, args.walls)
 
 
 if __name__ == "__main__":

@@ -8,6 +8,7 @@ density error of the positions reached, and the largest iteration count.
   python bench/sph/sph_filled_tank.py                       # the six cases of the test, 0.3 s
   python bench/sph/sph_filled_tank.py --dt-scale 0.5        # steps of 0.5 x stable_dt()
   python bench/sph/sph_filled_tank.py --case dfsph 2 0.0025 --series   # one line per step
+  python bench/sph/sph_filled_tank.py --walls shepard       # DFSPH's walls="shepard"
 
 A gain that does not shrink with the step (--dt-scale) is a force that is not conservative,
 not a time-integration error.
@@ -23,14 +24,14 @@ G = 9.81
 CASES = [(m, d, s) for m in ("dfsph", "wcsph") for d, s in ((2, 0.0025), (2, 0.005), (3, 0.005))]
 
 
-def run(method, d, s, duration=0.3, dt_scale=1.0, series=False):
+def run(method, d, s, duration=0.3, dt_scale=1.0, series=False, walls="mirror"):
     L, H = 0.1, 0.05
     upper = [L] * d
     upper[1] = H
     gravity = [0.0] * d
     gravity[1] = -G
     fluid = km.sph.Fluid(km.sph.block([0] * d, upper, s), s, gravity=gravity, method=method,
-                         domain=([0] * d, [L] * d))
+                         domain=([0] * d, [L] * d), walls=walls if method == "dfsph" else "mirror")
     mass = fluid.mass
 
     def energy():
@@ -51,7 +52,7 @@ def run(method, d, s, duration=0.3, dt_scale=1.0, series=False):
             print(f"  t={fluid.time:.4f} dt={st.dt:.2e} it={st.iterations:3d} div_it={st.divergence_iterations:3d} "
                   f"converged={st.density_converged and st.divergence_converged} solver_error={st.density_error:.2e} "
                   f"density_error={step_error:.2e} max_speed={st.max_speed:.3f} gain={step_gain:+.3f}")
-    print(f"{method} {d}D s={s} n={fluid.n} steps={fluid.steps} dt_scale={dt_scale}: energy gain {gain:+.3f} of "
+    print(f"{method}{' ' + walls if method == 'dfsph' else ''} {d}D s={s} n={fluid.n} steps={fluid.steps} dt_scale={dt_scale}: energy gain {gain:+.3f} of "
           f"available, top speed {vmax:.3f} m/s (sqrt(2 g H) = {np.sqrt(2 * G * H):.3f}), {unconverged} steps at "
           f"max_iter, density error <= {error:.2e}, iterations <= {iterations} "
           f"[{time.perf_counter() - start:.1f} s, {km.get_num_threads()} threads]")
@@ -64,9 +65,10 @@ def main():
     parser.add_argument("--duration", type=float, default=0.3)
     parser.add_argument("--dt-scale", type=float, default=1.0)
     parser.add_argument("--series", action="store_true")
+    parser.add_argument("--walls", default="mirror", choices=["mirror", "shepard"], help="DFSPH's walls")
     args = parser.parse_args()
     cases = [(args.case[0], int(args.case[1]), float(args.case[2]))] if args.case else CASES
-    gains = [run(m, d, s, args.duration, args.dt_scale, args.series) for m, d, s in cases]
+    gains = [run(m, d, s, args.duration, args.dt_scale, args.series, args.walls) for m, d, s in cases]
     print(f"summary: {sum(g >= 0.01 for g in gains)} of {len(gains)} cases gain >= 1% of the available energy")
 
 

@@ -282,7 +282,9 @@ void bind_sph(py::module_& m) {
                      "DFSPH: share of the last step's stiffnesses a solve starts from")
       .def_readwrite("coarse_correction", &Config::coarse_correction,
                      "DFSPH: two-level density solve, a coarse correction in height (needs gravity): "
-                     "1 on, 0 off, -1 on where tol > 1e-3");
+                     "1 on, 0 off, -1 on where tol > 1e-3")
+      .def_readwrite("shepard_walls", &Config::shepard_walls,
+                     "DFSPH: the domain's walls carry the Shepard average of their neighbours' stiffness");
 
   using sph::StepStats;
   py::class_<StepStats, StepStatsBase>(m, "StepStats", "What one SPH step did.")

@@ -34,6 +34,10 @@ struct Config {
   // -1 on where tol > kCoarseAutoTol (loose tolerances, where the one-level solve let a column at
   // rest bounce; at tighter ones it holds and the coarse steps cost more than they save).
   int coarse_correction = -1;
+  // DFSPH with a domain: the walls' samples carry the Shepard average of their fluid
+  // neighbours' stiffness (a force of constraint form: a column filling its tank keeps its
+  // energy) in place of mirroring each particle's (solver.cpp, apply_kappa; issue 15).
+  bool shepard_walls = false;
   static constexpr Scalar kCoarseAutoTol = 1e-3;
 };
 
