@@ -238,7 +238,7 @@ class SolverD final : public Solver::Impl {
   // T = 2 (the mirror 1%; docs/guide/sph.md), so it is not the default yet.
   // alpha_i (kernel_pass) keeps the mirror's Jacobi diagonal either way; the boundary samples a
   // user gives always mirror (their own density has no rest value).
-  // Written in place: the pass reads no velocity.
+  // Written in place: the pass reads no velocity; both branches keep v4_ current.
   void apply_kappa(State& s, Scalar dt) {
     const Pairs f = fluid_pairs();
     const Scalar m = model_.mass;
@@ -256,6 +256,7 @@ class SolverD final : public Solver::Impl {
           dv += (b < walls_.begin ? kappa_[i] : wall_k_[b - walls_.begin]) * CMap(wall_entry_grad_.data() + k * D);
         }
         Map(s.v.data() + i * D) -= dt * dv;
+        if (rows_.dot4) store_v4(s, i);
       });
       return;
     }
