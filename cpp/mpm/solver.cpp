@@ -1871,8 +1871,7 @@ void Solver::step_adjoint(const State& before, const State& after, Scalar dt, co
   impl_->step_adjoint(before, after, dt, forces, adjoint, adjoint_params, adjoint_forces, interrupt);
 }
 
-Scalar Solver::stable_dt(const State& state, Scalar cfl) const {
-  if (!(std::isfinite(cfl) && cfl > 0)) throw InvalidArgument("cfl: expected a number > 0, got " + format_real(cfl));
+Scalar Solver::signal_speed(const State& state) const {
   const int d = state.dim;
   // Wave speeds from each particle's own moduli, with the expressions of make_material.
   Scalar vmax = 0, harden = 1, c_elastic = 0, c_snow = 0;
@@ -1881,7 +1880,10 @@ Scalar Solver::stable_dt(const State& state, Scalar cfl) const {
     Scalar v2 = 0;
     for (int a = 0; a < d; ++a) v2 += state.v[static_cast<size_t>(p * d + a)] * state.v[static_cast<size_t>(p * d + a)];
     vmax = std::max(vmax, std::sqrt(v2));
-    const Material& m = model_.materials[static_cast<size_t>(state.material[static_cast<size_t>(p)])];
+    const auto kind = state.material[static_cast<size_t>(p)];
+    // A material index written out of range through the view is the step's to name, not read here.
+    if (kind < 0 || static_cast<size_t>(kind) >= model_.materials.size()) continue;
+    const Material& m = model_.materials[static_cast<size_t>(kind)];
     const Scalar E = state.youngs_modulus[static_cast<size_t>(p)];
     Scalar mu, lambda;
     lame_parameters(E, state.poisson_ratio[static_cast<size_t>(p)], mu, lambda);
@@ -1894,8 +1896,20 @@ Scalar Solver::stable_dt(const State& state, Scalar cfl) const {
     }
   }
   const Scalar c = std::max(c_elastic, c_snow * std::sqrt(harden));
+  return vmax + c;
+}
+
+Scalar Solver::cfl_dt(const State& state) const {
+  const Scalar speed = signal_speed(state);
+  return speed > 0 ? model_.h / speed : std::numeric_limits<Scalar>::infinity();
+}
+
+Scalar Solver::stable_dt(const State& state, Scalar cfl) const {
+  if (!(std::isfinite(cfl) && cfl > 0)) throw InvalidArgument("cfl: expected a number > 0, got " + format_real(cfl));
+  const int d = state.dim;
+  const Scalar speed = signal_speed(state);
   Scalar dt = config_.max_dt;
-  if (vmax + c > 0) dt = std::min(dt, cfl * model_.h / (vmax + c));
+  if (speed > 0) dt = std::min(dt, cfl * model_.h / speed);
   Scalar g = 0;
   for (int a = 0; a < d; ++a) g += config_.gravity[a] * config_.gravity[a];
   if (g > 0) dt = std::min(dt, std::sqrt(cfl * model_.h / std::sqrt(g)));
