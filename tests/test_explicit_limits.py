@@ -71,6 +71,34 @@ def test_massspring_limits_bracket_the_true_limit(case):
     assert limit <= sys.unstable_dt * (1 + 1e-12), (limit, sys.unstable_dt)
 
 
+def spectral_radius(h, K, C, m):
+    """Symplectic Euler's amplification of (v, x) for M x'' = -K x - C v, damping explicit."""
+    n = len(m)
+    I = np.eye(n)
+    a = I - h * C / m[:, None]
+    A = np.block([[a, -h * K / m[:, None]], [h * a, I - h * h * K / m[:, None]]])
+    return np.abs(np.linalg.eigvals(A)).max()
+
+
+@pytest.mark.parametrize("case", [0, 1])
+@pytest.mark.parametrize("damping", [0.0, 0.3, 3.0])
+def test_massspring_symplectic_stable_below_limit_unstable_above_bound(case, damping):
+    # The full linearised step (damping along the springs, per-spring values: C does not commute
+    # with K): stable for every dt up to explicit_dt_limit, unstable above unstable_dt.
+    x, springs, k, m, fixed = spring_systems()[case]
+    c = damping * np.sqrt(k.mean() * m.mean()) * np.random.default_rng(1).uniform(0.5, 1.5, len(k))
+    sys = km.massspring.System(x, springs, stiffness=k, mass=m, damping=c, fixed=fixed)
+    K, dofs = spring_hessian(x, springs, k, fixed)
+    C, _ = spring_hessian(x, springs, c, fixed)
+    md = np.repeat(m, x.shape[1])[dofs]
+    for h in np.linspace(0.05, 1, 12) * sys.explicit_dt_limit:
+        assert spectral_radius(h, K, C, md) <= 1 + 1e-9, h / sys.explicit_dt_limit
+    for h in np.array([1 + 1e-6, 1.1, 2]) * sys.unstable_dt:
+        assert spectral_radius(h, K, C, md) > 1 + 1e-9, h / sys.unstable_dt
+    if damping:
+        assert sys.explicit_dt_limit < 2 / np.sqrt(4 / sys._core.explicit_dt_limit**2)  # lowered
+
+
 def test_massspring_window_with_uniform_springs_is_the_vertex_degree():
     # Uniform k and m: Gershgorin's omega^2 is 2 k deg_max / m, the free-free spring's Rayleigh
     # quotient 2 k / m: the warning window is sqrt(deg_max) wide, as explicit_dt_limit says.
@@ -171,6 +199,28 @@ def test_fem_limits_bracket_the_true_limit(case):
         # stable step only within sqrt(factor) of the limit.
         ratio = (limit / body.explicit_dt_limit) ** 2
         assert ratio <= factor, (name, ratio)
+
+
+@pytest.mark.parametrize("damping", [0.0, 50.0, 2000.0])
+def test_fem_damped_limit_brackets_the_true_limit(damping):
+    # The symplectic step with implicit mass damping c: v' = (v + h M^-1 f) / (1 + h c);
+    # its amplification's spectral radius is <= 1 up to explicit_dt_limit and > 1 above unstable_dt.
+    V, T = km.fem.rectangle_mesh((0, 0), (1, 0.5), (3, 2))
+    body = km.fem.Body(V, T, model="linear", youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0,
+                       fixed=np.flatnonzero(V[:, 0] == 0), damping=damping)
+    free = np.setdiff1d(np.arange(len(V)), body.fixed)
+    dofs = (free[:, None] * 2 + np.arange(2)).ravel()
+    K = body.hessian().toarray()[np.ix_(dofs, dofs)] / np.repeat(body.mass, 2)[dofs][:, None]
+    I = np.eye(len(dofs))
+
+    def radius(h):
+        a = 1 / (1 + h * damping)
+        A = np.block([[a * I, -a * h * K], [a * h * I, I - a * h * h * K]])
+        return np.abs(np.linalg.eigvals(A)).max()
+    for h in np.linspace(0.05, 1, 12) * body.explicit_dt_limit:
+        assert radius(h) <= 1 + 1e-9
+    for h in np.array([1 + 1e-6, 1.1, 2]) * body.unstable_dt:
+        assert radius(h) > 1 + 1e-9, h / body.unstable_dt
 
 
 def test_fem_below_limit_is_silent_and_beyond_warns_or_raises():

@@ -21,8 +21,9 @@ CG, with a backtracking line search; converged when ||grad g|| <= tol
 times its value at the inertial guess x_n + h v_n. ``integrator="symplectic"`` is the explicit
 path (no Hessian is assembled). The damping c [1/s] is mass-proportional.
 
-Stability of the symplectic step: its true limit is 2 / omega_max of M^-1 K at rest (the
-linearisation; damping only lowers it). A step above ``Body.explicit_dt_limit`` (omega_max^2
+Stability of the symplectic step: its true limit for the linearisation at rest is the root of
+h^2 omega_max^2 = 4 + 2 h c, omega_max^2 the largest eigenvalue of M^-1 K at rest (2 / omega_max
+undamped; the mass damping c is applied implicitly and raises it). A step above ``Body.explicit_dt_limit`` (omega_max^2
 bounded above by Gershgorin: conservative, 1.4-1.75x the true omega_max^2 on triangle meshes
 and 1.45-2.3x on tetrahedra (rectangle_mesh, box_mesh), so it warns on stable steps up to
 1.32x or 1.52x the limit) warns once per ``step`` call with a
@@ -252,10 +253,11 @@ class Body:
 
     @property
     def unstable_dt(self) -> float:
-        """An upper bound [s] of the symplectic step's true limit 2 / omega_max: 2 / sqrt(max_q
-        K_qq / m_q) over the free degrees of freedom q, K the elastic Hessian at rest (the
-        Rayleigh quotient of the unit vector e_q, a lower bound of omega_max^2). ``inf`` when
-        nothing is stiff. A symplectic step above it raises ValueError."""
+        """An upper bound [s] of the symplectic step's true limit: the root of h^2 w^2 = 4 + 2 h c
+        (2 / w undamped) with w^2 = max_q K_qq / m_q over the free degrees of freedom q, K the
+        elastic Hessian at rest (the Rayleigh quotient of the unit vector e_q, a lower bound of
+        omega_max^2) and c the mass damping. ``inf`` when nothing is stiff. A symplectic step
+        above it raises ValueError."""
         cached = getattr(self, "_unstable_dt", None)
         if cached is not None and cached[0] is self._solver:
             return cached[1]
@@ -268,7 +270,8 @@ class Body:
         with np.errstate(over="ignore", invalid="ignore"):
             w2 = (diag.reshape(-1, d) / self.mass[:, None])[free]
         top = float(w2.max()) if w2.size else 0.0
-        value = 2 / math.sqrt(top) if top > 0 else math.inf
+        c = self._values["damping"]
+        value = (c + math.sqrt(c * c + 4 * top)) / top if top > 0 else math.inf
         self._unstable_dt = (self._solver, value)
         return value
 

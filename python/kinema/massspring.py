@@ -23,8 +23,9 @@ on M^-1 K at rest: conservative, it may refuse a stable step) warns once per ``s
 RuntimeWarning naming dt and the limit; a step above ``System.unstable_dt`` (2 / omega for a
 Rayleigh quotient of M^-1 K at rest, a lower bound of omega_max: every such step is unstable, the
 symplectic one grows the stiffest mode, explicit Euler's by a factor above sqrt(5) per step)
-raises ValueError before stepping. The two bracket the true limit 2 / omega_max of the
-linearisation at rest (damping only lowers it). Explicit Euler grows energy at every dt.
+raises ValueError before stepping. The two bracket the true limit of the linearisation at rest
+(damping, applied explicitly, lowers it from 2 / omega_max; ``explicit_dt_limit`` accounts for
+it). Undamped explicit Euler grows energy at every dt.
 Blow-ups raise km.DivergenceError naming the step and the explicit limit, never silent NaN.
 
 Gradients (km.diff): ``System`` implements the km.diff protocol for every integrator, with
@@ -167,11 +168,23 @@ class System:
 
     @property
     def explicit_dt_limit(self) -> float:
-        """Gershgorin bound 2 / omega_max [s] on the explicit and symplectic steps; ``inf`` when
-        no spring has stiffness (nothing limits the step). Conservative: the true limit lies in
-        [explicit_dt_limit, :attr:`unstable_dt`]; with one stiffness and one mass throughout (and
-        a spring between free vertices) it is at most sqrt(max springs at a vertex) times this."""
-        return self._core.explicit_dt_limit
+        """Conservative stability limit [s] of the explicit and symplectic steps: the root of
+        h^2 omega^2 + 2 h gamma = 4 (symplectic Euler's limit for one mode of frequency omega
+        and explicitly applied damping rate gamma; 2 / omega undamped), omega^2 and gamma bounded
+        above by Gershgorin on M^-1 K at rest and M^-1 C (per vertex, the sums of 2 k / m and
+        2 c / m over its springs); ``inf`` when no spring has stiffness or damping. The true
+        limit lies in [explicit_dt_limit, :attr:`unstable_dt`]; undamped, with one stiffness
+        and one mass throughout (and a spring between free vertices), it is at most
+        sqrt(max springs at a vertex) times this."""
+        w2 = 4 / self._core.explicit_dt_limit**2  # the undamped Gershgorin bound, in C++
+        c = self._core.parameter("damping")
+        if not len(c) or not c.any():
+            return self._core.explicit_dt_limit
+        m = self._core.parameter("mass")
+        rows = np.bincount(self.springs.ravel(), np.repeat(2 * c, 2), minlength=len(m)) / m
+        rows[self.fixed] = 0
+        gamma = float(rows.max())
+        return 4 / (gamma + np.sqrt(gamma**2 + 4 * w2))
 
     @property
     def unstable_dt(self) -> float:
@@ -274,7 +287,7 @@ class System:
                                      "view or left by a diverged run") from None
             if isinstance(exc, DivergenceError):
                 raise
-            ratio = dt**2 * 4 / self.explicit_dt_limit**2
+            ratio = dt**2 * 4 / self._core.explicit_dt_limit**2
             if _implicit(self._core.config) and ratio > 1 / np.finfo(float).eps:
                 raise ValueError(f"stiffness, dt: dt^2 K / M reaches {ratio:.3g} (Gershgorin), beyond the "
                                  "4.5e15 float64 resolves: the mass term is lost to rounding; reduce dt or "
