@@ -296,3 +296,19 @@ def test_mpm_beyond_cfl_limit_warns(d):
             pass
     assert [w.category for w in caught] == [RuntimeWarning]
     assert number_in(str(caught[0].message), dt)
+
+
+@pytest.mark.filterwarnings("ignore:dt.*cfl_dt:RuntimeWarning")  # CFL 2 is warned, as it should be
+def test_mpm_cfl_limit_is_near_the_observed_blow_up():
+    # The estimate is not loose: moving water stays finite at CFL 0.9 and blows up at CFL 2
+    # (measured: from CFL 1.2 on), the step's own DivergenceError reporting it.
+    def run(cfl, steps=120):
+        sim = km.mpm.Simulation((32, 32), 1 / 32)
+        sim.add_particles(km.mpm.block([0.3, 0.3], [0.6, 0.6], 1 / 64), "water", density=1000.0,
+                          youngs_modulus=1e5, velocity=[1.0, 0.0])
+        for _ in range(steps):
+            sim.step(cfl * sim.cfl_dt())
+        return sim
+    assert np.isfinite(run(0.9).kinetic_energy())
+    with pytest.raises(km.DivergenceError):
+        run(2.0)

