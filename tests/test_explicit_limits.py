@@ -312,3 +312,10 @@ def test_mpm_cfl_limit_is_near_the_observed_blow_up():
     assert np.isfinite(run(0.9).kinetic_energy())
     with pytest.raises(km.DivergenceError):
         run(2.0)
+
+
+def test_mpm_advance_warns_for_cfl_above_one():
+    sim = mpm_block(2)
+    sim.advance(0.9 * sim.cfl_dt(), cfl=0.9)  # silent
+    with pytest.warns(RuntimeWarning, match="cfl: 1.5 > 1"):
+        sim.advance(1e-4, cfl=1.5)

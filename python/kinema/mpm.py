@@ -293,8 +293,13 @@ class Simulation:
         """Steps of :meth:`stable_dt` until ``duration`` [s] has passed (the last step lands on
         the end; a sliver under a tenth of a step is absorbed by the one before); returns the
         number of steps. The :class:`StepStats` of the last step (stage and wall seconds summed
-        over all) are in :attr:`last_stats`."""
-        steps, self.last_stats = self._sim.advance(non_negative(duration, "duration"), positive(cfl, "cfl"))
+        over all) are in :attr:`last_stats`. ``cfl`` above 1 warns (RuntimeWarning): its steps
+        may exceed :meth:`cfl_dt`, the estimated stability limit (see :meth:`step`)."""
+        cfl = positive(cfl, "cfl")
+        if cfl > 1:
+            warnings.warn(f"cfl: {cfl:.4g} > 1 lets advance's steps exceed cfl_dt() (CFL number 1), the explicit "
+                          "MPM step's estimated stability limit: the run may diverge", RuntimeWarning, stacklevel=2)
+        steps, self.last_stats = self._sim.advance(non_negative(duration, "duration"), cfl)
         return steps
 
     def stable_dt(self, cfl=0.5) -> float:
