@@ -258,8 +258,13 @@ def test_symplectic_below_limit_and_divergence_above():
     body.step(dt, "symplectic", steps=400)
     assert np.isfinite(body.x).all() and body.energy() < e0 + 0.05 * abs(e0)
     body, _ = soft_box(E=1e7)
-    with pytest.raises(km.DivergenceError, match="symplectic limit"):
+    with pytest.raises(ValueError, match="unstable_dt"):  # refused before stepping
         body.step(1 / 30, "symplectic", steps=200)
+    # Just below unstable_dt the step is beyond the true limit (which is at most 1 / 1.2 of it
+    # on this mesh, tests/test_explicit_limits.py): a warning, then the blow-up is reported.
+    with pytest.warns(RuntimeWarning, match="explicit_dt_limit"), \
+            pytest.raises(km.DivergenceError, match="symplectic limit"):
+        body.step(0.99 * body.unstable_dt, "symplectic", steps=2000)
 
 
 def test_implicit_and_symplectic_agree_at_small_dt():

@@ -66,17 +66,24 @@ def _stretched():
 def test_rollback_massspring_after_divergence():
     s = _stretched()
     s.step(0.01, "symplectic", steps=3)
-    # far beyond the explicit limit the stretched springs overflow within a few steps; the
-    # steps before the failing one stand, the failing one is undone: the state is that of a
-    # replay stopped just before it
-    with pytest.raises(km.DivergenceError):
+    # far beyond the explicit limit the step is refused before it runs, the state untouched
+    x0 = s.x.copy()
+    with pytest.raises(ValueError, match="unstable_dt"):
         s.step(1e100, "explicit", steps=50)
+    np.testing.assert_array_equal(s.x, x0)
+    # just below unstable_dt (above the true limit: warned) the explicit steps grow until they
+    # overflow; the steps before the failing one stand, the failing one is undone: the state is
+    # that of a replay stopped just before it
+    dt = 0.99 * s.unstable_dt
+    with pytest.warns(RuntimeWarning, match="explicit_dt_limit"), pytest.raises(km.DivergenceError):
+        s.step(dt, "explicit", steps=5000)
     ref = _stretched()
     ref.step(0.01, "symplectic", steps=3)
-    for _ in range(50):
+    for _ in range(5000):
         before = ref.x.copy(), ref.v.copy(), ref.time
         try:
-            ref.step(1e100, "explicit")
+            with pytest.warns(RuntimeWarning, match="explicit_dt_limit"):
+                ref.step(dt, "explicit")
         except km.DivergenceError:
             break
     else:
@@ -92,8 +99,8 @@ def test_rollback_massspring_after_divergence():
     s = _stretched()
     s.step(0.01, "symplectic", steps=3)
     snap = _snapshot(s, ["x", "v"])
-    with pytest.raises(km.DivergenceError):
-        s.step(1e308, "explicit")  # v + dt f overflows in the first step
+    with pytest.raises(ValueError, match="unstable_dt"):
+        s.step(1e308, "explicit")  # refused (v + dt f would overflow in the first step)
     _assert_same(s, snap)
     s.step(1e-3, "implicit")
     assert s.time == pytest.approx(0.031)
@@ -119,7 +126,7 @@ def test_rollback_fem_after_failed_step():
     with pytest.raises(km.KinemaError):
         b.step(1e200, max_newton=2)
     _assert_same(b, snap)
-    with pytest.raises(km.DivergenceError):
+    with pytest.raises(ValueError, match="unstable_dt"):  # refused before stepping
         b.step(1e200, "symplectic")
     _assert_same(b, snap)
     b.step(0.01)
@@ -132,7 +139,7 @@ def test_rollback_mpm_after_failed_step():
                       youngs_modulus=1e4, poisson_ratio=0.3)
     sim.step(1e-3)
     snap = _snapshot(sim, ["x", "v", "F", "C"])
-    with pytest.raises(km.DivergenceError):
+    with pytest.warns(RuntimeWarning, match="cfl_dt"), pytest.raises(km.DivergenceError):
         sim.step(10.0)  # a particle would cross many cells in one step
     _assert_same(sim, snap)
     sim.step(1e-3)

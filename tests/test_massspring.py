@@ -67,10 +67,14 @@ def test_implicit_stable_far_beyond_explicit_limit():
         sys.step(dt, "implicit")
         assert np.isfinite(sys.x).all()
         assert sys.energy() <= e0 + 1e-9 * abs(e0), "backward Euler must not gain energy"
-    # The same step blows up explicitly, reported as a DivergenceError, not NaN.
+    # The same step explicitly is refused before it runs (beyond unstable_dt every explicit step
+    # is unstable); explicit Euler grows at every dt, so a long run below the limit blows up,
+    # reported as a DivergenceError, not NaN.
     exp = hanging_cloth(stiffness=1e5)
-    with pytest.raises(km.DivergenceError, match="dt"):
+    with pytest.raises(ValueError, match="unstable_dt"):
         exp.step(dt, "explicit", steps=200)
+    with pytest.raises(km.DivergenceError, match="dt"):
+        exp.step(0.9 * exp.explicit_dt_limit, "explicit", steps=20000)
 
 
 def test_long_implicit_run_never_gains_energy():

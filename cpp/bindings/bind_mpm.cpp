@@ -380,6 +380,7 @@ void bind_mpm(py::module_& m) {
       .def("advance", &PySimulation::advance, py::arg("duration"), py::arg("cfl"))
       .def("stable_dt", [](const PySimulation& s, Scalar cfl) { return s.solver->stable_dt(*s.state, cfl); },
            py::arg("cfl"))
+      .def("cfl_dt", [](const PySimulation& s) { return s.solver->cfl_dt(*s.state); })
       .def("kinetic_energy", [](const PySimulation& s) { return s.solver->kinetic_energy(*s.state); })
       .def("momentum", [](const PySimulation& s) { return s.solver->momentum(*s.state); })
       .def("angular_momentum", [](const PySimulation& s) { return s.solver->angular_momentum(*s.state); })

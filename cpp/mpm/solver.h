@@ -97,6 +97,11 @@ class Solver {
   // elastic wave c_max = sqrt((lambda + 2 mu) / rho) (snow: with its hardening; water:
   // sqrt(K / rho)) of the materials present.
   Scalar stable_dt(const State& state, Scalar cfl) const;
+  // h / (v_max + c_max): the step whose CFL number is 1 (infinity when nothing moves and nothing
+  // is stiff), the limit a step is warned against (an estimate, not an exact stability bound).
+  Scalar cfl_dt(const State& state) const;
+  // v_max + c_max of stable_dt [m/s].
+  Scalar signal_speed(const State& state) const;
 
   // Translational kinetic energy sum m |v|^2 / 2 [J].
   Scalar kinetic_energy(const State& state) const;

@@ -20,11 +20,22 @@ iterations and steps, the numeric factor reused as a PCG preconditioner while it
 CG, with a backtracking line search; converged when ||grad g|| <= tol
 times its value at the inertial guess x_n + h v_n. ``integrator="symplectic"`` is the explicit
 path (no Hessian is assembled). The damping c [1/s] is mass-proportional.
+
+Stability of the symplectic step: its true limit for the linearisation at rest is the root of
+h^2 omega_max^2 = 4 + 2 h c, omega_max^2 the largest eigenvalue of M^-1 K at rest (2 / omega_max
+undamped; the mass damping c is applied implicitly and raises it). A step above ``Body.explicit_dt_limit`` (omega_max^2
+bounded above by Gershgorin: conservative, 1.4-1.75x the true omega_max^2 on triangle meshes
+and 1.45-2.3x on tetrahedra (rectangle_mesh, box_mesh), so it warns on stable steps up to
+1.32x or 1.52x the limit) warns once per ``step`` call with a
+RuntimeWarning naming dt and the limit; a step above ``Body.unstable_dt`` (from the largest
+diagonal entry K_qq / m_q, a lower bound of omega_max^2: every such step is unstable) raises
+ValueError before stepping.
 """
 
 from __future__ import annotations
 
 import math
+import warnings
 
 import numpy as np
 import scipy.sparse as sp
@@ -128,9 +139,9 @@ class Body:
         ValueError naming them, as does an implicit step whose dt^2 K / M exceeds 1/eps (4.5e15)
         while the fixed vertices leave a rigid motion free (lost to rounding). K / M there is
         ``4 / explicit_dt_limit**2``, Gershgorin's upper bound of the largest eigenvalue of
-        M^-1 K at rest: 1.4x the true one on triangle meshes and 2.1-2.2x on tetrahedra
-        (rectangle_mesh, box_mesh), so the refusal begins at a true dt^2 omega_max^2 of about
-        3e15 (2D) or 2e15 (3D). Just below it a free body's fall under gravity already carries
+        M^-1 K at rest: 1.4-1.75x the true one on triangle meshes and 1.45-2.3x on tetrahedra
+        (rectangle_mesh, box_mesh, nu in [0, 0.45]), so the refusal begins at a true
+        dt^2 omega_max^2 of about 2.6e15-3.2e15 (2D) or 2e15-3e15 (3D). Just below it a free body's fall under gravity already carries
         relative rounding errors of 1-7% (of order dt^2 omega_max^2 eps).
     fixed: vertex indices held in place; gravity: (d,) [m/s^2] or None (no gravity);
         damping: c [1/s], mass-proportional.
@@ -240,6 +251,47 @@ class Body:
         limit of the symplectic step."""
         return self._solver.explicit_dt_limit
 
+    @property
+    def unstable_dt(self) -> float:
+        """An upper bound [s] of the symplectic step's true limit: the root of h^2 w^2 = 4 + 2 h c
+        (2 / w undamped) with w^2 = max_q K_qq / m_q over the free degrees of freedom q, K the
+        elastic Hessian at rest (the Rayleigh quotient of the unit vector e_q, a lower bound of
+        omega_max^2) and c the mass damping. ``inf`` when nothing is stiff. A symplectic step
+        above it raises ValueError."""
+        cached = getattr(self, "_unstable_dt", None)
+        if cached is not None and cached[0] is self._solver:
+            return cached[1]
+        indptr, idx, data = self._solver.hessian(self._model.initial_state(), False)
+        n = indptr.shape[0] - 1
+        diag = sp.csr_matrix((data, idx, indptr), shape=(n, n)).diagonal()
+        d = self._model.dim
+        free = np.ones(n // d, bool)
+        free[self.fixed] = False
+        with np.errstate(over="ignore", invalid="ignore"):
+            w2 = (diag.reshape(-1, d) / self.mass[:, None])[free]
+        top = float(w2.max()) if w2.size else 0.0
+        c = self._values["damping"]
+        value = (c + math.sqrt(c * c + 4 * top)) / top if top > 0 else math.inf
+        self._unstable_dt = (self._solver, value)
+        return value
+
+    def _check_explicit_dt(self, dt, integrator):
+        """RuntimeWarning above explicit_dt_limit, ValueError above unstable_dt (module docstring)."""
+        if integrator != "symplectic":
+            return
+        limit = self.explicit_dt_limit
+        if not dt > limit:
+            return
+        bound = self.unstable_dt
+        if not dt <= bound:
+            raise ValueError(f"dt: {dt:.4g} s is beyond {bound:.4g} s (unstable_dt), above which every "
+                             f"symplectic step of this body is unstable (the conservative limit is "
+                             f"explicit_dt_limit = {limit:.4g} s); reduce dt or use integrator='implicit'")
+        warnings.warn(f"dt: {dt:.4g} s exceeds explicit_dt_limit = {limit:.4g} s (Gershgorin's conservative "
+                      f"bound on the symplectic step's stability limit, which lies between it and "
+                      f"{bound:.4g} s); the run may diverge: reduce dt or use integrator='implicit'",
+                      RuntimeWarning, stacklevel=4)
+
     def _configure(self, integrator="implicit", tol=1e-6, max_newton=50, linear_solver="cholmod",
                    cg_tol=1e-4, definiteness="adaptive"):
         """Sets the solver's Config from step options (names converted here, values checked in
@@ -265,8 +317,9 @@ class Body:
         implicit: backward Euler by projected Newton (see the module docstring). Raises
         km.ConvergenceError when Newton does not reach ``tol`` in ``max_newton`` iterations
         (the state is then left at the last completed step).
-        symplectic: explicit (stable below about :attr:`explicit_dt_limit`; a diverging run
-        raises km.DivergenceError).
+        symplectic: explicit (stable below :attr:`explicit_dt_limit`, a conservative bound: a
+        larger dt warns once per call with a RuntimeWarning, one above :attr:`unstable_dt` raises
+        ValueError before stepping; a diverging run raises km.DivergenceError).
         definiteness: "adaptive" (the exact Hessian while CHOLMOD finds it positive definite,
         else the per-element projection: quadratic convergence where possible), "project"
         (always project) or "none" (exact Newton; km.NotPositiveDefiniteError if indefinite).
@@ -286,6 +339,7 @@ class Body:
                           linear_solver=linear_solver, cg_tol=cg_tol, definiteness=definiteness)
 
     def _step(self, dt, control, steps=1, **options):
+        self._check_explicit_dt(real(dt, "dt"), options.get("integrator", "implicit"))
         if self.contact is not None and self.contact.colliders and control is None:
             return self.contact.step(dt, options.get("integrator", "implicit"), steps)
         self._configure(**options)
@@ -471,6 +525,7 @@ class Body:
         bit for bit."""
         options = {k: v for k, v in step_options.items() if k != "steps"}
         self._configure(**options)
+        self._check_explicit_dt(real(dt, "dt"), options.get("integrator", "implicit"))
         u = None if controls is None else np.ascontiguousarray(controls, dtype=np.float64).reshape(-1)
         run = self._solver.record(self._state, real(dt, "dt"), steps, u)
         return _Record(self, run, u, options)

@@ -17,6 +17,15 @@ and gravity. Integrators (``System.step``):
   compressed far below rest length) the transverse term of compressed springs is clamped
   (Choi & Ko 2002) and the step's info reports ``clamped=True``.
 
+Stability of the explicit and symplectic steps: a step of ``dt`` above
+``System.explicit_dt_limit`` (2 / omega_max with omega_max^2 bounded above by Gershgorin's theorem
+on M^-1 K at rest: conservative, it may refuse a stable step) warns once per ``step`` call with a
+RuntimeWarning naming dt and the limit; a step above ``System.unstable_dt`` (2 / omega for a
+Rayleigh quotient of M^-1 K at rest, a lower bound of omega_max: every such step is unstable, the
+symplectic one grows the stiffest mode, explicit Euler's by a factor above sqrt(5) per step)
+raises ValueError before stepping. The two bracket the true limit of the linearisation at rest
+(damping, applied explicitly, lowers it from 2 / omega_max; ``explicit_dt_limit`` accounts for
+it). Undamped explicit Euler grows energy at every dt.
 Blow-ups raise km.DivergenceError naming the step and the explicit limit, never silent NaN.
 
 Gradients (km.diff): ``System`` implements the km.diff protocol for every integrator, with
@@ -35,6 +44,8 @@ rollout): up to (steps + 1) x 2 n d floats stay held until the System is.
 """
 
 from __future__ import annotations
+
+import warnings
 
 import numpy as np
 
@@ -157,9 +168,63 @@ class System:
 
     @property
     def explicit_dt_limit(self) -> float:
-        """Gershgorin bound 2 / omega_max [s] on the explicit and symplectic steps; ``inf`` when
-        no spring has stiffness (nothing limits the step)."""
-        return self._core.explicit_dt_limit
+        """Conservative stability limit [s] of the explicit and symplectic steps: the root of
+        h^2 omega^2 + 2 h gamma = 4 (symplectic Euler's limit for one mode of frequency omega
+        and explicitly applied damping rate gamma; 2 / omega undamped), omega^2 and gamma bounded
+        above by Gershgorin on M^-1 K at rest and M^-1 C (per vertex, the sums of 2 k / m and
+        2 c / m over its springs); ``inf`` when no spring has stiffness or damping. The true
+        limit lies in [explicit_dt_limit, :attr:`unstable_dt`]; undamped, with one stiffness
+        and one mass throughout (and a spring between free vertices), it is at most
+        sqrt(max springs at a vertex) times this."""
+        w2 = 4 / self._core.explicit_dt_limit**2  # the undamped Gershgorin bound, in C++
+        c = self._core.parameter("damping")
+        if not len(c) or not c.any():
+            return self._core.explicit_dt_limit
+        m = self._core.parameter("mass")
+        rows = np.bincount(self.springs.ravel(), np.repeat(2 * c, 2), minlength=len(m)) / m
+        rows[self.fixed] = 0
+        gamma = float(rows.max())
+        return 4 / (gamma + np.sqrt(gamma**2 + 4 * w2))
+
+    @property
+    def unstable_dt(self) -> float:
+        """An upper bound [s] of the explicit and symplectic steps' true limit 2 / omega_max:
+        2 / omega with omega^2 = max over springs of the Rayleigh quotient of M^-1 K at rest for
+        the spring's own stretching mode (4 k / (m_i + m_j), or k / m of the free end of a spring
+        to a fixed vertex), a lower bound of omega_max^2. ``inf`` without a stiff spring to a
+        free vertex. A step above it raises ValueError (see the module docstring)."""
+        k = self._core.parameter("stiffness")
+        m = self._core.parameter("mass")
+        if not len(k):
+            return float("inf")
+        free = np.ones(len(m), bool)
+        free[self.fixed] = False
+        i, j = self.springs[:, 0], self.springs[:, 1]
+        with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
+            moving = free[i].astype(float) * m[i] + free[j] * m[j]
+            w2 = np.where(free[i] & free[j], 4 * k, k) / moving
+        w2 = w2[(free[i] | free[j]) & (k > 0)]
+        top = float(w2.max()) if w2.size else 0.0
+        return 2 / np.sqrt(top) if top > 0 else float("inf")
+
+    def _check_explicit_dt(self, dt, integrator):
+        """RuntimeWarning above explicit_dt_limit, ValueError above unstable_dt (module docstring)."""
+        if _enum(integrator, "integrator", Integrator, INTEGRATORS) == Integrator.implicit:
+            return
+        limit = self.explicit_dt_limit
+        if not dt > limit:
+            return
+        name = integrator if isinstance(integrator, str) else integrator.name
+        bound = self.unstable_dt
+        if not dt <= bound:
+            raise ValueError(f"dt: {dt:.4g} s is beyond {bound:.4g} s (unstable_dt), above which every "
+                             f"{name} step is unstable for these springs and masses (the conservative "
+                             f"limit is explicit_dt_limit = {limit:.4g} s); reduce dt or use "
+                             "integrator='implicit'")
+        warnings.warn(f"dt: {dt:.4g} s exceeds explicit_dt_limit = {limit:.4g} s (Gershgorin's conservative "
+                      f"bound on the {name} step's stability limit, which lies between it and "
+                      f"{bound:.4g} s); the run may diverge: reduce dt or use integrator='implicit'",
+                      RuntimeWarning, stacklevel=4)
 
     def state(self) -> dict:
         """Copies of everything that evolves: ``x``, ``v`` (n, d), ``time`` [s], ``step``, the
@@ -187,7 +252,9 @@ class System:
     def step(self, dt, integrator="implicit", beta=1.0, *, linear_solver="cholmod",
              cg_tol=1e-8, steps=1) -> StepStats:
         """Advances ``steps`` steps of ``dt`` [s] with ``integrator``; see the module docstring.
-        Returns the :class:`StepStats` summed over the steps."""
+        Returns the :class:`StepStats` summed over the steps. Explicit and symplectic steps above
+        :attr:`explicit_dt_limit` warn (RuntimeWarning, once per call) and above
+        :attr:`unstable_dt` raise ValueError before any step."""
         return self._step(dt, None, integrator=integrator, beta=beta, linear_solver=linear_solver,
                           cg_tol=cg_tol, steps=steps)
 
@@ -201,6 +268,7 @@ class System:
 
     def _step(self, dt, control, *, integrator="implicit", beta=1.0, linear_solver="cholmod",
               cg_tol=1e-8, steps=1):
+        self._check_explicit_dt(real(dt, "dt"), integrator)
         if self.contact is not None and self.contact.colliders and control is None:
             return self.contact.step(dt, integrator, positive_int(steps, "steps"), beta=beta)
         self._configure(integrator, beta, linear_solver, cg_tol)
@@ -219,7 +287,7 @@ class System:
                                      "view or left by a diverged run") from None
             if isinstance(exc, DivergenceError):
                 raise
-            ratio = dt**2 * 4 / self.explicit_dt_limit**2
+            ratio = dt**2 * 4 / self._core.explicit_dt_limit**2
             if _implicit(self._core.config) and ratio > 1 / np.finfo(float).eps:
                 raise ValueError(f"stiffness, dt: dt^2 K / M reaches {ratio:.3g} (Gershgorin), beyond the "
                                  "4.5e15 float64 resolves: the mass term is lost to rounding; reduce dt or "
@@ -297,6 +365,7 @@ class System:
         options = {k: v for k, v in step_options.items() if k != "adjoint_tol"}
         self._configure(**(_DEFAULTS | options))
         dt = real(dt, "dt")
+        self._check_explicit_dt(dt, options.get("integrator", "implicit"))
         try:
             trajectory = self._core.record(dt, steps, controls)
         except ValueError as exc:

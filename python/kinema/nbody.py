@@ -12,7 +12,10 @@ N = 1414 (2e6 pairs) the softened sum is done directly, exactly.
 
 Time integration: the symplectic kick-drift-kick leapfrog (Hockney & Eastwood 1988), second
 order, with a bounded energy error for a fixed step; momentum is conserved to the force's
-accuracy (exactly by the direct sum, to ~eps by the FMM).
+accuracy (exactly by the direct sum, to ~eps by the FMM). No stability limit is checked: the
+leapfrog's, dt < 2 / omega with omega^2 the largest tidal eigenvalue (up to G sum_j m_j / s^3
+where mass crowds within s), is a property of the configuration, not of the system; choose dt
+from the closest encounters expected. A blow-up raises km.DivergenceError.
 """
 
 from __future__ import annotations

@@ -14,6 +14,9 @@ K beyond 6 delta, is added for the pairs closer than that. Time integration: cla
 Invariants of the inviscid flow, tracked by the tests: the total circulation sum_j Gamma_j
 (exactly, the Gamma_j never change) and the linear impulse I = sum_j Gamma_j (y_j, -x_j), which
 K's antisymmetry conserves (each RK stage velocity has sum_j Gamma_j u_j = 0 up to the FMM's eps).
+No stability limit is checked: RK4 needs dt |lambda| < 2.8 for the eigenvalues lambda of the
+velocity gradient (up to sum_j |Gamma_j| / (2 pi delta^2) where vortices crowd within delta), a
+property of the configuration; a blow-up raises km.DivergenceError.
 """
 
 from __future__ import annotations

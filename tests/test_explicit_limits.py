@@ -1,0 +1,321 @@
+"""Explicit schemes know their stability limits and say so: km.massspring (explicit and
+symplectic Euler), km.fem (symplectic), km.diffusion (FTCS) and km.mpm (its CFL limit).
+
+Each limit is checked three ways: a step at 0.9 of it runs silently (pytest turns warnings into
+errors), a step beyond it warns or raises with the limit in the message, and the estimate
+brackets the true limit 2 / omega_max, omega_max^2 the largest eigenvalue of M^-1 K (numpy's
+eigenvalues on small systems)."""
+
+import re
+import warnings
+
+import numpy as np
+import pytest
+import scipy.linalg
+
+import kinema as km
+
+
+def number_in(message, value):
+    """Whether ``value`` appears in ``message`` as printed with 4 significant digits."""
+    return f"{value:.4g}" in message
+
+
+# ------------------------------------------------------------------ km.massspring
+
+def spring_hessian(x, springs, k, fixed):
+    """K = sum_s k_s (n n^T blocks) at rest (springs at their rest length), fixed dofs removed."""
+    n, d = x.shape
+    K = np.zeros((n * d, n * d))
+    for (i, j), ks in zip(springs, k):
+        u = x[j] - x[i]
+        u /= np.linalg.norm(u)
+        B = ks * np.outer(u, u)
+        for a, b, sign in ((i, i, 1), (j, j, 1), (i, j, -1), (j, i, -1)):
+            K[a * d:(a + 1) * d, b * d:(b + 1) * d] += sign * B
+    free = np.setdiff1d(np.arange(n), fixed)
+    dofs = (free[:, None] * d + np.arange(d)).ravel()
+    return K[np.ix_(dofs, dofs)], dofs
+
+
+def true_limit(K, mass_per_dof):
+    w2 = scipy.linalg.eigh(K, np.diag(mass_per_dof), eigvals_only=True).max()
+    return 2 / np.sqrt(w2)
+
+
+def spring_systems():
+    rng = np.random.default_rng(3)
+    out = []
+    # a chain, pinned at one end, uneven masses and stiffnesses (2D)
+    x = np.c_[np.arange(6.0), np.zeros(6)]
+    springs = np.c_[np.arange(5), np.arange(1, 6)]
+    out.append((x, springs, rng.uniform(1, 10, 5), rng.uniform(0.5, 2, 6), [0]))
+    # a small cloth with shear and bending springs, two corners pinned (3D)
+    x, springs = km.massspring.cloth(4, 4, 1.0)
+    out.append((x, springs, rng.uniform(1e3, 1e4, len(springs)), rng.uniform(0.1, 1, len(x)), [0, 3]))
+    # a random free cluster (no vertex fixed: rigid motions are zero modes) (3D)
+    x = rng.normal(size=(7, 3))
+    springs = np.array([(i, j) for i in range(7) for j in range(i + 1, 7) if rng.random() < 0.6])
+    out.append((x, springs, rng.uniform(1, 100, len(springs)), rng.uniform(0.5, 2, 7), []))
+    return out
+
+
+@pytest.mark.parametrize("case", range(3))
+def test_massspring_limits_bracket_the_true_limit(case):
+    x, springs, k, m, fixed = spring_systems()[case]
+    sys = km.massspring.System(x, springs, stiffness=k, mass=m, fixed=fixed)
+    K, dofs = spring_hessian(x, springs, k, fixed)
+    limit = true_limit(K, np.repeat(m, x.shape[1])[dofs])
+    # Gershgorin's bound never refuses a stable step; unstable_dt never passes an unstable one.
+    assert sys.explicit_dt_limit <= limit * (1 + 1e-12), (sys.explicit_dt_limit, limit)
+    assert limit <= sys.unstable_dt * (1 + 1e-12), (limit, sys.unstable_dt)
+
+
+def spectral_radius(h, K, C, m):
+    """Symplectic Euler's amplification of (v, x) for M x'' = -K x - C v, damping explicit."""
+    n = len(m)
+    I = np.eye(n)
+    a = I - h * C / m[:, None]
+    A = np.block([[a, -h * K / m[:, None]], [h * a, I - h * h * K / m[:, None]]])
+    return np.abs(np.linalg.eigvals(A)).max()
+
+
+@pytest.mark.parametrize("case", [0, 1])
+@pytest.mark.parametrize("damping", [0.0, 0.3, 3.0])
+def test_massspring_symplectic_stable_below_limit_unstable_above_bound(case, damping):
+    # The full linearised step (damping along the springs, per-spring values: C does not commute
+    # with K): stable for every dt up to explicit_dt_limit, unstable above unstable_dt.
+    x, springs, k, m, fixed = spring_systems()[case]
+    c = damping * np.sqrt(k.mean() * m.mean()) * np.random.default_rng(1).uniform(0.5, 1.5, len(k))
+    sys = km.massspring.System(x, springs, stiffness=k, mass=m, damping=c, fixed=fixed)
+    K, dofs = spring_hessian(x, springs, k, fixed)
+    C, _ = spring_hessian(x, springs, c, fixed)
+    md = np.repeat(m, x.shape[1])[dofs]
+    for h in np.linspace(0.05, 1, 12) * sys.explicit_dt_limit:
+        assert spectral_radius(h, K, C, md) <= 1 + 1e-9, h / sys.explicit_dt_limit
+    for h in np.array([1 + 1e-6, 1.1, 2]) * sys.unstable_dt:
+        assert spectral_radius(h, K, C, md) > 1 + 1e-9, h / sys.unstable_dt
+    if damping:
+        assert sys.explicit_dt_limit < 2 / np.sqrt(4 / sys._core.explicit_dt_limit**2)  # lowered
+
+
+def test_massspring_window_with_uniform_springs_is_the_vertex_degree():
+    # Uniform k and m: Gershgorin's omega^2 is 2 k deg_max / m, the free-free spring's Rayleigh
+    # quotient 2 k / m: the warning window is sqrt(deg_max) wide, as explicit_dt_limit says.
+    x, springs = km.massspring.cloth(5, 5, 1.0)
+    sys = km.massspring.System(x, springs, stiffness=50.0, mass=0.2, fixed=[0, 4])
+    degree = np.bincount(springs.ravel()).max()
+    assert np.isclose(sys.unstable_dt / sys.explicit_dt_limit, np.sqrt(degree), rtol=1e-12)
+
+
+def oscillator_chain():
+    x = np.c_[np.arange(4.0), np.zeros(4)]
+    return km.massspring.System(x, [[0, 1], [1, 2], [2, 3]], stiffness=100.0, mass=0.5, fixed=[0])
+
+
+@pytest.mark.parametrize("integrator", ["explicit", "symplectic"])
+def test_massspring_below_limit_is_silent(integrator):
+    sys = oscillator_chain()
+    sys.x[3, 0] += 0.1
+    sys.step(0.9 * sys.explicit_dt_limit, integrator, steps=20)  # a warning would fail the test
+    assert np.isfinite(sys.x).all()
+
+
+@pytest.mark.parametrize("integrator", ["explicit", "symplectic"])
+def test_massspring_beyond_limit_warns_once_per_call(integrator):
+    sys = oscillator_chain()
+    limit, bound = sys.explicit_dt_limit, sys.unstable_dt
+    assert bound > 1.2 * limit  # a window to warn in
+    dt = 0.5 * (limit + bound)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        sys.step(dt, integrator, steps=3)
+    assert [w.category for w in caught] == [RuntimeWarning]
+    message = str(caught[0].message)
+    assert message.startswith("dt:") and number_in(message, dt) and number_in(message, limit), message
+
+
+@pytest.mark.parametrize("integrator", ["explicit", "symplectic"])
+def test_massspring_certainly_unstable_step_raises_before_stepping(integrator):
+    sys = oscillator_chain()
+    x0 = sys.x.copy()
+    dt = 1.01 * sys.unstable_dt
+    with pytest.raises(ValueError, match=re.escape(f"{sys.unstable_dt:.4g}")):
+        sys.step(dt, integrator)
+    assert np.array_equal(sys.x, x0) and sys.time == 0
+
+
+def test_massspring_huge_stiffness_one_step_is_refused():
+    # k = 1e300 with a 0.1 s symplectic step returned x ~ -1e297 without a word.
+    sys = km.massspring.System([[0.0, 0.0], [1.1, 0.0]], [[0, 1]], stiffness=1e300, mass=1.0,
+                               rest_length=1.0, fixed=[0])
+    with pytest.raises(ValueError, match="dt: 0.1 s") as info:
+        sys.step(0.1, "symplectic")
+    assert number_in(str(info.value), sys.explicit_dt_limit)
+    assert sys.x[1, 0] == 1.1
+    sys.step(0.1, "implicit")  # the implicit step is unconditionally stable: no check
+    assert abs(sys.x[1, 0] - 1.0) < 1e-12
+
+
+def test_massspring_implicit_and_springless_steps_are_unchecked():
+    sys = oscillator_chain()
+    sys.step(100 * sys.unstable_dt, "implicit")
+    free = km.massspring.System([[0.0, 0.0]], [], stiffness=1.0, gravity=(0, -9.81))
+    assert free.explicit_dt_limit == free.unstable_dt == float("inf")
+    free.step(10.0, "symplectic")
+
+
+# ------------------------------------------------------------------ km.fem
+
+def fem_bodies():
+    V2, T2 = km.fem.rectangle_mesh((0, 0), (1, 0.5), (4, 2))
+    V3, T3 = km.fem.box_mesh((0, 0, 0), (1, 0.5, 0.5), (3, 2, 2))
+    rng = np.random.default_rng(5)
+    V2p = V2 + rng.uniform(-0.03, 0.03, V2.shape)  # an irregular mesh, uneven moduli
+    E = rng.uniform(1e5, 1e6, len(T2))
+    return [
+        ("triangles", km.fem.Body(V2, T2, model="linear", youngs_modulus=1e5, poisson_ratio=0.3,
+                                  density=1000.0, fixed=np.flatnonzero(V2[:, 0] == 0)), 1.75),
+        ("tetrahedra", km.fem.Body(V3, T3, model="neohookean", youngs_modulus=1e5, poisson_ratio=0.3,
+                                   density=1000.0, fixed=np.flatnonzero(V3[:, 0] == 0)), 2.3),
+        ("irregular", km.fem.Body(V2p, T2, model="stvk", youngs_modulus=E, poisson_ratio=0.45,
+                                  density=500.0), None),
+    ]
+
+
+@pytest.mark.parametrize("case", range(3))
+def test_fem_limits_bracket_the_true_limit(case):
+    name, body, factor = fem_bodies()[case]
+    d = body.x.shape[1]
+    K = body.hessian().toarray()  # at rest: the body has not moved
+    free = np.setdiff1d(np.arange(len(body.x)), body.fixed)
+    dofs = (free[:, None] * d + np.arange(d)).ravel()
+    limit = true_limit(K[np.ix_(dofs, dofs)], np.repeat(body.mass, d)[dofs])
+    assert body.explicit_dt_limit <= limit * (1 + 1e-12), (name, body.explicit_dt_limit, limit)
+    assert limit <= body.unstable_dt * (1 + 1e-12), (name, limit, body.unstable_dt)
+    if factor is not None:
+        # The docstring's figure (measured over rectangle_mesh / box_mesh sizes and nu in [0, 0.45]):
+        # Gershgorin's omega_max^2 is at most `factor` times the true one, so a warning fires on a
+        # stable step only within sqrt(factor) of the limit.
+        ratio = (limit / body.explicit_dt_limit) ** 2
+        assert ratio <= factor, (name, ratio)
+
+
+@pytest.mark.parametrize("damping", [0.0, 50.0, 2000.0])
+def test_fem_damped_limit_brackets_the_true_limit(damping):
+    # The symplectic step with implicit mass damping c: v' = (v + h M^-1 f) / (1 + h c);
+    # its amplification's spectral radius is <= 1 up to explicit_dt_limit and > 1 above unstable_dt.
+    V, T = km.fem.rectangle_mesh((0, 0), (1, 0.5), (3, 2))
+    body = km.fem.Body(V, T, model="linear", youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0,
+                       fixed=np.flatnonzero(V[:, 0] == 0), damping=damping)
+    free = np.setdiff1d(np.arange(len(V)), body.fixed)
+    dofs = (free[:, None] * 2 + np.arange(2)).ravel()
+    K = body.hessian().toarray()[np.ix_(dofs, dofs)] / np.repeat(body.mass, 2)[dofs][:, None]
+    I = np.eye(len(dofs))
+
+    def radius(h):
+        a = 1 / (1 + h * damping)
+        A = np.block([[a * I, -a * h * K], [a * h * I, I - a * h * h * K]])
+        return np.abs(np.linalg.eigvals(A)).max()
+    for h in np.linspace(0.05, 1, 12) * body.explicit_dt_limit:
+        assert radius(h) <= 1 + 1e-9
+    for h in np.array([1 + 1e-6, 1.1, 2]) * body.unstable_dt:
+        assert radius(h) > 1 + 1e-9, h / body.unstable_dt
+
+
+def test_fem_below_limit_is_silent_and_beyond_warns_or_raises():
+    _, body, _ = fem_bodies()[1]
+    body.v[:, 2] = 0.01
+    body.v[body.fixed] = 0
+    limit, bound = body.explicit_dt_limit, body.unstable_dt
+    body.step(0.9 * limit, "symplectic", steps=10)  # silent
+    dt = 0.5 * (limit + bound)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        body.step(dt, "symplectic", steps=2)
+    assert [w.category for w in caught] == [RuntimeWarning]
+    assert number_in(str(caught[0].message), dt) and number_in(str(caught[0].message), limit)
+    x0 = body.x.copy()
+    with pytest.raises(ValueError, match=re.escape(f"{bound:.4g}")):
+        body.step(1.01 * bound, "symplectic")
+    assert np.array_equal(body.x, x0)
+    body.step(100 * bound)  # implicit: unchecked
+
+
+def test_fem_huge_modulus_one_step_is_refused():
+    V, T = km.fem.rectangle_mesh((0, 0), (1, 1), 1)
+    body = km.fem.Body(V, T, model="linear", youngs_modulus=1e250, poisson_ratio=0.3, density=1.0,
+                       fixed=[0, 1])
+    body.x[3, 0] += 0.1
+    with pytest.raises(ValueError, match="dt: 0.1 s"):
+        body.step(0.1, "symplectic")
+    assert body.x[3, 0] == V[3, 0] + 0.1
+
+
+# ------------------------------------------------------------------ km.diffusion (FTCS)
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_ftcs_limit_is_exact_and_refused_beyond(d):
+    shape, h, kappa = (8,) * d, 0.1, 2.0
+    limit = km.diffusion.stable_dt(h, kappa, d)
+    # The largest eigenvalue of the Neumann Laplacian is 4 d / h^2 sin^2(pi (n-1) / (2 n)) < 4 d / h^2,
+    # approaching it as n grows: dt = h^2 / (2 d kappa) is the exact limit of large grids.
+    lam = 4 * d / h**2 * np.sin(np.pi * 7 / 16) ** 2
+    assert limit <= 2 / (kappa * lam) < 1.05 * limit
+    T = np.random.default_rng(0).normal(size=shape)
+    out = km.diffusion.step(T, kappa, 0.9 * limit, h, scheme="ftcs", steps=50)
+    assert np.abs(out).max() <= np.abs(T).max()  # a maximum principle below the limit
+    with pytest.raises(km.StabilityError, match=re.escape(f"{limit:.4g}")):
+        km.diffusion.step(T, kappa, 1.5 * limit, h, scheme="ftcs")
+    assert issubclass(km.StabilityError, ValueError)
+
+
+# ------------------------------------------------------------------ km.mpm
+
+def mpm_block(d):
+    sim = km.mpm.Simulation((16,) * d, 1 / 16)
+    g = (np.arange(8) + 0.5) / 32 + 0.3
+    x = np.stack(np.meshgrid(*[g] * d, indexing="ij"), -1).reshape(-1, d)
+    sim.add_particles(x, material="elastic", density=1000.0, youngs_modulus=1e5, poisson_ratio=0.3)
+    return sim
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_mpm_beyond_cfl_limit_warns(d):
+    sim = mpm_block(d)
+    limit = sim.cfl_dt()
+    c = np.sqrt(1e5 * (1 - 0.3) / ((1 + 0.3) * (1 - 0.6)) / 1000.0)  # sqrt((lambda + 2 mu) / rho)
+    assert np.isclose(limit, (1 / 16) / c, rtol=1e-12)
+    sim.step(0.9 * limit)  # silent
+    dt = 2 * sim.cfl_dt()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            sim.step(dt)
+        except km.DivergenceError:
+            pass
+    assert [w.category for w in caught] == [RuntimeWarning]
+    assert number_in(str(caught[0].message), dt)
+
+
+@pytest.mark.filterwarnings("ignore:dt.*cfl_dt:RuntimeWarning")  # CFL 2 is warned, as it should be
+def test_mpm_cfl_limit_is_near_the_observed_blow_up():
+    # The estimate is not loose: moving water stays finite at CFL 0.9 and blows up at CFL 2
+    # (measured: from CFL 1.2 on), the step's own DivergenceError reporting it.
+    def run(cfl, steps=120):
+        sim = km.mpm.Simulation((32, 32), 1 / 32)
+        sim.add_particles(km.mpm.block([0.3, 0.3], [0.6, 0.6], 1 / 64), "water", density=1000.0,
+                          youngs_modulus=1e5, velocity=[1.0, 0.0])
+        for _ in range(steps):
+            sim.step(cfl * sim.cfl_dt())
+        return sim
+    assert np.isfinite(run(0.9).kinetic_energy())
+    with pytest.raises(km.DivergenceError):
+        run(2.0)
+
+
+def test_mpm_advance_warns_for_cfl_above_one():
+    sim = mpm_block(2)
+    sim.advance(0.9 * sim.cfl_dt(), cfl=0.9)  # silent
+    with pytest.warns(RuntimeWarning, match="cfl: 1.5 > 1"):
+        sim.advance(1e-4, cfl=1.5)
