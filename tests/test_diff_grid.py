@@ -435,6 +435,8 @@ def test_vcycle_refusals_name_the_option():
     with pytest.raises(ValueError, match="pressure_vcycles"):
         km.grid.Fluid((8, 8), 0.1, pressure_vcycles=0)
     with pytest.raises(ValueError, match="pressure_vcycles"):
+        km.grid.Fluid((8, 8), 0.1, pressure_vcycles=10**12)
+    with pytest.raises(ValueError, match="pressure_vcycles"):
         km.grid.Fluid((8, 8), 0.1, pressure_vcycles=2, projection="cg")
     with pytest.raises(ValueError, match="pressure_vcycles"):
         km.grid.Fluid((9, 8), 0.1, pressure_vcycles=2, boundary="periodic")

@@ -67,7 +67,7 @@ class Fluid:
     or "multigrid"), a fixed linear map whose gradient km.diff gives exactly (the same k cycles;
     the cheap projection of a differentiable rollout, like DiffTaichi's fixed Jacobi sweeps). It is
     not converged: the divergence it leaves, ||div u after|| / ||div u before|| over the fluid
-    cells, is each step's ``pressure.residual`` (about 0.1**k on a smooth flow).
+    cells, is each step's ``pressure.residual`` (about 0.1**k on a smooth flow). At most 1000.
     boundary: "closed" or "periodic"; walls: "free_slip" or "no_slip" (closed boundaries).
     gravity: a d-vector [m/s^2], or None for no gravity. density, temperature: enable the passive scalars;
     buoyancy = (alpha, beta): force (-alpha*density + beta*temperature) * up [m/s^2], up
@@ -125,7 +125,9 @@ class Fluid:
         self.buoyancy = (alpha, beta)
         self.vorticity_confinement = real(vorticity_confinement, "vorticity_confinement")
         max_iter = positive_int(max_iter, "max_iter", allow_none=True) or 0
-        self.pressure_vcycles = positive_int(pressure_vcycles, "pressure_vcycles", allow_none=True)
+        # At about 0.1 of the divergence left per V-cycle, 40 cycles reach rounding: a count above
+        # 1000 is a mistake (a 10**12 count would run for ever), and None solves to tol.
+        self.pressure_vcycles = positive_int(pressure_vcycles, "pressure_vcycles", allow_none=True, high=1000)
         if self.pressure_vcycles and self.projection not in ("mgpcg", "multigrid"):
             raise ValueError(f"pressure_vcycles: fixed V-cycles run on the multigrid hierarchy; "
                              f"projection={self.projection!r} cannot be combined with them")
