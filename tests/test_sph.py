@@ -258,12 +258,12 @@ def column_at_rest(method, d, tol=1e-3, **options):
 # an earlier build of the same sums in another order read 0.051. At tol 2e-3 and 5e-3 (coarse
 # correction on) it reads 0.023 m/s.
 REST_CASES = [
-    pytest.param("wcsph", 2, "mirror", id="wcsph-2d"),
-    pytest.param("dfsph", 2, "mirror", id="dfsph-2d"),
-    pytest.param("wcsph", 3, "mirror", id="wcsph-3d"),
-    pytest.param("dfsph", 3, "mirror", id="dfsph-3d"),
-    pytest.param("dfsph", 2, "shepard", id="dfsph-shepard-2d"),
-    pytest.param("dfsph", 3, "shepard", id="dfsph-shepard-3d"),
+    pytest.param("wcsph", 2, None, id="wcsph-2d"),
+    pytest.param("dfsph", 2, None, id="dfsph-2d"),
+    pytest.param("wcsph", 3, None, id="wcsph-3d"),
+    pytest.param("dfsph", 3, None, id="dfsph-3d"),
+    pytest.param("dfsph", 2, "mirror", id="dfsph-mirror-2d"),
+    pytest.param("dfsph", 3, "mirror", id="dfsph-mirror-3d"),
 ]
 
 
@@ -365,7 +365,7 @@ def dam_break_front(method, spacing_ratio, a=0.1, points=MARTIN_MOYCE):
     return np.array(Z)
 
 
-def dam_break_fronts(method, d, ratio, a=0.1, points=MARTIN_MOYCE[:4], viscosity=0.0, start_steps=0, walls="mirror"):
+def dam_break_fronts(method, d, ratio, a=0.1, points=MARTIN_MOYCE[:4], viscosity=0.0, start_steps=0, walls=None):
     """Front Z = z/a at the experiment's times T: the column a x 2a (x a/2 deep in 3D) of
     `ratio` particles across in the tank 5a x 3a; the front is the x of the (ratio/4)-th
     farthest particle (at least the 3rd) + s/2. start_steps fixed steps of 5e-5 s come first
@@ -400,10 +400,8 @@ def wcsph_fronts():
 # but its 3D front at 8 across runs 8.1% ahead at T = 2.0 (the mirror 1.1%), past the bound; the
 # lead is a coarse-resolution one (2D: 6.7% at 8 across, 3.6% at 10, -0.1% at 20).
 @pytest.mark.parametrize("method, d, ratio, walls", [
-    ("wcsph", 2, 20, "mirror"), ("dfsph", 2, 20, "mirror"), ("wcsph", 3, 8, "mirror"), ("dfsph", 3, 8, "mirror"),
-    ("dfsph", 2, 20, "shepard"),
-    pytest.param("dfsph", 3, 8, "shepard", marks=pytest.mark.xfail(
-        strict=True, reason="issue 15: walls='shepard' 3D front 8.1% ahead of WCSPH at 8 across (bound 7.9%)"))])
+    ("wcsph", 2, 20, None), ("dfsph", 2, 20, None), ("wcsph", 3, 8, None), ("dfsph", 3, 8, None),
+    ("dfsph", 2, 20, "mirror"), ("dfsph", 3, 8, "mirror")])
 def test_dam_break_front_against_experiment_and_wcsph(method, d, ratio, walls, wcsph_fronts):
     ref = MARTIN_MOYCE[:4, 1]
     Z = wcsph_fronts[(d, ratio)] if method == "wcsph" else dam_break_fronts(method, d, ratio, walls=walls)
@@ -563,11 +561,11 @@ def test_coarse_and_fine_spacing(spacing):
 # test_coarse_and_fine_spacing at that spacing) and the positions reached are compressed by up
 # to 2.8% at t = 0.06 s (the second cause). It is not the default: a 3D dam break's front runs
 # 8% ahead of WCSPH's (test_dam_break_front_against_experiment_and_wcsph's bound 7.9%).
-_DFSPH_GAINS = pytest.mark.xfail(strict=True, reason="issue 15: DFSPH's mirrored walls are not conservative")
-_DFSPH_FINE = pytest.mark.xfail(strict=True, reason="issue 15: DFSPH at 2.5 mm: solves at max_iter, 2.8% compression")
-FILLED = [pytest.param(method, d, s, "mirror", id=f"{method}-{d}d-{s}", marks=[_DFSPH_GAINS] if method == "dfsph" else [])
+_MIRROR_GAINS = pytest.mark.xfail(strict=True, reason="issue 15: DFSPH's mirrored walls are not conservative")
+_DFSPH_FINE = pytest.mark.xfail(strict=True, reason="issue 15: DFSPH at 2.5 mm: the first solves from the lattice stop at max_iter")
+FILLED = [pytest.param(method, d, s, None, id=f"{method}-{d}d-{s}", marks=[_DFSPH_FINE] if method == "dfsph" and s == 0.0025 else [])
           for method in ("dfsph", "wcsph") for d, s in ((2, 0.0025), (2, 0.005), (3, 0.005))]
-FILLED += [pytest.param("dfsph", d, s, "shepard", id=f"dfsph-shepard-{d}d-{s}", marks=[_DFSPH_FINE] if s == 0.0025 else [])
+FILLED += [pytest.param("dfsph", d, s, "mirror", id=f"dfsph-mirror-{d}d-{s}", marks=[_MIRROR_GAINS])
            for d, s in ((2, 0.0025), (2, 0.005), (3, 0.005))]
 
 

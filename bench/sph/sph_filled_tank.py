@@ -31,7 +31,7 @@ def run(method, d, s, duration=0.3, dt_scale=1.0, series=False, walls="mirror"):
     gravity = [0.0] * d
     gravity[1] = -G
     fluid = km.sph.Fluid(km.sph.block([0] * d, upper, s), s, gravity=gravity, method=method,
-                         domain=([0] * d, [L] * d), walls=walls if method == "dfsph" else "mirror")
+                         domain=([0] * d, [L] * d), walls=walls if method == "dfsph" else None)
     mass = fluid.mass
 
     def energy():

@@ -179,7 +179,7 @@ class Fluid:
                  gravity=None, domain=None, boundary=None, speed_of_sound=None, gamma=7.0,
                  velocity=None, tol=1e-3, divergence_tol=1e-3, max_iter=100,
                  divergence_solve=True, reorder_every=16, neighbor_skin=0.2, warm_start=0.5,
-                 coarse_correction=None, walls="mirror"):
+                 coarse_correction=None, walls=None):
         x = _points(positions, "positions")
         n, d = x.shape
         self.dim = d
@@ -214,11 +214,12 @@ class Fluid:
         config.neighbor_skin = real(neighbor_skin, "neighbor_skin")
         config.warm_start = real(warm_start, "warm_start")
         config.coarse_correction = -1 if coarse_correction is None else int(bool(coarse_correction))
-        if not isinstance(walls, str) or walls not in ("mirror", "shepard"):
-            raise ValueError(f"walls: expected 'mirror' or 'shepard', got {walls!r}")
-        if walls == "shepard" and method == "wcsph":
-            raise ValueError("walls: 'shepard' is DFSPH's (WCSPH's walls carry the pressure of their own density)")
-        config.shepard_walls = walls == "shepard"
+        if walls is not None and (not isinstance(walls, str) or walls not in ("mirror", "shepard")):
+            raise ValueError(f"walls: expected None, 'mirror' or 'shepard', got {walls!r}")
+        if walls is not None and method == "wcsph":
+            raise ValueError(f"walls: {walls!r} is DFSPH's (WCSPH's walls carry the pressure of their own density; "
+                             "leave walls=None)")
+        config.shepard_walls = walls != "mirror"
 
         lower = upper = None
         if domain is not None:
@@ -351,11 +352,12 @@ class Fluid:
         ``boundary`` samples first, then the domain's walls."""
         return self._core.boundary_psi
 
-    _STATE_SCALARS = ("time", "steps", "last_dt", "reorder_step", "neighbor_skin")
+    _STATE_SCALARS = ("time", "steps", "last_dt", "last_accel", "reorder_step", "neighbor_skin")
 
     def state(self) -> dict:
         """Copies of everything that evolves: x, v, density, pressure, ids, time, steps; the
-        last dt and the step of the last reordering; DFSPH's stiffnesses kappa_density and
+        last dt, DFSPH's last largest acceleration (:meth:`stable_dt` reads it) and the step of the
+        last reordering; DFSPH's stiffnesses kappa_density and
         kappa_divergence ((n,) p_i / rho_i^2 of each solve, the next solves' warm start); and
         the neighbour lists as the positions neighbor_x ((n, d), or (0, d) before the first
         step) and skin neighbor_skin they were built with."""
