@@ -186,7 +186,6 @@ struct PyFluid {
     out["time"] = py::array_t<Scalar>(std::vector<py::ssize_t>{}, &state.time);
     out["steps"] = py::array_t<Index>(std::vector<py::ssize_t>{}, &state.steps);
     out["last_dt"] = py::array_t<Scalar>(std::vector<py::ssize_t>{}, &state.last_dt);
-    out["last_accel"] = py::array_t<Scalar>(std::vector<py::ssize_t>{}, &state.last_accel);
     out["reorder_step"] = py::array_t<Index>(std::vector<py::ssize_t>{}, &state.reorder_step);
     if (solver->config().method == sph::Method::DFSPH) {
       // Empty until the first step sizes them: zero stiffnesses, as a cold start has.
@@ -205,8 +204,8 @@ struct PyFluid {
 
   // Restores get_state()'s dict (Python has checked its keys and converted its scalars); all
   // or nothing: the state changes only once every entry has been read and checked.
-  void set_state(const py::dict& src, Scalar time, Index steps, Scalar last_dt, Scalar last_accel,
-                 Index reorder_step, Scalar neighbor_skin) {
+  void set_state(const py::dict& src, Scalar time, Index steps, Scalar last_dt, Index reorder_step,
+                 Scalar neighbor_skin) {
     sph::State next = state;
     copy_into(next.x, src, "x");
     copy_into(next.v, src, "v");
@@ -222,14 +221,11 @@ struct PyFluid {
     if (!std::isfinite(time)) throw InvalidArgument("state['time']: expected a finite time [s]");
     if (steps < 0) throw InvalidArgument("state['steps']: expected an integer >= 0");
     if (!(last_dt >= 0) || !std::isfinite(last_dt)) throw InvalidArgument("state['last_dt']: expected a finite dt >= 0 [s]");
-    if (!(last_accel >= 0) || !std::isfinite(last_accel))
-      throw InvalidArgument("state['last_accel']: expected a finite acceleration >= 0 [m/s^2]");
     if (reorder_step < -1 || reorder_step > steps)
       throw InvalidArgument("state['reorder_step']: expected an integer in [-1, steps]");
     next.time = time;
     next.steps = steps;
     next.last_dt = last_dt;
-    next.last_accel = last_accel;
     next.reorder_step = reorder_step;
     const auto neighbor_x = py::array_t<Scalar, py::array::c_style | py::array::forcecast>::ensure(src["neighbor_x"]);
     if (!neighbor_x) throw InvalidArgument("state['neighbor_x']: expected an array of positions");
@@ -346,7 +342,7 @@ void bind_sph(py::module_& m) {
       })
       .def("state", &PyFluid::get_state)
       .def("set_state", &PyFluid::set_state, py::arg("state"), py::arg("time"), py::arg("steps"),
-           py::arg("last_dt"), py::arg("last_accel"), py::arg("reorder_step"), py::arg("neighbor_skin"))
+           py::arg("last_dt"), py::arg("reorder_step"), py::arg("neighbor_skin"))
       .def_property_readonly("x", [](py::object self) {
         auto& f = self.cast<PyFluid&>();
         return view(self, f.state.x, {f.state.n, f.state.dim});

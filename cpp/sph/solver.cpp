@@ -93,17 +93,7 @@ class SolverD final : public Solver::Impl {
     // (cfl * spacing before: a column of 2.5 mm spacing released at 5 ms steps threw particles
     // out at 2 m/s, 15 m/s once DFSPH could give back warm-started pressure; tests/test_sph.py
     // test_coarse_and_fine_spacing.)
-    // DFSPH: the same bound on the last step's largest acceleration |dv| / dt (the force
-    // condition of Monaghan 1992, dt <= 0.25 sqrt(h / |a|), here with the gravity rule's
-    // constant). The density solve predicts rho + dt D rho / Dt, linear in the step; where
-    // particles accelerate at many g relative to each other (the bottom rows of a deep column
-    // rearranging from a lattice, at 1-15 g) they moved up to half a spacing in one step, the
-    // second-order compression that the prediction misses reached 3% (predicted 1e-3), and the
-    // next step removed it by velocities no energy paid for: a 2D column of 2.5 mm spacing
-    // filling its tank gained energy and reached 2.8% compression (issue 15; tests/test_sph.py,
-    // the filled tank; with the rule 0.2%).
-    Scalar g = g_.norm();
-    if (config_.method == Method::DFSPH) g = std::max(g, s.last_accel);
+    const Scalar g = g_.norm();
     if (g > 0) dt = std::min(dt, std::sqrt(0.1 * cfl * model_.spacing / g));
     return dt;
   }
@@ -151,7 +141,6 @@ class SolverD final : public Solver::Impl {
     // Neighbourhoods of the current positions (Verlet lists; Morton reordering every few steps),
     // the step's kernel gradients, densities and the factors alpha_i (eq. 11).
     neighborhoods(s, true, true, s.density.data());
-    v_start_ = s.v;  // (after a reordering) for s.last_accel
     // Divergence-free solver (Algorithm 2): make D rho / Dt = 0 with the current velocities.
     Stopwatch solve;
     if (config_.divergence_solve) {
@@ -169,9 +158,6 @@ class SolverD final : public Solver::Impl {
     stats.solve_seconds += solve.seconds();
     // Positions: x += dt v*.
     parallel_for(n, [&](Index i) { Map(s.x.data() + i * D) += dt * CMap(s.v.data() + i * D); });
-    // The step's largest acceleration, for stable_dt's force condition (the domain's clamp
-    // below is a guarantee against leaks, not a force: left out).
-    s.last_accel = max_distance(s.v, v_start_, n) / dt;
     enforce_domain(s);
     // The step's pressure: both solvers change velocities as the force -(m_i / rho_i) grad p_i
     // with p_i = kappa_i rho_i would over dt (Bender and Koschier 2017, eqs. 5-6), at the same
@@ -762,15 +748,12 @@ class SolverD final : public Solver::Impl {
   }
 
   // Largest distance a particle has moved since the positions x0 [m].
-  Scalar max_displacement(const State& s, const std::vector<Scalar>& built) const { return max_distance(s.x, built, s.n); }
-
-  // max_i |a_i - b_i| over the n rows of two (n, d) arrays.
-  static Scalar max_distance(const std::vector<Scalar>& a, const std::vector<Scalar>& b, Index n) {
+  Scalar max_displacement(const State& s, const std::vector<Scalar>& built) const {
     Scalar d2 = 0;
-    const Scalar* pa = a.data();
-    const Scalar* pb = b.data();
-#pragma omp parallel for schedule(static) reduction(max : d2) if (n > kParallelGrain)
-    for (Index i = 0; i < n; ++i) d2 = std::max(d2, (CMap(pa + i * D) - CMap(pb + i * D)).squaredNorm());
+    const Scalar* x = s.x.data();
+    const Scalar* x0 = built.data();
+#pragma omp parallel for schedule(static) reduction(max : d2) if (s.n > kParallelGrain)
+    for (Index i = 0; i < s.n; ++i) d2 = std::max(d2, (CMap(x + i * D) - CMap(x0 + i * D)).squaredNorm());
     return std::sqrt(d2);
   }
 
@@ -982,7 +965,6 @@ class SolverD final : public Solver::Impl {
   double search_seconds_ = 0, kernel_seconds_ = 0;  // the last neighborhoods() call's split
   const Scalar* forces_ = nullptr;              // the step's external forces (n, d) by particle id, or null
   std::vector<Scalar> accel_;      // (n, d) accelerations
-  std::vector<Scalar> v_start_;    // DFSPH: (n, d) the velocities at the step's start
   std::vector<Scalar> aux_;        // DFSPH: predicted densities or density rates; WCSPH: p_i / rho_i^2
   std::vector<Scalar> prev_;       // DFSPH: the last iteration's increments (momentum)
   std::vector<Scalar> v4_;         // DFSPH with rows_.dot4: the velocities padded to (n, 4)

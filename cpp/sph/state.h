@@ -36,7 +36,6 @@ struct State {
   Index steps = 0;
   // What the next step reads from the earlier ones.
   Scalar last_dt = 0;                          // the previous step's dt [s]; 0: none yet (DFSPH solves cold)
-  Scalar last_accel = 0;                       // DFSPH: the previous step's largest |dv| / dt [m/s^2] (stable_dt)
   Index reorder_step = -1;                     // step of the last Morton reordering (-1: none yet)
   // DFSPH's stiffnesses k_i = kappa_i / rho_i (the pressure p_i / rho_i^2 whose force the
   // solve applied), (n,) each; empty for WCSPH.

@@ -352,12 +352,11 @@ class Fluid:
         ``boundary`` samples first, then the domain's walls."""
         return self._core.boundary_psi
 
-    _STATE_SCALARS = ("time", "steps", "last_dt", "last_accel", "reorder_step", "neighbor_skin")
+    _STATE_SCALARS = ("time", "steps", "last_dt", "reorder_step", "neighbor_skin")
 
     def state(self) -> dict:
         """Copies of everything that evolves: x, v, density, pressure, ids, time, steps; the
-        last dt, DFSPH's last largest acceleration (:meth:`stable_dt` reads it) and the step of the
-        last reordering; DFSPH's stiffnesses kappa_density and
+        last dt and the step of the last reordering; DFSPH's stiffnesses kappa_density and
         kappa_divergence ((n,) p_i / rho_i^2 of each solve, the next solves' warm start); and
         the neighbour lists as the positions neighbor_x ((n, d), or (0, d) before the first
         step) and skin neighbor_skin they were built with."""
