@@ -245,16 +245,17 @@ def column_at_rest(method, d, tol=1e-3, **options):
 # within 10% of rho0 g (the settled arrangement's SPH gradient is normalised to a few percent;
 # measured 2D: WCSPH 1.02-1.03, DFSPH 1.02-1.05), and p = 0 within 3 spacings of the surface.
 # DFSPH iterations (constant-density solve) per step: mean at most 10 and none above 60 at
-# tol = 1e-3 (the issue saw 50-100 per step). DFSPH's walls mirror the pressure as WCSPH's do
-# (before, a 3D column read a slope of 1.22-1.29 rho0 g, its bottom row 2.1 rho0 g (H - y)), and
+# tol = 1e-3 (the issue saw 50-100 per step). DFSPH's walls hold what the fluid pushes, as
+# WCSPH's do (with Akinci's single term a 3D column read a slope of 1.22-1.29 rho0 g, its bottom
+# row 2.1 rho0 g (H - y)), and
 # its density solve under-relaxes the compressed particles' increments (0.8): at the paper's
 # full increment the warm-started Jacobi overshot every step and the column bounced as a whole (2D 0.063-0.09 m/s under the plain mean rule, 3D 0.070-0.084 m/s, mean
 # vertical speed +-0.028 m/s); measured after: 2D 0.026 m/s, slope 1.03, 7.7 iterations (peak
-# 11); 3D 0.046 m/s, slope 1.08 (1.02 before), 9.1 (peak 19).
-# DFSPH's walls="shepard" (one stiffness per wall sample, the filled tank's conservative walls)
-# holds the same bounds, the 3D column only just: measured 2D 0.021 m/s, slope 1.03; 3D 0.062
+# 11); 3D 0.046 m/s, slope 1.08 (1.02 before), 9.1 (peak 19) (these with walls="mirror").
+# DFSPH's default walls (one stiffness per wall sample, the filled tank's conservative walls)
+# hold the same bounds, the 3D column only just: measured 2D 0.021 m/s, slope 1.03; 3D 0.062
 # m/s, slope 1.03, 8.0 iterations (peak 42): the 3D column sags and bounces as a whole (mean
-# vertical speed +-0.04 m/s, bench/sph/sph_column_cycle.py --d 3 --walls shepard --series), and
+# vertical speed +-0.04 m/s, bench/sph/sph_column_cycle.py --d 3 --series), and
 # an earlier build of the same sums in another order read 0.051. At tol 2e-3 and 5e-3 (coarse
 # correction on) it reads 0.023 m/s.
 REST_CASES = [
@@ -409,8 +410,8 @@ def resolution_error(wcsph_fronts, d):
     return 2 * np.max(np.abs(wf - wc) / wf)
 
 
-# DFSPH's default walls (one stiffness per wall sample) and walls="mirror": 2D at 20 across
-# within 2.2% / 1.3% of WCSPH, 3D at 8 across 8.1% / 1.1% (T = 2.0).
+# DFSPH's default walls (one stiffness per wall sample) and walls="mirror", largest gap to
+# WCSPH: 2D at 20 across 2.2% / 1.5%, 3D at 8 across 8.1% / 1.9%.
 @pytest.mark.parametrize("method, d, ratio, walls", [
     ("wcsph", 2, 20, None), ("dfsph", 2, 20, None), ("wcsph", 3, 8, None), ("dfsph", 3, 8, None),
     ("dfsph", 2, 20, "mirror"), ("dfsph", 3, 8, "mirror")])
@@ -559,19 +560,17 @@ def test_coarse_and_fine_spacing(spacing):
 # density (cpp/sph/solver.cpp, "WCSPH's walls"), the force is the gradient of the fluid's
 # energy walls included. Before, the walls mirrored the pressure, 2 P_i B_i, twice the walls'
 # share of that gradient: +188% / +123% / +174%, 5.0 / 2.6 / 3.9 m/s.
-# DFSPH's default walls mirror the stiffness (2 k_i B_i, apply_kappa) and gain: 2D 2.5 mm +37%
-# (1.74 m/s, 3 solves at max_iter), 2D 5 mm +1.9%, 3D 5 mm +5.6%. Two causes were found (issue
-# 15): the mirror, and at 2.5 mm the time step: the column's bottom rows rearrange at 1-15 g,
-# the density solve's linear prediction rho + dt D rho / Dt misses their second-order
-# compression (predicted 1e-3, reached 3%), and the next step removes it by velocities from
-# nowhere. Strict, so that the fix is noticed.
-# walls="shepard" gives each wall sample one stiffness, the Shepard average of its fluid
-# neighbours' (a force of constraint form): -0.0% (0.09 m/s) at 2D 5 mm, -0.1% (0.09 m/s) in 3D,
-# +0.8% (0.35 m/s) at 2D 2.5 mm, where the first steps from the lattice still stop at max_iter
-# (mean compression 1.2e-3 against tol 1e-3 after 100 iterations, as in
+# DFSPH's default walls give each wall sample one stiffness, the Shepard average of its fluid
+# neighbours' (a force of constraint form; issue 15): -0.0% (0.09 m/s) at 2D 5 mm, -0.1%
+# (0.09 m/s) in 3D, +0.8% (0.35 m/s) at 2D 2.5 mm, where the first steps from the lattice still
+# stop at max_iter (mean compression 1.2e-3 against tol 1e-3 after 100 iterations, as in
 # test_coarse_and_fine_spacing at that spacing) and the positions reached are compressed by up
-# to 2.8% at t = 0.06 s (the second cause). It is not the default: a 3D dam break's front runs
-# 8% ahead of WCSPH's (test_dam_break_front_against_experiment_and_wcsph's bound 7.9%).
+# to 2.8% at t = 0.06 s: at 2.5 mm the column's bottom rows rearrange at 1-15 g, the density
+# solve's linear prediction rho + dt D rho / Dt misses their second-order compression
+# (predicted 1e-3, reached 3%), and the next step removes it by velocities from nowhere.
+# walls="mirror" (the default before) mirrors the stiffness (2 k_i B_i, apply_kappa), twice the
+# walls' share of the energy gradient, and gains: 2D 2.5 mm +37% (1.74 m/s, 3 solves at
+# max_iter), 2D 5 mm +1.9%, 3D 5 mm +5.6%. Strict, so that a fix is noticed.
 _MIRROR_GAINS = pytest.mark.xfail(strict=True, reason="issue 15: DFSPH's mirrored walls are not conservative")
 _DFSPH_FINE = pytest.mark.xfail(strict=True, reason="issue 15: DFSPH at 2.5 mm: the first solves from the lattice stop at max_iter, 2.8% compression")
 FILLED = [pytest.param(method, d, s, None, id=f"{method}-{d}d-{s}", marks=[_DFSPH_FINE] if method == "dfsph" and s == 0.0025 else [])
@@ -785,6 +784,7 @@ def test_avx2_and_baseline_runs_are_bitwise_equal(method, monkeypatch):
     (dict(reorder_every=-1), "reorder_every"),
     (dict(walls="akinci"), "walls"),
     (dict(walls="shepard", method="wcsph"), "walls"),
+    (dict(walls="mirror", method="wcsph"), "walls"),
 ])
 def test_bad_arguments_raise_value_error(kwargs, match):
     args = dict(positions=[[0.5, 0.5]], spacing=0.01)
