@@ -526,11 +526,47 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
         br.face[b] = axis_weight(x, cells + 1, period);
         br.cell[b] = axis_weight(x - 0.5, cells, period);
       }
-      for (Index k = 0; k < nk; ++k) {
-        const Vec3 g = at_node(k);
-        if (g == Vec3{0, 0, 0}) continue;
-        br.face[2] = slot(rd, 2, k), br.cell[2] = slot(rd, 5, k);
-        tr.velocity_adjoint(br, g, false);
+      if constexpr (ThreeD) {
+        // velocity_adjoint(moves = false), i.e. scatter_sparse per component, with the factors of
+        // axes 0 and 1 (constant along the row) formed once per row: the same products, the same
+        // order of writes into each g_u[a] (components write distinct arrays)
+        for (int a = 0; a < 3; ++a) {
+          const FieldLayout& F = u.layout[a];
+          const AxisWeight &x0 = a == 0 ? br.face[0] : br.cell[0], &x1 = a == 1 ? br.face[1] : br.cell[1];
+          Scalar f1s[4];
+          Index n1s[4];
+          int pairs = 0;
+          for (int a0 = 0; a0 < 2; ++a0) {
+            const Scalar f0 = a0 ? x0.w : 1 - x0.w;
+            if (f0 == 0) continue;
+            const Index n0 = (a0 ? x0.i1 : x0.i0) * F.stride(0);
+            for (int a1 = 0; a1 < 2; ++a1) {
+              const Scalar f1 = f0 * (a1 ? x1.w : 1 - x1.w);
+              if (f1 == 0) continue;
+              f1s[pairs] = f1, n1s[pairs++] = n0 + (a1 ? x1.i1 : x1.i0) * F.stride(1);
+            }
+          }
+          const Scalar* ga = g_node[a] + c0;
+          Scalar* target = g_u[a];
+          const int sl = a == 2 ? 2 : 5;
+          for (Index k = 0; k < nk; ++k) {
+            const Scalar g = ga[k];
+            if (g == 0) continue;
+            const AxisWeight x2 = slot(rd, sl, k);
+            for (int e = 0; e < pairs; ++e) {
+              const Scalar lo = f1s[e] * (1 - x2.w), hi = f1s[e] * x2.w;
+              if (lo != 0) target[n1s[e] + x2.i0] += g * lo;
+              if (hi != 0) target[n1s[e] + x2.i1] += g * hi;
+            }
+          }
+        }
+      } else {
+        for (Index k = 0; k < nk; ++k) {
+          const Vec3 g = at_node(k);
+          if (g == Vec3{0, 0, 0}) continue;
+          br.face[2] = slot(rd, 2, k), br.cell[2] = slot(rd, 5, k);
+          tr.velocity_adjoint(br, g, false);
+        }
       }
     });
   };
