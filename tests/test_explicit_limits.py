@@ -96,7 +96,7 @@ def test_massspring_symplectic_stable_below_limit_unstable_above_bound(case, dam
     for h in np.array([1 + 1e-6, 1.1, 2]) * sys.unstable_dt:
         assert spectral_radius(h, K, C, md) > 1 + 1e-9, h / sys.unstable_dt
     if damping:
-        assert sys.explicit_dt_limit < 2 / np.sqrt(4 / sys._core.explicit_dt_limit**2)  # lowered
+        assert sys.explicit_dt_limit < 2 / np.sqrt(sys._core.gershgorin_omega2)  # lowered
 
 
 def test_massspring_window_with_uniform_springs_is_the_vertex_degree():
@@ -163,6 +163,62 @@ def test_massspring_implicit_and_springless_steps_are_unchecked():
     free = km.massspring.System([[0.0, 0.0]], [], stiffness=1.0, gravity=(0, -9.81))
     assert free.explicit_dt_limit == free.unstable_dt == float("inf")
     free.step(10.0, "symplectic")
+
+
+def chain_with(**parameters):
+    """oscillator_chain's springs and masses (damped), with some parameters replaced."""
+    values = dict(stiffness=100.0, mass=0.5, damping=0.2) | parameters
+    x = np.c_[np.arange(4.0), np.zeros(4)]
+    return km.massspring.System(x, [[0, 1], [1, 2], [2, 3]], fixed=[0], **values)
+
+
+@pytest.mark.parametrize("name, value", [("stiffness", [400.0, 100.0, 900.0]), ("mass", 0.05),
+                                         ("damping", 8.0), ("rest_length", [1.0, 1.5, 0.5])])
+def test_massspring_limits_follow_a_parameter_set_after_construction(name, value):
+    # The limits are cached in C++: a parameter set afterwards (the path km.diff and km.torch set
+    # parameters through) must give the limits of a system built with it, and the checks must
+    # use them: a step that was silent now warns (stiffer, lighter or more damped springs) and
+    # one beyond the new unstable_dt is refused before stepping.
+    sys = chain_with()
+    old = sys.explicit_dt_limit, sys.unstable_dt
+    sys._diff_set(name, value)
+    fresh = chain_with(**{name: value})
+    assert (sys.explicit_dt_limit, sys.unstable_dt) == (fresh.explicit_dt_limit, fresh.unstable_dt)
+    if name == "rest_length":  # K and C at rest do not depend on L: the same limits
+        assert (sys.explicit_dt_limit, sys.unstable_dt) == old
+        return
+    limit, bound = sys.explicit_dt_limit, sys.unstable_dt
+    assert limit < 0.8 * old[0], (limit, old)
+    dt = 1.05 * limit
+    assert dt < min(bound, 0.9 * old[0])  # silent with the old limits, in the window of the new
+    chain_with().step(dt, "symplectic", steps=2)  # (a warning would fail the test)
+    with pytest.warns(RuntimeWarning, match=re.escape(f"explicit_dt_limit = {limit:.4g} s")):
+        sys.step(dt, "symplectic", steps=2)
+    if name == "damping":  # damping lowers the conservative limit only; the Rayleigh bound stays
+        assert bound == old[1]
+        return
+    assert bound < 0.9 * old[0]
+    x0, t0 = sys.x.copy(), sys.time
+    with pytest.raises(ValueError, match=re.escape(f"{bound:.4g} s (unstable_dt)")):
+        sys.step(0.5 * (bound + min(old[0], 1.1 * bound)), "explicit")
+    assert np.array_equal(sys.x, x0) and sys.time == t0
+
+
+def test_massspring_limits_follow_parameters_set_through_torch():
+    torch = pytest.importorskip("torch")
+    import kinema.torch
+
+    sys = chain_with()
+    old = sys.explicit_dt_limit
+    limit = chain_with(stiffness=[400.0] * 3).explicit_dt_limit
+    dt = 1.05 * limit
+    assert dt < 0.9 * old  # silent with the stiffness the system was built with
+    k = torch.full((3,), 400.0, dtype=torch.float64, requires_grad=True)
+    with pytest.warns(RuntimeWarning, match=re.escape(f"explicit_dt_limit = {limit:.4g} s")):
+        out = kinema.torch.rollout(sys, 2, dt, {"stiffness": k}, integrator="symplectic")
+    assert sys.explicit_dt_limit == limit
+    out["x"].sum().backward()
+    assert torch.isfinite(k.grad).all()
 
 
 # ------------------------------------------------------------------ km.fem
