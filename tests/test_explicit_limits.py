@@ -354,7 +354,6 @@ def test_mpm_beyond_cfl_limit_warns(d):
     assert number_in(str(caught[0].message), dt)
 
 
-@pytest.mark.filterwarnings("ignore:dt.*cfl_dt:RuntimeWarning")  # CFL 2 is warned, as it should be
 def test_mpm_cfl_limit_is_near_the_observed_blow_up():
     # The estimate is not loose: moving water stays finite at CFL 0.9 and blows up at CFL 2
     # (measured: from CFL 1.2 on), the step's own DivergenceError reporting it.
@@ -366,8 +365,74 @@ def test_mpm_cfl_limit_is_near_the_observed_blow_up():
             sim.step(cfl * sim.cfl_dt())
         return sim
     assert np.isfinite(run(0.9).kinetic_energy())
-    with pytest.raises(km.DivergenceError):
+    with pytest.warns(RuntimeWarning, match="cfl_dt"), pytest.raises(km.DivergenceError):
         run(2.0)
+
+
+def mpm_mixed(d):
+    """Water, snow thrown at a wall (it yields: its hardening raises its wave speed) and an
+    elastic disc with some particles' own moduli: every term of the signal speed."""
+    s = 1 / 96 if d == 2 else 1 / 40
+    sim = km.mpm.Simulation((32,) * d, 1 / 32, gravity=(0.0, -9.81, 0.0)[:d], boundary="separate")
+    sim.add_particles(km.mpm.block([0.1] * d, [0.3] * d, s), "water", density=1000.0, youngs_modulus=2e5)
+    sim.add_particles(km.mpm.sphere([0.82] + [0.5] * (d - 1), 0.1, s), "snow", density=400.0,
+                      velocity=[6.0, -1.0, 0.5][:d])
+    rows = sim.add_particles(km.mpm.sphere([0.45] * d, 0.08, s), "elastic", density=1000.0,
+                             velocity=[-2.0, 1.0, 0.0][:d])
+    sim.youngs_modulus[rows.start::5] *= 1.5  # (snow, 19.7 m/s unhardened, is the fastest wave)
+    return sim
+
+
+@pytest.mark.parametrize("d, simd", [(2, "default"), (2, "baseline"), (3, "default")])
+def test_mpm_cfl_dt_measured_by_the_step_is_the_full_pass_bit_for_bit(d, simd, monkeypatch):
+    # The check before each step reads what the last step measured (largest speed and snow
+    # hardening in G2P; the wave speeds of the moduli kept from one pass): it must be the pass
+    # over the particles a view forces, bit for bit, in 2D's AVX2 lanes and scalar code and 3D.
+    if simd == "baseline":
+        monkeypatch.setenv("KINEMA_SIMD", "baseline")
+    a, b = mpm_mixed(d), mpm_mixed(d)
+    for k in range(25):
+        # after the first step, the first limit asked for passes over the particles (and keeps
+        # the wave speeds); from the second on, what the step measured is read
+        assert a._sim.speed_measured == (k >= 2), k
+        dt = a.stable_dt(0.5)
+        b.x  # a view read: b's limits come from a pass over its particles
+        assert not b._sim.speed_measured
+        assert (a.cfl_dt(), dt) == (b.cfl_dt(), b.stable_dt(0.5)), k
+        a.step(dt)
+        b.step(dt)
+    snow = a.material == 1
+    assert a.Jp[snow].min() < 0.999, "the snow yielded: its hardening counts"
+
+
+def test_mpm_check_sees_what_is_written_after_a_step():
+    # After steps with the limit read from the last one, a modulus set through km.diff's path, a
+    # velocity written through a view taken after the step and one written through a view held
+    # across steps are each seen by the next step's check.
+    sim = mpm_block(2)
+    for _ in range(3):
+        sim.step(0.5 * sim.cfl_dt())
+    assert sim._sim.speed_measured
+    old = sim.cfl_dt()
+    sim._diff_set("youngs_modulus", 100 * sim.youngs_modulus)
+    assert not sim._sim.speed_measured
+    limit = sim.cfl_dt()
+    assert limit < 0.15 * old
+    with pytest.warns(RuntimeWarning, match=re.escape(f"cfl_dt() = {limit:.4g} s")):
+        sim.step(0.5 * old)
+    sim = mpm_block(3)
+    for _ in range(3):
+        sim.step(0.5 * sim.cfl_dt())
+    old = sim.cfl_dt()
+    sim.v[7] = (0.0, 0.0, 5 / 16 / (0.5 * old))  # 5 cells in the step of CFL 0.5
+    with pytest.warns(RuntimeWarning, match="cfl_dt"):
+        sim.step(0.5 * old)
+    held = sim.v
+    dt = 0.4 * sim.cfl_dt()
+    sim.step(dt)  # silent
+    held[3] = (0.0, 0.0, 5 / 16 / dt)
+    with pytest.warns(RuntimeWarning, match="cfl_dt"):
+        sim.step(dt)
 
 
 def test_mpm_advance_warns_for_cfl_above_one():

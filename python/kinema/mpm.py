@@ -268,17 +268,24 @@ class Simulation:
     def step(self, dt) -> StepStats:
         """One MLS-MPM step of ``dt`` [s]; returns its :class:`StepStats` (time, dt, seconds,
         per-stage seconds, max_speed, active_blocks, rebinned: the particles binned anew).
-        A ``dt`` above :meth:`cfl_dt` (CFL number 1) warns with a RuntimeWarning naming dt and
-        the limit (the explicit scheme's stability limit is only estimated by the CFL rule, so
-        this is a warning, not an error: measured on a moving block at 1e5 Pa, nu 0.3, water runs
+        A ``dt`` above :meth:`cfl_dt` of the state the step starts from (CFL number 1: h over
+        the largest particle speed plus the fastest elastic wave speed of the particles' moduli,
+        snow's hardened) warns, before stepping, with a RuntimeWarning naming dt and the limit
+        (the explicit scheme's stability limit is only estimated by the CFL rule, so this is a
+        warning, not an error: measured on a moving block at 1e5 Pa, nu 0.3, water runs
         diverge from CFL 1.2 on, elastic ones from 1.5, snow ones (whose hardened wave speed
-        overstates its plastic stiffness) only from 5). Raises DivergenceError on a blow-up."""
+        overstates its plastic stiffness) only from 5). The check costs no pass over the
+        particles when the state is the one the last step left (no view alive, no particle
+        added): that step measured the speeds as it wrote them. Raises DivergenceError on a
+        blow-up."""
         return self._sim.step(self._check_dt(positive(dt, "dt")))
 
     def cfl_dt(self) -> float:
         """h / (v_max + c) [s]: the step of CFL number 1 at the current velocities, c the fastest
         elastic wave speed as in :meth:`stable_dt` (``stable_dt(cfl)`` is at most ``cfl`` times
-        it); ``inf`` when nothing moves and nothing is stiff. Steps above it warn."""
+        it); ``inf`` when nothing moves and nothing is stiff. Steps above it warn. After a step,
+        with no view alive, it is read from what that step measured (the same value, bit for
+        bit, as a pass over the particles)."""
         return self._sim.cfl_dt()
 
     def _check_dt(self, dt):
