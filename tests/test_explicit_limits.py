@@ -131,6 +131,7 @@ def test_massspring_beyond_limit_warns_once_per_call(integrator):
         warnings.simplefilter("always")
         sys.step(dt, integrator, steps=3)
     assert [w.category for w in caught] == [RuntimeWarning]
+    assert caught[0].filename == __file__  # the caller's line, not kinema's
     message = str(caught[0].message)
     assert message.startswith("dt:") and number_in(message, dt) and number_in(message, limit), message
 
@@ -221,6 +222,40 @@ def test_massspring_limits_follow_parameters_set_through_torch():
     assert torch.isfinite(k.grad).all()
 
 
+def contact_bodies():
+    """A spring chain and a triangle body above a floor (km.contact's projected steps)."""
+    x = np.c_[np.arange(4.0), np.ones(4)]
+    chain = km.massspring.System(x, [[0, 1], [1, 2], [2, 3]], stiffness=100.0, mass=0.5, fixed=[0],
+                                 gravity=(0, -9.81))
+    V, T = km.fem.rectangle_mesh((0, 0.1), (1, 0.6), (4, 2))
+    body = km.fem.Body(V, T, youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0, gravity=(0, -9.81))
+    for sim in (chain, body):
+        sim.add_collider("plane", point=(0, 0), normal=(0, 1))
+    return chain, body
+
+
+@pytest.mark.parametrize("case", [0, 1])
+@pytest.mark.parametrize("through", ["step", "contact.step"])
+def test_explicit_limit_is_checked_once_per_call_with_colliders(case, through):
+    # A body with colliders takes km.contact's projected symplectic steps: the body's limits
+    # hold (projection adds no stiffness), checked once per call, the warning naming the
+    # caller's line; beyond unstable_dt the call is refused before any step.
+    sim = contact_bodies()[case]
+    step = sim.step if through == "step" else sim.contact.step
+    limit, bound = sim.explicit_dt_limit, sim.unstable_dt
+    step(0.9 * limit, "symplectic", steps=2)  # silent
+    dt = 0.5 * (limit + bound)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        step(dt, "symplectic", steps=3)
+    assert [w.category for w in caught] == [RuntimeWarning]
+    assert caught[0].filename == __file__ and number_in(str(caught[0].message), limit)
+    x0, t0 = sim.x.copy(), sim.time
+    with pytest.raises(ValueError, match=re.escape(f"{bound:.4g} s (unstable_dt)")):
+        step(1.01 * bound, "symplectic", steps=3)
+    assert np.array_equal(sim.x, x0) and sim.time == t0
+
+
 # ------------------------------------------------------------------ km.fem
 
 def fem_bodies():
@@ -289,13 +324,46 @@ def test_fem_below_limit_is_silent_and_beyond_warns_or_raises():
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         body.step(dt, "symplectic", steps=2)
-    assert [w.category for w in caught] == [RuntimeWarning]
+    assert [w.category for w in caught] == [RuntimeWarning] and caught[0].filename == __file__
     assert number_in(str(caught[0].message), dt) and number_in(str(caught[0].message), limit)
     x0 = body.x.copy()
     with pytest.raises(ValueError, match=re.escape(f"{bound:.4g}")):
         body.step(1.01 * bound, "symplectic")
     assert np.array_equal(body.x, x0)
     body.step(100 * bound)  # implicit: unchecked
+
+
+@pytest.mark.parametrize("name, scale", [("youngs_modulus", 16.0), ("density", 1 / 16), ("damping", None)])
+def test_fem_limits_follow_a_parameter_set_after_construction(name, scale):
+    # A parameter set after construction (km.diff's and km.torch's path) rebuilds the solver:
+    # the limits must be those of a body built with it (unstable_dt too, which is cached), and
+    # the checks must warn and refuse at them.
+    def body(**values):
+        V, T = km.fem.box_mesh((0, 0, 0), (1, 0.5, 0.5), (3, 2, 2))
+        values = dict(youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0, damping=0.0) | values
+        return km.fem.Body(V, T, fixed=np.flatnonzero(V[:, 0] == 0), **values)
+
+    b = body()
+    old = b.explicit_dt_limit, b.unstable_dt  # (unstable_dt now cached)
+    value = 400.0 if scale is None else scale * b._diff_get(name)
+    b._diff_set(name, value)
+    fresh = body(**{name: value})
+    assert (b.explicit_dt_limit, b.unstable_dt) == (fresh.explicit_dt_limit, fresh.unstable_dt)
+    limit, bound = b.explicit_dt_limit, b.unstable_dt
+    if name == "damping":  # implicit mass damping raises the true limit only: unstable_dt grows
+        assert limit == old[0] and bound > 1.5 * old[1]
+        with pytest.warns(RuntimeWarning, match="explicit_dt_limit"):
+            b.step(0.5 * (old[1] + min(bound, 2 * old[1])), "symplectic")  # refused before
+        return
+    assert limit < 0.3 * old[0] and bound < 0.3 * old[1]
+    dt = 0.5 * (limit + bound)
+    assert dt < old[0]  # silent with the parameters the body was built with
+    with pytest.warns(RuntimeWarning, match=re.escape(f"explicit_dt_limit = {limit:.4g} s")):
+        b.step(dt, "symplectic")
+    x0 = b.x.copy()
+    with pytest.raises(ValueError, match=re.escape(f"{bound:.4g} s (unstable_dt)")):
+        b.step(1.01 * bound, "symplectic")
+    assert np.array_equal(b.x, x0)
 
 
 def test_fem_huge_modulus_one_step_is_refused():
@@ -350,7 +418,7 @@ def test_mpm_beyond_cfl_limit_warns(d):
             sim.step(dt)
         except km.DivergenceError:
             pass
-    assert [w.category for w in caught] == [RuntimeWarning]
+    assert [w.category for w in caught] == [RuntimeWarning] and caught[0].filename == __file__
     assert number_in(str(caught[0].message), dt)
 
 

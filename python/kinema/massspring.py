@@ -52,7 +52,7 @@ import numpy as np
 from kinema import _core
 from kinema._checks import (
     as_float_array, choice, finite_result, gravity_vector, indices, positive_int, real, simulation_object,
-    spacing)
+    spacing, user_stacklevel)
 from kinema._state import assign
 from kinema.errors import DivergenceError
 
@@ -206,7 +206,7 @@ class System:
         warnings.warn(f"dt: {dt:.4g} s exceeds explicit_dt_limit = {limit:.4g} s (Gershgorin's conservative "
                       f"bound on the {name} step's stability limit, which lies between it and "
                       f"{bound:.4g} s); the run may diverge: reduce dt or use integrator='implicit'",
-                      RuntimeWarning, stacklevel=4)
+                      RuntimeWarning, stacklevel=user_stacklevel())
 
     def state(self) -> dict:
         """Copies of everything that evolves: ``x``, ``v`` (n, d), ``time`` [s], ``step``, the
@@ -249,10 +249,14 @@ class System:
         return contact.attach(self).add_collider(shape, **options)
 
     def _step(self, dt, control, *, integrator="implicit", beta=1.0, linear_solver="cholmod",
-              cg_tol=1e-8, steps=1):
-        self._check_explicit_dt(real(dt, "dt"), integrator)
+              cg_tol=1e-8, steps=1, check=True):
+        """The steps of ``step``; ``check=False``: without the explicit limit's check (made once
+        per call by the caller: km.contact's projected steps)."""
         if self.contact is not None and self.contact.colliders and control is None:
+            # km.contact checks the explicit limit once for the call
             return self.contact.step(dt, integrator, positive_int(steps, "steps"), beta=beta)
+        if check:
+            self._check_explicit_dt(real(dt, "dt"), integrator)
         self._configure(integrator, beta, linear_solver, cg_tol)
         dt = real(dt, "dt")
         try:

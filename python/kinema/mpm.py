@@ -42,7 +42,7 @@ import numpy as np
 from kinema import _core
 from kinema._checks import (
     as_float_array, choice, finite, finite_result, grid_shape, integer, non_negative, positive,
-    simulation_object)
+    simulation_object, user_stacklevel)
 
 __all__ = ["Simulation", "Config", "StepStats", "block", "sphere", "MATERIALS", "BOUNDARIES", "MU_I_GLASS_BEADS"]
 
@@ -293,7 +293,7 @@ class Simulation:
         if 0 < limit < dt:  # 0 or NaN: a non-finite value written through a view, the step names it
             warnings.warn(f"dt: {dt:.4g} s exceeds cfl_dt() = {limit:.4g} s (h / (v_max + c), CFL number 1, "
                           f"the explicit MPM step's estimated stability limit; stable_dt() = "
-                          f"{self.stable_dt():.4g} s): the run may diverge", RuntimeWarning, stacklevel=3)
+                          f"{self.stable_dt():.4g} s): the run may diverge", RuntimeWarning, stacklevel=user_stacklevel())
         return dt
 
     def advance(self, duration, cfl=0.5) -> int:
@@ -305,7 +305,8 @@ class Simulation:
         cfl = positive(cfl, "cfl")
         if cfl > 1:
             warnings.warn(f"cfl: {cfl:.4g} > 1 lets advance's steps exceed cfl_dt() (CFL number 1), the explicit "
-                          "MPM step's estimated stability limit: the run may diverge", RuntimeWarning, stacklevel=2)
+                          "MPM step's estimated stability limit: the run may diverge", RuntimeWarning,
+                          stacklevel=user_stacklevel())
         steps, self.last_stats = self._sim.advance(non_negative(duration, "duration"), cfl)
         return steps
 
