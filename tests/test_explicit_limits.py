@@ -422,6 +422,25 @@ def test_mpm_beyond_cfl_limit_warns(d):
     assert number_in(str(caught[0].message), dt)
 
 
+def test_mpm_run_beyond_the_limit_warns_once_then_as_it_grows():
+    # A run at a dt just beyond cfl_dt() (Taichi's mpm128 step is at CFL 1.04 for this estimate)
+    # warns at its first step, then only when the CFL number has grown 10% since; a step within
+    # the limit ends the run of warnings. (A block at rest: cfl_dt() stays what it was.)
+    sim = mpm_block(2)
+    limit = sim.cfl_dt()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for _ in range(10):
+            sim.step(1.05 * limit)
+        assert len(caught) == 1 and "CFL number 1.05" in str(caught[0].message)
+        sim.step(1.2 * limit)  # 14% further: warned
+        sim.step(1.25 * limit)  # 4% further: not
+        assert [str(w.message).count("CFL number 1.2,") for w in caught] == [0, 1]
+        sim.step(0.9 * limit)  # within: the run ends
+        sim.step(1.05 * limit)
+    assert len(caught) == 3 and sim.cfl_dt() == limit
+
+
 def test_mpm_cfl_limit_is_near_the_observed_blow_up():
     # The estimate is not loose: moving water stays finite at CFL 0.9 and blows up at CFL 2
     # (measured: from CFL 1.2 on), the step's own DivergenceError reporting it.
