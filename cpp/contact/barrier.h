@@ -253,6 +253,7 @@ inline void tridiagonalize(Eigen::Matrix<Scalar, N, N> A, Tridiagonal<N>& t) {
     t.reflect[k] = tail > 0;
     if (!t.reflect[k]) {
       t.e[k] = x0;
+      std::fill(t.v[k], t.v[k] + N, Scalar(0));  // never read (reflect[k]); GCC cannot tell
       continue;
     }
     // v = x - alpha e_1 (alpha = -sign(x0) |x|, no cancellation), normalised: (I - 2 v v^T) x = alpha e_1.
