@@ -112,6 +112,12 @@ void collect_in_order(Index n, std::vector<T>& out, Body&& body) {
 
 }  // namespace
 
+// Leaves of up to 12 primitives (the Bvh's default, 4, suits ray walks): the pair descents
+// test fewer node pairs and a leaf pair's primitives in contiguous memory; measured on the
+// kernel bench's pile and cloth frames, BroadPhase::find took 15-20 % less time than with 4
+// (8: 12-15 %, 16: 10-15 %).
+constexpr int kLeafSize = 12;
+
 void BroadPhase::update(Tree& tree, int k, const Scalar* x, const Scalar* dx, Scalar r) {
   const Index count = static_cast<Index>(tree.ids.size());
   if (tree.still) {
@@ -144,13 +150,13 @@ void BroadPhase::update(Tree& tree, int k, const Scalar* x, const Scalar* dx, Sc
   else dx ? boxes(std::integral_constant<int, 3>{}, Yes{}) : boxes(std::integral_constant<int, 3>{}, No{});
   if (count == 0) return;
   if (tree.bvh.nodes().empty()) {
-    tree.bvh = geometry::Bvh(tree.lo, tree.hi);
+    tree.bvh = geometry::Bvh(tree.lo, tree.hi, kLeafSize);
     tree.built_ratio = tree.bvh.area_ratio();
     return;
   }
   tree.bvh.refit(tree.lo, tree.hi);
   if (tree.bvh.area_ratio() > 2 * tree.built_ratio) {
-    tree.bvh = geometry::Bvh(tree.lo, tree.hi);
+    tree.bvh = geometry::Bvh(tree.lo, tree.hi, kLeafSize);
     tree.built_ratio = tree.bvh.area_ratio();
   }
 }
