@@ -67,10 +67,6 @@ geometry::Bvh primitive_bvh(const std::vector<Index>& prims, int k, const Scalar
   return geometry::Bvh(lo, hi);
 }
 
-void point_box(const Scalar* x, const Scalar* dx, Index v, Scalar r, Scalar lo[3], Scalar hi[3]) {
-  primitive_box(&v, 1, x, dx, r, lo, hi);
-}
-
 void edge_box(const Scalar* x, const Scalar* dx, Index i, Index j, Scalar r, Scalar lo[3], Scalar hi[3]) {
   const Index e[2] = {i, j};
   primitive_box(e, 2, x, dx, r, lo, hi);
