@@ -158,6 +158,17 @@ def test_massspring_huge_stiffness_one_step_is_refused():
     assert abs(sys.x[1, 0] - 1.0) < 1e-12
 
 
+@pytest.mark.parametrize("dt", [-1e308, 1e308, -0.01])
+def test_massspring_extreme_implicit_dt_is_refused_naming_dt(dt):
+    # 1e308 ** 2 raised OverflowError from the error path that explains a lost mass term, and a
+    # negative dt of 1e308 was blamed on the stiffness: both are refused naming dt now.
+    sys = oscillator_chain()
+    with pytest.raises(ValueError, match=r"^(stiffness, )?dt: ") as info:
+        sys.step(dt, "implicit")
+    assert ("> 0" in str(info.value)) == (dt < 0)
+    assert sys.time == 0
+
+
 def test_massspring_implicit_and_springless_steps_are_unchecked():
     sys = oscillator_chain()
     sys.step(100 * sys.unstable_dt, "implicit")

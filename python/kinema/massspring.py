@@ -51,8 +51,8 @@ import numpy as np
 
 from kinema import _core
 from kinema._checks import (
-    as_float_array, choice, finite_result, gravity_vector, indices, positive_int, real, simulation_object,
-    spacing, user_stacklevel)
+    as_float_array, choice, finite_result, gravity_vector, indices, positive, positive_int, real,
+    simulation_object, spacing, user_stacklevel)
 from kinema._state import assign
 from kinema.errors import DivergenceError
 
@@ -255,10 +255,10 @@ class System:
         if self.contact is not None and self.contact.colliders and control is None:
             # km.contact checks the explicit limit once for the call
             return self.contact.step(dt, integrator, positive_int(steps, "steps"), beta=beta)
+        dt = positive(dt, "dt")  # before the checks: -1e308 is a bad dt, not a lost mass term
         if check:
-            self._check_explicit_dt(real(dt, "dt"), integrator)
+            self._check_explicit_dt(dt, integrator)
         self._configure(integrator, beta, linear_solver, cg_tol)
-        dt = real(dt, "dt")
         try:
             return self._core.step(dt, positive_int(steps, "steps"), control)
         except (ValueError, DivergenceError) as exc:
@@ -273,7 +273,7 @@ class System:
                                      "view or left by a diverged run") from None
             if isinstance(exc, DivergenceError):
                 raise
-            ratio = dt**2 * self._core.gershgorin_omega2
+            ratio = dt * dt * self._core.gershgorin_omega2  # inf, not OverflowError, past 1e154
             if _implicit(self._core.config) and ratio > 1 / np.finfo(float).eps:
                 raise ValueError(f"stiffness, dt: dt^2 K / M reaches {ratio:.3g} (Gershgorin), beyond the "
                                  "4.5e15 float64 resolves: the mass term is lost to rounding; reduce dt or "

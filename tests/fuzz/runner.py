@@ -7,6 +7,9 @@ nonfinite (returned a NaN or Inf without an error), wrong (a scenario's own chec
 answer failed), crash (the process died: signal or abort),
 hang (no answer to the SIGINT sent at the case's interrupt time or at the time limit),
 invalid_case (the case's own code failed before it reached kinema: a defect of the case).
+An explicit step's stability warning (a RuntimeWarning that names the argument and the limit it
+passes, e.g. "dt: ... exceeds cfl_dt()") is kinema saying so, not a failure: it is recorded in
+the result's "warned" and the case runs on, judged by what it then returns or raises.
 
 The parent imports kinema once and forks a child per case; it never runs kinema code itself, so
 the children inherit no OpenMP thread pool. Usage:
@@ -60,6 +63,12 @@ def _run_child(case, fd):
     # what kinema returns from such input is judged by its result
     warnings.filterwarnings("ignore", category=RuntimeWarning, message="(overflow|invalid value)")
     result = {"outcome": None, "type": None, "message": None}
+    stability = r"\w+: .*(stability limit|explicit_dt_limit|cfl_dt\(\))"
+    warnings.filterwarnings("always", category=RuntimeWarning, message=stability)
+
+    def record(message, category, filename, lineno, file=None, line=None):
+        result.setdefault("warned", []).append(str(message)[:200])
+    warnings.showwarning = record
     try:
         env = {}
         exec(case["setup"], env)
