@@ -43,6 +43,7 @@ class SolverD final : public Solver::Impl {
 
   SolverD(const Model& model, const Config& config)
       : Impl(model, config), W_(model.h), c_(model.speed_of_sound), rows_(RowSums<D>::choose(use_avx2())) {
+    values_avx2_ = use_avx2() && cpu_has_avx2();
     for (int a = 0; a < D; ++a) g_[a] = config.gravity[a];
     const bool coarse = config.coarse_correction > 0 || (config.coarse_correction < 0 && config.tol > Config::kCoarseAutoTol);
     if (coarse && g_.norm() > 0) g_.cwiseAbs().maxCoeff(&coarse_axis_);
@@ -540,11 +541,16 @@ class SolverD final : public Solver::Impl {
   const NeighborLists& fluid() const { return lists_->skin > 0 ? fluid_exact_ : lists_->fluid; }
   const NeighborLists& boundary() const { return lists_->skin > 0 ? boundary_exact_ : lists_->boundary; }
 
-  // Calls keep(j, x_i - x_j, |x_i - x_j|) for the entries j of row i of the Verlet list `wide`
-  // (listed points xs) within h, in list order. The test is done branch-free a chunk of entries
-  // at a time (about 40% of a Verlet list's entries fail it, at random).
-  template <class Keep>
-  void within_support(const NeighborLists& wide, const Scalar* xs, const Vec& xi, Index i, Keep&& keep) const {
+  // Calls keep(k, j, x_i - x_j, W_ij, dW/dr / r) for the entries k (list[k] = j) of row i of
+  // the list `wide` (listed points xs), in list order: those within h if Filter (about 40% of a
+  // Verlet list's entries fail the test, at random), else all; then emit(j, value) with the
+  // value each keep returned. A chunk of entries at a time: the distances and the test
+  // branch-free, then the kernel values of the chunk's entries kept at once (kernel_values: four
+  // wide with AVX2; the square root and division per entry were the kernel pass's costliest
+  // instructions as scalars), then keep over the chunk, then emit (a caller's sums in keep stay
+  // in registers: with the list's stores in the same loop they went through memory).
+  template <bool Filter, class Keep, class Emit>
+  void row_entries(const NeighborLists& wide, const Scalar* xs, const Vec& xi, Index i, Keep&& keep, Emit&& emit) const {
     constexpr Index kChunk = 64;
     const Scalar h2 = model_.h * model_.h;
     const std::int32_t* list = wide.list.data();
@@ -552,20 +558,31 @@ class SolverD final : public Solver::Impl {
     for (Index k0 = wide.start[i]; k0 < end; k0 += kChunk) {
       const Index k1 = std::min(end, k0 + kChunk);
       std::int32_t kept[kChunk];
-      Scalar kept_r2[kChunk];
+      Scalar r2[kChunk], r[kChunk], w[kChunk], dw[kChunk];
       int count = 0;
       for (Index k = k0; k < k1; ++k) {
         const std::int32_t j = list[k];
-        const Scalar r2 = (xi - CMap(xs + Index{j} * D)).squaredNorm();
-        kept[count] = j;
-        kept_r2[count] = r2;
-        count += r2 < h2;
+        const Scalar d2 = (xi - CMap(xs + Index{j} * D)).squaredNorm();
+        kept[count] = static_cast<std::int32_t>(k - k0);
+        r2[count] = d2;
+        count += Filter ? d2 < h2 : 1;
       }
+      kernel_values(r2, count, r, w, dw);
       for (int e = 0; e < count; ++e) {
-        const Index j = kept[e];
-        keep(j, Vec(xi - CMap(xs + j * D)), std::sqrt(kept_r2[e]));
+        const Index k = k0 + kept[e], j = list[k];
+        r[e] = keep(k, j, Vec(xi - CMap(xs + j * D)), w[e], dw[e]);  // (r[] reused for the values)
       }
+      for (int e = 0; e < count; ++e) emit(list[k0 + kept[e]], r[e]);
     }
+  }
+
+  // r = sqrt(r2), W(r) and dW/dr / r of count distances (CubicSpline::values, or its AVX2
+  // version where the CPU has it: the same bits).
+  void kernel_values(const Scalar* r2, int count, Scalar* r, Scalar* w, Scalar* dw) const {
+#if KINEMA_HAVE_AVX2_CLONES
+    if (values_avx2_) return kernel_values_avx2<D>(W_, r2, count, r, w, dw);
+#endif
+    W_.values(r2, count, r, w, dw);
   }
 
   // One pass over the Verlet lists at the step's positions that keeps their entries within h
@@ -580,8 +597,8 @@ class SolverD final : public Solver::Impl {
   // the exact Jacobi diagonal, with B_i . G_i taken as >= 0 (a smaller step where it is
   // negative, at a wall beside a free surface); zero without neighbours.
   // For every particle i (at x): row(i, x_i, entries), where entries(entry) calls
-  // entry(j, x_i - x_j, |x_i - x_j|) for each neighbour j within h (listed points xs) in list
-  // order; with the dW/dr / r it returns, grad_i W_ij = (dW/dr / r)(x_i - x_j) goes into
+  // entry(j, x_i - x_j, W_ij, dW/dr / r) for each neighbour j within h (listed points xs) in
+  // list order (row_entries); with the dW/dr / r it returns, grad_i W_ij = (dW/dr / r)(x_i - x_j) goes into
   // grads (D floats per entry, parallel to the step's list, and one float of padding that the
   // row sums of kernels.h read; nothing stored if grads is null). The later passes then stream
   // the gradients instead of gathering x_j: 12 bytes per entry, and single precision perturbs a
@@ -598,7 +615,9 @@ class SolverD final : public Solver::Impl {
       exact.fill_with_values(n, kept_dw, [&](Index i, auto&& push) {
         const Vec xi = CMap(x + i * D);
         row(i, xi, [&](auto&& entry) {
-          within_support(wide, xs, xi, i, [&](Index j, const Vec& xij, Scalar r) { push(j, entry(j, xij, r)); });
+          row_entries<true>(
+              wide, xs, xi, i, [&](Index, Index j, const Vec& xij, Scalar w, Scalar dw) { return entry(j, xij, w, dw); },
+              push);
         });
       });
       if (!grads) return;
@@ -613,11 +632,14 @@ class SolverD final : public Solver::Impl {
     parallel_for(n, [&](Index i) {
       const Vec xi = CMap(x + i * D);
       row(i, xi, [&](auto&& entry) {
-        for (Index k = wide.start[i]; k < wide.start[i + 1]; ++k) {
-          const Index j = wide.list[k];
-          const Vec xij = xi - CMap(xs + j * D);
-          store(k, entry(j, xij, std::sqrt(xij.squaredNorm())), xij);
-        }
+        row_entries<false>(
+            wide, xs, xi, i,
+            [&](Index k, Index j, const Vec& xij, Scalar w, Scalar dw) {
+              const Scalar value = entry(j, xij, w, dw);
+              store(k, value, xij);
+              return value;
+            },
+            [](Index, Scalar) {});
       });
     });
   }
@@ -640,9 +662,8 @@ class SolverD final : public Solver::Impl {
       Scalar rho = m * W_.w0();
       Vec gsum = Vec::Zero();
       Scalar gsq = 0;
-      entries([&](Index, const Vec& xij, Scalar r) {
-        const Scalar dw = W_.grad_factor(r);
-        rho += m * W_.w(r);
+      entries([&](Index, const Vec& xij, Scalar w, Scalar dw) {
+        rho += m * w;
         if (factors) {
           const Vec gw = m * stored_gradient(dw, xij).template cast<Scalar>();
           gsum += gw;
@@ -664,9 +685,8 @@ class SolverD final : public Solver::Impl {
     kernel_rows(lists_->boundary, boundary_exact_, boundary_dw_, nullptr, xb, x, s.n, [&](Index i, const Vec&, auto&& entries) {
       Scalar rho = density[i];
       Vec bsum = Vec::Zero();
-      entries([&](Index b, const Vec& xib, Scalar r) {
-        const Scalar dw = W_.grad_factor(r);
-        rho += psi[b] * W_.w(r);
+      entries([&](Index b, const Vec& xib, Scalar w, Scalar dw) {
+        rho += psi[b] * w;
         bsum += psi[b] * (dw * xib);
         return dw;
       });
@@ -961,6 +981,7 @@ class SolverD final : public Solver::Impl {
   const VerletLists* lists_ = nullptr;          // the step's Verlet lists (the state's)
   NeighborLists fluid_exact_, boundary_exact_;  // their entries within h (kernel_pass; with a skin)
   RowSums<D> rows_;                             // the light passes' row sums (AVX2 or baseline)
+  bool values_avx2_ = false;                    // kernel_values four wide (AVX2)
   bool rebuilt_ = false;                        // the step rebuilt the lists
   double search_seconds_ = 0, kernel_seconds_ = 0;  // the last neighborhoods() call's split
   const Scalar* forces_ = nullptr;              // the step's external forces (n, d) by particle id, or null
