@@ -449,12 +449,13 @@ class SolverD final : public Solver::Impl {
       });
       apply_kappa(s, dt);
       // The last of the minimum iterations from a residual already within tol: the solve stops
-      // after it whatever the residual it leaves, unless that rose above tol (an iteration from
-      // a converged state leaves it lower: its increments are the compressed particles' and
-      // the give-back of the expanded ones'), so the residual is not recomputed and `error`
-      // stays the one before it. At tol 1e-3 and 5e-4 this is the divergence solve's usual
-      // exit (its one minimum iteration from a warm start within tol): one light pass of the
-      // step's ten.
+      // after it without recomputing the residual (one light pass of the ten a step makes at
+      // tol 1e-3; the divergence solve's usual exit there, its one minimum iteration from a
+      // warm start within tol), and `error` stays the one before it. Presumed within tol: an
+      // iteration from a converged state lowers the compression almost always. Measured on
+      // the 150k dam break at tol 1e-3 / 5e-4 / 3e-4 / 1e-4 (bench/sph/sph_dfsph_iterations.py
+      // start), 1 of 19 such residuals ended above tol (5.06e-4 at tol 5e-4, from 4.98e-4),
+      // none in the columns at rest and dam breaks of tests/test_sph.py.
       if (!coarse && it + 1 == min_iter && error <= tol) {
         ++it;
         break;
