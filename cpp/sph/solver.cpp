@@ -141,6 +141,7 @@ class SolverD final : public Solver::Impl {
   // it is given, as SPlisHSPlasH's TimeStepDFSPH::step does).
   void step_dfsph(State& s, Scalar dt, StepStats& stats, Interrupt& interrupt) {
     const Index n = s.n;
+    pending_apply_ = false;
     // Neighbourhoods of the current positions (Verlet lists; Morton reordering every few steps),
     // the step's kernel gradients, densities and the factors alpha_i (eq. 11).
     neighborhoods(s, true, true, s.density.data());
@@ -390,16 +391,26 @@ class SolverD final : public Solver::Impl {
   template <class Residual>
   int projected_jacobi(State& s, Scalar dt, Scalar scale, std::vector<Scalar>& k, Scalar tol, int min_iter,
                        Residual&& residual, Scalar& error, Interrupt& interrupt, Scalar warm_scale,
-                       Scalar compression_weight, Scalar expansion_weight, bool two_level = false) {
+                       Scalar compression_weight, Scalar expansion_weight, bool two_level = false,
+                       bool defer_last = false) {
     const Index n = s.n;
     const Scalar w = s.last_dt > 0 ? config_.warm_start * warm_scale : 0;
-    if (w > 0) {
-      parallel_for(n, [&](Index i) { k[i] = kappa_[i] = warm_left_[i] = w * k[i]; });
+    // The increments a solve before this one left to apply (defer_last below) go with the warm
+    // start's: apply_kappa is linear in the stiffnesses, so one pass applies both.
+    const bool pending = pending_apply_;
+    pending_apply_ = false;
+    if (w > 0 || pending) {
+      parallel_for(n, [&](Index i) {
+        k[i] = warm_left_[i] = w * k[i];
+        kappa_[i] = pending ? k[i] + pending_[i] : k[i];
+      });
       apply_kappa(s, dt);
     } else {
+      sync_v4(s);  // (with a warm start apply_kappa does, and every iteration after)
+    }
+    if (!(w > 0)) {
       std::fill(k.begin(), k.end(), 0);
       std::fill(warm_left_.begin(), warm_left_.end(), 0);
-      sync_v4(s);  // (with a warm start apply_kappa does, and every iteration after)
     }
     error = residual();
     // The coarse correction runs when the warm start already ends within tol: that is where a
@@ -434,6 +445,9 @@ class SolverD final : public Solver::Impl {
     while ((error > tol || it < min_iter) && it < config_.max_iter) {
       interrupt.check();
       const bool coarse = two_level && it == 0;
+      // The last of the minimum iterations from a residual already within tol: the solve stops
+      // after it without recomputing the residual (see below).
+      const bool last = !coarse && it + 1 == min_iter && error <= tol;
       if (coarse) coarse_solve(s, scale);
       parallel_for(n, [&](Index i) {
         Scalar increment;
@@ -449,6 +463,15 @@ class SolverD final : public Solver::Impl {
         if (kappa_[i] < 0) warm_left_[i] += kappa_[i];
         k[i] += kappa_[i];
       });
+      // With defer_last that last iteration's velocity change is left to the next solve's warm
+      // start (pending_): one neighbour pass fewer (the divergence solve, where nothing in
+      // between reads the velocities but the gravity update, which commutes with it).
+      if (last && defer_last) {
+        pending_.assign(kappa_.begin(), kappa_.end());
+        pending_apply_ = true;
+        ++it;
+        break;
+      }
       apply_kappa(s, dt);
       // The last of the minimum iterations from a residual already within tol: the solve stops
       // after it without recomputing the residual (one light pass of the ten a step makes at
@@ -458,7 +481,7 @@ class SolverD final : public Solver::Impl {
       // the 150k dam break at tol 1e-3 / 5e-4 / 3e-4 / 1e-4 (bench/sph/sph_dfsph_iterations.py
       // start), 1 of 19 such residuals ended above tol (5.06e-4 at tol 5e-4, from 4.98e-4),
       // none in the columns at rest and dam breaks of tests/test_sph.py.
-      if (!coarse && it + 1 == min_iter && error <= tol) {
+      if (last) {
         ++it;
         break;
       }
@@ -519,7 +542,8 @@ class SolverD final : public Solver::Impl {
              config_.rho0;
     };
     const int it = projected_jacobi(s, dt, dt, s.kappa_divergence, config_.divergence_tol, 1, residual,
-                                    stats.divergence_error, interrupt, s.last_dt > 0 ? s.last_dt / dt : 1, 1, 0);
+                                    stats.divergence_error, interrupt, s.last_dt > 0 ? s.last_dt / dt : 1, 1, 0, false,
+                                    config_.viscosity == 0);
     return it;
   }
 
@@ -1056,6 +1080,8 @@ class SolverD final : public Solver::Impl {
   std::vector<Scalar> accel_;      // (n, d) accelerations
   std::vector<Scalar> aux_;        // DFSPH: predicted densities or density rates; WCSPH: p_i / rho_i^2
   std::vector<Scalar> prev_;       // DFSPH: the last iteration's increments (momentum)
+  std::vector<Scalar> pending_;    // DFSPH: increments the divergence solve left to apply (defer_last)
+  bool pending_apply_ = false;
   std::vector<Scalar> v4_;         // DFSPH with rows_.dot4: the velocities padded to (n, 4)
   std::vector<Scalar> warm_left_;  // DFSPH: warm-start stiffness a solve may still give back
   std::vector<Scalar> kappa_;      // DFSPH: increment of kappa_i / rho_i in the current iteration
