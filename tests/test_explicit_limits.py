@@ -96,7 +96,7 @@ def test_massspring_symplectic_stable_below_limit_unstable_above_bound(case, dam
     for h in np.array([1 + 1e-6, 1.1, 2]) * sys.unstable_dt:
         assert spectral_radius(h, K, C, md) > 1 + 1e-9, h / sys.unstable_dt
     if damping:
-        assert sys.explicit_dt_limit < 2 / np.sqrt(4 / sys._core.explicit_dt_limit**2)  # lowered
+        assert sys.explicit_dt_limit < 2 / np.sqrt(sys._core.gershgorin_omega2)  # lowered
 
 
 def test_massspring_window_with_uniform_springs_is_the_vertex_degree():
@@ -131,6 +131,7 @@ def test_massspring_beyond_limit_warns_once_per_call(integrator):
         warnings.simplefilter("always")
         sys.step(dt, integrator, steps=3)
     assert [w.category for w in caught] == [RuntimeWarning]
+    assert caught[0].filename == __file__  # the caller's line, not kinema's
     message = str(caught[0].message)
     assert message.startswith("dt:") and number_in(message, dt) and number_in(message, limit), message
 
@@ -163,6 +164,96 @@ def test_massspring_implicit_and_springless_steps_are_unchecked():
     free = km.massspring.System([[0.0, 0.0]], [], stiffness=1.0, gravity=(0, -9.81))
     assert free.explicit_dt_limit == free.unstable_dt == float("inf")
     free.step(10.0, "symplectic")
+
+
+def chain_with(**parameters):
+    """oscillator_chain's springs and masses (damped), with some parameters replaced."""
+    values = dict(stiffness=100.0, mass=0.5, damping=0.2) | parameters
+    x = np.c_[np.arange(4.0), np.zeros(4)]
+    return km.massspring.System(x, [[0, 1], [1, 2], [2, 3]], fixed=[0], **values)
+
+
+@pytest.mark.parametrize("name, value", [("stiffness", [400.0, 100.0, 900.0]), ("mass", 0.05),
+                                         ("damping", 8.0), ("rest_length", [1.0, 1.5, 0.5])])
+def test_massspring_limits_follow_a_parameter_set_after_construction(name, value):
+    # The limits are cached in C++: a parameter set afterwards (the path km.diff and km.torch set
+    # parameters through) must give the limits of a system built with it, and the checks must
+    # use them: a step that was silent now warns (stiffer, lighter or more damped springs) and
+    # one beyond the new unstable_dt is refused before stepping.
+    sys = chain_with()
+    old = sys.explicit_dt_limit, sys.unstable_dt
+    sys._diff_set(name, value)
+    fresh = chain_with(**{name: value})
+    assert (sys.explicit_dt_limit, sys.unstable_dt) == (fresh.explicit_dt_limit, fresh.unstable_dt)
+    if name == "rest_length":  # K and C at rest do not depend on L: the same limits
+        assert (sys.explicit_dt_limit, sys.unstable_dt) == old
+        return
+    limit, bound = sys.explicit_dt_limit, sys.unstable_dt
+    assert limit < 0.8 * old[0], (limit, old)
+    dt = 1.05 * limit
+    assert dt < min(bound, 0.9 * old[0])  # silent with the old limits, in the window of the new
+    chain_with().step(dt, "symplectic", steps=2)  # (a warning would fail the test)
+    with pytest.warns(RuntimeWarning, match=re.escape(f"explicit_dt_limit = {limit:.4g} s")):
+        sys.step(dt, "symplectic", steps=2)
+    if name == "damping":  # damping lowers the conservative limit only; the Rayleigh bound stays
+        assert bound == old[1]
+        return
+    assert bound < 0.9 * old[0]
+    x0, t0 = sys.x.copy(), sys.time
+    with pytest.raises(ValueError, match=re.escape(f"{bound:.4g} s (unstable_dt)")):
+        sys.step(0.5 * (bound + min(old[0], 1.1 * bound)), "explicit")
+    assert np.array_equal(sys.x, x0) and sys.time == t0
+
+
+def test_massspring_limits_follow_parameters_set_through_torch():
+    torch = pytest.importorskip("torch")
+    import kinema.torch
+
+    sys = chain_with()
+    old = sys.explicit_dt_limit
+    limit = chain_with(stiffness=[400.0] * 3).explicit_dt_limit
+    dt = 1.05 * limit
+    assert dt < 0.9 * old  # silent with the stiffness the system was built with
+    k = torch.full((3,), 400.0, dtype=torch.float64, requires_grad=True)
+    with pytest.warns(RuntimeWarning, match=re.escape(f"explicit_dt_limit = {limit:.4g} s")):
+        out = kinema.torch.rollout(sys, 2, dt, {"stiffness": k}, integrator="symplectic")
+    assert sys.explicit_dt_limit == limit
+    out["x"].sum().backward()
+    assert torch.isfinite(k.grad).all()
+
+
+def contact_bodies():
+    """A spring chain and a triangle body above a floor (km.contact's projected steps)."""
+    x = np.c_[np.arange(4.0), np.ones(4)]
+    chain = km.massspring.System(x, [[0, 1], [1, 2], [2, 3]], stiffness=100.0, mass=0.5, fixed=[0],
+                                 gravity=(0, -9.81))
+    V, T = km.fem.rectangle_mesh((0, 0.1), (1, 0.6), (4, 2))
+    body = km.fem.Body(V, T, youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0, gravity=(0, -9.81))
+    for sim in (chain, body):
+        sim.add_collider("plane", point=(0, 0), normal=(0, 1))
+    return chain, body
+
+
+@pytest.mark.parametrize("case", [0, 1])
+@pytest.mark.parametrize("through", ["step", "contact.step"])
+def test_explicit_limit_is_checked_once_per_call_with_colliders(case, through):
+    # A body with colliders takes km.contact's projected symplectic steps: the body's limits
+    # hold (projection adds no stiffness), checked once per call, the warning naming the
+    # caller's line; beyond unstable_dt the call is refused before any step.
+    sim = contact_bodies()[case]
+    step = sim.step if through == "step" else sim.contact.step
+    limit, bound = sim.explicit_dt_limit, sim.unstable_dt
+    step(0.9 * limit, "symplectic", steps=2)  # silent
+    dt = 0.5 * (limit + bound)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        step(dt, "symplectic", steps=3)
+    assert [w.category for w in caught] == [RuntimeWarning]
+    assert caught[0].filename == __file__ and number_in(str(caught[0].message), limit)
+    x0, t0 = sim.x.copy(), sim.time
+    with pytest.raises(ValueError, match=re.escape(f"{bound:.4g} s (unstable_dt)")):
+        step(1.01 * bound, "symplectic", steps=3)
+    assert np.array_equal(sim.x, x0) and sim.time == t0
 
 
 # ------------------------------------------------------------------ km.fem
@@ -233,13 +324,46 @@ def test_fem_below_limit_is_silent_and_beyond_warns_or_raises():
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         body.step(dt, "symplectic", steps=2)
-    assert [w.category for w in caught] == [RuntimeWarning]
+    assert [w.category for w in caught] == [RuntimeWarning] and caught[0].filename == __file__
     assert number_in(str(caught[0].message), dt) and number_in(str(caught[0].message), limit)
     x0 = body.x.copy()
     with pytest.raises(ValueError, match=re.escape(f"{bound:.4g}")):
         body.step(1.01 * bound, "symplectic")
     assert np.array_equal(body.x, x0)
     body.step(100 * bound)  # implicit: unchecked
+
+
+@pytest.mark.parametrize("name, scale", [("youngs_modulus", 16.0), ("density", 1 / 16), ("damping", None)])
+def test_fem_limits_follow_a_parameter_set_after_construction(name, scale):
+    # A parameter set after construction (km.diff's and km.torch's path) rebuilds the solver:
+    # the limits must be those of a body built with it (unstable_dt too, which is cached), and
+    # the checks must warn and refuse at them.
+    def body(**values):
+        V, T = km.fem.box_mesh((0, 0, 0), (1, 0.5, 0.5), (3, 2, 2))
+        values = dict(youngs_modulus=1e5, poisson_ratio=0.3, density=1000.0, damping=0.0) | values
+        return km.fem.Body(V, T, fixed=np.flatnonzero(V[:, 0] == 0), **values)
+
+    b = body()
+    old = b.explicit_dt_limit, b.unstable_dt  # (unstable_dt now cached)
+    value = 400.0 if scale is None else scale * b._diff_get(name)
+    b._diff_set(name, value)
+    fresh = body(**{name: value})
+    assert (b.explicit_dt_limit, b.unstable_dt) == (fresh.explicit_dt_limit, fresh.unstable_dt)
+    limit, bound = b.explicit_dt_limit, b.unstable_dt
+    if name == "damping":  # implicit mass damping raises the true limit only: unstable_dt grows
+        assert limit == old[0] and bound > 1.5 * old[1]
+        with pytest.warns(RuntimeWarning, match="explicit_dt_limit"):
+            b.step(0.5 * (old[1] + min(bound, 2 * old[1])), "symplectic")  # refused before
+        return
+    assert limit < 0.3 * old[0] and bound < 0.3 * old[1]
+    dt = 0.5 * (limit + bound)
+    assert dt < old[0]  # silent with the parameters the body was built with
+    with pytest.warns(RuntimeWarning, match=re.escape(f"explicit_dt_limit = {limit:.4g} s")):
+        b.step(dt, "symplectic")
+    x0 = b.x.copy()
+    with pytest.raises(ValueError, match=re.escape(f"{bound:.4g} s (unstable_dt)")):
+        b.step(1.01 * bound, "symplectic")
+    assert np.array_equal(b.x, x0)
 
 
 def test_fem_huge_modulus_one_step_is_refused():
@@ -294,11 +418,29 @@ def test_mpm_beyond_cfl_limit_warns(d):
             sim.step(dt)
         except km.DivergenceError:
             pass
-    assert [w.category for w in caught] == [RuntimeWarning]
+    assert [w.category for w in caught] == [RuntimeWarning] and caught[0].filename == __file__
     assert number_in(str(caught[0].message), dt)
 
 
-@pytest.mark.filterwarnings("ignore:dt.*cfl_dt:RuntimeWarning")  # CFL 2 is warned, as it should be
+def test_mpm_run_beyond_the_limit_warns_once_then_as_it_grows():
+    # A run at a dt just beyond cfl_dt() (Taichi's mpm128 step is at CFL 1.04 for this estimate)
+    # warns at its first step, then only when the CFL number has grown 10% since; a step within
+    # the limit ends the run of warnings. (A block at rest: cfl_dt() stays what it was.)
+    sim = mpm_block(2)
+    limit = sim.cfl_dt()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        for _ in range(10):
+            sim.step(1.05 * limit)
+        assert len(caught) == 1 and "CFL number 1.05" in str(caught[0].message)
+        sim.step(1.2 * limit)  # 14% further: warned
+        sim.step(1.25 * limit)  # 4% further: not
+        assert [str(w.message).count("CFL number 1.2,") for w in caught] == [0, 1]
+        sim.step(0.9 * limit)  # within: the run ends
+        sim.step(1.05 * limit)
+    assert len(caught) == 3 and sim.cfl_dt() == limit
+
+
 def test_mpm_cfl_limit_is_near_the_observed_blow_up():
     # The estimate is not loose: moving water stays finite at CFL 0.9 and blows up at CFL 2
     # (measured: from CFL 1.2 on), the step's own DivergenceError reporting it.
@@ -310,8 +452,74 @@ def test_mpm_cfl_limit_is_near_the_observed_blow_up():
             sim.step(cfl * sim.cfl_dt())
         return sim
     assert np.isfinite(run(0.9).kinetic_energy())
-    with pytest.raises(km.DivergenceError):
+    with pytest.warns(RuntimeWarning, match="cfl_dt"), pytest.raises(km.DivergenceError):
         run(2.0)
+
+
+def mpm_mixed(d):
+    """Water, snow thrown at a wall (it yields: its hardening raises its wave speed) and an
+    elastic disc with some particles' own moduli: every term of the signal speed."""
+    s = 1 / 96 if d == 2 else 1 / 40
+    sim = km.mpm.Simulation((32,) * d, 1 / 32, gravity=(0.0, -9.81, 0.0)[:d], boundary="separate")
+    sim.add_particles(km.mpm.block([0.1] * d, [0.3] * d, s), "water", density=1000.0, youngs_modulus=2e5)
+    sim.add_particles(km.mpm.sphere([0.82] + [0.5] * (d - 1), 0.1, s), "snow", density=400.0,
+                      velocity=[6.0, -1.0, 0.5][:d])
+    rows = sim.add_particles(km.mpm.sphere([0.45] * d, 0.08, s), "elastic", density=1000.0,
+                             velocity=[-2.0, 1.0, 0.0][:d])
+    sim.youngs_modulus[rows.start::5] *= 1.5  # (snow, 19.7 m/s unhardened, is the fastest wave)
+    return sim
+
+
+@pytest.mark.parametrize("d, simd", [(2, "default"), (2, "baseline"), (3, "default")])
+def test_mpm_cfl_dt_measured_by_the_step_is_the_full_pass_bit_for_bit(d, simd, monkeypatch):
+    # The check before each step reads what the last step measured (largest speed and snow
+    # hardening in G2P; the wave speeds of the moduli kept from one pass): it must be the pass
+    # over the particles a view forces, bit for bit, in 2D's AVX2 lanes and scalar code and 3D.
+    if simd == "baseline":
+        monkeypatch.setenv("KINEMA_SIMD", "baseline")
+    a, b = mpm_mixed(d), mpm_mixed(d)
+    for k in range(25):
+        # after the first step, the first limit asked for passes over the particles (and keeps
+        # the wave speeds); from the second on, what the step measured is read
+        assert a._sim.speed_measured == (k >= 2), k
+        dt = a.stable_dt(0.5)
+        b.x  # a view read: b's limits come from a pass over its particles
+        assert not b._sim.speed_measured
+        assert (a.cfl_dt(), dt) == (b.cfl_dt(), b.stable_dt(0.5)), k
+        a.step(dt)
+        b.step(dt)
+    snow = a.material == 1
+    assert a.Jp[snow].min() < 0.999, "the snow yielded: its hardening counts"
+
+
+def test_mpm_check_sees_what_is_written_after_a_step():
+    # After steps with the limit read from the last one, a modulus set through km.diff's path, a
+    # velocity written through a view taken after the step and one written through a view held
+    # across steps are each seen by the next step's check.
+    sim = mpm_block(2)
+    for _ in range(3):
+        sim.step(0.5 * sim.cfl_dt())
+    assert sim._sim.speed_measured
+    old = sim.cfl_dt()
+    sim._diff_set("youngs_modulus", 100 * sim.youngs_modulus)
+    assert not sim._sim.speed_measured
+    limit = sim.cfl_dt()
+    assert limit < 0.15 * old
+    with pytest.warns(RuntimeWarning, match=re.escape(f"cfl_dt() = {limit:.4g} s")):
+        sim.step(0.5 * old)
+    sim = mpm_block(3)
+    for _ in range(3):
+        sim.step(0.5 * sim.cfl_dt())
+    old = sim.cfl_dt()
+    sim.v[7] = (0.0, 0.0, 5 / 16 / (0.5 * old))  # 5 cells in the step of CFL 0.5
+    with pytest.warns(RuntimeWarning, match="cfl_dt"):
+        sim.step(0.5 * old)
+    held = sim.v
+    dt = 0.4 * sim.cfl_dt()
+    sim.step(dt)  # silent
+    held[3] = (0.0, 0.0, 5 / 16 / dt)
+    with pytest.warns(RuntimeWarning, match="cfl_dt"):
+        sim.step(dt)
 
 
 def test_mpm_advance_warns_for_cfl_above_one():

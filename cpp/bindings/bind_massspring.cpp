@@ -256,7 +256,11 @@ void bind_massspring(py::module_& m) {
                     [](System& s, Scalar t) { s.state.time = t; })
       .def_property("step_count", [](System& s) { return s.state.step; },
                     [](System& s, Index n) { s.state.step = n; })
-      .def_property_readonly("explicit_dt_limit", [](System& s) { return s.solver->explicit_dt_limit(); })
+      // The explicit steps' stability bounds (massspring::ExplicitLimits), cached in C++ until a
+      // parameter changes: each step's check reads them.
+      .def_property_readonly("explicit_dt_limit", [](System& s) { return s.solver->explicit_limits().dt_limit; })
+      .def_property_readonly("unstable_dt", [](System& s) { return s.solver->explicit_limits().unstable_dt; })
+      .def_property_readonly("gershgorin_omega2", [](System& s) { return s.solver->explicit_limits().omega2; })
       .def("state", [](System& s) { return to_dict(s.state, s.model.dim); })
       .def("set_state", [](System& s, const py::dict& state) {
         from_dict(state, s.state, s.model.vertex_count * s.model.dim, s.model.dim);

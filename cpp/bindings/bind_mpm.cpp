@@ -381,6 +381,8 @@ void bind_mpm(py::module_& m) {
       .def("stable_dt", [](const PySimulation& s, Scalar cfl) { return s.solver->stable_dt(*s.state, cfl); },
            py::arg("cfl"))
       .def("cfl_dt", [](const PySimulation& s) { return s.solver->cfl_dt(*s.state); })
+      .def_property_readonly("speed_measured", [](const PySimulation& s) { return s.solver->speed_measured(*s.state); },
+                             "whether cfl_dt and stable_dt read the last step's measurement (no pass over the particles)")
       .def("kinetic_energy", [](const PySimulation& s) { return s.solver->kinetic_energy(*s.state); })
       .def("momentum", [](const PySimulation& s) { return s.solver->momentum(*s.state); })
       .def("angular_momentum", [](const PySimulation& s) { return s.solver->angular_momentum(*s.state); })

@@ -182,6 +182,30 @@ inline Eigen::Matrix<Scalar, K - 1, K> translation_free_basis() {
 template <int K>
 inline Mat<3 * (K - 1)> restrict_translation_free(const Mat<12>& H, const Eigen::Matrix<Scalar, K - 1, K>& B) {
   constexpr int R = 3 * (K - 1);
+  if constexpr (K == 4) {
+    // B's rows are the Hadamard rows (1, 1, -1, -1) / 2, (1, -1, 1, -1) / 2, (1, -1, -1, 1) / 2:
+    // by butterflies, sums and differences of blocks (the same sums as below, fewer products).
+    (void)B;
+    auto rows = [](const Mat3& h0, const Mat3& h1, const Mat3& h2, const Mat3& h3, Mat3* out) {
+      const Mat3 s01 = h0 + h1, d01 = h0 - h1, s23 = h2 + h3, d23 = h2 - h3;
+      out[0] = 0.5 * (s01 - s23);
+      out[1] = 0.5 * (d01 + d23);
+      out[2] = 0.5 * (d01 - d23);
+    };
+    Mat3 T[3][4];  // T[b][c] = sum_a B(b, a) H(a, c)
+    for (int c = 0; c < 4; ++c) {
+      Mat3 out[3];
+      rows(H.block<3, 3>(0, 3 * c), H.block<3, 3>(3, 3 * c), H.block<3, 3>(6, 3 * c), H.block<3, 3>(9, 3 * c), out);
+      for (int b = 0; b < 3; ++b) T[b][c] = out[b];
+    }
+    Mat<R> Ar;
+    for (int b = 0; b < 3; ++b) {
+      Mat3 out[3];
+      rows(T[b][0], T[b][1], T[b][2], T[b][3], out);
+      for (int d = 0; d < 3; ++d) Ar.template block<3, 3>(3 * b, 3 * d) = out[d];
+    }
+    return Ar;
+  }
   Eigen::Matrix<Scalar, R, 3 * K> T;
   for (int b = 0; b < K - 1; ++b)
     for (int c = 0; c < K; ++c) {
@@ -253,6 +277,7 @@ inline void tridiagonalize(Eigen::Matrix<Scalar, N, N> A, Tridiagonal<N>& t) {
     t.reflect[k] = tail > 0;
     if (!t.reflect[k]) {
       t.e[k] = x0;
+      std::fill(t.v[k], t.v[k] + N, Scalar(0));  // never read (reflect[k]); GCC cannot tell
       continue;
     }
     // v = x - alpha e_1 (alpha = -sign(x0) |x|, no cancellation), normalised: (I - 2 v v^T) x = alpha e_1.
@@ -338,7 +363,7 @@ inline bool tridiagonal_eigenvalues(Scalar* d, Scalar* e) {
 // `tiny` (inverse iteration wants the near-singular solve: its growth is the point).
 template <int N>
 struct ShiftedTridiagonalLu {
-  Scalar u0[N], u1[N], u2[N], l[N];
+  Scalar u0[N], u1[N], u2[N], l[N], inv_u0[N];  // inv_u0: the pivots' reciprocals (no division in solve)
   bool swap[N];
 
   ShiftedTridiagonalLu(const Tridiagonal<N>& t, Scalar lambda, Scalar tiny) {
@@ -359,6 +384,7 @@ struct ShiftedTridiagonalLu {
       c = 0;
     }
     u0[N - 1] = a == 0 ? tiny : a;
+    for (int i = 0; i < N; ++i) inv_u0[i] = 1 / u0[i];
   }
 
   void solve(Scalar* x) const {
@@ -370,7 +396,7 @@ struct ShiftedTridiagonalLu {
       Scalar s = x[i];
       if (i + 1 < N) s -= u1[i] * x[i + 1];
       if (i + 2 < N) s -= u2[i] * x[i + 2];
-      x[i] = s / u0[i];
+      x[i] = s * inv_u0[i];
     }
   }
 };
@@ -386,7 +412,7 @@ inline bool negative_eigenpairs(const Eigen::Matrix<Scalar, N, N>& A, Scalar* la
   if (!(scale > 0)) return scale == 0;  // zero: nothing negative; NaN: refuse
   if (!std::isfinite(scale)) return false;
   Tridiagonal<N> t;
-  tridiagonalize<N>(A / scale, t);
+  tridiagonalize<N>(A * (1 / scale), t);
   Scalar d[N], e[N];
   for (int i = 0; i < N; ++i) d[i] = t.d[i], e[i] = t.e[i];
   if (!tridiagonal_eigenvalues<N>(d, e)) return false;
@@ -400,13 +426,14 @@ inline bool negative_eigenpairs(const Eigen::Matrix<Scalar, N, N>& A, Scalar* la
   if (count == 0) return true;
   std::sort(lambda, lambda + count);
   const Scalar tiny = eps * std::max(norm, Scalar(1e-300));
+  static constexpr Scalar start[7] = {1.0, 1.1, 1.2, 1.3, 1.4, 1.5, 1.6};  // 1 + 0.1 j
   for (int k = 0; k < count; ++k) {
     Scalar* x = z[k];
     // A start with no special symmetry, then inverse iterations (each orthogonalised against
     // the vectors already found for eigenvalues within 1e-3 |T|, a cluster) until x is an
     // eigenvector to working accuracy, |T x - lambda x| within rounding of |T| (two
     // iterations: lambda is exact to rounding); not within three, the caller falls back.
-    for (int i = 0; i < N; ++i) x[i] = 1 + Scalar(0.1) * ((5 * i + 3 * k) % 7);
+    for (int i = 0; i < N; ++i) x[i] = start[(5 * i + 3 * k) % 7];
     const ShiftedTridiagonalLu<N> lu(t, lambda[k], tiny);
     bool certified = false;
     for (int it = 0; it < 3 && !certified; ++it) {
@@ -480,6 +507,20 @@ inline void project_psd_translation_free(Mat<12>& H) {
     }
     H.template topLeftCorner<3 * K, 3 * K>().noalias() -= lambda[k] * w * w.transpose();
   }
+}
+
+// The same for a Hessian that is zero but on the vertices slot[0..K) of a larger stencil (an
+// edge pair whose distance reduced to a point-edge pair, its mollifier inactive): the
+// projection of a matrix that is zero outside a block is the projection of that block, so the
+// block is projected alone (a 6 x 6 eigenproblem instead of 9 x 9) and written back.
+template <int K>
+inline void project_psd_on_vertices(Mat<12>& H, const int* slot) {
+  Mat<12> B = Mat<12>::Zero();
+  for (int a = 0; a < K; ++a)
+    for (int b = 0; b < K; ++b) B.block<3, 3>(3 * a, 3 * b) = H.block<3, 3>(3 * slot[a], 3 * slot[b]);
+  project_psd_translation_free<K>(B);
+  for (int a = 0; a < K; ++a)
+    for (int b = 0; b < K; ++b) H.block<3, 3>(3 * slot[a], 3 * slot[b]) = B.block<3, 3>(3 * a, 3 * b);
 }
 
 }  // namespace kinema::contact

@@ -87,8 +87,10 @@ class BroadPhase {
 std::vector<Constraint> find_constraints(const Model& model, const Scalar* x, Scalar dhat2);
 std::vector<Constraint> find_constraints(const Model& model, BroadPhase& broad, const Scalar* x, Scalar dhat2);
 // The same from candidates whose boxes, grown by at least dhat, contain x (narrow phase only).
+// prefilter: first drop the pairs whose boxes at x, one grown by dhat, do not meet (false when
+// the candidates were found for exactly those boxes: every pair passes).
 std::vector<Constraint> find_constraints(const Model& model, const Candidates& candidates, const Scalar* x,
-                                         Scalar dhat2);
+                                         Scalar dhat2, bool prefilter = true);
 
 // Barrier terms of many constraints at once (in parallel, in the constraints' order): the sum of
 // the energies, and per constraint its gradient (g) and Hessian (H) over c.stencil() when the

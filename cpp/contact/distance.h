@@ -336,7 +336,14 @@ inline void pt_derivatives(const Vec3& p, const Vec3& t0, const Vec3& t1, const 
     if (H)
       for (int b = 0; b < 3; ++b) Hf.block<3, 3>(3 * a, 3 * b) = Hy.block<3, 3>(3 * from[a], 3 * from[b]);
   }
+#if defined(__GNUC__) && !defined(__clang__)
+#pragma GCC diagnostic push
+#pragma GCC diagnostic ignored "-Wmaybe-uninitialized"  // Hf is read only when H is given
+#endif
   detail::complete_translation_free<4>(gf, Hf, 1, g, H);
+#if defined(__GNUC__) && !defined(__clang__)
+#pragma GCC diagnostic pop
+#endif
 }
 
 inline void ee_derivatives(const Vec3& a0, const Vec3& a1, const Vec3& b0, const Vec3& b1, Vec<12>& g,

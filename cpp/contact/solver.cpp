@@ -194,7 +194,18 @@ void Solver::barrier_hessian(const Scalar* x, Projection projection, std::vector
   for (Index v = 0; v < n; ++v) {
     auto first = entries.begin() + start[static_cast<size_t>(v)], last = entries.begin() + start[static_cast<size_t>(v) + 1];
     if (first == last) continue;
-    std::stable_sort(first, last, [](const HessianEntry& p, const HessianEntry& q) { return p.col < q.col; });
+    // Stable sort by column: insertion sort for the usual rows of a few dozen entries
+    // (std::stable_sort allocates a buffer per call), std::stable_sort for long ones.
+    if (last - first > 64) {
+      std::stable_sort(first, last, [](const HessianEntry& p, const HessianEntry& q) { return p.col < q.col; });
+    } else {
+      for (auto it = first + 1; it < last; ++it) {
+        const HessianEntry h = *it;
+        auto hole = it;
+        for (; hole != first && h.col < (hole - 1)->col; --hole) *hole = *(hole - 1);
+        *hole = h;
+      }
+    }
     Index m = 1;
     for (auto it = first + 1; it != last; ++it) m += it->col != (it - 1)->col;
     blocks[static_cast<size_t>(v)] = m;

@@ -37,7 +37,8 @@ constexpr Scalar kTraversalCost = 0.125;
 
 }  // namespace
 
-Bvh::Bvh(const std::vector<Scalar>& lo, const std::vector<Scalar>& hi) {
+Bvh::Bvh(const std::vector<Scalar>& lo, const std::vector<Scalar>& hi, int max_leaf_size)
+    : max_leaf_size_(std::max(max_leaf_size, 1)) {
   const Index n = static_cast<Index>(lo.size() / 3);
   if (n == 0) return;
   if (n > (Index(1) << 29)) throw InvalidArgument("bvh: more than 2^29 primitives");
@@ -85,7 +86,7 @@ std::int32_t Bvh::build(Index begin, Index end, int depth, const std::vector<Sca
     return self;
   };
   const Index n = end - begin;
-  if (n <= kMaxLeafSize) return make_leaf();
+  if (n <= max_leaf_size_) return make_leaf();
 
   int axis = 0;
   for (int a = 1; a < 3; ++a)
@@ -138,7 +139,7 @@ std::int32_t Bvh::build(Index begin, Index end, int depth, const std::vector<Sca
     if (best < 0) {
       median = true;
     } else {
-      if (n <= kMaxLeafSize * 4 && best_cost >= static_cast<Scalar>(n)) return make_leaf();
+      if (n <= max_leaf_size_ * 4 && best_cost >= static_cast<Scalar>(n)) return make_leaf();
       auto split = std::partition(order_.begin() + begin, order_.begin() + end,
                                   [&](Index prim) { return bin_of(prim) < best; });
       mid = split - order_.begin();

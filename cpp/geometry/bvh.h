@@ -2,8 +2,8 @@
 // triangles, the contact solver's points, edges and faces), built top-down with the binned
 // surface area heuristic. Queries: a ray walk, near child first (rendering), all boxes
 // overlapping a given box, and simultaneous descents of two trees (or of one against itself)
-// for the overlapping primitive pairs (contact broad phase; the exact ones test the primitive
-// boxes the tree keeps in leaf order).
+// for exactly the overlapping primitive pairs (contact broad phase: the tree keeps the primitive
+// boxes in leaf order).
 //
 //   SAH cost of a split: C = C_trav + (A_L / A) N_L C_isect + (A_R / A) N_R C_isect
 // evaluated at the boundaries of 16 centroid bins along the widest centroid axis (Wald, "On fast
@@ -70,8 +70,10 @@ class Bvh {
   static constexpr int kStackSize = 128;
 
   Bvh() = default;
-  // lo, hi: 3n values, the bounds of primitive i at [3i, 3i + 3).
-  Bvh(const std::vector<Scalar>& lo, const std::vector<Scalar>& hi);
+  // lo, hi: 3n values, the bounds of primitive i at [3i, 3i + 3). max_leaf_size: a node of at
+  // most this many primitives is a leaf (the SAH may stop at up to 4x as many); pair descents
+  // (contact) run faster with larger leaves than ray walks do.
+  Bvh(const std::vector<Scalar>& lo, const std::vector<Scalar>& hi, int max_leaf_size = kMaxLeafSize);
 
   // Recomputes every node's box from new bounds of the same primitives, keeping the tree: O(n),
   // and every query stays exact (only its speed depends on how well the old grouping fits).
@@ -116,30 +118,20 @@ class Bvh {
     }
   }
 
-  // Calls `visit(i, j)` for every primitive i of a leaf of this tree and j of a leaf of `other`
-  // whose leaf boxes overlap (closed boxes): a superset of the overlapping primitive pairs, by
-  // one simultaneous descent of both trees (far fewer box tests than a query per primitive).
-  template <class Visit>
-  void query_pairs(const Bvh& other, Visit&& visit) const {
-    pair_descent<false>(other, 0, visit);
-  }
-  // The same of the tree against itself: `visit(i, j)` once for every unordered pair of
-  // different primitives in overlapping leaves (i and j in either order).
-  template <class Visit>
-  void query_self(Visit&& visit) const {
-    pair_descent<false>(*this, 1, visit);
-  }
-  // As query_pairs / query_self, but `visit(i, j)` only for the pairs whose own primitive boxes
-  // (the bounds last given to the constructor or to refit) overlap, closed boxes: the exact
-  // overlapping pairs. The tree keeps those bounds in leaf order, so a leaf pair is tested in
+  // Calls `visit(i, j)` for every primitive i of this tree and j of `other` whose own boxes (the
+  // bounds last given to the constructor or to refit) overlap, closed boxes: exactly the
+  // overlapping pairs, by one simultaneous descent of both trees (far fewer box tests than a
+  // query per primitive). The tree keeps those bounds in leaf order, so a leaf pair is tested in
   // contiguous memory, each primitive first against the other leaf's box.
   template <class Visit>
   void query_box_pairs(const Bvh& other, Visit&& visit) const {
-    pair_descent<true>(other, 0, visit);
+    pair_descent(other, 0, visit);
   }
+  // The same of the tree against itself: `visit(i, j)` once for every unordered pair of
+  // different primitives whose boxes overlap (i and j in either order).
   template <class Visit>
   void query_box_self(Visit&& visit) const {
-    pair_descent<true>(*this, 1, visit);
+    pair_descent(*this, 1, visit);
   }
 
   // Visits the leaves whose boxes the ray meets within (t_min, t_max), near first; `leaf(first,
@@ -187,20 +179,16 @@ class Bvh {
 #endif
   }
 
-  // The primitive pairs of leaves A (of this tree) and B (of `other`), j > i only when `upper`
-  // (a leaf against itself); with `exact`, only those whose primitive boxes overlap.
-  template <bool exact, class Visit>
+  // The primitive pairs of leaves A (of this tree) and B (of `other`) whose primitive boxes
+  // overlap, j > i only when `upper` (a leaf against itself).
+  template <class Visit>
   void leaf_pairs(const Bvh& other, const BvhNode& A, const BvhNode& B, bool upper, Visit& visit) const {
     for (std::int32_t i = 0; i < A.count; ++i) {
       const size_t a = static_cast<size_t>(A.first + i);
-      if constexpr (exact) {
-        if (!upper && !overlap6(&leaf_box_[6 * a], B.lo)) continue;
-      }
+      if (!upper && !overlap6(&leaf_box_[6 * a], B.lo)) continue;
       for (std::int32_t j = upper ? i + 1 : 0; j < B.count; ++j) {
         const size_t b = static_cast<size_t>(B.first + j);
-        if constexpr (exact) {
-          if (!overlap6(&leaf_box_[6 * a], &other.leaf_box_[6 * b])) continue;
-        }
+        if (!overlap6(&leaf_box_[6 * a], &other.leaf_box_[6 * b])) continue;
         visit(order_[a], other.order_[b]);
       }
     }
@@ -210,7 +198,7 @@ class Bvh {
   // pair of leaves once). The stack holds at most the two depths' sum per level of the self
   // descent: 4 * kStackSize covers the deepest trees the builder makes (bvh.cpp bounds the
   // depth by kMaxSahDepth plus the median splits of at most 2^29 primitives).
-  template <bool exact, class Visit>
+  template <class Visit>
   void pair_descent(const Bvh& other, int self, Visit& visit) const {
     if (nodes_.empty() || other.nodes_.empty()) return;
     std::array<std::int32_t, 2> stack[4 * kStackSize];
@@ -221,7 +209,7 @@ class Bvh {
       const BvhNode& A = nodes_[static_cast<size_t>(a)];
       if (self && a == b) {
         if (A.count > 0) {
-          leaf_pairs<exact>(*this, A, A, true, visit);
+          leaf_pairs(*this, A, A, true, visit);
         } else {
           stack[top++] = {a + 1, A.second};
           stack[top++] = {A.second, A.second};
@@ -232,7 +220,7 @@ class Bvh {
       const BvhNode& B = other.nodes_[static_cast<size_t>(b)];
       if (!overlap6(A.lo, B.lo)) continue;
       if (A.count > 0 && B.count > 0) {
-        leaf_pairs<exact>(other, A, B, false, visit);
+        leaf_pairs(other, A, B, false, visit);
       } else if (B.count > 0 || (A.count == 0 && extent(A) >= extent(B))) {
         stack[top++] = {A.second, b};
         stack[top++] = {a + 1, b};
@@ -252,6 +240,7 @@ class Bvh {
   std::vector<Index> order_;
   std::vector<Scalar> leaf_box_;  // primitive order_[j]'s bounds (lo[3], hi[3]) at 6 j (leaf order)
   Scalar area_sum_ = 0;                    // sum of the nodes' surface areas (area_ratio)
+  int max_leaf_size_ = kMaxLeafSize;
   int depth_ = 0;
 };
 

@@ -347,28 +347,62 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
   // Runge-Kutta stage) summed over the passes and fields of this call.
   Scalar* g_node[3] = {nullptr, nullptr, nullptr};
   for (int b = first; b < 3; ++b) g_node[b] = work.zeros(b, n);
+  // slots: (stage m, face 0 / cell 1, axis b) at 6 m + 3 o + b, the departure point in L at 18 + b
+  constexpr int kSlots = 21;
   struct RowData {
     std::unique_ptr<RowTrace> trace;
     std::vector<int> ints;      // per slot: i0, i1
     std::vector<Scalar> reals;  // per slot: w, d; then the nodes' coordinates
+    // per slot, where its i0, i1, w and d are read: its own arrays, or (i0, i1, w of the last
+    // Runge-Kutta stage) the brackets the trace computed for it (RowTrace::stage_brackets)
+    const int* i0[kSlots];
+    const int* i1[kSlots];
+    const Scalar* w[kSlots];
+    Scalar* d[kSlots];
+    bool traced = false;  // the last stage's slots read the trace's brackets
   };
-  // slots: (stage m, face 0 / cell 1, axis b) at 6 m + 3 o + b, the departure point in L at 18 + b
-  constexpr int kSlots = 21;
+  // The slots of the last stage the trace samples the velocity at (none at rk 1): the trace leaves
+  // their brackets behind, so only their d is computed.
+  const int last_stage = rk - 1;
+  auto own = [&](RowData& rd, int sl) {
+    rd.i0[sl] = rd.ints.data() + 2 * sl * nk, rd.i1[sl] = rd.i0[sl] + nk;
+    rd.w[sl] = rd.reals.data() + 2 * sl * nk, rd.d[sl] = rd.reals.data() + (2 * sl + 1) * nk;
+  };
+  // The last stage's slots read the trace's brackets (on) or their own arrays.
+  auto use_trace = [&](RowData& rd, bool on) {
+    if (rd.traced == on || last_stage < 1) return;
+    rd.traced = on;
+    for (int b = first; b < 3; ++b)
+      for (int o = 0; o < 2; ++o) {
+        const int sl = 6 * last_stage + 3 * o + b;
+        own(rd, sl);
+        if (on) rd.trace->stage_brackets(b, o == 1, rd.i0[sl], rd.i1[sl], rd.w[sl]);
+      }
+  };
+  auto fill = [&](RowData& rd, int sl, const Scalar* x, Scalar offset, Index nodes, Index period) {
+    int* i = rd.ints.data() + 2 * sl * nk;
+    Scalar* r = rd.reals.data() + 2 * sl * nk;
+    rd.trace->brackets(x, offset, nodes, period, i, i + nk, r, r + nk);
+  };
   auto make = [&] {
     RowData rd;
     if (rows) {
       rd.trace = std::make_unique<RowTrace>(u, L, rk, use_avx2());
       rd.ints.resize(static_cast<size_t>(2 * kSlots * nk));
       rd.reals.resize(static_cast<size_t>((2 * kSlots + 3) * nk));
+      for (int sl = 0; sl < kSlots; ++sl) own(rd, sl);
+      use_trace(rd, true);
       Scalar* x2 = rd.reals.data() + (2 * kSlots + 2) * nk;
       for (Index k = 0; k < nk; ++k) x2[k] = static_cast<Scalar>(k) + L.offset[2];
+      // stage 0 along the row (stage0()): the nodes' own brackets, the same for every row
+      const Index cells = u.layout[2].n[2] - 1, period = u.layout[2].period[2];
+      fill(rd, 2, x2, 0, cells + 1, period);
+      fill(rd, 5, x2, 0.5, cells, period);
     }
     return rd;
   };
   auto slot = [&](const RowData& rd, int sl, Index k) {
-    const int* i = rd.ints.data() + 2 * sl * nk;
-    const Scalar* r = rd.reals.data() + 2 * sl * nk;
-    return AxisWeight{i[k], i[nk + k], r[k], r[nk + k]};
+    return AxisWeight{rd.i0[sl][k], rd.i1[sl][k], rd.w[sl][k], rd.d[sl][k]};
   };
   // The back-trace over dt stored per node (advect_rows' trace; rows only): the slots in use, and
   // RowTrace's array of each.
@@ -383,11 +417,6 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
     for (int s = 0; s < n_used; ++s)
       if (used[s] >= 6 && used[s] < 9) stored[used[s]] = work.raw(kTrace + used[s], n);
     return stored;
-  };
-  auto fill = [&](RowData& rd, int sl, const Scalar* x, Scalar offset, Index nodes, Index period) {
-    int* i = rd.ints.data() + 2 * sl * nk;
-    Scalar* r = rd.reals.data() + 2 * sl * nk;
-    rd.trace->brackets(x, offset, nodes, period, i, i + nk, r, r + nk);
   };
   // One node of a pass: its terms at the departure point (stencil st), their scatter, and the
   // trace's adjoint (at(m): the brackets of stage m).
@@ -440,15 +469,18 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
       } else {
         rt.trace(i, j, step);
       }
-      Scalar* x = rd.reals.data() + 2 * kSlots * nk;  // the nodes' coordinates along axes 0, 1
-      std::fill(x, x + nk, static_cast<Scalar>(i) + L.offset[0]);
-      std::fill(x + nk, x + 2 * nk, static_cast<Scalar>(j) + L.offset[1]);
-      const Scalar* stage[3][3] = {{x, x + nk, x + 2 * nk}, {rt.y1[0], rt.y1[1], rt.y1[2]},
+      use_trace(rd, !load);  // a loaded trace left no brackets behind
+      const Scalar* stage[3][3] = {{nullptr, nullptr, nullptr}, {rt.y1[0], rt.y1[1], rt.y1[2]},
                                    {rt.y2[0], rt.y2[1], rt.y2[2]}};
       for (int b = first; b < 3; ++b) {
         fill(rd, 18 + b, rt.p[b], L.offset[b], L.n[b], L.period[b]);
         const Index cells = u.layout[b].n[b] - 1, period = u.layout[b].period[b];
         for (int m = 1; m < rk && !gp_keep[first]; ++m) {  // stage 0 (the node) is stage0()'s
+          if (m == last_stage && rd.traced) {
+            rt.inside(stage[m][b], 0, cells + 1, period, rd.d[6 * m + b]);
+            rt.inside(stage[m][b], 0.5, cells, period, rd.d[6 * m + 3 + b]);
+            continue;
+          }
           fill(rd, 6 * m + b, stage[m][b], 0, cells + 1, period);
           fill(rd, 6 * m + 3 + b, stage[m][b], 0.5, cells, period);
         }
@@ -486,20 +518,55 @@ void advect_adjoint_impl(AdvectionScheme scheme, const MacVelocity& u, const Fie
         }
         return;
       }
-      Scalar* x = rd.reals.data() + 2 * kSlots * nk;
-      std::fill(x, x + nk, static_cast<Scalar>(i) + L.offset[0]);
-      std::fill(x + nk, x + 2 * nk, static_cast<Scalar>(j) + L.offset[1]);
-      for (int b = first; b < 3; ++b) {
+      // the nodes' brackets: constant along the row on axes 0 and 1, the row's (make()) on axis 2
+      typename Tracer<ThreeD>::Brackets br;
+      for (int b = first; b < 2; ++b) {
+        const Scalar x = static_cast<Scalar>(b == 0 ? i : j) + L.offset[b];
         const Index cells = u.layout[b].n[b] - 1, period = u.layout[b].period[b];
-        fill(rd, b, x + b * nk, 0, cells + 1, period);
-        fill(rd, 3 + b, x + b * nk, 0.5, cells, period);
+        br.face[b] = axis_weight(x, cells + 1, period);
+        br.cell[b] = axis_weight(x - 0.5, cells, period);
       }
-      for (Index k = 0; k < nk; ++k) {
-        const Vec3 g = at_node(k);
-        if (g == Vec3{0, 0, 0}) continue;
-        typename Tracer<ThreeD>::Brackets br;
-        for (int b = first; b < 3; ++b) br.face[b] = slot(rd, b, k), br.cell[b] = slot(rd, 3 + b, k);
-        tr.velocity_adjoint(br, g, false);
+      if constexpr (ThreeD) {
+        // velocity_adjoint(moves = false), i.e. scatter_sparse per component, with the factors of
+        // axes 0 and 1 (constant along the row) formed once per row: the same products, the same
+        // order of writes into each g_u[a] (components write distinct arrays)
+        for (int a = 0; a < 3; ++a) {
+          const FieldLayout& F = u.layout[a];
+          const AxisWeight &x0 = a == 0 ? br.face[0] : br.cell[0], &x1 = a == 1 ? br.face[1] : br.cell[1];
+          Scalar f1s[4];
+          Index n1s[4];
+          int pairs = 0;
+          for (int a0 = 0; a0 < 2; ++a0) {
+            const Scalar f0 = a0 ? x0.w : 1 - x0.w;
+            if (f0 == 0) continue;
+            const Index n0 = (a0 ? x0.i1 : x0.i0) * F.stride(0);
+            for (int a1 = 0; a1 < 2; ++a1) {
+              const Scalar f1 = f0 * (a1 ? x1.w : 1 - x1.w);
+              if (f1 == 0) continue;
+              f1s[pairs] = f1, n1s[pairs++] = n0 + (a1 ? x1.i1 : x1.i0) * F.stride(1);
+            }
+          }
+          const Scalar* ga = g_node[a] + c0;
+          Scalar* target = g_u[a];
+          const int sl = a == 2 ? 2 : 5;
+          for (Index k = 0; k < nk; ++k) {
+            const Scalar g = ga[k];
+            if (g == 0) continue;
+            const AxisWeight x2 = slot(rd, sl, k);
+            for (int e = 0; e < pairs; ++e) {
+              const Scalar lo = f1s[e] * (1 - x2.w), hi = f1s[e] * x2.w;
+              if (lo != 0) target[n1s[e] + x2.i0] += g * lo;
+              if (hi != 0) target[n1s[e] + x2.i1] += g * hi;
+            }
+          }
+        }
+      } else {
+        for (Index k = 0; k < nk; ++k) {
+          const Vec3 g = at_node(k);
+          if (g == Vec3{0, 0, 0}) continue;
+          br.face[2] = slot(rd, 2, k), br.cell[2] = slot(rd, 5, k);
+          tr.velocity_adjoint(br, g, false);
+        }
       }
     });
   };

@@ -445,6 +445,24 @@ template <bool Periodic>
   }
 }
 template <bool Periodic>
+[[gnu::always_inline]] inline void inside_row(const Scalar* __restrict x, Index n, Scalar offset, int nodes,
+                                              Scalar* __restrict d) {
+  const Scalar hi = static_cast<Scalar>(nodes - 1);
+  for (Index k = 0; k < n; ++k) {
+    const Scalar s = x[k] - offset;
+    d[k] = Periodic || (s >= 0 && s <= hi) ? Scalar(1) : Scalar(0);
+  }
+}
+void inside_baseline(const Scalar* x, Index n, Scalar offset, int nodes, Scalar* d) {
+  inside_row<false>(x, n, offset, nodes, d);
+}
+#if KINEMA_HAVE_AVX2_CLONES
+KINEMA_TARGET_AVX2 void inside_avx2(const Scalar* x, Index n, Scalar offset, int nodes, Scalar* d) {
+  inside_row<false>(x, n, offset, nodes, d);
+}
+#endif
+
+template <bool Periodic>
 void brackets_baseline(const Scalar* x, Index n, Scalar offset, int nodes, int period, const RowAxis& out,
                        Scalar* d) {
   brackets_row<Periodic>(x, n, offset, nodes, period, out, d);
@@ -498,6 +516,24 @@ void RowTrace::brackets(const Scalar* x, Scalar offset, Index nodes, Index perio
 #endif
   if (period > 0) brackets_baseline<true>(x, n, offset, nn, pp, out, d);
   else brackets_baseline<false>(x, n, offset, nn, pp, out, d);
+}
+
+void RowTrace::stage_brackets(int b, bool cell, const int*& i0, const int*& i1, const Scalar*& w) const {
+  const RowAxis& a = cell ? impl_->scratch.cell[b] : impl_->scratch.face[b];
+  i0 = a.i0, i1 = a.i1, w = a.w;
+}
+
+void RowTrace::inside(const Scalar* x, Scalar offset, Index nodes, Index period, Scalar* d) const {
+  const Index n = L_.n[2];
+  if (period > 0) {
+    std::fill(d, d + n, Scalar(1));
+    return;
+  }
+  const int nn = static_cast<int>(nodes);
+#if KINEMA_HAVE_AVX2_CLONES
+  if (avx2_) return inside_avx2(x, n, offset, nn, d);
+#endif
+  inside_baseline(x, n, offset, nn, d);
 }
 
 bool rows_apply(const MacVelocity& u, const FieldLayout& L) {

@@ -53,6 +53,13 @@ class RowTrace {
   void brackets(const Scalar* x, Scalar offset, Index nodes, Index period, int* i0, int* i1, Scalar* w,
                 Scalar* d) const;
 
+  // The brackets of the last Runge-Kutta stage trace() sampled the velocity at (y1 at rk 2, y2 at
+  // rk 3; none at rk 1), for axis b's face (cell = false) or cell offset: the brackets() of that
+  // stage's coordinates for u's layouts, the same bits; valid until the next trace().
+  void stage_brackets(int b, bool cell, const int*& i0, const int*& i1, const Scalar*& w) const;
+  // brackets()' d alone.
+  void inside(const Scalar* x, Scalar offset, Index nodes, Index period, Scalar* d) const;
+
   Scalar* y1[3];
   Scalar* y2[3];
   Scalar* p[3];

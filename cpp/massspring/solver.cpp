@@ -169,15 +169,37 @@ void Solver::forces(const State& s, Scalar* f) {
   else forces_d<3>(s, nullptr, true, f);
 }
 
-Scalar Solver::explicit_dt_limit() const {
-  // omega^2 <= max_i sum_{springs at i} 2 k / m_i (Gershgorin on M^-1 K), dt < 2 / omega.
-  std::vector<Scalar> row(model_.vertex_count, 0);
-  for (Index s = 0; s < model_.spring_count; ++s)
-    for (int a = 0; a < 2; ++a) row[model_.springs[2 * s + a]] += 2 * model_.stiffness[s];
-  Scalar w2 = 0;
-  for (Index i = 0; i < model_.vertex_count; ++i)
-    if (!model_.fixed[i]) w2 = std::max(w2, row[i] / model_.mass[i]);
-  return w2 > 0 ? 2 / std::sqrt(w2) : std::numeric_limits<Scalar>::infinity();
+const ExplicitLimits& Solver::explicit_limits() const {
+  if (limits_known_) return limits_;
+  const Model& m = model_;
+  const Scalar inf = std::numeric_limits<Scalar>::infinity();
+  // Gershgorin's row sums of M^-1 K and M^-1 C at rest, each vertex's in spring order.
+  std::vector<Scalar> stiff(m.vertex_count, 0), damp(m.vertex_count, 0);
+  Scalar top = 0;  // the largest Rayleigh quotient of one spring's stretching mode
+  for (Index s = 0; s < m.spring_count; ++s) {
+    const Index i = m.springs[2 * s], j = m.springs[2 * s + 1];
+    const Scalar k = m.stiffness[s];
+    for (const Index a : {i, j}) {
+      stiff[a] += 2 * k;
+      damp[a] += 2 * m.damping[s];
+    }
+    const bool free_i = !m.fixed[i], free_j = !m.fixed[j];
+    if ((free_i || free_j) && k > 0)
+      top = std::max(top, (free_i && free_j ? 4 * k : k) / ((free_i ? m.mass[i] : 0) + (free_j ? m.mass[j] : 0)));
+  }
+  ExplicitLimits out;
+  for (Index i = 0; i < m.vertex_count; ++i)
+    if (!m.fixed[i]) {
+      out.omega2 = std::max(out.omega2, stiff[i] / m.mass[i]);
+      out.gamma = std::max(out.gamma, damp[i] / m.mass[i]);
+    }
+  // h^2 omega2 + 2 h gamma = 4 solved without cancellation.
+  const Scalar g = out.gamma;
+  out.dt_limit = g > 0 || out.omega2 > 0 ? 4 / (g + std::sqrt(g * g + 4 * out.omega2)) : inf;
+  out.unstable_dt = top > 0 ? 2 / std::sqrt(top) : inf;
+  limits_ = out;
+  limits_known_ = true;
+  return limits_;
 }
 
 void Solver::check_finite(const std::vector<Scalar>& a, const char* quantity, Index step) const {

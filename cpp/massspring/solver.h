@@ -83,6 +83,23 @@ struct State {
   FactorRecord factor;
 };
 
+// Stability of the explicit and symplectic steps, linearised at rest (the module docstring of
+// python/kinema/massspring.py): omega_max^2 of M^-1 K and the damping rate of M^-1 C bounded
+// above by Gershgorin's theorem (per free vertex, the sums of 2 k / m and 2 c / m over its
+// springs), and bounded below by a Rayleigh quotient.
+struct ExplicitLimits {
+  Scalar omega2 = 0;  // Gershgorin's bound of omega_max^2 [1/s^2]
+  Scalar gamma = 0;   // Gershgorin's bound of the damping rate [1/s]
+  // The root of h^2 omega2 + 2 h gamma = 4 (2 / sqrt(omega2) undamped; infinity when nothing is
+  // stiff or damped): every step below it is stable.
+  Scalar dt_limit = 0;
+  // 2 / omega with omega^2 the largest Rayleigh quotient of one spring's own stretching mode
+  // (4 k / (m_i + m_j), or k / m of the free end of a spring to a fixed vertex), a lower bound
+  // of omega_max^2 (infinity without a stiff spring to a free vertex): every step above it is
+  // unstable.
+  Scalar unstable_dt = 0;
+};
+
 struct StepStats : StepStatsBase {
   bool clamped = false;     // the exact Jacobian was not definite; the clamped one was used
   bool refactored = false;  // a CHOLMOD factorisation was computed in this step
@@ -129,10 +146,11 @@ class Solver {
   void run_adjoint(const std::vector<State>& states, Scalar dt, State& adjoint,
                    Params& adjoint_params, Scalar* adjoint_controls, Interrupt& interrupt);
 
-  // The model's parameters were changed in place: cached matrices are stale.
+  // The model's parameters were changed in place: cached matrices and limits are stale.
   void model_changed() {
     factor_known_ = false;
     passes_stale_ = true;
+    limits_known_ = false;
   }
 
   Scalar kinetic_energy(const State& s) const;
@@ -140,8 +158,10 @@ class Solver {
   Scalar gravity_energy(const State& s) const;
   // f(x, v): springs, damping and gravity, every vertex.
   void forces(const State& s, Scalar* f);
-  // Gershgorin bound of the explicit limit dt < 2 / omega_max.
-  Scalar explicit_dt_limit() const;
+  // The explicit and symplectic steps' stability bounds for the model's current parameters:
+  // one O(springs) pass, then cached until model_changed() (each step's check reads them).
+  const ExplicitLimits& explicit_limits() const;
+  Scalar explicit_dt_limit() const { return explicit_limits().dt_limit; }
 
  private:
   template <int D> void forces_d(const State& s, const Scalar* control, bool with_damping, Scalar* f);
@@ -187,6 +207,8 @@ class Solver {
   bool avx2_ = use_avx2();             // the 2D spring passes' AVX2 version (core/simd.h)
   FactorRecord factor_;       // what linear_'s lagged factor is (valid while factor_known_)
   bool factor_known_ = true;
+  mutable ExplicitLimits limits_;     // explicit_limits(), valid while limits_known_
+  mutable bool limits_known_ = false;
 };
 
 }  // namespace kinema::massspring

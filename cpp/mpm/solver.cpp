@@ -31,6 +31,13 @@ class Solver::Impl {
                             State& adjoint, ParamsAdjoint& adjoint_params, Scalar* adjoint_forces,
                             Interrupt& interrupt) = 0;
   virtual void sort_rows(State& state) = 0;
+  // v_max + c_max of `state` (Solver::signal_speed) from what the last step measured, when
+  // `state` is the unchanged State it left (State::binning) and c_max is known: true and
+  // `speed` set; false otherwise (the caller then passes over the particles).
+  virtual bool measured_speed(const State& state, Scalar& speed) const = 0;
+  // The materials' largest squared wave speeds found by such a pass over `state`, kept for
+  // later steps when `state` is the unchanged State the last step left.
+  virtual void remember_wave_speeds(const State& state, Scalar c2_elastic, Scalar c2_snow) = 0;
 };
 
 namespace {
@@ -120,6 +127,14 @@ Vec<D> apply_boundary_vjp(const Vec<D>& v, const Vec<D>& n, Boundary boundary, S
   return vt_bar - n * n.dot(vt_bar) + n * vn_bar;
 }
 
+// |v|^2 summed in the order Solver::signal_speed sums it (so that G2P's largest is its, bitwise).
+template <int D>
+Scalar squared_speed(const Vec<D>& v) {
+  Scalar v2 = 0;
+  for (int a = 0; a < D; ++a) v2 += v(a) * v(a);
+  return v2;
+}
+
 // Snow's hardening factor exp(hardening (1 - Jp)) (Stomakhin et al. 2013; model.h); exactly 1
 // without the exp() call for a particle that has not yielded yet (Jp = 1: exp(0) = 1).
 inline Scalar snow_hardening(const Material& m, Scalar Jp) { return Jp == 1 ? 1.0 : std::exp(m.hardening * (1 - Jp)); }
@@ -174,9 +189,12 @@ class SolverD final : public Solver::Impl {
     double mark[3] = {0, 0, 0};
     Scalar vmax2 = 0;
     bool finite = true;
+    snow_exponent_ = 0;
     // This solver's last step left this State unchanged (State::binning): its binning stays,
-    // updated for the particles that left their block.
-    const bool kept = mark_ != 0 && state.binning == mark_ && marked_ == &state && state.n == particle_count_;
+    // updated for the particles that left their block, and so do the wave speeds it knows.
+    const bool unchanged = unchanged_since_step(state);
+    const bool kept = unchanged && binning_kept_;
+    if (!unchanged) wave_speeds_known_ = false;
     mark_ = 0;  // until this step succeeds
     prepare_sort(state, kept);
     const bool parallel = state.n > kParallelParticles;
@@ -200,6 +218,8 @@ class SolverD final : public Solver::Impl {
     }
     if (bad_ >= 0) throw_bad_particle(state);
     stats.max_speed = check_g2p(state, dt, vmax2, finite);
+    measured_v2_ = vmax2;
+    measured_snow_exponent_ = snow_exponent_;
     stats.particle_blocks = particle_blocks_;
     stats.active_blocks = static_cast<Index>(slot_key_.size());
     stats.rebinned = rebinned_;
@@ -534,16 +554,41 @@ class SolverD final : public Solver::Impl {
     return box;
   }
 
-  // After a step that succeeded: the mark that lets the next step keep its binning (none when
-  // a particle ended where the next sort must look at it).
+  // After a step that succeeded: the mark that tells the next step (and signal_speed) that the
+  // State is still the one this step left. The binning is kept only when no particle ended
+  // where the next sort must look at it.
   void leave_mark(State& state) {
+    binning_kept_ = true;
     for (const Moves& m : moves_by_thread_)
-      if (m.outside) return;
+      binning_kept_ = binning_kept_ && !m.outside;
     // Unique to this solver and step (a State another solver marked must not match).
     mark_ = mix64(id_ + static_cast<std::uint64_t>(++marks_)) | 1u;
     state.binning = mark_;
     marked_ = &state;
   }
+  bool unchanged_since_step(const State& state) const {
+    return mark_ != 0 && state.binning == mark_ && marked_ == &state && state.n == particle_count_;
+  }
+
+  // The signal speed of the State the last step left, as Solver::signal_speed computes it (the
+  // same expressions on the same maxima: bitwise the same), with no pass over the particles:
+  // G2P measured the largest squared speed it stored and snow's largest hardening exponent
+  // hardening (1 - Jp) (exp is monotone: the largest hardening is exp of it), and the moduli
+  // and materials, which no step changes, gave the wave speeds once.
+  bool measured_speed(const State& state, Scalar& speed) const override {
+    if (!wave_speeds_known_ || !unchanged_since_step(state)) return false;
+    const Scalar harden = measured_snow_exponent_ > 0 ? std::exp(measured_snow_exponent_) : 1.0;
+    const Scalar c = std::max(std::sqrt(c2_elastic_), std::sqrt(c2_snow_) * std::sqrt(harden));
+    speed = std::sqrt(measured_v2_) + c;
+    return true;
+  }
+  void remember_wave_speeds(const State& state, Scalar c2_elastic, Scalar c2_snow) override {
+    if (!unchanged_since_step(state)) return;
+    c2_elastic_ = c2_elastic;
+    c2_snow_ = c2_snow;
+    wave_speeds_known_ = true;
+  }
+
   static std::uint64_t mix64(std::uint64_t z) {  // SplitMix64's finaliser
     z = (z ^ (z >> 30)) * 0xbf58476d1ce4e5b9ull;
     z = (z ^ (z >> 27)) * 0x94d049bb133111ebull;
@@ -1045,12 +1090,12 @@ class SolverD final : public Solver::Impl {
   // and an and: the same whatever the thread count).
   void g2p_phase(State& state, Scalar dt, Scalar& vmax2_all, bool& finite_all) {
     const Scalar h = model_.h;
-    Scalar vmax2 = 0;
+    Scalar vmax2 = 0, snow_exponent = 0;
     bool finite = true;
     Moves& moves = moves_by_thread_[static_cast<size_t>(omp_get_thread_num())];
 #if KINEMA_HAVE_AVX2_CLONES
     if constexpr (D == 2) {
-      if (avx2_) g2p_lanes_avx2(state, dt, vmax2, finite, moves);
+      if (avx2_) g2p_lanes_avx2(state, dt, vmax2, snow_exponent, finite, moves);
     }
     if (!(D == 2 && avx2_))
 #endif
@@ -1072,7 +1117,7 @@ class SolverD final : public Solver::Impl {
         Eigen::Map<Eigen::Matrix<Scalar, D, D, Eigen::RowMajor>> F(&state.F[pd * D]);
         Eigen::Map<Eigen::Matrix<Scalar, D, D, Eigen::RowMajor>>(&state.C[pd * D]) = C;
         Mat<D> Fn = (Mat<D>::Identity() + dt * C) * F;
-        plasticity(state, p, Fn, dt);
+        snow_exponent = std::max(snow_exponent, plasticity(state, p, Fn, dt));
         F = Fn;
         for (int a = 0; a < D; ++a) {
           Scalar& x = state.x[pd + a];
@@ -1083,12 +1128,13 @@ class SolverD final : public Solver::Impl {
         for (int a = 0; a < D; ++a) stays &= (state.x[pd + a] > box.lo[a]) & (state.x[pd + a] < box.hi[a]);
         if (!stays) track(s, o, q, p, state, moves);
         finite = finite && v.allFinite() && Fn.allFinite();
-        vmax2 = std::max(vmax2, v.squaredNorm());
+        vmax2 = std::max(vmax2, squared_speed(v));
       });
     });
 #pragma omp critical(mpm_g2p_reduce)
     {
       vmax2_all = std::max(vmax2_all, vmax2);
+      snow_exponent_ = std::max(snow_exponent_, snow_exponent);
       finite_all = finite_all && finite;
     }
   }
@@ -1188,7 +1234,9 @@ class SolverD final : public Solver::Impl {
     }
   }
 
-  void plasticity(State& state, Index p, Mat<D>& F, Scalar dt) const {
+  // Returns snow's hardening exponent hardening (1 - Jp) after the projection (0 for the other
+  // materials): what signal_speed's hardening is the exp of.
+  Scalar plasticity(State& state, Index p, Mat<D>& F, Scalar dt) const {
     const Material& m = model_.materials[static_cast<size_t>(state.material[static_cast<size_t>(p)])];
     Scalar& Jp = state.Jp[static_cast<size_t>(p)];
     Svd<D> s;
@@ -1196,7 +1244,7 @@ class SolverD final : public Solver::Impl {
       case MaterialKind::Snow:
         if constexpr (D == 2) F = snow_project(F, m, Jp);
         else F = snow_project<D>(F, m, Jp, s);
-        break;
+        return m.hardening * (1 - Jp);
       case MaterialKind::Sand: {
         Material own = m;  // the yield surface with this particle's moduli
         particle_lame(state, m, p, own.mu, own.lambda);
@@ -1213,6 +1261,7 @@ class SolverD final : public Solver::Impl {
       default:
         break;
     }
+    return 0;
   }
 
 #if KINEMA_HAVE_AVX2_CLONES
@@ -1490,7 +1539,8 @@ class SolverD final : public Solver::Impl {
     for (int c = 0; c < 4; ++c) F[c] = keep ? F[c] : out[c];
   }
 
-  KINEMA_TARGET_AVX2 void g2p_lanes_avx2(State& state, Scalar dt, Scalar& vmax2, bool& finite, Moves& moves) {
+  KINEMA_TARGET_AVX2 void g2p_lanes_avx2(State& state, Scalar dt, Scalar& vmax2, Scalar& snow_exponent, bool& finite,
+                                         Moves& moves) {
     const Scalar h = model_.h, four_h = 4 / h;
 #pragma omp for schedule(dynamic, 1)
     for (Index s = 0; s < particle_blocks_; ++s) {
@@ -1561,8 +1611,12 @@ class SolverD final : public Solver::Impl {
         const MaterialKind kind = model_.materials[static_cast<size_t>(code)].kind;
         const bool lanes_plastic = one_material && (kind == MaterialKind::Elastic || kind == MaterialKind::NeoHookean ||
                                                     kind == MaterialKind::Water || kind == MaterialKind::Snow);
-        if (lanes_plastic && kind == MaterialKind::Snow)
-          snow_lanes(model_.materials[static_cast<size_t>(code)], p, count, state.Jp.data(), Fn);
+        if (lanes_plastic && kind == MaterialKind::Snow) {
+          const Material& snow = model_.materials[static_cast<size_t>(code)];
+          snow_lanes(snow, p, count, state.Jp.data(), Fn);
+          for (int l = 0; l < count; ++l)  // as plasticity() returns it
+            snow_exponent = std::max(snow_exponent, snow.hardening * (1 - state.Jp[static_cast<size_t>(p[l])]));
+        }
         if (lanes_plastic && kind == MaterialKind::Water) {
           const Lanes J = Fn[0] * Fn[3] - Fn[2] * Fn[1];
           const Lanes Jc = J < 1e-6 ? Lanes{} + 1e-6 : J;
@@ -1574,7 +1628,7 @@ class SolverD final : public Solver::Impl {
           for (int l = 0; l < count; ++l) {
             Mat<2> Fl;
             Fl << Fn[0][l], Fn[1][l], Fn[2][l], Fn[3][l];
-            plasticity(state, p[l], Fl, dt);
+            snow_exponent = std::max(snow_exponent, plasticity(state, p[l], Fl, dt));
             for (int k = 0; k < 4; ++k) Fn[k][l] = Fl(k / 2, k % 2);
           }
         }
@@ -1645,6 +1699,13 @@ class SolverD final : public Solver::Impl {
   std::vector<Index> order_next_, start_next_;  // the new order_ and block_start_
   std::uint64_t mark_ = 0;                   // State::binning this solver's last step left (0: none)
   const State* marked_ = nullptr;            // the State it left it on
+  bool binning_kept_ = false;                // the next step may keep that step's binning
+  // What the last step measured of the State it left (measured_speed): the largest squared
+  // particle speed and snow hardening exponent after G2P (snow_exponent_: this step's, merged
+  // from the threads), and the materials' largest squared wave speeds (wave_speeds_known_).
+  Scalar measured_v2_ = 0, measured_snow_exponent_ = 0, snow_exponent_ = 0;
+  Scalar c2_elastic_ = 0, c2_snow_ = 0;
+  bool wave_speeds_known_ = false;
   Index marks_ = 0;                          // marks left so far
   const std::uint64_t id_ = mix64(reinterpret_cast<std::uintptr_t>(this) ^
                                   static_cast<std::uint64_t>(std::chrono::steady_clock::now().time_since_epoch().count()));
@@ -1872,6 +1933,8 @@ void Solver::step_adjoint(const State& before, const State& after, Scalar dt, co
 }
 
 Scalar Solver::signal_speed(const State& state) const {
+  Scalar measured = 0;
+  if (impl_->measured_speed(state, measured)) return measured;  // the State the last step left
   const int d = state.dim;
   // Wave speeds from each particle's own moduli, with the expressions of make_material. The
   // squares are maximised and the root taken once: sqrt is monotone and correctly rounded, so
@@ -1898,8 +1961,14 @@ Scalar Solver::signal_speed(const State& state) const {
       c2_elastic = std::max(c2_elastic, c2);
     }
   }
+  impl_->remember_wave_speeds(state, c2_elastic, c2_snow);
   const Scalar c = std::max(std::sqrt(c2_elastic), std::sqrt(c2_snow) * std::sqrt(harden));
   return std::sqrt(v2max) + c;
+}
+
+bool Solver::speed_measured(const State& state) const {
+  Scalar speed = 0;
+  return impl_->measured_speed(state, speed);
 }
 
 Scalar Solver::cfl_dt(const State& state) const {

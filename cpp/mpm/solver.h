@@ -100,8 +100,13 @@ class Solver {
   // h / (v_max + c_max): the step whose CFL number is 1 (infinity when nothing moves and nothing
   // is stiff), the limit a step is warned against (an estimate, not an exact stability bound).
   Scalar cfl_dt(const State& state) const;
-  // v_max + c_max of stable_dt [m/s].
+  // v_max + c_max of stable_dt [m/s]. On the State this solver's last step left, unchanged
+  // since (State::binning), it costs no pass over the particles: the step measured v_max and
+  // snow's hardening in G2P, and the wave speeds of the moduli (which no step changes) are kept
+  // from the first pass after a change. The same value, bit for bit, either way.
   Scalar signal_speed(const State& state) const;
+  // Whether signal_speed(state) is read from the last step's measurement.
+  bool speed_measured(const State& state) const;
 
   // Translational kinetic energy sum m |v|^2 / 2 [J].
   Scalar kinetic_energy(const State& state) const;

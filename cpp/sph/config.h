@@ -36,8 +36,9 @@ struct Config {
   int coarse_correction = -1;
   // DFSPH with a domain: the walls' samples carry the Shepard average of their fluid
   // neighbours' stiffness (a force of constraint form: a column filling its tank keeps its
-  // energy) in place of mirroring each particle's (solver.cpp, apply_kappa; issue 15).
-  bool shepard_walls = false;
+  // energy); false: each sample mirrors the stiffness of the particle it pushes (Akinci et al.
+  // 2012's pressure mirroring, not conservative; solver.cpp, apply_kappa; issue 15).
+  bool shepard_walls = true;
   static constexpr Scalar kCoarseAutoTol = 1e-3;
 };
 

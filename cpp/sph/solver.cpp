@@ -221,25 +221,26 @@ class SolverD final : public Solver::Impl {
   // The velocity change of one iteration's stiffness increments k_i = kappa_i / rho_i (in
   // kappa_), eqs. 6 and 12, with the static boundary's samples b carrying a stiffness k_b:
   //   v_i -= dt (m sum_j (k_i + k_j) grad W_ij + sum_b psi_b (k_i + k_b) grad W_ib).
-  // By default every sample mirrors the particle it pushes, k_b = k_i (Akinci et al. 2012's
-  // pressure mirroring): the term 2 k_i B_i. With k_i B_i alone (Akinci et al. 2012's single
+  // With Config::shepard_walls (the default since issue 15) the domain's walls (Model::wall_begin
+  // on) carry one stiffness per sample, the Shepard average of their fluid neighbours',
+  //   k_b = sum_i W_ib k_i / sum_i W_ib                         (dfsph_wall_pass),
+  // so that the wall force has the form of a constraint force, J^T k with one multiplier per
+  // wall sample on the wall's density rho_b (the form of WCSPH's walls below): a column at rest
+  // filling its tank keeps its energy (2D 5 mm -0.0%, 3D 5 mm -0.1%, 2D 2.5 mm +0.8% of the
+  // available energy; tests/test_sph.py, the filled tank), and beside a wall at rest k_b is
+  // about k_i, so the wall holds what the symmetric fluid term pushes (3D column at rest: slope
+  // 0.98-1.03 rho0 g; at tol 1e-3 its rms speed 0.062 m/s is at the test's bound 0.063;
+  // bench/sph/sph_column_cycle.py). The coarse 3D dam break's front runs 8% ahead of WCSPH's at
+  // T = 2, as far as WCSPH's own front moves from 8 to 16 across (docs/guide/sph.md).
+  // Without it every sample mirrors the particle it pushes, k_b = k_i (Akinci et al. 2012's
+  // pressure mirroring, the term 2 k_i B_i): hydrostatic beside a wall too, but twice the
+  // walls' share of the energy gradient, not a constraint force: the filled tank gained 1.9%
+  // (2D 5 mm), 5.6% (3D), 37% (2D 2.5 mm). With k_i B_i alone (Akinci et al. 2012's single
   // term, as SPlisHSPlasH's DFSPH) a wall held only half of what the symmetric fluid term
   // pushes against it: particles next to a wall needed twice the stiffness for the same force,
   // and a 3D column at rest (whose narrow tank puts 3/4 of the particles within h of a side
   // wall) read a pressure slope of 1.25 rho0 g (1.32 within h of a side wall, 1.02-1.03 away
-  // from it, where WCSPH reads 1.02), its bottom row 1.7 (2D) and 2.1 (3D) rho0 g (H - y)
-  // (issue 15). The mirror, one k_b per pair, is not a constraint force: a DFSPH column at rest
-  // filling its tank gains energy (issue 15; tests/test_sph.py, the filled tank).
-  // With Config::shepard_walls the domain's walls (Model::wall_begin on) carry one stiffness per
-  // sample, the Shepard average of their fluid neighbours',
-  //   k_b = sum_i W_ib k_i / sum_i W_ib                         (dfsph_wall_pass),
-  // so that the wall force has the form of a constraint force, J^T k with one multiplier per
-  // wall sample on the wall's density rho_b (the form of WCSPH's walls below): the filled tank
-  // keeps its energy (2D 5 mm +1.9% -> -0.0%, 3D 5 mm +5.6% -> -0.1%, 2D 2.5 mm +37% -> +0.8%
-  // of the available energy) and the viscous columns at rest hold (3D slope 0.98-1.03 rho0 g, the
-  // mirror 1.08; at tol 1e-3 the 3D column's rms speed 0.062 m/s is at the test's bound 0.063;
-  // bench/sph/sph_column_cycle.py), but a 3D dam break's front runs 8% ahead of WCSPH's at
-  // T = 2 (the mirror 1%; docs/guide/sph.md), so it is not the default yet.
+  // from it, where WCSPH reads 1.02), its bottom row 1.7 (2D) and 2.1 (3D) rho0 g (H - y).
   // alpha_i (kernel_pass) keeps the mirror's Jacobi diagonal either way; the boundary samples a
   // user gives always mirror (their own density has no rest value).
   // Written in place: the pass reads no velocity; both branches keep v4_ current.

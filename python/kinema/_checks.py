@@ -287,3 +287,16 @@ def gravity_vector(gravity, d):
     if g.shape != (d,):
         raise ValueError(f"gravity: expected {d} components, got shape {g.shape}")
     return [float(c) for c in g]
+
+
+def user_stacklevel() -> int:
+    """The ``stacklevel`` for warnings.warn, called from kinema, that names the first caller
+    outside the kinema package (the user's line, whatever kinema frames lie between)."""
+    import os
+    import sys
+
+    package = os.path.dirname(os.path.abspath(__file__)) + os.sep
+    frame, level = sys._getframe(1), 1
+    while frame is not None and frame.f_code.co_filename.startswith(package):
+        frame, level = frame.f_back, level + 1
+    return level

@@ -721,7 +721,9 @@ class BodyContact:
       surface, its normal velocity relative to the collider is removed (perfectly inelastic)
       and its tangential one reduced by ``friction`` times the removed normal speed (Coulomb,
       never reversed). Projection adds no stiffness, so the stable step is the body's own
-      ``explicit_dt_limit``; what it adds is a tunnelling limit, checked before each step:
+      ``explicit_dt_limit``, checked as the body's step checks it (once per call: a RuntimeWarning
+      above it, ValueError above ``unstable_dt``); what it adds is a tunnelling limit, checked
+      before each step:
       a vertex must not travel more than half the thickness of the thinnest collider in one
       step (``max|v| dt + |g| dt^2 <= min thickness / 2``; planes are infinitely thick), or
       the step raises ValueError naming dt. Planes, boxes and spheres, in 2D and 3D (a 2D
@@ -805,6 +807,8 @@ class BodyContact:
             for _ in range(steps):
                 stats = scene.step(dt)
             return stats
+        # the body's explicit limit, once for the call (its own step then skips it)
+        self.sim._check_explicit_dt(dt, integrator)
         for _ in range(steps):
             stats = self._projected_step(dt, integrator)
         return stats
@@ -831,7 +835,7 @@ class BodyContact:
                                  f"{0.5 * thin / max(travel / dt, 1e-300):.3g}")
         sim.contact, keep = None, sim.contact  # the body's own step, without this hook
         try:
-            stats = sim.step(dt, integrator)
+            stats = sim._step(dt, None, integrator=integrator, check=False)  # checked in step()
         finally:
             sim.contact = keep
         x, v = sim.x, sim.v

@@ -59,9 +59,10 @@ Optional (a faster path for runs stored whole; km.diff falls back to the steps w
   (a tuple of names) before its adjoint steps and None (all) after them; ``_diff_step_adjoint``
   may then leave the others out of grad_params (they count as zero) and skip their cost.
 - ``_diff_step_keep(dt, control, step_options) -> kept or None``: ``_diff_step`` that also
-  returns what the step's adjoint would otherwise recompute of it; a checkpointed backward calls
-  it for a recomputed step whose adjoint comes soon (at most two held at once) and passes it as
-  ``_diff_step_adjoint(..., forward=kept)``. The gradients must not change (bitwise).
+  returns what the step's adjoint would otherwise recompute of it; a checkpointed run calls it
+  for the rollout's last two steps and for a recomputed step whose adjoint comes soon (at most
+  two held at once) and passes it as ``_diff_step_adjoint(..., forward=kept)``. The gradients
+  must not change (bitwise).
 """
 
 from __future__ import annotations
@@ -76,6 +77,8 @@ from kinema._checks import as_float_array
 from kinema.errors import DivergenceError
 
 __all__ = ["rollout", "Rollout"]
+
+_KEPT = 2  # the most _diff_step_keep results held at once
 
 _PROTOCOL = ("parameters", "state", "set_state", "_diff_state_names", "_diff_check",
              "_diff_control_shape", "_diff_get", "_diff_set", "_diff_step", "_diff_step_adjoint")
@@ -247,7 +250,7 @@ class Rollout:
         start = self._copy(sim.state())
         self._start = start
         self._record = None
-        self._spine_kept = {}  # what _diff_step_keep kept of the last step, for the first backward
+        self._spine_kept = {}  # what _diff_step_keep kept of the last steps, for the first backward
         if checkpoints is None or checkpoints > steps:
             self._spine = {}
             recorder = getattr(sim, "_diff_record", None)
@@ -277,7 +280,7 @@ class Rollout:
             marks = set(offsets)
             keep = getattr(sim, "_diff_step_keep", None)
             for k in range(steps):
-                if k == steps - 1 and keep is not None:  # the step reversed first
+                if k >= steps - _KEPT and keep is not None:  # the steps reversed first
                     control = None if controls is None else controls[k]
                     kept = keep(dt, control, step_options)
                     if kept is not None:
@@ -314,7 +317,7 @@ class Rollout:
         last = first + count - 1
         stepper = getattr(self._sim, "_diff_step_keep", None) if keep else None
         for k in range(first, first + count):
-            if k == last and stepper is not None:
+            if k == last and stepper is not None and len(self._kept) < _KEPT:
                 control = None if self._controls is None else self._controls[k]
                 kept = stepper(self.dt, control, self._options)
                 if kept is not None:
@@ -351,7 +354,7 @@ class Rollout:
         self._grad_controls = None if self._controls is None else np.zeros(self._controls.shape)
         self.recomputed_steps = 0
         self._current = None
-        # step -> what _diff_step_keep kept of it for its adjoint (at most two held)
+        # step -> what _diff_step_keep kept of it for its adjoint (at most _KEPT held)
         self._kept, self._spine_kept = self._spine_kept, {}
         if self._record is not None:
             base = self.steps + 1
@@ -449,8 +452,9 @@ class Rollout:
                 state_m = self._spine.pop(m)
                 self._held -= 1  # moves from the spine to this recursion's slot
             else:
-                # step m - 1 is reversed next when the sub-segment is a single step
-                state_m = self._advance(state_i, i, m - i, keep=j - m == 1)
+                # step m - 1 is reversed right after the sub-segment m..j-1; when that is one or
+                # two steps, their reversal holds at most one kept result besides m - 1's
+                state_m = self._advance(state_i, i, m - i, keep=j - m <= 2)
             self._hold(1)
             g = self._reverse(m, state_m, j, free - 1, g, after)
             after = state_m  # still held: the state after step m - 1, reversed next

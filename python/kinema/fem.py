@@ -43,7 +43,7 @@ import scipy.sparse as sp
 from kinema import _core
 from kinema._checks import (
     as_float_array, checked_state, choice, finite, finite_result, gravity_vector, indices,
-    integer, positive, positive_int, real, simulation_object)
+    integer, positive, positive_int, real, simulation_object, user_stacklevel)
 from kinema._state import state_property
 from kinema.contact import Scene  # several bodies (fem, massspring) in contact: Scene.add_body
 
@@ -218,6 +218,7 @@ class Body:
         model = _core.fem.Model(self._vertices, self.elements, p, self.fixed)
         self._solver = _core.fem.Solver(model, self._config)
         self._model = model
+        self._unstable_dt = None  # of these parameters: computed when first asked for
 
     def _flat_shape(self):
         return (self._model.vertex_count, self._model.dim)
@@ -248,7 +249,8 @@ class Body:
     @property
     def explicit_dt_limit(self) -> float:
         """2 / omega_max [s], omega_max^2 bounded by Gershgorin on M^-1 K at rest: a conservative
-        limit of the symplectic step."""
+        limit of the symplectic step. Computed in C++ when the solver is built (again when a
+        parameter changes), so each step's check only reads it."""
         return self._solver.explicit_dt_limit
 
     @property
@@ -257,10 +259,10 @@ class Body:
         (2 / w undamped) with w^2 = max_q K_qq / m_q over the free degrees of freedom q, K the
         elastic Hessian at rest (the Rayleigh quotient of the unit vector e_q, a lower bound of
         omega_max^2) and c the mass damping. ``inf`` when nothing is stiff. A symplectic step
-        above it raises ValueError."""
-        cached = getattr(self, "_unstable_dt", None)
-        if cached is not None and cached[0] is self._solver:
-            return cached[1]
+        above it raises ValueError. Computed when first asked for and kept until a parameter
+        changes (a parameter set through km.diff or km.torch rebuilds the solver)."""
+        if self._unstable_dt is not None:
+            return self._unstable_dt
         indptr, idx, data = self._solver.hessian(self._model.initial_state(), False)
         n = indptr.shape[0] - 1
         diag = sp.csr_matrix((data, idx, indptr), shape=(n, n)).diagonal()
@@ -272,7 +274,7 @@ class Body:
         top = float(w2.max()) if w2.size else 0.0
         c = self._values["damping"]
         value = (c + math.sqrt(c * c + 4 * top)) / top if top > 0 else math.inf
-        self._unstable_dt = (self._solver, value)
+        self._unstable_dt = value
         return value
 
     def _check_explicit_dt(self, dt, integrator):
@@ -290,7 +292,7 @@ class Body:
         warnings.warn(f"dt: {dt:.4g} s exceeds explicit_dt_limit = {limit:.4g} s (Gershgorin's conservative "
                       f"bound on the symplectic step's stability limit, which lies between it and "
                       f"{bound:.4g} s); the run may diverge: reduce dt or use integrator='implicit'",
-                      RuntimeWarning, stacklevel=4)
+                      RuntimeWarning, stacklevel=user_stacklevel())
 
     def _configure(self, integrator="implicit", tol=1e-6, max_newton=50, linear_solver="cholmod",
                    cg_tol=1e-4, definiteness="adaptive"):
@@ -338,10 +340,14 @@ class Body:
         return self._step(dt, None, steps, integrator=integrator, tol=tol, max_newton=max_newton,
                           linear_solver=linear_solver, cg_tol=cg_tol, definiteness=definiteness)
 
-    def _step(self, dt, control, steps=1, **options):
-        self._check_explicit_dt(real(dt, "dt"), options.get("integrator", "implicit"))
+    def _step(self, dt, control, steps=1, check=True, **options):
+        """The steps of ``step``; ``check=False``: without the explicit limit's check (made once
+        per call by the caller: km.contact's projected steps)."""
         if self.contact is not None and self.contact.colliders and control is None:
+            # km.contact checks the explicit limit once for the call
             return self.contact.step(dt, options.get("integrator", "implicit"), steps)
+        if check:
+            self._check_explicit_dt(real(dt, "dt"), options.get("integrator", "implicit"))
         self._configure(**options)
         dt = real(dt, "dt")
         stats = None

@@ -386,9 +386,8 @@ class Fluid:
         if self.advection == "semi_lagrangian":
             self._diff_step(dt, control, step_options)
             return None
-        spent = getattr(self, "_diff_spent", None)  # one the last adjoint read, refilled
-        self._diff_spent = None
-        return self._core.step_keep(time_step(dt), control, spent)
+        spent = getattr(self, "_diff_spent", None)  # ones the adjoint has read, refilled
+        return self._core.step_keep(time_step(dt), control, spent.pop() if spent else None)
 
     def _diff_record(self, dt, steps, controls, step_options):
         """km.diff's path for a run stored whole: the steps and their adjoints in C++ (the same
@@ -409,7 +408,7 @@ class Fluid:
         # km.diff: the parameters a backward pass wants (None: all); without the viscosity the
         # adjoint recomputes only the advection's first passes of each step
         self._diff_wanted = names
-        self._diff_spent = None  # a backward's spent advection scratch goes with it
+        self._diff_spent = []  # a backward's spent advection scratch goes with it
         if names is not None:  # a backward starts: its adjoint pressure solves chain from zero
             self._core.reset_adjoint_warm_start()
 
@@ -421,7 +420,9 @@ class Fluid:
         grads, g_nu, g_control = self._core.step_adjoint(time_step(dt), before, control, grad_after, want_nu,
                                                          forward, wanted is not None)
         if forward is not None and wanted is not None:  # within km.diff's backward, which drops it
-            self._diff_spent = forward
+            spent = self._diff_spent
+            if len(spent) < 2:  # km.diff holds at most two at once
+                spent.append(forward)
         return grads, ({"viscosity": g_nu} if want_nu else {}), g_control
 
     def stable_dt(self, cfl=1.0, *, max_dt=None) -> float:

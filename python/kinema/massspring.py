@@ -52,7 +52,7 @@ import numpy as np
 from kinema import _core
 from kinema._checks import (
     as_float_array, choice, finite_result, gravity_vector, indices, positive_int, real, simulation_object,
-    spacing)
+    spacing, user_stacklevel)
 from kinema._state import assign
 from kinema.errors import DivergenceError
 
@@ -175,16 +175,9 @@ class System:
         2 c / m over its springs); ``inf`` when no spring has stiffness or damping. The true
         limit lies in [explicit_dt_limit, :attr:`unstable_dt`]; undamped, with one stiffness
         and one mass throughout (and a spring between free vertices), it is at most
-        sqrt(max springs at a vertex) times this."""
-        w2 = 4 / self._core.explicit_dt_limit**2  # the undamped Gershgorin bound, in C++
-        c = self._core.parameter("damping")
-        if not len(c) or not c.any():
-            return self._core.explicit_dt_limit
-        m = self._core.parameter("mass")
-        rows = np.bincount(self.springs.ravel(), np.repeat(2 * c, 2), minlength=len(m)) / m
-        rows[self.fixed] = 0
-        gamma = float(rows.max())
-        return 4 / (gamma + np.sqrt(gamma**2 + 4 * w2))
+        sqrt(max springs at a vertex) times this. Computed in C++ once per set of parameters
+        (a parameter set through km.diff or km.torch computes it anew)."""
+        return self._core.explicit_dt_limit
 
     @property
     def unstable_dt(self) -> float:
@@ -192,30 +185,19 @@ class System:
         2 / omega with omega^2 = max over springs of the Rayleigh quotient of M^-1 K at rest for
         the spring's own stretching mode (4 k / (m_i + m_j), or k / m of the free end of a spring
         to a fixed vertex), a lower bound of omega_max^2. ``inf`` without a stiff spring to a
-        free vertex. A step above it raises ValueError (see the module docstring)."""
-        k = self._core.parameter("stiffness")
-        m = self._core.parameter("mass")
-        if not len(k):
-            return float("inf")
-        free = np.ones(len(m), bool)
-        free[self.fixed] = False
-        i, j = self.springs[:, 0], self.springs[:, 1]
-        with np.errstate(over="ignore", divide="ignore", invalid="ignore"):
-            moving = free[i].astype(float) * m[i] + free[j] * m[j]
-            w2 = np.where(free[i] & free[j], 4 * k, k) / moving
-        w2 = w2[(free[i] | free[j]) & (k > 0)]
-        top = float(w2.max()) if w2.size else 0.0
-        return 2 / np.sqrt(top) if top > 0 else float("inf")
+        free vertex. A step above it raises ValueError (see the module docstring). Cached in
+        C++ as :attr:`explicit_dt_limit` is."""
+        return self._core.unstable_dt
 
     def _check_explicit_dt(self, dt, integrator):
         """RuntimeWarning above explicit_dt_limit, ValueError above unstable_dt (module docstring)."""
         if _enum(integrator, "integrator", Integrator, INTEGRATORS) == Integrator.implicit:
             return
-        limit = self.explicit_dt_limit
+        limit = self._core.explicit_dt_limit
         if not dt > limit:
             return
         name = integrator if isinstance(integrator, str) else integrator.name
-        bound = self.unstable_dt
+        bound = self._core.unstable_dt
         if not dt <= bound:
             raise ValueError(f"dt: {dt:.4g} s is beyond {bound:.4g} s (unstable_dt), above which every "
                              f"{name} step is unstable for these springs and masses (the conservative "
@@ -224,7 +206,7 @@ class System:
         warnings.warn(f"dt: {dt:.4g} s exceeds explicit_dt_limit = {limit:.4g} s (Gershgorin's conservative "
                       f"bound on the {name} step's stability limit, which lies between it and "
                       f"{bound:.4g} s); the run may diverge: reduce dt or use integrator='implicit'",
-                      RuntimeWarning, stacklevel=4)
+                      RuntimeWarning, stacklevel=user_stacklevel())
 
     def state(self) -> dict:
         """Copies of everything that evolves: ``x``, ``v`` (n, d), ``time`` [s], ``step``, the
@@ -267,10 +249,14 @@ class System:
         return contact.attach(self).add_collider(shape, **options)
 
     def _step(self, dt, control, *, integrator="implicit", beta=1.0, linear_solver="cholmod",
-              cg_tol=1e-8, steps=1):
-        self._check_explicit_dt(real(dt, "dt"), integrator)
+              cg_tol=1e-8, steps=1, check=True):
+        """The steps of ``step``; ``check=False``: without the explicit limit's check (made once
+        per call by the caller: km.contact's projected steps)."""
         if self.contact is not None and self.contact.colliders and control is None:
+            # km.contact checks the explicit limit once for the call
             return self.contact.step(dt, integrator, positive_int(steps, "steps"), beta=beta)
+        if check:
+            self._check_explicit_dt(real(dt, "dt"), integrator)
         self._configure(integrator, beta, linear_solver, cg_tol)
         dt = real(dt, "dt")
         try:
@@ -287,7 +273,7 @@ class System:
                                      "view or left by a diverged run") from None
             if isinstance(exc, DivergenceError):
                 raise
-            ratio = dt**2 * 4 / self._core.explicit_dt_limit**2
+            ratio = dt**2 * self._core.gershgorin_omega2
             if _implicit(self._core.config) and ratio > 1 / np.finfo(float).eps:
                 raise ValueError(f"stiffness, dt: dt^2 K / M reaches {ratio:.3g} (Gershgorin), beyond the "
                                  "4.5e15 float64 resolves: the mass term is lost to rounding; reduce dt or "

@@ -42,7 +42,7 @@ import numpy as np
 from kinema import _core
 from kinema._checks import (
     as_float_array, choice, finite, finite_result, grid_shape, integer, non_negative, positive,
-    simulation_object)
+    simulation_object, user_stacklevel)
 
 __all__ = ["Simulation", "Config", "StepStats", "block", "sphere", "MATERIALS", "BOUNDARIES", "MU_I_GLASS_BEADS"]
 
@@ -169,6 +169,7 @@ class Simulation:
         self.origin = origin
         self.gravity = gravity
         self.boundary = boundary
+        self._warned_cfl = 0.0  # the CFL number step() last warned of (0: within the limit since)
 
     # ---------------------------------------------------------------- building
     def add_particles(self, positions, material, *, density, youngs_modulus=None, poisson_ratio=None,
@@ -268,25 +269,41 @@ class Simulation:
     def step(self, dt) -> StepStats:
         """One MLS-MPM step of ``dt`` [s]; returns its :class:`StepStats` (time, dt, seconds,
         per-stage seconds, max_speed, active_blocks, rebinned: the particles binned anew).
-        A ``dt`` above :meth:`cfl_dt` (CFL number 1) warns with a RuntimeWarning naming dt and
-        the limit (the explicit scheme's stability limit is only estimated by the CFL rule, so
-        this is a warning, not an error: measured on a moving block at 1e5 Pa, nu 0.3, water runs
+        A ``dt`` above :meth:`cfl_dt` of the state the step starts from (CFL number 1: h over
+        the largest particle speed plus the fastest elastic wave speed of the particles' moduli,
+        snow's hardened) warns, before stepping, with a RuntimeWarning naming dt and the limit
+        (the explicit scheme's stability limit is only estimated by the CFL rule, so this is a
+        warning, not an error: measured on a moving block at 1e5 Pa, nu 0.3, water runs
         diverge from CFL 1.2 on, elastic ones from 1.5, snow ones (whose hardened wave speed
-        overstates its plastic stiffness) only from 5). Raises DivergenceError on a blow-up."""
+        overstates its plastic stiffness) only from 5). Steps that stay beyond the limit warn
+        again only when the CFL number dt / cfl_dt() has grown by 10% since the last warning
+        (a run at a dt just beyond it warns once, not once per step); a step within the limit
+        ends the run of warnings. The check costs no pass over the particles when the state is
+        the one the last step left (no view alive, no particle added): that step measured the
+        speeds as it wrote them. Raises DivergenceError on a blow-up."""
         return self._sim.step(self._check_dt(positive(dt, "dt")))
 
     def cfl_dt(self) -> float:
         """h / (v_max + c) [s]: the step of CFL number 1 at the current velocities, c the fastest
         elastic wave speed as in :meth:`stable_dt` (``stable_dt(cfl)`` is at most ``cfl`` times
-        it); ``inf`` when nothing moves and nothing is stiff. Steps above it warn."""
+        it); ``inf`` when nothing moves and nothing is stiff. Steps above it warn. After a step,
+        with no view alive, it is read from what that step measured (the same value, bit for
+        bit, as a pass over the particles)."""
         return self._sim.cfl_dt()
 
     def _check_dt(self, dt):
+        """Warns when dt exceeds cfl_dt() (see step); returns dt."""
         limit = self._sim.cfl_dt()
-        if 0 < limit < dt:  # 0 or NaN: a non-finite value written through a view, the step names it
+        if not 0 < limit < dt:  # within (0 or NaN: a non-finite value written through a view, the step names it)
+            self._warned_cfl = 0.0
+            return dt
+        cfl = dt / limit
+        if cfl > 1.1 * self._warned_cfl:  # a new run of steps beyond the limit, or 10% further beyond
+            self._warned_cfl = cfl
             warnings.warn(f"dt: {dt:.4g} s exceeds cfl_dt() = {limit:.4g} s (h / (v_max + c), CFL number 1, "
-                          f"the explicit MPM step's estimated stability limit; stable_dt() = "
-                          f"{self.stable_dt():.4g} s): the run may diverge", RuntimeWarning, stacklevel=3)
+                          f"the explicit MPM step's estimated stability limit; CFL number {cfl:.3g}, "
+                          f"stable_dt() = {self.stable_dt():.4g} s): the run may diverge (warned again only "
+                          "if the CFL number grows 10% further)", RuntimeWarning, stacklevel=user_stacklevel())
         return dt
 
     def advance(self, duration, cfl=0.5) -> int:
@@ -298,7 +315,8 @@ class Simulation:
         cfl = positive(cfl, "cfl")
         if cfl > 1:
             warnings.warn(f"cfl: {cfl:.4g} > 1 lets advance's steps exceed cfl_dt() (CFL number 1), the explicit "
-                          "MPM step's estimated stability limit: the run may diverge", RuntimeWarning, stacklevel=2)
+                          "MPM step's estimated stability limit: the run may diverge", RuntimeWarning,
+                          stacklevel=user_stacklevel())
         steps, self.last_stats = self._sim.advance(non_negative(duration, "duration"), cfl)
         return steps
 

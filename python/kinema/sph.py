@@ -135,8 +135,8 @@ class Fluid:
     force is the gradient of the fluid's energy (a column at rest keeps its energy) and the
     pressure beside a wall is hydrostatic; ``boundary`` samples act with Akinci et al. 2012's
     single term (conservative, about twice the hydrostatic pressure beside them). DFSPH's walls
-    mirror the stiffness of the particle they push (hydrostatic beside them, but not
-    conservative: issue 15), or with ``walls="shepard"`` (below) carry one stiffness each.
+    carry one stiffness per wall sample (``walls``, below): conservative and hydrostatic beside
+    them.
     speed_of_sound: WCSPH's c [m/s], default 10 sqrt(2 |g| H) for the initial fluid
     height H. gamma: Tait exponent.
     Further keywords: velocity ((n, d) initial velocities), tol (DFSPH mean density error,
@@ -152,10 +152,13 @@ class Fluid:
     correction, an exact Galerkin solve for one stiffness per layer of height 3 h, which
     rebuilds the hydrostatic pressure a Jacobi iteration rebuilds by ~1% per iteration; without
     it a column at rest at tol 2e-3 sank and bounced; at tol <= 1e-3 the column holds without it
-    and on a 3D dam break at tol 1e-4 it cost 0.84x), walls (DFSPH with a domain: "mirror", the
-    default, or "shepard": each wall sample carries the Shepard average of its fluid neighbours'
+    and on a 3D dam break at tol 1e-4 it cost 0.84x), walls (DFSPH with a domain; None, the default,
+    or "shepard": each wall sample carries the Shepard average of its fluid neighbours'
     stiffness, so the wall force has a constraint form and a column filling its tank keeps its
-    energy, which the mirror does not; docs/guide/sph.md, "Walls and energy"). ``config`` holds them all (a ``kinema._core.sph.Config``, read-only here).
+    energy; "mirror", the default before issue 15: each sample mirrors the stiffness of the
+    particle it pushes, which is not conservative: a column filling its tank gains energy;
+    WCSPH takes None only, its walls carry the pressure of their own density;
+    docs/guide/sph.md, "Walls and energy"). ``config`` holds them all (a ``kinema._core.sph.Config``, read-only here).
 
     State (writable zero-copy views of the solver's memory; they stay valid for the life of
     the Fluid, but Morton reordering permutes rows in place, so row k of ``x`` is the particle
@@ -179,7 +182,7 @@ class Fluid:
                  gravity=None, domain=None, boundary=None, speed_of_sound=None, gamma=7.0,
                  velocity=None, tol=1e-3, divergence_tol=1e-3, max_iter=100,
                  divergence_solve=True, reorder_every=16, neighbor_skin=0.2, warm_start=0.5,
-                 coarse_correction=None, walls="mirror"):
+                 coarse_correction=None, walls=None):
         x = _points(positions, "positions")
         n, d = x.shape
         self.dim = d
@@ -214,11 +217,12 @@ class Fluid:
         config.neighbor_skin = real(neighbor_skin, "neighbor_skin")
         config.warm_start = real(warm_start, "warm_start")
         config.coarse_correction = -1 if coarse_correction is None else int(bool(coarse_correction))
-        if not isinstance(walls, str) or walls not in ("mirror", "shepard"):
-            raise ValueError(f"walls: expected 'mirror' or 'shepard', got {walls!r}")
-        if walls == "shepard" and method == "wcsph":
-            raise ValueError("walls: 'shepard' is DFSPH's (WCSPH's walls carry the pressure of their own density)")
-        config.shepard_walls = walls == "shepard"
+        if walls is not None and (not isinstance(walls, str) or walls not in ("mirror", "shepard")):
+            raise ValueError(f"walls: expected None, 'mirror' or 'shepard', got {walls!r}")
+        if walls is not None and method == "wcsph":
+            raise ValueError(f"walls: {walls!r} is DFSPH's (WCSPH's walls carry the pressure of their own density; "
+                             "leave walls=None)")
+        config.shepard_walls = walls != "mirror"
 
         lower = upper = None
         if domain is not None:

@@ -168,9 +168,9 @@ TEST(Bvh, TwoTreeDescentsFindEveryOverlappingPair) {
   boxes(200, blo, bhi);
   const geometry::Bvh A(alo, ahi), B(blo, bhi);
   std::set<std::pair<Index, Index>> pairs, self;
-  A.query_pairs(B, [&](Index i, Index j) { pairs.insert({i, j}); });
+  A.query_box_pairs(B, [&](Index i, Index j) { pairs.insert({i, j}); });
   size_t self_visits = 0;
-  A.query_self([&](Index i, Index j) {
+  A.query_box_self([&](Index i, Index j) {
     ++self_visits;
     EXPECT_NE(i, j);
     self.insert({std::min(i, j), std::max(i, j)});
@@ -189,6 +189,8 @@ TEST(Bvh, TwoTreeDescentsFindEveryOverlappingPair) {
         EXPECT_TRUE(self.count({static_cast<Index>(i), static_cast<Index>(j)})) << i << " " << j;
       }
   }
+  EXPECT_EQ(pairs.size(), expected_pairs);  // exact: no pair whose boxes do not overlap
+  EXPECT_EQ(self.size(), expected_self);
   EXPECT_GT(expected_pairs, 50u);  // the boxes are dense enough for the test to mean something
   EXPECT_GT(expected_self, 50u);
 }

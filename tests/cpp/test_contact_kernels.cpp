@@ -144,6 +144,84 @@ TEST(ContactProjection, FastClampEqualsFullEigendecompositionOnBarrierHessians) 
   EXPECT_GT(indefinite, 300);  // the clamp had work to do on most of the ~1000 Hessians
 }
 
+// constraint_barrier's clamp (which forms a point-point term's clamp as its rank-one matrix and
+// projects an edge pair reduced to a point-edge formula, mollifier inactive, on those three
+// vertices) against the reference: the full eigendecomposition of the same term's unprojected
+// Hessian over its whole stencil. Energy and gradient unchanged by the projection (bitwise).
+// Tolerance as check_projection (both backward stable, 1e-12 ~ 4500 eps of |H|).
+TEST(ContactProjection, ConstraintClampEqualsReferenceOnEveryReducedKind) {
+  std::mt19937 rng(17);
+  std::uniform_real_distribution<Scalar> u(-1, 1), w(0.05, 0.95);
+  const Scalar dhat = 0.05, dhat2 = dhat * dhat;
+  Model model;  // no planes: constraint_barrier reads nothing else of it
+  int seen[6][2] = {};
+  auto check = [&](const Constraint& c, const std::vector<Scalar>& x) {
+    Vec<12> g, g_clamped;
+    Mat<12> H, clamped;
+    const Scalar e = constraint_barrier(model, c, x.data(), dhat2, &g, &H, Projection::None);
+    if (!(e > 0)) return;
+    const Scalar e_clamped = constraint_barrier(model, c, x.data(), dhat2, &g_clamped, &clamped, Projection::Clamp);
+    Mat<12> reference = H;
+    const int k = c.stencil_size();
+    if (k == 4) project_psd_translation_free_reference<4>(reference);
+    if (k == 3) project_psd_translation_free_reference<3>(reference);
+    if (k == 2) project_psd_translation_free_reference<2>(reference);
+    const Scalar scale = H.norm();
+    EXPECT_EQ(e_clamped, e);
+    EXPECT_EQ((g_clamped - g).norm(), 0);
+    EXPECT_LE((clamped - reference).norm(), 1e-12 * scale) << static_cast<int>(c.kind) << " stencil " << k;
+    const Eigen::SelfAdjointEigenSolver<Mat<12>> eig(clamped);
+    EXPECT_GE(eig.eigenvalues().minCoeff(), -1e-12 * scale);
+    ++seen[static_cast<int>(c.kind)][c.eps_x > 0];
+  };
+  for (int trial = 0; trial < 400; ++trial) {
+    const Scalar h = dhat * w(rng);
+    // A point over a triangle's face, edge or corner.
+    const Vec3 t0(0, 0, 0), t1(1, 0.2 * u(rng), 0.1 * u(rng)), t2(0.3 * u(rng), 1, 0.1 * u(rng));
+    const Vec3 n = (t1 - t0).cross(t2 - t0).normalized();
+    const Vec3 over[3] = {Vec3(0.3, 0.3, 0) + 0.1 * Vec3(u(rng), u(rng), 0), 0.5 * (t0 + t1) - Vec3(0, 0.01, 0),
+                          t0 - 0.01 * Vec3(1, 1, 0)};
+    const Vec3 p = over[trial % 3] + h * n;
+    std::vector<Scalar> x = {p.x(), p.y(), p.z(), t0.x(), t0.y(), t0.z(), t1.x(), t1.y(), t1.z(), t2.x(), t2.y(), t2.z()};
+    const Reduced r = point_triangle_region(p, t0, t1, t2);
+    Constraint c;
+    c.kind = r.kind;
+    c.v = {-1, -1, -1, -1};
+    for (int a = 0; a < vertex_count(r.kind); ++a) c.v[static_cast<size_t>(a)] = r.slot[a];
+    check(c, x);
+    // Two edges crossing (edge-edge), one ending over the other's middle (point-edge) or over
+    // its end (point-point); nearly parallel (the mollifier active) on every fourth trial.
+    const Vec3 a0(-0.5, 0.1 * u(rng), 0), a1(0.5, 0.1 * u(rng), 0);
+    const Vec3 dir = trial % 4 == 0 ? Vec3(Vec3(1, 0.01 * u(rng), 0.01 * u(rng)).normalized())
+                                    : Vec3(Vec3(0.3 * u(rng), 1, 0.5 + 0.3 * u(rng)).normalized());
+    Vec3 b0, b1;
+    const int where = (trial / 4) % 3;
+    if (where == 0) {
+      b0 = Vec3(0.1 * u(rng), 0.5 * (a0.y() + a1.y()), h) - 0.5 * dir, b1 = b0 + dir;
+    } else {
+      const Vec3 base = where == 1 ? Vec3(Vec3(0.2 * u(rng), 0, 0) + 0.5 * (a0 + a1)) : Vec3(a1 + Vec3(0.01, 0.01, 0));
+      const Vec3 away = trial % 4 == 0 ? Vec3(Vec3(1, 0.01 * u(rng), 0.01 * u(rng)).normalized())
+                                       : Vec3(Vec3(0.3 * u(rng), 0.5, 1).normalized());
+      b0 = base + Vec3(0, 0, h), b1 = b0 + 0.8 * away;
+    }
+    x = {a0.x(), a0.y(), a0.z(), a1.x(), a1.y(), a1.z(), b0.x(), b0.y(), b0.z(), b1.x(), b1.y(), b1.z()};
+    const Reduced q = edge_edge_region(a0, a1, b0, b1);
+    Constraint ce;
+    ce.kind = q.kind;
+    ce.v = {-1, -1, -1, -1};
+    for (int a = 0; a < vertex_count(q.kind); ++a) ce.v[static_cast<size_t>(a)] = q.slot[a];
+    ce.edges = {0, 1, 2, 3};
+    ce.eps_x = edge_mollifier_threshold(1, 1);
+    check(ce, x);
+  }
+  // Every reduced kind was met, from point-face pairs and from edge pairs.
+  EXPECT_GT(seen[static_cast<int>(PairKind::PT)][0], 20);
+  EXPECT_GT(seen[static_cast<int>(PairKind::PE)][0], 20);
+  EXPECT_GT(seen[static_cast<int>(PairKind::PP)][0], 20);
+  EXPECT_GT(seen[static_cast<int>(PairKind::EE)][1], 20);
+  EXPECT_GT(seen[static_cast<int>(PairKind::PE)][1], 20);
+  EXPECT_GT(seen[static_cast<int>(PairKind::PP)][1], 5);
+}
 
 using Boxes = std::vector<Scalar>;
 using PairSet = std::set<std::pair<Index, Index>>;
@@ -381,6 +459,109 @@ TEST(BroadPhase, FindEqualsBruteForceOnDegenerateMeshes) {
   for (Index v = 0; v < half; ++v) dx[static_cast<size_t>(3 * v + 2)] = -0.1 - 0.01 * Scalar(v % 3);
   EXPECT_GT(expect_find_equals_brute_force(m, x, dx.data(), 0, kept, "swept through"), 500u);
   expect_find_equals_brute_force(m, x, nullptr, 0.01, kept, "back at the start");
+}
+
+}  // namespace
+}  // namespace kinema::contact
+
+namespace kinema::contact {
+namespace {
+
+// find_constraints against brute force: every non-adjacent point-face and edge-edge pair (not
+// all fixed) whose region formula's squared distance is below dhat2, with that distance, in
+// the same order; through the one-shot path (broad phase at dhat, no box prefilter, the
+// plane / line bound first) and from candidates of a wider sweep (box prefilter). Two n x n
+// grids, the upper one moving, a fraction of dhat above the lower one, jittered so that
+// points sit over faces, edges and corners, and edges cross at every angle; then tilted
+// so that many edges are nearly parallel (the bound abstains there).
+TEST(ContactNarrowPhase, FindConstraintsEqualsBruteForce) {
+  const int n = 5;
+  const Scalar dhat = 0.02, dhat2 = dhat * dhat;
+  std::mt19937 rng(23);
+  std::uniform_real_distribution<Scalar> u(-1, 1);
+  std::vector<Index> faces;
+  for (int copy = 0; copy < 2; ++copy) {
+    const Index base = copy * (n + 1) * (n + 1);
+    for (int i = 0; i < n; ++i)
+      for (int j = 0; j < n; ++j) {
+        const Index a = base + i * (n + 1) + j, b = a + 1, c = a + (n + 1), d = c + 1;
+        faces.insert(faces.end(), {a, b, d, a, d, c});
+      }
+  }
+  for (int trial = 0; trial < 6; ++trial) {
+    std::vector<Scalar> x;
+    const Scalar tilt = trial % 2 ? 0.002 : 0.3;
+    for (int copy = 0; copy < 2; ++copy)
+      for (int i = 0; i <= n; ++i)
+        for (int j = 0; j <= n; ++j) {
+          const Scalar jitter = copy ? 0.3 / n : 0.05 / n;
+          const Scalar px = Scalar(i) / n + jitter * u(rng) + (copy ? 0.37 / n : 0);
+          const Scalar py = Scalar(j) / n + jitter * u(rng) + (copy ? 0.21 / n : 0);
+          const Scalar pz = copy ? dhat * (0.2 + 0.6 * (u(rng) + 1) / 2) + tilt * dhat * (px - 0.5) : 0;
+          x.insert(x.end(), {px, py, pz});
+        }
+    std::vector<char> fixed(x.size() / 3, 0);
+    for (size_t v = 0; v < fixed.size() / 2; ++v) fixed[v] = 1;
+    const Model m = surface_model(x, faces, fixed);
+    struct Want { PairKind kind; Scalar d; };
+    std::vector<Want> want;
+    auto fixed_all = [&](std::initializer_list<Index> vs) {
+      for (Index v : vs)
+        if (!fixed[static_cast<size_t>(v)]) return false;
+      return true;
+    };
+    auto P = [&](Index v) { return Vec3(x[3 * v], x[3 * v + 1], x[3 * v + 2]); };
+    auto keep = [&](const Reduced& r, const Vec3* y) {
+      Vec3 v[4];
+      for (int k = 0; k < vertex_count(r.kind); ++k) v[k] = y[r.slot[k]];
+      const Scalar d = reduced_distance(r.kind, v);
+      if (d < dhat2) want.push_back({r.kind, d});
+    };
+    const Index nf = static_cast<Index>(faces.size() / 3), ne = static_cast<Index>(m.edges.size() / 2);
+    for (Index p : m.points)
+      for (Index f = 0; f < nf; ++f) {
+        const Index* t = &faces[static_cast<size_t>(3 * f)];
+        if (p == t[0] || p == t[1] || p == t[2] || fixed_all({p, t[0], t[1], t[2]})) continue;
+        const Vec3 y[4] = {P(p), P(t[0]), P(t[1]), P(t[2])};
+        keep(point_triangle_region(y[0], y[1], y[2], y[3]), y);
+      }
+    for (Index e = 0; e < ne; ++e)
+      for (Index g = e + 1; g < ne; ++g) {
+        const Index* a = &m.edges[static_cast<size_t>(2 * e)];
+        const Index* b = &m.edges[static_cast<size_t>(2 * g)];
+        if (a[0] == b[0] || a[0] == b[1] || a[1] == b[0] || a[1] == b[1] || fixed_all({a[0], a[1], b[0], b[1]})) continue;
+        // The moving edge first, as the broad phase orders a moving-fixed pair.
+        const bool swap = fixed_all({a[0], a[1]});
+        const Index* first = swap ? b : a;
+        const Index* second = swap ? a : b;
+        const Vec3 y[4] = {P(first[0]), P(first[1]), P(second[0]), P(second[1])};
+        keep(edge_edge_region(y[0], y[1], y[2], y[3]), y);
+      }
+    BroadPhase broad;
+    const std::vector<Constraint> one_shot = find_constraints(m, broad, x.data(), dhat2);
+    Candidates wide;
+    broad.find(m, x.data(), nullptr, 3 * dhat, wide);
+    const std::vector<Constraint> from_wide = find_constraints(m, wide, x.data(), dhat2);
+    ASSERT_GT(want.size(), 50u) << trial;
+    for (const auto* got : {&one_shot, &from_wide}) {
+      // The same multiset of (kind, distance): the order within the point-face block follows
+      // the broad phase's pair order, which the brute-force loops above reproduce only up to
+      // the moving-edge-first swap, so compare sorted.
+      ASSERT_EQ(got->size(), want.size()) << trial;
+      std::vector<std::pair<int, Scalar>> a, b;
+      for (const Constraint& c : *got) a.push_back({static_cast<int>(c.kind), c.d});
+      for (const Want& w : want) b.push_back({static_cast<int>(w.kind), w.d});
+      std::sort(a.begin(), a.end());
+      std::sort(b.begin(), b.end());
+      EXPECT_EQ(a, b) << trial;
+    }
+    // Both paths give the same constraints in the same order.
+    ASSERT_EQ(one_shot.size(), from_wide.size());
+    for (size_t k = 0; k < one_shot.size(); ++k) {
+      EXPECT_EQ(one_shot[k].v, from_wide[k].v);
+      EXPECT_EQ(one_shot[k].d, from_wide[k].d);
+    }
+  }
 }
 
 }  // namespace
