@@ -740,10 +740,11 @@ def test_coarse_correction_default_is_on_only_above_tol_1e_3():
 
 @pytest.mark.parametrize("method", ["wcsph", "dfsph"])
 def test_avx2_and_baseline_runs_are_bitwise_equal(method, monkeypatch):
-    # The light passes' row sums (3D) take AVX2 where the CPU has it; KINEMA_SIMD=baseline
-    # (read when the solver is built) forces the portable code. Both do the same operations in
-    # the same order, so whole runs agree bit for bit (tests/cpp/test_sph_rows.cpp checks the
-    # row sums themselves, and skips where the CPU has no AVX2).
+    # The light passes' row sums (3D) and the kernel pass's kernel values take AVX2 where the
+    # CPU has it; KINEMA_SIMD=baseline (read when the solver is built) forces the portable code.
+    # Both do the same operations in the same order, so whole runs agree bit for bit
+    # (tests/cpp/test_sph_rows.cpp checks the row sums and kernel values themselves, and skips
+    # where the CPU has no AVX2).
     s = 0.02
     x = km.sph.block([0, 0, 0], [0.2, 0.3, 0.2], s)
     domain = ([0, 0, 0], [0.5, 0.4, 0.2])

@@ -313,25 +313,32 @@ def bench_work_precision(n, tols, rec, threads, boundaries=("akinci", "volume-ma
     timed steps; SPlisHSPlasH: the same mean compression of its densities), not the tolerance
     asked for. With two_level, kinema also with its coarse correction forced on
     ("kinema-dfsph-two-level"; by default it is on only where tol > 1e-3): the A/B of the
-    two-level density solve in the same run. Returns {code: [(error, s_per_sim_s), ...]}."""
+    two-level density solve in the same run. Returns {code: [(error, s_per_sim_s), ...]} of wall
+    time, and the same of CPU time (each code's own threads, harness.with_cpu; SPlisHSPlasH's
+    median per step): on a loaded machine the wall times of runs minutes apart see different
+    loads (one peer run at other load 1.0 took 261 s per simulated s, the same settings at
+    1.4-1.6 took 496-838 s), the CPU time far less."""
     dt, s, c = timed_dt(n, "dfsph", tols[0])  # one dt for every point: the same work per step
-    curves = {}
+    curves, cpu_curves = {}, {}
     variants = [("kinema-dfsph", {})] + ([("kinema-dfsph-two-level", {"coarse_correction": True})] if two_level else [])
     for (code, options), tol in ((v, tol) for tol in tols for v in variants):
         fluid = started_fluid(n, "dfsph", tol, dt, **options)
         iterations, split = [], {}
         run = steps_of(fluid, dt, iterations, split, same_steps=True)
 
-        m = harness.measure(run, min_of=1, **MEASURE)
-        err = m.value
+        m = harness.measure(harness.with_cpu(run), min_of=1, **MEASURE)
+        err, cpu = m.value
         check(code, np.isfinite(fluid.x).all(), "non-finite positions")
         per_sim = m.seconds / STEPS / dt
+        cpu_per_sim = cpu / STEPS / dt
         curves.setdefault(code, []).append((err, per_sim))
+        cpu_curves.setdefault(code, []).append((err, cpu_per_sim))
         rec.record(code, fluid.n, per_sim, error=err, measurement=m, iterations=float(np.mean(iterations)),
-                   notes={"tol": tol, "dt": f"{dt:.3g}", "unit": "s per simulated s"})
+                   notes={"tol": tol, "dt": f"{dt:.3g}", "unit": "s per simulated s",
+                          "cpu_s_per_sim_s": f"{cpu_per_sim:.4g}"})
         print(f"  {code:25s} tol={tol:7.1e} n={fluid.n:7d} density error {err:8.2e} "
-              f"{per_sim:8.1f} s/sim s, {np.mean(iterations):5.1f} iterations/step (other load {m.other_load:.2f})",
-              flush=True)
+              f"{per_sim:8.1f} s/sim s (CPU {cpu_per_sim:.1f}), {np.mean(iterations):5.1f} iterations/step "
+              f"(other load {m.other_load:.2f})", flush=True)
         step = max(split["step"], 1e-12)  # where the step's time went (the last timed call)
         print(f"      kinema's step: search {split['search'] / step:4.0%}, kernel pass {split['kernel'] / step:4.0%}, "
               f"solves {split['solve'] / step:4.0%}, rest {1 - (split['search'] + split['kernel'] + split['solve']) / step:4.0%}",
@@ -352,18 +359,20 @@ def bench_work_precision(n, tols, rec, threads, boundaries=("akinci", "volume-ma
                       f"of the box, top speed {res['max_speed']:.3g} m/s); not recording")
                 continue
             per_sim = per_step / dt
+            cpu_per_sim = float(np.median(res["cpu_per_step"])) / dt
             its = float(np.mean(res["iterations_per_step"]))
             curves.setdefault(name, []).append((err, per_sim))
+            cpu_curves.setdefault(name, []).append((err, cpu_per_sim))
             m = harness.Measurement(seconds=per_sim, wall=sum(res["per_step"]), other_load=res["other_load"],
                                     repeats=1, disturbed=res["other_load"] > harness.DEFAULT_MAX_LOAD, value=None,
                                     runs=())
             rec.record(name, res["particles"], per_sim, error=err, iterations=its, measurement=m,
                        notes={"tol": tol, "dt": f"{dt:.3g}", "unit": "s per simulated s", "boundary": boundary,
-                              **res["applied"]})
+                              "cpu_s_per_sim_s": f"{cpu_per_sim:.4g}", **res["applied"]})
             print(f"  {name:25s} tol={tol:7.1e} n={res['particles']:7d} density error {err:8.2e} "
-                  f"{per_sim:8.1f} s/sim s, {its:5.1f} iterations/step (other load {res['other_load']:.2f})",
-                  flush=True)
-    return curves
+                  f"{per_sim:8.1f} s/sim s (CPU {cpu_per_sim:.1f}), {its:5.1f} iterations/step "
+                  f"(other load {res['other_load']:.2f})", flush=True)
+    return curves, cpu_curves
 
 
 def at(points, e):
@@ -471,8 +480,8 @@ def main(argv=None) -> int:
         rec = harness.Recorder(csv_wp, "sph_dambreak3d_dfsph_work_precision", threads=args.threads)
         print(f"threads {args.threads}, commit {harness.git_commit()}")
         print(f"DFSPH work-precision, 3D dam break, ~{sizes[0]} particles:")
-        curves = bench_work_precision(sizes[0], tuple(args.tols or WP_TOLS), rec, args.threads,
-                                      () if args.no_peers else ("akinci", "volume-map"), args.two_level)
+        curves, cpu_curves = bench_work_precision(sizes[0], tuple(args.tols or WP_TOLS), rec, args.threads,
+                                                  () if args.no_peers else ("akinci", "volume-map"), args.two_level)
         if args.two_level:
             ab = [(e, at(curves.get("kinema-dfsph", []), e), at(curves.get("kinema-dfsph-two-level", []), e))
                   for e in (1e-3, 5e-4, 2e-4, 1e-4)]
@@ -493,6 +502,12 @@ def main(argv=None) -> int:
               + (" -> target met" if all(met) else " -> target NOT met")
               + "; peer's cheapest run at least as accurate / kinema: "
               + ", ".join(f"{e:.0e}: {f'{r:.2f}x' if r else 'n/a'}" for e, r, _ in strict))
+        cpu_eq, cpu_strict = equal_accuracy_ratios(cpu_curves), at_least_as_accurate_ratios(cpu_curves)
+        print("SUMMARY sph work-precision, CPU seconds (each code's own threads: less disturbed by other load than "
+              "the wall time above): equal error "
+              + ", ".join(f"{e:.0e}: {f'{r:.2f}x' if r else 'n/a'}" for e, r, _ in cpu_eq)
+              + "; peer's cheapest run at least as accurate / kinema: "
+              + ", ".join(f"{e:.0e}: {f'{r:.2f}x' if r else 'n/a'}" for e, r, _ in cpu_strict))
         plot_and_report(csv_wp, "sph_dfsph_work_precision.png", "sph_dambreak3d_dfsph_work_precision")
         return 0
     csv_path = OUT / "sph.csv"

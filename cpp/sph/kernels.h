@@ -86,8 +86,62 @@ struct CubicSpline {
   // grad_i W(x_i - x_j) for xij = x_i - x_j.
   Vec grad(const Vec& xij) const { return grad_factor(std::sqrt(xij.squaredNorm())) * xij; }
 
+  // r = sqrt(r2), w(r) and grad_factor(r) of `count` squared distances (the kernel pass's
+  // chunks of entries), one at a time; kernel_values_avx2 below gives the same bits.
+  void values(const Scalar* r2, int count, Scalar* r, Scalar* w_out, Scalar* dw_out) const {
+    for (int e = 0; e < count; ++e) {
+      r[e] = std::sqrt(r2[e]);
+      w_out[e] = w(r[e]);
+      dw_out[e] = grad_factor(r[e]);
+    }
+  }
+
   Scalar h, inv_h, sigma;
 };
+
+#if KINEMA_HAVE_AVX2_CLONES
+// CubicSpline::values four distances at a time: each lane does CubicSpline::w's and
+// grad_factor's multiplications, additions, square root and division in their order (no FMA),
+// and selects as they branch, so the results are bitwise theirs. The square root and the
+// division, one per entry each, were the kernel pass's costliest instructions as scalars.
+template <int D>
+KINEMA_TARGET_AVX2 void kernel_values_avx2(const CubicSpline<D>& W, const Scalar* r2, int count, Scalar* r, Scalar* w_out,
+                                           Scalar* dw_out) {
+  const Scalar inv_h = W.inv_h, sigma = W.sigma;
+  const __m256d one = _mm256_set1_pd(1), half = _mm256_set1_pd(0.5), zero = _mm256_setzero_pd();
+  const __m256d six = _mm256_set1_pd(6), two = _mm256_set1_pd(2), three = _mm256_set1_pd(3);
+  const __m256d vinv_h = _mm256_set1_pd(inv_h), vsigma = _mm256_set1_pd(sigma);
+  const __m256d sigma2 = _mm256_set1_pd(sigma * 2);
+  const __m256d c_inner = _mm256_set1_pd(sigma * inv_h * 6), c_outer = _mm256_set1_pd(-sigma * inv_h * 6);
+  int e = 0;
+  for (; e + 4 <= count; e += 4) {
+    const __m256d re = _mm256_sqrt_pd(_mm256_loadu_pd(r2 + e));
+    const __m256d q = _mm256_mul_pd(re, vinv_h);
+    const __m256d t = _mm256_sub_pd(one, q);
+    const __m256d qq = _mm256_mul_pd(q, q);
+    // w: sigma (6 (q^3 - q^2) + 1) or sigma 2 t^3.
+    const __m256d w_in =
+        _mm256_mul_pd(vsigma, _mm256_add_pd(_mm256_mul_pd(six, _mm256_sub_pd(_mm256_mul_pd(qq, q), qq)), one));
+    const __m256d w_out4 = _mm256_mul_pd(_mm256_mul_pd(_mm256_mul_pd(sigma2, t), t), t);
+    const __m256d inner_mask = _mm256_cmp_pd(q, half, _CMP_LE_OQ);
+    const __m256d outside = _mm256_cmp_pd(q, one, _CMP_GE_OQ);
+    const __m256d w = _mm256_blendv_pd(_mm256_blendv_pd(w_out4, w_in, inner_mask), zero, outside);
+    // grad_factor: (sigma / h) 6 (3 q^2 - 2 q) or -(sigma / h) 6 (1 - q)^2, over r.
+    const __m256d g_in = _mm256_mul_pd(c_inner, _mm256_sub_pd(_mm256_mul_pd(_mm256_mul_pd(three, q), q), _mm256_mul_pd(two, q)));
+    const __m256d g_out = _mm256_mul_pd(_mm256_mul_pd(c_outer, t), t);
+    const __m256d g = _mm256_div_pd(_mm256_blendv_pd(g_out, g_in, inner_mask), re);
+    const __m256d none = _mm256_or_pd(outside, _mm256_cmp_pd(re, zero, _CMP_LE_OQ));
+    _mm256_storeu_pd(r + e, re);
+    _mm256_storeu_pd(w_out + e, w);
+    _mm256_storeu_pd(dw_out + e, _mm256_blendv_pd(g, zero, none));
+  }
+  for (; e < count; ++e) {
+    r[e] = std::sqrt(r2[e]);
+    w_out[e] = W.w(r[e]);
+    dw_out[e] = W.grad_factor(r[e]);
+  }
+}
+#endif
 
 // Tait's equation of state (Becker and Teschner 2007, eq. 6), p = B ((rho/rho0)^gamma - 1),
 // with negative pressures clamped to zero: they would pull free-surface particles into

@@ -2,6 +2,8 @@
 // Equation numbers: Becker and Teschner 2007 (WCSPH), Bender and Koschier 2017 (DFSPH,
 // "Divergence-Free SPH for Incompressible and Viscous Fluids", IEEE TVCG), Akinci et al. 2012
 // (boundary), Koschier et al. 2019 (the course notes: kernel, viscosity, CFL).
+#include <omp.h>
+
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
@@ -43,6 +45,7 @@ class SolverD final : public Solver::Impl {
 
   SolverD(const Model& model, const Config& config)
       : Impl(model, config), W_(model.h), c_(model.speed_of_sound), rows_(RowSums<D>::choose(use_avx2())) {
+    values_avx2_ = use_avx2() && cpu_has_avx2();
     for (int a = 0; a < D; ++a) g_[a] = config.gravity[a];
     const bool coarse = config.coarse_correction > 0 || (config.coarse_correction < 0 && config.tol > Config::kCoarseAutoTol);
     if (coarse && g_.norm() > 0) g_.cwiseAbs().maxCoeff(&coarse_axis_);
@@ -138,6 +141,7 @@ class SolverD final : public Solver::Impl {
   // it is given, as SPlisHSPlasH's TimeStepDFSPH::step does).
   void step_dfsph(State& s, Scalar dt, StepStats& stats, Interrupt& interrupt) {
     const Index n = s.n;
+    pending_apply_ = false;
     // Neighbourhoods of the current positions (Verlet lists; Morton reordering every few steps),
     // the step's kernel gradients, densities and the factors alpha_i (eq. 11).
     neighborhoods(s, true, true, s.density.data());
@@ -388,16 +392,26 @@ class SolverD final : public Solver::Impl {
   template <class Residual>
   int projected_jacobi(State& s, Scalar dt, Scalar scale, std::vector<Scalar>& k, Scalar tol, int min_iter,
                        Residual&& residual, Scalar& error, Interrupt& interrupt, Scalar warm_scale,
-                       Scalar compression_weight, Scalar expansion_weight, bool two_level = false) {
+                       Scalar compression_weight, Scalar expansion_weight, bool two_level = false,
+                       bool defer_last = false) {
     const Index n = s.n;
     const Scalar w = s.last_dt > 0 ? config_.warm_start * warm_scale : 0;
-    if (w > 0) {
-      parallel_for(n, [&](Index i) { k[i] = kappa_[i] = warm_left_[i] = w * k[i]; });
+    // The increments a solve before this one left to apply (defer_last below) go with the warm
+    // start's: apply_kappa is linear in the stiffnesses, so one pass applies both.
+    const bool pending = pending_apply_;
+    pending_apply_ = false;
+    if (w > 0 || pending) {
+      parallel_for(n, [&](Index i) {
+        k[i] = warm_left_[i] = w * k[i];
+        kappa_[i] = pending ? k[i] + pending_[i] : k[i];
+      });
       apply_kappa(s, dt);
     } else {
+      sync_v4(s);  // (with a warm start apply_kappa does, and every iteration after)
+    }
+    if (!(w > 0)) {
       std::fill(k.begin(), k.end(), 0);
       std::fill(warm_left_.begin(), warm_left_.end(), 0);
-      sync_v4(s);  // (with a warm start apply_kappa does, and every iteration after)
     }
     error = residual();
     // The coarse correction runs when the warm start already ends within tol: that is where a
@@ -432,6 +446,9 @@ class SolverD final : public Solver::Impl {
     while ((error > tol || it < min_iter) && it < config_.max_iter) {
       interrupt.check();
       const bool coarse = two_level && it == 0;
+      // The last of the minimum iterations from a residual already within tol: the solve stops
+      // after it without recomputing the residual (see below).
+      const bool last = !coarse && it + 1 == min_iter && error <= tol;
       if (coarse) coarse_solve(s, scale);
       parallel_for(n, [&](Index i) {
         Scalar increment;
@@ -447,7 +464,28 @@ class SolverD final : public Solver::Impl {
         if (kappa_[i] < 0) warm_left_[i] += kappa_[i];
         k[i] += kappa_[i];
       });
+      // With defer_last that last iteration's velocity change is left to the next solve's warm
+      // start (pending_): one neighbour pass fewer (the divergence solve, where nothing in
+      // between reads the velocities but the gravity update, which commutes with it).
+      if (last && defer_last) {
+        pending_.assign(kappa_.begin(), kappa_.end());
+        pending_apply_ = true;
+        ++it;
+        break;
+      }
       apply_kappa(s, dt);
+      // The last of the minimum iterations from a residual already within tol: the solve stops
+      // after it without recomputing the residual (one light pass of the ten a step makes at
+      // tol 1e-3; the divergence solve's usual exit there, its one minimum iteration from a
+      // warm start within tol), and `error` stays the one before it. Presumed within tol: an
+      // iteration from a converged state lowers the compression almost always. Measured on
+      // the 150k dam break at tol 1e-3 / 5e-4 / 3e-4 / 1e-4 (bench/sph/sph_dfsph_iterations.py
+      // start), 1 of 19 such residuals ended above tol (5.06e-4 at tol 5e-4, from 4.98e-4),
+      // none in the columns at rest and dam breaks of tests/test_sph.py.
+      if (last) {
+        ++it;
+        break;
+      }
       error = residual();
       b = error > last_error ? 0 : beta;  // restart where the error rose
       last_error = error;
@@ -505,7 +543,8 @@ class SolverD final : public Solver::Impl {
              config_.rho0;
     };
     const int it = projected_jacobi(s, dt, dt, s.kappa_divergence, config_.divergence_tol, 1, residual,
-                                    stats.divergence_error, interrupt, s.last_dt > 0 ? s.last_dt / dt : 1, 1, 0);
+                                    stats.divergence_error, interrupt, s.last_dt > 0 ? s.last_dt / dt : 1, 1, 0, false,
+                                    config_.viscosity == 0);
     return it;
   }
 
@@ -541,11 +580,16 @@ class SolverD final : public Solver::Impl {
   const NeighborLists& fluid() const { return lists_->skin > 0 ? fluid_exact_ : lists_->fluid; }
   const NeighborLists& boundary() const { return lists_->skin > 0 ? boundary_exact_ : lists_->boundary; }
 
-  // Calls keep(j, x_i - x_j, |x_i - x_j|) for the entries j of row i of the Verlet list `wide`
-  // (listed points xs) within h, in list order. The test is done branch-free a chunk of entries
-  // at a time (about 40% of a Verlet list's entries fail it, at random).
-  template <class Keep>
-  void within_support(const NeighborLists& wide, const Scalar* xs, const Vec& xi, Index i, Keep&& keep) const {
+  // Calls keep(k, j, x_i - x_j, W_ij, dW/dr / r) for the entries k (list[k] = j) of row i of
+  // the list `wide` (listed points xs), in list order: those within h if Filter (about 40% of a
+  // Verlet list's entries fail the test, at random), else all; then emit(j, value) with the
+  // value each keep returned. A chunk of entries at a time: the distances and the test
+  // branch-free, then the kernel values of the chunk's entries kept at once (kernel_values: four
+  // wide with AVX2; the square root and division per entry were the kernel pass's costliest
+  // instructions as scalars), then keep over the chunk, then emit (a caller's sums in keep stay
+  // in registers: with the list's stores in the same loop they went through memory).
+  template <bool Filter, class Keep, class Emit>
+  void row_entries(const NeighborLists& wide, const Scalar* xs, const Vec& xi, Index i, Keep&& keep, Emit&& emit) const {
     constexpr Index kChunk = 64;
     const Scalar h2 = model_.h * model_.h;
     const std::int32_t* list = wide.list.data();
@@ -553,20 +597,31 @@ class SolverD final : public Solver::Impl {
     for (Index k0 = wide.start[i]; k0 < end; k0 += kChunk) {
       const Index k1 = std::min(end, k0 + kChunk);
       std::int32_t kept[kChunk];
-      Scalar kept_r2[kChunk];
+      Scalar r2[kChunk], r[kChunk], w[kChunk], dw[kChunk];
       int count = 0;
       for (Index k = k0; k < k1; ++k) {
         const std::int32_t j = list[k];
-        const Scalar r2 = (xi - CMap(xs + Index{j} * D)).squaredNorm();
-        kept[count] = j;
-        kept_r2[count] = r2;
-        count += r2 < h2;
+        const Scalar d2 = (xi - CMap(xs + Index{j} * D)).squaredNorm();
+        kept[count] = static_cast<std::int32_t>(k - k0);
+        r2[count] = d2;
+        count += Filter ? d2 < h2 : 1;
       }
+      kernel_values(r2, count, r, w, dw);
       for (int e = 0; e < count; ++e) {
-        const Index j = kept[e];
-        keep(j, Vec(xi - CMap(xs + j * D)), std::sqrt(kept_r2[e]));
+        const Index k = k0 + kept[e], j = list[k];
+        r[e] = keep(k, j, Vec(xi - CMap(xs + j * D)), w[e], dw[e]);  // (r[] reused for the values)
       }
+      for (int e = 0; e < count; ++e) emit(list[k0 + kept[e]], r[e]);
     }
+  }
+
+  // r = sqrt(r2), W(r) and dW/dr / r of count distances (CubicSpline::values, or its AVX2
+  // version where the CPU has it: the same bits).
+  void kernel_values(const Scalar* r2, int count, Scalar* r, Scalar* w, Scalar* dw) const {
+#if KINEMA_HAVE_AVX2_CLONES
+    if (values_avx2_) return kernel_values_avx2<D>(W_, r2, count, r, w, dw);
+#endif
+    W_.values(r2, count, r, w, dw);
   }
 
   // One pass over the Verlet lists at the step's positions that keeps their entries within h
@@ -581,25 +636,28 @@ class SolverD final : public Solver::Impl {
   // the exact Jacobi diagonal, with B_i . G_i taken as >= 0 (a smaller step where it is
   // negative, at a wall beside a free surface); zero without neighbours.
   // For every particle i (at x): row(i, x_i, entries), where entries(entry) calls
-  // entry(j, x_i - x_j, |x_i - x_j|) for each neighbour j within h (listed points xs) in list
-  // order; with the dW/dr / r it returns, grad_i W_ij = (dW/dr / r)(x_i - x_j) goes into
+  // entry(j, x_i - x_j, W_ij, dW/dr / r) for each neighbour j within h (listed points xs) in
+  // list order (row_entries); with the dW/dr / r it returns, grad_i W_ij = (dW/dr / r)(x_i - x_j) goes into
   // grads (D floats per entry, parallel to the step's list, and one float of padding that the
   // row sums of kernels.h read; nothing stored if grads is null). The later passes then stream
   // the gradients instead of gathering x_j: 12 bytes per entry, and single precision perturbs a
   // gradient by ~1e-7 relative, far below the solvers' tolerances. With a skin the Verlet list
-  // `wide` is filtered into `exact` on the way (the factors staged in kept_dw), without it is exact
-  // already.
+  // `wide` is filtered into `exact` on the way (fill_with_gradients; without grads the factors
+  // are staged in kept_dw), without it is exact already.
   template <class Row>
   void kernel_rows(const NeighborLists& wide, NeighborLists& exact, std::vector<Scalar>& kept_dw,
                    std::vector<float>* grads, const Scalar* xs, const Scalar* x, Index n, Row&& row) {
     auto store = [&](Index k, Scalar dw, const Vec& xij) {
       if (grads) Eigen::Map<Eigen::Matrix<float, D, 1>>(grads->data() + k * D) = stored_gradient(dw, xij);
     };
+    if (lists_->skin > 0 && grads) return fill_with_gradients(wide, exact, *grads, xs, x, n, row);
     if (lists_->skin > 0) {
       exact.fill_with_values(n, kept_dw, [&](Index i, auto&& push) {
         const Vec xi = CMap(x + i * D);
         row(i, xi, [&](auto&& entry) {
-          within_support(wide, xs, xi, i, [&](Index j, const Vec& xij, Scalar r) { push(j, entry(j, xij, r)); });
+          row_entries<true>(
+              wide, xs, xi, i, [&](Index, Index j, const Vec& xij, Scalar w, Scalar dw) { return entry(j, xij, w, dw); },
+              push);
         });
       });
       if (!grads) return;
@@ -614,13 +672,69 @@ class SolverD final : public Solver::Impl {
     parallel_for(n, [&](Index i) {
       const Vec xi = CMap(x + i * D);
       row(i, xi, [&](auto&& entry) {
-        for (Index k = wide.start[i]; k < wide.start[i + 1]; ++k) {
-          const Index j = wide.list[k];
-          const Vec xij = xi - CMap(xs + j * D);
-          store(k, entry(j, xij, std::sqrt(xij.squaredNorm())), xij);
-        }
+        row_entries<false>(
+            wide, xs, xi, i,
+            [&](Index k, Index j, const Vec& xij, Scalar w, Scalar dw) {
+              const Scalar value = entry(j, xij, w, dw);
+              store(k, value, xij);
+              return value;
+            },
+            [](Index, Scalar) {});
       });
     });
+  }
+
+  // kernel_rows with a skin and gradients: exact := the entries of the Verlet list `wide` within
+  // h, their gradients into grads, in one pass over the rows (staging dW/dr / r per entry and a
+  // second pass gathering x_j again to form the gradients cost about 15% of the kernel pass at
+  // 150k particles). Each thread fills the rows of one contiguous chunk into its own buffers,
+  // concatenated in order: the same arrays for any thread count, bitwise those of the two passes.
+  template <class Row>
+  void fill_with_gradients(const NeighborLists& wide, NeighborLists& exact, std::vector<float>& grads,
+                           const Scalar* xs, const Scalar* x, Index n, Row&& row) {
+    exact.start.assign(static_cast<size_t>(n) + 1, 0);
+    const int threads = n > kParallelGrain ? num_threads() : 1;
+    fill_ids_.resize(static_cast<size_t>(threads));
+    fill_grads_.resize(static_cast<size_t>(threads));
+#pragma omp parallel num_threads(threads)
+    {
+      const int t = omp_get_thread_num(), nt = omp_get_num_threads();
+      const Index begin = n * t / nt, end = n * (t + 1) / nt;
+      auto& ids = fill_ids_[static_cast<size_t>(t)];
+      auto& gs = fill_grads_[static_cast<size_t>(t)];
+      ids.size = gs.size = 0;
+      for (Index i = begin; i < end; ++i) {
+        const auto most = static_cast<size_t>(wide.start[i + 1] - wide.start[i]);
+        std::int32_t* id = ids.room(most);
+        float* g = gs.room(most * D);
+        Index count = 0;
+        const Vec xi = CMap(x + i * D);
+        row(i, xi, [&](auto&& entry) {
+          row_entries<true>(
+              wide, xs, xi, i,
+              [&](Index, Index j, const Vec& xij, Scalar w, Scalar dw) {
+                const Scalar value = entry(j, xij, w, dw);
+                id[count] = static_cast<std::int32_t>(j);
+                Eigen::Map<Eigen::Matrix<float, D, 1>>(g + count * D) = stored_gradient(value, xij);
+                ++count;
+                return value;
+              },
+              [](Index, Scalar) {});
+        });
+        exact.start[i + 1] = count;
+        ids.size += static_cast<size_t>(count);
+        gs.size += static_cast<size_t>(count * D);
+      }
+#pragma omp barrier
+#pragma omp single
+      {
+        for (Index i = 0; i < n; ++i) exact.start[i + 1] += exact.start[i];
+        exact.list.resize(static_cast<size_t>(exact.start[n]));
+        grads.resize(exact.list.size() * D + 1);
+      }
+      std::copy(ids.data.get(), ids.data.get() + ids.size, exact.list.begin() + exact.start[begin]);
+      std::copy(gs.data.get(), gs.data.get() + gs.size, grads.begin() + exact.start[begin] * D);
+    }
   }
 
   // grad_i W_ij = (dW/dr / r) x_ij as the light passes read it (rounded to float).
@@ -641,9 +755,8 @@ class SolverD final : public Solver::Impl {
       Scalar rho = m * W_.w0();
       Vec gsum = Vec::Zero();
       Scalar gsq = 0;
-      entries([&](Index, const Vec& xij, Scalar r) {
-        const Scalar dw = W_.grad_factor(r);
-        rho += m * W_.w(r);
+      entries([&](Index, const Vec& xij, Scalar w, Scalar dw) {
+        rho += m * w;
         if (factors) {
           const Vec gw = m * stored_gradient(dw, xij).template cast<Scalar>();
           gsum += gw;
@@ -665,9 +778,8 @@ class SolverD final : public Solver::Impl {
     kernel_rows(lists_->boundary, boundary_exact_, boundary_dw_, nullptr, xb, x, s.n, [&](Index i, const Vec&, auto&& entries) {
       Scalar rho = density[i];
       Vec bsum = Vec::Zero();
-      entries([&](Index b, const Vec& xib, Scalar r) {
-        const Scalar dw = W_.grad_factor(r);
-        rho += psi[b] * W_.w(r);
+      entries([&](Index b, const Vec& xib, Scalar w, Scalar dw) {
+        rho += psi[b] * w;
         bsum += psi[b] * (dw * xib);
         return dw;
       });
@@ -962,12 +1074,15 @@ class SolverD final : public Solver::Impl {
   const VerletLists* lists_ = nullptr;          // the step's Verlet lists (the state's)
   NeighborLists fluid_exact_, boundary_exact_;  // their entries within h (kernel_pass; with a skin)
   RowSums<D> rows_;                             // the light passes' row sums (AVX2 or baseline)
+  bool values_avx2_ = false;                    // kernel_values four wide (AVX2)
   bool rebuilt_ = false;                        // the step rebuilt the lists
   double search_seconds_ = 0, kernel_seconds_ = 0;  // the last neighborhoods() call's split
   const Scalar* forces_ = nullptr;              // the step's external forces (n, d) by particle id, or null
   std::vector<Scalar> accel_;      // (n, d) accelerations
   std::vector<Scalar> aux_;        // DFSPH: predicted densities or density rates; WCSPH: p_i / rho_i^2
   std::vector<Scalar> prev_;       // DFSPH: the last iteration's increments (momentum)
+  std::vector<Scalar> pending_;    // DFSPH: increments the divergence solve left to apply (defer_last)
+  bool pending_apply_ = false;
   std::vector<Scalar> v4_;         // DFSPH with rows_.dot4: the velocities padded to (n, 4)
   std::vector<Scalar> warm_left_;  // DFSPH: warm-start stiffness a solve may still give back
   std::vector<Scalar> kappa_;      // DFSPH: increment of kappa_i / rho_i in the current iteration
@@ -983,6 +1098,9 @@ class SolverD final : public Solver::Impl {
   // kernel_pass with a skin: dW/dr / r of the entries kept, one buffer per list so that each
   // grows to its list's size once (shared, every fluid pass after a boundary pass regrew it).
   std::vector<Scalar> fluid_dw_, boundary_dw_;
+  // fill_with_gradients' per-thread buffers (kept: a step allocates nothing once they have grown).
+  std::vector<NeighborLists::Buffer<std::int32_t>> fill_ids_;
+  std::vector<NeighborLists::Buffer<float>> fill_grads_;
   // WCSPH's walls ("WCSPH's walls"): their rows and, per boundary sample (M,), the density
   // rho_b and P_b = p_b / rho_b^2.
   WallRows walls_;

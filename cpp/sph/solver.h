@@ -27,8 +27,9 @@ struct StepStats : StepStatsBase {
   int iterations = 0;             // DFSPH constant-density iterations
   int divergence_iterations = 0;  // DFSPH divergence-free iterations
   Scalar density_error = 0;       // mean compression max(rho/rho0 - 1, 0) (DFSPH: the density solve's error, of the
-                                  // predicted densities)
-  Scalar divergence_error = 0;    // the divergence solve's error (DFSPH)
+                                  // predicted densities; where a solve ends on a minimum iteration
+                                  // begun within tol, the error before that iteration)
+  Scalar divergence_error = 0;    // the divergence solve's error (DFSPH; likewise)
   // DFSPH: each solve ended within its tolerance (false: it stopped at max_iter with the error
   // above; WCSPH: always true). advance() counts the steps that did not.
   bool density_converged = true;

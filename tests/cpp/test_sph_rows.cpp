@@ -1,6 +1,7 @@
 // The neighbour-row sums of the SPH light passes (sph/kernels.h: row_dot, row_weighted, and
 // row_dot over padded velocities): the AVX2 versions equal the baseline bit for bit (same operations in the same order, no FMA), and
-// both agree with a long-double reference within the rounding bound of their summation.
+// both agree with a long-double reference within the rounding bound of their summation. Also the
+// kernel pass's kernel values (kernel_values_avx2 against CubicSpline::values).
 #include <gtest/gtest.h>
 
 #include <cmath>
@@ -112,6 +113,56 @@ TEST(SphRows, Avx2EqualsBaselineBitwise) {
     wide.weighted(r.list.data(), r.grads.data(), b, e, r.c[i], r.c.data(), out1);
     for (int a = 0; a < 3; ++a) ASSERT_EQ(out0[a], out1[a]) << "row_weighted, row " << i << ", component " << a;
   }
+}
+
+// The kernel pass's kernel values (sph/kernels.h): kernel_values_avx2 gives CubicSpline::values'
+// r, W and dW/dr / r bit for bit, over distances that cover both pieces of the spline, the
+// join q = 1/2, the edge q = 1 and beyond, r = 0 (grad_factor 0) and every tail length (count
+// mod 4), in 2D and 3D; and the values are the spline's (kernel_w, kernel_dw / r).
+template <int D>
+void check_kernel_values() {
+  const Scalar h = 0.037;
+  const sph::CubicSpline<D> W(h);
+  std::mt19937 rng(5);
+  std::uniform_real_distribution<Scalar> u(0, 1.1);
+  std::vector<Scalar> r2;
+  for (const Scalar q : {0.0, 0.5, 1.0, 1e-300, 0.25, 0.75, 0.9999999, 1.0000001})
+    r2.push_back(q * h * q * h);
+  while (r2.size() < 67) {
+    const Scalar q = u(rng);
+    r2.push_back(q * h * q * h);
+  }
+  for (int count = 0; count <= static_cast<int>(r2.size()); ++count) {
+    std::vector<Scalar> r0(count), w0(count), g0(count), r1(count), w1(count), g1(count);
+    W.values(r2.data(), count, r0.data(), w0.data(), g0.data());
+#if KINEMA_HAVE_AVX2_CLONES
+    sph::kernel_values_avx2<D>(W, r2.data(), count, r1.data(), w1.data(), g1.data());
+#else
+    W.values(r2.data(), count, r1.data(), w1.data(), g1.data());
+#endif
+    for (int e = 0; e < count; ++e) {
+      ASSERT_EQ(r0[e], r1[e]) << D << "D, count " << count << ", entry " << e;
+      ASSERT_EQ(w0[e], w1[e]) << D << "D, count " << count << ", entry " << e;
+      ASSERT_EQ(g0[e], g1[e]) << D << "D, count " << count << ", entry " << e;
+    }
+  }
+  std::vector<Scalar> r(r2.size()), w(r2.size()), g(r2.size());
+  W.values(r2.data(), static_cast<int>(r2.size()), r.data(), w.data(), g.data());
+  for (size_t e = 0; e < r2.size(); ++e) {
+    const Scalar want_w = sph::kernel_w(r[e], h, D);
+    const Scalar want_g = r[e] > 0 ? sph::kernel_dw(r[e], h, D) / r[e] : 0;
+    EXPECT_NEAR(w[e], want_w, 1e-12 * W.w0()) << "entry " << e;
+    EXPECT_NEAR(g[e], want_g, 1e-12 * 12 * W.w0() / (h * h)) << "entry " << e;  // |dW/dr / r| <= 12 sigma / h^2
+  }
+}
+
+TEST(SphKernelValues, Avx2EqualsBaselineBitwise) {
+  if (!cpu_has_avx2()) GTEST_SKIP() << "this CPU has no AVX2";
+#if defined(__FMA__)
+  GTEST_SKIP() << "built with FMA (-march=native): the baseline may contract its multiply-adds";
+#endif
+  check_kernel_values<2>();
+  check_kernel_values<3>();
 }
 
 }  // namespace kinema
