@@ -332,3 +332,17 @@ def test_an_empty_spring_list_is_no_springs():
     assert s.springs.shape == (0, 2)
     s.step(0.1)
     np.testing.assert_allclose(s.x[:, 1], -9.81 * 0.1**2)
+
+
+def test_fixed_and_springs_are_read_only_copies():
+    # Writing into `fixed` did nothing (C++ holds its own copy): now the write is refused, and the
+    # caller's arrays are neither shared nor frozen.
+    x = np.array([[0.0, 0.0], [1.0, 0.0], [2.0, 0.0]])
+    springs, fixed = np.array([[0, 1], [1, 2]]), np.array([0])
+    sys = km.massspring.System(x, springs, stiffness=10.0, fixed=fixed)
+    for held in (sys.fixed, sys.springs):
+        with pytest.raises(ValueError, match="read-only"):
+            held[0] = 1
+    springs[0, 0] = 2
+    fixed[0] = 1
+    assert sys.springs[0, 0] == 0 and sys.fixed[0] == 0

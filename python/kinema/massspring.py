@@ -106,7 +106,8 @@ class System:
     Attributes (writable zero-copy views of the solver's memory, valid as long as the system):
     x: (n, d) positions [m]; v: (n, d) velocities [m/s]. ``config``: the :class:`Config` of the
     last ``step`` (integrator, beta, linear_solver, cg_tol). ``parameters``: the names km.diff
-    differentiates with respect to.
+    differentiates with respect to. ``fixed``, ``springs``: read-only copies of what the system
+    was built with (they are fixed for its life).
     """
 
     parameters = ("stiffness", "rest_length", "mass", "damping")
@@ -135,7 +136,11 @@ class System:
         self._core = _core.massspring.System(
             x, springs, _per_item(stiffness, m, "stiffness"), _per_item(rest_length, m, "rest_length"),
             _per_item(damping, m, "damping"), _per_item(mass, n, "mass"), self.fixed, self.gravity)
-        self.springs = springs
+        # Copied into the C++ system: read-only copies here, so that a write cannot silently do
+        # nothing (and the caller's own arrays stay writable).
+        self.fixed, self.springs = self.fixed.copy(), springs.copy()
+        for held in (self.fixed, self.springs):
+            held.setflags(write=False)
         self.contact = None  # km.contact.BodyContact once a collider is added
 
     @property
